@@ -1,0 +1,1 @@
+"""Command-line interface: ``tissuecast SUBCOMMAND ...`` (see :func:`tissuecast.cli.main.main`)."""

@@ -1,0 +1,20 @@
+"""``tissuecast config show [FILE]``: print the effective configuration as TOML."""
+
+from __future__ import annotations
+
+from ..config import config_to_toml, load_config
+
+
+def register(sub) -> None:
+    p = sub.add_parser("config", help="show the effective configuration")
+    csub = p.add_subparsers(dest="config_command", metavar="ACTION", required=True)
+    show = csub.add_parser("show", help="print the effective config (defaults = the paper's values)")
+    show.add_argument("file", nargs="?", help="TOML config file; omitted = defaults")
+    show.add_argument("--no-comments", action="store_true", help="omit the explanatory comments")
+    show.set_defaults(func=run)
+
+
+def run(args) -> int:
+    cfg = load_config(args.file)
+    print(config_to_toml(cfg, comments=not args.no_comments), end="")
+    return 0

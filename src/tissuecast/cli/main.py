@@ -1,0 +1,70 @@
+"""Entry point of the ``tissuecast`` command.
+
+Each subcommand lives in its own module of this package, exposing
+``register(subparsers)`` which adds its parser and sets ``func=run`` where
+``run(args) -> int`` does the work. Errors derived from
+:class:`~tissuecast.errors.TissuecastError` (and missing files) are printed as one line,
+``error: ...``, with exit status 2; ``--debug`` shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from .. import __version__
+from ..errors import TissuecastError
+
+# subcommand name -> module in tissuecast.cli (imported lazily so `tissuecast --help` is fast)
+COMMANDS: dict[str, str] = {
+    "config": "config_cmd",
+    "mesh": "mesh_cmd",
+    "markers": "markers_cmd",
+}
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="tissuecast",
+        description="Real-time soft-tissue deformation from fiducial markers (units: mm, N, MPa; vertex ids 0-based).",
+    )
+    parser.add_argument("--version", action="version", version=f"tissuecast {__version__}")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
+    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module in COMMANDS.items():
+        if only is not None and name != only:
+            sub.add_parser(name, help=f"(run `tissuecast {name} --help`)", add_help=False)
+            continue
+        importlib.import_module(f"{__package__}.{module}").register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; returns the exit status (0 ok, 2 user error, 1 unexpected failure)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    # import only the chosen subcommand's module when it is clear which one it is
+    first = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(first if first in COMMANDS else None)
+    args = parser.parse_args(argv)
+    level = logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 0 if args.command is None else 2
+    try:
+        return int(args.func(args) or 0)
+    except (TissuecastError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+        if args.debug:
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,337 @@
+"""Run configuration: frozen dataclasses loaded from TOML, with the paper's values as defaults.
+
+One :class:`Config` drives a whole run; each pipeline stage reads its own section. Loading is
+strict: an unknown key, a value of the wrong type or a value out of its range raises
+:class:`~tissuecast.errors.ConfigError` naming the key (``section.key``) and what is allowed.
+
+Units: lengths in mm, forces in N, stresses and moduli in MPa (E = 21 kPa is 0.021 MPa).
+Vertex ids are 0-based (the paper's vertex 97 is ``start = 96`` here).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import ConfigError
+
+__all__ = [
+    "Config",
+    "MeshConfig",
+    "MarkerConfig",
+    "MaterialConfig",
+    "SolverConfig",
+    "ForceConfig",
+    "DatasetConfig",
+    "SurrogateConfig",
+    "EvaluateConfig",
+    "ServeConfig",
+    "load_config",
+    "config_from_dict",
+    "config_to_dict",
+    "config_to_toml",
+    "with_overrides",
+]
+
+
+def _f(default, *, lo=None, hi=None, lo_open=False, hi_open=False, choices=None, doc=""):
+    """A dataclass field carrying its validation rule in metadata."""
+    meta = {"lo": lo, "hi": hi, "lo_open": lo_open, "hi_open": hi_open, "choices": choices, "doc": doc}
+    if isinstance(default, (list, dict)):
+        raise TypeError("use tuples for sequence defaults")
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    """Where the tetrahedral mesh comes from."""
+
+    path: str = _f("", doc="mesh file; empty = the built-in phantom")
+    units: str = _f("mm", choices=("mm", "cm", "m"), doc="length unit of the file")
+    surface_mesh_size: float = _f(3.0, lo=0.0, lo_open=True, doc="target tet size (mm) when tetrahedralising a surface")
+
+
+@dataclass(frozen=True)
+class MarkerConfig:
+    """Fiducial markers (revised k-center clustering) and fixed vertices."""
+
+    count: int = _f(5, lo=1, hi=200, doc="number of fiducial markers n_d")
+    start: int = _f(96, lo=0, doc="0-based start vertex v0 (paper: 97 1-based)")
+    min_distance: float = _f(10.0, lo=0.0, doc="d_min in mm")
+    ids: tuple[int, ...] = _f((), doc="user-given 0-based marker ids (overrides count/start)")
+    fixed_count: int = _f(3, lo=1, hi=50, doc="number of fixed (pinned) vertices")
+    fixed_ids: tuple[int, ...] = _f((), doc="user-given 0-based fixed vertex ids")
+
+
+@dataclass(frozen=True)
+class MaterialConfig:
+    """Compressible neo-Hookean material (Abaqus/CalculiX NEO HOOKE form)."""
+
+    youngs_modulus: float = _f(0.021, lo=0.0, lo_open=True, doc="E in MPa (21 kPa = 0.021 MPa)")
+    poisson_ratio: float = _f(0.45, lo=-1.0, hi=0.5, lo_open=True, hi_open=True, doc="nu")
+
+
+@dataclass(frozen=True)
+class SolverConfig:
+    """Nonlinear FEM solver settings."""
+
+    order: int = _f(2, choices=(1, 2), doc="element order: 2 = quadratic 10-node tets (C3D10)")
+    linear_solver: str = _f("auto", choices=("auto", "cholmod", "pardiso", "superlu"), doc="sparse direct backend")
+    force_tolerance: float = _f(5e-3, lo=0.0, lo_open=True, hi=1.0, doc="residual norm / reference force norm")
+    displacement_tolerance: float = _f(1e-2, lo=0.0, lo_open=True, hi=1.0, doc="correction / increment norm")
+    initial_increment: float = _f(1.0, lo=0.0, lo_open=True, hi=1.0, doc="first load fraction")
+    min_increment: float = _f(1e-5, lo=0.0, lo_open=True, hi=1.0, doc="smallest load fraction before giving up")
+    max_increments: int = _f(200, lo=1, doc="maximum number of increments")
+    max_iterations: int = _f(16, lo=1, doc="Newton iterations per increment before cutting back")
+    retries: int = _f(1, lo=0, hi=10, doc="retries of a failed sample with more cautious increments")
+
+
+@dataclass(frozen=True)
+class ForceConfig:
+    """Random surface force fields (LBO training fields and test-2 LSC fields)."""
+
+    n_basis: int = _f(20, lo=1, hi=500, doc="number of smoothest LBO eigenvectors")
+    target_max_displacement: float = _f(30.0, lo=0.0, lo_open=True, doc="largest displacement (mm) the data set should reach")
+    lsc_points: int = _f(3, lo=1, hi=50, doc="concentrated forces per test-2 sample")
+    lsc_iterations: int = _f(20, lo=0, hi=10000, doc="local Laplacian smoothing iterations")
+    lsc_rate: float = _f(0.1, lo=0.0, lo_open=True, hi=1.0, doc="smoothing rate gamma")
+    betas: tuple[float, ...] = _f((0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0), doc="LBO share beta of test-2 fields")
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """Data-set generation."""
+
+    store: str = _f("dataset.zarr", doc="path of the store")
+    n_samples: int = _f(2000, lo=1, doc="number of LBO samples (train + valid + test-1)")
+    split: tuple[float, ...] = _f((8.0, 1.0, 1.0), doc="train : valid : test-1 ratio")
+    n_test2: int = _f(200, lo=0, doc="number of test-2 (LSC/beta) samples")
+    seed: int = _f(0, lo=0, doc="base seed; per-sample seeds derive from it and the index")
+    workers: int = _f(0, lo=0, hi=256, doc="local worker processes; 0 = automatic")
+    scheduler: str = _f("", doc="Dask scheduler address tcp://HOST:PORT; empty = local")
+
+
+@dataclass(frozen=True)
+class SurrogateConfig:
+    """PCA + MLP surrogate and the ridge baseline."""
+
+    n_components: int = _f(0, lo=0, doc="PCA components n_w; 0 = the paper's rule")
+    pca_max_error: float = _f(1.0, lo=0.0, lo_open=True, doc="n_w rule: max vertex reconstruction error (mm)")
+    pca_folds: int = _f(5, lo=2, hi=50, doc="folds of the n_w cross-validation")
+    hidden: tuple[int, ...] = _f((128, 64), doc="hidden layer widths")
+    epochs: int = _f(2000, lo=1, doc="maximum training epochs")
+    batch_size: int = _f(128, lo=1, doc="mini-batch size")
+    learning_rate: float = _f(1e-3, lo=0.0, lo_open=True, hi=1.0, doc="Adam learning rate")
+    patience: int = _f(200, lo=0, doc="early-stopping patience in epochs; 0 = off")
+    noise_sigma: float = _f(0.0, lo=0.0, doc="marker noise augmentation (mm)")
+    ridge_ratio: float = _f(1e-3, lo=0.0, doc="ridge a2/a1")
+    seed: int = _f(0, lo=0, doc="training seed")
+
+
+@dataclass(frozen=True)
+class EvaluateConfig:
+    """Evaluation and report."""
+
+    output: str = _f("report", doc="report folder")
+    renders: int = _f(3, lo=0, hi=100, doc="number of samples rendered in 3D")
+
+
+@dataclass(frozen=True)
+class ServeConfig:
+    """OpenIGTLink server."""
+
+    host: str = _f("127.0.0.1", doc="bind address (localhost unless asked otherwise)")
+    port: int = _f(18944, lo=1, hi=65535, doc="TCP port (OpenIGTLink default 18944)")
+
+
+@dataclass(frozen=True)
+class Config:
+    """The whole run configuration. ``Config()`` reproduces the paper's set-up."""
+
+    name: str = _f("tissuecast", doc="run name")
+    output: str = _f("runs/tissuecast", doc="folder for everything the run writes")
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    markers: MarkerConfig = field(default_factory=MarkerConfig)
+    material: MaterialConfig = field(default_factory=MaterialConfig)
+    solver: SolverConfig = field(default_factory=SolverConfig)
+    forces: ForceConfig = field(default_factory=ForceConfig)
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    surrogate: SurrogateConfig = field(default_factory=SurrogateConfig)
+    evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
+    serve: ServeConfig = field(default_factory=ServeConfig)
+
+
+# ----------------------------------------------------------------- validation
+def _range_text(meta: dict) -> str:
+    if meta.get("choices"):
+        return "one of " + ", ".join(repr(c) for c in meta["choices"])
+    lo, hi = meta.get("lo"), meta.get("hi")
+    left = "(" if meta.get("lo_open") else "["
+    right = ")" if meta.get("hi_open") else "]"
+    return f"in {left}{'-inf' if lo is None else lo}, {'inf' if hi is None else hi}{right}"
+
+
+def _check_scalar(key: str, value: Any, typ: Any, meta: dict) -> Any:
+    if typ is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key} must be a number, got {value!r} ({type(value).__name__})")
+        value = float(value)
+        if not math.isfinite(value):
+            raise ConfigError(f"{key} must be finite, got {value!r}")
+    elif typ is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key} must be an integer, got {value!r} ({type(value).__name__})")
+    elif typ is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key} must be a string, got {value!r} ({type(value).__name__})")
+    elif typ is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key} must be true or false, got {value!r}")
+    choices = meta.get("choices")
+    if choices and value not in choices:
+        raise ConfigError(f"{key} = {value!r} is not allowed; use {_range_text(meta)}")
+    lo, hi = meta.get("lo"), meta.get("hi")
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        bad = (lo is not None and (value < lo or (meta.get("lo_open") and value == lo))) or (
+            hi is not None and (value > hi or (meta.get("hi_open") and value == hi))
+        )
+        if bad:
+            raise ConfigError(f"{key} = {value!r} is out of range; allowed values are {_range_text(meta)}")
+    return value
+
+
+def _build(cls: type, data: Any, prefix: str) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(f"[{prefix.rstrip('.')}] must be a table, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise ConfigError(
+            f"unknown config key '{prefix}{unknown[0]}'; allowed keys{' in [' + prefix.rstrip('.') + ']' if prefix else ''}: "
+            + ", ".join(sorted(fields))
+        )
+    kwargs = {}
+    for name, value in data.items():
+        key = prefix + name
+        typ = hints[name]
+        meta = dict(fields[name].metadata)
+        if dataclasses.is_dataclass(typ):
+            kwargs[name] = _build(typ, value, key + ".")
+        elif typing.get_origin(typ) is tuple:
+            item = typing.get_args(typ)[0]
+            if not isinstance(value, (list, tuple)):
+                raise ConfigError(f"{key} must be a list, got {value!r}")
+            kwargs[name] = tuple(_check_scalar(f"{key}[{i}]", v, item, meta) for i, v in enumerate(value))
+        else:
+            kwargs[name] = _check_scalar(key, value, typ, meta)
+    obj = cls(**kwargs)
+    _cross_checks(obj, prefix)
+    return obj
+
+
+def _cross_checks(obj: Any, prefix: str) -> None:
+    if isinstance(obj, DatasetConfig):
+        if len(obj.split) != 3 or any(s < 0 for s in obj.split) or sum(obj.split) <= 0:
+            raise ConfigError(f"{prefix}split must be three non-negative numbers (train, valid, test-1), got {list(obj.split)}")
+        if obj.scheduler and not obj.scheduler.startswith(("tcp://", "tls://", "inproc://")):
+            raise ConfigError(f"{prefix}scheduler must look like tcp://HOST:PORT, got {obj.scheduler!r}")
+    if isinstance(obj, SurrogateConfig):
+        if not obj.hidden or any(h < 1 for h in obj.hidden):
+            raise ConfigError(f"{prefix}hidden must be a non-empty list of positive widths, got {list(obj.hidden)}")
+    if isinstance(obj, ForceConfig):
+        if not obj.betas or any(not 0.0 <= b <= 1.0 for b in obj.betas):
+            raise ConfigError(f"{prefix}betas must be numbers in [0, 1], got {list(obj.betas)}")
+    if isinstance(obj, SolverConfig) and obj.min_increment > obj.initial_increment:
+        raise ConfigError(f"{prefix}min_increment ({obj.min_increment}) must not exceed initial_increment ({obj.initial_increment})")
+
+
+def config_from_dict(data: dict) -> Config:
+    """Build a validated :class:`Config` from nested dicts (as read from TOML)."""
+    return _build(Config, data, "")
+
+
+def load_config(path: str | Path | None = None) -> Config:
+    """Load a TOML config file; ``None`` gives the defaults (the paper's set-up).
+
+    Relative paths inside the file (``mesh.path``, ``output``...) are kept as written and
+    resolved by the caller against the current directory.
+    """
+    if path is None:
+        return Config()
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file {str(p)!r} does not exist; check the path (see `tissuecast config show`)")
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"config file {str(p)!r} is not valid TOML: {exc}") from exc
+    return config_from_dict(data)
+
+
+def config_to_dict(cfg: Any) -> dict:
+    """Nested plain dict (tuples become lists) of a config or config section."""
+    out = {}
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            out[f.name] = config_to_dict(v)
+        elif isinstance(v, tuple):
+            out[f.name] = list(v)
+        else:
+            out[f.name] = v
+    return out
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, float):
+        return repr(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    return str(v)
+
+
+def config_to_toml(cfg: Config, comments: bool = True) -> str:
+    """TOML text that :func:`load_config` reads back to an equal config."""
+    lines: list[str] = []
+    sections = []
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            sections.append((f.name, v))
+        else:
+            doc = f.metadata.get("doc", "")
+            lines.append(f"{f.name} = {_toml_value(v)}" + (f"  # {doc}" if comments and doc else ""))
+    for name, sec in sections:
+        lines.append("")
+        lines.append(f"[{name}]")
+        for f in dataclasses.fields(sec):
+            doc = f.metadata.get("doc", "")
+            lines.append(f"{f.name} = {_toml_value(getattr(sec, f.name))}" + (f"  # {doc}" if comments and doc else ""))
+    return "\n".join(lines) + "\n"
+
+
+def with_overrides(cfg: Config, **sections: dict) -> Config:
+    """A copy of ``cfg`` with some section values replaced, validated like a file.
+
+    Example: ``with_overrides(cfg, dataset={"n_samples": 100})``.
+    """
+    data = config_to_dict(cfg)
+    for sec, values in sections.items():
+        if isinstance(values, dict):
+            if sec not in data or not isinstance(data[sec], dict):
+                raise ConfigError(f"unknown config section {sec!r}")
+            data[sec].update(values)
+        else:
+            data[sec] = values
+    return config_from_dict(data)
+

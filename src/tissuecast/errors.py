@@ -1,0 +1,89 @@
+"""The exception hierarchy of tissuecast.
+
+Every class subclasses :class:`TissuecastError` *and* the matching builtin, so callers can
+catch either (``except ValueError`` keeps working). Messages say what was wrong, with the
+offending value, and what to do about it.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "TissuecastError",
+    "MeshError",
+    "MeshFormatError",
+    "MarkerError",
+    "ConfigError",
+    "ConvergenceError",
+    "SolverSetupError",
+    "DatasetError",
+    "ModelError",
+    "DependencyError",
+]
+
+
+class TissuecastError(Exception):
+    """Base class of every error raised on purpose by tissuecast."""
+
+
+class MeshError(TissuecastError, ValueError):
+    """A mesh is invalid (non-finite coordinates, bad indices, degenerate or inverted tets...)."""
+
+
+class MeshFormatError(MeshError):
+    """A mesh file is missing, of an unknown format, or holds no usable tetrahedra."""
+
+
+class MarkerError(TissuecastError, ValueError):
+    """Fiducial markers or fixed vertices cannot be chosen or are invalid."""
+
+
+class ConfigError(TissuecastError, ValueError):
+    """A configuration file or value is invalid (unknown key, wrong type, out of range)."""
+
+
+class SolverSetupError(TissuecastError, ValueError):
+    """A finite-element problem is ill-posed (rigid-body motion, forces on fixed vertices...)."""
+
+
+class ConvergenceError(TissuecastError, RuntimeError):
+    """The nonlinear solver stopped before reaching the full load.
+
+    Attributes:
+        load_fraction: fraction of the total load that was reached (0..1).
+    """
+
+    def __init__(self, message: str, load_fraction: float = 0.0, result=None):
+        super().__init__(message)
+        self.load_fraction = float(load_fraction)
+        self.result = result
+
+
+class DatasetError(TissuecastError, ValueError):
+    """A data-set store is unreadable, of another schema, or does not match the config."""
+
+
+class ModelError(TissuecastError, ValueError):
+    """A surrogate model is unfitted, incompatible, or given input of the wrong shape."""
+
+
+class DependencyError(TissuecastError, ImportError):
+    """An optional dependency (extra) is missing."""
+
+
+def require(module: str, extra: str, purpose: str):
+    """Import an optional dependency or raise :class:`DependencyError` naming the extra.
+
+    Args:
+        module: importable module name, e.g. ``"gmsh"``.
+        extra: the pip extra that provides it, e.g. ``"mesh"``.
+        purpose: what it is needed for, shown in the message.
+    """
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise DependencyError(
+            f"{purpose} needs the Python package {module!r}, which is not installed "
+            f"({exc}). Install it with: pip install 'tissuecast[{extra}]'"
+        ) from exc
