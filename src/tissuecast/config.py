@@ -66,6 +66,7 @@ class MarkerConfig:
     ids: tuple[int, ...] = _f((), doc="user-given 0-based marker ids (overrides count/start)")
     fixed_count: int = _f(3, lo=1, hi=50, doc="number of fixed (pinned) vertices")
     fixed_ids: tuple[int, ...] = _f((), doc="user-given 0-based fixed vertex ids")
+    fixed_depth_fraction: float = _f(0.5, lo=0.0, hi=1.0, doc="fixed vertices are at least this share of the largest depth below the surface")
 
 
 @dataclass(frozen=True)
@@ -114,6 +115,9 @@ class DatasetConfig:
     seed: int = _f(0, lo=0, doc="base seed; per-sample seeds derive from it and the index")
     workers: int = _f(0, lo=0, hi=256, doc="local worker processes; 0 = automatic")
     scheduler: str = _f("", doc="Dask scheduler address tcp://HOST:PORT; empty = local")
+    alpha: float = _f(0.0, lo=0.0, doc="LBO force magnitude alpha (N); 0 = calibrate to forces.target_max_displacement")
+    calibration_samples: int = _f(8, lo=1, hi=1000, doc="pilot samples of the force-magnitude calibration")
+    calibration_quantile: float = _f(0.9, lo=0.0, hi=1.0, doc="quantile of per-sample max displacement that meets the target")
 
 
 @dataclass(frozen=True)
@@ -131,6 +135,11 @@ class SurrogateConfig:
     noise_sigma: float = _f(0.0, lo=0.0, doc="marker noise augmentation (mm)")
     ridge_ratio: float = _f(1e-3, lo=0.0, doc="ridge a2/a1")
     seed: int = _f(0, lo=0, doc="training seed")
+    schedule: str = _f("onecycle", choices=("onecycle", "cosine", "constant"), doc="learning-rate schedule")
+    output_scaling: str = _f("global", choices=("global", "component"), doc="PCA-weight scaling of the loss")
+    weight_decay: float = _f(0.0, lo=0.0, doc="Adam weight decay")
+    marker_dropout: float = _f(0.0, lo=0.0, hi=1.0, doc="share of training samples with one marker hidden; > 0 enables missing-marker input")
+    ensemble: int = _f(1, lo=1, hi=64, doc="networks trained with different seeds (>= 2 gives uncertainty)")
 
 
 @dataclass(frozen=True)
@@ -147,6 +156,10 @@ class ServeConfig:
 
     host: str = _f("127.0.0.1", doc="bind address (localhost unless asked otherwise)")
     port: int = _f(18944, lo=1, hi=65535, doc="TCP port (OpenIGTLink default 18944)")
+    full_field: bool = _f(False, doc="send the full vertex field (POLYDATA TissueField) after every surface")
+    transform_mode: str = _f("frame", choices=("frame", "each"), doc="TRANSFORM input: predict once all markers are fresh (frame) or on every update (each)")
+    max_marker_offset: float = _f(100.0, lo=0.0, lo_open=True, doc="reject markers farther than this (mm) from their reference position")
+    client_timeout: float = _f(5.0, lo=0.0, lo_open=True, doc="seconds an incomplete message may wait for its remaining bytes")
 
 
 @dataclass(frozen=True)

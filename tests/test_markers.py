@@ -1,0 +1,259 @@
+"""Fiducial markers (revised k-center clustering) and fixed vertices."""
+
+import numpy as np
+import pytest
+
+import tissuecast.mesh as tcmesh
+from tissuecast.errors import MarkerError
+from tissuecast.markers import (
+    _point_triangle_distance,
+    revised_k_center,
+    select_fixed_vertices,
+    select_markers,
+    surface_depth,
+    validate_vertex_ids,
+)
+from tissuecast.mesh.tetmesh import TetMesh
+
+
+def box_mesh(nx, ny, nz, h=1.0, jitter=0.0, seed=0):
+    """Grid box [0, nx h] x [0, ny h] x [0, nz h], each cube cut into 6 Kuhn tets.
+
+    ``jitter`` moves interior vertices by up to that many mm (keeps all tets valid when small).
+    """
+    g = np.stack(np.meshgrid(np.arange(nx + 1), np.arange(ny + 1), np.arange(nz + 1), indexing="ij"), -1)
+    g = g.reshape(-1, 3).astype(float)
+
+    def idx(i, j, k):
+        return (i * (ny + 1) + j) * (nz + 1) + k
+
+    kuhn = [[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]]
+    tets = []
+    for i in range(nx):
+        for j in range(ny):
+            for k in range(nz):
+                c = [idx(i + a, j + b, k + d) for a in (0, 1) for b in (0, 1) for d in (0, 1)]
+                tets += [[c[q] for q in t] for t in kuhn]
+    inner = np.all((g > 0) & (g < [nx, ny, nz]), axis=1)
+    g[inner] += np.random.default_rng(seed).uniform(-jitter, jitter, (inner.sum(), 3))
+    return TetMesh(g * h, np.array(tets))
+
+
+def line_points(n):
+    return np.c_[np.arange(float(n)), np.zeros(n), np.zeros(n)]
+
+
+# ----------------------------------------------------------------------- k-center
+# Points on a line at x = 0, 1, ..., 10 (id = x), start 0, d_min = 2.5:
+#  (a) eligible: x > 2.5 -> {3..10}; average distance to {0} is x -> pick 10.
+#  (b) eligible: min(x, 10 - x) > 2.5 -> {3..7}; distances (x, 10 - x) have variance
+#      ((x - (10 - x)) / 2)^2 = (x - 5)^2 -> pick 5.  (A mean-only greedy sees the same
+#      mean 5 for every candidate and would take the lowest id, 3.)
+#  (a) eligible: no x has min(|x|, |x - 5|, |x - 10|) > 2.5 -> only 3 markers fit.
+def test_line_picks_by_hand():
+    np.testing.assert_array_equal(revised_k_center(line_points(11), 3, 0, 2.5), [0, 10, 5])
+    assert revised_k_center(line_points(11), 3, 0, 2.5).dtype == np.int64
+
+
+def test_line_too_many_markers_error_says_how_many():
+    with pytest.raises(MarkerError, match=r"only 3 of 4 markers.*smaller min_distance or count"):
+        revised_k_center(line_points(11), 4, 0, 2.5)
+
+
+# A plane example (z = 0), ids 0..6:
+#   0 (0,0)  1 (6,0)  2 (0,8)  3 (7,8)  4 (3,4)  5 (1,1)  6 (12,0);  start 0.
+# d_min = 2:
+#  (a) eligible: all but 5 (|0-5| = 1.41); mean distance = distance to 0: 6 is farthest (12).
+#  (b) eligible {1,2,3,4}; distances to (0, 6): 1 (6, 6) var 0; 2 (8, 14.42) var 10.31;
+#      3 (10.63, 9.43) var 0.36; 4 (5, 9.85) var 5.88 -> pick 1.  (mean-only would pick 2.)
+#  (a) distances to (0, 6, 1): 2 (8, 14.42, 10) mean 10.81; 3 (10.63, 9.43, 8.06) mean 9.38;
+#      4 (5, 9.85, 5) mean 6.62 -> pick 2.
+#  (b) distances to (0, 6, 1, 2): 3 (10.63, 9.43, 8.06, 7) var 1.88; 4 (5, 9.85, 5, 5) var 4.41
+#      -> pick 3.  Markers [0, 6, 1, 2, 3].
+# d_min = 7.5: (a) eligible {2, 3, 6} -> 6; (b) eligible {2, 3} (1 and 4 are too close to 0):
+#      var 2: 10.31, 3: 0.36 -> pick 3; (a) nothing is > 7.5 from {0, 6, 3} (2 is 7 from 3).
+PLANE = np.array([(0, 0, 0), (6, 0, 0), (0, 8, 0), (7, 8, 0), (3, 4, 0), (1, 1, 0), (12, 0, 0)], float)
+
+
+def test_plane_picks_by_hand():
+    np.testing.assert_array_equal(revised_k_center(PLANE, 5, 0, 2.0), [0, 6, 1, 2, 3])
+    # markers are a prefix of the pick order
+    np.testing.assert_array_equal(revised_k_center(PLANE, 2, 0, 2.0), [0, 6])
+    np.testing.assert_array_equal(revised_k_center(PLANE, 1, 4, 2.0), [4])
+
+
+def test_min_distance_rule_excludes_near_points():
+    np.testing.assert_array_equal(revised_k_center(PLANE, 3, 0, 7.5), [0, 6, 3])
+    with pytest.raises(MarkerError, match="only 3 of 5"):
+        revised_k_center(PLANE, 5, 0, 7.5)
+
+
+def test_variance_step_differs_from_mean_only_greedy():
+    picks = revised_k_center(PLANE, 3, 0, 2.0)
+    # a mean-only greedy would take the eligible point with the largest mean distance to {0, 6}
+    d = np.linalg.norm(PLANE[:, None] - PLANE[[0, 6]][None], axis=2)
+    eligible = d.min(1) > 2.0
+    mean_only = int(np.flatnonzero(eligible)[np.argmax(d.mean(1)[eligible])])
+    assert mean_only == 2 and picks[2] == 1
+
+
+def test_ties_go_to_lowest_id():
+    # 1 and 2 are both 5 mm from 0: equal average distance -> the lower id, 1.
+    pts = np.array([(0, 0, 0), (5, 0, 0), (-5, 0, 0), (0, 3, 0)], float)
+    np.testing.assert_array_equal(revised_k_center(pts, 2, 0, 1.0), [0, 1])
+    np.testing.assert_array_equal(revised_k_center(pts[[0, 2, 1, 3]], 2, 0, 1.0), [0, 1])
+
+
+def test_matches_unvectorised_reference_on_random_points():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0, 50, (400, 3))
+    got = revised_k_center(pts, 12, 7, 4.0)
+    centers = [7]
+    while len(centers) < 12:  # direct transcription of the algorithm, distances recomputed
+        d = np.linalg.norm(pts[:, None] - pts[centers][None], axis=2)
+        ok = d.min(1) > 4.0
+        score = d.mean(1) if len(centers) % 2 == 1 else -d.var(1)
+        centers.append(int(np.flatnonzero(ok)[np.argmax(score[ok])]))
+    np.testing.assert_array_equal(got, centers)
+    assert len(np.unique(got)) == 12
+    d = np.linalg.norm(pts[got][:, None] - pts[got][None], axis=2)
+    assert d[np.triu_indices(12, 1)].min() > 4.0
+
+
+def test_select_markers_on_mesh_is_deterministic_and_accepts_points():
+    mesh = box_mesh(4, 5, 9)
+    a = select_markers(mesh, count=5, start=3, min_distance=2.0)
+    np.testing.assert_array_equal(a, select_markers(mesh, count=5, start=3, min_distance=2.0))
+    np.testing.assert_array_equal(a, select_markers(mesh.points, count=5, start=3, min_distance=2.0))
+    assert a[0] == 3 and len(set(a.tolist())) == 5
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"count": 0}, "count must be an integer >= 1"),
+        ({"count": 2.5}, "count must be an integer"),
+        ({"start": 11}, r"outside 0\.\.10.*0-based"),
+        ({"start": -1}, "outside"),
+        ({"min_distance": -1.0}, "min_distance"),
+        ({"min_distance": float("nan")}, "min_distance"),
+    ],
+)
+def test_bad_arguments(kwargs, message):
+    args = {"count": 2, "start": 0, "min_distance": 1.0} | kwargs
+    with pytest.raises(MarkerError, match=message):
+        select_markers(line_points(11), **args)
+
+
+def test_bad_points():
+    with pytest.raises(MarkerError, match=r"\(n, 3\)"):
+        select_markers(np.zeros((4, 2)))
+
+
+# ----------------------------------------------------------------- surface depth
+def test_point_triangle_distance_matches_dense_sampling():
+    rng = np.random.default_rng(1)
+    tri = rng.normal(size=(3, 3))
+    p = rng.normal(scale=2.0, size=(300, 3))
+    got = _point_triangle_distance(p, *(np.broadcast_to(t, p.shape) for t in tri))
+    u, v = np.meshgrid(np.linspace(0, 1, 301), np.linspace(0, 1, 301))
+    keep = u + v <= 1
+    samples = tri[0] + np.outer(u[keep], tri[1] - tri[0]) + np.outer(v[keep], tri[2] - tri[0])
+    brute = np.array([np.linalg.norm(samples - q, axis=1).min() for q in p])
+    assert np.all(got <= brute + 1e-12)
+    np.testing.assert_allclose(got, brute, atol=0.02)
+
+
+def test_surface_depth_of_a_box_is_distance_to_its_faces():
+    # interior vertices jittered off the grid: the nearest surface *vertex* is farther than
+    # the nearest face, so this checks the point-to-triangle distance
+    mesh = box_mesh(4, 5, 7, h=2.0, jitter=0.3)
+    p = mesh.points
+    exact = np.minimum.reduce([p[:, 0], 8 - p[:, 0], p[:, 1], 10 - p[:, 1], p[:, 2], 14 - p[:, 2]])
+    np.testing.assert_allclose(surface_depth(mesh), exact, atol=1e-12)
+    assert surface_depth(mesh, mesh.surface_vertices).max() == 0.0
+
+
+# ---------------------------------------------------------------- fixed vertices
+def test_fixed_vertices_on_a_box_by_hand():
+    mesh = box_mesh(6, 8, 14)  # 945 vertices, depths 0..3 mm
+    fixed = select_fixed_vertices(mesh)
+    # deep = depth >= 1.5, i.e. x in [2, 4], y in [2, 6], z in [2, 12].
+    # 1st: deepest (depth 3), lowest id -> (3, 3, 3).
+    # 2nd: farthest deep vertex from (3,3,3): (2 or 4, 6, 12), squared distance 91 -> lower id (2, 6, 12).
+    # 3rd: largest min squared distance to both: (4, 2, 9) with min(38, 29) = 29.
+    np.testing.assert_array_equal(mesh.points[fixed], [[3, 3, 3], [2, 6, 12], [4, 2, 9]])
+    assert fixed.dtype == np.int64
+
+
+def test_fixed_vertices_exclude_and_min_depth():
+    mesh = box_mesh(6, 8, 14)
+    first = select_fixed_vertices(mesh)[0]
+    fixed = select_fixed_vertices(mesh, count=4, exclude=[first])
+    assert first not in fixed
+    assert np.all(surface_depth(mesh, fixed) >= 1.5)
+    fixed = select_fixed_vertices(mesh, count=2, min_depth=3.0)
+    np.testing.assert_allclose(surface_depth(mesh, fixed), 3.0)
+    with pytest.raises(MarkerError, match=r"only 27 interior vertices.*smaller count"):
+        select_fixed_vertices(mesh, count=28, min_depth=3.0)  # depth 3: 1 x 3 x 9 vertices
+
+
+def test_fixed_vertices_need_interior_vertices():
+    mesh = TetMesh(np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1.0]]), np.array([[0, 1, 2, 3]]))
+    with pytest.raises(MarkerError, match="no interior vertices"):
+        select_fixed_vertices(mesh)
+
+
+# ------------------------------------------------------------------ validation
+def test_validate_vertex_ids():
+    mesh = box_mesh(2, 2, 2)  # 27 vertices
+    np.testing.assert_array_equal(validate_vertex_ids(mesh, [3, 1, 26], "markers"), [3, 1, 26])
+    with pytest.raises(MarkerError, match=r"markers \[27\] are outside 0\.\.26.*0-based"):
+        validate_vertex_ids(mesh, [1, 27], "markers")
+    with pytest.raises(MarkerError, match=r"repeat vertex ids \[4\]"):
+        validate_vertex_ids(mesh, [4, 2, 4], "fixed vertices")
+    with pytest.raises(MarkerError, match=r"vertices \[2\] are both fixed vertices and markers"):
+        validate_vertex_ids(mesh, [2, 5], "fixed vertices", other=[2, 9])
+    with pytest.raises(MarkerError, match="integer"):
+        validate_vertex_ids(mesh, [1.5], "markers")
+    with pytest.raises(MarkerError, match="no markers given"):
+        validate_vertex_ids(mesh, [], "markers")
+    with pytest.raises(MarkerError, match="flat list"):
+        validate_vertex_ids(mesh, [[1, 2]], "markers")
+
+
+# ------------------------------------------------------------------- phantom
+@pytest.mark.skipif(not hasattr(tcmesh, "phantom"), reason="tissuecast.mesh.phantom not available yet")
+def test_phantom_markers_and_fixed_vertices():
+    mesh = tcmesh.phantom()
+    markers = select_markers(mesh, count=5, start=96, min_distance=10.0)
+    assert markers[0] == 96 and len(np.unique(markers)) == 5
+    d = np.linalg.norm(mesh.points[markers][:, None] - mesh.points[markers][None], axis=2)
+    assert d[np.triu_indices(5, 1)].min() > 10.0
+    fixed = select_fixed_vertices(mesh, count=3, exclude=markers)
+    assert not np.isin(fixed, markers).any()
+    assert np.isin(fixed, mesh.interior_vertices).all()
+    depth = surface_depth(mesh, fixed)
+    assert depth.min() >= 0.5 * surface_depth(mesh, mesh.interior_vertices).max()
+    sep = np.linalg.norm(mesh.points[fixed][:, None] - mesh.points[fixed][None], axis=2)
+    assert sep[np.triu_indices(3, 1)].min() > 10.0
+
+
+# ------------------------------------------------------------ config-driven choice
+def test_markers_and_fixed_from_config():
+    from tissuecast.config import MarkerConfig
+    from tissuecast.markers import markers_and_fixed
+
+    mesh = box_mesh(6, 8, 14)
+    cfg = MarkerConfig(count=4, start=5, min_distance=3.0, fixed_count=3)
+    markers, fixed = markers_and_fixed(mesh, cfg)
+    np.testing.assert_array_equal(markers, select_markers(mesh, count=4, start=5, min_distance=3.0))
+    np.testing.assert_array_equal(fixed, select_fixed_vertices(mesh, count=3, exclude=markers))
+    markers, fixed = markers_and_fixed(mesh, MarkerConfig(ids=(1, 2), fixed_ids=(453, 7)))
+    np.testing.assert_array_equal(markers, [1, 2])
+    np.testing.assert_array_equal(fixed, [453, 7])
+    with pytest.raises(MarkerError, match=r"\[2\] are both fixed vertices and markers"):
+        markers_and_fixed(mesh, MarkerConfig(ids=(1, 2), fixed_ids=(2,)))
+    # a deeper fixed-vertex rule
+    _, fixed = markers_and_fixed(mesh, MarkerConfig(ids=(0,), fixed_depth_fraction=1.0))
+    np.testing.assert_allclose(surface_depth(mesh, fixed), 3.0)
