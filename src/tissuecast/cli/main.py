@@ -22,6 +22,10 @@ COMMANDS: dict[str, str] = {
     "config": "config_cmd",
     "mesh": "mesh_cmd",
     "markers": "markers_cmd",
+    "simulate": "simulate_cmd",
+    "dataset": "dataset_cmd",
+    "export-inp": "export_inp_cmd",
+    "serve": "serve_cmd",
 }
 
 
@@ -49,8 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     first = next((a for a in argv if not a.startswith("-")), None)
     parser = build_parser(first if first in COMMANDS else None)
     args = parser.parse_args(argv)
-    level = logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", force=True)
+    _configure_logging(logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else 2
@@ -64,6 +67,32 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # e.g. `tissuecast markers ... | head`
+        sys.stderr.close()
+        return 0
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever ``sys.stderr`` is at emit time (so redirection and capture work)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value):
+        pass
+
+
+def _configure_logging(level: int) -> None:
+    """Route the ``tissuecast`` loggers to stderr at ``level``; the root logger is left alone."""
+    logger = logging.getLogger("tissuecast")
+    for h in [h for h in logger.handlers if isinstance(h, _StderrHandler)]:
+        logger.removeHandler(h)
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    logger.addHandler(handler)
+    logger.setLevel(level)
 
 
 if __name__ == "__main__":  # pragma: no cover

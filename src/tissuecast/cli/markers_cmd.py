@@ -1,0 +1,161 @@
+"""``tissuecast markers MESH``: choose fiducial markers and fixed vertices, and show them.
+
+Writes ``PREFIX.csv`` and ``PREFIX.json`` (0-based ids, coordinates in mm, role, the
+parameters), ``PREFIX.vtu`` (the points as VTK vertices with ``role`` 1 = marker,
+2 = fixed, ``vertex_id`` and ``order`` arrays; open it in ParaView/Slicer next to the mesh)
+and, with ``--png``, ``PREFIX.png`` (the surface, markers red, fixed vertices blue).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..config import MarkerConfig, load_config, with_overrides
+from ..errors import require
+from ..markers import markers_and_fixed
+from ..mesh import TetMesh
+from ..mesh.io import UNITS, write_point_set
+from .mesh_cmd import PHANTOM_WORD, load_mesh_argument
+
+ROLE_CODES = {"marker": 1, "fixed": 2}
+
+
+def register(sub) -> None:
+    d = MarkerConfig()
+    p = sub.add_parser(
+        "markers",
+        help="choose fiducial markers (revised k-center) and fixed vertices",
+        description="Vertex ids are 0-based (the paper's 1-based vertex 97 is 96 here). Lengths in mm. "
+        "Options override the [markers] section of --config (defaults: the paper's values).",
+    )
+    p.add_argument("mesh", nargs="?", help=f"mesh file, or '{PHANTOM_WORD}' (default: mesh.path of the config, else the phantom)")
+    p.add_argument("--config", metavar="TOML", help="config file (its [mesh] and [markers] sections are used)")
+    p.add_argument("--units", choices=sorted(UNITS), help="length unit of the mesh file (default mm)")
+    p.add_argument("--mesh-size", type=float, default=None, metavar="MM", help="edge length when MESH is a surface")
+    p.add_argument("--count", type=int, help=f"number of markers n_d (default {d.count})")
+    p.add_argument("--start", type=int, help=f"0-based start vertex v0 (default {d.start})")
+    p.add_argument("--min-distance", type=float, metavar="MM", help=f"d_min in mm (default {d.min_distance:g})")
+    p.add_argument("--ids", type=int, nargs="+", metavar="ID", help="use these 0-based marker ids instead of choosing")
+    p.add_argument("--fixed-count", type=int, help=f"number of fixed vertices (default {d.fixed_count})")
+    p.add_argument("--fixed-ids", type=int, nargs="+", metavar="ID", help="use these 0-based fixed vertex ids")
+    p.add_argument("--out", default="markers", metavar="PREFIX", help="output prefix (default 'markers')")
+    p.add_argument("--png", action="store_true", help="also render PREFIX.png (needs pyvista, extra 'viz')")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    cfg = load_config(args.config)
+    given = {"count": args.count, "start": args.start, "min_distance": args.min_distance, "ids": args.ids,
+             "fixed_count": args.fixed_count, "fixed_ids": args.fixed_ids}
+    cfg = with_overrides(cfg, markers={k: v for k, v in given.items() if v is not None})
+    mc = cfg.markers
+    mesh_name = args.mesh or cfg.mesh.path or PHANTOM_WORD
+    units = args.units or cfg.mesh.units
+    mesh = load_mesh_argument(mesh_name, units, args.mesh_size or cfg.mesh.surface_mesh_size)
+    markers, fixed = markers_and_fixed(mesh, mc)
+    params = {
+        "mesh": mesh_name,
+        "units": units,
+        "count": len(markers),
+        "start": int(markers[0]),
+        "min_distance_mm": mc.min_distance,
+        "user_given_markers": bool(mc.ids),
+        "fixed_count": len(fixed),
+        "fixed_depth_fraction": getattr(mc, "fixed_depth_fraction", None),
+        "user_given_fixed": bool(mc.fixed_ids),
+    }
+    prefix = Path(args.out)
+    if prefix.parent != Path("."):
+        prefix.parent.mkdir(parents=True, exist_ok=True)
+    surface = set(mesh.surface_vertices.tolist())
+    print(f"mesh {mesh_name}: {mesh.n_points} vertices; ids are 0-based (add 1 for the paper / Abaqus)")
+    print(f"{'role':7s} {'#':>2s} {'id':>6s} {'x (mm)':>9s} {'y (mm)':>9s} {'z (mm)':>9s}  where")
+    for role, k, i, (x, y, z) in _rows(mesh, markers, fixed):
+        where = "surface" if i in surface else "interior"
+        print(f"{role:7s} {k + 1:2d} {i:6d} {x:9.3f} {y:9.3f} {z:9.3f}  {where}")
+    written = [_write_csv(prefix, mesh, markers, fixed, surface), _write_json(prefix, mesh, markers, fixed, params)]
+    written.append(_write_vtu(prefix, mesh, markers, fixed))
+    if args.png:
+        written.append(render_markers_png(prefix.with_name(prefix.name + ".png"), mesh, markers, fixed))
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+def _rows(mesh: TetMesh, markers: np.ndarray, fixed: np.ndarray):
+    for role, ids in (("marker", markers), ("fixed", fixed)):
+        for k, i in enumerate(ids):
+            yield role, k, int(i), mesh.points[i]
+
+
+def _write_csv(prefix: Path, mesh, markers, fixed, surface) -> Path:
+    path = prefix.with_name(prefix.name + ".csv")
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        w.writerow(["role", "order", "vertex_id_0based", "x_mm", "y_mm", "z_mm", "on_surface"])
+        for role, k, i, p in _rows(mesh, markers, fixed):
+            w.writerow([role, k, i, *(f"{v:.6f}" for v in p), int(i in surface)])
+    return path
+
+
+def _write_json(prefix: Path, mesh, markers, fixed, params) -> Path:
+    path = prefix.with_name(prefix.name + ".json")
+    doc = {
+        "tissuecast_version": __version__,
+        "ids_are_0_based": True,
+        "units": "mm",
+        "mesh_fingerprint": mesh.fingerprint(),
+        "parameters": params,
+        "markers": {"ids": markers.tolist(), "coordinates": mesh.points[markers].tolist()},
+        "fixed": {"ids": fixed.tolist(), "coordinates": mesh.points[fixed].tolist()},
+    }
+    path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    return path
+
+
+def _write_vtu(prefix: Path, mesh, markers, fixed) -> Path:
+    ids = np.r_[markers, fixed].astype(np.int64)
+    role = np.r_[np.full(len(markers), ROLE_CODES["marker"]), np.full(len(fixed), ROLE_CODES["fixed"])]
+    order = np.r_[np.arange(len(markers)), np.arange(len(fixed))]
+    data = {"role": role.astype(np.int32), "vertex_id": ids, "order": order.astype(np.int32)}
+    return write_point_set(prefix.with_name(prefix.name + ".vtu"), mesh.points[ids], data)
+
+
+def render_markers_png(path: Path, mesh: TetMesh, markers: np.ndarray, fixed: np.ndarray, size=(1200, 900)) -> Path:
+    """Render the semi-transparent surface with markers (red) and fixed vertices (blue).
+
+    Args:
+        path: output PNG.
+        mesh: the mesh (mm).
+        markers: (k,) int 0-based marker ids, labelled M1.. in pick order.
+        fixed: (f,) int 0-based fixed vertex ids, labelled F1...
+    """
+    os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
+    pv = require("pyvista", "viz", "Rendering the marker picture")
+    pv.OFF_SCREEN = True
+    tri = mesh.surface_triangles
+    surf = pv.PolyData(mesh.points, np.c_[np.full(len(tri), 3), tri].ravel())
+    radius = 0.015 * float(np.linalg.norm(mesh.extent))
+    plotter = pv.Plotter(off_screen=True, window_size=list(size))
+    plotter.set_background("white")
+    plotter.add_mesh(surf, color="tan", opacity=0.3, show_edges=True, edge_color="gray", line_width=0.5)
+    for ids, color, tag in ((markers, "red", "M"), (fixed, "royalblue", "F")):
+        for k, i in enumerate(ids):
+            plotter.add_mesh(pv.Sphere(radius=radius, center=mesh.points[i]), color=color)
+        if len(ids):
+            labels = [f"{tag}{k + 1} ({int(i)})" for k, i in enumerate(ids)]
+            plotter.add_point_labels(mesh.points[ids], labels, font_size=14, text_color=color,
+                                     shape_opacity=0.6, always_visible=True, show_points=False)
+    plotter.add_legend([("fiducial markers M (0-based id)", "red"), ("fixed vertices F", "royalblue")],
+                       bcolor=None, loc="upper left", size=(0.42, 0.1))
+    plotter.view_vector((1.0, 0.5, 0.35), viewup=(0.0, 0.0, 1.0))
+    plotter.add_axes()
+    plotter.screenshot(str(path))
+    plotter.close()
+    return Path(path)

@@ -1,0 +1,111 @@
+"""``tissuecast mesh info|convert|phantom``: inspect, convert and export meshes."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from ..mesh import TetMesh, phantom, read_mesh, write_mesh
+from ..mesh.io import SURFACE_FORMATS, UNITS, VOLUME_FORMATS
+
+PHANTOM_WORD = "phantom"
+
+
+def load_mesh_argument(name: str, units: str = "mm", mesh_size: float | None = None) -> TetMesh:
+    """The mesh a CLI argument names: a file, or the word ``phantom`` for the built-in one."""
+    if name == PHANTOM_WORD:
+        return phantom()
+    return read_mesh(name, units=units, mesh_size=mesh_size)
+
+
+def _add_mesh_options(p, surface: bool = True) -> None:
+    p.add_argument("--units", choices=sorted(UNITS), default="mm", help="length unit of the input file (converted to mm)")
+    if surface:
+        p.add_argument("--mesh-size", type=float, default=None, metavar="MM",
+                       help="target edge length (mm) when the input is a closed surface (default 3)")
+
+
+def register(sub) -> None:
+    formats = " ".join(sorted(VOLUME_FORMATS) + sorted(SURFACE_FORMATS))
+    p = sub.add_parser("mesh", help="inspect, convert or export tetrahedral meshes",
+                       description=f"Mesh formats (by extension): {formats}. Vertex ids are 0-based.")
+    msub = p.add_subparsers(dest="mesh_command", metavar="ACTION", required=True)
+    info = msub.add_parser("info", help="counts, bounding box, volume, surface and quality statistics")
+    info.add_argument("file", help=f"mesh file, or the word '{PHANTOM_WORD}' for the built-in phantom")
+    _add_mesh_options(info)
+    info.add_argument("--json", action="store_true", help="print the figures as JSON")
+    info.set_defaults(func=run_info)
+    conv = msub.add_parser("convert", help="convert between mesh formats (surfaces are tetrahedralised)")
+    conv.add_argument("input", help=f"input mesh file, or '{PHANTOM_WORD}'")
+    conv.add_argument("output", help="output file; its extension picks the format")
+    _add_mesh_options(conv)
+    conv.set_defaults(func=run_convert)
+    ph = msub.add_parser("phantom", help="write the built-in phantom to a file")
+    ph.add_argument("output", help="output file (e.g. phantom.vtu, phantom.inp, phantom.node)")
+    ph.set_defaults(func=run_phantom)
+
+
+def mesh_summary(mesh: TetMesh) -> dict:
+    """Figures of a mesh as plain numbers (lengths mm, areas mm^2, volumes mm^3)."""
+    lo, hi = mesh.bounding_box
+    return {
+        "vertices": mesh.n_points,
+        "tetrahedra": mesh.n_tets,
+        "reoriented_tetrahedra": mesh.n_flipped,
+        "surface_vertices": int(len(mesh.surface_vertices)),
+        "interior_vertices": int(len(mesh.interior_vertices)),
+        "surface_triangles": int(len(mesh.surface_triangles)),
+        "edges": int(len(mesh.edges)),
+        "bounding_box_mm": [lo.tolist(), hi.tolist()],
+        "extent_mm": mesh.extent.tolist(),
+        "volume_mm3": mesh.volume,
+        "surface_area_mm2": mesh.surface_area,
+        "quality": mesh.quality.as_dict(),
+        "fingerprint": mesh.fingerprint(),
+    }
+
+
+def run_info(args) -> int:
+    mesh = load_mesh_argument(args.file, args.units, args.mesh_size)
+    s = mesh_summary(mesh)
+    if args.json:
+        print(json.dumps({"file": args.file, **s}, indent=2))
+        return 0
+    q = s["quality"]
+    f3 = lambda v: " ".join(f"{x:9.3f}" for x in v)  # noqa: E731
+    print(f"mesh               {args.file}" + (" (built-in)" if args.file == PHANTOM_WORD else ""))
+    print(f"vertices           {s['vertices']}  ({s['surface_vertices']} on the surface, {s['interior_vertices']} interior; ids 0-based)")
+    print(f"tetrahedra         {s['tetrahedra']}  ({s['reoriented_tetrahedra']} re-oriented on load)")
+    print(f"surface triangles  {s['surface_triangles']}")
+    print(f"edges              {s['edges']}")
+    print(f"bounding box (mm)  min {f3(s['bounding_box_mm'][0])}")
+    print(f"                   max {f3(s['bounding_box_mm'][1])}")
+    print(f"extent (mm)        {' x '.join(f'{x:.2f}' for x in s['extent_mm'])}")
+    print(f"volume             {s['volume_mm3']:.2f} mm^3")
+    print(f"surface area       {s['surface_area_mm2']:.2f} mm^2")
+    print(f"radius ratio       min {q['radius_ratio_min']:.3f}  mean {q['radius_ratio_mean']:.3f}  (1 = regular tet)")
+    print(f"edge ratio         max {q['edge_ratio_max']:.3f}")
+    print(f"edge length (mm)   min {q['edge_length_min']:.3f}  mean {q['edge_length_mean']:.3f}  max {q['edge_length_max']:.3f}")
+    print(f"tet volume (mm^3)  min {q['volume_min']:.4g}  max {q['volume_max']:.4g}")
+    print(f"fingerprint        {s['fingerprint']}")
+    return 0
+
+
+def run_convert(args) -> int:
+    mesh = load_mesh_argument(args.input, args.units, args.mesh_size)
+    written = write_mesh(args.output, mesh)
+    print(f"read {args.input}: {mesh.n_points} vertices, {mesh.n_tets} tetrahedra (mm)")
+    for path in written:
+        print(f"wrote {path}")
+    return 0
+
+
+def run_phantom(args) -> int:
+    mesh = phantom()
+    written = write_mesh(args.output, mesh)
+    ext = np.round(mesh.extent, 1)
+    print(f"phantom: {mesh.n_points} vertices, {mesh.n_tets} tetrahedra, {ext[0]} x {ext[1]} x {ext[2]} mm")
+    for path in written:
+        print(f"wrote {path}")
+    return 0

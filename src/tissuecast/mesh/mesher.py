@@ -1,0 +1,231 @@
+"""Closed triangulated surface -> tetrahedral mesh, with gmsh.
+
+Used by :func:`tissuecast.mesh.read_mesh` for surface files (.stl .obj .ply .off, TetGen
+.face) and by ``scripts/make_phantom.py``. The surface must be a closed, manifold triangle
+mesh; it is re-meshed at the requested size (mm) and the enclosed volume filled with
+tetrahedra (gmsh Delaunay + Netgen optimisation, one thread, so the result is reproducible
+on one machine and gmsh version).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from ..errors import MeshError, require
+from .tetmesh import TetMesh
+
+__all__ = ["merge_duplicate_points", "check_closed_surface", "orient_surface", "tetrahedralize_surface"]
+
+log = logging.getLogger(__name__)
+
+
+def merge_duplicate_points(points: np.ndarray, triangles: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """Merge coincident vertices (STL files store each triangle's corners separately).
+
+    Args:
+        points: (n, 3) float, mm.
+        triangles: (k, 3) int, 0-based.
+        tol: merge distance relative to the bounding-box diagonal.
+
+    Returns:
+        (points (n', 3) float mm, triangles (k, 3) int) without duplicate or unused vertices.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    diag = float(np.linalg.norm(points.max(0) - points.min(0))) or 1.0
+    key = np.round(points / (tol * diag)).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    tri = inverse.ravel()[triangles]
+    used = np.unique(tri)
+    renum = np.full(len(first), -1, dtype=np.int64)
+    renum[used] = np.arange(len(used))
+    return points[first[used]], renum[tri]
+
+
+def check_closed_surface(points: np.ndarray, triangles: np.ndarray) -> None:
+    """Raise :class:`MeshError` unless the triangles form a closed manifold surface.
+
+    Closed: every edge belongs to exactly two triangles. Manifold: no edge belongs to more
+    than two triangles and the triangles around every vertex form one fan. Degenerate
+    (zero-area) triangles are refused too.
+
+    Args:
+        points: (n, 3) float, mm.
+        triangles: (k, 3) int, 0-based, without duplicate vertices (see
+            :func:`merge_duplicate_points`).
+    """
+    tri = np.asarray(triangles, dtype=np.int64)
+    fix = "it must be a closed manifold surface (watertight, every edge shared by exactly two triangles); repair it (e.g. MeshLab, PyMeshFix) first"
+    if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) < 4:
+        raise MeshError(f"a surface needs at least 4 triangles, got {len(tri)}; {fix}")
+    if ((tri[:, 0] == tri[:, 1]) | (tri[:, 1] == tri[:, 2]) | (tri[:, 0] == tri[:, 2])).any():
+        raise MeshError(f"the surface has triangles with a repeated vertex; {fix}")
+    p = np.asarray(points, dtype=np.float64)[tri]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    if (area <= 1e-12 * area.max()).any():
+        raise MeshError(f"the surface has {int((area <= 1e-12 * area.max()).sum())} zero-area triangles; {fix}")
+    edges = np.sort(tri[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    if (counts == 1).any():
+        raise MeshError(
+            f"the surface is open: {int((counts == 1).sum())} edges belong to only one triangle (holes); {fix}"
+        )
+    if (counts > 2).any():
+        raise MeshError(
+            f"the surface is non-manifold: {int((counts > 2).sum())} edges are shared by more than two triangles; {fix}"
+        )
+    # vertex manifoldness: corners (triangle, vertex) joined across shared edges form one fan
+    # per vertex on a manifold surface; two fans touching at a vertex give two groups.
+    loc = np.array([[0, 1], [1, 2], [2, 0]])
+    ends = tri[:, loc]  # (k, 3, 2) vertex ids of the half-edges
+    corners = (3 * np.arange(len(tri))[:, None, None] + loc[None]).reshape(-1, 2)
+    ends = ends.reshape(-1, 2)
+    swap = ends[:, 0] > ends[:, 1]
+    corners[swap] = corners[swap][:, ::-1]  # corner at the smaller vertex id first
+    key = np.sort(ends, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    first, second = corners[order[0::2]], corners[order[1::2]]
+    g = sp.coo_matrix(
+        (np.ones(2 * len(first)), (np.r_[first[:, 0], first[:, 1]], np.r_[second[:, 0], second[:, 1]])),
+        shape=(3 * len(tri), 3 * len(tri)),
+    )
+    n_fans, labels = connected_components(g, directed=False)
+    n_vertices = len(np.unique(tri))
+    if n_fans != n_vertices:
+        fans = np.bincount(np.unique(np.c_[labels, tri.ravel()], axis=0)[:, 1])
+        bad = np.flatnonzero(fans > 1)
+        raise MeshError(
+            f"the surface is non-manifold at {len(bad)} vertices where separate sheets touch "
+            f"(first: vertex {int(bad[0])}); {fix}"
+        )
+
+
+def orient_surface(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Re-order triangle vertices so that all normals point outward (STL files often mix them).
+
+    Args:
+        points: (n, 3) float, mm.
+        triangles: (k, 3) int, a closed manifold surface (see :func:`check_closed_surface`).
+
+    Returns:
+        (k, 3) int: the triangles, some with two vertices swapped, consistently oriented
+        with a positive enclosed volume.
+    """
+    tri = np.array(triangles, dtype=np.int64)
+    k = len(tri)
+    half = tri[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    key = np.sort(half, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    h1, h2 = order[0::2], order[1::2]  # the two half-edges of every edge
+    t1, t2 = h1 // 3, h2 // 3
+    agree = half[h1, 0] == half[h2, 1]  # neighbours traverse the shared edge in opposite directions
+    # graph on (triangle, kept) and (triangle, flipped) states; agreeing neighbours link same states
+    rows = np.r_[t1, t1 + k]
+    cols = np.r_[np.where(agree, t2, t2 + k), np.where(agree, t2 + k, t2)]
+    graph = sp.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * k, 2 * k))
+    _, labels = connected_components(graph, directed=False)
+    if (labels[:k] == labels[k:]).any():
+        raise MeshError("the surface is not orientable; it must be a closed manifold surface enclosing a volume")
+    flip = labels[:k] > labels[k:]
+    tri[flip] = tri[flip][:, [0, 2, 1]]
+    p = np.asarray(points, dtype=np.float64)[tri]
+    if np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum() < 0:
+        tri = tri[:, [0, 2, 1]]
+    return tri
+
+
+def tetrahedralize_surface(
+    points: np.ndarray,
+    triangles: np.ndarray,
+    mesh_size: float,
+    *,
+    interior_size: float | None = None,
+    optimize: bool = True,
+) -> TetMesh:
+    """Fill a closed triangulated surface with tetrahedra using gmsh.
+
+    The surface is re-meshed with target edge length ``mesh_size`` (smooth patches are
+    re-parametrised; edges sharper than 40 degrees are kept), then the volume is meshed.
+
+    Args:
+        points: (n, 3) float, mm.
+        triangles: (k, 3) int, 0-based, a closed manifold surface.
+        mesh_size: target edge length in mm (> 0) on the surface (and inside, by default).
+        interior_size: target edge length in mm inside the volume, if different.
+        optimize: run gmsh's and Netgen's quality optimisers (recommended).
+
+    Returns:
+        The tetrahedral mesh (coordinates in mm).
+
+    Raises:
+        MeshError: the surface is not closed and manifold, or gmsh fails to mesh it.
+        DependencyError: gmsh is not installed (extra ``mesh``).
+    """
+    if not (isinstance(mesh_size, (int, float)) and math.isfinite(mesh_size) and mesh_size > 0):
+        raise MeshError(f"mesh_size must be a positive length in mm, got {mesh_size!r}")
+    points, triangles = merge_duplicate_points(points, triangles)
+    check_closed_surface(points, triangles)
+    triangles = orient_surface(points, triangles)
+    gmsh = require("gmsh", "mesh", "Tetrahedralising a surface")
+    started = gmsh.isInitialized()
+    if not started:
+        gmsh.initialize(readConfigFiles=False, interruptible=False)
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.option.setNumber("General.Verbosity", 1)
+        gmsh.option.setNumber("General.NumThreads", 1)
+        gmsh.model.add("tissuecast-surface")
+        surf = gmsh.model.addDiscreteEntity(2)
+        gmsh.model.mesh.addNodes(2, surf, np.arange(1, len(points) + 1), points.ravel())
+        gmsh.model.mesh.addElementsByType(surf, 2, [], (triangles + 1).ravel())
+        gmsh.model.mesh.classifySurfaces(math.radians(40), True, True, math.pi)
+        gmsh.model.mesh.createGeometry()
+        loop = gmsh.model.geo.addSurfaceLoop([e[1] for e in gmsh.model.getEntities(2)])
+        gmsh.model.geo.addVolume([loop])
+        gmsh.model.geo.synchronize()
+        for name, value in [
+            ("Mesh.MeshSizeMin", 0.5 * mesh_size),
+            ("Mesh.MeshSizeMax", mesh_size),
+            ("Mesh.MeshSizeFromCurvature", 0),
+            ("Mesh.MeshSizeExtendFromBoundary", 1),
+            ("Mesh.Algorithm", 6),
+            ("Mesh.Algorithm3D", 1),
+            ("Mesh.Optimize", int(optimize)),
+            ("Mesh.OptimizeNetgen", int(optimize)),
+            ("Mesh.RandomSeed", 1),
+        ]:
+            gmsh.option.setNumber(name, value)
+        if interior_size is not None:
+            const = gmsh.model.mesh.field.add("Constant")
+            gmsh.model.mesh.field.setNumber(const, "VIn", float(interior_size))
+            gmsh.model.mesh.field.setNumbers(const, "VolumesList", [e[1] for e in gmsh.model.getEntities(3)])
+            gmsh.model.mesh.field.setNumber(const, "IncludeBoundary", 0)
+            gmsh.model.mesh.field.setAsBackgroundMesh(const)
+            gmsh.option.setNumber("Mesh.MeshSizeMin", 0.5 * min(mesh_size, interior_size))
+        gmsh.model.mesh.generate(3)
+        tags, coords, _ = gmsh.model.mesh.getNodes()
+        _, tet_nodes = gmsh.model.mesh.getElementsByType(4)
+    except Exception as exc:  # gmsh raises plain Exception with its own message
+        raise MeshError(f"gmsh could not tetrahedralise the surface ({exc}); check that it is a closed manifold surface") from exc
+    finally:
+        if not started:
+            gmsh.finalize()
+        else:  # the caller runs gmsh: leave its other models alone
+            gmsh.model.remove()
+    if len(tet_nodes) == 0:
+        raise MeshError("gmsh produced no tetrahedra; check that the surface is closed and encloses a volume")
+    index = np.full(int(tags.max()) + 1, -1, dtype=np.int64)
+    index[tags.astype(np.int64)] = np.arange(len(tags))
+    tets = index[np.asarray(tet_nodes, dtype=np.int64).reshape(-1, 4)]
+    pts = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
+    used = np.unique(tets)
+    renum = np.full(len(pts), -1, dtype=np.int64)
+    renum[used] = np.arange(len(used))
+    mesh = TetMesh(pts[used], renum[tets])
+    log.info("gmsh: %d vertices, %d tetrahedra at mesh size %.3g mm", mesh.n_points, mesh.n_tets, mesh_size)
+    return mesh

@@ -1,0 +1,128 @@
+"""Config: paper defaults, TOML round trip, strict validation naming the key."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import pytest
+
+from tissuecast.cli.main import main
+from tissuecast.config import (
+    Config,
+    config_from_dict,
+    config_to_dict,
+    config_to_toml,
+    load_config,
+    with_overrides,
+)
+from tissuecast.errors import ConfigError
+
+
+@pytest.fixture(autouse=True)
+def _restore_logging():
+    """main() points the root logger at this test's captured stderr; undo that afterwards."""
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)
+
+
+def test_defaults_are_the_papers_values():
+    c = Config()
+    assert c.material.youngs_modulus == 0.021 and c.material.poisson_ratio == 0.45  # 21 kPa in MPa
+    assert (c.markers.count, c.markers.start, c.markers.min_distance, c.markers.fixed_count) == (5, 96, 10.0, 3)
+    assert c.solver.order == 2  # quadratic C3D10
+    assert c.forces.n_basis == 20 and c.forces.lsc_points == 3
+    assert c.forces.lsc_iterations == 20 and c.forces.lsc_rate == 0.1
+    assert c.forces.betas == pytest.approx([0.1 * k for k in range(11)])
+    assert c.forces.target_max_displacement == 30.0
+    assert c.dataset.n_samples == 2000 and c.dataset.split == (8.0, 1.0, 1.0) and c.dataset.n_test2 == 200
+    assert c.surrogate.hidden == (128, 64) and c.surrogate.pca_max_error == 1.0 and c.surrogate.pca_folds == 5
+    assert c.surrogate.ridge_ratio == 1e-3 and c.surrogate.learning_rate == 1e-3
+    assert c.mesh.units == "mm" and c.mesh.path == ""
+    assert c.serve.port == 18944 and c.serve.host == "127.0.0.1"
+
+
+def test_toml_round_trip_of_defaults_and_changed_values(tmp_path):
+    for cfg in (
+        Config(),
+        with_overrides(Config(), markers={"count": 7, "ids": [1, 2, 3]}, surrogate={"hidden": [64, 32, 16]},
+                       material={"poisson_ratio": 0.4}, name="run \"A\""),
+    ):
+        for comments in (True, False):
+            path = tmp_path / "c.toml"
+            path.write_text(config_to_toml(cfg, comments=comments))
+            assert load_config(path) == cfg
+    assert load_config(None) == Config()
+    assert config_from_dict(config_to_dict(Config())) == Config()
+
+
+def test_partial_file_keeps_other_defaults(tmp_path):
+    (tmp_path / "p.toml").write_text("[dataset]\nn_samples = 100\n")
+    c = load_config(tmp_path / "p.toml")
+    assert c.dataset.n_samples == 100 and c.dataset.n_test2 == 200 and c.material == Config().material
+
+
+@pytest.mark.parametrize(
+    "data, key, text",
+    [
+        ({"markers": {"cout": 5}}, "markers.cout", "unknown config key"),
+        ({"colour": "red"}, "colour", "unknown config key"),
+        ({"markers": {"count": "five"}}, "markers.count", "must be an integer"),
+        ({"markers": {"count": 2.5}}, "markers.count", "must be an integer"),
+        ({"material": {"youngs_modulus": "21kPa"}}, "material.youngs_modulus", "must be a number"),
+        ({"material": {"youngs_modulus": True}}, "material.youngs_modulus", "must be a number"),
+        ({"mesh": {"path": 3}}, "mesh.path", "must be a string"),
+        ({"surrogate": {"hidden": 128}}, "surrogate.hidden", "must be a list"),
+        ({"markers": "five"}, "markers", "must be a table"),
+        ({"material": {"poisson_ratio": 0.5}}, "material.poisson_ratio", "out of range"),
+        ({"material": {"youngs_modulus": 0.0}}, "material.youngs_modulus", "out of range"),
+        ({"markers": {"count": 0}}, "markers.count", "out of range"),
+        ({"serve": {"port": 70000}}, "serve.port", "out of range"),
+        ({"material": {"youngs_modulus": float("nan")}}, "material.youngs_modulus", "must be finite"),
+        ({"mesh": {"units": "inch"}}, "mesh.units", "is not allowed"),
+        ({"solver": {"order": 3}}, "solver.order", "is not allowed"),
+        ({"forces": {"betas": [0.5, 1.5]}}, "betas", "must be numbers in [0, 1]"),
+        ({"dataset": {"split": [8, 1]}}, "split", "three non-negative numbers"),
+    ],
+)
+def test_bad_values_raise_config_error_naming_the_key(data, key, text):
+    with pytest.raises(ConfigError) as err:
+        config_from_dict(data)
+    msg = str(err.value)
+    assert key in msg and text in msg
+
+
+def test_out_of_range_message_gives_the_allowed_range():
+    with pytest.raises(ConfigError, match=r"material\.poisson_ratio = 0\.5 is out of range; allowed values are in \(-1\.0, 0\.5\)"):
+        config_from_dict({"material": {"poisson_ratio": 0.5}})
+    with pytest.raises(ConfigError, match=r"allowed keys in \[markers\]: count, fixed_count, .*min_distance, start"):
+        config_from_dict({"markers": {"cout": 5}})
+
+
+def test_file_errors(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "none.toml")
+    (tmp_path / "bad.toml").write_text("[markers\ncount = 5\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_config(tmp_path / "bad.toml")
+
+
+def test_config_is_frozen():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        Config().markers.count = 3  # type: ignore[misc]
+
+
+def test_config_show_cli(tmp_path, capsys):
+    assert main(["config", "show"]) == 0
+    out = capsys.readouterr().out
+    assert "[material]" in out and "youngs_modulus = 0.021" in out
+    (tmp_path / "c.toml").write_text("[markers]\ncount = 9\n")
+    assert main(["config", "show", str(tmp_path / "c.toml"), "--no-comments"]) == 0
+    out = capsys.readouterr().out
+    assert "count = 9\n" in out and "#" not in out
+    path = tmp_path / "shown.toml"
+    path.write_text(out)
+    assert load_config(path).markers.count == 9
