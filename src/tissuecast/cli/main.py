@@ -26,6 +26,12 @@ COMMANDS: dict[str, str] = {
     "dataset": "dataset_cmd",
     "export-inp": "export_inp_cmd",
     "serve": "serve_cmd",
+    "train": "train_cmd",
+    "evaluate": "evaluate_cmd",
+    "predict": "predict_cmd",
+    "study": "study_cmd",
+    "run": "run_cmd",
+    "demo": "demo_cmd",
 }
 
 

@@ -1,0 +1,147 @@
+"""OpenIGTLink round-trip latency of `tissuecast serve` on the phantom (target: p99 < 1 ms).
+
+A model with the paper's architecture ([128, 64], n_w = 27, 5 markers) is fitted on smooth
+synthetic fields on the phantom (accuracy is irrelevant here, only the sizes matter) and
+saved; ``tissuecast serve`` runs it in a separate process on 127.0.0.1; a blocking client
+(pyigtl packing, own socket, CRC verified, POLYDATA decoded) sends marker positions and
+waits for the deformed surface. Printed side by side:
+
+- round trip, POINT in -> POLYDATA TissueSurface out (p50 / p99 / max over N requests);
+- the same with 5 TRANSFORM messages in, with the full field, and for a 5-member ensemble
+  (surface + uncertainty);
+- where the time goes: model evaluation, server-side handling of one request, and packing
+  the reply with pyigtl.PolyDataMessage versus the pre-packed template;
+- a fixed numpy kernel of similar size, whose p99 shows how much of the tail comes from the
+  machine (other processes, scheduling) rather than from the server.
+
+Usage: python benchmarks/igtl_latency.py [--requests 2000] [--model FOLDER]
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pyigtl
+
+from tissuecast.mesh.phantom import phantom
+from tissuecast.serve import IGTLClient, SurfacePredictor
+from tissuecast.serve.session import ClientSession
+from tissuecast.serve.synthetic import synthetic_model
+from tissuecast.surrogate import DeformationModel
+
+
+def per_call(fn, n: int) -> np.ndarray:
+    """Seconds per call of fn(), n calls after 20 warm-up calls."""
+    for _ in range(20):
+        fn()
+    out = np.empty(n)
+    for i in range(n):
+        t = time.perf_counter()
+        fn()
+        out[i] = time.perf_counter() - t
+    return out
+
+
+def row(name: str, seconds: np.ndarray) -> str:
+    us = seconds * 1e6
+    return f"{name:<52s} {np.percentile(us, 50):9.1f} {np.percentile(us, 99):9.1f} {us.max():9.1f}"
+
+
+def start_server(folder: Path, *extra: str) -> tuple[subprocess.Popen, int]:
+    cmd = [sys.executable, "-c", "import sys; from tissuecast.cli.main import main; sys.exit(main())",
+           "-q", "serve", str(folder), "--port", "0", *extra]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    line = proc.stdout.readline()  # "serving FOLDER on HOST:PORT (OpenIGTLink)"
+    if " on " not in line:
+        proc.kill()
+        raise RuntimeError(f"server did not start: {line!r}")
+    return proc, int(line.split(" on ")[1].split()[0].rsplit(":", 1)[1])
+
+
+def round_trips(port: int, positions: np.ndarray, n: int, mode: str) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    with IGTLClient("127.0.0.1", port) as client:
+        def once():
+            p = positions + rng.normal(0.0, 0.5, positions.shape)
+            if mode == "transform":
+                client.send_transforms(p)
+            else:
+                client.send_positions(p)
+            reply = client.receive()
+            if mode == "field":
+                reply = client.receive()
+            assert reply.polydata is not None, reply.text
+        return per_call(once, n)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--requests", type=int, default=2000)
+    parser.add_argument("--model", help="saved DeformationModel folder (default: a synthetic phantom model)")
+    args = parser.parse_args()
+    n = args.requests
+    mesh = phantom()
+    with tempfile.TemporaryDirectory() as tmp:
+        if args.model:
+            folder, model = Path(args.model), DeformationModel.load(args.model)
+            ensemble = None
+        else:
+            t = time.perf_counter()
+            model = synthetic_model(mesh, n_samples=300, n_components=27, hidden=(128, 64), epochs=30)
+            ensemble = synthetic_model(mesh, n_samples=300, n_components=27, hidden=(128, 64), epochs=30, ensemble=5)
+            print(f"fitted synthetic phantom models in {time.perf_counter() - t:.1f} s")
+            folder = Path(tmp) / "model"
+            model.save(folder)
+            ensemble.save(Path(tmp) / "ensemble")
+        print(f"mesh: {mesh.n_points} vertices, surface {len(mesh.surface_vertices)} vertices / "
+              f"{len(mesh.surface_triangles)} triangles; {model!r}")
+        positions = model.reference_marker_positions
+        predictor = SurfacePredictor(model)
+        prediction = predictor.predict(positions + 1.0, 0.0)
+        session = ClientSession(predictor, lambda data: None)
+        point_message = pyigtl.PointMessage(positions + 1.0, device_name="Markers").pack()
+        tris = np.hstack([np.full((len(mesh.surface_triangles), 1), 3), np.searchsorted(
+            predictor.surface_ids, mesh.surface_triangles)]).ravel()
+
+        def pyigtl_pack():
+            pts = (predictor.surface_reference + prediction.displacement[predictor.surface_ids]).astype(np.float32)
+            return pyigtl.PolyDataMessage(points=pts, polygons=tris, device_name="TissueSurface").pack()
+
+        print(f"\n{'microseconds':<52s} {'p50':>9s} {'p99':>9s} {'max':>9s}")
+        W = np.random.default_rng(0).random((64, 3 * mesh.n_points))
+        h = np.random.default_rng(1).random((1, 64))
+        print(row("machine jitter floor: one fixed (1x64)@(64x3n) matmul", per_call(lambda: h @ W, n)))
+        print(row("model.predict_from_positions", per_call(lambda: model.predict_from_positions(positions + 1.0), n)))
+        print(row("server work per POINT request (in-process)", per_call(lambda: session.feed(point_message), n)))
+        packed = per_call(lambda: predictor.surface_message(prediction), n)
+        naive = per_call(pyigtl_pack, n)
+        print(row("pack surface: pre-packed template + segment CRC", packed))
+        print(row("pack surface: pyigtl.PolyDataMessage.pack()", naive))
+        print(f"{'  -> packing speed-up (p50)':<52s} {np.median(naive) / np.median(packed):9.1f}x")
+        runs = [("round trip POINT -> TissueSurface", folder, (), "point"),
+                ("round trip 5 TRANSFORM -> TissueSurface", folder, (), "transform"),
+                ("round trip POINT -> TissueSurface + TissueField", folder, ("--full-field",), "field")]
+        if ensemble is not None:
+            runs.append(("round trip POINT -> surface + uncertainty (5 nets)", Path(tmp) / "ensemble", (), "point"))
+        results = {}
+        for name, path, extra, mode in runs:
+            proc, port = start_server(path, *extra)
+            try:
+                results[name] = round_trips(port, positions, n, mode)
+            finally:
+                proc.terminate()
+                proc.wait(10)
+            print(row(name, results[name]))
+        p99 = np.percentile(results[runs[0][0]], 99) * 1e3
+        print(f"\nPOINT -> TissueSurface over {n} requests: p99 = {p99:.3f} ms "
+              f"({'meets' if p99 < 1.0 else 'MISSES'} the 1 ms target on this machine)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,146 @@
+"""Built-in nonlinear FEM solver versus CalculiX (ccx) on the same problem, side by side.
+
+Same mesh (the phantom, or a coarse phantom with ``--quick``), same 3 interior fixed vertices
+(``select_fixed_vertices``), same smooth LBO surface force field scaled so that the P2
+solution reaches ``--target`` mm (default 27.5, inside the issue's 25-30 mm), same machine,
+one run. Prints, for each backend: seconds per sample, increments, Newton iterations,
+factorisations, maximum displacement, agreement with ccx (max vertex difference / max
+displacement) and peak memory, then the speed ratio.
+
+    python benchmarks/solver_vs_calculix.py            # phantom, ccx with 1 thread
+    python benchmarks/solver_vs_calculix.py --threads 1 2
+    python benchmarks/solver_vs_calculix.py --quick    # coarse phantom (~250 vertices)
+
+Timings of a shared machine are inflated by whatever else runs on it; compare ratios measured
+in the same run only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import resource
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from tissuecast.fem import NeoHookean, Problem, Solver
+from tissuecast.fem.calculix import ccx_executable, solve_calculix
+from tissuecast.forces import field_scale, lbo_basis, lbo_field, random_lbo_weights
+from tissuecast.markers import select_fixed_vertices, select_markers
+from tissuecast.mesh.phantom import phantom, phantom_surface
+
+
+def _peak_mb(who: int) -> float:
+    return resource.getrusage(who).ru_maxrss / 1024.0  # Linux reports KiB
+
+
+def build_mesh(quick: bool):
+    if not quick:
+        return phantom()
+    from tissuecast.mesh.mesher import tetrahedralize_surface
+
+    return tetrahedralize_surface(*phantom_surface(3), 9.0)
+
+
+def calibrate(problem: Problem, unit_forces: np.ndarray, target: float) -> tuple[float, int]:
+    """Scale of ``unit_forces`` whose P2 solution peaks at ``target`` mm (secant on max |u|)."""
+    solver = Solver(problem)
+    s0, d0 = 0.0, 0.0
+    s1 = 1.0
+    d1 = float(np.linalg.norm(solver.solve(s1 * unit_forces).displacement, axis=1).max())
+    solves = 1
+    for _ in range(8):
+        if abs(d1 - target) < 0.005 * target:
+            break
+        s2 = s1 + (target - d1) * (s1 - s0) / (d1 - d0)
+        s2 = min(max(s2, 0.5 * s1), 2.0 * s1)
+        s0, d0, s1 = s1, d1, s2
+        d1 = float(np.linalg.norm(solver.solve(s1 * unit_forces).displacement, axis=1).max())
+        solves += 1
+    return s1, solves
+
+
+def time_ours(problem: Problem, forces: np.ndarray, repeats: int):
+    t0 = time.perf_counter()
+    solver = Solver(problem)
+    setup = time.perf_counter() - t0
+    results, seconds = [], []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        results.append(solver.solve(forces))
+        seconds.append(time.perf_counter() - t0)
+    return results[-1], setup, statistics.median(seconds)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="coarse phantom (~250 vertices) instead of the phantom")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1], help="ccx thread counts to run (default: 1)")
+    ap.add_argument("--target", type=float, default=27.5, help="maximum displacement of the P2 solution, mm")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the LBO weights")
+    ap.add_argument("--repeats", type=int, default=3, help="timed solves per built-in configuration (median)")
+    ap.add_argument("--workdir", help="keep ccx's files here (default: a temporary folder)")
+    ap.add_argument("--no-ccx", action="store_true", help="skip CalculiX (built-in solver only)")
+    args = ap.parse_args(argv)
+
+    mesh = build_mesh(args.quick)
+    markers = select_markers(mesh)
+    fixed = select_fixed_vertices(mesh, 3, exclude=markers)
+    material = NeoHookean(0.021, 0.45)
+    basis = lbo_basis(mesh, 20)
+    unit = lbo_field(basis, random_lbo_weights(np.random.default_rng(args.seed), 20), 1.0 / field_scale(basis), mesh.n_points)
+    unit *= 0.005  # ~ the right order for the phantom; calibrated below
+    p2 = Problem(mesh, material, fixed, order=2)
+    p1 = Problem(mesh, material, fixed, order=1)
+    print(f"mesh: {mesh}; P2 nodes {len(mesh.points10)}; fixed vertices {fixed.tolist()} (0-based)")
+    t0 = time.perf_counter()
+    scale, n_cal = calibrate(p2, unit, args.target)
+    forces = scale * unit
+    print(f"forces: LBO field (20 modes, seed {args.seed}), RMS surface nodal force "
+          f"{np.sqrt((forces[mesh.surface_vertices] ** 2).sum(1).mean()):.4g} N, net force "
+          f"{np.linalg.norm(forces.sum(0)):.3g} N (calibrated with {n_cal} solves in {time.perf_counter() - t0:.1f} s)")
+
+    rows = []
+    r2, setup2, sec2 = time_ours(p2, forces, args.repeats)
+    r1, setup1, sec1 = time_ours(p1, forces, args.repeats)
+    ours_peak = _peak_mb(resource.RUSAGE_SELF)
+    rows.append(("tissuecast P2", 2, "-", sec2, setup2, r2, ours_peak))
+    rows.append(("tissuecast P1", 1, "-", sec1, setup1, r1, ours_peak))
+
+    ccx = {}
+    if not args.no_ccx:
+        ccx_executable()
+        for nt in args.threads:
+            folder = Path(args.workdir) / f"threads{nt}" if args.workdir else Path(tempfile.mkdtemp(prefix="ccx-bench-"))
+            res = solve_calculix(p2, forces, workdir=folder, threads=nt)
+            ccx[nt] = res
+            rows.append((f"ccx 2.20 C3D10", 2, nt, res.seconds, 0.0, res, _peak_mb(resource.RUSAGE_CHILDREN)))
+
+    ref = ccx[min(ccx)].displacement if ccx else r2.displacement
+    ref_max = float(np.linalg.norm(ref, axis=1).max())
+    head = (f"{'backend':<16}{'threads':>8}{'s/sample':>10}{'setup s':>9}{'incr':>6}{'iters':>7}{'factor':>8}"
+            f"{'max|u| mm':>11}{'diff/max':>10}{'peak MB':>9}")
+    print()
+    print(head)
+    print("-" * len(head))
+    for name, _, nt, sec, setup, res, peak in rows:
+        u = res.displacement
+        diff = float(np.linalg.norm(u - ref, axis=1).max()) / ref_max
+        print(f"{name:<16}{nt!s:>8}{sec:>10.3f}{setup:>9.3f}{res.increments:>6}{res.iterations:>7}"
+              f"{getattr(res, 'factorizations', res.iterations):>8}{np.linalg.norm(u, axis=1).max():>11.3f}"
+              f"{100 * diff:>9.3f}%{peak:>9.0f}")
+    print("diff/max: max over vertices of |u - u_ccx| / max |u_ccx| (reference: ccx with the fewest threads)"
+          if ccx else "diff/max: relative to the built-in P2 solution (ccx skipped)")
+    print("peak MB: built-in = this process's peak RSS; ccx = the largest ccx child process's peak RSS")
+    for nt, res in ccx.items():
+        print(f"ratio ccx ({nt} thread{'s' if nt > 1 else ''}) / tissuecast P2 per sample: {res.seconds / sec2:.1f}x "
+              f"(P1: {res.seconds / sec1:.1f}x)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

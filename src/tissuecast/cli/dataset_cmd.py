@@ -1,0 +1,100 @@
+"""``tissuecast dataset info|export``: inspect a data set, export a sample for ParaView."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from ..errors import DatasetError, MeshError
+
+
+def register(sub) -> None:
+    p = sub.add_parser("dataset", help="inspect a data set or export one sample")
+    dsub = p.add_subparsers(dest="dataset_command", metavar="ACTION", required=True)
+    info = dsub.add_parser("info", help="counts by split and status, displacement statistics, timing")
+    info.add_argument("store", help="data-set store directory")
+    info.add_argument("--json", action="store_true", help="print the figures as JSON")
+    info.set_defaults(func=run_info)
+    ex = dsub.add_parser("export", help="write one sample's deformed mesh (displacement and force point data)")
+    ex.add_argument("store", help="data-set store directory")
+    ex.add_argument("--sample", type=int, required=True, metavar="I", help="0-based sample index")
+    ex.add_argument("output", help="output mesh file, e.g. sample.vtu (ParaView, Slicer)")
+    ex.add_argument("--reference", action="store_true",
+                    help="write the undeformed mesh (displacement as point data only) instead of the deformed one")
+    ex.set_defaults(func=run_export)
+
+
+def _stats_line(st: dict) -> str:
+    if not st:
+        return "-"
+    return (f"min {st['min']:.2f}  p25 {st['p25']:.2f}  median {st['median']:.2f}  p75 {st['p75']:.2f}  "
+            f"p90 {st['p90']:.2f}  p95 {st['p95']:.2f}  max {st['max']:.2f}  (n={st['count']})")
+
+
+def print_summary(s: dict) -> None:
+    """Print a data-set summary (from ``Dataset.summary()``) as text."""
+    print(f"data set {s['path']}: {s['n_samples']} samples, {s['n_vertices']} vertices")
+    print(f"  {'split':<7} {'done':>6} {'failed':>7} {'pending':>8}")
+    for name, c in s["counts"].items():
+        print(f"  {name:<7} {c['done']:>6} {c['failed']:>7} {c['pending']:>8}")
+    t = s["totals"]
+    print(f"  {'total':<7} {t['done']:>6} {t['failed']:>7} {t['pending']:>8}")
+    cal = s.get("calibration")
+    if cal:
+        extra = f", q{cal.get('quantile', 0):g} of pilots {cal['quantile_value']:.2f} mm" if cal.get("quantile_value") else ""
+        print(f"force magnitude alpha = {cal['alpha']:.6g} N ({cal['rule']}{extra})")
+    print("per-sample max displacement (mm), done samples:")
+    print(f"  all     {_stats_line(s['max_displacement'])}")
+    for name, st in s["max_displacement_by_split"].items():
+        if st:
+            print(f"  {name:<7} {_stats_line(st)}")
+    for beta, st in s["max_displacement_by_beta"].items():
+        print(f"  beta={beta:<4} median {st['median']:.2f}  max {st['max']:.2f}  (n={st['count']})")
+    tm = s["timing"]
+    if tm["solved"]:
+        print(f"solver: {tm['seconds_mean']:.2f} s/sample mean (max {tm['seconds_max']:.2f} s, total "
+              f"{tm['seconds_total']:.0f} s of worker time), {tm['increments_mean']:.1f} increments and "
+              f"{tm['iterations_mean']:.1f} Newton iterations per done sample, {tm['retried']} retried")
+    if s["failures"]:
+        print(f"failed samples ({len(s['failures'])}, excluded from select(status='done')):")
+        for i, reason in list(s["failures"].items())[:10]:
+            print(f"  {i}: {reason[:160]}")
+
+
+def run_info(args) -> int:
+    from ..dataset import open_dataset
+
+    s = open_dataset(args.store).summary()
+    if args.json:
+        print(json.dumps(s, indent=2))
+    else:
+        print_summary(s)
+    return 0
+
+
+def run_export(args) -> int:
+    from ..dataset import open_dataset
+    from ..mesh import write_mesh
+
+    ds = open_dataset(args.store)
+    i = args.sample
+    if not 0 <= i < ds.n_samples:
+        raise DatasetError(f"sample {i} does not exist; the data set has samples 0..{ds.n_samples - 1}")
+    if ds.status[i] != 1:
+        state = {0: "pending", 2: "failed"}[int(ds.status[i])]
+        raise DatasetError(f"sample {i} is {state}, so it has no displacement; pick a done sample "
+                           "(`tissuecast dataset info` lists the counts)")
+    u = np.asarray(ds.displacements[i], dtype=np.float64)
+    f = np.asarray(ds.forces[i], dtype=np.float64)
+    mesh = ds.mesh
+    if not args.reference:
+        try:
+            mesh = ds.mesh.deformed(u)
+        except MeshError as exc:  # a (near-)degenerate deformed tet: fall back to the reference shape
+            print(f"note: writing the undeformed mesh with displacement point data ({exc})")
+    files = write_mesh(args.output, mesh, point_data={"displacement": u, "force": f,
+                                                      "displacement_magnitude": np.linalg.norm(u, axis=1)})
+    print(f"wrote sample {i} ({ds.split[i]}, max displacement {float(np.linalg.norm(u, axis=1).max()):.2f} mm) "
+          f"to {', '.join(str(p) for p in files)}")
+    return 0

@@ -1,0 +1,41 @@
+"""``tissuecast evaluate MODEL``: accuracy on the data set (MLP and ridge) and the HTML report."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def register(sub) -> None:
+    p = sub.add_parser("evaluate", help="evaluate a model on its data set and write the report",
+                       description="Offset_mean / Offset_max on valid, test-1 and test-2 (per beta), MLP next to the "
+                                   "ridge baseline, prediction time; writes index.html with figures, renders and VTU files.")
+    p.add_argument("model", help="model folder (from `tissuecast train`)")
+    p.add_argument("--store", help="data-set store (default: the store the model was trained on)")
+    p.add_argument("--out", help="report folder (default: the model folder's sibling 'report')")
+    p.add_argument("--renders", type=int, default=3, help="samples rendered in 3D (default 3; 0 = none)")
+    p.add_argument("--studies", help="folder with study_*.csv to include (default: the report folder)")
+    p.add_argument("--json", action="store_true", help="print the evaluation as JSON")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..dataset import open_dataset
+    from ..errors import ModelError
+    from ..evaluate.pipeline import evaluate_and_report
+    from ..evaluate.report import format_evaluation
+    from ..surrogate import DeformationModel
+
+    model = DeformationModel.load(args.model)
+    store = args.store or model.dataset_path or ((model.run_config or {}).get("dataset") or {}).get("store")
+    if not store:
+        raise ModelError("the model does not record its data set; pass --store PATH")
+    ds = open_dataset(store)
+    out = Path(args.out) if args.out else Path(args.model).resolve().parent / "report"
+    evaluation, index = evaluate_and_report(model, ds, out, renders=args.renders, studies_folder=args.studies)
+    if args.json:
+        print(json.dumps(evaluation.as_dict(), indent=2, default=float))
+    else:
+        print(format_evaluation(evaluation))
+        print(f"report: {index}")
+    return 0

@@ -1,0 +1,147 @@
+"""``tissuecast predict MODEL --markers FILE``: displacement field from tracked markers.
+
+Input (mm): CSV with one marker per row (x, y, z; n_d rows per sample) or one sample per row
+(3 n_d values), an optional header line; or JSON ``{"displacements": [...]}`` /
+``{"positions": [...]}`` / a bare nested list. Empty cells, ``nan`` or ``null`` for all three
+coordinates of a marker mark it as not tracked (models trained with marker_dropout > 0).
+Output: .vtu (mesh + point data; one file per sample for batches), .csv (sample, vertex,
+ux, uy, uz[, sigma]) or .json. Vertex ids are 0-based.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def register(sub) -> None:
+    p = sub.add_parser("predict", help="predict the displacement field from marker displacements or positions",
+                       description=__doc__.split("\n\n", 1)[1])
+    p.add_argument("model", help="model folder")
+    p.add_argument("--markers", required=True, help="CSV or JSON file of marker displacements (or positions), mm")
+    p.add_argument("--positions", action="store_true",
+                   help="the file holds tracked marker positions (mm, model frame); reference positions are subtracted")
+    p.add_argument("--out", help="output file .vtu, .csv or .json (default: print a summary only)")
+    p.add_argument("--uncertainty", action="store_true", help="add the ensemble's per-vertex uncertainty (ensemble >= 2)")
+    p.add_argument("--ridge", action="store_true", help="use the ridge baseline instead of the MLP")
+    p.set_defaults(func=run)
+
+
+def _cell(v: str) -> float:
+    v = v.strip()
+    return float("nan") if v == "" or v.lower() in ("nan", "null", "none") else float(v)
+
+
+def read_marker_file(path: Path, n_d: int) -> tuple[np.ndarray, bool | None]:
+    """-> ((B, n_d, 3) float mm with NaN for untracked markers, positions flag from JSON or None)."""
+    from ..errors import ModelError
+
+    if not path.is_file():
+        raise FileNotFoundError(f"marker file {str(path)!r} does not exist")
+    flag = None
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except json.JSONDecodeError as exc:
+            raise ModelError(f"{str(path)!r} is not valid JSON: {exc}") from exc
+        if isinstance(data, dict):
+            keys = [k for k in ("displacements", "positions") if k in data]
+            if len(keys) != 1:
+                raise ModelError(f"{str(path)!r} must hold exactly one of 'displacements' or 'positions'")
+            flag = keys[0] == "positions"
+            data = data[keys[0]]
+        try:
+            arr = np.array(data, dtype=np.float64)  # null -> nan
+        except (TypeError, ValueError) as exc:
+            raise ModelError(f"{str(path)!r}: marker values must be numbers or null ({exc})") from exc
+    else:
+        rows = []
+        with path.open(newline="") as fh:
+            for i, row in enumerate(csv.reader(fh)):
+                if not row or all(not c.strip() for c in row):
+                    continue
+                try:
+                    rows.append([_cell(c) for c in row])
+                except ValueError:
+                    if i == 0 and not rows:
+                        continue  # header
+                    raise ModelError(f"{str(path)!r} line {i + 1}: non-numeric value in {row}") from None
+        if not rows or len({len(r) for r in rows}) != 1:
+            raise ModelError(f"{str(path)!r}: need rows of equal length (3 per marker, or 3 n_d = {3 * n_d} per sample)")
+        arr = np.array(rows, dtype=np.float64)
+    if arr.size % (3 * n_d):
+        raise ModelError(f"{str(path)!r} holds {arr.size} values; this model needs a multiple of 3 n_d = {3 * n_d} "
+                         f"(n_d = {n_d} markers, x y z each, mm)")
+    return arr.reshape(-1, n_d, 3), flag
+
+
+def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None) -> list[Path]:
+    from ..errors import ModelError
+
+    suf = out.suffix.lower()
+    B = u.shape[0]
+    if suf == ".vtu":
+        from ..evaluate.render import write_vtu
+
+        files = []
+        for b in range(B):
+            p = out if B == 1 else out.with_name(f"{out.stem}_{b:03d}{out.suffix}")
+            data = {"displacement": u[b]}
+            if sigma is not None:
+                data["uncertainty"] = sigma[b]
+            files.append(write_vtu(p, model.mesh, data))
+        return files
+    if suf == ".csv":
+        with out.open("w", newline="") as fh:
+            w = csv.writer(fh)
+            w.writerow(["sample", "vertex", "ux_mm", "uy_mm", "uz_mm"] + (["sigma_mm"] if sigma is not None else []))
+            for b in range(B):
+                for i in range(u.shape[1]):
+                    w.writerow([b, i, *(f"{x:.6g}" for x in u[b, i])] + ([f"{sigma[b, i]:.6g}"] if sigma is not None else []))
+        return [out]
+    if suf == ".json":
+        doc = {"units": "mm", "vertex_ids": "0-based", "displacement": u.tolist()}
+        if sigma is not None:
+            doc["uncertainty"] = sigma.tolist()
+        out.write_text(json.dumps(doc), encoding="utf-8")
+        return [out]
+    raise ModelError(f"unknown output format {out.suffix!r}; use .vtu, .csv or .json")
+
+
+def run(args) -> int:
+    from ..surrogate import DeformationModel
+
+    model = DeformationModel.load(args.model)
+    d, flag = read_marker_file(Path(args.markers), model.n_markers)
+    positions = args.positions or bool(flag)
+    if positions:
+        d = d - model.reference_marker_positions
+    missing = np.isnan(d).all(axis=2)
+    partial = np.isnan(d).any(axis=2) & ~missing
+    if partial.any():
+        from ..errors import ModelError
+
+        raise ModelError("a marker has only some coordinates given; give x, y and z, or leave all three empty")
+    t = time.perf_counter()
+    sigma = None
+    if args.ridge:
+        u = model.predict_ridge(d)
+    elif args.uncertainty:
+        u, sigma = model.predict_with_uncertainty(d, missing=missing if missing.any() else None)
+    else:
+        u = model.predict(d, missing=missing if missing.any() else None)
+    sec = time.perf_counter() - t
+    for b in range(u.shape[0]):
+        mag = np.linalg.norm(u[b], axis=1)
+        extra = f", max uncertainty {sigma[b].max():.3f} mm" if sigma is not None else ""
+        miss = f", missing markers {np.flatnonzero(missing[b]).tolist()}" if missing[b].any() else ""
+        print(f"sample {b}: max displacement {mag.max():.3f} mm at vertex {int(mag.argmax())}{extra}{miss}")
+    print(f"predicted {u.shape[0]} sample(s) of {u.shape[1]} vertices in {sec * 1e3:.2f} ms")
+    if args.out:
+        for f in _write(Path(args.out), model, u, sigma):
+            print(f"wrote {f}")
+    return 0

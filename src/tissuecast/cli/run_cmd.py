@@ -1,0 +1,40 @@
+"""``tissuecast run CONFIG``: the whole pipeline, simulate -> train -> evaluate -> report."""
+
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser("run", help="run the whole pipeline as a config describes",
+                       description="Simulate the data set (resumable), train the surrogate, evaluate it and write the "
+                                   "report. Paths: dataset.store, OUTPUT/model, OUTPUT/<evaluate.output>.")
+    p.add_argument("config", help="TOML config file (e.g. configs/paper.toml or configs/quick.toml)")
+    p.add_argument("--skip-simulate", action="store_true", help="use the existing store as it is")
+    p.add_argument("--workers", type=int, help="local FEM worker processes (default: dataset.workers)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def report_run(result) -> None:
+    """Print the outcome of :func:`~tissuecast.evaluate.pipeline.run_pipeline`."""
+    from ..evaluate.report import format_evaluation
+
+    p = result["paths"]
+    ds = result["dataset"]
+    if ds:
+        tot = ds.get("totals", {})
+        print(f"data set {p.store}: {tot.get('done', '?')} done, {tot.get('failed', '?')} failed")
+    sec = result["seconds"]
+    print("time: " + ", ".join(f"{k} {v:.1f} s" for k, v in sec.items()))
+    print(format_evaluation(result["evaluation"]))
+    print(f"model:  {p.model}")
+    print(f"report: {result['report']}")
+
+
+def run(args) -> int:
+    from ..config import load_config
+    from ..evaluate.pipeline import run_pipeline
+
+    cfg = load_config(args.config)
+    result = run_pipeline(cfg, simulate=not args.skip_simulate, progress=not args.no_progress, workers=args.workers)
+    report_run(result)
+    return 0

@@ -1,0 +1,72 @@
+"""``tissuecast serve MODEL``: stream predicted deformations to navigation software over OpenIGTLink.
+
+Send marker positions (mm, model frame) as one POINT message (n_d points, model marker
+order) or as TRANSFORM messages ``Marker0``..``Marker{n_d-1}``; the server answers with
+POLYDATA ``TissueSurface`` (deformed outer surface) and, on ``GET_POLYDATA TissueField`` or
+with ``--full-field``, POLYDATA ``TissueField`` (every vertex, with ``displacement_mm``).
+Errors come back as STRING ``ERROR``. See :mod:`tissuecast.serve` for the full protocol.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+
+from ..config import load_config, with_overrides
+from ..errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+def register(sub) -> None:
+    p = sub.add_parser("serve", help="OpenIGTLink server streaming predicted deformations",
+                       description=__doc__.split("\n\n", 1)[1].strip())
+    p.add_argument("model", help="model folder written by `tissuecast train` / DeformationModel.save")
+    p.add_argument("--config", help="TOML config; its [serve] section gives the defaults")
+    p.add_argument("--host", help="bind address (default 127.0.0.1: this machine only)")
+    p.add_argument("--port", type=int, help="TCP port (default 18944; 0 = any free port)")
+    p.add_argument("--full-field", action="store_true", default=None,
+                   help="also send the full vertex field (POLYDATA TissueField) after every surface")
+    p.add_argument("--transform-mode", choices=("frame", "each"),
+                   help="TRANSFORM input: predict when every marker is fresh (frame, default) or on each update")
+    p.add_argument("--max-offset", type=float, dest="max_marker_offset",
+                   help="reject markers farther than this many mm from their reference position (default 100)")
+    p.add_argument("--no-uncertainty", action="store_true", help="do not send ensemble uncertainty")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..serve import IGTLServer, SurfacePredictor
+    from ..surrogate import DeformationModel
+
+    cfg = load_config(args.config)
+    overrides = {k: getattr(args, k) for k in ("host", "full_field", "transform_mode", "max_marker_offset")
+                 if getattr(args, k) is not None}
+    if args.port:  # 0 (any free port) is allowed here but not in a config file
+        overrides["port"] = args.port
+    serve = with_overrides(cfg, serve=overrides).serve
+    port = 0 if args.port == 0 else serve.port
+    model = DeformationModel.load(args.model)
+    predictor = SurfacePredictor(model, max_marker_offset=serve.max_marker_offset,
+                                 use_uncertainty=not args.no_uncertainty)
+    try:
+        server = IGTLServer(predictor, serve.host, port, full_field=serve.full_field,
+                            transform_mode=serve.transform_mode, client_timeout=serve.client_timeout)
+    except OSError as exc:  # address in use, unknown host, no permission for ports < 1024
+        raise ConfigError(f"cannot listen on {serve.host}:{port}: {exc}; choose another --port or --host") from exc
+    host, port = server.address
+    n_d = predictor.n_markers
+    print(f"serving {args.model} on {host}:{port} (OpenIGTLink)", flush=True)
+    print(f"  input : POINT (any device name, {n_d} points, mm, model marker order) or "
+          f"TRANSFORM Marker0..Marker{n_d - 1} ({serve.transform_mode} mode)", flush=True)
+    print(f"  output: POLYDATA TissueSurface ({len(predictor.surface_ids)} points, "
+          f"{len(model.mesh.surface_triangles)} triangles"
+          f"{', uncertainty_mm' if predictor.has_uncertainty else ''}); GET_POLYDATA TissueField -> "
+          f"POLYDATA TissueField ({predictor.n_points} points{', every prediction' if serve.full_field else ''}); "
+          "errors: STRING ERROR", flush=True)
+    print("press Ctrl+C to stop", file=sys.stderr, flush=True)
+    try:
+        server.serve_forever()
+    finally:
+        server.stop()
+    return 0

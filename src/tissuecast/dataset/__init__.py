@@ -1,0 +1,28 @@
+"""Presurgical simulation data sets: plan, force calibration, parallel FEM solves, Zarr store.
+
+``simulate(config)`` creates or continues a store (resumable, exact); ``open_dataset(path)``
+reads one. The store layout is documented in :mod:`tissuecast.dataset.store` and
+``docs/dataset-schema.md``.
+"""
+
+from .generate import data_config, setup_from_config, simulate
+from .plan import SPLIT_CODES, SPLIT_NAMES, SamplePlan, make_plan, sample_seed
+from .reader import Dataset, max_displacement_stats, open_dataset
+from .store import SCHEMA, SCHEMA_VERSION, STATUS_NAMES
+
+__all__ = [
+    "simulate",
+    "open_dataset",
+    "Dataset",
+    "make_plan",
+    "SamplePlan",
+    "sample_seed",
+    "setup_from_config",
+    "data_config",
+    "max_displacement_stats",
+    "SPLIT_NAMES",
+    "SPLIT_CODES",
+    "STATUS_NAMES",
+    "SCHEMA",
+    "SCHEMA_VERSION",
+]

@@ -1,0 +1,132 @@
+"""Force-magnitude calibration: choose alpha so the data set's displacements reach the target.
+
+Rule (documented in the store's ``calibration`` attribute):
+
+* Pilot samples: the first ``dataset.calibration_samples`` LBO samples (their weights W come
+  from their own seeds, so the pilots are fixed by the configuration).
+* Statistic: ``q(alpha)`` = the ``dataset.calibration_quantile`` quantile (default 0.9, linear
+  interpolation) of the pilots' per-sample maximum vertex displacement, solved with the full
+  nonlinear FEM at force magnitude alpha. A pilot that fails to converge counts as +inf.
+* alpha solves ``q(alpha) = forces.target_max_displacement`` to a relative tolerance of
+  ``RTOL`` (2 %): start from a dimensional estimate for a tenth of the target (a nearly linear,
+  cheap solve); then iterate ``alpha <- alpha (target / q)^(1 / s)`` where the response
+  exponent ``s`` comes from the last two rounds (secant in log-log, clipped to [0.5, 2];
+  s = 1 at first). Rounds that overshoot (q above the target or failures) bound alpha from
+  above; the next alpha never leaves the bracket (geometric bisection when it would).
+* If ``dataset.alpha`` > 0 in the config, it is used as is and no pilots are solved.
+
+So a softer material, a larger tumour or a different mesh resolution all land near the
+target: the rule measures the mesh at hand, not a fixed force.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Callable
+
+import numpy as np
+
+from ..errors import DatasetError
+
+__all__ = ["calibrate_alpha", "initial_alpha", "RTOL", "MAX_ROUNDS"]
+
+log = logging.getLogger(__name__)
+
+RTOL = 0.02
+MAX_ROUNDS = 10
+
+
+def initial_alpha(basis, mesh, youngs_modulus: float, target: float) -> float:
+    """Dimensional first guess of alpha (N) giving about a tenth of ``target`` mm.
+
+    A surface traction t (MPa) on a body of size L (mm) and modulus E moves it by about
+    t L / E. The RMS nodal force of a unit-alpha field over the mean vertex area gives t.
+    """
+    from ..forces import field_scale
+
+    traction = field_scale(basis) / float(np.mean(basis.mass))  # MPa per unit alpha
+    size = float(np.max(mesh.extent))
+    return 0.1 * target * youngs_modulus / (traction * size)
+
+
+def _quantile(values: np.ndarray, q: float) -> float:
+    """Linearly interpolated quantile (numpy's default) where inf (a failure) may occur."""
+    v = np.sort(np.asarray(values, dtype=np.float64))
+    pos = q * (len(v) - 1)
+    i, j = int(math.floor(pos)), int(math.ceil(pos))
+    if not math.isfinite(v[j]):
+        return math.inf
+    return float(v[i] + (pos - i) * (v[j] - v[i]))
+
+
+def calibrate_alpha(
+    pilot_max: Callable[[float], np.ndarray],
+    alpha0: float,
+    target: float,
+    quantile: float = 0.9,
+    rtol: float = RTOL,
+    max_rounds: int = MAX_ROUNDS,
+) -> dict:
+    """Find alpha with ``quantile(pilot_max(alpha)) = target`` (see the module notes).
+
+    Args:
+        pilot_max: alpha (N) -> (P,) per-pilot maximum displacement (mm; inf = failed).
+        alpha0: first trial alpha (N), best below the answer.
+        target: target displacement, mm.
+        quantile: which quantile of the pilot maxima must reach ``target``.
+        rtol: accepted relative deviation of that quantile from ``target``.
+        max_rounds: most pilot rounds; the closest round is kept if none is within ``rtol``.
+
+    Returns:
+        JSON-able dict: ``alpha``, ``quantile_value``, ``converged``, ``rounds`` (list of
+        {alpha, quantile_value, pilot_max}), and the rule's parameters.
+
+    Raises:
+        DatasetError: every pilot failed at every trial alpha (the solver cannot run this set-up).
+    """
+    rounds: list[dict] = []
+    lo = hi = None  # (alpha, q) bracket: q(lo) < target < q(hi)
+    alpha = float(alpha0)
+    best = None
+    for _ in range(max_rounds):
+        m = np.asarray(pilot_max(alpha), dtype=np.float64)
+        q = _quantile(m, quantile)
+        rounds.append({"alpha": alpha, "quantile_value": q if math.isfinite(q) else None,
+                       "pilot_max": [float(x) if math.isfinite(x) else None for x in m]})
+        log.info("calibration round %d: alpha = %.6g N -> q%.0f of pilot max displacement = %.3f mm (target %.3f)",
+                 len(rounds), alpha, 100 * quantile, q, target)
+        if math.isfinite(q) and (best is None or abs(math.log(q / target)) < abs(math.log(best[1] / target))):
+            best = (alpha, q)
+        if math.isfinite(q) and abs(q / target - 1.0) <= rtol:
+            break
+        if math.isfinite(q) and q < target:
+            prev_lo = lo
+            lo = (alpha, q)
+            ref = prev_lo if prev_lo is not None else hi if hi is not None and math.isfinite(hi[1]) else None
+        else:
+            prev_hi = hi
+            hi = (alpha, q)
+            ref = lo if lo is not None else prev_hi if prev_hi is not None and math.isfinite(q) and math.isfinite(prev_hi[1]) else None
+        if not math.isfinite(q):
+            new = math.sqrt(lo[0] * alpha) if lo is not None else alpha / 4.0
+        else:
+            s = 1.0
+            if ref is not None and ref[0] != alpha and math.isfinite(ref[1]) and ref[1] > 0:
+                s = math.log(q / ref[1]) / math.log(alpha / ref[0])
+                s = min(max(s, 0.5), 2.0)
+            new = alpha * (target / q) ** (1.0 / s)
+        if lo is not None and hi is not None and not lo[0] < new < hi[0]:
+            new = math.sqrt(lo[0] * hi[0])
+        alpha = new
+    if best is None:
+        raise DatasetError(
+            f"force calibration failed: every pilot sample failed to converge at every trial alpha "
+            f"(last {rounds[-1]['alpha']:.3g} N); check the material, fixed vertices and solver settings")
+    converged = abs(best[1] / target - 1.0) <= rtol
+    if not converged:
+        log.warning("force calibration did not reach %.1f mm within %d rounds; using alpha = %.6g N (q = %.2f mm)",
+                    target, len(rounds), best[0], best[1])
+    return {"rule": f"q{quantile:g} of pilot per-sample max displacement = target", "alpha": best[0],
+            "quantile": quantile, "target": target, "quantile_value": best[1], "rtol": rtol,
+            "converged": bool(converged), "rounds": rounds}

@@ -1,0 +1,151 @@
+"""Where samples are solved: local worker processes (default) or a Dask distributed cluster.
+
+An executor takes a :class:`~.worker.Recipe` once and then solves :class:`~.worker.Task`\\ s,
+yielding :class:`~.worker.SampleResult`\\ s in completion order. Workers only compute; the
+parent process alone writes the store, so no two processes ever write the same chunk.
+
+Determinism: every worker runs its BLAS single-threaded (``OMP/OPENBLAS/MKL_NUM_THREADS=1``;
+Dask's nanny does the same by default), so a sample's bits do not depend on where it ran.
+A local worker also exits by itself when its parent process dies (``kill -9``).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import logging
+import multiprocessing
+import os
+import threading
+import time
+from typing import Iterable, Iterator
+
+from ..errors import require
+from .worker import Recipe, SampleResult, Task, context_for, solve_task
+
+__all__ = ["LocalExecutor", "DaskExecutor", "make_executor", "default_workers"]
+
+log = logging.getLogger(__name__)
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
+                "NUMEXPR_NUM_THREADS")
+_RECIPE: Recipe | None = None
+
+
+def default_workers() -> int:
+    """Automatic number of local workers: min(2, CPU count)."""
+    return max(1, min(2, os.cpu_count() or 1))
+
+
+def _watch_parent(parent: int) -> None:
+    while True:
+        time.sleep(0.5)
+        if os.getppid() != parent:
+            os._exit(0)  # the parent is gone (e.g. kill -9): stop solving for nobody
+
+
+def _init_worker(recipe: Recipe, parent: int) -> None:
+    global _RECIPE
+    _RECIPE = recipe
+    threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+    context_for(recipe)  # build mesh, problem and solver once per process
+
+
+def _run(task: Task) -> SampleResult:
+    return solve_task(_RECIPE, task)
+
+
+def _noop() -> int:
+    return os.getpid()
+
+
+class LocalExecutor:
+    """A pool of ``workers`` spawned processes, each holding one reusable solver."""
+
+    def __init__(self, recipe: Recipe, workers: int):
+        self.recipe, self.workers = recipe, int(workers)
+        self._pool: cf.ProcessPoolExecutor | None = None
+
+    def __enter__(self) -> "LocalExecutor":
+        saved = {k: os.environ.get(k) for k in _THREAD_VARS}
+        os.environ.update({k: "1" for k in _THREAD_VARS})  # inherited by the spawned workers only
+        try:
+            self._pool = cf.ProcessPoolExecutor(
+                self.workers, mp_context=multiprocessing.get_context("spawn"),
+                initializer=_init_worker, initargs=(self.recipe, os.getpid()))
+            for f in [self._pool.submit(_noop) for _ in range(self.workers)]:
+                f.result()  # all workers are started (and their env fixed) before we restore ours
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def imap_unordered(self, tasks: Iterable[Task]) -> Iterator[SampleResult]:
+        """Solve ``tasks``; yield results as they complete."""
+        futures = [self._pool.submit(_run, t) for t in tasks]
+        try:
+            for f in cf.as_completed(futures):
+                yield f.result()
+        finally:
+            for f in futures:
+                f.cancel()
+
+    def describe(self) -> str:
+        return f"{self.workers} local worker process{'es' if self.workers != 1 else ''}"
+
+
+def _dask_run(recipe: Recipe, task: Task) -> SampleResult:
+    return solve_task(recipe, task)
+
+
+class DaskExecutor:
+    """Tasks on a Dask distributed cluster at ``address`` (``tcp://HOST:PORT``).
+
+    The recipe is scattered to every worker once; each Dask worker process builds its
+    solver on its first task and reuses it.
+    """
+
+    def __init__(self, recipe: Recipe, address: str):
+        self.recipe, self.address = recipe, address
+        self._client = None
+
+    def __enter__(self) -> "DaskExecutor":
+        distributed = require("distributed", "data", "running simulations on a Dask cluster")
+        self._client = distributed.Client(self.address, timeout="30s", set_as_default=False)
+        self._recipe_future = self._client.scatter(self.recipe, broadcast=True, hash=False)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    def imap_unordered(self, tasks: Iterable[Task]) -> Iterator[SampleResult]:
+        """Solve ``tasks`` on the cluster; yield results as they complete."""
+        distributed = require("distributed", "data", "running simulations on a Dask cluster")
+        tasks = list(tasks)
+        futures = [self._client.submit(_dask_run, self._recipe_future, t, pure=False)
+                   for t in tasks]
+        try:
+            for f in distributed.as_completed(futures, loop=self._client.loop):
+                yield f.result()
+        finally:
+            self._client.cancel(futures)
+
+    def describe(self) -> str:
+        n = len(self._client.nthreads()) if self._client else 0
+        return f"Dask cluster {self.address} ({n} workers)"
+
+
+def make_executor(recipe: Recipe, *, scheduler: str = "", workers: int = 0):
+    """A Dask executor when ``scheduler`` names one, else local processes (``workers`` 0 = auto)."""
+    if scheduler:
+        return DaskExecutor(recipe, scheduler)
+    return LocalExecutor(recipe, workers or default_workers())

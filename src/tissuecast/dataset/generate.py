@@ -1,0 +1,259 @@
+"""Generate (or continue) a data set: plan, calibrate the force magnitude, solve, store.
+
+``simulate(config)`` is resumable and exact: every sample is a pure function of the stored
+set-up (mesh, fixed vertices, LBO basis, config), its own seed and the calibrated alpha, and
+is solved from zero displacement with single-threaded BLAS. Which worker solved it, in which
+order, and whether the run was interrupted (``kill -9``) and resumed do not change a bit of
+the store (except ``samples/seconds``, the wall-clock times, and the ``created`` attribute).
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Config, config_from_dict, config_to_dict, config_to_toml, load_config
+from ..errors import DatasetError
+from .calibrate import calibrate_alpha, initial_alpha
+from .executors import make_executor
+from .plan import make_plan
+from .reader import open_dataset
+from .store import StoreWriter
+from .worker import Recipe, Task
+
+__all__ = ["simulate", "setup_from_config", "data_config"]
+
+log = logging.getLogger(__name__)
+
+# config keys that do not change a data set's numbers (may differ when resuming); the mesh
+# file may move: its content is checked by fingerprint instead
+_RUNTIME_KEYS = {"dataset": ("store", "workers", "scheduler"), "mesh": ("path",)}
+_DATA_SECTIONS = ("mesh", "markers", "material", "solver", "forces", "dataset")
+
+
+def data_config(cfg: Config) -> dict:
+    """The part of a config that determines a data set's contents (nested dict)."""
+    d = config_to_dict(cfg)
+    out = {sec: dict(d[sec]) for sec in _DATA_SECTIONS}
+    for sec, keys in _RUNTIME_KEYS.items():
+        for k in keys:
+            out[sec].pop(k, None)
+    return out
+
+
+def setup_from_config(cfg: Config):
+    """The mesh, fiducial markers and fixed vertices a config describes.
+
+    Returns:
+        ``(mesh TetMesh, markers (n_d,) int64, fixed (k,) int64)``.
+    """
+    from ..markers import select_fixed_vertices, select_markers, validate_vertex_ids
+    from ..mesh import phantom, read_mesh
+
+    mesh = read_mesh(cfg.mesh.path, units=cfg.mesh.units) if cfg.mesh.path else phantom()
+    m = cfg.markers
+    if m.ids:
+        markers = validate_vertex_ids(mesh, m.ids, "markers.ids")
+    else:
+        markers = select_markers(mesh, count=m.count, start=m.start, min_distance=m.min_distance)
+    if m.fixed_ids:
+        fixed = validate_vertex_ids(mesh, m.fixed_ids, "markers.fixed_ids", other=markers)
+    else:
+        fixed = select_fixed_vertices(mesh, count=m.fixed_count, exclude=markers)
+    return mesh, np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
+
+
+def _check_same(writer: StoreWriter, cfg: Config, mesh) -> None:
+    stored = data_config(config_from_dict(tomllib.loads(writer.config_toml)))
+    now = data_config(cfg)
+    diffs = [f"{sec}.{k}: {stored[sec].get(k)!r} in the store, {now[sec].get(k)!r} now"
+             for sec in _DATA_SECTIONS for k in sorted(set(stored[sec]) | set(now[sec]))
+             if stored[sec].get(k) != now[sec].get(k)]
+    if diffs:
+        raise DatasetError(
+            f"data set {str(writer.path)!r} was made with a different configuration ({'; '.join(diffs[:4])}"
+            f"{'; ...' if len(diffs) > 4 else ''}); resume it with its own config (`tissuecast dataset info` shows it) "
+            "or choose another --store path; a store is never overwritten")
+    fp = writer.root.attrs.get("mesh_fingerprint")
+    if fp != mesh.fingerprint():
+        raise DatasetError(
+            f"data set {str(writer.path)!r} was made on a different mesh (fingerprint {str(fp)[:12]}..., this mesh "
+            f"{mesh.fingerprint()[:12]}...); use the original mesh or another --store path; a store is never overwritten")
+
+
+_FLUSH_SECONDS = 2.0  # per-sample values and statuses reach the disk at least this often
+
+
+def _flush_quietly(writer: StoreWriter) -> None:
+    """Save finished samples while an exception (e.g. a full disk) is propagating."""
+    try:
+        writer.flush()
+    except OSError as exc:
+        log.warning("could not save the last finished samples (%s); they will be solved again on resume", exc)
+
+
+class _Progress:
+    """tqdm bar (samples/s, ETA) on a terminal, plain log lines otherwise."""
+
+    def __init__(self, total: int, done: int, enabled: bool):
+        self.total, self.count, self.t0, self.last = total, done, time.monotonic(), 0.0
+        self.start_count = done
+        self.bar = None
+        if enabled and total and sys.stderr.isatty():
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, initial=done, unit="sample", desc="simulate", dynamic_ncols=True)
+        self.enabled = enabled
+
+    def update(self, failed: int) -> None:
+        self.count += 1
+        if self.bar is not None:
+            self.bar.update(1)
+            self.bar.set_postfix(failed=failed, refresh=False)
+            return
+        now = time.monotonic()
+        if self.enabled and (now - self.last > 30.0 or self.count == self.total):
+            self.last = now
+            rate = (self.count - self.start_count) / max(now - self.t0, 1e-9)
+            eta = (self.total - self.count) / rate if rate > 0 else float("inf")
+            log.info("simulated %d/%d samples (%d failed), %.2f samples/s, ETA %.0f s",
+                     self.count, self.total, failed, rate, eta)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
+def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
+    mesh, markers, fixed = setup_from_config(cfg)
+    if path.exists():
+        writer = StoreWriter.open(path)
+        _check_same(writer, cfg, mesh)
+        return writer
+    from ..forces import lbo_basis
+
+    basis = lbo_basis(mesh, cfg.forces.n_basis)
+    return StoreWriter.create(path, config_toml=config_to_toml(cfg, comments=False), mesh=mesh, markers=markers,
+                              fixed=fixed, basis=basis, plan=make_plan(cfg))
+
+
+def _recipe(writer: StoreWriter, solver_factory: str | None) -> Recipe:
+    kw = {"solver_factory": solver_factory} if solver_factory else {}
+    return Recipe(writer.config_toml, writer.read("mesh/points"), writer.read("mesh/tets"), writer.read("fixed"),
+                  writer.read("lbo/vertices"), writer.read("lbo/vectors"), writer.read("lbo/eigenvalues"),
+                  writer.read("lbo/mass"), **kw)
+
+
+def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[dict, list]:
+    """Calibrate alpha on the pilot samples; returns the record and the last round's results."""
+    ds = cfg.dataset
+    if ds.alpha > 0:
+        return {"rule": "given (dataset.alpha)", "alpha": ds.alpha, "converged": True, "rounds": []}, []
+    from ..forces import LBOBasis
+    from ..mesh import TetMesh
+
+    seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
+    n_lbo = int(writer.root.attrs["n_lbo"])
+    pilots = list(range(min(ds.calibration_samples, n_lbo)))
+    if not pilots:
+        raise DatasetError("force calibration needs at least one LBO sample; set dataset.n_samples >= 1 or dataset.alpha")
+    last: list = []
+
+    def pilot_max(alpha: float) -> np.ndarray:
+        last[:] = sorted(ex.imap_unordered([Task(i, int(seeds[i]), float(betas[i]), alpha) for i in pilots]),
+                         key=lambda r: r.index)
+        return np.array([r.max_displacement for r in last])
+
+    basis = LBOBasis(recipe.basis_vertices, recipe.basis_vectors, recipe.basis_eigenvalues, recipe.basis_mass)
+    mesh = TetMesh(recipe.points, recipe.tets)
+    target = cfg.forces.target_max_displacement
+    alpha0 = initial_alpha(basis, mesh, cfg.material.youngs_modulus, target)
+    record = calibrate_alpha(pilot_max, alpha0, target, quantile=ds.calibration_quantile)
+    record["pilots"] = pilots
+    reusable = [r for r in last if r.alpha == record["alpha"]]
+    return record, reusable
+
+
+def simulate(config, store_path=None, *, progress: bool = True, scheduler: str | None = None,
+             workers: int | None = None, solver_factory: str | None = None) -> dict:
+    """Create or continue the data set described by ``config``.
+
+    Args:
+        config: a :class:`~tissuecast.config.Config` or a TOML file path.
+        store_path: the store directory (default ``config.dataset.store``).
+        progress: show a progress bar on a terminal (log lines otherwise).
+        scheduler: Dask scheduler address ``tcp://HOST:PORT`` (default ``config.dataset.scheduler``;
+            empty = local worker processes).
+        workers: local worker processes (default ``config.dataset.workers``; 0 = min(2, CPUs)).
+        solver_factory: ``"module:function"`` replacing the FEM solver factory (for testing).
+
+    Returns:
+        The data set's :meth:`~.reader.Dataset.summary` plus ``run`` figures (samples solved
+        in this call, seconds, samples per minute, executor).
+
+    Raises:
+        DatasetError: the store belongs to another config or mesh, or is of an unknown schema.
+    """
+    cfg = config if isinstance(config, Config) else load_config(config)
+    path = Path(store_path or cfg.dataset.store)
+    writer = _open_or_create(cfg, path)
+    scheduler = cfg.dataset.scheduler if scheduler is None else scheduler
+    workers = cfg.dataset.workers if workers is None else workers
+    t0 = time.monotonic()
+    run = {"solved": 0, "executor": "nothing to do", "calibration_seconds": 0.0, "sample_phase_seconds": 0.0,
+           "sample_phase_samples": 0, "parent_io_seconds": 0.0}
+    if len(writer.pending()) or writer.calibration is None:
+        recipe = _recipe(writer, solver_factory)
+        with make_executor(recipe, scheduler=scheduler, workers=workers) as ex:
+            run["executor"] = ex.describe()
+            log.info("simulating %d pending of %d samples on %s", len(writer.pending()), len(writer.status),
+                     run["executor"])
+            if writer.calibration is None:
+                tc = time.monotonic()
+                record, reusable = _calibrate(writer, ex, cfg, recipe)
+                run["calibration_seconds"] = time.monotonic() - tc
+                writer.set_calibration(record)
+                for r in reusable:  # pilot solves at the final alpha are the samples themselves
+                    if writer.status[r.index] == 0:
+                        writer.write_sample(r)
+                        run["solved"] += 1
+                writer.flush()
+            _solve_pending(writer, ex, progress, run)
+    elapsed = time.monotonic() - t0
+    summary = open_dataset(path).summary()
+    run["seconds"] = elapsed
+    run["samples_per_minute"] = 60.0 * run["solved"] / elapsed if run["solved"] and elapsed > 0 else 0.0
+    phase = run["sample_phase_seconds"]
+    run["sample_phase_samples_per_minute"] = 60.0 * run["sample_phase_samples"] / phase if phase > 0 else 0.0
+    summary["run"] = run
+    return summary
+
+
+def _solve_pending(writer: StoreWriter, ex, progress: bool, run: dict) -> None:
+    """Solve every pending sample at the calibrated alpha, writing results as they come."""
+    alpha = float(writer.calibration["alpha"])
+    seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
+    pending = writer.pending()
+    t_start = last_flush = time.monotonic()
+    bar = _Progress(len(writer.status), len(writer.status) - len(pending), progress)
+    try:
+        for r in ex.imap_unordered(Task(int(i), int(seeds[i]), float(betas[i]), alpha) for i in pending):
+            tw = time.monotonic()
+            writer.write_sample(r)
+            run["solved"] += 1
+            run["sample_phase_samples"] += 1
+            if tw - last_flush > _FLUSH_SECONDS:
+                writer.flush()
+                last_flush = time.monotonic()
+            run["parent_io_seconds"] += time.monotonic() - tw
+            bar.update(int(np.sum(writer.status == 2)))
+        writer.flush()
+    finally:
+        bar.close()
+        _flush_quietly(writer)
+        run["sample_phase_seconds"] = time.monotonic() - t_start

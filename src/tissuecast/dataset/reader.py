@@ -1,0 +1,219 @@
+"""Read-only access to a data-set store (see :mod:`.store` for the schema)."""
+
+from __future__ import annotations
+
+import tomllib
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Config, config_from_dict
+from ..errors import DatasetError
+from .plan import SPLIT_CODES, SPLIT_NAMES
+from .store import STATUS_NAMES, _open_root, check_schema
+
+__all__ = ["Dataset", "open_dataset", "max_displacement_stats"]
+
+_STATUS_CODES = {v: k for k, v in STATUS_NAMES.items()}
+
+
+def open_dataset(path) -> "Dataset":
+    """Open a data-set store read-only.
+
+    Raises:
+        DatasetError: the path is missing, not a Zarr store, not a tissuecast data set, or
+            of a newer schema version than this tissuecast reads.
+    """
+    path = Path(path)
+    root = _open_root(path, mode="r")
+    check_schema(root, path)
+    return Dataset(path, root)
+
+
+def max_displacement_stats(values: np.ndarray) -> dict:
+    """Distribution of per-sample maximum displacements (mm): min, quantiles, max, mean."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if len(v) == 0:
+        return {}
+    q = np.quantile(v, [0.05, 0.25, 0.5, 0.75, 0.9, 0.95])
+    return {"count": int(len(v)), "min": float(v.min()), "p05": float(q[0]), "p25": float(q[1]),
+            "median": float(q[2]), "p75": float(q[3]), "p90": float(q[4]), "p95": float(q[5]),
+            "max": float(v.max()), "mean": float(v.mean())}
+
+
+class Dataset:
+    """A data set of FEM samples (read-only; arrays are loaded on first access).
+
+    Attributes:
+        path: the store directory.
+        n_samples: N.  n_vertices: n_v.
+    """
+
+    def __init__(self, path: Path, root):
+        self.path, self._root = path, root
+        self._s = root["samples"]
+        self.n_samples = int(root.attrs["n_samples"])
+        self.n_vertices = int(self._s["displacements"].shape[1])
+
+    def __repr__(self) -> str:
+        counts = np.bincount(self.status.astype(np.int64), minlength=3)
+        return (f"Dataset({str(self.path)!r}, {self.n_samples} samples: {counts[1]} done, {counts[2]} failed, "
+                f"{counts[0]} pending; {self.n_vertices} vertices)")
+
+    def __len__(self) -> int:
+        return self.n_samples
+
+    def _array(self, name: str) -> np.ndarray:
+        a = np.asarray(self._root[name][...])
+        a.setflags(write=False)
+        return a
+
+    # -------------------------------------------------------------- per-sample arrays
+    @cached_property
+    def displacements(self) -> np.ndarray:
+        """(N, n_v, 3) float32 vertex displacements, mm (NaN for samples not done)."""
+        return self._array("samples/displacements")
+
+    @cached_property
+    def forces(self) -> np.ndarray:
+        """(N, n_v, 3) float32 nodal forces, N (zero for pending samples)."""
+        return self._array("samples/forces")
+
+    def _per_sample(name: str, doc: str):  # noqa: N805 - helper evaluated in the class body
+        def get(self):
+            return self._array(f"samples/{name}")
+
+        get.__doc__ = doc
+        get.__name__ = name
+        return cached_property(get)
+
+    weights = _per_sample("weights", "(N, n_b, 3) float64 LBO weights W (NaN for pending samples).")
+    alpha = _per_sample("alpha", "(N,) float64 force magnitude alpha, N (NaN for pending samples).")
+    beta = _per_sample("beta", "(N,) float64 LBO share of test-2 fields; NaN for LBO samples.")
+    seed = _per_sample("seed", "(N,) uint64 per-sample seeds (numpy default_rng(seed) draws the field).")
+    status = _per_sample("status", "(N,) int8: 0 pending, 1 done, 2 failed.")
+    increments = _per_sample("increments", "(N,) int32 load increments (all attempts).")
+    iterations = _per_sample("iterations", "(N,) int32 Newton iterations (all attempts).")
+    factorizations = _per_sample("factorizations", "(N,) int32 matrix factorisations (all attempts).")
+    attempts = _per_sample("attempts", "(N,) int8 solver attempts (1 + retries used).")
+    load_fraction = _per_sample("load_fraction", "(N,) float64 share of the load reached (1 when done).")
+    max_displacement = _per_sample("max_displacement", "(N,) float32 largest vertex displacement, mm (NaN unless done).")
+    seconds = _per_sample("seconds", "(N,) float64 wall-clock solve time, s.")
+    del _per_sample
+
+    @cached_property
+    def split_codes(self) -> np.ndarray:
+        """(N,) int8 split codes (0 train, 1 valid, 2 test1, 3 test2)."""
+        return self._array("samples/split")
+
+    @cached_property
+    def split(self) -> np.ndarray:
+        """(N,) str split labels: 'train', 'valid', 'test1' or 'test2'."""
+        names = np.array([SPLIT_NAMES[k] for k in sorted(SPLIT_NAMES)])
+        return names[self.split_codes.astype(np.int64)]
+
+    @property
+    def failures(self) -> dict[int, str]:
+        """Failure reason of every failed sample, by index."""
+        return {int(k): v for k, v in (self._root.attrs.get("failures") or {}).items()}
+
+    # -------------------------------------------------------------- set-up of the data set
+    @cached_property
+    def mesh(self):
+        """The :class:`~tissuecast.mesh.TetMesh` the samples were computed on."""
+        from ..mesh import TetMesh
+
+        return TetMesh(self._array("mesh/points"), self._array("mesh/tets"))
+
+    @cached_property
+    def markers(self) -> np.ndarray:
+        """(n_d,) int64 fiducial-marker vertex ids (0-based, pick order)."""
+        return self._array("markers")
+
+    @cached_property
+    def fixed(self) -> np.ndarray:
+        """(k,) int64 fixed vertex ids (0-based)."""
+        return self._array("fixed")
+
+    @cached_property
+    def basis(self):
+        """The stored :class:`~tissuecast.forces.LBOBasis`."""
+        from ..forces import LBOBasis
+
+        return LBOBasis(*(self._array(f"lbo/{k}") for k in ("vertices", "vectors", "eigenvalues", "mass")))
+
+    @property
+    def config_toml(self) -> str:
+        """The configuration that made the data set, as TOML text."""
+        return self._root.attrs["config_toml"]
+
+    @cached_property
+    def config(self) -> Config:
+        """The configuration that made the data set."""
+        return config_from_dict(tomllib.loads(self.config_toml))
+
+    @property
+    def attrs(self) -> dict:
+        """All root attributes (schema, versions, calibration, ...)."""
+        return dict(self._root.attrs)
+
+    @property
+    def calibration(self) -> dict | None:
+        """The force-magnitude calibration record (None before calibration)."""
+        return self._root.attrs.get("calibration")
+
+    # -------------------------------------------------------------- selection / summary
+    def select(self, split=None, status: str | None = "done") -> np.ndarray:
+        """Indices (ascending int64) of the samples in ``split`` with ``status``.
+
+        Args:
+            split: a label ('train', 'valid', 'test1', 'test2'), a list of labels, or None (all).
+            status: 'done' (default), 'failed', 'pending', or None (any).
+        """
+        keep = np.ones(self.n_samples, dtype=bool)
+        if split is not None:
+            labels = [split] if isinstance(split, str) else list(split)
+            bad = [s for s in labels if s not in SPLIT_CODES]
+            if bad:
+                raise DatasetError(f"unknown split {bad[0]!r}; use one of {', '.join(SPLIT_CODES)}")
+            keep &= np.isin(self.split_codes, [SPLIT_CODES[s] for s in labels])
+        if status is not None:
+            if status not in _STATUS_CODES:
+                raise DatasetError(f"unknown status {status!r}; use one of {', '.join(_STATUS_CODES)}")
+            keep &= self.status == _STATUS_CODES[status]
+        return np.flatnonzero(keep)
+
+    def summary(self) -> dict:
+        """Counts by split and status, per-sample maximum displacement and timing statistics."""
+        counts = {}
+        for code, name in SPLIT_NAMES.items():
+            in_split = self.split_codes == code
+            counts[name] = {st: int(np.sum(in_split & (self.status == c))) for c, st in STATUS_NAMES.items()}
+        done = self.status == 1
+        by_split = {name: max_displacement_stats(self.max_displacement[done & (self.split_codes == code)])
+                    for code, name in SPLIT_NAMES.items()}
+        by_beta = {}
+        test2 = done & (self.split_codes == SPLIT_CODES["test2"])
+        for b in np.unique(self.beta[test2]):
+            by_beta[f"{b:g}"] = max_displacement_stats(self.max_displacement[test2 & (self.beta == b)])
+        sec = self.seconds[self.status > 0]
+        its = self.iterations[done]
+        incs = self.increments[done]
+        return {
+            "path": str(self.path), "n_samples": self.n_samples, "n_vertices": self.n_vertices,
+            "counts": counts,
+            "totals": {st: int(np.sum(self.status == c)) for c, st in STATUS_NAMES.items()},
+            "max_displacement": max_displacement_stats(self.max_displacement[done]),
+            "max_displacement_by_split": by_split,
+            "max_displacement_by_beta": by_beta,
+            "timing": {"solved": int(len(sec)), "seconds_total": float(sec.sum()) if len(sec) else 0.0,
+                       "seconds_mean": float(sec.mean()) if len(sec) else 0.0,
+                       "seconds_max": float(sec.max()) if len(sec) else 0.0,
+                       "increments_mean": float(incs.mean()) if len(incs) else 0.0,
+                       "iterations_mean": float(its.mean()) if len(its) else 0.0,
+                       "retried": int(np.sum(self.attempts[self.status > 0] > 1))},
+            "calibration": self.calibration,
+            "failures": self.failures,
+        }

@@ -1,0 +1,282 @@
+"""The data-set store: one Zarr v3 directory per data set, readable with zarr alone.
+
+Schema (``schema = "tissuecast.dataset"``, ``schema_version = 1``); N samples, n_v mesh
+vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
+
+    STORE/                          root group; attributes:
+        schema, schema_version      "tissuecast.dataset", 1
+        created                     ISO-8601 UTC time the store was created
+        versions                    {package: version} of the software that made it
+        config_toml                 the full configuration (TOML text)
+        mesh_fingerprint            TetMesh.fingerprint() of the mesh
+        n_samples, n_lbo, n_test2   N = n_lbo + n_test2; LBO samples come first
+        split_labels                {"0": "train", "1": "valid", "2": "test1", "3": "test2"}
+        status_labels               {"0": "pending", "1": "done", "2": "failed"}
+        calibration                 force-magnitude calibration (see calibrate.py), null until done
+        failures                    {"<sample index>": "reason"} of failed samples
+      mesh/points     (n_v, 3) float64 mm        mesh/tets (m, 4) int64 (0-based, positive volume)
+      markers         (n_d,)  int64 fiducial-marker vertex ids (pick order)
+      fixed           (k,)    int64 fixed (pinned) vertex ids
+      lbo/vertices    (s,)    int64 surface vertex ids     lbo/vectors (s, n_b) float64 1/mm
+      lbo/eigenvalues (n_b,)  float64 1/mm^2               lbo/mass    (s,)     float64 mm^2
+      samples/displacements (N, n_v, 3) float32 mm; one chunk per sample; NaN unless done
+      samples/forces        (N, n_v, 3) float32 N, dense (zero off the surface; compresses
+                            well); one chunk per sample; written for done and failed samples
+      samples/weights       (N, n_b, 3) float64 LBO weights W (test-2: of the blended LBO field)
+      samples/alpha         (N,) float64 N, force magnitude  (NaN until solved)
+      samples/beta          (N,) float64 LBO share of test-2 samples; NaN for LBO samples
+      samples/seed          (N,) uint64 per-sample seed (numpy default_rng(seed) makes the field)
+      samples/split         (N,) int8 split code (split_labels)
+      samples/status        (N,) int8 0 pending, 1 done, 2 failed
+      samples/increments, iterations, factorizations   (N,) int32 solver counts (all attempts)
+      samples/attempts      (N,) int8 solver attempts (1 + retries used)
+      samples/load_fraction (N,) float64 share of the load reached (1 when done)
+      samples/max_displacement (N,) float32 mm, largest vertex displacement (NaN unless done)
+      samples/seconds       (N,) float64 wall-clock solve time (the only non-reproducible array)
+
+Chunks are compressed with Blosc/zstd. Only the parent process writes; every chunk write is
+atomic (zarr's LocalStore writes a temporary file and renames it). A sample's field chunks
+are written when it is solved; its 1-D values, weights and failure reason at the next
+:meth:`StoreWriter.flush`, which writes ``status`` last. So an interrupted run (``kill -9``,
+full disk) leaves a readable store whose pending samples are solved again on the next run. A new store is built
+in ``STORE.partial`` and renamed into place once its skeleton is complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DatasetError, require
+from .plan import SPLIT_NAMES, SamplePlan
+from .worker import SampleResult
+
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "STATUS_NAMES", "StoreWriter", "package_versions", "check_schema"]
+
+SCHEMA = "tissuecast.dataset"
+SCHEMA_VERSION = 1
+STATUS_NAMES = {0: "pending", 1: "done", 2: "failed"}
+PENDING, DONE, FAILED = 0, 1, 2
+_BLOCK = 256  # chunk length of the per-sample 1-D arrays and weights
+
+# per-sample scalar arrays: name -> (dtype, fill value)
+SCALARS = {
+    "alpha": ("float64", np.nan),
+    "beta": ("float64", np.nan),
+    "seed": ("uint64", 0),
+    "split": ("int8", -1),
+    "status": ("int8", 0),
+    "increments": ("int32", 0),
+    "iterations": ("int32", 0),
+    "factorizations": ("int32", 0),
+    "attempts": ("int8", 0),
+    "load_fraction": ("float64", np.nan),
+    "max_displacement": ("float32", np.nan),
+    "seconds": ("float64", np.nan),
+}
+
+
+def package_versions() -> dict[str, str]:
+    """Versions of the packages that shape a data set's numbers."""
+    import platform
+    from importlib import metadata
+
+    out = {"python": platform.python_version()}
+    for name in ("tissuecast", "numpy", "scipy", "zarr", "scikit-sparse", "robust-laplacian", "meshio"):
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def _zarr():
+    return require("zarr", "data", "data-set stores")
+
+
+def _compressor():
+    return _zarr().codecs.BloscCodec(cname="zstd", clevel=5, shuffle="shuffle")
+
+
+def check_schema(root, path) -> None:
+    """Raise DatasetError unless ``root`` is a tissuecast data set of a known schema."""
+    attrs = root.attrs
+    if attrs.get("schema") != SCHEMA:
+        raise DatasetError(f"{str(path)!r} is not a tissuecast data set (no schema = {SCHEMA!r} attribute); "
+                           "create one with `tissuecast simulate CONFIG --store PATH`")
+    version = attrs.get("schema_version")
+    if not isinstance(version, int) or version > SCHEMA_VERSION or version < 1:
+        raise DatasetError(f"data set {str(path)!r} has schema version {version!r}, but this tissuecast reads "
+                           f"versions 1..{SCHEMA_VERSION}; upgrade tissuecast to read it")
+
+
+class StoreWriter:
+    """Writes samples into a store (the parent process is the only writer).
+
+    Attributes:
+        path: the store directory.  root: its zarr group.
+        status: (N,) int8 in-memory copy of ``samples/status``.
+    """
+
+    def __init__(self, path: Path, root):
+        self.path, self.root = path, root
+        self.samples = root["samples"]
+        self._arrays = {name: self.samples[name] for name in (*SCALARS, "displacements", "forces", "weights")}
+        self._mem = {name: np.array(self._arrays[name][...]) for name in (*SCALARS, "weights")}
+        self.status = self._mem["status"]
+        self._failures = dict(root.attrs.get("failures") or {})
+        self._dirty: set[int] = set()  # blocks of the 1-D arrays changed since the last flush
+
+    # ------------------------------------------------------------ creation / opening
+    @classmethod
+    def create(cls, path, *, config_toml: str, mesh, markers, fixed, basis, plan: SamplePlan) -> "StoreWriter":
+        """Create a new store at ``path`` (which must not exist) and return its writer."""
+        zarr = _zarr()
+        path = Path(path)
+        tmp = path.with_name(path.name + ".partial")
+        if tmp.exists():
+            _remove_partial(tmp)
+        root = zarr.create_group(zarr.storage.LocalStore(tmp), zarr_format=3, attributes={
+            "schema": SCHEMA, "schema_version": SCHEMA_VERSION,
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "versions": package_versions(), "config_toml": config_toml,
+            "mesh_fingerprint": mesh.fingerprint(),
+            "n_samples": plan.n_samples, "n_lbo": plan.n_lbo, "n_test2": plan.n_samples - plan.n_lbo,
+            "split_labels": {str(k): v for k, v in SPLIT_NAMES.items()},
+            "status_labels": {str(k): v for k, v in STATUS_NAMES.items()},
+            "units": {"length": "mm", "force": "N", "stress": "MPa"},
+            "calibration": None, "failures": {},
+        })  # attributes go into the very first zarr.json: a .partial dir is always recognisable
+        comp = _compressor()
+
+        def put(name, data):
+            data = np.ascontiguousarray(data)
+            a = root.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape or None, compressors=comp)
+            a[...] = data
+
+        put("mesh/points", np.asarray(mesh.points, dtype=np.float64))
+        put("mesh/tets", np.asarray(mesh.tets, dtype=np.int64))
+        put("markers", np.asarray(markers, dtype=np.int64))
+        put("fixed", np.asarray(fixed, dtype=np.int64))
+        put("lbo/vertices", np.asarray(basis.vertices, dtype=np.int64))
+        put("lbo/vectors", np.asarray(basis.vectors, dtype=np.float64))
+        put("lbo/eigenvalues", np.asarray(basis.eigenvalues, dtype=np.float64))
+        put("lbo/mass", np.asarray(basis.mass, dtype=np.float64))
+        n, nv, nb = plan.n_samples, mesh.n_points, basis.vectors.shape[1]
+        s = root.create_group("samples")
+        s.create_array("displacements", shape=(n, nv, 3), dtype="float32", chunks=(1, nv, 3),
+                       fill_value=np.nan, compressors=comp, dimension_names=("sample", "vertex", "axis"))
+        s.create_array("forces", shape=(n, nv, 3), dtype="float32", chunks=(1, nv, 3), fill_value=0.0,
+                       compressors=comp, dimension_names=("sample", "vertex", "axis"))
+        s.create_array("weights", shape=(n, nb, 3), dtype="float64", chunks=(_BLOCK, nb, 3), fill_value=np.nan,
+                       compressors=comp, dimension_names=("sample", "basis", "axis"))
+        for name, (dtype, fill) in SCALARS.items():
+            s.create_array(name, shape=(n,), dtype=dtype, chunks=(min(_BLOCK, n),), fill_value=fill,
+                           compressors=comp, dimension_names=("sample",))
+        s["beta"][:] = plan.beta
+        s["seed"][:] = plan.seed
+        s["split"][:] = plan.split
+        os.rename(tmp, path)  # the store appears complete or not at all
+        return cls.open(path)
+
+    @classmethod
+    def open(cls, path) -> "StoreWriter":
+        """Open an existing store for appending (schema checked; removes stale temp files)."""
+        zarr = _zarr()
+        path = Path(path)
+        root = _open_root(path, mode="r+")
+        check_schema(root, path)
+        for stale in path.rglob("*.partial"):  # leftovers of a write interrupted by kill -9
+            stale.unlink(missing_ok=True)
+        return cls(path, zarr.open_group(zarr.storage.LocalStore(path), mode="r+"))
+
+    # ------------------------------------------------------------ state
+    @property
+    def config_toml(self) -> str:
+        return self.root.attrs["config_toml"]
+
+    @property
+    def calibration(self) -> dict | None:
+        return self.root.attrs.get("calibration")
+
+    def set_calibration(self, calibration: dict) -> None:
+        """Record the force-magnitude calibration (JSON-able dict with an ``alpha`` key)."""
+        self.root.attrs["calibration"] = json.loads(json.dumps(calibration))
+
+    def read(self, name: str) -> np.ndarray:
+        """A whole stored array as numpy (e.g. ``"mesh/points"``)."""
+        return np.asarray(self.root[name][...])
+
+    def pending(self) -> np.ndarray:
+        """Indices of samples not solved yet, ascending."""
+        return np.flatnonzero(self.status == PENDING)
+
+    # ------------------------------------------------------------ writing
+    def write_sample(self, r: SampleResult) -> None:
+        """Write one sample's field chunks now; its per-sample values and status at :meth:`flush`.
+
+        The status of a sample reaches the disk only after all its data (flush writes the
+        1-D arrays, then the failure reasons, then ``status`` last), so an interruption at
+        any point leaves samples either complete or pending.
+        """
+        i, a = r.index, self._arrays
+        if r.displacement is not None:
+            a["displacements"][i] = r.displacement
+        a["forces"][i] = r.forces
+        m = self._mem
+        m["weights"][i] = r.weights
+        values = {"alpha": r.alpha, "increments": r.increments, "iterations": r.iterations,
+                  "factorizations": r.factorizations, "attempts": r.attempts, "load_fraction": r.load_fraction,
+                  "max_displacement": r.max_displacement if r.status == DONE else np.nan, "seconds": r.seconds}
+        for name, v in values.items():
+            m[name][i] = v
+        if r.status == FAILED:
+            self._failures[str(i)] = r.reason
+        self.status[i] = r.status
+        self._dirty.add(i // _BLOCK)
+
+    def flush(self) -> None:
+        """Write the per-sample values of the samples written since the last flush, status last."""
+        if not self._dirty:
+            return
+        blocks = sorted(self._dirty)
+        n = len(self.status)
+        names = [k for k in (*SCALARS, "weights") if k not in ("status", "beta", "seed", "split")]
+        for name in names + ["failures", "status"]:
+            if name == "failures":
+                stored = self.root.attrs.get("failures") or {}
+                if len(stored) != len(self._failures):
+                    self.root.attrs["failures"] = {k: self._failures[k] for k in sorted(self._failures, key=int)}
+                continue
+            for blk in blocks:  # whole chunks from memory: one write each, no read
+                lo, hi = blk * _BLOCK, min((blk + 1) * _BLOCK, n)
+                self._arrays[name][lo:hi] = self._mem[name][lo:hi]
+        self._dirty.clear()
+
+def _open_root(path: Path, mode: str):
+    zarr = _zarr()
+    if not path.exists():
+        raise DatasetError(f"data set {str(path)!r} does not exist; create it with `tissuecast simulate CONFIG --store {path}`")
+    if not (path / "zarr.json").is_file():
+        raise DatasetError(f"{str(path)!r} is not a Zarr v3 store (no zarr.json); is it a tissuecast data set?")
+    try:
+        return zarr.open_group(zarr.storage.LocalStore(path, read_only=(mode == "r")), mode=mode)
+    except (ValueError, KeyError, OSError, TypeError) as exc:
+        raise DatasetError(f"cannot open data set {str(path)!r}: {exc}") from exc
+
+
+def _remove_partial(tmp: Path) -> None:
+    """Remove an interrupted store creation, but only if it is ours."""
+    meta = tmp / "zarr.json"
+    try:
+        ours = json.loads(meta.read_text()).get("attributes", {}).get("schema") == SCHEMA if meta.is_file() else not any(tmp.iterdir())
+    except (OSError, ValueError):
+        ours = False
+    if not ours:
+        raise DatasetError(f"{str(tmp)!r} exists and is not an interrupted tissuecast store; move it away and retry")
+    shutil.rmtree(tmp)

@@ -1,0 +1,237 @@
+"""Solving one sample: its force field, the nonlinear FEM solve, retries on failure.
+
+Everything a worker process needs travels once, as a :class:`Recipe` (plain arrays read
+back from the store plus the config TOML). Each worker process builds the mesh, the FEM
+problem and its :class:`~tissuecast.fem.Solver` once (:func:`context_for`) and reuses them
+for every sample it is given, so per-sample cost is the solve alone.
+
+A sample's result is a pure function of (recipe, task): the force field comes from the
+sample's own seed, the solve starts from zero displacement, and worker processes run their
+BLAS single-threaded (see :mod:`.executors`). Hence the same sample gives the same bits on
+any worker, in any order, in a first run or after a resume.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib
+import logging
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..config import Config, SolverConfig, config_from_dict
+from ..errors import ConvergenceError
+
+__all__ = ["Recipe", "Task", "SampleResult", "SampleContext", "context_for", "solve_task", "retry_solver_config",
+           "fem_solver_factory"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class Recipe:
+    """What a worker needs to build its solver (sent once per worker process).
+
+    Attributes:
+        config_toml: the data set's configuration as TOML text.
+        points: (n, 3) float64 mesh vertices, mm.  tets: (m, 4) int64.
+        fixed: (k,) int64 fixed vertex ids.
+        basis_vertices: (s,) int64; basis_vectors: (s, n_b) float64 1/mm;
+        basis_eigenvalues: (n_b,) 1/mm^2; basis_mass: (s,) mm^2 -- the stored LBO basis.
+        solver_factory: ``"module:function"`` building the solver (see :func:`fem_solver_factory`).
+    """
+
+    config_toml: str
+    points: np.ndarray
+    tets: np.ndarray
+    fixed: np.ndarray
+    basis_vertices: np.ndarray
+    basis_vectors: np.ndarray
+    basis_eigenvalues: np.ndarray
+    basis_mass: np.ndarray
+    solver_factory: str = "tissuecast.dataset.worker:fem_solver_factory"
+
+    @property
+    def key(self) -> str:
+        """Content hash identifying this recipe (worker processes cache contexts by it)."""
+        h = hashlib.sha256(self.config_toml.encode() + self.solver_factory.encode())
+        for a in (self.points, self.tets, self.fixed, self.basis_vertices, self.basis_vectors):
+            h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Task:
+    """One sample to solve: its index, seed, kind and force magnitude alpha (N)."""
+
+    index: int
+    seed: int
+    beta: float  # NaN for LBO samples, the LBO share for test-2 samples
+    alpha: float
+
+
+@dataclass(frozen=True, eq=False)
+class SampleResult:
+    """Outcome of one sample.
+
+    Attributes:
+        displacement: (n, 3) float32 mm at the vertices; None when the sample failed.
+        forces: (n, 3) float32 nodal forces, N.  weights: (n_b, 3) float64 LBO weights W.
+        status: 1 done, 2 failed.  reason: failure message ('' when done).
+        load_fraction: share of the load reached (1.0 when done).
+        attempts: solver attempts used (1 + retries used).
+    """
+
+    index: int
+    status: int
+    displacement: np.ndarray | None
+    forces: np.ndarray
+    weights: np.ndarray
+    alpha: float
+    beta: float
+    seed: int
+    increments: int
+    iterations: int
+    factorizations: int
+    seconds: float
+    load_fraction: float
+    attempts: int
+    reason: str = ""
+
+    @property
+    def max_displacement(self) -> float:
+        """Largest vertex displacement magnitude, mm (inf for a failed sample)."""
+        if self.displacement is None:
+            return float("inf")
+        return float(np.sqrt((self.displacement.astype(np.float64) ** 2).sum(axis=1)).max())
+
+
+def retry_solver_config(base: SolverConfig, attempt: int) -> SolverConfig:
+    """Solver settings of attempt ``attempt`` (0 = as configured).
+
+    Each retry divides the first increment and the smallest increment by 4 and doubles the
+    allowed number of increments: a more cautious load path that is still deterministic.
+    """
+    if attempt == 0:
+        return base
+    k = 4.0**attempt
+    return dataclasses.replace(
+        base,
+        initial_increment=base.initial_increment / k,
+        min_increment=base.min_increment / k,
+        max_increments=base.max_increments * 2**attempt,
+    )
+
+
+def fem_solver_factory(mesh, fixed: np.ndarray, cfg: Config) -> Callable[[SolverConfig], object]:
+    """The default solver factory: tissuecast's nonlinear neo-Hookean FEM.
+
+    Returns a function mapping solver settings to a reusable ``Solver`` with
+    ``.solve(forces (n,3) N) -> SolveResult`` (raising ConvergenceError on failure).
+    """
+    from ..fem import NeoHookean, Problem, Solver
+
+    material = NeoHookean(youngs_modulus=cfg.material.youngs_modulus, poisson_ratio=cfg.material.poisson_ratio)
+    problem = Problem(mesh, material, fixed, order=cfg.solver.order)
+    return lambda solver_cfg: Solver(problem, solver_cfg)
+
+
+class SampleContext:
+    """Per-process state: mesh, basis, config and the solvers (one per retry level)."""
+
+    def __init__(self, recipe: Recipe):
+        from ..forces import LBOBasis, surface_graph_laplacian
+        from ..mesh import TetMesh
+
+        import tomllib
+
+        self.config = config_from_dict(tomllib.loads(recipe.config_toml))
+        self.mesh = TetMesh(recipe.points, recipe.tets)
+        self.fixed = np.asarray(recipe.fixed, dtype=np.int64)
+        self.basis = LBOBasis(recipe.basis_vertices, recipe.basis_vectors, recipe.basis_eigenvalues, recipe.basis_mass)
+        self.laplacian = surface_graph_laplacian(self.mesh)
+        module, _, name = recipe.solver_factory.partition(":")
+        self._make_solver = getattr(importlib.import_module(module), name)(self.mesh, self.fixed, self.config)
+        self._solvers: dict[int, object] = {}
+
+    def solver(self, attempt: int):
+        """The solver of retry level ``attempt`` (built on first use, then reused)."""
+        if attempt not in self._solvers:
+            self._solvers[attempt] = self._make_solver(retry_solver_config(self.config.solver, attempt))
+        return self._solvers[attempt]
+
+    def forces(self, task: Task) -> tuple[np.ndarray, np.ndarray]:
+        """The sample's nodal forces (n, 3) N and LBO weights (n_b, 3), from its seed alone.
+
+        Random draws from ``default_rng(seed)``, in order: the LBO weights W
+        (``random_lbo_weights``); for test-2 samples then the LSC field (``lsc_field``,
+        scaled to the LBO field's nodal L2 norm), blended as ``beta f_LBO + (1-beta) f_LSC``.
+        """
+        from ..forces import blend, lbo_field, lsc_field, random_lbo_weights
+
+        rng = np.random.default_rng(np.uint64(task.seed))
+        w = random_lbo_weights(rng, self.basis.n_vectors)
+        f = lbo_field(self.basis, w, task.alpha, self.mesh.n_points)
+        if not np.isnan(task.beta):
+            fc = self.config.forces
+            f_lsc = lsc_field(self.mesh, rng, n_points=fc.lsc_points, iterations=fc.lsc_iterations, rate=fc.lsc_rate,
+                              exclude=self.fixed, reference=f, laplacian=self.laplacian)
+            f = blend(f, f_lsc, task.beta)
+        return f, w
+
+
+_CONTEXTS: dict[str, SampleContext] = {}
+
+
+def context_for(recipe: Recipe) -> SampleContext:
+    """This process's context for ``recipe`` (built once, then cached)."""
+    key = recipe.key
+    if key not in _CONTEXTS:
+        _CONTEXTS.clear()
+        _CONTEXTS[key] = SampleContext(recipe)
+    return _CONTEXTS[key]
+
+
+def _counts(res) -> tuple[int, int, int]:
+    if res is None:
+        return 0, 0, 0
+    return int(getattr(res, "increments", 0)), int(getattr(res, "iterations", 0)), int(getattr(res, "factorizations", 0))
+
+
+def solve_task(recipe: Recipe, task: Task) -> SampleResult:
+    """Solve one sample, retrying with more cautious increments ``solver.retries`` times.
+
+    A ConvergenceError (or a numerical breakdown: ArithmeticError, LinAlgError) after the
+    last retry makes a failed result carrying the reason; any other exception propagates.
+    """
+    ctx = context_for(recipe)
+    forces, weights = ctx.forces(task)
+    t0 = time.perf_counter()
+    totals = np.zeros(3, dtype=np.int64)
+    reasons = []
+    load_fraction = 0.0
+    retries = ctx.config.solver.retries
+    for attempt in range(retries + 1):
+        try:
+            res = ctx.solver(attempt).solve(forces)
+        except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            totals += _counts(getattr(exc, "result", None))
+            load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
+            reasons.append(f"attempt {attempt + 1}: {type(exc).__name__}: {exc}")
+            continue
+        totals += _counts(res)
+        if not getattr(res, "converged", True):  # a solver that reports instead of raising
+            load_fraction = max(load_fraction, float(getattr(res, "load_fraction", 0.0)))
+            reasons.append(f"attempt {attempt + 1}: not converged at load fraction {load_fraction:.4g}")
+            continue
+        return SampleResult(task.index, 1, np.asarray(res.displacement, dtype=np.float32), forces.astype(np.float32),
+                            weights, task.alpha, task.beta, task.seed, *map(int, totals),
+                            time.perf_counter() - t0, 1.0, attempt + 1)
+    log.debug("sample %d failed: %s", task.index, reasons[-1])
+    return SampleResult(task.index, 2, None, forces.astype(np.float32), weights, task.alpha, task.beta, task.seed,
+                        *map(int, totals), time.perf_counter() - t0, load_fraction, retries + 1,
+                        "; ".join(reasons))

@@ -1,0 +1,143 @@
+"""Matplotlib figures of the report (PNG files; Agg backend, no display needed)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import require
+
+__all__ = ["boxplots", "beta_curve", "pca_curve", "training_curves", "marker_count_curve", "architecture_grid"]
+
+PAPER_BETA = {0.0: 1.181, 0.5: 0.889}  # test-2 mean Offset_max (mm) quoted in the paper
+
+
+def _plt():
+    mpl = require("matplotlib", "viz", "report figures")
+    mpl.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    _plt().close(fig)
+    return path
+
+
+def boxplots(evaluation, path: Path) -> Path:
+    """Offset_mean and Offset_max per set, MLP next to ridge."""
+    plt = _plt()
+    sets = [s for s in ("valid", "test1", "test2") if s in evaluation.sets]
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, (attr, label) in zip(axes, (("mean", "Offset_mean (mm)"), ("max", "Offset_max (mm)"))):
+        data, labels, colors = [], [], []
+        for s in sets:
+            r = evaluation.sets[s]
+            data += [getattr(r, f"mlp_{attr}"), getattr(r, f"ridge_{attr}")]
+            labels += [f"{s}\nMLP", f"{s}\nridge"]
+            colors += ["tab:blue", "tab:orange"]
+        bp = ax.boxplot(data, patch_artist=True, showfliers=True)
+        ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
+        for patch, c in zip(bp["boxes"], colors):
+            patch.set_facecolor(c)
+            patch.set_alpha(0.5)
+        if attr == "max":
+            ax.axhline(1.0, color="k", ls=":", lw=1, label="1 mm")
+            ax.legend(loc="upper left", fontsize=8)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    return _save(fig, path)
+
+
+def beta_curve(evaluation, path: Path) -> Path:
+    """Test-2 mean Offset_max / Offset_mean versus beta, MLP and ridge, paper points."""
+    plt = _plt()
+    b = np.array([x for x, _ in evaluation.by_beta])
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for attr, ls in (("max", "-"), ("mean", "--")):
+        ax.plot(b, [getattr(r, f"mlp_{attr}").mean() for _, r in evaluation.by_beta], "o" + ls, color="tab:blue", label=f"MLP Offset_{attr}")
+        ax.plot(b, [getattr(r, f"ridge_{attr}").mean() for _, r in evaluation.by_beta], "s" + ls, color="tab:orange", label=f"ridge Offset_{attr}")
+    ax.plot(list(PAPER_BETA), list(PAPER_BETA.values()), "k*", ms=10, label="paper MLP Offset_max")
+    ax.set_xlabel("beta (LBO share of the test-2 force field)")
+    ax.set_ylabel("mean over samples (mm)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def pca_curve(curve, path: Path) -> Path:
+    """Cross-validated PCA reconstruction error versus n_w."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    ax.semilogy(curve.n_components, curve.max_error, "o-", ms=3, label=f"{curve.folds}-fold mean of largest vertex error")
+    ax.semilogy(curve.n_components, curve.mean_max_error, "s-", ms=3, label="mean per-sample Offset_max")
+    ax.semilogy(curve.n_components, curve.mean_error, "^-", ms=3, label="mean vertex error")
+    ax.axhline(curve.threshold, color="k", ls=":", lw=1)
+    ax.axvline(curve.chosen, color="tab:red", ls="--", lw=1, label=f"chosen n_w = {curve.chosen} (paper: 27)")
+    ax.set_xlabel("number of PCA components n_w")
+    ax.set_ylabel("reconstruction error (mm)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def training_curves(members: list[dict], path: Path) -> Path:
+    """Validation loss versus epoch of each ensemble member."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    for k, m in enumerate(members):
+        h = np.array(m.get("valid_history") or [[0, np.nan]], dtype=float)
+        ax.semilogy(h[:, 0], h[:, 1], label=f"member {k} (best epoch {m['best_epoch']}, {m['seconds']:.1f} s)")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("validation MSE (scaled PCA weights)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def marker_count_curve(rows: list[dict], path: Path) -> Path:
+    """Test-1 mean Offset_max versus number of markers (study rows), with the paper's points."""
+    plt = _plt()
+    n = np.array([r["n_markers"] for r in rows], dtype=float)
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    ax.semilogy(n, [r["mlp_offset_max"] for r in rows], "o-", label="MLP mean Offset_max")
+    ax.semilogy(n, [r["ridge_offset_max"] for r in rows], "s-", label="ridge mean Offset_max")
+    ax.semilogy([3, 5, 10, 20], [2.205, 0.837, 0.485, 0.302], "k*", ms=10, label="paper (MLP)")
+    ax.set_xlabel("number of fiducial markers n_d")
+    ax.set_ylabel("test-1 mean Offset_max (mm)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def architecture_grid(rows: list[dict], path: Path) -> Path:
+    """Mean test-1 Offset_max and training time over the hidden-layer grid."""
+    plt = _plt()
+    n1 = sorted({r["n1"] for r in rows})
+    n2 = sorted({r["n2"] for r in rows})
+    err = np.full((len(n1), len(n2)), np.nan)
+    sec = np.full((len(n1), len(n2)), np.nan)
+    for i, a in enumerate(n1):
+        for j, b in enumerate(n2):
+            sel = [r for r in rows if r["n1"] == a and r["n2"] == b]
+            if sel:
+                err[i, j] = np.mean([r["mlp_offset_max"] for r in sel])
+                sec[i, j] = np.mean([r["seconds"] for r in sel])
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for ax, data, title, fmt in ((axes[0], err, "test-1 mean Offset_max (mm)", "{:.3f}"), (axes[1], sec, "training time (s)", "{:.1f}")):
+        im = ax.imshow(data, cmap="viridis")
+        ax.set_xticks(range(len(n2)), n2)
+        ax.set_yticks(range(len(n1)), n1)
+        ax.set_xlabel("second hidden layer")
+        ax.set_ylabel("first hidden layer")
+        ax.set_title(title, fontsize=10)
+        for i in range(len(n1)):
+            for j in range(len(n2)):
+                if np.isfinite(data[i, j]):
+                    ax.text(j, i, fmt.format(data[i, j]), ha="center", va="center", color="w", fontsize=8)
+        fig.colorbar(im, ax=ax)
+    return _save(fig, path)

@@ -1,0 +1,105 @@
+"""The whole run as library calls: data set -> trained model -> evaluation -> report.
+
+No printing here; the CLI (``tissuecast run``, ``demo``, ``train``, ``evaluate``) reports.
+Paths: ``config.output`` holds ``model/`` and the report folder ``config.evaluate.output``
+(relative to ``config.output`` unless absolute); the store is ``config.dataset.store``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+from ..config import Config
+
+__all__ = ["RunPaths", "run_paths", "train_from_store", "evaluate_and_report", "run_pipeline", "resolve_source"]
+
+log = logging.getLogger(__name__)
+
+
+class RunPaths:
+    """Where a run keeps its store, model and report."""
+
+    def __init__(self, config: Config, store=None):
+        out = Path(config.output)
+        self.output = out
+        self.store = Path(store) if store else Path(config.dataset.store)
+        self.model = out / "model"
+        rep = Path(config.evaluate.output)
+        self.report = rep if rep.is_absolute() else out / rep
+
+
+def run_paths(config: Config, store=None) -> RunPaths:
+    return RunPaths(config, store)
+
+
+def train_from_store(config: Config, store, *, model_folder=None, onnx: bool = True):
+    """Fit a :class:`DeformationModel` on a store's train/valid splits and save it.
+
+    Args:
+        config: run configuration (its surrogate section is used).
+        store: the data-set store path.
+        model_folder: where to save (None: do not save).
+        onnx: also write ``model.onnx`` into the folder.
+    """
+    from ..dataset import open_dataset
+    from ..surrogate import DeformationModel
+
+    ds = open_dataset(store)
+    model = DeformationModel.from_dataset(ds, config)
+    if model_folder is not None:
+        model.save(model_folder, onnx=onnx)
+    return model, ds
+
+
+def evaluate_and_report(model, dataset, folder, *, renders: int = 3, studies_folder=None, title="tissuecast report"):
+    """Evaluate on valid/test-1/test-2 and write the report; returns ``(evaluation, index.html path)``."""
+    from .evaluation import evaluate_model
+    from .report import write_report
+
+    evaluation = evaluate_model(model, dataset)
+    index = write_report(folder, model, dataset, evaluation, renders=renders, studies_folder=studies_folder, title=title)
+    return evaluation, index
+
+
+def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True, workers: int | None = None) -> dict:
+    """Simulate (resumable) -> train -> evaluate -> report, as ``config`` says.
+
+    Returns:
+        ``{"paths": RunPaths, "dataset": summary, "model": DeformationModel, "evaluation": Evaluation,
+        "report": Path, "seconds": {stage: s}}``.
+    """
+    paths = run_paths(config)
+    paths.output.mkdir(parents=True, exist_ok=True)
+    seconds = {}
+    summary = None
+    if simulate:
+        from ..dataset import simulate as simulate_store
+
+        t = time.perf_counter()
+        summary = simulate_store(config, paths.store, progress=progress, workers=workers)
+        seconds["simulate"] = time.perf_counter() - t
+    t = time.perf_counter()
+    model, ds = train_from_store(config, paths.store, model_folder=paths.model)
+    seconds["train"] = time.perf_counter() - t
+    t = time.perf_counter()
+    evaluation, index = evaluate_and_report(model, ds, paths.report, renders=config.evaluate.renders, title=f"tissuecast: {config.name}")
+    seconds["evaluate"] = time.perf_counter() - t
+    return {"paths": paths, "dataset": summary, "model": model, "evaluation": evaluation, "report": index, "seconds": seconds}
+
+
+def resolve_source(source=None, store=None) -> tuple[Config, Path]:
+    """A CLI's ``CONFIG|STORE`` argument -> ``(config, store path)``.
+
+    A directory is taken as a data-set store (its own config is used); a file as a TOML
+    config whose ``dataset.store`` (or ``store``) is the store; None means the defaults.
+    """
+    from ..config import load_config
+
+    if source is not None and Path(source).is_dir():
+        from ..dataset import open_dataset
+
+        return open_dataset(source).config, Path(store or source)
+    cfg = load_config(source)
+    return cfg, Path(store or cfg.dataset.store)

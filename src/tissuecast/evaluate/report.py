@@ -1,0 +1,206 @@
+"""The evaluation report: an HTML page with PNG figures, CSV/JSON results and VTU files.
+
+``write_report(folder, model, dataset, evaluation)`` writes::
+
+    index.html            tables next to the paper's figures, plots, renders (opens offline)
+    evaluation.json       every number of the page
+    samples.csv           per-sample Offset_mean / Offset_max, MLP and ridge
+    *.png                 figures and 3D renders
+    vtu/*.vtu             benchmark / predicted displacement and vertex error per rendered sample
+"""
+
+from __future__ import annotations
+
+import csv
+import html
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from . import figures
+from .render import render_comparison, write_vtu
+
+__all__ = ["write_report", "paper_table", "format_evaluation"]
+
+log = logging.getLogger(__name__)
+
+CSS = """body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}
+table{border-collapse:collapse;margin:1em 0}td,th{border:1px solid #bbb;padding:4px 8px;text-align:right}
+th{background:#eee}td:first-child,th:first-child{text-align:left}img{max-width:100%}
+.good{color:#060}.bad{color:#a00}small{color:#666}"""
+
+
+def _fmt(v, digits=3) -> str:
+    if v is None or (isinstance(v, float) and not np.isfinite(v)):
+        return "–"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    return f"{v:.{digits}f}"
+
+
+def _table(head: list[str], rows: list[list]) -> str:
+    h = "".join(f"<th>{html.escape(str(c))}</th>" for c in head)
+    body = "".join("<tr>" + "".join(f"<td>{c if isinstance(c, str) else _fmt(c)}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def paper_table(evaluation) -> list[list]:
+    """Rows (quantity, MLP, ridge, paper) comparing measured figures with the paper's."""
+    rows = []
+    t1 = evaluation.sets.get("test1")
+    if t1 is not None:
+        m, r = t1.mlp, t1.ridge
+        rows += [
+            ["test-1 mean Offset_max (mm)", m.offset_max, r.offset_max, "0.533 (architecture table) / 0.837 (n_d table)"],
+            ["test-1 mean Offset_mean (mm)", m.offset_mean, r.offset_mean, "0.146 – 0.287"],
+            ["test-1 share with Offset_max < 1 mm (%)", 100 * m.share_below, 100 * r.share_below, "98"],
+            ["test-1 worst Offset_max (mm)", m.worst_offset_max, r.worst_offset_max, "–"],
+        ]
+    if evaluation.by_beta:
+        mx = [b.mlp.offset_max for _, b in evaluation.by_beta]
+        rx = [b.ridge.offset_max for _, b in evaluation.by_beta]
+        mm = [b.mlp.offset_mean for _, b in evaluation.by_beta]
+        rm = [b.ridge.offset_mean for _, b in evaluation.by_beta]
+        rows += [
+            ["test-2 mean Offset_max, range over beta (mm)", f"{min(mx):.3f} – {max(mx):.3f}", f"{min(rx):.3f} – {max(rx):.3f}", "0.889 – 1.181"],
+            ["test-2 mean Offset_mean, range over beta (mm)", f"{min(mm):.3f} – {max(mm):.3f}", f"{min(rm):.3f} – {max(rm):.3f}", "0.350 – 0.453"],
+        ]
+    ps = evaluation.predict_seconds
+    if ps:
+        rows.append(["prediction time, one case (µs, p50 / p99)", f"{ps['p50'] * 1e6:.0f} / {ps['p99'] * 1e6:.0f}", "–", "< 500000"])
+    tr = evaluation.model_summary.get("training") or {}
+    if tr:
+        rows.append(["training time (s; PCA rule + MLP)", tr.get("seconds", float("nan")), "–", "1022 (MLP only)"])
+    rows.append(["PCA components n_w", evaluation.model_summary["n_components"], "–", "27"])
+    return rows
+
+
+def _summary_rows(evaluation) -> list[list]:
+    rows = []
+    items = list(evaluation.sets.items()) + [(f"test-2 β={b:g}", r) for b, r in evaluation.by_beta]
+    for name, r in items:
+        for label, s in (("MLP", r.mlp), ("ridge", r.ridge)):
+            rows.append([f"{name} {label}", s.count, s.offset_mean, s.offset_max, s.offset_max_percentiles[50.0],
+                         s.offset_max_percentiles[95.0], s.worst_offset_max, 100 * s.share_below])
+    return rows
+
+
+def _render_samples(folder: Path, model, dataset, evaluation, count: int) -> list[tuple[str, str, str]]:
+    """Render and export up to ``count`` samples: test-1 median and worst, test-2 worst, ..."""
+    picks = []
+    for name, pick in (("test1", "median"), ("test1", "worst"), ("test2", "worst"), ("test2", "median"), ("valid", "worst")):
+        r = evaluation.sets.get(name)
+        if r is None or not r.indices.size:
+            continue
+        k = int(np.argmax(r.mlp_max)) if pick == "worst" else int(np.argsort(r.mlp_max)[r.indices.size // 2])
+        label = f"{name} {pick} (sample {int(r.indices[k])}" + (f", β={r.beta[k]:g})" if np.isfinite(r.beta[k]) else ")")
+        picks.append((label, int(r.indices[k]), f"{name}_{pick}"))
+    out = []
+    (folder / "vtu").mkdir(exist_ok=True)
+    for label, idx, stem in picks[:count]:
+        bench = np.asarray(dataset.displacements[idx], dtype=np.float64)
+        pred = model.predict(model.marker_displacements(bench))
+        err = np.linalg.norm(pred - bench, axis=1)
+        data = {"benchmark_displacement": bench, "predicted_displacement": pred, "vertex_error": err,
+                "ridge_displacement": model.predict_ridge(model.marker_displacements(bench))}
+        if model.ensemble_size > 1:
+            data["uncertainty"] = model.predict_with_uncertainty(model.marker_displacements(bench))[1]
+        write_vtu(folder / "vtu" / f"{stem}.vtu", model.mesh, data)
+        png = folder / f"render_{stem}.png"
+        try:
+            render_comparison(png, model.mesh, bench, pred, label, markers=model.markers)
+        except Exception as exc:  # noqa: BLE001 - a missing OpenGL stack must not lose the report; logged, shown on the page
+            log.warning("3D render of %s failed (%s); the VTU file is still written", label, exc)
+            png = None
+        out.append((label, png.name if png else "", f"vtu/{stem}.vtu"))
+    return out
+
+
+def _number(v: str):
+    try:
+        return float(v)
+    except ValueError:
+        return v
+
+
+def _read_csv(path: Path) -> list[dict]:
+    with path.open(newline="") as fh:
+        return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(fh)]
+
+
+def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studies_folder=None, title="tissuecast report") -> Path:
+    """Write the report folder and return the path of ``index.html``.
+
+    Args:
+        folder: output folder (created).
+        model: the fitted DeformationModel.
+        dataset: the data set it was evaluated on.
+        evaluation: from :func:`tissuecast.evaluate.evaluation.evaluate_model`.
+        renders: number of samples rendered in 3D (and exported as VTU).
+        studies_folder: folder holding ``study_markers.csv`` / ``study_architecture.csv``
+            (default: ``folder``); found studies are plotted.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "evaluation.json").write_text(json.dumps(evaluation.as_dict(), indent=2, default=float), encoding="utf-8")
+    rows = evaluation.samples_table()
+    if rows:
+        with (folder / "samples.csv").open("w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
+            w.writeheader()
+            w.writerows(rows)
+    parts = [f"<h1>{html.escape(title)}</h1>"]
+    ms = evaluation.model_summary
+    parts.append(f"<p>Model: {html.escape(repr(model))}<br>Data set: {html.escape(repr(dataset))}<br>"
+                 f"Units: mm. Vertex ids 0-based; markers {ms['markers']}.</p>")
+    parts.append("<h2>Measured versus the paper</h2>")
+    parts.append(_table(["quantity", "MLP (measured)", "ridge (measured)", "paper"], paper_table(evaluation)))
+    parts.append("<p><small>Paper: Liu et al. 2020, H&amp;N tumour mesh, Abaqus data set; here: this data set "
+                 "(see the data-set summary). Times measured on this machine.</small></p>")
+    parts.append("<h2>Per set</h2>")
+    parts.append(_table(["set", "samples", "mean Offset_mean", "mean Offset_max", "median Offset_max", "p95 Offset_max",
+                         "worst Offset_max", "% Offset_max < 1 mm"], _summary_rows(evaluation)))
+    unc = {k: v.as_dict().get("uncertainty") for k, v in evaluation.sets.items()}
+    if any(unc.values()):
+        parts.append("<h2>Uncertainty (ensemble spread)</h2>")
+        parts.append(_table(["set", "mean per-sample Spearman(σ, vertex error)", "Spearman(max σ, Offset_max) over samples"],
+                            [[k, u["vertex_spearman_mean"], u["sample_spearman_sigma_max_vs_offset_max"]] for k, u in unc.items() if u]))
+    figs = [("Offsets per set (boxplots)", figures.boxplots(evaluation, folder / "boxplots.png"))]
+    if evaluation.by_beta:
+        figs.append(("Test-2 error versus β", figures.beta_curve(evaluation, folder / "beta.png")))
+    if getattr(model, "pca_curve_", None) is not None:
+        figs.append(("PCA reconstruction error versus n_w (cross-validated on the training set)",
+                     figures.pca_curve(model.pca_curve_, folder / "pca.png")))
+    members = (ms.get("training") or {}).get("members") or []
+    if members and members[0].get("valid_history"):
+        figs.append(("Training: validation loss", figures.training_curves(members, folder / "training.png")))
+    sf = Path(studies_folder) if studies_folder else folder
+    if (sf / "study_markers.csv").is_file():
+        figs.append(("Study: number of markers", figures.marker_count_curve(_read_csv(sf / "study_markers.csv"), folder / "markers.png")))
+    if (sf / "study_architecture.csv").is_file():
+        figs.append(("Study: hidden layers", figures.architecture_grid(_read_csv(sf / "study_architecture.csv"), folder / "architecture.png")))
+    for cap, p in figs:
+        parts.append(f"<h2>{html.escape(cap)}</h2><img src='{p.name}' alt='{html.escape(cap)}'>")
+    if renders:
+        parts.append("<h2>3D renders</h2><p>Undeformed, benchmark (FEM) and predicted surfaces; the prediction is coloured by "
+                     "vertex error; red dots are the fiducial markers. VTU files open in ParaView or 3D Slicer.</p>")
+        for label, png, vtu in _render_samples(folder, model, dataset, evaluation, renders):
+            img = f"<img src='{png}' alt='{html.escape(label)}'>" if png else "<p>(render unavailable: no OpenGL)</p>"
+            parts.append(f"<h3>{html.escape(label)}</h3>{img}<p><a href='{vtu}'>{vtu}</a></p>")
+    page = f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{CSS}</style></head><body>{''.join(parts)}</body></html>"
+    index = folder / "index.html"
+    index.write_text(page, encoding="utf-8")
+    return index
+
+
+def format_evaluation(evaluation) -> str:
+    """Plain-text table of the headline figures (for terminals and logs)."""
+    lines = [f"{'quantity':48s} {'MLP':>16s} {'ridge':>16s}   paper"]
+    for q, m, r, p in paper_table(evaluation):
+        lines.append(f"{q:48s} {m if isinstance(m, str) else _fmt(m):>16s} {r if isinstance(r, str) else _fmt(r):>16s}   {p}")
+    if evaluation.by_beta:
+        lines.append("test-2 per beta: " + ", ".join(f"β={b:g}: {r.mlp.offset_max:.3f} (ridge {r.ridge.offset_max:.3f})"
+                                                 for b, r in evaluation.by_beta))
+    return "\n".join(lines)

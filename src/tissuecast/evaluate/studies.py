@@ -1,0 +1,147 @@
+"""Parametric studies of the paper (section 13): hidden layers, number of markers, PCA size.
+
+Each study trains on the data set's 'train' split, checkpoints on 'valid' and reports
+test-1 accuracy (mm) and training time (s); rows are plain dicts ready for CSV.
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Config
+from ..errors import MarkerError, ModelError
+from ..surrogate import DeformationModel, choose_n_components
+from ..surrogate.data import dataset_arrays, split_indices
+
+__all__ = ["architecture_study", "marker_count_study", "pca_study", "write_rows", "study_markers"]
+
+log = logging.getLogger(__name__)
+
+
+def write_rows(path, rows: list[dict]) -> Path:
+    """Write study rows to CSV (columns from the first row)."""
+    path = Path(path)
+    if not rows:
+        raise ModelError(f"no study rows to write to {str(path)!r}")
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
+        w.writeheader()
+        w.writerows(rows)
+    return path
+
+
+def _test1(dataset):
+    idx = split_indices(dataset, "test1")
+    if idx.size == 0:
+        raise ModelError("the data set has no converged test-1 samples to evaluate the study on")
+    return np.asarray(dataset.displacements[idx], dtype=np.float64)
+
+
+def _scores(model: DeformationModel, bench: np.ndarray) -> dict:
+    d = model.marker_displacements(bench)
+    e = np.linalg.norm(model.predict(d) - bench, axis=2)
+    er = np.linalg.norm(model.predict_ridge(d) - bench, axis=2)
+    return {"mlp_offset_mean": float(e.mean()), "mlp_offset_max": float(e.max(axis=1).mean()),
+            "mlp_share_below_1mm": float(np.mean(e.max(axis=1) < 1.0)),
+            "ridge_offset_mean": float(er.mean()), "ridge_offset_max": float(er.max(axis=1).mean())}
+
+
+def _n_components(arrays, config: Config) -> int:
+    sc = config.surrogate
+    if sc.n_components:
+        return sc.n_components
+    U = arrays.displacements[arrays.train_idx]
+    return choose_n_components(U, sc.pca_max_error, sc.pca_folds, seed=sc.seed)[0]
+
+
+def architecture_study(dataset, config: Config, *, widths=(32, 64, 128, 256), repeats: int = 3, on_row=None) -> list[dict]:
+    """Two hidden layers [n1, n2] over ``widths``^2, ``repeats`` seeds each.
+
+    Args:
+        dataset: a data set with train/valid/test1 samples.
+        config: the run configuration (surrogate section used; ``hidden`` and ``seed`` varied).
+        widths: layer widths to combine.
+        repeats: trainings per architecture (seeds ``seed + r``).
+        on_row: optional callback receiving each row when ready (progress).
+
+    Returns:
+        Rows: n1, n2, repeat, seed, test-1 offsets (MLP, ridge), best epoch, seconds.
+    """
+    arrays = dataset_arrays(dataset)
+    bench = _test1(dataset)
+    n_w = _n_components(arrays, config)
+    rows = []
+    for n1 in widths:
+        for n2 in widths:
+            for r in range(repeats):
+                seed = config.surrogate.seed + r
+                m = DeformationModel(config, hidden=(int(n1), int(n2)), seed=seed, n_components=n_w, ensemble=1)
+                t0 = time.perf_counter()
+                m.fit(arrays.displacements, arrays.markers, mesh=arrays.mesh, fixed=arrays.fixed,
+                      train_idx=arrays.train_idx, valid_idx=arrays.valid_idx)
+                row = {"n1": int(n1), "n2": int(n2), "repeat": r, "seed": seed, "n_components": n_w,
+                       **_scores(m, bench), "best_epoch": m.summaries_[0].best_epoch,
+                       "epochs_run": m.summaries_[0].epochs_run, "seconds": time.perf_counter() - t0}
+                rows.append(row)
+                if on_row:
+                    on_row(row)
+    return rows
+
+
+def study_markers(mesh, count: int, config: Config) -> tuple[np.ndarray, float]:
+    """``count`` markers by revised k-center from the config's start vertex; d_min is reduced
+    (x 0.75 steps) when the mesh cannot hold that many at the configured spacing.
+
+    Returns:
+        ``(markers (count,) int64, d_min used in mm)``.
+    """
+    from ..markers import select_markers
+
+    mc = config.markers
+    d_min = mc.min_distance
+    for _ in range(30):
+        try:
+            return select_markers(mesh, count=count, start=mc.start, min_distance=d_min), d_min
+        except MarkerError:
+            d_min *= 0.75
+    raise ModelError(f"cannot place {count} markers on this mesh even with d_min = {d_min:.3g} mm")
+
+
+def marker_count_study(dataset, config: Config, *, counts=range(3, 21), on_row=None) -> list[dict]:
+    """Test-1 accuracy versus the number of markers n_d (markers re-chosen by revised k-center).
+
+    The data set's fields hold every vertex, so no new simulation is needed. The markers for
+    n_d are the first n_d centers of one clustering run (the paper's rule), so sets are nested.
+    """
+    arrays = dataset_arrays(dataset)
+    bench = _test1(dataset)
+    n_w = _n_components(arrays, config)
+    all_markers, d_min = study_markers(arrays.mesh, max(counts), config)
+    rows = []
+    for k in counts:
+        m = DeformationModel(config, n_components=n_w, ensemble=1)
+        t0 = time.perf_counter()
+        m.fit(arrays.displacements, all_markers[:k], mesh=arrays.mesh, fixed=arrays.fixed,
+              train_idx=arrays.train_idx, valid_idx=arrays.valid_idx)
+        row = {"n_markers": int(k), "d_min": d_min, "n_components": n_w, **_scores(m, bench),
+               "seconds": time.perf_counter() - t0, "markers": " ".join(map(str, all_markers[:k].tolist()))}
+        rows.append(row)
+        if on_row:
+            on_row(row)
+    return rows
+
+
+def pca_study(dataset, config: Config, *, max_components: int = 100) -> list[dict]:
+    """Cross-validated PCA reconstruction error versus n_w on the training split."""
+    arrays = dataset_arrays(dataset)
+    sc = config.surrogate
+    _, curve = choose_n_components(arrays.displacements[arrays.train_idx], sc.pca_max_error, sc.pca_folds,
+                                   max_components=max_components, seed=sc.seed, full_curve=True)
+    return [{"n_components": int(n), "max_error": float(a), "mean_max_error": float(b), "mean_error": float(c),
+             "chosen": int(n == curve.chosen)}
+            for n, a, b, c in zip(curve.n_components, curve.max_error, curve.mean_max_error, curve.mean_error)]

@@ -1,0 +1,18 @@
+"""Nonlinear finite elements: compressible neo-Hookean solid on linear or quadratic tetrahedra.
+
+Public API::
+
+    problem = Problem(mesh, NeoHookean(0.021, 0.45), fixed=[...], order=2)
+    result = solve(problem, forces)            # forces (n, 3) N -> result.displacement (n, 3) mm
+    solver = Solver(problem, config)           # reusable: per-mesh work done once
+    result = solver.solve(forces, initial_guess=None)
+
+Units: mm, N, MPa. Vertex ids are 0-based.
+"""
+
+from .material import NeoHookean
+from .problem import Problem
+from .result import SolveResult
+from .solver import Solver, solve
+
+__all__ = ["NeoHookean", "Problem", "Solver", "SolveResult", "solve"]

@@ -1,0 +1,183 @@
+"""Vectorised total-Lagrangian assembly of internal forces, energy and tangent stiffness.
+
+All elements are processed at once (numpy batched products, no Python loop over elements).
+The sparsity pattern of the stiffness restricted to the free degrees of freedom and the
+index of every element-matrix entry in the CSR data array are computed once, when the
+:class:`Assembler` is built; each assembly is then one batched kernel and one
+``np.bincount``.
+
+Degrees of freedom: node ``a`` (a vertex, or for P2 a mid-edge node numbered after the
+vertices), component ``i`` (x, y, z) is dof ``3 a + i``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from .elements import ElementGeometry, reference_gradients
+from .material import NeoHookean
+
+__all__ = ["Assembler"]
+
+
+class Assembler:
+    """Element kernels and scatter maps of one mesh, element order and set of free dofs.
+
+    Args:
+        nodes: (n_nodes, 3) float, mm, reference coordinates.
+        connectivity: (m, nn) int, node ids of each element (nn = 4 for P1, 10 for P2).
+        order: 1 or 2.
+        material: the constitutive law.
+        free: (3 n_nodes,) bool, True for the unknown dofs (False: fixed or prescribed).
+        rule: quadrature rule (``"default"`` or ``"high"``, see :func:`~.elements.quadrature`).
+
+    Attributes:
+        geometry: the reference gradients and weights of every element.
+        free_dofs: (n_free,) int, global ids of the free dofs; the stiffness and the
+            reduced vectors are ordered like this.
+        indptr, indices: CSR structure of the (n_free, n_free) stiffness (full, symmetric).
+    """
+
+    def __init__(
+        self,
+        nodes: np.ndarray,
+        connectivity: np.ndarray,
+        order: int,
+        material: NeoHookean,
+        free: np.ndarray,
+        rule: str = "default",
+    ) -> None:
+        self.nodes = np.asarray(nodes, dtype=np.float64)
+        self.connectivity = np.asarray(connectivity, dtype=np.int64)
+        self.order = int(order)
+        self.material = material
+        self.geometry: ElementGeometry = reference_gradients(self.nodes, self.connectivity, self.order, rule)
+        m, nn = self.connectivity.shape
+        self.n_nodes = len(self.nodes)
+        self.n_dofs = 3 * self.n_nodes
+        free = np.asarray(free, dtype=bool)
+        self.free_dofs = np.flatnonzero(free)
+        self.n_free = len(self.free_dofs)
+        # element dof ids, layout (a, i) -> 3 a + i
+        edofs = (3 * self.connectivity[:, :, None] + np.arange(3)).reshape(m, 3 * nn)
+        self._edofs = edofs.ravel()
+        local = np.full(self.n_dofs, -1, dtype=np.int64)
+        local[self.free_dofs] = np.arange(self.n_free)
+        le = local[edofs]  # (m, 3nn)
+        rows = np.broadcast_to(le[:, :, None], (m, 3 * nn, 3 * nn)).ravel()
+        cols = np.broadcast_to(le[:, None, :], (m, 3 * nn, 3 * nn)).ravel()
+        keep = (rows >= 0) & (cols >= 0)
+        key = rows[keep] * self.n_free + cols[keep]
+        uniq, inverse = np.unique(key, return_inverse=True)
+        self.nnz = len(uniq)
+        scatter = np.full(rows.size, self.nnz, dtype=np.int64)  # dropped entries -> dummy bin
+        scatter[keep] = inverse.ravel()
+        self._scatter = scatter
+        r, c = np.divmod(uniq, self.n_free)
+        self.indptr = np.searchsorted(r, np.arange(self.n_free + 1)).astype(np.int64)
+        self.indices = c.astype(np.int64)
+        self.diagonal_index = np.flatnonzero(r == c)  # (n_free,) positions of K_ii in the data
+        # CSR upper triangle == CSC lower triangle of the symmetric matrix (what CHOLMOD reads)
+        upper = c >= r
+        self._upper = np.flatnonzero(upper)
+        self.upper_indptr = np.searchsorted(r[upper], np.arange(self.n_free + 1)).astype(np.int64)
+        self.upper_indices = c[upper].astype(np.int64)
+
+    # ----------------------------------------------------------------- kinematics
+    def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
+        """F at every quadrature point.
+
+        Args:
+            u: (n_nodes, 3) float, mm, nodal displacements.
+
+        Returns:
+            (m, q, 3, 3) float.
+        """
+        ue = u[self.connectivity]  # (m, nn, 3)
+        f = np.matmul(ue.transpose(0, 2, 1)[:, None], self.geometry.grad)  # (m, q, 3, 3): sum_a u_ai dN_a/dX_J
+        f[..., 0, 0] += 1.0
+        f[..., 1, 1] += 1.0
+        f[..., 2, 2] += 1.0
+        return f
+
+    # -------------------------------------------------------------------- kernels
+    def energy(self, u: np.ndarray) -> float:
+        """Total strain energy in mJ (N mm); ``inf`` if any quadrature point has J <= 0."""
+        w = self.material.energy(self.deformation_gradient(u))
+        return float(np.sum(w * self.geometry.weight))
+
+    def energy_and_force(self, u: np.ndarray) -> tuple[float, np.ndarray, float]:
+        """Strain energy and internal forces in one pass.
+
+        Args:
+            u: (n_nodes, 3) float, mm.
+
+        Returns:
+            ``(energy mJ (inf if any J <= 0), f_int (3 n_nodes,) N, min J)``.
+        """
+        f = self.deformation_gradient(u)
+        p, _, j = self.material.stress_and_tangent(f, tangent=False)
+        jmin = float(j.min())
+        energy = float(np.sum(self.material.energy(f) * self.geometry.weight)) if jmin > 0.0 else float("inf")
+        return energy, self._scatter_force(p), jmin
+
+    def internal_force(self, u: np.ndarray) -> tuple[np.ndarray, float]:
+        """Internal nodal forces.
+
+        Args:
+            u: (n_nodes, 3) float, mm.
+
+        Returns:
+            ``(f_int (3 n_nodes,) float N, min J over quadrature points)``.
+        """
+        f = self.deformation_gradient(u)
+        p, _, j = self.material.stress_and_tangent(f, tangent=False)
+        return self._scatter_force(p), float(j.min())
+
+    def _scatter_force(self, p: np.ndarray) -> np.ndarray:
+        g = self.geometry
+        pw = p * g.weight[..., None, None]  # (m, q, 3, 3)
+        fe = np.einsum("mqaJ,mqiJ->mai", g.grad, pw)  # (m, nn, 3)
+        return np.bincount(self._edofs, weights=fe.ravel(), minlength=self.n_dofs)
+
+    def tangent(self, u: np.ndarray, project: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
+        """Internal forces and the tangent stiffness on the free dofs.
+
+        Args:
+            u: (n_nodes, 3) float, mm.
+            project: replace the material tangent at each quadrature point by its
+                positive-definite part (eigenvalues clamped to ``>= 1e-6 mu``), which makes
+                the stiffness positive definite (used when the true one is not).
+
+        Returns:
+            ``(f_int (3 n_nodes,) N, K data (nnz,) N/mm in the CSR order of
+            ``indptr``/``indices``, min J)``.
+        """
+        g = self.geometry
+        f = self.deformation_gradient(u)
+        p, a, j = self.material.stress_and_tangent(f, tangent=True)
+        if project:
+            lam, vec = np.linalg.eigh(a)
+            lam = np.maximum(lam, 1e-6 * self.material.mu)
+            a = np.matmul(vec * lam[..., None, :], np.swapaxes(vec, -1, -2))
+        fint = self._scatter_force(p)
+        m, q, nn, _ = g.grad.shape
+        grad = g.grad.reshape(m * q, nn, 3)
+        aw = (a * g.weight[..., None, None]).reshape(m * q, 27, 3)  # [(i J k), L]
+        c = np.matmul(aw, grad.transpose(0, 2, 1))  # (mq, (i J k), b)
+        c = c.reshape(m * q, 3, 3, 3, nn).transpose(0, 2, 1, 4, 3).reshape(m * q, 3, 9 * nn)  # [J, (i b k)]
+        ke = np.matmul(grad, c).reshape(m, q, nn, 3, nn, 3).sum(axis=1)  # (m, a, i, b, k)
+        data = np.bincount(self._scatter, weights=ke.ravel(), minlength=self.nnz + 1)[: self.nnz]
+        return fint, data, float(j.min())
+
+    # ------------------------------------------------------------------- matrices
+    def matrix(self, data: np.ndarray) -> sp.csr_matrix:
+        """The full symmetric (n_free, n_free) CSR matrix for assembled ``data``."""
+        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_free, self.n_free))
+
+    def lower_csc(self, data: np.ndarray) -> sp.csc_matrix:
+        """The lower triangle as CSC (the upper CSR triangle reinterpreted), for CHOLMOD."""
+        return sp.csc_matrix(
+            (data[self._upper], self.upper_indices, self.upper_indptr), shape=(self.n_free, self.n_free)
+        )

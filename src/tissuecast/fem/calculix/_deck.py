@@ -1,0 +1,214 @@
+"""Write a :class:`tissuecast.fem.Problem`-like set-up as a CalculiX/Abaqus input deck.
+
+Ids in the deck are 1-based: vertex i (0-based) is node i + 1, the mid-edge node of
+``mesh.edges[e]`` is node n + e + 1 (row k - 1 of ``mesh.points10`` is node k). Units: mm, N, MPa.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import SolverSetupError
+
+__all__ = ["write_inp"]
+
+
+def _as_forces(forces, n: int) -> np.ndarray:
+    f = np.asarray(forces, dtype=np.float64)
+    if f.shape != (n, 3):
+        raise SolverSetupError(f"forces must have shape ({n}, 3) (N per mesh vertex), got {f.shape}")
+    if not np.isfinite(f).all():
+        raise SolverSetupError(f"forces hold {int((~np.isfinite(f)).sum())} non-finite values; fix the force field")
+    return f
+
+
+def _as_ids(ids, n: int, what: str) -> np.ndarray:
+    a = np.asarray(ids).ravel()
+    if a.size and not np.issubdtype(a.dtype, np.integer):
+        raise SolverSetupError(f"{what} must be integer vertex ids (0-based), got dtype {a.dtype}")
+    a = a.astype(np.int64)
+    if a.size and (a.min() < 0 or a.max() >= n):
+        raise SolverSetupError(f"{what} {a[(a < 0) | (a >= n)][:5].tolist()} are outside 0..{n - 1} (ids are 0-based)")
+    return a
+
+
+def _as_prescribed(prescribed, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(ids (p,), values (p, 3) mm, NaN = component left free) from a mapping or a pair."""
+    if prescribed is None:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    if isinstance(prescribed, dict):
+        ids, values = list(prescribed.keys()), list(prescribed.values())
+    else:
+        ids, values = prescribed
+    ids = _as_ids(ids, n, "prescribed vertices")
+    values = np.asarray(values, dtype=np.float64).reshape(len(ids), 3)
+    return ids, values
+
+
+def _constrained_nodes(mesh, order: int, fixed, pre_ids, pre_val):
+    """0-based node ids of the fixed nodes and of the prescribed nodes with their values.
+
+    As in :class:`tissuecast.fem.Problem`: for quadratic elements a mid-edge node whose two
+    end vertices are both constrained is constrained too (per component), to the mean of
+    their values, so the edge stays straight; otherwise it is free.
+
+    Returns:
+        ``(fixed nodes (k,), prescribed nodes (p,), values (p, 3) mm with NaN = free)``.
+    """
+    n = mesh.n_points
+    value = np.full((n, 3), np.nan)
+    value[pre_ids] = pre_val
+    is_fixed = np.zeros(n, dtype=bool)
+    is_fixed[fixed] = True
+    fixed_nodes, pre_nodes, pre_nodal = [fixed], [pre_ids], [pre_val]
+    if order == 2:
+        e = mesh.edges
+        both_fixed = is_fixed[e[:, 0]] & is_fixed[e[:, 1]]
+        fixed_nodes.append(n + np.flatnonzero(both_fixed))
+        v = np.where(is_fixed[:, None], 0.0, value)
+        mid = 0.5 * (v[e[:, 0]] + v[e[:, 1]])  # NaN where an end is free
+        k = np.flatnonzero(~both_fixed & ~np.isnan(mid).all(axis=1))
+        pre_nodes.append(n + k)
+        pre_nodal.append(mid[k])
+    return np.concatenate(fixed_nodes), np.concatenate(pre_nodes), np.vstack(pre_nodal)
+
+
+def _material_constants(material) -> tuple[float, float]:
+    try:
+        c10, d1 = float(material.c10), float(material.d1)
+    except AttributeError:
+        raise SolverSetupError(
+            f"material must be a neo-Hookean material with .c10 and .d1 (e.g. tissuecast.NeoHookean), got {material!r}"
+        ) from None
+    if not (c10 > 0 and d1 > 0):
+        raise SolverSetupError(f"neo-Hookean constants must be positive, got C10={c10}, D1={d1}")
+    return c10, d1
+
+
+def _num(x) -> str:
+    """Text of a float that ccx reads: the shortest exact form, or 14 digits if that is longer
+    than 20 characters (ccx rejects longer numbers such as ``-2.786959021906976E-05``)."""
+    text = repr(float(x))
+    return text if len(text) <= 20 else f"{float(x):.13e}"
+
+
+def _id_lines(ids: np.ndarray, per_line: int = 8) -> list[str]:
+    return [", ".join(str(int(i)) for i in ids[k : k + per_line]) for k in range(0, len(ids), per_line)]
+
+
+def write_inp(
+    path,
+    mesh,
+    material,
+    fixed,
+    forces,
+    *,
+    order: int = 2,
+    prescribed=None,
+    node_sets: dict | None = None,
+    nlgeom: bool = True,
+    initial_increment: float = 0.05,
+    min_increment: float = 1e-5,
+    max_increment: float = 0.25,
+    max_increments: int = 1000,
+    title: str = "tissuecast neo-Hookean problem",
+) -> Path:
+    """Write the problem as a CalculiX/Abaqus input deck.
+
+    Args:
+        path: output ``.inp`` file (the folder must exist).
+        mesh: :class:`~tissuecast.mesh.TetMesh` with n vertices (mm).
+        material: neo-Hookean material with ``c10`` and ``d1`` (MPa, 1/MPa), e.g.
+            :class:`tissuecast.fem.NeoHookean`.
+        fixed: (k,) int, 0-based ids of vertices held in all three directions.
+        forces: (n, 3) float, N: dead nodal loads on the vertices (corner nodes); zero
+            components are not written.
+        order: 2 for quadratic C3D10 elements, 1 for linear C3D4.
+        prescribed: optional prescribed vertex displacements (mm), ramped over the step,
+            as ``{vertex: (3,)}`` or ``(ids (p,), values (p, 3))``; a NaN component is free.
+        node_sets: optional extra node sets ``{NAME: (k,) 0-based vertex ids}`` written as
+            ``*NSET`` (e.g. the fiducial markers, to print their displacements).
+        nlgeom: geometric nonlinearity (large deformation); the neo-Hookean law always
+            switches it on in CalculiX.
+        initial_increment, min_increment, max_increment: automatic incrementation, as
+            fractions of the total load (the step period is 1).
+        max_increments: the step's increment limit (``INC=``).
+        title: ``*HEADING`` text.
+
+    Returns:
+        The path written.
+
+    Raises:
+        SolverSetupError: wrong shapes, ids out of range, non-finite forces, forces on fixed
+            vertices, or a bad order / material.
+    """
+    if order not in (1, 2):
+        raise SolverSetupError(f"order must be 1 (C3D4) or 2 (C3D10), got {order!r}")
+    n = mesh.n_points
+    c10, d1 = _material_constants(material)
+    f = _as_forces(forces, n)
+    fixed = np.unique(_as_ids(fixed, n, "fixed vertices"))
+    pre_ids, pre_val = _as_prescribed(prescribed, n)
+    both = np.intersect1d(fixed, pre_ids)
+    if both.size:
+        raise SolverSetupError(f"vertices {both[:5].tolist()} are both fixed and prescribed; give each one constraint")
+    loaded_fixed = fixed[np.abs(f[fixed]).sum(axis=1) > 0]
+    if loaded_fixed.size:
+        raise SolverSetupError(
+            f"forces act on fixed vertices {loaded_fixed[:5].tolist()}; set their forces to zero or unfix them"
+        )
+    if not 0 < min_increment <= initial_increment <= 1 or not min_increment <= max_increment <= 1:
+        raise SolverSetupError(
+            "increments must satisfy 0 < min_increment <= initial_increment <= 1 and min_increment <= max_increment <= 1, "
+            f"got {min_increment}, {initial_increment}, {max_increment}"
+        )
+    if order == 2:
+        nodes, elements, etype = mesh.points10, mesh.tets10, "C3D10"
+    else:
+        nodes, elements, etype = mesh.points, mesh.tets, "C3D4"
+    fixed_nodes, pre_nodes, pre_nodal = _constrained_nodes(mesh, order, fixed, pre_ids, pre_val)
+    out = [
+        "** tissuecast input deck for CalculiX (ccx >= 2.20) and Abaqus/Standard. Units: mm, N, MPa.",
+        "** Node and element ids are 1-based: node k is 0-based mesh vertex i = k - 1 (k <= n_vertices);",
+        f"** for C3D10, node n_vertices + e + 1 is the midpoint of mesh edge e. n_vertices = {n}.",
+        "*HEADING",
+        title,
+        "*NODE, NSET=NALL",
+    ]
+    out += [f"{k + 1}, {_num(x)}, {_num(y)}, {_num(z)}" for k, (x, y, z) in enumerate(nodes.tolist())]
+    out.append(f"*ELEMENT, TYPE={etype}, ELSET=TISSUE")
+    body = np.hstack([np.arange(1, len(elements) + 1)[:, None], elements + 1])
+    out += [", ".join(map(str, row)) for row in body.tolist()]
+    out += ["*NSET, NSET=NVERT, GENERATE", f"1, {n}, 1"]
+    if fixed_nodes.size:
+        out += ["*NSET, NSET=NFIXED"] + _id_lines(fixed_nodes + 1)
+    for name, ids in (node_sets or {}).items():
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,79}", str(name)):
+            raise SolverSetupError(f"node set name {name!r} must be a letter followed by letters, digits or _")
+        ids = _as_ids(ids, n, f"node set {name}")
+        if ids.size:
+            out += [f"*NSET, NSET={name}"] + _id_lines(ids + 1)
+    out += [
+        "*MATERIAL, NAME=TISSUE",
+        "*HYPERELASTIC, NEO HOOKE",
+        f"{_num(c10)}, {_num(d1)}",
+        "*SOLID SECTION, ELSET=TISSUE, MATERIAL=TISSUE",
+        f"*STEP, NLGEOM={'YES' if nlgeom else 'NO'}, INC={int(max_increments)}",
+        "*STATIC",
+        f"{_num(initial_increment)}, 1.0, {_num(min_increment)}, {_num(max_increment)}",
+    ]
+    bc = ["NFIXED, 1, 3"] if fixed_nodes.size else []
+    for i, v in zip(pre_nodes.tolist(), pre_nodal.tolist()):
+        bc += [f"{i + 1}, {d + 1}, {d + 1}, {_num(x)}" for d, x in enumerate(v) if np.isfinite(x)]
+    if bc:
+        out += ["*BOUNDARY"] + bc
+    nz = np.argwhere(f != 0)
+    if nz.size:
+        out += ["*CLOAD"] + [f"{i + 1}, {d + 1}, {_num(f[i, d])}" for i, d in nz.tolist()]
+    out += ["*NODE PRINT, NSET=NVERT", "U", "*NODE FILE", "U", "*END STEP", ""]
+    path = Path(path)
+    path.write_text("\n".join(out))
+    return path

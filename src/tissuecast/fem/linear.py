@@ -1,0 +1,158 @@
+"""Pluggable sparse direct solvers for the symmetric stiffness systems of the Newton solver.
+
+Every backend works on one fixed sparsity pattern (that of an
+:class:`~tissuecast.fem.assembly.Assembler`): the symbolic analysis (fill-reducing ordering)
+is done once, each :meth:`factorize` call only redoes the numeric factorisation.
+
+Backends:
+
+* ``"cholmod"`` -- supernodal Cholesky of SuiteSparse through ``sksparse.cholmod``
+  (fastest here: ~0.35 s for the 22k-dof P2 phantom on one core).
+* ``"pardiso"`` -- Intel MKL PARDISO through ``pypardiso`` when it is installed
+  (symmetric indefinite mode, so it never needs a fallback).
+* ``"superlu"`` -- SciPy's SuperLU, always available, ~10x slower.
+
+A stiffness that is not positive definite (possible far from equilibrium, under
+compression) raises :class:`NotPositiveDefinite` from the Cholesky backend; the Newton
+solver then factorises a shifted matrix ``K + beta D`` (D = diag K), which keeps its step a
+descent direction of the potential energy (see :mod:`tissuecast.fem.solver`).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spl
+
+from ..errors import SolverSetupError
+from .assembly import Assembler
+
+__all__ = ["NotPositiveDefinite", "LinearSolver", "make_linear_solver", "available_backends"]
+
+log = logging.getLogger(__name__)
+
+
+class NotPositiveDefinite(ArithmeticError):
+    """The matrix handed to a Cholesky backend is not positive definite."""
+
+
+class LinearSolver:
+    """Base class: factorise a matrix with a fixed pattern, then solve with it.
+
+    Args:
+        assembler: supplies the pattern (``indptr``, ``indices``) and matrix builders.
+    """
+
+    name = "base"
+
+    def __init__(self, assembler: Assembler) -> None:
+        self.assembler = assembler
+        self.n = assembler.n_free
+
+    def factorize(self, data: np.ndarray) -> None:
+        """Numeric factorisation of the matrix with CSR values ``data`` ((nnz,) float)."""
+        raise NotImplementedError
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        """Solve with the last factorisation: ``b`` (n_free,) or (n_free, k) -> same shape."""
+        raise NotImplementedError
+
+
+class CholmodSolver(LinearSolver):
+    """Supernodal Cholesky (CHOLMOD); symbolic analysis once, numeric refactorisation in place."""
+
+    name = "cholmod"
+
+    def __init__(self, assembler: Assembler, ordering: str = "nesdis") -> None:
+        super().__init__(assembler)
+        from sksparse import cholmod
+
+        self._cholmod = cholmod
+        pattern = assembler.lower_csc(np.ones(assembler.nnz))
+        self._factor = cholmod.analyze(pattern, mode="supernodal", ordering_method=ordering)
+        self._ready = False
+
+    def factorize(self, data: np.ndarray) -> None:
+        self._ready = False
+        try:
+            self._factor.cholesky_inplace(self.assembler.lower_csc(data))
+        except self._cholmod.CholmodNotPositiveDefiniteError as exc:
+            raise NotPositiveDefinite(str(exc)) from None
+        self._ready = True
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return self._factor(b)
+
+
+class PardisoSolver(LinearSolver):
+    """MKL PARDISO via ``pypardiso`` (real symmetric indefinite, upper triangle)."""
+
+    name = "pardiso"
+
+    def __init__(self, assembler: Assembler) -> None:
+        super().__init__(assembler)
+        import pypardiso
+
+        self._solver = pypardiso.PyPardisoSolver(mtype=-2)
+        self._solver.set_phase(12)
+        self._matrix = None
+
+    def factorize(self, data: np.ndarray) -> None:
+        a = self.assembler
+        up = sp.csr_matrix((data[a._upper], a.upper_indices, a.upper_indptr), shape=(self.n, self.n))
+        self._solver.factorize(up)
+        self._matrix = up
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return self._solver.solve(self._matrix, np.asarray(b, dtype=np.float64))
+
+
+class SuperLUSolver(LinearSolver):
+    """SciPy SuperLU on the full matrix (always available, slowest)."""
+
+    name = "superlu"
+
+    def __init__(self, assembler: Assembler) -> None:
+        super().__init__(assembler)
+        self._lu = None
+
+    def factorize(self, data: np.ndarray) -> None:
+        mat = self.assembler.matrix(data).tocsc()
+        try:
+            self._lu = spl.splu(mat, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+        except RuntimeError as exc:  # exactly singular
+            raise NotPositiveDefinite(str(exc)) from None
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        return self._lu.solve(np.asarray(b, dtype=np.float64))
+
+
+_BACKENDS = {"cholmod": ("sksparse", CholmodSolver), "pardiso": ("pypardiso", PardisoSolver), "superlu": ("scipy", SuperLUSolver)}
+
+
+def available_backends() -> list[str]:
+    """Names of the backends importable here, fastest first."""
+    return [name for name, (module, _) in _BACKENDS.items() if importlib.util.find_spec(module) is not None]
+
+
+def make_linear_solver(name: str, assembler: Assembler) -> LinearSolver:
+    """Build a backend by name (``"auto"`` picks the fastest available).
+
+    Raises:
+        SolverSetupError: unknown name, or the named backend's package is not installed.
+    """
+    if name == "auto":
+        name = available_backends()[0]
+    if name not in _BACKENDS:
+        raise SolverSetupError(f"unknown linear solver {name!r}; choose one of 'auto', {', '.join(map(repr, _BACKENDS))}")
+    module, cls = _BACKENDS[name]
+    if importlib.util.find_spec(module) is None:
+        raise SolverSetupError(
+            f"linear solver {name!r} needs the Python package {module!r}, which is not installed; "
+            f"install it or use linear_solver='auto' (available here: {available_backends()})"
+        )
+    log.debug("linear solver: %s", name)
+    return cls(assembler)

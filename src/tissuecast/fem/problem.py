@@ -1,0 +1,202 @@
+"""The finite-element problem: mesh, material, element order and displacement constraints.
+
+A :class:`Problem` is validated when it is built; the forces of each sample are checked by
+:func:`check_forces` when a solve starts. Vertex ids are 0-based (CalculiX/Abaqus decks and
+the paper count from 1).
+
+Constraints act on all three components of a vertex: *fixed* vertices do not move,
+*prescribed* vertices move by a given displacement (reached in proportion to the load
+fraction). For quadratic elements a mid-edge node whose two end vertices are both
+constrained is constrained too, to the mean of their displacements (the edge stays
+straight, as linear interpolation of the vertex values); a mid-edge node with at most one
+constrained end is free, as in a CalculiX deck that constrains corner nodes only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from ..errors import SolverSetupError
+from ..mesh.tetmesh import TetMesh
+from .material import NeoHookean
+
+__all__ = ["Problem", "check_forces"]
+
+
+def _vertex_ids(ids, n: int, what: str) -> np.ndarray:
+    arr = np.asarray(ids)
+    if arr.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    if arr.ndim != 1 or not (np.issubdtype(arr.dtype, np.integer) or np.all(np.mod(arr, 1) == 0)):
+        raise SolverSetupError(f"{what} must be a 1-D list of integer vertex ids, got {np.asarray(ids).tolist()!r}")
+    arr = arr.astype(np.int64)
+    bad = (arr < 0) | (arr >= n)
+    if bad.any():
+        raise SolverSetupError(
+            f"{what} vertex id {int(arr[bad][0])} is outside 0..{n - 1}; ids are 0-based "
+            "(subtract 1 from 1-based Abaqus/CalculiX ids)"
+        )
+    if len(np.unique(arr)) != len(arr):
+        raise SolverSetupError(f"{what} repeats vertex ids: {arr.tolist()}; list each vertex once")
+    return arr
+
+
+def _parse_prescribed(prescribed, n: int) -> tuple[np.ndarray, np.ndarray]:
+    if prescribed is None:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+    if isinstance(prescribed, dict):
+        ids = list(prescribed.keys())
+        vals = [np.asarray(v, dtype=np.float64) for v in prescribed.values()]
+        vals = np.array(vals) if vals else np.zeros((0, 3))
+    else:
+        try:
+            ids, vals = prescribed
+        except (TypeError, ValueError):
+            raise SolverSetupError(
+                "prescribed must be a dict {vertex: (3,) displacement in mm} or a pair "
+                "(vertex ids (k,), displacements (k, 3) mm)"
+            ) from None
+        vals = np.asarray(vals, dtype=np.float64)
+    ids = _vertex_ids(ids, n, "prescribed")
+    if vals.shape != (len(ids), 3):
+        raise SolverSetupError(
+            f"prescribed displacements must have shape ({len(ids)}, 3) (one (x, y, z) in mm per vertex), got {vals.shape}"
+        )
+    if not np.all(np.isfinite(vals)):
+        raise SolverSetupError("prescribed displacements must be finite numbers of mm")
+    return ids, vals
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """A nonlinear elasticity problem on a tetrahedral mesh.
+
+    Args:
+        mesh: the tetrahedral mesh (mm).
+        material: the neo-Hookean material (MPa).
+        fixed: (k,) int, 0-based ids of vertices with all displacement components fixed.
+        order: element order, 2 (10-node tets, C3D10; default) or 1 (4-node tets).
+        prescribed: optional prescribed vertex displacements (mm): a dict
+            ``{vertex: (3,)}`` or a pair ``(ids (k,), displacements (k, 3))``.
+
+    Raises:
+        SolverSetupError: ids out of range or repeated, a vertex both fixed and prescribed,
+            or constraints that leave rigid-body motion free (fewer than 3 constrained
+            vertices, or all of them on one line).
+    """
+
+    mesh: TetMesh
+    material: NeoHookean = field(default_factory=NeoHookean)
+    fixed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    order: int = 2
+    prescribed: object = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.mesh, TetMesh):
+            raise SolverSetupError(f"mesh must be a TetMesh, got {type(self.mesh).__name__}")
+        if not isinstance(self.material, NeoHookean):
+            raise SolverSetupError(f"material must be a NeoHookean, got {type(self.material).__name__}")
+        if self.order not in (1, 2):
+            raise SolverSetupError(f"order must be 1 (4-node tets) or 2 (10-node tets), got {self.order!r}")
+        n = self.mesh.n_points
+        fixed = _vertex_ids(self.fixed, n, "fixed")
+        pids, pvals = _parse_prescribed(self.prescribed, n)
+        both = np.intersect1d(fixed, pids)
+        if both.size:
+            raise SolverSetupError(f"vertices {both.tolist()} are both fixed and prescribed; give each one constraint")
+        constrained = np.concatenate([fixed, pids])
+        if len(constrained) < 3:
+            raise SolverSetupError(
+                f"{len(constrained)} constrained vertices cannot stop rigid-body motion; "
+                "fix at least 3 vertices that are not on one line"
+            )
+        p = self.mesh.points[constrained]
+        d = p - p.mean(axis=0)
+        sv = np.linalg.svd(d, compute_uv=False)
+        if sv[1] <= 1e-6 * max(sv[0], 1e-300):
+            raise SolverSetupError(
+                f"the constrained vertices {constrained.tolist()} lie on one line, so the body can still "
+                "rotate about it; fix at least 3 vertices that are not collinear"
+            )
+        object.__setattr__(self, "fixed", fixed)
+        object.__setattr__(self, "prescribed", (pids, pvals) if len(pids) else None)
+        object.__setattr__(self, "_pids", pids)
+        object.__setattr__(self, "_pvals", pvals)
+
+    @property
+    def n_vertices(self) -> int:
+        """Number of mesh vertices (rows of forces and displacements)."""
+        return self.mesh.n_points
+
+    @cached_property
+    def nodes(self) -> np.ndarray:
+        """(n_nodes, 3) float, mm: element nodes (vertices first, then P2 mid-edge nodes)."""
+        return self.mesh.points if self.order == 1 else self.mesh.points10
+
+    @cached_property
+    def connectivity(self) -> np.ndarray:
+        """(m, 4 or 10) int: element node ids."""
+        return self.mesh.tets if self.order == 1 else self.mesh.tets10
+
+    @cached_property
+    def constrained_nodes(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(node ids (c,), displacement at full load (c, 3) mm)`` of every constrained node."""
+        n = self.mesh.n_points
+        value = np.full((n, 3), np.nan)
+        value[self.fixed] = 0.0
+        value[self._pids] = self._pvals
+        ids = np.flatnonzero(~np.isnan(value[:, 0]))
+        vals = [value[ids]]
+        node_ids = [ids]
+        if self.order == 2:
+            e = self.mesh.edges
+            both = ~np.isnan(value[e[:, 0], 0]) & ~np.isnan(value[e[:, 1], 0])
+            k = np.flatnonzero(both)
+            node_ids.append(n + k)
+            vals.append(0.5 * (value[e[k, 0]] + value[e[k, 1]]))
+        return np.concatenate(node_ids), np.vstack(vals)
+
+    @cached_property
+    def free_mask(self) -> np.ndarray:
+        """(3 n_nodes,) bool: True for unknown degrees of freedom."""
+        free = np.ones((len(self.nodes), 3), dtype=bool)
+        free[self.constrained_nodes[0]] = False
+        return free.ravel()
+
+
+def check_forces(problem: Problem, forces) -> np.ndarray:
+    """Validate nodal forces for a problem.
+
+    Args:
+        problem: the problem.
+        forces: (n, 3) float, N, dead loads on the mesh vertices.
+
+    Returns:
+        (n, 3) float64 copy of the forces.
+
+    Raises:
+        SolverSetupError: wrong shape, non-finite values, or a non-zero force on a fixed or
+            prescribed vertex.
+    """
+    f = np.asarray(forces, dtype=np.float64) if forces is not None else None
+    n = problem.n_vertices
+    if f is None or f.shape != (n, 3):
+        shape = None if f is None else f.shape
+        raise SolverSetupError(f"forces must have shape ({n}, 3) (N per mesh vertex), got {shape}")
+    bad = ~np.isfinite(f).all(axis=1)
+    if bad.any():
+        raise SolverSetupError(
+            f"{int(bad.sum())} force rows are not finite (first: vertex {int(np.flatnonzero(bad)[0])}); "
+            "replace NaN/inf by numbers of N"
+        )
+    constrained = np.concatenate([problem.fixed, problem._pids])
+    loaded = constrained[np.any(f[constrained] != 0.0, axis=1)]
+    if loaded.size:
+        raise SolverSetupError(
+            f"forces act on constrained (fixed or prescribed) vertices {loaded.tolist()}; they would go "
+            "straight into the supports: set those rows to zero"
+        )
+    return f.copy()

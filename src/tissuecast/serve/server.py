@@ -1,0 +1,313 @@
+"""The OpenIGTLink server: one ``selectors`` event loop, non-blocking sockets, many clients.
+
+The loop never waits on one client: it reads whatever bytes have arrived, lets the client's
+:class:`~tissuecast.serve.session.ClientSession` answer every complete message at once
+(a prediction takes well under a millisecond) and sends replies without blocking; what a
+slow reader does not take is queued for that client only. Per-client limits keep one bad
+peer from hurting the others:
+
+- a body announced larger than ``max_body_bytes`` closes the connection unread;
+- a message left incomplete for more than ``client_timeout`` seconds closes it;
+- more than ``max_output_bytes`` of unsent replies (a client that stops reading) closes it;
+- any unexpected exception while serving a client is logged and closes that client only.
+
+The server binds to 127.0.0.1 unless another host is given. Connections and disconnections
+are logged (logger ``tissuecast.serve.server``, level INFO).
+"""
+
+from __future__ import annotations
+
+import logging
+import selectors
+import socket
+import threading
+import time
+from collections import Counter
+
+from .predictor import ServableModel, SurfacePredictor
+from .protocol import DEFAULT_MAX_BODY_BYTES, pack_string
+from .session import ERROR_DEVICE, ClientSession
+
+__all__ = ["IGTLServer"]
+
+log = logging.getLogger(__name__)
+
+
+class _Client:
+    __slots__ = ("sock", "peer", "session", "out", "partial_since", "closing", "dead", "backlog")
+
+    def __init__(self, sock: socket.socket, peer: str):
+        self.sock = sock
+        self.peer = peer
+        self.session: ClientSession | None = None
+        self.out = bytearray()
+        self.partial_since: float | None = None
+        self.closing: str | None = None  # why to close once the queued replies are flushed
+        self.dead: str | None = None
+        self.backlog = False  # complete messages wait in the session buffer (fair turn-taking)
+
+
+class IGTLServer:
+    """Serve a deformation model over OpenIGTLink (see :mod:`tissuecast.serve.session`).
+
+    Args:
+        model: a :class:`~tissuecast.serve.predictor.ServableModel` (e.g. a DeformationModel)
+            or a ready :class:`SurfacePredictor`.
+        host: bind address; keep 127.0.0.1 unless other machines must connect.
+        port: TCP port; 0 picks a free one (read it from :attr:`address`).
+        full_field: answer every prediction with the full field as well.
+        transform_mode: ``"frame"`` or ``"each"`` (TRANSFORM input, see session).
+        max_body_bytes: largest accepted message body.
+        client_timeout: seconds an incomplete message may wait for its remaining bytes.
+        max_output_bytes: unsent reply bytes tolerated per client.
+        max_clients: simultaneous connections; further ones get an error and are closed.
+        max_marker_offset: mm, see :class:`SurfacePredictor`.
+        messages_per_turn: complete messages handled per client before the others get a
+            turn (a client pipelining many requests cannot starve the rest).
+    """
+
+    def __init__(
+        self,
+        model: ServableModel | SurfacePredictor,
+        host: str = "127.0.0.1",
+        port: int = 18944,
+        *,
+        full_field: bool = False,
+        transform_mode: str = "frame",
+        max_body_bytes: int = DEFAULT_MAX_BODY_BYTES,
+        client_timeout: float = 5.0,
+        max_output_bytes: int = 32 << 20,
+        max_clients: int = 64,
+        max_marker_offset: float = 100.0,
+        messages_per_turn: int = 16,
+    ):
+        if isinstance(model, SurfacePredictor):
+            self.predictor = model
+        else:
+            self.predictor = SurfacePredictor(model, max_marker_offset=max_marker_offset)
+        self._session_options = dict(full_field=full_field, transform_mode=transform_mode, max_body_bytes=max_body_bytes)
+        ClientSession(self.predictor, lambda data: None, **self._session_options)  # validate options now
+        self.client_timeout = float(client_timeout)
+        self.max_output_bytes = int(max_output_bytes)
+        self.max_clients = int(max_clients)
+        self.messages_per_turn = max(1, int(messages_per_turn))
+        self.stats: Counter = Counter()
+        self._listener = socket.create_server((host, port), backlog=64)
+        self._listener.setblocking(False)
+        self.address: tuple[str, int] = self._listener.getsockname()[:2]
+        self._selector = selectors.DefaultSelector()
+        self._selector.register(self._listener, selectors.EVENT_READ, None)
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._selector.register(self._wake_r, selectors.EVENT_READ, "wake")
+        self._clients: dict[int, _Client] = {}
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        log.info("OpenIGTLink server listening on %s:%d", *self.address)
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> "IGTLServer":
+        """Run the event loop in a daemon thread and return immediately."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self.serve_forever, name="tissuecast-igtl", daemon=True)
+            self._thread.start()
+        return self
+
+    def serve_forever(self) -> None:
+        """Run the event loop in this thread until :meth:`stop` is called."""
+        try:
+            while not self._stop.is_set():
+                backlog = [c for c in self._clients.values() if c.backlog]
+                for key, mask in self._selector.select(timeout=0.0 if backlog else self._poll_timeout()):
+                    if key.data is None:
+                        self._accept()
+                    elif key.data == "wake":
+                        self._drain_wake()
+                    else:
+                        self._service(key.data, mask)
+                for client in backlog:
+                    if self._clients.get(client.sock.fileno()) is client and client.backlog:
+                        self._service(client, 0)
+                self._expire()
+        finally:
+            self._shutdown()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Stop the loop, close every connection and the listening socket."""
+        self._stop.set()
+        try:
+            self._wake_w.send(b"x")
+        except OSError:
+            pass
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(timeout)
+        elif self._thread is None:
+            self._shutdown()
+
+    def __enter__(self) -> "IGTLServer":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def n_clients(self) -> int:
+        return len(self._clients)
+
+    # ------------------------------------------------------------------ loop parts
+    def _poll_timeout(self) -> float:
+        pending = [c.partial_since for c in self._clients.values() if c.partial_since is not None]
+        if not pending:
+            return 1.0
+        return max(0.0, min(1.0, min(pending) + self.client_timeout - time.monotonic()))
+
+    def _drain_wake(self) -> None:
+        try:
+            while self._wake_r.recv(512):
+                pass
+        except BlockingIOError:
+            pass
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                sock, addr = self._listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # e.g. too many open files: keep serving the others
+                log.warning("accept failed: %s", exc)
+                return
+            peer = f"{addr[0]}:{addr[1]}" if isinstance(addr, tuple) else str(addr)
+            sock.setblocking(False)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            self.stats["connections"] += 1
+            if len(self._clients) >= self.max_clients:
+                log.warning("refusing %s: %d clients already connected", peer, len(self._clients))
+                try:
+                    sock.send(pack_string(ERROR_DEVICE, f"server busy: {self.max_clients} clients connected"))
+                except OSError:
+                    pass
+                sock.close()
+                continue
+            client = _Client(sock, peer)
+            client.session = ClientSession(self.predictor, lambda data, c=client: self._emit(c, data), **self._session_options)
+            self._clients[sock.fileno()] = client
+            self._selector.register(sock, selectors.EVENT_READ, client)
+            log.info("client %s connected (%d connected)", peer, len(self._clients))
+
+    def _service(self, client: _Client, mask: int) -> None:
+        try:
+            if mask & selectors.EVENT_WRITE:
+                self._flush(client)
+            if client.backlog and client.dead is None and not client.closing:
+                self._session_turn(client, client.session.process(self.messages_per_turn))
+            elif mask & selectors.EVENT_READ and client.dead is None and not client.closing:
+                self._read(client)
+        except Exception as exc:  # one client's failure must not stop the server
+            log.exception("error while serving %s", client.peer)
+            self.stats["internal_errors"] += 1
+            client.dead = client.dead or f"internal error: {type(exc).__name__}: {exc}"
+        if client.dead is not None or (client.closing and not client.out):
+            self._drop(client, client.dead or client.closing)
+
+    def _read(self, client: _Client) -> None:
+        try:
+            data = client.sock.recv(1 << 18)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            client.dead = f"receive failed: {exc}"
+            return
+        if not data:
+            self._close_after_flush(client, "peer closed the connection")
+            return
+        self.stats["bytes_in"] += len(data)
+        self._session_turn(client, client.session.feed(data, self.messages_per_turn))
+
+    def _session_turn(self, client: _Client, more: bool) -> None:
+        session = client.session
+        client.backlog = more and session.close_reason is None
+        if session.close_reason is not None:
+            self.stats["protocol_closes"] += 1
+            self._close_after_flush(client, session.close_reason)
+            return
+        waiting = session.partial and not client.backlog  # an incomplete message waits for its bytes
+        client.partial_since = (client.partial_since or time.monotonic()) if waiting else None
+
+    def _close_after_flush(self, client: _Client, reason: str) -> None:
+        client.closing = reason
+        # a peer that does not take its last replies is dropped after client_timeout
+        client.partial_since = time.monotonic() if client.out else None
+        if client.out:  # stop watching for input (EOF would keep the socket readable)
+            self._selector.modify(client.sock, selectors.EVENT_WRITE, client)
+
+    def _emit(self, client: _Client, data) -> None:
+        if client.dead is not None:
+            return
+        self.stats["replies"] += 1
+        sent = 0
+        if not client.out:
+            try:
+                sent = client.sock.send(data)
+            except (BlockingIOError, InterruptedError):
+                sent = 0
+            except OSError as exc:
+                client.dead = f"send failed: {exc}"
+                return
+        if sent < len(data):
+            client.out += data[sent:]
+            if len(client.out) > self.max_output_bytes:
+                client.dead = f"more than {self.max_output_bytes} bytes of replies left unread"
+                return
+            self._selector.modify(client.sock, selectors.EVENT_READ | selectors.EVENT_WRITE, client)
+
+    def _flush(self, client: _Client) -> None:
+        try:
+            sent = client.sock.send(client.out)
+        except (BlockingIOError, InterruptedError):
+            return
+        except OSError as exc:
+            client.dead = f"send failed: {exc}"
+            return
+        del client.out[:sent]
+        if not client.out:
+            self._selector.modify(client.sock, selectors.EVENT_READ, client)
+
+    def _expire(self) -> None:
+        now = time.monotonic()
+        for client in list(self._clients.values()):
+            if client.partial_since is not None and now - client.partial_since > self.client_timeout:
+                self.stats["timeouts"] += 1
+                self._drop(client, f"incomplete message for more than {self.client_timeout:g} s")
+
+    def _drop(self, client: _Client, reason: str) -> None:
+        fd = client.sock.fileno()
+        if self._clients.pop(fd, None) is None:
+            return
+        try:
+            self._selector.unregister(client.sock)
+        except (KeyError, ValueError):
+            pass
+        client.sock.close()
+        counts = client.session.counts
+        self.stats["disconnections"] += 1
+        log.info(
+            "client %s disconnected (%s); %d requests, %d predictions, %d errors",
+            client.peer, reason, counts["requests"], counts["predictions"], counts["errors"],
+        )
+
+    def _shutdown(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        for client in list(self._clients.values()):
+            self._drop(client, "server stopped")
+        for sock in (self._listener, self._wake_r, self._wake_w):
+            try:
+                self._selector.unregister(sock)
+            except (KeyError, ValueError):
+                pass
+            sock.close()
+        self._selector.close()
+        log.info("OpenIGTLink server on %s:%d stopped", *self.address)

@@ -1,0 +1,218 @@
+"""One client's conversation with the server, without sockets: bytes in, replies out.
+
+Requests a client may send (any header version 1 or 2; device names are case-sensitive):
+
+- ``POINT`` (any device name, e.g. ``"Markers"``): the n_d marker positions in mm, in the
+  model's marker order and coordinate frame. Reply: ``POLYDATA "TissueSurface"``. With a
+  model trained with marker dropout, a point whose coordinates are all NaN marks an
+  untracked marker; otherwise NaN/inf is an error.
+- ``TRANSFORM "Marker0"`` ... ``"Marker{n_d-1}"`` (0-based, model marker order; PLUS-style
+  names such as ``"Marker0ToTracker"`` are accepted too): one marker each; the translation
+  column is the marker position (mm, model frame), the rotation is ignored. In ``"frame"`` mode (default) a
+  prediction is made once every marker has been updated since the previous prediction
+  (one mesh per tracker frame); in ``"each"`` mode every update after the first complete
+  set triggers a prediction with the latest position of every marker.
+- ``GET_POLYDATA "TissueField"``: the full vertex field of this client's latest prediction
+  (``POLYDATA "TissueField"``); ``GET_POLYDATA "TissueSurface"`` (or no device name)
+  repeats the latest surface.
+
+With ``full_field=True`` every prediction is answered by both messages, surface first.
+Anything else gets a ``STRING "ERROR"`` reply whose text says what was wrong; the
+connection stays open unless the byte stream can no longer be trusted (oversized body,
+unknown header version, garbage header), in which case the error is sent and the session
+asks to be closed.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections import Counter
+from collections.abc import Callable
+
+import numpy as np
+
+from .predictor import FIELD_DEVICE, SURFACE_DEVICE, Prediction, PredictionError, SurfacePredictor
+from .protocol import (
+    DEFAULT_MAX_BODY_BYTES,
+    HEADER_SIZE,
+    Header,
+    ProtocolError,
+    decode_points,
+    decode_transform_translation,
+    message_content,
+    pack_string,
+    parse_header,
+)
+
+__all__ = ["ClientSession", "ERROR_DEVICE", "MARKER_PREFIX", "TRANSFORM_MODES"]
+
+log = logging.getLogger(__name__)
+
+ERROR_DEVICE = "ERROR"
+MARKER_PREFIX = "Marker"
+TRANSFORM_MODES = ("frame", "each")
+
+
+class ClientSession:
+    """The protocol state of one connection.
+
+    Args:
+        predictor: the shared :class:`SurfacePredictor`.
+        emit: called with each reply (bytes-like); it must send or copy the data before
+            returning, because replies alias the predictor's reusable buffers.
+        full_field: also send ``TissueField`` after every ``TissueSurface``.
+        transform_mode: ``"frame"`` or ``"each"`` (see the module docstring).
+        max_body_bytes: bodies announced larger than this close the connection unread.
+
+    Attributes:
+        close_reason: None while the connection is usable, else why it must be closed.
+        counts: Counter of handled events (``"requests"``, ``"replies"``, ``"errors"``...).
+    """
+
+    def __init__(
+        self,
+        predictor: SurfacePredictor,
+        emit: Callable[[bytes | memoryview], None],
+        *,
+        full_field: bool = False,
+        transform_mode: str = "frame",
+        max_body_bytes: int = DEFAULT_MAX_BODY_BYTES,
+    ):
+        if transform_mode not in TRANSFORM_MODES:
+            raise ValueError(f"transform_mode must be one of {TRANSFORM_MODES}, got {transform_mode!r}")
+        self.predictor = predictor
+        self.emit = emit
+        self.full_field = bool(full_field)
+        self.transform_mode = transform_mode
+        self.max_body_bytes = int(max_body_bytes)
+        self.close_reason: str | None = None
+        self.counts: Counter = Counter()
+        self.last: Prediction | None = None
+        self._buffer = bytearray()
+        self._header: Header | None = None
+        n = predictor.n_markers
+        self._positions = predictor.reference.copy()
+        self._seen = np.zeros(n, dtype=bool)
+        self._fresh = np.zeros(n, dtype=bool)
+        self._stamps = np.zeros(n)
+        self._marker_re = re.compile(rf"{MARKER_PREFIX}(0|[1-9][0-9]*)(To[A-Za-z0-9_]+)?")
+
+    @property
+    def partial(self) -> bool:
+        """True while an incomplete message sits in the buffer."""
+        return bool(self._buffer) or self._header is not None
+
+    def feed(self, data: bytes | memoryview, budget: int | None = None) -> bool:
+        """Consume received bytes; replies go to ``emit``. Never raises for bad input.
+
+        Args:
+            data: the bytes received.
+            budget: handle at most this many complete messages now (None: all).
+
+        Returns:
+            True when complete messages were left unhandled (call :meth:`process` later).
+        """
+        if self.close_reason is None:
+            self._buffer += data
+        return self.process(budget)
+
+    def process(self, budget: int | None = None) -> bool:
+        """Handle up to ``budget`` buffered complete messages; True if the budget ran out first."""
+        buf = self._buffer
+        handled = 0
+        while self.close_reason is None:
+            if self._header is None:
+                if len(buf) < HEADER_SIZE:
+                    return False
+                if budget is not None and handled >= budget:
+                    return True
+                try:
+                    self._header = parse_header(bytes(buf[:HEADER_SIZE]), self.max_body_bytes)
+                except ProtocolError as exc:
+                    self._fatal(str(exc), timestamp=0.0)
+                    return False
+                del buf[:HEADER_SIZE]
+            header = self._header
+            if len(buf) < header.body_size:
+                return False
+            if budget is not None and handled >= budget:
+                return True
+            body = bytes(buf[: header.body_size])
+            del buf[: header.body_size]
+            self._header = None
+            self._handle(header, body)
+            handled += 1
+        return False
+
+    # ------------------------------------------------------------------ messages
+    def _handle(self, header: Header, body: bytes) -> None:
+        self.counts["requests"] += 1
+        try:
+            content = message_content(header, body)
+            kind = header.message_type
+            if kind == "POINT":
+                positions = decode_points(header, content, allow_missing=self.predictor.supports_missing)
+                self._serve(positions, header.timestamp)
+            elif kind == "TRANSFORM":
+                self._on_transform(header, decode_transform_translation(header, content))
+            elif kind == "GET_POLYDATA":
+                self._on_get(header)
+            else:
+                raise ProtocolError(
+                    f"unsupported message type {kind!r} (device {header.device_name!r}); this server "
+                    f"accepts POINT, TRANSFORM {MARKER_PREFIX}0..{MARKER_PREFIX}{self.predictor.n_markers - 1} "
+                    f"and GET_POLYDATA {FIELD_DEVICE}/{SURFACE_DEVICE}"
+                )
+        except (ProtocolError, PredictionError) as exc:
+            self._error(str(exc), header.timestamp)
+
+    def _on_transform(self, header: Header, position: np.ndarray) -> None:
+        match = self._marker_re.fullmatch(header.device_name)
+        index = int(match.group(1)) if match else -1
+        if not 0 <= index < self.predictor.n_markers:
+            raise ProtocolError(
+                f"TRANSFORM device {header.device_name!r} is not a marker; use "
+                f"{MARKER_PREFIX}0..{MARKER_PREFIX}{self.predictor.n_markers - 1} (model marker order)"
+            )
+        self._positions[index] = position
+        self._seen[index] = self._fresh[index] = True
+        self._stamps[index] = header.timestamp
+        ready = self._fresh.all() if self.transform_mode == "frame" else self._seen.all()
+        if ready:
+            self._fresh[:] = False
+            self._serve(self._positions.copy(), float(self._stamps.max()))
+
+    def _on_get(self, header: Header) -> None:
+        if header.device_name not in ("", FIELD_DEVICE, SURFACE_DEVICE):
+            raise ProtocolError(f"GET_POLYDATA for unknown device {header.device_name!r}; use {FIELD_DEVICE} or {SURFACE_DEVICE}")
+        if self.last is None:
+            raise ProtocolError("no prediction yet on this connection: send marker positions first")
+        if header.device_name == FIELD_DEVICE:
+            self._send(self.predictor.field_message(self.last))
+        else:
+            self._send(self.predictor.surface_message(self.last))
+
+    def _serve(self, positions: np.ndarray, timestamp: float) -> None:
+        prediction = self.predictor.predict(positions, timestamp)
+        self.last = prediction
+        self.counts["predictions"] += 1
+        self._send(self.predictor.surface_message(prediction))
+        if self.full_field:
+            self._send(self.predictor.field_message(prediction))
+
+    # ------------------------------------------------------------------ replies
+    def _send(self, data) -> None:
+        self.counts["replies"] += 1
+        self.emit(data)
+
+    def _error(self, text: str, timestamp: float) -> None:
+        self.counts["errors"] += 1
+        log.debug("rejected message: %s", text)
+        self._send(pack_string(ERROR_DEVICE, text, timestamp))
+
+    def _fatal(self, text: str, timestamp: float) -> None:
+        self._error(text, timestamp)
+        self.close_reason = text
+        self._buffer.clear()
+        self._header = None

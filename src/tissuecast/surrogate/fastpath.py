@@ -1,0 +1,121 @@
+"""Precompiled numpy forward pass of a (possibly ensembled) surrogate: markers -> field.
+
+Input standardisation is folded into the first layer, output scaling into the last, the PCA
+reconstruction is one (n_w, 3 n) product, and the members of an ensemble are stacked (first layers
+concatenated, middle layers block-diagonal, last layers averaged), so one prediction is a
+handful of float64 matmuls.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import block_diag
+
+from .mlp import MLPWeights
+from .pca import PCABasis
+
+__all__ = ["CompiledSurrogate"]
+
+
+class CompiledSurrogate:
+    """Field predictor compiled from trained members and a PCA basis.
+
+    Args:
+        members: M >= 1 trained networks sharing input/output standardisation.
+        basis: the PCA basis with n_w components matching the networks' output.
+    """
+
+    def __init__(self, members: list[MLPWeights], basis: PCABasis):
+        f8 = np.float64
+        m0 = members[0]
+        self.n_members = len(members)
+        self.n_markers = m0.n_markers
+        self.masked = m0.masked
+        nd3 = 3 * self.n_markers
+        xm, xs = m0.x_mean.astype(f8), m0.x_std.astype(f8)
+        ys, ym = m0.y_std.astype(f8), m0.y_mean.astype(f8)
+        C = basis.components
+        firsts, biases0, mask_cols = [], [], []
+        for m in members:
+            W0 = m.weights[0].astype(f8)
+            Wd = W0[:, :nd3] / xs
+            b0 = m.biases[0].astype(f8) - Wd @ xm
+            if self.masked:
+                b0 = b0 + W0[:, nd3:].sum(axis=1)  # all markers present
+                mask_cols.append(W0[:, nd3:])
+            firsts.append(Wd)
+            biases0.append(b0)
+        # hidden layers as (in, out) matrices applied as h @ W + b
+        self.hidden = [(np.vstack(firsts).T.copy(), np.concatenate(biases0))]
+        for i in range(1, len(m0.weights) - 1):
+            W = block_diag(*[m.weights[i].astype(f8) for m in members])
+            b = np.concatenate([m.biases[i].astype(f8) for m in members])
+            self.hidden.append((W.T.copy(), b))
+        # per-member weight maps (for uncertainty) and the averaged weight map; the PCA
+        # reconstruction stays a separate (n_w, p) product: folding it into the last layer
+        # makes a larger matrix that is slower (memory traffic, BLAS threading) per call
+        self.member_weight_maps = []
+        for m in members:
+            Wl = m.weights[-1].astype(f8) * ys[:, None]  # (n_w, h_last)
+            bw = m.biases[-1].astype(f8) * ys + ym  # (n_w,)
+            self.member_weight_maps.append((Wl.T.copy(), bw))
+        self.out_W = np.vstack([W for W, _ in self.member_weight_maps]) / self.n_members  # (M h_last, n_w)
+        self.out_b = np.mean([b for _, b in self.member_weight_maps], axis=0)  # (n_w,)
+        self.components = np.ascontiguousarray(C)  # (n_w, p)
+        self.mean = basis.mean  # (p,)
+        self.mask_cols = np.vstack(mask_cols).T.copy() if self.masked else None  # (n_d, M h1)
+        self.x_mean = xm
+        self.h_last = m0.weights[-1].shape[1]
+
+    def _hidden(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
+        """Last hidden activations (B, M h_last) for displacements (B, 3 n_d) mm."""
+        W, b = self.hidden[0]
+        if missing is not None:  # missing marker -> its mean displacement and present = 0
+            d = np.where(np.repeat(missing, 3, axis=1), self.x_mean, d)
+            b = b - missing.astype(np.float64) @ self.mask_cols
+        h = d @ W
+        h += b
+        np.maximum(h, 0.0, out=h)
+        for W, b in self.hidden[1:]:
+            h = h @ W
+            h += b
+            np.maximum(h, 0.0, out=h)
+        return h
+
+    def fields(self, d: np.ndarray, missing: np.ndarray | None = None) -> np.ndarray:
+        """Ensemble-mean fields (B, 3 n) mm from marker displacements (B, 3 n_d) mm.
+
+        ``missing`` (B, n_d) bool marks untracked markers (masked models only).
+        """
+        if d.shape[0] == 1 and missing is None:
+            return self.field(d[0])[None]
+        w = self._hidden(d, missing) @ self.out_W
+        w += self.out_b
+        u = w @ self.components
+        u += self.mean
+        return u
+
+    def field(self, d: np.ndarray) -> np.ndarray:
+        """One field (3 n,) mm from one marker-displacement vector (3 n_d,) mm, all markers tracked.
+
+        1-D products (BLAS gemv) keep the single-sample latency low and steady.
+        """
+        W, b = self.hidden[0]
+        h = d @ W
+        h += b
+        np.maximum(h, 0.0, out=h)
+        for W, b in self.hidden[1:]:
+            h = h @ W
+            h += b
+            np.maximum(h, 0.0, out=h)
+        w = h @ self.out_W
+        w += self.out_b
+        u = w @ self.components
+        u += self.mean
+        return u
+
+    def member_weights(self, d: np.ndarray, missing: np.ndarray | None = None) -> np.ndarray:
+        """PCA weights of every member, (M, B, n_w) mm."""
+        h = self._hidden(d, missing)
+        k = self.h_last
+        return np.stack([h[:, i * k:(i + 1) * k] @ W + b for i, (W, b) in enumerate(self.member_weight_maps)])

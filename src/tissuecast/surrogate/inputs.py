@@ -1,0 +1,71 @@
+"""Validation of marker-displacement input: accepted layouts, missing markers, NaN checks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ModelError
+
+__all__ = ["marker_batch"]
+
+
+def marker_batch(marker_displacements, n_d: int, missing=None, masked: bool = False) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """Check and reshape marker displacements.
+
+    Args:
+        marker_displacements: (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) float, mm.
+        n_d: number of markers of the model.
+        missing: untracked markers: indices into the marker list, or bool (n_d,) / (B, n_d).
+        masked: whether the model accepts missing markers.
+
+    Returns:
+        ``(d (B, 3 n_d) float64 with missing entries zeroed, missing (B, n_d) bool or None, single)``.
+
+    Raises:
+        ModelError: wrong shape, NaN/inf in tracked markers, missing markers for a model
+            trained without masking, or every marker missing.
+    """
+    try:
+        d = np.asarray(marker_displacements, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ModelError(f"marker displacements must be numeric, got {type(marker_displacements).__name__}") from exc
+    s = d.shape
+    if s == (3 * n_d,) or s == (n_d, 3):
+        d, single = d.reshape(1, 3 * n_d), True
+    elif len(s) == 3 and s[1:] == (n_d, 3):
+        d, single = d.reshape(s[0], 3 * n_d), False
+    elif len(s) == 2 and s[1] == 3 * n_d:
+        single = False
+    else:
+        raise ModelError(
+            f"marker displacements must have shape ({3 * n_d},), ({n_d}, 3), (B, {n_d}, 3) or (B, {3 * n_d}) "
+            f"for this model's {n_d} markers (mm), got {s}"
+        )
+    miss = None
+    if missing is not None:
+        miss = np.zeros((d.shape[0], n_d), dtype=bool)
+        mv = np.asarray(missing)
+        if mv.dtype == bool:
+            if mv.shape not in ((n_d,), (d.shape[0], n_d)):
+                raise ModelError(f"missing mask must be ({n_d},) or ({d.shape[0]}, {n_d}) booleans, got {mv.shape}")
+            miss[:] = mv
+        else:
+            ids = mv.astype(np.int64).ravel()
+            if ids.size and (ids.min() < 0 or ids.max() >= n_d):
+                raise ModelError(f"missing marker indices must be in [0, {n_d}) (positions in the marker list), got {ids.tolist()}")
+            miss[:, ids] = True
+        if not miss.any():
+            miss = None
+        elif not masked:
+            raise ModelError(
+                "this model was trained without marker masking and cannot predict with missing markers; "
+                "retrain with surrogate.marker_dropout > 0"
+            )
+        elif miss.all(axis=1).any():
+            raise ModelError("at least one marker must be tracked in every sample")
+    check = d if miss is None else np.where(np.repeat(miss, 3, axis=1), 0.0, d)
+    if not np.isfinite(check).all():
+        raise ModelError("marker displacements contain NaN or inf; mark untracked markers with missing=[...]")
+    if miss is not None:
+        d = check
+    return d, miss, single

@@ -1,0 +1,330 @@
+"""DeformationModel: marker displacements -> whole-body displacement field (PCA + MLP).
+
+Scikit-learn style: the hyper-parameters come from a :class:`~tissuecast.config.SurrogateConfig`
+given to ``__init__``; ``fit`` learns the state (attributes ending in ``_``) and returns
+``self``; predicting with an unfitted model raises :class:`~tissuecast.errors.ModelError`.
+
+Marker displacements are ordered like the markers, vertex-major: ``(d0x, d0y, d0z, d1x, ...)``
+in mm. A displacement field is (n, 3) mm at every mesh vertex (0-based ids).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
+from ..errors import ModelError
+from .fastpath import CompiledSurrogate
+from .inputs import marker_batch
+from .mlp import MLPWeights, TrainOptions, train_mlp
+from .pca import PCABasis, PCACurve, choose_n_components, fit_pca
+from .ridge import RidgeBaseline, fit_ridge, marker_columns
+
+__all__ = ["DeformationModel"]
+
+log = logging.getLogger(__name__)
+
+
+def _surrogate_config(config, overrides: dict) -> SurrogateConfig:
+    if config is None:
+        config = SurrogateConfig()
+    elif isinstance(config, Config):
+        config = config.surrogate
+    elif not isinstance(config, SurrogateConfig):
+        raise ModelError(f"config must be a Config or SurrogateConfig, got {type(config).__name__}")
+    if overrides:
+        config = with_overrides(Config(surrogate=config), surrogate=overrides).surrogate
+    return config
+
+
+class DeformationModel:
+    """PCA + MLP surrogate of nonlinear FEM (Liu et al. 2020), with the ridge baseline.
+
+    Args:
+        config: surrogate settings (a :class:`SurrogateConfig`, or a whole :class:`Config`);
+            None uses the defaults.
+        **overrides: individual ``SurrogateConfig`` fields, validated like a config file
+            (e.g. ``hidden=(64, 64), ensemble=5``).
+    """
+
+    def __init__(self, config: SurrogateConfig | Config | None = None, **overrides):
+        self.config = _surrogate_config(config, overrides)
+        self.run_config: dict | None = config_to_dict(config) if isinstance(config, Config) else None
+        self.dataset_path: str | None = None
+
+    # ------------------------------------------------------------------ fitted state
+    def _fitted(self) -> None:
+        if not hasattr(self, "members_"):
+            raise ModelError("this DeformationModel is not fitted yet; call fit(...) or DeformationModel.load(folder)")
+
+    @property
+    def is_fitted(self) -> bool:
+        return hasattr(self, "members_")
+
+    @property
+    def mesh(self):
+        """The :class:`~tissuecast.mesh.TetMesh` the model predicts on (n vertices)."""
+        self._fitted()
+        return self.mesh_
+
+    @property
+    def markers(self) -> np.ndarray:
+        """(n_d,) int64 0-based fiducial marker vertex ids, in input order."""
+        self._fitted()
+        return self.markers_
+
+    @property
+    def fixed(self) -> np.ndarray:
+        """(k,) int64 0-based fixed vertex ids of the simulations."""
+        self._fitted()
+        return self.fixed_
+
+    @property
+    def reference_marker_positions(self) -> np.ndarray:
+        """(n_d, 3) float64 mm: undeformed marker positions (subtracted from tracked positions)."""
+        self._fitted()
+        return self.mesh_.points[self.markers_].astype(np.float64)
+
+    @property
+    def n_markers(self) -> int:
+        return int(self.markers.size)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.mesh.n_points)
+
+    @property
+    def n_components(self) -> int:
+        self._fitted()
+        return self.pca_.n_components
+
+    @property
+    def ensemble_size(self) -> int:
+        self._fitted()
+        return len(self.members_)
+
+    @property
+    def supports_missing_markers(self) -> bool:
+        """Whether the network was trained with marker masking (``marker_dropout > 0``)."""
+        self._fitted()
+        return bool(self.members_[0].masked)
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, displacements, markers, *, mesh, fixed=(), train_idx=None, valid_idx=None) -> "DeformationModel":
+        """Fit PCA (training fields only), the ridge baseline and the MLP (ensemble).
+
+        Args:
+            displacements: (N, n, 3) float displacement fields, mm (finite for the used samples).
+            markers: (n_d,) 0-based marker vertex ids.
+            mesh: the :class:`TetMesh` with n vertices.
+            fixed: (k,) 0-based fixed vertex ids (metadata for users of the model).
+            train_idx: sample indices for training; default: every sample not in valid_idx.
+            valid_idx: sample indices for validation (checkpoint/early stopping); default: a
+                seeded 10 % of the training indices.
+
+        Returns:
+            self.
+        """
+        t0 = time.perf_counter()
+        U = np.asarray(displacements)
+        if U.ndim != 3 or U.shape[2] != 3:
+            raise ModelError(f"displacements must be (N, n, 3) mm, got shape {U.shape}")
+        if U.shape[1] != mesh.n_points:
+            raise ModelError(f"displacements have {U.shape[1]} vertices but the mesh has {mesh.n_points}")
+        mk = np.asarray(markers, dtype=np.int64).ravel()
+        if mk.size == 0 or mk.min() < 0 or mk.max() >= mesh.n_points or np.unique(mk).size != mk.size:
+            raise ModelError(f"markers must be distinct 0-based vertex ids in [0, {mesh.n_points}), got {mk.tolist()}")
+        fx = np.asarray(fixed, dtype=np.int64).ravel()
+        N = U.shape[0]
+        rng = np.random.default_rng(self.config.seed)
+        if train_idx is None:
+            exclude = set() if valid_idx is None else set(np.asarray(valid_idx).tolist())
+            train_idx = np.array([i for i in range(N) if i not in exclude], dtype=np.int64)
+        train_idx = np.asarray(train_idx, dtype=np.int64)
+        if valid_idx is None:
+            perm = rng.permutation(train_idx)
+            n_valid = max(1, len(perm) // 10)
+            valid_idx, train_idx = np.sort(perm[:n_valid]), np.sort(perm[n_valid:])
+        valid_idx = np.asarray(valid_idx, dtype=np.int64)
+        if len(train_idx) < 2 or len(valid_idx) < 1:
+            raise ModelError(f"need at least 2 training and 1 validation samples, got {len(train_idx)} and {len(valid_idx)}")
+        for name, idx in (("train_idx", train_idx), ("valid_idx", valid_idx)):
+            if idx.min() < 0 or idx.max() >= N:
+                raise ModelError(f"{name} holds indices outside [0, {N})")
+        Ut = U[train_idx].reshape(len(train_idx), -1).astype(np.float64)
+        Uv = U[valid_idx].reshape(len(valid_idx), -1).astype(np.float64)
+        if not (np.isfinite(Ut).all() and np.isfinite(Uv).all()):
+            raise ModelError("training/validation displacements contain NaN or inf; select samples with status 'done'")
+        c = self.config
+        curve = None
+        if c.n_components:
+            n_w = min(c.n_components, min(Ut.shape))
+        else:
+            n_w, curve = choose_n_components(Ut, c.pca_max_error, min(c.pca_folds, len(Ut)), seed=c.seed)
+        t_pca = time.perf_counter()
+        basis = fit_pca(Ut, n_w)
+        cols = marker_columns(mk)
+        Xt, Xv = Ut[:, cols], Uv[:, cols]
+        Yt, Yv = basis.transform(Ut), basis.transform(Uv)
+        members, summaries = [], []
+        for k in range(c.ensemble):
+            opts = TrainOptions(
+                hidden=tuple(c.hidden), epochs=c.epochs, batch_size=c.batch_size, learning_rate=c.learning_rate,
+                patience=c.patience, schedule=c.schedule, output_scaling=c.output_scaling,
+                weight_decay=c.weight_decay, noise_sigma=c.noise_sigma, marker_dropout=c.marker_dropout,
+                seed=c.seed + 1000 * k,
+            )
+            w, s = train_mlp(Xt, Yt, Xv, Yv, opts)
+            members.append(w)
+            summaries.append(s)
+        self._set_state(mesh=mesh, markers=mk, fixed=fx, basis=basis, members=members, curve=curve)
+        self.summaries_ = summaries
+        self.training_ = {
+            "n_train": int(len(train_idx)),
+            "n_valid": int(len(valid_idx)),
+            "n_components": int(n_w),
+            "pca_seconds": t_pca - t0,
+            "mlp_seconds": float(sum(s.seconds for s in summaries)),
+            "seconds": time.perf_counter() - t0,
+            "members": [s.as_dict() for s in summaries],
+        }
+        return self
+
+    def _set_state(self, *, mesh, markers, fixed, basis: PCABasis, members: list[MLPWeights], curve: PCACurve | None):
+        if members[0].weights[-1].shape[0] != basis.n_components or members[0].n_markers != len(markers):
+            raise ModelError("network and PCA basis/markers do not fit together; the model folder is inconsistent")
+        self.mesh_ = mesh
+        self.markers_ = np.asarray(markers, dtype=np.int64)
+        self.fixed_ = np.asarray(fixed, dtype=np.int64)
+        self.pca_ = basis
+        self.pca_curve_ = curve
+        self.members_ = list(members)
+        self.ridge_: RidgeBaseline = fit_ridge(basis, self.markers_, self.config.ridge_ratio)
+        self.compiled_ = CompiledSurrogate(self.members_, basis)
+        cols = marker_columns(self.markers_)
+        # ridge as one affine map of the marker displacements: u = d @ R + r0
+        self._ridge_map = (self.ridge_.matrix.T @ basis.components, basis.mean - self.ridge_.marker_mean @ self.ridge_.matrix.T @ basis.components)
+        self._marker_cols = cols
+
+    @classmethod
+    def from_dataset(cls, dataset, config: Config | SurrogateConfig | None = None, **overrides) -> "DeformationModel":
+        """Fit on a data-set store: the 'train' split (status done) trains, 'valid' validates.
+
+        Args:
+            dataset: a :class:`tissuecast.dataset.Dataset` (from ``open_dataset``).
+            config: settings; default: the data set's own config.
+        """
+        from .data import dataset_arrays
+
+        if config is None:
+            config = getattr(dataset, "config", None)
+        arrays = dataset_arrays(dataset)
+        model = cls(config, **overrides)
+        path = getattr(dataset, "path", None)
+        model.dataset_path = str(Path(path).resolve()) if path is not None else None
+        return model.fit(
+            arrays.displacements, arrays.markers, mesh=arrays.mesh, fixed=arrays.fixed,
+            train_idx=arrays.train_idx, valid_idx=arrays.valid_idx,
+        )
+
+    # ------------------------------------------------------------------ prediction
+    def _marker_batch(self, marker_displacements, missing=None) -> tuple[np.ndarray, np.ndarray | None, bool]:
+        """Validated input -> ((B, 3 n_d) float64, missing (B, n_d) bool or None, single sample?)."""
+        self._fitted()
+        return marker_batch(marker_displacements, self.markers_.size, missing, self.members_[0].masked)
+
+    def predict(self, marker_displacements, *, missing=None) -> np.ndarray:
+        """Displacement field from marker displacements.
+
+        Args:
+            marker_displacements: (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) float, mm.
+            missing: optional untracked markers: indices into the marker list, or a bool mask
+                (n_d,) / (B, n_d). Needs a model trained with ``marker_dropout > 0``.
+
+        Returns:
+            (n, 3) float64 mm for one sample, (B, n, 3) for a batch (ensemble mean).
+        """
+        d, miss, single = self._marker_batch(marker_displacements, missing)
+        u = self.compiled_.fields(d, miss).reshape(d.shape[0], -1, 3)
+        return u[0] if single else u
+
+    def predict_from_positions(self, positions, *, missing=None) -> np.ndarray:
+        """Displacement field from tracked marker positions (n_d, 3) or (B, n_d, 3) mm.
+
+        The positions must be in the model's (mesh) coordinate frame; the reference
+        (undeformed) marker positions are subtracted.
+        """
+        self._fitted()
+        p = np.asarray(positions, dtype=np.float64)
+        if p.shape[-2:] != (self.n_markers, 3) or p.ndim not in (2, 3):
+            raise ModelError(f"marker positions must be ({self.n_markers}, 3) or (B, {self.n_markers}, 3) mm, got {p.shape}")
+        return self.predict(p - self.reference_marker_positions, missing=missing)
+
+    def predict_ridge(self, marker_displacements) -> np.ndarray:
+        """The paper's ridge-regression baseline: (n, 3) or (B, n, 3) mm, same inputs as :meth:`predict`."""
+        d, _, single = self._marker_batch(marker_displacements)
+        R, r0 = self._ridge_map
+        u = (d @ R + r0).reshape(d.shape[0], -1, 3)
+        return u[0] if single else u
+
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
+        """Ensemble mean field and per-vertex uncertainty.
+
+        Returns:
+            ``(u, sigma)``: u (n, 3) or (B, n, 3) mm as :meth:`predict`; sigma (n,) or (B, n) mm,
+            the root-mean-square over members of each vertex's deviation from the ensemble
+            mean (``sqrt(sum_xyz var)``, ddof 0). Needs ``ensemble >= 2``.
+        """
+        d, miss, single = self._marker_batch(marker_displacements, missing)
+        if self.ensemble_size < 2:
+            raise ModelError("uncertainty needs an ensemble; fit with surrogate.ensemble >= 2")
+        W = self.compiled_.member_weights(d, miss)  # (M, B, n_w)
+        C = self.pca_.components
+        u = (W.mean(axis=0) @ C + self.pca_.mean).reshape(d.shape[0], -1, 3)
+        dev = ((W - W.mean(axis=0)) @ C).reshape(W.shape[0], d.shape[0], -1, 3)
+        sigma = np.sqrt((dev**2).sum(axis=3).mean(axis=0))
+        return (u[0], sigma[0]) if single else (u, sigma)
+
+    def marker_displacements(self, fields) -> np.ndarray:
+        """Marker displacements (B, n_d, 3) mm picked from full fields (B, n, 3) mm."""
+        self._fitted()
+        f = np.asarray(fields, dtype=np.float64)
+        return f[..., self.markers_, :]
+
+    # ------------------------------------------------------------------ persistence
+    def save(self, folder, *, onnx: bool = False) -> None:
+        """Write the model folder (see :mod:`tissuecast.surrogate.storage`)."""
+        from .storage import save_model
+
+        save_model(self, folder, onnx=onnx)
+
+    @classmethod
+    def load(cls, folder) -> "DeformationModel":
+        """Read a model folder written by :meth:`save` (no pickle; checks format and schema)."""
+        from .storage import load_model
+
+        return load_model(cls, folder)
+
+    def export_onnx(self, path) -> None:
+        """Write an ONNX graph: input ``markers`` (B, n_d, 3) float32 mm [+ ``present`` (B, n_d)],
+        output ``displacement`` (B, n, 3) float32 mm (PCA reconstruction included)."""
+        from .storage import export_onnx
+
+        export_onnx(self, path)
+
+    def torch_module(self):
+        """The equivalent torch module (float32), see :func:`tissuecast.surrogate.mlp.torch_network`."""
+        from .network import torch_network
+
+        self._fitted()
+        return torch_network(self.members_, self.pca_.components, self.pca_.mean)
+
+    def __repr__(self) -> str:
+        if not self.is_fitted:
+            return f"DeformationModel(hidden={list(self.config.hidden)}, unfitted)"
+        return (f"DeformationModel(n_vertices={self.n_vertices}, markers={self.markers_.tolist()}, "
+                f"n_components={self.n_components}, hidden={list(self.members_[0].hidden)}, ensemble={self.ensemble_size})")

@@ -1,0 +1,70 @@
+"""Torch modules of the surrogate: the MLP stack and the whole marker -> field network."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..errors import require
+
+if TYPE_CHECKING:
+    from .mlp import MLPWeights
+
+__all__ = ["build_network", "torch_network"]
+
+
+def build_network(torch, n_in: int, hidden, n_out: int):
+    """Linear-ReLU stack n_in -> hidden... -> n_out (torch.nn.Sequential)."""
+    layers, width = [], n_in
+    for h in hidden:
+        layers += [torch.nn.Linear(width, int(h)), torch.nn.ReLU()]
+        width = int(h)
+    layers.append(torch.nn.Linear(width, n_out))
+    return torch.nn.Sequential(*layers)
+
+
+def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.ndarray):
+    """A torch module mapping marker displacements to the full displacement field.
+
+    Input ``markers`` (B, n_d, 3) float32 mm (and, for masked models, ``present`` (B, n_d)
+    float32 1/0); output (B, n, 3) float32 mm: the ensemble average of the members' PCA
+    weights, reconstructed with ``components`` (n_w, 3 n) and ``mean`` (3 n,).
+    """
+    torch = require("torch", "learn", "the torch/ONNX surrogate network")
+    first = members[0]
+
+    class FieldNetwork(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            f32 = torch.float32
+            self.masked = first.masked
+            self.nets = torch.nn.ModuleList()
+            for m in members:
+                net = build_network(torch, m.weights[0].shape[1], m.hidden, m.weights[-1].shape[0])
+                with torch.no_grad():
+                    for lin, W, b in zip([x for x in net if isinstance(x, torch.nn.Linear)], m.weights, m.biases):
+                        lin.weight.copy_(torch.as_tensor(W))
+                        lin.bias.copy_(torch.as_tensor(b))
+                self.nets.append(net)
+            self.register_buffer("x_mean", torch.as_tensor(first.x_mean, dtype=f32))
+            self.register_buffer("x_std", torch.as_tensor(first.x_std, dtype=f32))
+            self.register_buffer("y_mean", torch.as_tensor(first.y_mean, dtype=f32))
+            self.register_buffer("y_std", torch.as_tensor(first.y_std, dtype=f32))
+            self.register_buffer("components", torch.as_tensor(components, dtype=f32))
+            self.register_buffer("mean", torch.as_tensor(mean, dtype=f32))
+
+        def forward(self, markers, present=None):
+            x = (markers.reshape(markers.shape[0], -1) - self.x_mean) / self.x_std
+            if self.masked:
+                if present is None:
+                    present = torch.ones(markers.shape[0], markers.shape[1], dtype=markers.dtype)
+                x = torch.cat([x * present.repeat_interleave(3, dim=1), present], dim=1)
+            z = self.nets[0](x)
+            for net in self.nets[1:]:
+                z = z + net(x)
+            w = (z / len(self.nets)) * self.y_std + self.y_mean
+            u = w @ self.components + self.mean
+            return u.reshape(markers.shape[0], -1, 3)
+
+    return FieldNetwork().eval()

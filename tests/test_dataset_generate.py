@@ -1,0 +1,134 @@
+"""Data-set generation with the real FEM solver: exact resume after kill -9, Dask equality,
+failure recording, magnitude calibration (small P1 box mesh, so the file runs in seconds)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import zarr
+
+from tissuecast.config import with_overrides
+from tissuecast.dataset import open_dataset, simulate
+
+from test_dataset_helpers import small_config, store_arrays, store_attrs, write_config
+
+N_LBO, N_TEST2 = 120, 9
+
+
+def _config(folder):
+    # calibrated to a 4 mm target on 2 pilot samples; 120 + 9 samples of ~0.05 s each
+    return small_config(folder, n_samples=N_LBO, n_test2=N_TEST2, alpha=0.0, calibration_samples=2)
+
+
+def _same_store(a, b):
+    arrays_a, arrays_b = store_arrays(a), store_arrays(b)
+    assert arrays_a.keys() == arrays_b.keys()
+    differ = [k for k in arrays_a if arrays_a[k] != arrays_b[k]]
+    assert not differ, f"arrays differ: {differ}"
+    attrs_a, attrs_b = store_attrs(a), store_attrs(b)
+    assert attrs_a == attrs_b
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """An uninterrupted run with local worker processes."""
+    folder = tmp_path_factory.mktemp("gen")
+    cfg = with_overrides(_config(folder), forces={"target_max_displacement": 4.0})
+    path = folder / "reference.zarr"
+    summary = simulate(cfg, path, progress=False)
+    return cfg, path, summary
+
+
+def test_reference_run_is_complete_and_calibrated(reference):
+    cfg, path, summary = reference
+    ds = open_dataset(path)
+    assert summary["totals"]["pending"] == 0
+    assert summary["totals"]["done"] >= 0.9 * ds.n_samples
+    cal = ds.calibration
+    assert cal["converged"] and cal["pilots"] == [0, 1]
+    # the rule: the 0.9 quantile of the pilots' max displacement is the target (2 %)
+    pilot_max = ds.max_displacement[:2].astype(np.float64)
+    assert np.quantile(pilot_max, 0.9) == pytest.approx(4.0, rel=0.021)
+    assert np.all(ds.alpha[ds.status > 0] == cal["alpha"])
+    # the whole data set lands near the target: median within a factor 2, most samples converge
+    st = summary["max_displacement"]
+    assert 2.0 < st["median"] < 8.0
+    assert ds.increments[ds.status == 1].min() >= 1
+
+
+def _done_count(path) -> int:
+    try:
+        return int((zarr.open_array(str(path / "samples" / "status"), mode="r")[:] > 0).sum())
+    except Exception:  # not created yet
+        return 0
+
+
+def test_resume_after_kill_is_bit_identical(reference, tmp_path):
+    cfg, ref_path, _ = reference
+    cfg_file = write_config(cfg, tmp_path / "cfg.toml")
+    store = tmp_path / "killed.zarr"
+    cmd = [sys.executable, "-m", "tissuecast.cli.main", "-q", "simulate", str(cfg_file), "--store", str(store),
+           "--no-progress"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while _done_count(store) < 10 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, f"the run ended before it could be killed: {proc.stderr.read().decode()[-500:]}"
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    done = _done_count(store)
+    assert 10 <= done < N_LBO + N_TEST2, done
+    assert open_dataset(store).summary()["totals"]["pending"] > 0  # readable after kill -9
+    # workers notice that their parent is gone and exit by themselves
+    rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    _same_store(store, ref_path)
+
+
+def test_dask_cluster_gives_the_same_store(reference, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    cfg, ref_path, _ = reference
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        summary = simulate(cfg, tmp_path / "dask.zarr", progress=False, scheduler=cluster.scheduler_address)
+    assert "Dask cluster" in summary["run"]["executor"]
+    _same_store(tmp_path / "dask.zarr", ref_path)
+
+
+def test_non_converging_samples_are_recorded_failed(tmp_path):
+    # one increment of at most 3 Newton iterations at the full load: most samples cannot converge
+    cfg = small_config(tmp_path, n_samples=8, n_test2=0, alpha=0.08)
+    cfg = with_overrides(cfg, solver={"max_increments": 1, "max_iterations": 3, "retries": 1})
+    summary = simulate(cfg, tmp_path / "fail.zarr", progress=False, workers=1)
+    ds = open_dataset(tmp_path / "fail.zarr")
+    failed = ds.select(status="failed", split=None)
+    assert len(failed) > 0 and summary["totals"]["failed"] == len(failed)
+    assert set(ds.failures) == set(failed.tolist())
+    reason = ds.failures[int(failed[0])]
+    assert "attempt 1: ConvergenceError" in reason and "attempt 2: ConvergenceError" in reason
+    assert (ds.attempts[failed] == 2).all() and (ds.load_fraction[failed] < 1).all()
+    assert np.isnan(ds.displacements[failed]).all()
+    for split in ("train", "valid", "test1"):
+        assert not set(ds.select(split)) & set(failed)
+
+
+def test_simulate_cli_creates_continues_and_refuses(tmp_path, capsys):
+    from tissuecast.cli.main import main
+
+    cfg_file = write_config(small_config(tmp_path, alpha=0.04, workers=1), tmp_path / "c.toml")
+    store = tmp_path / "cli.zarr"
+    args = ["simulate", str(cfg_file), "--store", str(store), "--samples", "5", "--test2", "2", "--no-progress"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "this run: 7 samples" in out and "train" in out
+    ds = open_dataset(store)
+    assert len(ds) == 7 and ds.config.dataset.n_samples == 5 and (ds.status == 1).all()
+    assert main(args) == 0
+    assert "this run: 0 samples" in capsys.readouterr().out
+    assert main([a if a != "5" else "6" for a in args]) == 2  # --samples 6 on a 5-sample store
+    assert "dataset.n_samples: 5 in the store, 6 now" in capsys.readouterr().err

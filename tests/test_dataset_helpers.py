@@ -1,0 +1,82 @@
+"""Shared helpers of the data-set tests (no tests here): a small mesh, configs, a fake solver.
+
+Worker processes are spawned, so anything they import (the fake solver factory) must live in
+an importable module: pytest puts this folder on ``sys.path``, which spawned children inherit.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from tissuecast.config import config_to_toml, with_overrides, Config
+from tissuecast.errors import ConvergenceError
+
+from mesh_factories import box_grid
+
+
+def small_mesh_file(folder: Path) -> Path:
+    """A 3 x 4 x 6-cell box (7.5 x 10 x 15 mm cells... 140 vertices, 432 tets) written as .vtu."""
+    from tissuecast.mesh import write_mesh
+
+    path = Path(folder) / "box.vtu"
+    if not path.exists():
+        write_mesh(path, box_grid(3, 4, 6, size=(7.0, 8.0, 10.0)))
+    return path
+
+
+def small_config(folder: Path, **dataset) -> Config:
+    """A config for fast tests: the small box, P1 elements, few samples, fixed alpha."""
+    ds = {"n_samples": 10, "n_test2": 3, "workers": 2, "alpha": 2.0, "calibration_samples": 2, "seed": 7}
+    ds.update(dataset)
+    return with_overrides(
+        Config(),
+        mesh={"path": str(small_mesh_file(folder))},
+        markers={"start": 0, "min_distance": 5.0, "count": 4, "fixed_count": 3},
+        solver={"order": 1},
+        forces={"n_basis": 8, "betas": [0.0, 0.5, 1.0], "target_max_displacement": 10.0},
+        dataset=ds,
+    )
+
+
+def write_config(cfg: Config, path: Path) -> Path:
+    path = Path(path)
+    path.write_text(config_to_toml(cfg, comments=False))
+    return path
+
+
+def fake_solver_factory(mesh, fixed, cfg):
+    """A deterministic stand-in solver: u = forces * 0.5 mm/N, failing when |f| > 1 N anywhere."""
+
+    def make(solver_cfg):
+        def solve(forces, initial_guess=None):
+            if np.abs(forces).max() > 1.0:
+                raise ConvergenceError("increment too small at load fraction 0.4", 0.4)
+            return SimpleNamespace(displacement=np.asarray(forces) * 0.5, increments=1, iterations=2, factorizations=2)
+
+        return SimpleNamespace(solve=solve)
+
+    return make
+
+
+def store_arrays(path) -> dict:
+    """Every array of a store as raw bytes, by path (``samples/seconds`` excluded: wall-clock)."""
+    import zarr
+
+    root = zarr.open_group(str(path), mode="r")
+    out = {}
+    for name, arr in root.members(max_depth=None):
+        if isinstance(arr, zarr.Array) and name != "samples/seconds":
+            a = arr[...]
+            out[name] = (a.dtype.str, a.shape, a.tobytes())
+    return out
+
+
+def store_attrs(path) -> dict:
+    import zarr
+
+    attrs = dict(zarr.open_group(str(path), mode="r").attrs)
+    attrs.pop("created")
+    return attrs

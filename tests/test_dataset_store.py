@@ -1,0 +1,192 @@
+"""Data-set store: schema, refusal to mix configs or meshes, full disk, CLI (fake solver: fast)."""
+
+from __future__ import annotations
+
+import errno
+import json
+
+import numpy as np
+import pytest
+import zarr
+
+from tissuecast.cli.main import main
+from tissuecast.config import with_overrides
+from tissuecast.dataset import open_dataset, simulate
+from tissuecast.errors import DatasetError
+
+from test_dataset_helpers import small_config, store_arrays, store_attrs
+
+FAKE = "test_dataset_helpers:fake_solver_factory"
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory):
+    """A small complete store made with the fake solver (alpha 2 N: one LBO sample or more fails)."""
+    folder = tmp_path_factory.mktemp("store")
+    cfg = small_config(folder, alpha=20.0)
+    path = folder / "ds.zarr"
+    summary = simulate(cfg, path, progress=False, solver_factory=FAKE)
+    return cfg, path, summary
+
+
+def test_store_contents_and_reader(made):
+    cfg, path, summary = made
+    ds = open_dataset(path)
+    assert len(ds) == 13 and ds.n_vertices == 140
+    assert set(ds.split) == {"train", "valid", "test1", "test2"}
+    assert list(ds.split[10:]) == ["test2"] * 3
+    np.testing.assert_array_equal(ds.beta[10:], [0.0, 0.5, 1.0])
+    assert np.isnan(ds.beta[:10]).all()
+    assert ds.config.dataset.n_samples == 10 and ds.config.solver.order == 1
+    assert ds.mesh.fingerprint() == ds.attrs["mesh_fingerprint"]
+    assert ds.markers.shape == (4,) and ds.fixed.shape == (3,)
+    assert ds.basis.vectors.shape[1] == 8
+    done = ds.select(status="done")
+    failed = ds.select(status="failed")
+    assert len(done) + len(failed) == 13 and len(done) > 0
+    # the fake solver: u = 0.5 f exactly (float32 storage of both)
+    np.testing.assert_allclose(ds.displacements[done], 0.5 * ds.forces[done], rtol=1e-6)
+    assert np.isnan(ds.displacements[failed]).all()
+    np.testing.assert_allclose(ds.max_displacement[done], np.linalg.norm(ds.displacements[done], axis=2).max(1), rtol=1e-6)
+    assert summary["totals"]["done"] == len(done)
+
+
+def test_failures_recorded_and_excluded(made):
+    cfg, path, summary = made
+    ds = open_dataset(path)
+    failed = ds.select(status="failed")
+    assert len(failed) > 0, "alpha = 20 N must exceed the fake solver's 1 N limit on some samples"
+    assert set(ds.failures) == set(failed.tolist())
+    assert all("ConvergenceError" in r and "attempt 2" in r for r in ds.failures.values())  # 1 retry configured
+    assert (ds.attempts[failed] == 2).all() and (ds.load_fraction[failed] == 0.4).all()
+    train = ds.select("train")
+    assert not set(train) & set(failed)
+    assert summary["totals"]["failed"] == len(failed)
+    # the failed samples' forces are kept for inspection
+    assert np.abs(ds.forces[failed]).max() > 1.0
+
+
+def test_forces_are_the_documented_fields(made):
+    """Per-sample determinism: the stored forces follow from the stored seed alone."""
+    from tissuecast.forces import blend, lbo_field, lsc_field, random_lbo_weights
+
+    cfg, path, _ = made
+    ds = open_dataset(path)
+    for i in (0, 4, 10, 11):
+        rng = np.random.default_rng(ds.seed[i])
+        w = random_lbo_weights(rng, 8)
+        np.testing.assert_array_equal(w, ds.weights[i])
+        f = lbo_field(ds.basis, w, ds.alpha[i], ds.n_vertices)
+        if i >= 10:
+            fc = cfg.forces
+            f = blend(f, lsc_field(ds.mesh, rng, fc.lsc_points, fc.lsc_iterations, fc.lsc_rate, exclude=ds.fixed,
+                                   reference=f), ds.beta[i])
+        np.testing.assert_array_equal(f.astype(np.float32), ds.forces[i])
+
+
+def test_readable_with_zarr_alone(made):
+    _, path, _ = made
+    root = zarr.open_group(str(path), mode="r")
+    assert root.attrs["schema"] == "tissuecast.dataset" and root.attrs["schema_version"] == 1
+    s = root["samples"]
+    train = np.flatnonzero((s["status"][:] == 1) & (s["split"][:] == 0))
+    u = s["displacements"].get_orthogonal_selection((train, slice(None), slice(None)))
+    assert u.shape == (len(train), 140, 3) and u.dtype == np.float32
+    assert s["displacements"].chunks == (1, 140, 3)
+
+
+def test_rerun_is_a_no_op_and_other_config_is_refused(made, tmp_path):
+    cfg, path, _ = made
+    before = store_arrays(path)
+    again = simulate(cfg, path, progress=False, solver_factory=FAKE, workers=1)  # runtime keys may change
+    assert again["run"]["solved"] == 0
+    assert store_arrays(path) == before
+    for override in ({"dataset": {"n_samples": 11}}, {"material": {"youngs_modulus": 0.03}},
+                     {"forces": {"n_basis": 9}}, {"dataset": {"seed": 8}}):
+        other = with_overrides(cfg, **override)
+        with pytest.raises(DatasetError, match="different configuration.*never overwritten"):
+            simulate(other, path, progress=False, solver_factory=FAKE)
+    assert store_arrays(path) == before
+
+
+def test_other_mesh_is_refused(made, tmp_path):
+    cfg, path, _ = made
+    from tissuecast.mesh import write_mesh
+    from mesh_factories import box_grid
+
+    other = tmp_path / "other.vtu"
+    write_mesh(other, box_grid(3, 4, 6, size=(7.0, 8.0, 10.5)))
+    with pytest.raises(DatasetError, match="different mesh"):
+        simulate(with_overrides(cfg, mesh={"path": str(other)}), path, progress=False, solver_factory=FAKE)
+
+
+def test_unknown_or_newer_schema_refused(made, tmp_path):
+    _, path, _ = made
+    import shutil
+
+    copy = tmp_path / "copy.zarr"
+    shutil.copytree(path, copy)
+    root = zarr.open_group(str(copy), mode="r+")
+    root.attrs["schema_version"] = 99
+    with pytest.raises(DatasetError, match="schema version 99.*upgrade"):
+        open_dataset(copy)
+    root.attrs["schema"] = "something.else"
+    with pytest.raises(DatasetError, match="not a tissuecast data set"):
+        open_dataset(copy)
+    with pytest.raises(DatasetError, match="not a tissuecast data set"):
+        simulate(small_config(tmp_path), copy, progress=False, solver_factory=FAKE)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match="not a Zarr v3 store"):
+        open_dataset(tmp_path / "empty")
+    with pytest.raises(DatasetError, match="does not exist"):
+        open_dataset(tmp_path / "missing.zarr")
+
+
+def test_full_disk_leaves_resumable_store(made, tmp_path, monkeypatch):
+    cfg, path, _ = made
+    import zarr.storage._local as local
+
+    real_put, calls = local._put, {"data": 0}
+
+    def full_disk_put(p, value, exclusive=False):
+        calls["data"] += "displacements" in str(p) or "forces" in str(p)
+        if calls["data"] > 9:  # the skeleton and a few samples fit, then the disk is full
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_put(p, value, exclusive)
+
+    target = tmp_path / "full.zarr"
+    monkeypatch.setattr(local, "_put", full_disk_put)
+    with pytest.raises(OSError) as info:
+        simulate(cfg, target, progress=False, solver_factory=FAKE, workers=1)
+    assert info.value.errno == errno.ENOSPC
+    monkeypatch.setattr(local, "_put", real_put)
+    partial = open_dataset(target)  # readable
+    assert partial.summary()["totals"]["pending"] > 0
+    assert list(target.rglob("*.partial")) == []  # no temporary files left behind
+    simulate(cfg, target, progress=False, solver_factory=FAKE)
+    assert store_arrays(target) == store_arrays(path)
+    assert store_attrs(target) | {"versions": None} == store_attrs(path) | {"versions": None}
+
+
+def test_cli_info_and_export(made, tmp_path, capsys):
+    _, path, _ = made
+    assert main(["dataset", "info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "train" in out and "per-sample max displacement" in out and "failed samples" in out
+    assert main(["dataset", "info", str(path), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["n_samples"] == 13 and sum(c["done"] for c in info["counts"].values()) == info["totals"]["done"]
+    ds = open_dataset(path)
+    i = int(ds.select(status="done")[0])
+    out_file = tmp_path / "s.vtu"
+    assert main(["dataset", "export", str(path), "--sample", str(i), str(out_file)]) == 0
+    import meshio
+
+    m = meshio.read(out_file)
+    np.testing.assert_allclose(m.point_data["displacement"], ds.displacements[i], rtol=1e-6)
+    np.testing.assert_allclose(m.points, ds.mesh.points + ds.displacements[i], atol=1e-5)
+    j = int(ds.select(status="failed")[0])
+    assert main(["dataset", "export", str(path), "--sample", str(j), str(out_file)]) == 2
+    assert "failed" in capsys.readouterr().err
+    assert main(["dataset", "export", str(path), "--sample", "99", str(out_file)]) == 2
+    assert "0..12" in capsys.readouterr().err

@@ -1,0 +1,205 @@
+"""DeformationModel on a small synthetic nonlinear data set: accuracy, persistence, ONNX, errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+from tissuecast.errors import ModelError
+from tissuecast.evaluate import summarize
+from tissuecast.surrogate import DeformationModel
+
+from _surrogate_synthetic import MARKERS, box_mesh, nonlinear_fields
+
+
+@pytest.fixture(scope="module")
+def data():
+    mesh = box_mesh()
+    theta = np.random.default_rng(0).uniform(-1, 1, (500, 3))
+    return mesh, nonlinear_fields(mesh, theta).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def model(data):
+    mesh, U = data
+    m = DeformationModel(epochs=300, patience=0, batch_size=64, learning_rate=3e-3, ensemble=2, pca_max_error=0.05)
+    return m.fit(U, MARKERS, mesh=mesh, fixed=[0, 1, 2], train_idx=np.arange(350), valid_idx=np.arange(350, 400))
+
+
+@pytest.fixture(scope="module")
+def masked_model(data):
+    mesh, U = data
+    m = DeformationModel(epochs=150, patience=0, batch_size=64, learning_rate=3e-3, marker_dropout=0.3, n_components=8)
+    return m.fit(U, MARKERS, mesh=mesh, train_idx=np.arange(350), valid_idx=np.arange(350, 400))
+
+
+def test_mlp_beats_ridge_and_pca_rule_is_used(model, data):
+    _, U = data
+    test = U[400:]
+    d = model.marker_displacements(test)
+    mlp = summarize(model.predict(d), test)
+    ridge = summarize(model.predict_ridge(d), test)
+    assert model.n_components == 8  # the data live in 8 PCA directions; the rule at 0.05 mm finds them
+    assert model.pca_curve_.chosen == 8
+    assert mlp.offset_max < 0.6 * ridge.offset_max, (mlp, ridge)
+    assert mlp.offset_mean < 0.6 * ridge.offset_mean
+
+
+def test_input_layouts_agree(model, data):
+    _, U = data
+    d = model.marker_displacements(U[400:404])  # (4, 5, 3)
+    batch = model.predict(d)
+    assert batch.shape == (4, 270, 3)
+    np.testing.assert_allclose(model.predict(d.reshape(4, 15)), batch)
+    np.testing.assert_allclose(model.predict(d[1]), batch[1])
+    np.testing.assert_allclose(model.predict(d[1].ravel()), batch[1])
+    # tracked positions = reference positions + displacements
+    pos = model.reference_marker_positions + d[2]
+    np.testing.assert_allclose(model.predict_from_positions(pos), batch[2], atol=1e-9)
+    np.testing.assert_allclose(model.reference_marker_positions, model.mesh.points[MARKERS])
+
+
+def test_fast_path_matches_plain_forward(model, data):
+    _, U = data
+    d = model.marker_displacements(U[400:410]).reshape(10, -1)
+    w = np.mean([m.predict_weights(d) for m in model.members_], axis=0)
+    ref = model.pca_.inverse_transform(w).reshape(10, -1, 3)
+    np.testing.assert_allclose(model.predict(d), ref, atol=1e-9)
+
+
+def test_torch_module_matches_numpy(model, data):
+    torch = pytest.importorskip("torch")
+    _, U = data
+    d = model.marker_displacements(U[400:410])
+    with torch.no_grad():
+        out = model.torch_module()(torch.as_tensor(d, dtype=torch.float32)).numpy()
+    np.testing.assert_allclose(out, model.predict(d), atol=2e-5 * np.abs(U).max())
+
+
+def test_uncertainty_from_ensemble(model, data):
+    _, U = data
+    d = model.marker_displacements(U[400:420])
+    u, sigma = model.predict_with_uncertainty(d)
+    np.testing.assert_allclose(u, model.predict(d), atol=1e-9)
+    assert sigma.shape == (20, 270) and (sigma >= 0).all() and sigma.max() > 0
+    # two members: sigma is half the distance between their fields
+    W = model.compiled_.member_weights(d.reshape(20, -1))
+    f = (W @ model.pca_.components).reshape(2, 20, 270, 3)
+    np.testing.assert_allclose(sigma, 0.5 * np.linalg.norm(f[0] - f[1], axis=-1), atol=1e-9)
+    u1, s1 = model.predict_with_uncertainty(d[0])
+    assert u1.shape == (270, 3) and s1.shape == (270,)
+
+
+def test_save_load_round_trip(model, data, tmp_path):
+    _, U = data
+    model.save(tmp_path / "m")
+    loaded = DeformationModel.load(tmp_path / "m")
+    d = model.marker_displacements(U[400:])
+    np.testing.assert_array_equal(loaded.predict(d), model.predict(d))
+    np.testing.assert_array_equal(loaded.predict_ridge(d), model.predict_ridge(d))
+    np.testing.assert_array_equal(loaded.markers, MARKERS)
+    np.testing.assert_array_equal(loaded.fixed, [0, 1, 2])
+    np.testing.assert_array_equal(loaded.mesh.tets, model.mesh.tets)
+    assert loaded.ensemble_size == 2 and loaded.pca_curve_.chosen == 8
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert meta["units"]["length"] == "mm" and meta["markers"] == MARKERS.tolist()
+    assert not list(tmp_path.glob("m/*.pkl")) and not list(tmp_path.glob("m/*.pt"))
+
+
+def test_onnx_equals_numpy(model, data, tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    _, U = data
+    model.export_onnx(tmp_path / "m.onnx")
+    sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
+    d = model.marker_displacements(U[400:450]).astype(np.float32)
+    (out,) = sess.run(["displacement"], {"markers": d})
+    assert out.shape == (50, 270, 3)
+    np.testing.assert_allclose(out, model.predict(d), atol=1e-5 * max(1.0, np.abs(U).max()))
+    (one,) = sess.run(None, {"markers": d[:1]})
+    np.testing.assert_allclose(one[0], model.predict(d[0]), atol=1e-5 * max(1.0, np.abs(U).max()))
+
+
+def test_missing_markers(masked_model, model, data, tmp_path):
+    _, U = data
+    test = U[400:]
+    d = masked_model.marker_displacements(test)
+    full = summarize(masked_model.predict(d), test).offset_mean
+    d_nan = d.copy()
+    d_nan[:, 2] = np.nan
+    missing = masked_model.predict(d_nan, missing=[2])
+    assert summarize(missing, test).offset_mean < 3 * full + 0.5
+    # the value given for a missing marker is ignored
+    np.testing.assert_allclose(masked_model.predict(d * 1.0, missing=[2]), missing)
+    mask = np.zeros(5, bool)
+    mask[2] = True
+    np.testing.assert_allclose(masked_model.predict(d_nan, missing=mask), missing)
+    # the masked fast path equals the plain forward pass with present channels
+    present = np.ones((len(d), 5))
+    present[:, 2] = 0
+    w = masked_model.members_[0].predict_weights(np.nan_to_num(d_nan).reshape(len(d), -1), present)
+    np.testing.assert_allclose(missing, masked_model.pca_.inverse_transform(w).reshape(missing.shape), atol=1e-9)
+    with pytest.raises(ModelError, match="marker_dropout"):
+        model.predict(d[0], missing=[1])
+    masked_model.save(tmp_path / "mm")
+    np.testing.assert_array_equal(DeformationModel.load(tmp_path / "mm").predict(d_nan, missing=[2]), missing)
+
+
+def test_onnx_with_missing_markers(masked_model, data, tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    _, U = data
+    masked_model.export_onnx(tmp_path / "mm.onnx")
+    sess = ort.InferenceSession(str(tmp_path / "mm.onnx"), providers=["CPUExecutionProvider"])
+    d = masked_model.marker_displacements(U[400:410]).astype(np.float32)
+    present = np.ones((10, 5), np.float32)
+    present[:, 4] = 0
+    (out,) = sess.run(None, {"markers": d, "present": present})
+    np.testing.assert_allclose(out, masked_model.predict(d, missing=[4]), atol=1e-5 * np.abs(U).max())
+
+
+def test_training_is_deterministic(data):
+    mesh, U = data
+    kw = dict(epochs=20, patience=0, n_components=8, batch_size=64, noise_sigma=0.1, marker_dropout=0.2)
+    a = DeformationModel(**kw).fit(U[:200], MARKERS, mesh=mesh, valid_idx=np.arange(150, 200))
+    b = DeformationModel(**kw).fit(U[:200], MARKERS, mesh=mesh, valid_idx=np.arange(150, 200))
+    for wa, wb in zip(a.members_[0].weights, b.members_[0].weights):
+        np.testing.assert_array_equal(wa, wb)
+    c = DeformationModel(seed=1, **kw).fit(U[:200], MARKERS, mesh=mesh, valid_idx=np.arange(150, 200))
+    assert not np.array_equal(a.members_[0].weights[0], c.members_[0].weights[0])
+
+
+def test_bad_inputs_raise_model_error(model, data, tmp_path):
+    mesh, U = data
+    with pytest.raises(ModelError, match="not fitted"):
+        DeformationModel().predict(np.zeros(15))
+    with pytest.raises(ModelError, match="shape"):
+        model.predict(np.zeros(14))
+    with pytest.raises(ModelError, match="shape"):
+        model.predict(np.zeros((2, 4, 3)))
+    with pytest.raises(ModelError, match="NaN"):
+        model.predict(np.full(15, np.nan))
+    with pytest.raises(ModelError, match="ensemble"):
+        DeformationModel(epochs=2, n_components=4).fit(U[:40], MARKERS, mesh=mesh).predict_with_uncertainty(np.zeros(15))
+    with pytest.raises(ModelError, match="vertices"):
+        DeformationModel().fit(U[:, :100], MARKERS, mesh=mesh)
+    with pytest.raises(ModelError, match="markers"):
+        DeformationModel().fit(U, [1, 1, 2], mesh=mesh)
+    bad = U[:60].copy()
+    bad[3, 0, 0] = np.nan
+    with pytest.raises(ModelError, match="NaN"):
+        DeformationModel(epochs=2).fit(bad, MARKERS, mesh=mesh)
+    with pytest.raises(ValueError, match="hidden"):
+        DeformationModel(hidden=())
+    # incompatible or missing model folders
+    with pytest.raises(ModelError, match="not a model folder"):
+        DeformationModel.load(tmp_path)
+    model.save(tmp_path / "m")
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    meta["schema"] = 99
+    (tmp_path / "m" / "model.json").write_text(json.dumps(meta))
+    with pytest.raises(ModelError, match="schema 99"):
+        DeformationModel.load(tmp_path / "m")
+    meta["schema"] = 1
+    (tmp_path / "m" / "model.json").write_text(json.dumps(meta))
+    (tmp_path / "m" / "pca.npz").unlink()
+    with pytest.raises(ModelError, match="missing"):
+        DeformationModel.load(tmp_path / "m")
