@@ -31,7 +31,6 @@ import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import numpy as np  # noqa: E402
 
 PAPER_SAMPLES = 2000 + 200
 TARGET_MINUTES = 15.0

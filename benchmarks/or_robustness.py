@@ -9,8 +9,9 @@ set written by ``tissuecast simulate`` and prints three tables (all lengths mm):
    trained with the same sigma (matched augmentation) and one trained with sigma = 0.5.
    Target: <= 1.0 mm at sigma = 0.5 mm. Each entry averages ``--draws`` noise draws.
 2. Missing marker: test-1 mean Offset_max with each single marker untracked, for one masked
-   network (trained with marker dropout) and for a set of n_d sub-models (network i trained
-   without marker i); the first row has every marker tracked.
+   network (trained with marker dropout) and for a
+   :class:`~tissuecast.surrogate.robust.SubModelSet` (network i trained without marker i);
+   the first row has every marker tracked.
 3. Uncertainty: a ``--ensemble``-member ensemble (different seeds) gives per-vertex sigma;
    Spearman rank correlation of sigma with the true vertex error on test-1 and test-2,
    pooled over all vertices of all samples, and per sample (max sigma vs Offset_max).
@@ -32,6 +33,7 @@ from scipy.stats import spearmanr
 
 from tissuecast.evaluate.metrics import offset_max
 from tissuecast.surrogate import DeformationModel
+from tissuecast.surrogate.robust import SubModelSet
 
 SIGMAS = (0.0, 0.25, 0.5, 1.0)
 
@@ -125,15 +127,17 @@ class Study:
         masked = self.fit(f"marker_dropout={dropout}", marker_dropout=dropout)
         U, d = self.markers_of("test1")
         markers = np.asarray(self.d["markers"])
+        subset = None
+        if submodels:
+            subs = [self.fit(f"without marker {i}", markers=np.delete(markers, i)) for i in range(len(markers))]
+            subset = SubModelSet(self.plain, subs)
         rows = [{"missing": "none", "masked": float(offset_max(masked.predict(d), U).mean()),
                  "submodel": float(offset_max(self.plain.predict(d), U).mean())}]
         for i in range(len(markers)):
             row = {"missing": f"marker {i} (vertex {markers[i]})",
                    "masked": float(offset_max(masked.predict(d, missing=[i]), U).mean())}
-            if submodels:
-                keep = np.delete(markers, i)
-                sub = self.fit(f"without marker {i}", markers=keep)
-                row["submodel"] = float(offset_max(sub.predict(U[:, keep, :]), U).mean())
+            if subset is not None:
+                row["submodel"] = float(offset_max(subset.predict(d, missing=[i]), U).mean())
             rows.append(row)
         return rows
 

@@ -122,6 +122,51 @@ def test_write_inp_rejects_bad_input(tmp_path):
     assert not out.exists()
 
 
+def test_deck_numbers_fit_ccx_field_width(tmp_path):
+    """ccx rejects numbers longer than 20 characters (e.g. ``-2.786959021906976E-05``)."""
+    mesh = box_mesh(1, 1, 1).scaled(1.0 / 3.0)
+    forces = np.zeros((mesh.n_points, 3))
+    forces[7] = [-2.786959021906976e-05, 1.0 / 3.0, -1e-300 / 3.0]
+    text = cx.write_inp(tmp_path / "w.inp", mesh, MAT, [0, 1, 2], forces).read_text()
+    numbers = [x.strip() for ln in text.splitlines() if not ln.startswith("*") and "," in ln for x in ln.split(",")]
+    assert max(len(x) for x in numbers) <= 20
+    back = [float(x) for x in _section(text, "*CLOAD")[0].split(",")[2:]]
+    np.testing.assert_allclose(back, forces[7, :1], rtol=1e-13)
+
+
+def test_export_inp_cli_writes_the_configured_deck(tmp_path, capsys):
+    meshio = pytest.importorskip("meshio")
+    from tissuecast.cli.main import main
+    from tissuecast.markers import markers_and_fixed
+    from tissuecast.mesh import phantom
+
+    mesh = phantom()
+    markers, fixed = markers_and_fixed(mesh)
+    forces = np.zeros((mesh.n_points, 3))
+    forces[mesh.surface_vertices[:2]] = [[0.01, 0.0, -0.02], [0.0, 0.03, 0.0]]
+    np.save(tmp_path / "f.npy", forces)
+    assert main(["export-inp", "phantom", str(tmp_path / "a.inp"), "--forces", str(tmp_path / "f.npy")]) == 0
+    assert "nodes" in capsys.readouterr().out
+    back = meshio.read(tmp_path / "a.inp", file_format="abaqus")
+    assert back.points.shape == mesh.points10.shape and back.cells[0].type == "tetra10"
+    np.testing.assert_array_equal(back.point_sets["MARKERS"], markers)
+    np.testing.assert_array_equal(np.sort(back.point_sets["NFIXED"]), np.sort(fixed))
+    assert len(_section((tmp_path / "a.inp").read_text(), "*CLOAD")) == 3
+    # CSV with a header, linear elements
+    np.savetxt(tmp_path / "f.csv", forces, delimiter=",", header="fx,fy,fz", comments="")
+    assert main(["export-inp", "phantom", str(tmp_path / "b.inp"), "--forces", str(tmp_path / "f.csv"), "--order", "1"]) == 0
+    text = (tmp_path / "b.inp").read_text()
+    assert "TYPE=C3D4," in text and len(_section(text, "*CLOAD")) == 3
+    # the example field (no --forces): smooth surface loads, none on fixed vertices
+    assert main(["export-inp", "phantom", str(tmp_path / "c.inp")]) == 0
+    assert len(_section((tmp_path / "c.inp").read_text(), "*CLOAD")) > 3 * len(mesh.surface_vertices) - 10
+    # bad input: one line on stderr, exit status 2
+    np.save(tmp_path / "short.npy", forces[:-1])
+    assert main(["export-inp", "phantom", str(tmp_path / "d.inp"), "--forces", str(tmp_path / "short.npy")]) == 2
+    assert main(["export-inp", "phantom", str(tmp_path / "d.inp"), "--forces", str(tmp_path / "f.xlsx")]) == 2
+    assert "error:" in capsys.readouterr().err and not (tmp_path / "d.inp").exists()
+
+
 # ----------------------------------------------------------------------------- parsers
 FRD = """\
     1C

@@ -305,3 +305,25 @@ def test_cli_serve_rejects_bad_options(tmp_path, capsys):
         busy.listen()
         assert main(["serve", str(tmp_path / "model"), "--port", str(busy.getsockname()[1])]) == 2
     assert "cannot listen on 127.0.0.1:" in capsys.readouterr().err
+
+
+def test_failing_model_gets_error_reply_and_server_survives(model):
+    class Flaky:
+        """Delegates to the real model but fails on every other call."""
+
+        mesh = model.mesh
+        reference_marker_positions = model.reference_marker_positions
+        calls = 0
+
+        def predict_from_positions(self, positions):
+            Flaky.calls += 1
+            if Flaky.calls % 2:
+                raise RuntimeError("simulated failure")
+            return model.predict_from_positions(positions)
+
+    with IGTLServer(Flaky(), "127.0.0.1", 0) as srv, IGTLClient(*srv.address) as client:
+        positions = motion(model, 14)
+        client.send_positions(positions)
+        assert client.receive().text == "model evaluation failed: RuntimeError: simulated failure"
+        assert_surface(client.predict(positions), model, positions)
+        assert srv.stats["internal_errors"] == 0

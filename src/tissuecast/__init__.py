@@ -28,6 +28,8 @@ _LAZY = {
     "SolveResult": "tissuecast.fem",
     "solve": "tissuecast.fem",
     "lbo_basis": "tissuecast.forces",
+    "simulate": "tissuecast.dataset",
+    "open_dataset": "tissuecast.dataset",
     "DeformationModel": "tissuecast.surrogate",
 }
 

@@ -91,13 +91,13 @@ class SolverConfig:
     max_iterations: int = _f(16, lo=1, doc="Newton iterations per increment before cutting back")
     retries: int = _f(1, lo=0, hi=10, doc="retries of a failed sample with more cautious increments")
     strategy: str = _f(
-        "quasi-newton",
-        choices=("quasi-newton", "newton"),
-        doc="quasi-newton: reuse a factorised tangent with BFGS updates, refactorise when convergence slows; newton: refactorise every iteration",
+        "newton",
+        choices=("newton", "quasi-newton"),
+        doc="newton: refactorise the tangent every iteration (fastest on the phantom: large swings); quasi-newton: reuse the last factorisation, co-rotated, while the residual falls fast",
     )
     rotation_aware: bool = _f(True, doc="line search moves the rigid-rotation part of each step along an arc (large swings about the fixed vertices)")
-    refactor_ratio: float = _f(0.3, lo=0.0, hi=1.0, doc="quasi-newton: refactorise when an iteration reduced the residual norm by less than this factor")
-    max_quasi_newton: int = _f(12, lo=1, doc="quasi-newton: refactorise after this many BFGS updates")
+    refactor_ratio: float = _f(0.5, lo=0.0, hi=1.0, doc="quasi-newton: refactorise when an iteration reduced the residual norm by less than this factor")
+    max_quasi_newton: int = _f(2, lo=1, doc="quasi-newton: refactorise after this many iterations with a reused factorisation")
     grow_iterations: int = _f(6, lo=1, doc="grow the next increment 1.5x when one converged within this many iterations")
 
 

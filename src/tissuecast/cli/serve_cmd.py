@@ -21,7 +21,8 @@ log = logging.getLogger(__name__)
 def register(sub) -> None:
     p = sub.add_parser("serve", help="OpenIGTLink server streaming predicted deformations",
                        description=__doc__.split("\n\n", 1)[1].strip())
-    p.add_argument("model", help="model folder written by `tissuecast train` / DeformationModel.save")
+    p.add_argument("model", help="model folder written by `tissuecast train` / DeformationModel.save "
+                                 "(or a SubModelSet folder: serves with one marker untracked)")
     p.add_argument("--config", help="TOML config; its [serve] section gives the defaults")
     p.add_argument("--host", help="bind address (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, help="TCP port (default 18944; 0 = any free port)")
@@ -37,7 +38,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from ..serve import IGTLServer, SurfacePredictor
-    from ..surrogate import DeformationModel
+    from ..surrogate.robust import load_model_folder
 
     cfg = load_config(args.config)
     overrides = {k: getattr(args, k) for k in ("host", "full_field", "transform_mode", "max_marker_offset")
@@ -46,7 +47,7 @@ def run(args) -> int:
         overrides["port"] = args.port
     serve = with_overrides(cfg, serve=overrides).serve
     port = 0 if args.port == 0 else serve.port
-    model = DeformationModel.load(args.model)
+    model = load_model_folder(args.model)  # a DeformationModel or a SubModelSet folder
     predictor = SurfacePredictor(model, max_marker_offset=serve.max_marker_offset,
                                  use_uncertainty=not args.no_uncertainty)
     try:

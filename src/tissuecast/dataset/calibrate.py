@@ -8,11 +8,13 @@ Rule (documented in the store's ``calibration`` attribute):
   interpolation) of the pilots' per-sample maximum vertex displacement, solved with the full
   nonlinear FEM at force magnitude alpha. A pilot that fails to converge counts as +inf.
 * alpha solves ``q(alpha) = forces.target_max_displacement`` to a relative tolerance of
-  ``RTOL`` (2 %): start from a dimensional estimate for a tenth of the target (a nearly linear,
-  cheap solve); then iterate ``alpha <- alpha (target / q)^(1 / s)`` where the response
-  exponent ``s`` comes from the last two rounds (secant in log-log, clipped to [0.5, 2];
-  s = 1 at first). Rounds that overshoot (q above the target or failures) bound alpha from
-  above; the next alpha never leaves the bracket (geometric bisection when it would).
+  ``RTOL`` (2 %): start from a deliberately small dimensional estimate (about 1 % of the
+  target: a nearly linear, cheap solve); extrapolate linearly to half the target (the
+  response of a body held by a few pinned vertices softens strongly); then iterate
+  ``alpha <- alpha (target / q)^(1 / s)`` where the response exponent ``s`` comes from the
+  last two rounds (secant in log-log, clipped to [0.5, 3]). Rounds that overshoot (q above
+  the target, or failures) bound alpha from above; the next alpha never leaves the bracket
+  (geometric bisection when it would); after a failure with no lower bound, alpha / 4.
 * If ``dataset.alpha`` > 0 in the config, it is used as is and no pilots are solved.
 
 So a softer material, a larger tumour or a different mesh resolution all land near the
@@ -29,25 +31,31 @@ import numpy as np
 
 from ..errors import DatasetError
 
-__all__ = ["calibrate_alpha", "initial_alpha", "RTOL", "MAX_ROUNDS"]
+__all__ = ["calibrate_alpha", "initial_alpha", "RTOL", "MAX_ROUNDS", "FIRST_AIM"]
 
 log = logging.getLogger(__name__)
 
 RTOL = 0.02
 MAX_ROUNDS = 10
+FIRST_AIM = 0.5  # a first extrapolation from far below the target aims at this share of it
 
 
-def initial_alpha(basis, mesh, youngs_modulus: float, target: float) -> float:
-    """Dimensional first guess of alpha (N) giving about a tenth of ``target`` mm.
+def initial_alpha(basis, mesh, fixed, youngs_modulus: float, target: float, fraction: float = 0.01) -> float:
+    """Dimensional first guess of alpha (N) for about ``fraction`` x ``target`` mm.
 
-    A surface traction t (MPa) on a body of size L (mm) and modulus E moves it by about
-    t L / E. The RMS nodal force of a unit-alpha field over the mean vertex area gives t.
+    The pinned vertices carry the net force of the field: a net force F on pins in
+    elements of size h moves the body by about F / (E h). The RMS net force of a random
+    unit-alpha field is ``||B^T 1||`` (W ~ U(-1, 1)), h the mean length of the edges at the
+    fixed vertices. The guess is deliberately small (a nearly linear, cheap first round).
     """
-    from ..forces import field_scale
-
-    traction = field_scale(basis) / float(np.mean(basis.mass))  # MPa per unit alpha
-    size = float(np.max(mesh.extent))
-    return 0.1 * target * youngs_modulus / (traction * size)
+    net = float(np.linalg.norm(np.asarray(basis.vectors).sum(axis=0)))  # N per unit alpha
+    edges = mesh.edges
+    at_pins = np.isin(edges, np.asarray(fixed)).any(axis=1)
+    lengths = np.linalg.norm(mesh.points[edges[at_pins, 0]] - mesh.points[edges[at_pins, 1]], axis=1)
+    h = float(lengths.mean()) if len(lengths) else float(np.max(mesh.extent)) / 10.0
+    if net <= 0.0:  # a basis without net force (should not happen: the constant mode has one)
+        net = float(np.linalg.norm(basis.vectors)) / np.sqrt(basis.vectors.shape[0])
+    return fraction * target * youngs_modulus * h / net
 
 
 def _quantile(values: np.ndarray, q: float) -> float:
@@ -110,12 +118,12 @@ def calibrate_alpha(
             ref = lo if lo is not None else prev_hi if prev_hi is not None and math.isfinite(q) and math.isfinite(prev_hi[1]) else None
         if not math.isfinite(q):
             new = math.sqrt(lo[0] * alpha) if lo is not None else alpha / 4.0
-        else:
-            s = 1.0
-            if ref is not None and ref[0] != alpha and math.isfinite(ref[1]) and ref[1] > 0:
-                s = math.log(q / ref[1]) / math.log(alpha / ref[0])
-                s = min(max(s, 0.5), 2.0)
+        elif ref is not None and ref[0] != alpha and math.isfinite(ref[1]) and 0 < ref[1] != q:
+            s = min(max(math.log(q / ref[1]) / math.log(alpha / ref[0]), 0.5), 3.0)
             new = alpha * (target / q) ** (1.0 / s)
+        else:  # one point only: extrapolate linearly, from far below only to half the target
+            aim = FIRST_AIM * target if q < FIRST_AIM * target else target
+            new = alpha * aim / q
         if lo is not None and hi is not None and not lo[0] < new < hi[0]:
             new = math.sqrt(lo[0] * hi[0])
         alpha = new

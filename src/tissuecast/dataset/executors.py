@@ -82,9 +82,10 @@ class LocalExecutor:
                     os.environ[k] = v
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, exc, tb) -> None:
         if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
+            # on an error, do not wait for the solves in flight (their workers stop after them)
+            self._pool.shutdown(wait=exc_type is None, cancel_futures=True)
             self._pool = None
 
     def imap_unordered(self, tasks: Iterable[Task]) -> Iterator[SampleResult]:

@@ -172,7 +172,7 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
     basis = LBOBasis(recipe.basis_vertices, recipe.basis_vectors, recipe.basis_eigenvalues, recipe.basis_mass)
     mesh = TetMesh(recipe.points, recipe.tets)
     target = cfg.forces.target_max_displacement
-    alpha0 = initial_alpha(basis, mesh, cfg.material.youngs_modulus, target)
+    alpha0 = initial_alpha(basis, mesh, recipe.fixed, cfg.material.youngs_modulus, target)
     record = calibrate_alpha(pilot_max, alpha0, target, quantile=ds.calibration_quantile)
     record["pilots"] = pilots
     reusable = [r for r in last if r.alpha == record["alpha"]]

@@ -18,6 +18,7 @@ import hashlib
 import importlib
 import logging
 import time
+import tomllib
 from dataclasses import dataclass
 from typing import Callable
 
@@ -146,8 +147,6 @@ class SampleContext:
     def __init__(self, recipe: Recipe):
         from ..forces import LBOBasis, surface_graph_laplacian
         from ..mesh import TetMesh
-
-        import tomllib
 
         self.config = config_from_dict(tomllib.loads(recipe.config_toml))
         self.mesh = TetMesh(recipe.points, recipe.tets)

@@ -166,6 +166,9 @@ class SurfacePredictor:
             else:
                 mean, uncertainty = self.model.predict_from_positions(positions, **extra), None
             displacement = np.asarray(mean, dtype=np.float64).reshape(self.n_points, 3)
+        except ModelError as exc:  # the model refused this input (e.g. too many untracked markers)
+            log.warning("model refused the marker input: %s", exc)
+            raise PredictionError(f"model refused the input: {exc}") from exc
         except Exception as exc:  # a model failure must not take the server down
             log.exception("model evaluation failed")
             raise PredictionError(f"model evaluation failed: {type(exc).__name__}: {exc}") from exc

@@ -4,14 +4,15 @@ Requests a client may send (any header version 1 or 2; device names are case-sen
 
 - ``POINT`` (any device name, e.g. ``"Markers"``): the n_d marker positions in mm, in the
   model's marker order and coordinate frame. Reply: ``POLYDATA "TissueSurface"``. With a
-  model trained with marker dropout, a point whose coordinates are all NaN marks an
-  untracked marker; otherwise NaN/inf is an error.
+  model that supports missing markers (trained with marker dropout, or a
+  :class:`~tissuecast.surrogate.robust.SubModelSet`), a point whose coordinates are all
+  NaN marks an untracked marker; otherwise NaN/inf is an error.
 - ``TRANSFORM "Marker0"`` ... ``"Marker{n_d-1}"`` (0-based, model marker order; PLUS-style
   names such as ``"Marker0ToTracker"`` are accepted too): one marker each; the translation
-  column is the marker position (mm, model frame), the rotation is ignored. In ``"frame"`` mode (default) a
-  prediction is made once every marker has been updated since the previous prediction
-  (one mesh per tracker frame); in ``"each"`` mode every update after the first complete
-  set triggers a prediction with the latest position of every marker.
+  column is the marker position (mm, model frame), the rotation is ignored. In ``"frame"``
+  mode (default) a prediction is made once every marker has been updated since the
+  previous prediction (one mesh per tracker frame); in ``"each"`` mode every update after
+  the first complete set triggers a prediction with the latest position of every marker.
 - ``GET_POLYDATA "TissueField"``: the full vertex field of this client's latest prediction
   (``POLYDATA "TissueField"``); ``GET_POLYDATA "TissueSurface"`` (or no device name)
   repeats the latest surface.

@@ -3,9 +3,8 @@
 Benchmarks, examples and tests of the OpenIGTLink server need *a* trained
 :class:`~tissuecast.surrogate.DeformationModel` of the right size without running the FEM
 data-set generator. The fields made here are smooth (polynomial of degree <= 2 in the
-normalised coordinates, with a mild quadratic coupling of the weights so the map from
-marker to field is nonlinear), vanish nowhere in particular, and are scaled to a chosen
-peak displacement. They are *not* a substitute for simulated tissue mechanics: use them to
+normalised coordinates), driven by a few latent parameters through a mildly nonlinear map,
+and scaled to a chosen peak displacement. They are *not* a substitute for simulated tissue mechanics: use them to
 test plumbing and speed, never to judge accuracy.
 """
 
@@ -23,26 +22,37 @@ def _modes(points: np.ndarray) -> np.ndarray:
     return np.stack([np.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, y * z, z * x], axis=1)
 
 
-def synthetic_fields(mesh, n_samples: int, *, peak: float = 10.0, seed: int = 0) -> np.ndarray:
-    """Random smooth displacement fields on a mesh.
+def synthetic_fields(mesh, n_samples: int, *, peak: float = 10.0, latent: int = 6, seed: int = 0) -> np.ndarray:
+    """Random smooth displacement fields on a mesh, driven by a few latent parameters.
+
+    Each field is ``modes @ W(z)``: 10 polynomial modes (degree <= 2) per axis, weighted by
+    ``W(z) = A z + (z B z)`` for latent ``z ~ U(-1, 1)^latent``, with fixed mixing matrices A
+    and B (the same for every seed). A few latent parameters, like the few force patterns of
+    a real tissue sample, keep the field recoverable from a handful of markers; B makes the
+    marker-to-field map nonlinear.
 
     Args:
         mesh: a :class:`~tissuecast.mesh.TetMesh` with n vertices (mm).
         n_samples: N, number of fields.
-        peak: mm, the largest vertex displacement over the whole set.
-        seed: random seed.
+        peak: mm, about the largest vertex displacement (fixed scale, independent of N).
+        latent: number of latent parameters.
+        seed: random seed of the latent draws.
 
     Returns:
         (N, n, 3) float64 displacements, mm.
     """
-    rng = np.random.default_rng(seed)
     modes = _modes(np.asarray(mesh.points, dtype=np.float64))  # (n, 10)
-    weights = rng.uniform(-1.0, 1.0, size=(n_samples, modes.shape[1], 3))
-    # nonlinear coupling: the quadratic modes also respond to the square of the linear ones
-    weights[:, 4:7, :] += 0.5 * weights[:, 1:4, :] ** 2
-    fields = np.einsum("nm,smc->snc", modes, weights)
-    fields *= peak / np.abs(fields).max()
-    return fields
+    structure = np.random.default_rng(20201119)
+    A = structure.normal(size=(latent, modes.shape[1] * 3))
+    B = structure.normal(size=(latent, latent, modes.shape[1] * 3)) * (0.5 / latent)
+
+    def fields_of(z: np.ndarray) -> np.ndarray:
+        w = z @ A + np.einsum("si,sj,ijk->sk", z, z, B)
+        return np.einsum("nm,smc->snc", modes, w.reshape(len(z), modes.shape[1], 3))
+
+    scale = peak / np.abs(fields_of(structure.uniform(-1.0, 1.0, size=(256, latent)))).max()
+    z = np.random.default_rng(seed).uniform(-1.0, 1.0, size=(n_samples, latent))
+    return fields_of(z) * scale
 
 
 def synthetic_model(mesh, *, n_samples: int = 200, n_markers: int = 5, peak: float = 10.0, seed: int = 0, **config):

@@ -92,7 +92,11 @@ def _num(x) -> str:
     """Text of a float that ccx reads: the shortest exact form, or 14 digits if that is longer
     than 20 characters (ccx rejects longer numbers such as ``-2.786959021906976E-05``)."""
     text = repr(float(x))
-    return text if len(text) <= 20 else f"{float(x):.13e}"
+    digits = 13
+    while len(text) > 20:
+        text = f"{float(x):.{digits}e}"
+        digits -= 1
+    return text
 
 
 def _id_lines(ids: np.ndarray, per_line: int = 8) -> list[str]:

@@ -1,0 +1,125 @@
+"""Trial paths and the energy line search of the Newton solver.
+
+A Newton correction ``d`` of a body that swings about a few pinned points is mostly an
+infinitesimal rigid rotation; moving along the straight line ``u + s d`` stretches the body
+(the tangent of a circle leaves the circle), so the line search would only accept short
+steps. :func:`step_path` therefore fits the best rigid motion ``omega x (x - c) + t`` to
+``d`` (least squares over the free nodes, ``c`` the centroid of the constrained nodes) and
+replaces its rotational part by the finite rotation ``R(s omega)``: the trial states lie on
+an arc. The path's derivative at ``s = 0`` is still ``d``, so the Armijo test is unchanged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .assembly import Assembler
+
+__all__ = ["step_path", "line_search", "rotation_matrix"]
+
+
+def rotation_matrix(omega: np.ndarray) -> np.ndarray:
+    """Rotation by the vector ``omega`` (axis * angle in radians), Rodrigues' formula; (3, 3)."""
+    ang = float(np.linalg.norm(omega))
+    if ang <= 1e-12:
+        return np.eye(3)
+    k = omega / ang
+    kk = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(ang) * kk + (1.0 - np.cos(ang)) * (kk @ kk)
+
+
+def step_path(nodes, u, d, free, cnodes, cdofs, rotation_aware: bool):
+    """Trial states ``u(s)`` along a correction.
+
+    Args:
+        nodes: (n_nodes, 3) float, mm, reference node coordinates.
+        u: (3 n_nodes,) float, mm, current displacements.
+        d: (n_free,) float, mm, the correction on the free dofs.
+        free: (n_free,) int, free dof ids; whole nodes are either free or constrained.
+        cnodes: (c,) int, constrained node ids; cdofs: (3 c,) their dof ids.
+        rotation_aware: arc (True) or straight line (False).
+
+    Returns:
+        A function ``s -> (3 n_nodes,) displacements`` whose attribute ``rotation`` is the
+        (3, 3) rigid rotation applied by the last call (identity for a straight path).
+    """
+    if not rotation_aware or len(cnodes) == 0:
+
+        def straight(s):
+            t = u.copy()
+            t[free] += s * d
+            return t
+
+        straight.rotation = np.eye(3)
+        return straight
+    dd = np.zeros_like(u)
+    dd[free] = d
+    dd = dd.reshape(-1, 3)
+    x = nodes + u.reshape(-1, 3)
+    y = x - x[cnodes].mean(axis=0)
+    mask = np.ones(len(x), bool)
+    mask[cnodes] = False
+    ym = y[mask]
+    a = np.zeros((len(ym), 3, 6))  # omega x y + t = -[y]x omega + t
+    a[:, 0, 1], a[:, 0, 2] = ym[:, 2], -ym[:, 1]
+    a[:, 1, 0], a[:, 1, 2] = -ym[:, 2], ym[:, 0]
+    a[:, 2, 0], a[:, 2, 1] = ym[:, 1], -ym[:, 0]
+    a[:, :, 3:] = np.eye(3)
+    omega = np.linalg.lstsq(a.reshape(-1, 6), dd[mask].ravel(), rcond=None)[0][:3]
+    linear_rotation = np.cross(omega, y)
+
+    def curved(s):
+        rot = rotation_matrix(s * omega)
+        curved.rotation = rot
+        # the straight step with its rigid-rotation part replaced by the finite rotation
+        xn = x + s * dd + y @ (rot - np.eye(3)).T - s * linear_rotation
+        t = (xn - nodes).ravel()
+        t[cdofs] = u[cdofs]
+        return t
+
+    curved.rotation = np.eye(3)
+    return curved
+
+
+def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray, fext: np.ndarray):
+    """Backtracking search on the potential energy along ``path``.
+
+    Accepts the first trial (``s = 1, ...``) with every ``J > 0`` that satisfies Armijo's
+    condition ``Pi(s) <= Pi(0) + 1e-4 s g0`` (``g0 = d . r0 < 0``), or, when the expected
+    decrease is below round-off of the energy, that lowers the residual norm. Backtracks by
+    quadratic interpolation (clamped to [0.1, 0.5] s), by 4x after an inverted element.
+
+    Args:
+        assembler: evaluates energy and internal forces.
+        path: from :func:`step_path`.
+        free: (n_free,) int, free dof ids.
+        d: (n_free,) float, the correction (mm).
+        pi0: potential energy at s = 0 (mJ); r0: (n_free,) residual there (N).
+        fext: (3 n_nodes,) float, external forces (N).
+
+    Returns:
+        ``(s, u (3 n_nodes,), Pi, f_int (3 n_nodes,), r (n_free,), rotation (3, 3))`` or None
+        if ``d`` is not a descent direction or no acceptable step was found in 10 trials.
+    """
+    g0 = float(d @ r0)
+    if not g0 < 0.0:
+        return None
+    r0_norm = np.linalg.norm(r0)
+    s = 1.0
+    for _ in range(10):
+        trial = path(s)
+        energy, fint, jmin = assembler.energy_and_force(trial.reshape(-1, 3))
+        if jmin > 0.0:
+            work = float(fext @ trial)
+            pi = energy - work
+            r = fint[free] - fext[free]
+            if pi <= pi0 + 1e-4 * s * g0:
+                return s, trial, pi, fint, r, path.rotation
+            if -g0 * s <= 1e-8 * (abs(energy) + abs(work)) and np.linalg.norm(r) < r0_norm:
+                return s, trial, pi, fint, r, path.rotation
+            denom = 2.0 * (pi - pi0 - g0 * s)
+            s_new = -g0 * s * s / denom if denom > 0 else 0.5 * s
+            s = min(0.5 * s, max(0.1 * s, s_new))
+        else:
+            s *= 0.25
+    return None

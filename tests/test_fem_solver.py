@@ -1,0 +1,186 @@
+"""Newton solver behaviour: input validation, reactions, failure reporting, strategies, warm starts."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from mesh_factories import box_grid
+
+from tissuecast.config import SolverConfig
+from tissuecast.errors import ConvergenceError, SolverSetupError
+from tissuecast.fem import NeoHookean, Problem, SolveResult, Solver, solve
+
+MAT = NeoHookean(0.021, 0.45)
+
+
+@pytest.fixture(scope="module")
+def beam():
+    """4 x 1 x 1 mm beam (8 x 2 x 2 cells) clamped at x = 0 with a tip load in -z (N)."""
+    mesh = box_grid(8, 2, 2, size=(0.5, 0.5, 0.5))
+    x = mesh.points[:, 0]
+    fixed = np.flatnonzero(x < 1e-9)
+    f = np.zeros((mesh.n_points, 3))
+    tip = np.flatnonzero(x > 4 - 1e-9)
+    f[tip, 2] = -2e-4 / len(tip)
+    f[tip, 1] = 5e-5 / len(tip)
+    return mesh, fixed, f
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_reactions_balance_applied_forces(beam, order):
+    mesh, fixed, f = beam
+    cfg = dataclasses.replace(SolverConfig(), force_tolerance=1e-9, displacement_tolerance=1e-9)
+    res = solve(Problem(mesh, MAT, fixed, order=order), f, cfg)
+    assert isinstance(res, SolveResult) and res.converged and res.load_fraction == 1.0
+    assert res.max_displacement > 0.5  # large deflection: the test is nonlinear
+    total = res.nodal_reaction.sum(axis=0) + f.sum(axis=0)
+    assert np.abs(total).max() <= 1e-8 * np.abs(f.sum(axis=0)).max()
+    free = np.setdiff1d(np.arange(mesh.n_points), fixed)
+    assert np.all(res.reaction[free] == 0.0)
+    # moment balance about the origin in the deformed configuration
+    x = res.nodal_displacement + Problem(mesh, MAT, fixed, order=order).nodes
+    fnodal = np.zeros_like(x)
+    fnodal[: mesh.n_points] = f
+    moment = np.cross(x, res.nodal_reaction + fnodal).sum(axis=0)
+    assert np.abs(moment).max() <= 1e-7 * np.abs(np.cross(x[: mesh.n_points], f).sum(axis=0)).max()
+
+
+def test_result_record_is_complete(beam):
+    mesh, fixed, f = beam
+    res = Solver(Problem(mesh, MAT, fixed, order=2)).solve(f)
+    assert res.displacement.shape == (mesh.n_points, 3)
+    assert res.nodal_displacement.shape == (mesh.n_points + len(mesh.edges), 3)
+    np.testing.assert_array_equal(res.nodal_displacement[: mesh.n_points], res.displacement)
+    assert res.iterations >= res.increments >= 1 and res.factorizations >= 1 and res.solves >= res.iterations
+    assert len(res.residual_history) == res.iterations and res.seconds > 0
+    assert np.all(res.displacement[fixed] == 0.0)
+
+
+def test_strategies_agree_and_quasi_newton_saves_factorisations(beam):
+    mesh, fixed, f = beam
+    prob = Problem(mesh, MAT, fixed, order=2)
+    tight = dataclasses.replace(SolverConfig(), force_tolerance=1e-6, displacement_tolerance=1e-6)
+    newton = Solver(prob, dataclasses.replace(tight, strategy="newton")).solve(f)
+    quasi = Solver(prob, dataclasses.replace(tight, strategy="quasi-newton")).solve(f)
+    straight = Solver(prob, dataclasses.replace(tight, rotation_aware=False)).solve(f)
+    scale = newton.max_displacement
+    assert np.abs(quasi.displacement - newton.displacement).max() <= 1e-5 * scale
+    assert np.abs(straight.displacement - newton.displacement).max() <= 1e-5 * scale
+    assert quasi.factorizations < newton.factorizations
+
+
+def test_default_tolerances_are_accurate(beam):
+    mesh, fixed, f = beam
+    prob = Problem(mesh, MAT, fixed, order=2)
+    ref = Solver(prob, dataclasses.replace(SolverConfig(), force_tolerance=1e-9, displacement_tolerance=1e-9)).solve(f)
+    res = Solver(prob).solve(f)
+    assert np.abs(res.displacement - ref.displacement).max() <= 2e-3 * ref.max_displacement
+
+
+def test_initial_guess_at_the_solution_needs_no_work(beam):
+    mesh, fixed, f = beam
+    solver = Solver(Problem(mesh, MAT, fixed, order=2))
+    first = solver.solve(f)
+    again = solver.solve(f, initial_guess=first.nodal_displacement)
+    assert again.iterations <= 1 and again.factorizations <= 1
+    assert np.abs(again.displacement - first.displacement).max() <= 1e-2 * first.max_displacement
+    near = solver.solve(f, initial_guess=first.displacement * 1.02)  # vertices only
+    assert near.iterations < first.iterations
+    assert np.abs(near.displacement - first.displacement).max() <= 1e-2 * first.max_displacement
+
+
+def test_impossible_load_raises_convergence_error_with_load_fraction(beam):
+    mesh, fixed, f = beam
+    cfg = dataclasses.replace(SolverConfig(), min_increment=1e-3, max_increments=40)
+    with pytest.raises(ConvergenceError) as info:
+        solve(Problem(mesh, MAT, fixed, order=1), f * 1e4, cfg)
+    err = info.value
+    assert 0.0 <= err.load_fraction < 1.0
+    assert err.result is not None and not err.result.converged
+    assert err.result.load_fraction == err.load_fraction
+    assert "load fraction" in str(err)
+
+
+def test_prescribed_displacement_and_reaction(beam):
+    mesh, fixed, _ = beam
+    tip = np.flatnonzero(mesh.points[:, 0] > 4 - 1e-9)
+    pres = {int(v): (0.0, 0.0, -0.8) for v in tip}
+    res = solve(Problem(mesh, MAT, fixed, order=2, prescribed=pres), np.zeros((mesh.n_points, 3)))
+    np.testing.assert_allclose(res.displacement[tip], np.tile([0.0, 0.0, -0.8], (len(tip), 1)), atol=1e-14)
+    # the supports pull the tip down and the clamp holds it: reactions balance
+    assert res.reaction[tip, 2].sum() < 0
+    assert abs(res.nodal_reaction[:, 2].sum()) <= 1e-3 * abs(res.reaction[tip, 2].sum())
+
+
+# ------------------------------------------------------------------ validation errors
+def test_setup_errors(beam):
+    mesh, fixed, f = beam
+    line = np.flatnonzero((np.abs(mesh.points[:, 1]) < 1e-9) & (np.abs(mesh.points[:, 2]) < 1e-9))[:4]
+    with pytest.raises(SolverSetupError, match="one line"):
+        Problem(mesh, MAT, line)
+    with pytest.raises(SolverSetupError, match="at least 3"):
+        Problem(mesh, MAT, fixed[:2])
+    with pytest.raises(SolverSetupError, match="outside"):
+        Problem(mesh, MAT, [0, 1, mesh.n_points])
+    with pytest.raises(SolverSetupError, match="repeats"):
+        Problem(mesh, MAT, [0, 0, 1, 2])
+    with pytest.raises(SolverSetupError, match="order"):
+        Problem(mesh, MAT, fixed, order=3)
+    with pytest.raises(SolverSetupError, match="both fixed and prescribed"):
+        Problem(mesh, MAT, fixed, prescribed={int(fixed[0]): (0, 0, 1)})
+    with pytest.raises(SolverSetupError, match="shape"):
+        Problem(mesh, MAT, fixed, prescribed=([5, 6], np.zeros((3, 3))))
+    with pytest.raises(SolverSetupError, match="linear solver"):
+        Solver(Problem(mesh, MAT, fixed, order=1), dataclasses.replace(SolverConfig(), linear_solver="nope"))
+
+
+def test_force_errors(beam):
+    mesh, fixed, f = beam
+    solver = Solver(Problem(mesh, MAT, fixed, order=1))
+    with pytest.raises(SolverSetupError, match="shape"):
+        solver.solve(f[:-1])
+    with pytest.raises(SolverSetupError, match="shape"):
+        solver.solve(f.ravel())
+    bad = f.copy()
+    bad[-1, 0] = np.nan
+    with pytest.raises(SolverSetupError, match="not finite"):
+        solver.solve(bad)
+    on_fixed = f.copy()
+    on_fixed[fixed[1]] = (0.0, 1e-5, 0.0)
+    with pytest.raises(SolverSetupError, match=f"constrained .*{fixed[1]}"):
+        solver.solve(on_fixed)
+    with pytest.raises(SolverSetupError, match="initial_guess"):
+        solver.solve(f, initial_guess=np.zeros((3, 3)))
+
+
+def test_zero_forces_give_zero_displacement(beam):
+    mesh, fixed, f = beam
+    res = solve(Problem(mesh, MAT, fixed, order=2), np.zeros_like(f))
+    assert res.converged and np.all(res.displacement == 0.0)
+
+
+def test_rotation_aware_path_follows_the_arc_of_a_rigid_rotation():
+    from tissuecast.fem.linesearch import rotation_matrix, step_path
+
+    rng = np.random.default_rng(0)
+    nodes = rng.standard_normal((30, 3)) * 10.0
+    u = np.zeros(90)
+    cnodes = np.array([0, 1, 2])
+    cdofs = (3 * cnodes[:, None] + np.arange(3)).ravel()
+    free = np.setdiff1d(np.arange(90), cdofs)
+    c = nodes[cnodes].mean(axis=0)
+    omega = np.array([0.1, -0.4, 0.3])
+    d = np.cross(omega, nodes - c).ravel()[free]  # an infinitesimal rotation about c
+    path = step_path(nodes, u, d, free, cnodes, cdofs, rotation_aware=True)
+    moved = path(1.0).reshape(-1, 3)
+    exact = (nodes - c) @ rotation_matrix(omega).T + c - nodes
+    np.testing.assert_allclose(moved[3:], exact[3:], atol=1e-12)
+    np.testing.assert_allclose(path.rotation, rotation_matrix(omega), atol=1e-14)
+    assert np.all(moved[:3] == 0.0)  # constrained nodes stay put
+    # distances between free nodes are preserved (no spurious stretching), unlike the straight line
+    straight = step_path(nodes, u, d, free, cnodes, cdofs, rotation_aware=False)(1.0).reshape(-1, 3)
+    dist = lambda x: np.linalg.norm(x[3:, None] - x[None, 3:], axis=-1)  # noqa: E731
+    np.testing.assert_allclose(dist(nodes + moved), dist(nodes), atol=1e-10)
+    assert np.abs(dist(nodes + straight) - dist(nodes)).max() > 1.0
