@@ -106,3 +106,15 @@ def test_calibration_backs_off_after_failures():
 def test_calibration_gives_up_with_clear_error_when_everything_fails():
     with pytest.raises(DatasetError, match="every pilot sample failed"):
         calibrate_alpha(lambda a: np.full(3, np.inf), alpha0=1.0, target=30.0, max_rounds=3)
+
+
+def test_calibration_stops_below_a_failure_limit():
+    # the solver fails above alpha = 2 while the target would need alpha = 3: the bracket closes at 2
+    def pilot(a):
+        u = np.array([9.0, 10.0, 11.0]) * a
+        return u if a <= 2.0 else np.full(3, np.inf)
+
+    rec = calibrate_alpha(pilot, alpha0=0.5, target=30.0, quantile=0.9)
+    assert not rec["converged"] and rec["limited_by_failures"]
+    assert 2.0 / 1.02 <= rec["alpha"] <= 2.0
+    assert len(rec["rounds"]) < 10

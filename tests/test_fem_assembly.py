@@ -80,3 +80,18 @@ def test_internal_forces_are_self_equilibrated():
     assert np.abs(f.sum(axis=0)).max() <= 1e-12 * scale  # sum of nodal forces
     x = prob.nodes + u
     assert np.abs(np.cross(x, f).sum(axis=0)).max() <= 1e-11 * scale * np.abs(x).max()  # and of moments
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_structured_element_stiffness_equals_generic_contraction(order):
+    mesh = distorted_box(seed=5, n=2)
+    prob = Problem(mesh, NeoHookean(0.021, 0.45), fixed=[0, 1, 3], order=order)
+    asm = Assembler(prob.nodes, prob.connectivity, order, prob.material, prob.free_mask)
+    u = smooth_state(prob.nodes, np.random.default_rng(6), 0.5)
+    f = asm.deformation_gradient(u)
+    _, factors, _ = prob.material.stress_and_tangent(f, tangent="factors")
+    fast = asm._stiffness_from_factors(f, factors)
+    a = prob.material.tangent(f).reshape(f.shape[:2] + (3, 3, 3, 3))
+    g, w = asm.geometry.grad, asm.geometry.weight
+    generic = np.einsum("mqaJ,mqiJkL,mqbL,mq->maibk", g, a, g, w)
+    np.testing.assert_allclose(fast, generic, atol=1e-12 * np.abs(generic).max())

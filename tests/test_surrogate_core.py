@@ -110,3 +110,12 @@ def test_ridge_is_underdetermined_safe_and_checks_ratio():
 
 def test_marker_columns_are_vertex_major():
     np.testing.assert_array_equal(marker_columns([2, 0]), [6, 7, 8, 0, 1, 2])
+
+
+def test_pca_leading_components_path_matches_full_svd():
+    X = _low_rank(N=80, n=100, rank=30, noise=0.05, seed=4)  # wide: 80 x 300
+    full = fit_pca(X)
+    few = fit_pca(X, 6)  # Gram-matrix eigen path
+    np.testing.assert_allclose(few.singular_values, full.singular_values[:6], rtol=1e-10)
+    np.testing.assert_allclose(np.abs((few.components * full.components[:6]).sum(axis=1)), 1.0, atol=1e-10)
+    np.testing.assert_allclose(few.components @ few.components.T, np.eye(6), atol=1e-12)

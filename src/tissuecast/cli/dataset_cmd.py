@@ -44,6 +44,9 @@ def print_summary(s: dict) -> None:
     if cal:
         extra = f", q{cal.get('quantile', 0):g} of pilots {cal['quantile_value']:.2f} mm" if cal.get("quantile_value") else ""
         print(f"force magnitude alpha = {cal['alpha']:.6g} N ({cal['rule']}{extra})")
+        if cal.get("limited_by_failures"):
+            print(f"  note: the target {cal['target']:g} mm was not reached: pilot samples failed to converge at "
+                  "larger forces (see the calibration rounds in `dataset info --json`)")
     print("per-sample max displacement (mm), done samples:")
     print(f"  all     {_stats_line(s['max_displacement'])}")
     for name, st in s["max_displacement_by_split"].items():

@@ -15,6 +15,9 @@ Rule (documented in the store's ``calibration`` attribute):
   last two rounds (secant in log-log, clipped to [0.5, 3]). Rounds that overshoot (q above
   the target, or failures) bound alpha from above; the next alpha never leaves the bracket
   (geometric bisection when it would); after a failure with no lower bound, alpha / 4.
+  If pilots fail before the target is reached, the bracket closes (within ``RTOL``) on the
+  largest alpha at which the quantile is still finite: the record says
+  ``limited_by_failures`` and the data set stays below the target rather than failing.
 * If ``dataset.alpha`` > 0 in the config, it is used as is and no pilots are solved.
 
 So a softer material, a larger tumour or a different mesh resolution all land near the
@@ -124,17 +127,22 @@ def calibrate_alpha(
         else:  # one point only: extrapolate linearly, from far below only to half the target
             aim = FIRST_AIM * target if q < FIRST_AIM * target else target
             new = alpha * aim / q
-        if lo is not None and hi is not None and not lo[0] < new < hi[0]:
-            new = math.sqrt(lo[0] * hi[0])
+        if lo is not None and hi is not None:
+            if hi[0] <= lo[0] * (1.0 + rtol):
+                break  # the bracket is closed: the target lies beyond what the pilots converge at
+            if not lo[0] < new < hi[0]:
+                new = math.sqrt(lo[0] * hi[0])
         alpha = new
     if best is None:
         raise DatasetError(
             f"force calibration failed: every pilot sample failed to converge at every trial alpha "
             f"(last {rounds[-1]['alpha']:.3g} N); check the material, fixed vertices and solver settings")
     converged = abs(best[1] / target - 1.0) <= rtol
+    limited = bool(not converged and any(r["quantile_value"] is None for r in rounds))
     if not converged:
-        log.warning("force calibration did not reach %.1f mm within %d rounds; using alpha = %.6g N (q = %.2f mm)",
-                    target, len(rounds), best[0], best[1])
-    return {"rule": f"q{quantile:g} of pilot per-sample max displacement = target", "alpha": best[0],
-            "quantile": quantile, "target": target, "quantile_value": best[1], "rtol": rtol,
-            "converged": bool(converged), "rounds": rounds}
+        log.warning("force calibration did not reach %.1f mm (%s); using alpha = %.6g N (q = %.2f mm)", target,
+                    "pilot samples fail to converge at larger forces" if limited else f"{len(rounds)} rounds",
+                    best[0], best[1])
+    return {"rule": f"q{quantile:g} of pilot per-sample max displacement = target (failures count as +inf)",
+            "alpha": best[0], "quantile": quantile, "target": target, "quantile_value": best[1], "rtol": rtol,
+            "converged": bool(converged), "limited_by_failures": limited, "rounds": rounds}

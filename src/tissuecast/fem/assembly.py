@@ -156,6 +156,11 @@ class Assembler:
         """
         g = self.geometry
         f = self.deformation_gradient(u)
+        if not project:
+            p, factors, j = self.material.stress_and_tangent(f, tangent="factors")
+            ke = self._stiffness_from_factors(f, factors)
+            data = np.bincount(self._scatter, weights=ke.ravel(), minlength=self.nnz + 1)[: self.nnz]
+            return self._scatter_force(p), data, float(j.min())
         p, a, j = self.material.stress_and_tangent(f, tangent=True)
         if project:
             lam, vec = np.linalg.eigh(a)
@@ -170,6 +175,32 @@ class Assembler:
         ke = np.matmul(grad, c).reshape(m, q, nn, 3, nn, 3).sum(axis=1)  # (m, a, i, b, k)
         data = np.bincount(self._scatter, weights=ke.ravel(), minlength=self.nnz + 1)[: self.nnz]
         return fint, data, float(j.min())
+
+    def _stiffness_from_factors(self, f: np.ndarray, factors) -> np.ndarray:
+        """Element stiffnesses (m, nn, 3, nn, 3) from the structured neo-Hookean tangent.
+
+        With ``v_ai = H_iJ dN_a/dX_J`` and ``w_ai = F_iJ dN_a/dX_J`` the quadrature-point
+        stiffness is ``a (G_a . G_b) d_ik + c_hh v_ai v_bk + c_t v_ak v_bi
+        - 2/3 a (v_ai w_bk + w_ai v_bk)``: a Gram matrix and rank-one products, summed over
+        the quadrature points by batched matrix products (one per element).
+        """
+        a, c_hh, c_t, h = factors
+        grad, wq = self.geometry.grad, self.geometry.weight
+        m, q, nn, _ = grad.shape
+        v = np.matmul(grad, np.swapaxes(h, -1, -2)).reshape(m, q, 3 * nn)  # (m, q, (a i))
+        w = np.matmul(grad, np.swapaxes(f, -1, -2)).reshape(m, q, 3 * nn)
+        aw, hw, tw = a * wq, c_hh * wq, c_t * wq
+        vt = np.swapaxes(v, 1, 2)  # (m, (a i), q)
+        k = np.matmul(vt * hw[:, None, :], v)  # c_hh v v
+        vw = np.matmul(vt * (-2.0 / 3.0 * aw)[:, None, :], w)
+        k += vw + np.swapaxes(vw, 1, 2)
+        k = k.reshape(m, nn, 3, nn, 3)
+        k += np.matmul(vt * tw[:, None, :], v).reshape(m, nn, 3, nn, 3).transpose(0, 1, 4, 3, 2)  # c_t v_ak v_bi
+        gt = grad.transpose(0, 2, 1, 3).reshape(m, nn, 3 * q)
+        gram = np.matmul(gt * np.repeat(aw, 3, axis=1)[:, None, :], np.swapaxes(gt, 1, 2))  # (m, nn, nn)
+        for i in range(3):
+            k[:, :, i, :, i] += gram
+        return k
 
     # ------------------------------------------------------------------- matrices
     def matrix(self, data: np.ndarray) -> sp.csr_matrix:

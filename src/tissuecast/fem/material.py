@@ -115,7 +115,10 @@ class NeoHookean:
         Args:
             f: (..., 3, 3) deformation gradients (det F > 0 expected; where it is not, the
                 values are computed with |det F| and the caller must reject the state).
-            tangent: also compute dP/dF.
+            tangent: also compute dP/dF; ``"factors"`` returns instead the scalars and
+                ``H = F^-T`` of the closed form in the module notes, ``(a, c_hh, c_t, H)``
+                with ``A = a I + c_hh H(x)H + c_t H_iL H_kJ - 2/3 a (H(x)F + F(x)H)``, which
+                lets the assembler build element stiffnesses from rank-one products.
 
         Returns:
             ``(P (..., 3, 3) MPa, A (..., 9, 9) MPa or None, J (...,))``.
@@ -130,6 +133,9 @@ class NeoHookean:
         if not tangent:
             return p, None, j
         shp = f.shape[:-2]
+        if tangent == "factors":
+            c_hh = a * (2.0 / 9.0) * i1 + self.kappa * (2.0 * js * js - js)
+            return p, (a, c_hh, a * i1 / 3.0 - b, h), j
         hf = h.reshape(shp + (9,))
         ff = f.reshape(shp + (9,))
         # T_(iJ)(kL) = H_iL H_kJ

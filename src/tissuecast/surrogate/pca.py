@@ -11,6 +11,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import eigh
 
 from ..errors import ModelError
 
@@ -81,7 +82,7 @@ class PCABasis:
 
 
 def fit_pca(X, n_components: int | None = None) -> PCABasis:
-    """Fit a mean-centred PCA by thin SVD.
+    """Fit a mean-centred PCA (thin SVD; Gram-matrix eigen-decomposition for a few components).
 
     Args:
         X: (N, n, 3) or (N, 3 n) training displacements, mm.
@@ -92,10 +93,21 @@ def fit_pca(X, n_components: int | None = None) -> PCABasis:
     """
     A = _as_matrix(X)
     mean = A.mean(axis=0)
-    _, s, vt = np.linalg.svd(A - mean, full_matrices=False)
-    k = vt.shape[0] if n_components is None else int(n_components)
-    if not 1 <= k <= vt.shape[0]:
-        raise ModelError(f"n_components must be in [1, {vt.shape[0]}] for {A.shape[0]} samples, got {n_components}")
+    Ac = A - mean
+    r = min(A.shape)
+    k = r if n_components is None else int(n_components)
+    if not 1 <= k <= r:
+        raise ModelError(f"n_components must be in [1, {r}] for {A.shape[0]} samples, got {n_components}")
+    if 4 * k < r and A.shape[0] <= A.shape[1]:
+        # a few leading components of a wide matrix: eigen-decomposition of the (N, N) Gram
+        # matrix, leading part only, is several times faster than a full thin SVD
+        lam, U = eigh(Ac @ Ac.T, subset_by_index=[A.shape[0] - k, A.shape[0] - 1])
+        lam, U = lam[::-1], U[:, ::-1]
+        s = np.sqrt(np.maximum(lam, 0.0))
+        vt = (U.T @ Ac) / np.where(s > 0, s, 1.0)[:, None]
+        vt /= np.linalg.norm(vt, axis=1, keepdims=True)  # re-normalise (rounding)
+        return PCABasis(mean=mean, components=np.ascontiguousarray(vt), singular_values=s, n_samples=A.shape[0])
+    _, s, vt = np.linalg.svd(Ac, full_matrices=False)
     return PCABasis(mean=mean, components=np.ascontiguousarray(vt[:k]), singular_values=s[:k].copy(), n_samples=A.shape[0])
 
 
@@ -179,11 +191,24 @@ def choose_n_components(
     K = int(min(max_components, p, N - max(len(q) for q in parts)))
     if K < 1:
         raise ModelError(f"too few samples ({N}) for {folds}-fold PCA cross-validation")
+    G = A @ A.T  # (N, N) uncentred Gram matrix, shared by all folds
     fits = []
     for held in parts:
-        basis = fit_pca(A[np.setdiff1d(order, held, assume_unique=True)], K)
-        resid = A[held] - basis.mean  # (m, p): reconstruction error with 0 components
-        fits.append((resid, resid @ basis.components.T, basis.components))
+        train = np.setdiff1d(order, held, assume_unique=True)
+        mean = A[train].mean(axis=0)
+        Gt = G[np.ix_(train, train)]
+        r = Gt.mean(axis=1)
+        Gc = Gt - r[:, None] - r[None, :] + r.mean()  # Gram matrix of the centred fold
+        k_fold = min(K, len(train))
+        lam, U = eigh(Gc, subset_by_index=[len(train) - k_fold, len(train) - 1])
+        lam, U = lam[::-1], U[:, ::-1]
+        sv = np.sqrt(np.maximum(lam, 0.0))
+        keep = sv > 1e-12 * max(sv[0], 1e-300)
+        comps = (U[:, keep].T @ (A[train] - mean)) / sv[keep][:, None]
+        comps /= np.linalg.norm(comps, axis=1, keepdims=True)
+        resid = A[held] - mean  # (m, p): reconstruction error with 0 components
+        fits.append((resid, resid @ comps.T, comps))
+    K = min(K, min(len(f[2]) for f in fits))
     max_err, sample_max, mean_err = [], [], []
     chosen = 0
     stop = K
