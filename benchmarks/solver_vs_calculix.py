@@ -34,9 +34,11 @@ from tissuecast.markers import select_fixed_vertices, select_markers
 from tissuecast.mesh.phantom import phantom, phantom_surface
 
 
-#: RMS surface nodal forces (N) of the 20-mode LBO field (seed 0) giving ~25-30 mm.
-PHANTOM_RMS_FORCE = 0.0035
-QUICK_RMS_FORCE = 0.025
+#: Seed and RMS surface nodal force (N) of the 20-mode LBO field giving ~25 mm. On the
+#: phantom the three fixed vertices lie near one line along the long axis, so past ~3 mm the
+#: body swings about it and the peak displacement grows much faster than the load.
+PHANTOM_SEED, PHANTOM_RMS_FORCE = 14, 0.00101
+QUICK_SEED, QUICK_RMS_FORCE = 0, 0.025
 
 
 def _peak_mb(who: int) -> float:
@@ -54,8 +56,8 @@ def build_mesh(quick: bool):
 def calibrate(problem: Problem, unit_forces: np.ndarray, low: float, high: float) -> tuple[float, int]:
     """Scale of ``unit_forces`` whose P2 solution peaks inside [low, high] mm.
 
-    Starts at 1 and rescales by target / peak (target = the middle of the range); the
-    response is nearly linear in the scale here, so one or two solves usually do.
+    Starts at 1 and rescales by sqrt(target / peak) (target = the middle of the range):
+    with the phantom's fixed vertices the peak grows much faster than the load.
     """
     solver = Solver(problem)
     target = 0.5 * (low + high)
@@ -65,7 +67,7 @@ def calibrate(problem: Problem, unit_forces: np.ndarray, low: float, high: float
         solves += 1
         if low <= peak <= high:
             break
-        scale *= min(2.0, max(0.5, target / peak))
+        scale *= min(2.0, max(0.5, (target / peak) ** 0.5))  # damped: the response can grow fast
     return scale, solves
 
 
@@ -89,7 +91,7 @@ def main(argv=None) -> int:
                     help="wanted maximum displacement of the P2 solution, mm (default 25 30)")
     ap.add_argument("--rms-force", type=float, help="RMS surface nodal force (N) to start the calibration from "
                     f"(default {PHANTOM_RMS_FORCE} for the phantom, {QUICK_RMS_FORCE} with --quick)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the LBO weights")
+    ap.add_argument("--seed", type=int, help=f"seed of the LBO weights (default {PHANTOM_SEED}; {QUICK_SEED} with --quick)")
     ap.add_argument("--repeats", type=int, default=3, help="timed solves per built-in configuration (median)")
     ap.add_argument("--workdir", help="keep ccx's files here (default: a temporary folder)")
     ap.add_argument("--no-ccx", action="store_true", help="skip CalculiX (built-in solver only)")
@@ -101,14 +103,15 @@ def main(argv=None) -> int:
     material = NeoHookean(0.021, 0.45)
     basis = lbo_basis(mesh, 20)
     rms = args.rms_force or (QUICK_RMS_FORCE if args.quick else PHANTOM_RMS_FORCE)
-    unit = lbo_field(basis, random_lbo_weights(np.random.default_rng(args.seed), 20), rms / field_scale(basis), mesh.n_points)
+    seed = args.seed if args.seed is not None else (QUICK_SEED if args.quick else PHANTOM_SEED)
+    unit = lbo_field(basis, random_lbo_weights(np.random.default_rng(seed), 20), rms / field_scale(basis), mesh.n_points)
     p2 = Problem(mesh, material, fixed, order=2)
     p1 = Problem(mesh, material, fixed, order=1)
     print(f"mesh: {mesh}; P2 nodes {len(mesh.points10)}; fixed vertices {fixed.tolist()} (0-based)")
     t0 = time.perf_counter()
     scale, n_cal = calibrate(p2, unit, *args.range)
     forces = scale * unit
-    print(f"forces: LBO field (20 modes, seed {args.seed}), RMS surface nodal force "
+    print(f"forces: LBO field (20 modes, seed {seed}), RMS surface nodal force "
           f"{np.sqrt((forces[mesh.surface_vertices] ** 2).sum(1).mean()):.4g} N, net force "
           f"{np.linalg.norm(forces.sum(0)):.3g} N (calibrated with {n_cal} solves in {time.perf_counter() - t0:.1f} s)")
 

@@ -20,8 +20,12 @@ from tissuecast.mesh import TetMesh
 
 needs_ccx = pytest.mark.skipif(shutil.which("ccx") is None, reason="ccx (apt-get install calculix-ccx) not installed")
 MAT = NeoHookean(0.021, 0.45)
-#: RMS surface nodal force (N) of the 20-mode LBO field that takes the phantom to ~25 mm.
-PHANTOM_RMS_FORCE = 0.006
+#: Seed and RMS surface nodal force (N) of the 20-mode LBO field that takes the phantom to
+#: ~22 mm. The three fixed vertices lie close to one line along the phantom's long axis, so
+#: beyond ~3 mm the body swings about that line and the displacement grows much faster than
+#: the load (ccx: 3 mm at 5 %, 22 mm at 6.7 % of 0.0147 N); the level is set accordingly.
+PHANTOM_SEED = 14
+PHANTOM_RMS_FORCE = 0.00099
 
 
 def box_mesh(nx: int, ny: int, nz: int, size=(10.0, 10.0, 10.0)) -> TetMesh:
@@ -396,8 +400,10 @@ def _cross_check(tmp_path, mesh, rms_force: float, seed: int = 0, low: float = 2
     problem, forces = _smooth_problem(mesh, rms_force, seed)
     solver = Solver(problem)
     ours = solver.solve(forces)
-    if not low <= ours.max_displacement <= high:
-        forces = forces * (0.5 * (low + high) / ours.max_displacement)
+    for _ in range(3):  # damped rescaling: the response may grow much faster than the load
+        if low <= ours.max_displacement <= high:
+            break
+        forces = forces * min(2.0, max(0.5, (0.5 * (low + high) / ours.max_displacement) ** 0.5))
         ours = solver.solve(forces)
     theirs = cx.solve_calculix(problem, forces, workdir=tmp_path / "ccx", threads=2)
     return ours, theirs
@@ -435,6 +441,6 @@ def test_ccx_agrees_with_builtin_solver_on_phantom(tmp_path):
     difference <= 0.5 % of the max displacement. ccx needs ~2-4 minutes here."""
     from tissuecast.mesh import phantom
 
-    ours, theirs = _cross_check(tmp_path, phantom(), rms_force=PHANTOM_RMS_FORCE)
+    ours, theirs = _cross_check(tmp_path, phantom(), rms_force=PHANTOM_RMS_FORCE, seed=PHANTOM_SEED)
     assert theirs.converged and theirs.max_displacement >= 20.0
     assert _relative_difference(ours, theirs) <= 0.005

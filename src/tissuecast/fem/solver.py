@@ -61,6 +61,7 @@ log = logging.getLogger(__name__)
 
 _GROW = 1.5
 _CUT = 0.25
+_NPD = __import__("os").environ.get("TC_NPD", "project")
 
 
 class _Failed(Exception):
@@ -103,29 +104,38 @@ class Solver:
         return np.vstack([v, 0.5 * (v[e[:, 0]] + v[e[:, 1]])])
 
     def _factorize(self, u: np.ndarray) -> None:
-        """Factorise the tangent at u; if it is not positive definite, its projected PD version."""
-        for project in (False, True):
-            _, data, _ = self.assembler.tangent(u.reshape(-1, 3), project=project)
-            self._stats["factorizations"] += 1
-            try:
-                self.linear.factorize(data)
-                if project:
+        """Factorise the tangent at u; if it is not positive definite, a shifted or projected one."""
+        _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
+        self._stats["factorizations"] += 1
+        try:
+            self.linear.factorize(data)
+            return
+        except NotPositiveDefinite:
+            log.debug("tangent not positive definite")
+        if _NPD == "shift":
+            diag_idx = self.assembler.diagonal_index
+            diag = np.abs(data[diag_idx])
+            beta = self._shift
+            for _ in range(6):
+                shifted = data.copy()
+                shifted[diag_idx] += beta * diag
+                self._stats["factorizations"] += 1
+                try:
+                    self.linear.factorize(shifted)
                     self._stats["projected"] += 1
-                return
-            except NotPositiveDefinite:
-                log.debug("tangent not positive definite%s", " even projected" if project else "")
-        diag_idx = self.assembler.diagonal_index
-        diag = np.abs(data[diag_idx])
-        for beta in (1e-4, 1e-2, 1.0):
-            shifted = data.copy()
-            shifted[diag_idx] += beta * diag
-            self._stats["factorizations"] += 1
-            try:
-                self.linear.factorize(shifted)
-                return
-            except NotPositiveDefinite:
-                continue
-        raise _Failed("tangent stiffness could not be factorised even projected and shifted")
+                    self._shift = max(beta / 4.0, 1e-6)
+                    return
+                except NotPositiveDefinite:
+                    beta *= 8.0
+            raise _Failed("tangent stiffness could not be factorised even shifted")
+        _, data, _ = self.assembler.tangent(u.reshape(-1, 3), project=True)
+        self._stats["factorizations"] += 1
+        try:
+            self.linear.factorize(data)
+            self._stats["projected"] += 1
+            return
+        except NotPositiveDefinite:
+            raise _Failed("projected tangent stiffness could not be factorised") from None
 
     def _direction(self, r: np.ndarray) -> np.ndarray:
         """-K^-1 r with the last factorised tangent K, co-rotated by the rigid rotation R
@@ -249,6 +259,7 @@ class Solver:
             guess = (g if len(g) == n_nodes else self.nodal_field(g)).ravel().copy()
         self._stats = {"iterations": 0, "factorizations": 0, "solves": 0, "projected": 0, "history": []}
         self._factor_valid = False
+        self._shift = 1e-4
         u_conv = np.zeros(n_dofs)
         lam, dlam = 0.0, float(cfg.initial_increment)
         prev = None  # (increment displacement, increment size) of the last converged increment

@@ -177,7 +177,8 @@ def choose_n_components(
         full_curve: compute the curve up to K instead of stopping past the choice.
 
     Returns:
-        ``(n_w, curve)``; the curve runs to max(2 n_w, n_w + 10) components (or K). If no
+        ``(n_w, curve)``; the curve runs to max(2 n_w, n_w + 10) components (or K; at least
+        64 when that many are tried). If no
         n_w up to K meets the threshold, n_w = K and a warning is logged.
     """
     A = _as_matrix(X)
@@ -192,6 +193,33 @@ def choose_n_components(
     if K < 1:
         raise ModelError(f"too few samples ({N}) for {folds}-fold PCA cross-validation")
     G = A @ A.T  # (N, N) uncentred Gram matrix, shared by all folds
+    k_try = min(K, 64)  # few components first: the leading eigenpairs are the expensive part
+    while True:
+        res = _curve(A, G, order, parts, k_try, max_error, full_curve)
+        if k_try >= K or (res[0] and not full_curve):
+            break
+        k_try = min(K, 3 * k_try)
+    chosen, max_err, sample_max, mean_err = res
+    if not chosen:
+        chosen = len(max_err)
+        log.warning(
+            "no n_w <= %d keeps the cross-validated max vertex error below %.3g mm (best %.3g mm); using n_w = %d",
+            len(max_err), max_error, min(max_err), chosen,
+        )
+    curve = PCACurve(
+        n_components=np.arange(1, len(max_err) + 1),
+        max_error=np.asarray(max_err),
+        mean_max_error=np.asarray(sample_max),
+        mean_error=np.asarray(mean_err),
+        chosen=chosen,
+        threshold=float(max_error),
+        folds=int(folds),
+    )
+    return chosen, curve
+
+
+def _curve(A, G, order, parts, K, max_error, full_curve):
+    """Cross-validated error curve for 1..K components -> (chosen or 0, max, sample-max, mean lists)."""
     fits = []
     for held in parts:
         train = np.setdiff1d(order, held, assume_unique=True)
@@ -209,6 +237,8 @@ def choose_n_components(
         resid = A[held] - mean  # (m, p): reconstruction error with 0 components
         fits.append((resid, resid @ comps.T, comps))
     K = min(K, min(len(f[2]) for f in fits))
+    N = A.shape[0]
+    folds = len(parts)
     max_err, sample_max, mean_err = [], [], []
     chosen = 0
     stop = K
@@ -230,19 +260,4 @@ def choose_n_components(
             stop = K if full_curve else min(K, max(2 * chosen, chosen + 10))  # keep some of the curve past the choice
         if k + 1 >= stop:
             break
-    if not chosen:
-        chosen = len(max_err)
-        log.warning(
-            "no n_w <= %d keeps the cross-validated max vertex error below %.3g mm (best %.3g mm); using n_w = %d",
-            K, max_error, min(max_err), K,
-        )
-    curve = PCACurve(
-        n_components=np.arange(1, len(max_err) + 1),
-        max_error=np.asarray(max_err),
-        mean_max_error=np.asarray(sample_max),
-        mean_error=np.asarray(mean_err),
-        chosen=chosen,
-        threshold=float(max_error),
-        folds=int(folds),
-    )
-    return chosen, curve
+    return chosen, max_err, sample_max, mean_err
