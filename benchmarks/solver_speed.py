@@ -64,6 +64,7 @@ def main(argv=None) -> int:
     ap.add_argument("--alpha", type=float, default=0.010, help="LBO force magnitude (N per unit weight)")
     ap.add_argument("--variants", nargs="+", default=["p1-newton", "p2-newton", "p2-quasi-newton", "p2-guess"], choices=list(VARIANTS))
     ap.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="keep alpha for every field")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="SolverConfig overrides for every variant, e.g. max_iterations=10")
     args = ap.parse_args(argv)
 
     mesh = tc.phantom()
@@ -86,7 +87,8 @@ def main(argv=None) -> int:
     for name in variants:
         order, opts = VARIANTS[name]
         t = time.perf_counter()
-        solver = Solver(Problem(mesh, material, fixed, order=order), dataclasses.replace(SolverConfig(), **opts))
+        overrides = {k: type(getattr(SolverConfig(), k))(v) for k, v in (item.split("=", 1) for item in args.set)}
+        solver = Solver(Problem(mesh, material, fixed, order=order), dataclasses.replace(SolverConfig(), **{**overrides, **opts}))
         setup = time.perf_counter() - t
         stats = []
         for i, f in enumerate(fields):

@@ -9,7 +9,7 @@ displacement) and peak memory, then the speed ratio.
 
     python benchmarks/solver_vs_calculix.py            # phantom, ccx with 1 thread
     python benchmarks/solver_vs_calculix.py --threads 1 2
-    python benchmarks/solver_vs_calculix.py --quick    # coarse phantom (~250 vertices)
+    python benchmarks/solver_vs_calculix.py --quick    # coarse phantom (~200-250 vertices, gmsh)
 
 Timings of a shared machine are inflated by whatever else runs on it; compare ratios measured
 in the same run only.
@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tissuecast.config import SolverConfig
 from tissuecast.fem import NeoHookean, Problem, Solver
 from tissuecast.fem.calculix import ccx_executable, solve_calculix
 from tissuecast.forces import field_scale, lbo_basis, lbo_field, random_lbo_weights
@@ -71,9 +72,9 @@ def calibrate(problem: Problem, unit_forces: np.ndarray, low: float, high: float
     return scale, solves
 
 
-def time_ours(problem: Problem, forces: np.ndarray, repeats: int):
+def time_ours(problem: Problem, forces: np.ndarray, repeats: int, config=None):
     t0 = time.perf_counter()
-    solver = Solver(problem)
+    solver = Solver(problem, config)
     setup = time.perf_counter() - t0
     results, seconds = [], []
     for _ in range(repeats):
@@ -85,7 +86,7 @@ def time_ours(problem: Problem, forces: np.ndarray, repeats: int):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="coarse phantom (~250 vertices) instead of the phantom")
+    ap.add_argument("--quick", action="store_true", help="coarse phantom (~200-250 vertices, gmsh) instead of the phantom")
     ap.add_argument("--threads", type=int, nargs="+", default=[1], help="ccx thread counts to run (default: 1)")
     ap.add_argument("--range", type=float, nargs=2, default=(25.0, 30.0), metavar=("LOW", "HIGH"),
                     help="wanted maximum displacement of the P2 solution, mm (default 25 30)")
@@ -95,6 +96,8 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=3, help="timed solves per built-in configuration (median)")
     ap.add_argument("--workdir", help="keep ccx's files here (default: a temporary folder)")
     ap.add_argument("--no-ccx", action="store_true", help="skip CalculiX (built-in solver only)")
+    ap.add_argument("--tolerances", type=float, nargs=2, metavar=("FORCE", "DISP"),
+                    help="convergence tolerances for both solvers (default: each one's defaults, 0.005 0.01)")
     args = ap.parse_args(argv)
 
     mesh = build_mesh(args.quick)
@@ -116,8 +119,12 @@ def main(argv=None) -> int:
           f"{np.linalg.norm(forces.sum(0)):.3g} N (calibrated with {n_cal} solves in {time.perf_counter() - t0:.1f} s)")
 
     rows = []
-    r2, setup2, sec2 = time_ours(p2, forces, args.repeats)
-    r1, setup1, sec1 = time_ours(p1, forces, args.repeats)
+    config, deck = None, {}
+    if args.tolerances:
+        config = SolverConfig(force_tolerance=args.tolerances[0], displacement_tolerance=args.tolerances[1])
+        deck = {"force_tolerance": args.tolerances[0], "displacement_tolerance": args.tolerances[1]}
+    r2, setup2, sec2 = time_ours(p2, forces, args.repeats, config)
+    r1, setup1, sec1 = time_ours(p1, forces, args.repeats, config)
     ours_peak = _peak_mb(resource.RUSAGE_SELF)
     rows.append(("tissuecast P2", 2, "-", sec2, setup2, r2, ours_peak))
     rows.append(("tissuecast P1", 1, "-", sec1, setup1, r1, ours_peak))
@@ -127,7 +134,7 @@ def main(argv=None) -> int:
         ccx_executable()
         for nt in args.threads:
             folder = Path(args.workdir) / f"threads{nt}" if args.workdir else Path(tempfile.mkdtemp(prefix="ccx-bench-"))
-            res = solve_calculix(p2, forces, workdir=folder, threads=nt)
+            res = solve_calculix(p2, forces, workdir=folder, threads=nt, **deck)
             ccx[nt] = res
             rows.append((f"ccx 2.20 C3D10", 2, nt, res.seconds, 0.0, res, _peak_mb(resource.RUSAGE_CHILDREN)))
 

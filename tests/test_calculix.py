@@ -101,6 +101,9 @@ def test_deck_prescribed_displacements_skip_free_components(tmp_path):
     path = cx.write_inp(tmp_path / "p.inp", mesh, MAT, [], f, prescribed={0: [0.0, np.nan, 0.5], 7: [np.nan] * 3})
     assert _section(path.read_text(), "*BOUNDARY") == ["1, 1, 1, 0.0", "1, 3, 3, 0.5"]
     assert "*CLOAD" not in path.read_text()
+    assert "*CONTROLS" not in path.read_text()
+    path = cx.write_inp(tmp_path / "t.inp", mesh, MAT, [0, 1, 2], f, force_tolerance=1e-4)
+    assert _section(path.read_text(), "*CONTROLS, PARAMETERS=FIELD") == ["0.0001, 0.01"]
 
 
 def test_write_inp_rejects_bad_input(tmp_path):
@@ -391,21 +394,29 @@ def _smooth_problem(mesh, rms_force: float, seed: int = 0, order: int = 2):
     return Problem(mesh, MAT, fixed, order=order), forces
 
 
-def _cross_check(tmp_path, mesh, rms_force: float, seed: int = 0, low: float = 20.0, high: float = 35.0):
-    """Solve with ours and with ccx; return (ours, ccx) results. The force is rescaled once if
-    the built-in solution's peak falls outside [low, high] mm (e.g. after a change of the
-    fixed-vertex rule), so the check always runs in the large-deformation range."""
+def _cross_check(tmp_path, mesh, rms_force: float, seed: int = 0, low: float = 20.0, high: float = 35.0,
+                 tolerances: tuple[float, float] | None = None):
+    """Solve with ours and with ccx; return (ours, ccx) results. The force is rescaled if the
+    built-in solution's peak falls outside [low, high] mm (e.g. after a change of the
+    fixed-vertex rule), so the check always runs in the large-deformation range.
+    ``tolerances`` = (force, displacement) convergence tolerances given to both solvers."""
+    from tissuecast.config import SolverConfig
     from tissuecast.fem import Solver
 
     problem, forces = _smooth_problem(mesh, rms_force, seed)
-    solver = Solver(problem)
+    config = None
+    deck = {}
+    if tolerances is not None:
+        config = SolverConfig(force_tolerance=tolerances[0], displacement_tolerance=tolerances[1])
+        deck = {"force_tolerance": tolerances[0], "displacement_tolerance": tolerances[1]}
+    solver = Solver(problem, config)
     ours = solver.solve(forces)
     for _ in range(3):  # damped rescaling: the response may grow much faster than the load
         if low <= ours.max_displacement <= high:
             break
         forces = forces * min(2.0, max(0.5, (0.5 * (low + high) / ours.max_displacement) ** 0.5))
         ours = solver.solve(forces)
-    theirs = cx.solve_calculix(problem, forces, workdir=tmp_path / "ccx", threads=2)
+    theirs = cx.solve_calculix(problem, forces, workdir=tmp_path / "ccx", threads=2, **deck)
     return ours, theirs
 
 
@@ -416,7 +427,7 @@ def _relative_difference(ours, theirs) -> float:
 @pytest.mark.calculix
 @needs_ccx
 def test_ccx_agrees_with_builtin_solver_on_coarse_phantom(tmp_path):
-    """~250 vertices (~1400 P2 nodes), smooth forces, ~26 mm: ccx needs ~10-20 s."""
+    """A coarse phantom (~200-250 vertices, ~1100-1400 P2 nodes), smooth forces, 20-35 mm."""
     pytest.importorskip("gmsh")
     from tissuecast.mesh.mesher import tetrahedralize_surface
     from tissuecast.mesh.phantom import phantom_surface
@@ -435,12 +446,15 @@ def test_ccx_agrees_with_builtin_solver_on_coarse_phantom(tmp_path):
 @pytest.mark.calculix
 @pytest.mark.slow
 @needs_ccx
-@pytest.mark.timeout(900)
+@pytest.mark.timeout(1800)
 def test_ccx_agrees_with_builtin_solver_on_phantom(tmp_path):
     """The issue's cross-check: the phantom (P2), smooth forces reaching >= 20 mm, max vertex
-    difference <= 0.5 % of the max displacement. ccx needs ~2-4 minutes here."""
+    difference <= 0.5 % of the max displacement. ccx needs several minutes here."""
     from tissuecast.mesh import phantom
 
-    ours, theirs = _cross_check(tmp_path, phantom(), rms_force=PHANTOM_RMS_FORCE, seed=PHANTOM_SEED)
+    # In the swing regime du/dload is large, so both solvers converge tightly (the default
+    # 0.5 % residual criterion alone left 0.45 % between them at 21.7 mm).
+    ours, theirs = _cross_check(tmp_path, phantom(), rms_force=PHANTOM_RMS_FORCE, seed=PHANTOM_SEED,
+                                tolerances=(1e-4, 1e-3))
     assert theirs.converged and theirs.max_displacement >= 20.0
     assert _relative_difference(ours, theirs) <= 0.005

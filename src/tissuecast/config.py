@@ -85,7 +85,13 @@ class SolverConfig:
     linear_solver: str = _f("auto", choices=("auto", "cholmod", "pardiso", "superlu"), doc="sparse direct backend")
     force_tolerance: float = _f(5e-3, lo=0.0, lo_open=True, hi=1.0, doc="residual norm / reference force norm")
     displacement_tolerance: float = _f(1e-2, lo=0.0, lo_open=True, hi=1.0, doc="correction / increment norm")
-    initial_increment: float = _f(1.0, lo=0.0, lo_open=True, hi=1.0, doc="first load fraction")
+    initial_increment: float = _f(
+        0.5,
+        lo=0.0,
+        lo_open=True,
+        hi=1.0,
+        doc="first load fraction of a cold start (a solve with an initial guess starts at the full load); 0.5 took 28 factorisations per phantom sample against 45 for 1.0",
+    )
     min_increment: float = _f(1e-5, lo=0.0, lo_open=True, hi=1.0, doc="smallest load fraction before giving up")
     max_increments: int = _f(200, lo=1, doc="maximum number of increments")
     max_iterations: int = _f(16, lo=1, doc="Newton iterations per increment before cutting back")

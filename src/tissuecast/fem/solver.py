@@ -14,7 +14,7 @@ prescribed displacements scale with ``lambda``):
    the residual norm falls by ``refactor_ratio`` per iteration. A tangent that is not
    positive definite (the body swinging through an unstable orientation) is replaced by
    the stiffness of the positive-definite part of the material tangent at each quadrature
-   point (then, if ever needed, a diagonal shift), so ``d`` stays a descent direction.
+   point, so ``d`` stays a descent direction.
 3. Line search on ``Pi`` (Armijo, quadratic backtracking; near round-off, a lower residual
    norm), rejecting any step that makes ``J <= 0`` at a quadrature point. With
    ``rotation_aware`` the step's best-fit rigid rotation about the constrained nodes'
@@ -221,7 +221,9 @@ class Solver:
             initial_guess: optional guess of the displacements at full load, mm: (n, 3) at
                 the vertices (mid-edge nodes are then interpolated linearly) or (n_nodes, 3)
                 at every element node (e.g. ``nodal_displacement`` of earlier samples, which
-                is better for P2). A good guess cuts the work several-fold.
+                is better for P2). A good guess cuts the work several-fold. With a guess
+                the first increment is the full load (``initial_increment`` applies to
+                cold starts only).
 
         Returns:
             The converged :class:`SolveResult`.
@@ -250,7 +252,7 @@ class Solver:
         self._stats = {"iterations": 0, "factorizations": 0, "solves": 0, "projected": 0, "history": []}
         self._factor_valid = False
         u_conv = np.zeros(n_dofs)
-        lam, dlam = 0.0, float(cfg.initial_increment)
+        lam, dlam = 0.0, (1.0 if guess is not None else float(cfg.initial_increment))
         prev = None  # (increment displacement, increment size) of the last converged increment
         increments = cutbacks = attempts = 0
         qhist: list = []

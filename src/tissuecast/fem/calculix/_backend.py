@@ -16,7 +16,7 @@ __all__ = ["solve_calculix"]
 
 
 def solve_calculix(problem, forces, *, workdir=None, threads: int = 1, timeout: float | None = None,
-                   executable: str | None = None, **increments):
+                   executable: str | None = None, **deck_options):
     """Solve a :class:`tissuecast.fem.Problem` with CalculiX instead of the built-in solver.
 
     Args:
@@ -27,19 +27,22 @@ def solve_calculix(problem, forces, *, workdir=None, threads: int = 1, timeout: 
         threads: ccx threads.
         timeout: seconds before ccx is stopped (raises ConvergenceError).
         executable: ccx program (default ``ccx`` on PATH).
-        **increments: ``initial_increment``, ``min_increment``, ``max_increment``,
-            ``max_increments`` for :func:`write_inp`.
+        **deck_options: ``initial_increment``, ``min_increment``, ``max_increment``,
+            ``max_increments``, ``force_tolerance``, ``displacement_tolerance`` for
+            :func:`write_inp`.
 
     Returns:
         :class:`tissuecast.fem.SolveResult` with ``displacement`` (n, 3) mm at the vertices,
         ``nodal_displacement`` at every node (vertices first, then mid-edge nodes), the
         increments, iterations (= factorisations in ccx), cutbacks, residual history (largest
-        residual force component, N, after every iteration) and the wall time in seconds (deck writing, ccx and parsing).
+        residual force component, N, after every iteration) and the wall time in seconds
+        (deck writing, ccx and parsing).
 
     Raises:
         DependencyError: ccx is missing.
         ConvergenceError: ccx stopped early; ``.load_fraction`` is the load reached and
-            ``.result`` the last converged state (or None).
+            ``.result`` the last converged state (or None). Pass ``workdir`` to keep ccx's
+            log for a look at the failure.
     """
     from .. import SolveResult  # the fem package's result type; imported here to avoid a cycle
 
@@ -51,7 +54,7 @@ def solve_calculix(problem, forces, *, workdir=None, threads: int = 1, timeout: 
         folder = Path(workdir) if workdir is not None else Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
         inp = write_inp(folder / "tissuecast.inp", mesh, problem.material, problem.fixed, forces, order=order,
-                        prescribed=getattr(problem, "prescribed", None), **increments)
+                        prescribed=getattr(problem, "prescribed", None), **deck_options)
         try:
             run = run_ccx(inp, threads=threads, timeout=timeout, executable=executable)
         except ConvergenceError as exc:

@@ -118,6 +118,8 @@ def write_inp(
     min_increment: float = 1e-5,
     max_increment: float = 0.25,
     max_increments: int = 1000,
+    force_tolerance: float | None = None,
+    displacement_tolerance: float | None = None,
     title: str = "tissuecast neo-Hookean problem",
 ) -> Path:
     """Write the problem as a CalculiX/Abaqus input deck.
@@ -140,6 +142,9 @@ def write_inp(
         initial_increment, min_increment, max_increment: automatic incrementation, as
             fractions of the total load (the step period is 1).
         max_increments: the step's increment limit (``INC=``).
+        force_tolerance, displacement_tolerance: convergence criteria R_n and C_n of
+            ``*CONTROLS, PARAMETERS=FIELD`` (residual / average force, correction / increment
+            of displacement); None keeps the defaults 0.005 and 0.01 (both programs').
         title: ``*HEADING`` text.
 
     Returns:
@@ -204,6 +209,12 @@ def write_inp(
         "*STATIC",
         f"{_num(initial_increment)}, 1.0, {_num(min_increment)}, {_num(max_increment)}",
     ]
+    if force_tolerance is not None or displacement_tolerance is not None:
+        r_n = 0.005 if force_tolerance is None else float(force_tolerance)
+        c_n = 0.01 if displacement_tolerance is None else float(displacement_tolerance)
+        if not (0 < r_n < 1 and 0 < c_n < 1):
+            raise SolverSetupError(f"convergence tolerances must lie in (0, 1), got {r_n}, {c_n}")
+        out += ["*CONTROLS, PARAMETERS=FIELD, FIELD=DISPLACEMENT", f"{_num(r_n)}, {_num(c_n)}"]
     bc = ["NFIXED, 1, 3"] if fixed_nodes.size else []
     for i, v in zip(pre_nodes.tolist(), pre_nodal.tolist()):
         bc += [f"{i + 1}, {d + 1}, {d + 1}, {_num(x)}" for d, x in enumerate(v) if np.isfinite(x)]
