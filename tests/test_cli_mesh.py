@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-import logging
 
 import meshio
 import numpy as np
@@ -14,16 +13,6 @@ from mesh_factories import box_grid
 import tissuecast as tc
 from tissuecast.cli.main import main
 from tissuecast.mesh import read_mesh, write_mesh
-
-
-@pytest.fixture(autouse=True)
-def _restore_logging():
-    """main() points the root logger at this test's captured stderr; undo that afterwards."""
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
 
 
 def test_mesh_info_phantom_prints_the_figures(capsys):

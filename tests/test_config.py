@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import logging
 
 import pytest
 
@@ -17,16 +16,6 @@ from tissuecast.config import (
     with_overrides,
 )
 from tissuecast.errors import ConfigError
-
-
-@pytest.fixture(autouse=True)
-def _restore_logging():
-    """main() points the root logger at this test's captured stderr; undo that afterwards."""
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
 
 
 def test_defaults_are_the_papers_values():

@@ -3,7 +3,6 @@ with --debug the typed exception (a TissuecastError that also subclasses ValueEr
 
 from __future__ import annotations
 
-import logging
 
 import meshio
 import numpy as np
@@ -14,16 +13,6 @@ from tissuecast import errors
 from tissuecast.cli.main import main
 from tissuecast.errors import ConfigError, MarkerError, MeshError, MeshFormatError, TissuecastError
 from tissuecast.mesh import write_mesh
-
-
-@pytest.fixture(autouse=True)
-def _restore_logging():
-    """main() points the root logger at this test's captured stderr; undo that afterwards."""
-    root = logging.getLogger()
-    handlers, level = root.handlers[:], root.level
-    yield
-    root.handlers[:] = handlers
-    root.setLevel(level)
 
 
 CUBE_5_TETS = cube(5, side=1.0).tets  # positively oriented, so nothing is re-oriented first

@@ -52,19 +52,11 @@ def setup_from_config(cfg: Config):
     Returns:
         ``(mesh TetMesh, markers (n_d,) int64, fixed (k,) int64)``.
     """
-    from ..markers import select_fixed_vertices, select_markers, validate_vertex_ids
+    from ..markers import markers_and_fixed
     from ..mesh import phantom, read_mesh
 
     mesh = read_mesh(cfg.mesh.path, units=cfg.mesh.units) if cfg.mesh.path else phantom()
-    m = cfg.markers
-    if m.ids:
-        markers = validate_vertex_ids(mesh, m.ids, "markers.ids")
-    else:
-        markers = select_markers(mesh, count=m.count, start=m.start, min_distance=m.min_distance)
-    if m.fixed_ids:
-        fixed = validate_vertex_ids(mesh, m.fixed_ids, "markers.fixed_ids", other=markers)
-    else:
-        fixed = select_fixed_vertices(mesh, count=m.fixed_count, exclude=markers)
+    markers, fixed = markers_and_fixed(mesh, cfg.markers)
     return mesh, np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
 
 
