@@ -89,25 +89,17 @@ class CompiledSurrogate:
         """
         if d.shape[0] == 1 and missing is None:
             return self.field(d[0])[None]
-        w = self._hidden(d, missing) @ self.out_W
-        w += self.out_b
-        u = w @ self.components
-        u += self.mean
-        return u
+        return self._reconstruct(self._hidden(d, missing))
 
     def field(self, d: np.ndarray) -> np.ndarray:
         """One field (3 n,) mm from one marker-displacement vector (3 n_d,) mm, all markers tracked.
 
         1-D products (BLAS gemv) keep the single-sample latency low and steady.
         """
-        W, b = self.hidden[0]
-        h = d @ W
-        h += b
-        np.maximum(h, 0.0, out=h)
-        for W, b in self.hidden[1:]:
-            h = h @ W
-            h += b
-            np.maximum(h, 0.0, out=h)
+        return self._reconstruct(self._hidden(d, None))
+
+    def _reconstruct(self, h: np.ndarray) -> np.ndarray:
+        """Fields (..., 3 n) mm from last hidden activations (..., M h_last)."""
         w = h @ self.out_W
         w += self.out_b
         u = w @ self.components
