@@ -6,7 +6,7 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["marker_batch"]
+__all__ = ["marker_batch", "missing_mask"]
 
 
 def marker_batch(marker_displacements, n_d: int, missing=None, masked: bool = False) -> tuple[np.ndarray, np.ndarray | None, bool]:
@@ -43,17 +43,7 @@ def marker_batch(marker_displacements, n_d: int, missing=None, masked: bool = Fa
         )
     miss = None
     if missing is not None:
-        miss = np.zeros((d.shape[0], n_d), dtype=bool)
-        mv = np.asarray(missing)
-        if mv.dtype == bool:
-            if mv.shape not in ((n_d,), (d.shape[0], n_d)):
-                raise ModelError(f"missing mask must be ({n_d},) or ({d.shape[0]}, {n_d}) booleans, got {mv.shape}")
-            miss[:] = mv
-        else:
-            ids = mv.astype(np.int64).ravel()
-            if ids.size and (ids.min() < 0 or ids.max() >= n_d):
-                raise ModelError(f"missing marker indices must be in [0, {n_d}) (positions in the marker list), got {ids.tolist()}")
-            miss[:, ids] = True
+        miss = missing_mask(missing, d.shape[0], n_d)
         if not miss.any():
             miss = None
         elif not masked:
@@ -69,3 +59,28 @@ def marker_batch(marker_displacements, n_d: int, missing=None, masked: bool = Fa
     if miss is not None:
         d = check
     return d, miss, single
+
+
+def missing_mask(missing, batch: int, n_d: int) -> np.ndarray:
+    """(batch, n_d) bool mask of untracked markers.
+
+    Args:
+        missing: indices into the marker list (0-based), or bool (n_d,) / (batch, n_d).
+        batch: number of samples B.
+        n_d: number of markers of the model.
+
+    Raises:
+        ModelError: a bool mask of the wrong shape, or an index outside [0, n_d).
+    """
+    mask = np.zeros((batch, n_d), dtype=bool)
+    mv = np.asarray(missing)
+    if mv.dtype == bool:
+        if mv.shape not in ((n_d,), (batch, n_d)):
+            raise ModelError(f"missing mask must be ({n_d},) or ({batch}, {n_d}) booleans, got {mv.shape}")
+        mask[:] = mv
+    else:
+        ids = mv.astype(np.int64).ravel()
+        if ids.size and (ids.min() < 0 or ids.max() >= n_d):
+            raise ModelError(f"missing marker indices must be in [0, {n_d}) (positions in the marker list), got {ids.tolist()}")
+        mask[:, ids] = True
+    return mask

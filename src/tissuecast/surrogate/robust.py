@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelError
+from .inputs import missing_mask
 from .model import DeformationModel
 
 __all__ = ["SubModelSet", "load_model_folder", "MANIFEST"]
@@ -84,18 +85,7 @@ class SubModelSet:
         elif not (d.ndim == 3 and d.shape[1:] == (n_d, 3)):
             raise ModelError(f"marker displacements must have shape ({3 * n_d},), ({n_d}, 3), (B, {n_d}, 3) or "
                              f"(B, {3 * n_d}) mm, got {np.shape(marker_displacements)}")
-        mask = np.zeros((len(d), n_d), dtype=bool)
-        if missing is not None:
-            m = np.asarray(missing)
-            if m.dtype == bool:
-                if m.shape not in ((n_d,), (len(d), n_d)):
-                    raise ModelError(f"missing mask must be ({n_d},) or ({len(d)}, {n_d}) booleans, got {m.shape}")
-                mask[:] = m
-            else:
-                ids = m.astype(np.int64).ravel()
-                if ids.size and (ids.min() < 0 or ids.max() >= n_d):
-                    raise ModelError(f"missing marker indices must be in [0, {n_d}), got {ids.tolist()}")
-                mask[:, ids] = True
+        mask = np.zeros((len(d), n_d), dtype=bool) if missing is None else missing_mask(missing, len(d), n_d)
         if (mask.sum(axis=1) > 1).any():
             raise ModelError("a SubModelSet predicts with at most one untracked marker per sample")
         which = np.where(mask.any(axis=1), mask.argmax(axis=1), -1)
