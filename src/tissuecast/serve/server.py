@@ -189,6 +189,8 @@ class IGTLServer:
                 except OSError:
                     pass
                 sock.close()
+                self.stats["refused"] += 1
+                self.stats["disconnections"] += 1
                 continue
             client = _Client(sock, peer)
             client.session = ClientSession(self.predictor, lambda data, c=client: self._emit(c, data), **self._session_options)
@@ -283,15 +285,17 @@ class IGTLServer:
 
     def _drop(self, client: _Client, reason: str) -> None:
         fd = client.sock.fileno()
-        if self._clients.pop(fd, None) is None:
+        if fd not in self._clients:
             return
+        # count before removing, so an observer that sees n_clients drop also sees the count
+        self.stats["disconnections"] += 1
+        del self._clients[fd]
         try:
             self._selector.unregister(client.sock)
         except (KeyError, ValueError):
             pass
         client.sock.close()
         counts = client.session.counts
-        self.stats["disconnections"] += 1
         log.info(
             "client %s disconnected (%s); %d requests, %d predictions, %d errors",
             client.peer, reason, counts["requests"], counts["predictions"], counts["errors"],
