@@ -179,11 +179,21 @@ def test_fixed_vertices_on_a_box_by_hand():
     mesh = box_mesh(6, 8, 14)  # 945 vertices, depths 0..3 mm
     fixed = select_fixed_vertices(mesh)
     # deep = depth >= 1.5, i.e. x in [2, 4], y in [2, 6], z in [2, 12].
-    # 1st: deepest (depth 3), lowest id -> (3, 3, 3).
-    # 2nd: farthest deep vertex from (3,3,3): (2 or 4, 6, 12), squared distance 91 -> lower id (2, 6, 12).
-    # 3rd: largest min squared distance to both: (4, 2, 9) with min(38, 29) = 29.
-    np.testing.assert_array_equal(mesh.points[fixed], [[3, 3, 3], [2, 6, 12], [4, 2, 9]])
+    # candidates: the 3 x 5 x 11 grid x in [2, 4], y in [2, 6], z in [2, 12]; centroid (3, 4, 7).
+    # 1st: farthest from the centroid: the 8 corners tie (squared distance 30) -> lowest id (2, 2, 2).
+    # 2nd: farthest from (2, 2, 2): (4, 6, 12), squared distance 4 + 16 + 100 = 120.
+    # 3rd: farthest from the line along a = (2, 4, 10): squared distance |r|^2 - (r.a)^2 / 120
+    #      is 100 - 100^2/120 = 16.67 for (2, 2, 12) and 20 - 20^2/120 = 16.67 for (4, 6, 2);
+    #      every other candidate is closer -> lower id (2, 2, 12).
+    np.testing.assert_array_equal(mesh.points[fixed], [[2, 2, 2], [4, 6, 12], [2, 2, 12]])
     assert fixed.dtype == np.int64
+    # one pin: the deepest (depth 3), lowest id -> (3, 3, 3)
+    np.testing.assert_array_equal(mesh.points[select_fixed_vertices(mesh, count=1)], [[3, 3, 3]])
+    # a 4th pin: farthest-point, the candidate whose nearest pin is farthest away: (4, 6, 6),
+    # 6 mm from each of (2, 2, 2), (4, 6, 12) and (2, 2, 12) (e.g. (4, 6, 7) is 5 mm from (4, 6, 12))
+    four = select_fixed_vertices(mesh, count=4)
+    np.testing.assert_array_equal(four[:3], fixed)
+    np.testing.assert_array_equal(mesh.points[four[3]], [4, 6, 6])
 
 
 def test_fixed_vertices_exclude_and_min_depth():
@@ -237,6 +247,11 @@ def test_phantom_markers_and_fixed_vertices():
     assert depth.min() >= 0.5 * surface_depth(mesh, mesh.interior_vertices).max()
     sep = np.linalg.norm(mesh.points[fixed][:, None] - mesh.points[fixed][None], axis=2)
     assert sep[np.triu_indices(3, 1)].min() > 10.0
+    # a wide pinned triangle (the earlier rule's was 29 x 10 mm: the body swung about it)
+    a, b, c = mesh.points[fixed]
+    assert np.linalg.norm(b - a) > 50.0
+    assert np.linalg.norm(np.cross(b - a, c - a)) / np.linalg.norm(b - a) > 14.0
+    np.testing.assert_array_equal(fixed, [1129, 615, 646])
 
 
 # ------------------------------------------------------------ config-driven choice
