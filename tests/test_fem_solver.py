@@ -184,3 +184,37 @@ def test_rotation_aware_path_follows_the_arc_of_a_rigid_rotation():
     dist = lambda x: np.linalg.norm(x[3:, None] - x[None, 3:], axis=-1)  # noqa: E731
     np.testing.assert_allclose(dist(nodes + moved), dist(nodes), atol=1e-10)
     assert np.abs(dist(nodes + straight) - dist(nodes)).max() > 1.0
+
+
+def test_line_search_lengthens_a_newton_step_that_is_too_short():
+    """On Pi(x) = 1/2 x.A x - f.x a direction of 0.4 x the true step is stretched 2.5x (the secant of
+    the slopes is exact for a quadratic); the exact Newton step is kept as it is."""
+    from tissuecast.fem.linesearch import line_search
+
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(6, 6))
+    a = q @ q.T + 6 * np.eye(6)
+    fext = rng.normal(size=6)
+
+    class Quadratic:
+        def energy_and_force(self, u):
+            x = u.ravel()
+            return 0.5 * x @ a @ x, a @ x, 1.0
+
+    def straight(d):
+        def path(s):
+            return s * d
+
+        path.rotation = np.eye(3)
+        return path
+
+    free = np.arange(6)
+    exact = np.linalg.solve(a, fext)
+    r0 = -fext
+    s, x, pi, _, r, _ = line_search(Quadratic(), straight(0.4 * exact), free, 0.4 * exact, 0.0, r0, fext)
+    assert s == pytest.approx(2.5, rel=1e-12)
+    np.testing.assert_allclose(x, exact, rtol=1e-12)
+    assert np.abs(r).max() < 1e-12
+    s, x, *_ = line_search(Quadratic(), straight(exact), free, exact, 0.0, r0, fext)
+    assert s == 1.0
+    np.testing.assert_allclose(x, exact, rtol=1e-12)

@@ -114,6 +114,8 @@ def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray,
             pi = energy - work
             r = fint[free] - fext[free]
             if pi <= pi0 + 1e-4 * s * g0:
+                if s == 1.0:
+                    return _extrapolate(assembler, path, free, d, g0, fext, (s, trial, pi, fint, r, path.rotation))
                 return s, trial, pi, fint, r, path.rotation
             if -g0 * s <= 1e-8 * (abs(energy) + abs(work)) and np.linalg.norm(r) < r0_norm:
                 return s, trial, pi, fint, r, path.rotation
@@ -123,3 +125,25 @@ def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray,
         else:
             s *= 0.25
     return None
+
+
+def _extrapolate(assembler: Assembler, path, free, d, g0: float, fext: np.ndarray, accepted):
+    """A full step that still runs downhill may be lengthened (softening responses).
+
+    When the slope of the energy along ``d`` at ``s = 1`` is still below half the one at
+    ``s = 0`` (a Newton model that underestimates the step, as when the body softens while it
+    swings), one more trial at the secant minimiser of the slopes (clamped to [1.5, 4]) is
+    taken if it lowers the energy further. Costs one energy evaluation when tried.
+    """
+    g1 = float(d @ accepted[4])
+    if not g1 < 0.5 * g0:
+        return accepted
+    s = min(4.0, max(1.5, -g0 / max(g1 - g0, 1e-300)))
+    trial = path(s)
+    energy, fint, jmin = assembler.energy_and_force(trial.reshape(-1, 3))
+    if not jmin > 0.0:
+        return accepted
+    pi = energy - float(fext @ trial)
+    if pi < accepted[2]:
+        return s, trial, pi, fint, fint[free] - fext[free], path.rotation
+    return accepted
