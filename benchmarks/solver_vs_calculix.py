@@ -17,22 +17,31 @@ in the same run only.
 
 from __future__ import annotations
 
-import argparse
-import resource
-import statistics
+import os
 import sys
-import tempfile
-import time
-from pathlib import Path
 
-import numpy as np
+# Our solver runs with this many BLAS threads (set before numpy loads; default 1, as in
+# data-generation workers: the krylov strategy's many triangular solves are several times
+# slower on multi-threaded OpenBLAS). ccx gets its own thread counts (--threads).
+_BLAS = sys.argv[sys.argv.index("--blas-threads") + 1] if "--blas-threads" in sys.argv else "1"
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ[_v] = _BLAS
 
-from tissuecast.config import SolverConfig
-from tissuecast.fem import NeoHookean, Problem, Solver
-from tissuecast.fem.calculix import ccx_executable, solve_calculix
-from tissuecast.forces import field_scale, lbo_basis, lbo_field, random_lbo_weights
-from tissuecast.markers import select_fixed_vertices, select_markers
-from tissuecast.mesh.phantom import phantom, phantom_surface
+import argparse  # noqa: E402
+import resource  # noqa: E402
+import statistics  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from tissuecast.config import SolverConfig  # noqa: E402
+from tissuecast.fem import NeoHookean, Problem, Solver  # noqa: E402
+from tissuecast.fem.calculix import ccx_executable, solve_calculix  # noqa: E402
+from tissuecast.forces import field_scale, lbo_basis, lbo_field, random_lbo_weights  # noqa: E402
+from tissuecast.markers import select_fixed_vertices, select_markers  # noqa: E402
+from tissuecast.mesh.phantom import phantom, phantom_surface  # noqa: E402
 
 
 #: Seed and RMS surface nodal force (N) of the 20-mode LBO field giving ~27 mm on the phantom
@@ -97,6 +106,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-ccx", action="store_true", help="skip CalculiX (built-in solver only)")
     ap.add_argument("--tolerances", type=float, nargs=2, metavar=("FORCE", "DISP"),
                     help="convergence tolerances for both solvers (default: each one's defaults, 0.005 0.01)")
+    ap.add_argument("--blas-threads", type=int, default=1, help="BLAS threads of our solver (default 1, like data-generation workers)")
+    ap.add_argument("--strategy", default=SolverConfig().strategy, choices=("krylov", "newton", "quasi-newton"),
+                    help=f"our solver's strategy (default {SolverConfig().strategy!r})")
     args = ap.parse_args(argv)
 
     mesh = build_mesh(args.quick)
@@ -110,6 +122,7 @@ def main(argv=None) -> int:
     p2 = Problem(mesh, material, fixed, order=2)
     p1 = Problem(mesh, material, fixed, order=1)
     print(f"mesh: {mesh}; P2 nodes {len(mesh.points10)}; fixed vertices {fixed.tolist()} (0-based)")
+    print(f"our solver: strategy {args.strategy!r}, {os.environ['OPENBLAS_NUM_THREADS']} BLAS thread(s)")
     t0 = time.perf_counter()
     scale, n_cal = calibrate(p2, unit, *args.range)
     forces = scale * unit
@@ -118,9 +131,10 @@ def main(argv=None) -> int:
           f"{np.linalg.norm(forces.sum(0)):.3g} N (calibrated with {n_cal} solves in {time.perf_counter() - t0:.1f} s)")
 
     rows = []
-    config, deck = None, {}
+    config, deck = SolverConfig(strategy=args.strategy), {}
     if args.tolerances:
-        config = SolverConfig(force_tolerance=args.tolerances[0], displacement_tolerance=args.tolerances[1])
+        config = SolverConfig(strategy=args.strategy, force_tolerance=args.tolerances[0],
+                              displacement_tolerance=args.tolerances[1])
         deck = {"force_tolerance": args.tolerances[0], "displacement_tolerance": args.tolerances[1]}
     r2, setup2, sec2 = time_ours(p2, forces, args.repeats, config)
     r1, setup1, sec1 = time_ours(p1, forces, args.repeats, config)

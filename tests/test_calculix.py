@@ -431,7 +431,9 @@ def test_ccx_agrees_with_builtin_solver_on_coarse_phantom(tmp_path):
     from tissuecast.mesh.phantom import phantom_surface
 
     mesh = tetrahedralize_surface(*phantom_surface(3), 9.0)
-    ours, theirs = _cross_check(tmp_path, mesh, rms_force=0.024)
+    # seed 2: 25 mm. (Seed 0 at this level: ccx cuts its increment below the minimum at 83 % of
+    # the load, after 20 increments, where ours converges.)
+    ours, theirs = _cross_check(tmp_path, mesh, rms_force=0.024, seed=2)
     assert theirs.converged and theirs.increments >= 2 and theirs.iterations >= theirs.increments
     assert len(theirs.residual_history) == theirs.iterations
     assert theirs.max_displacement >= 20.0

@@ -71,6 +71,51 @@ def test_strategies_agree_and_quasi_newton_saves_factorisations(beam):
     assert quasi.factorizations < newton.factorizations
 
 
+def test_krylov_strategy_agrees_and_saves_factorisations(beam):
+    """Conjugate gradients preconditioned by an older factorisation reach the same solution
+    with fewer factorisations; each Newton iteration takes between 1 and krylov_iterations
+    preconditioned solves unless it refactorised."""
+    mesh, fixed, f = beam
+    prob = Problem(mesh, MAT, fixed, order=2)
+    tight = dataclasses.replace(SolverConfig(), force_tolerance=1e-6, displacement_tolerance=1e-6)
+    newton = Solver(prob, dataclasses.replace(tight, strategy="newton")).solve(f)
+    krylov = Solver(prob, dataclasses.replace(tight, strategy="krylov")).solve(f)
+    assert krylov.converged
+    assert np.abs(krylov.displacement - newton.displacement).max() <= 1e-5 * newton.max_displacement
+    assert krylov.factorizations < newton.factorizations
+    assert krylov.solves > krylov.iterations  # several CG steps per reused factorisation
+    # one CG step allowed: every Newton iteration refactorises unless one step is enough
+    one = Solver(prob, dataclasses.replace(tight, strategy="krylov", krylov_iterations=1)).solve(f)
+    assert np.abs(one.displacement - newton.displacement).max() <= 1e-5 * newton.max_displacement
+    assert one.factorizations > krylov.factorizations
+
+
+def test_krylov_direction_solves_the_current_tangent():
+    """_krylov: with the tangent at u itself factorised, one CG step is exact; with an older
+    factorisation CG converges to K(u)^-1 r within krylov_tolerance."""
+    from mesh_factories import box_grid as grid
+
+    mesh = grid(3, 2, 2, size=(1.0, 1.0, 1.0))
+    prob = Problem(mesh, MAT, np.flatnonzero(mesh.points[:, 0] < 1e-9), order=2)  # clamped face
+    solver = Solver(prob, SolverConfig(strategy="krylov", krylov_tolerance=1e-8, krylov_iterations=200))
+    solver._stats = {"solves": 0, "krylov": 0, "factorizations": 0, "shifted": 0, "projected": 0}
+    solver._rotation = np.eye(3)
+    rng = np.random.default_rng(1)
+    u = 0.005 * rng.normal(size=(len(prob.nodes), 3))  # small enough that K(u) is positive definite
+    u[prob.constrained_nodes[0]] = 0.0
+    r = rng.normal(size=solver.assembler.n_free)
+    _, data, _ = solver.assembler.tangent(u)
+    exact = -np.linalg.solve(solver.assembler.matrix(data).toarray(), r)
+    solver._factorize(u.ravel())
+    d, rest = solver._krylov(u.ravel(), r)
+    assert rest is None and solver._stats["krylov"] == 1
+    np.testing.assert_allclose(d, exact, rtol=1e-8, atol=1e-12 * np.abs(exact).max())
+    solver._factorize(np.zeros_like(u).ravel())  # an older (reference) tangent as preconditioner
+    d, rest = solver._krylov(u.ravel(), r)
+    assert rest is None and solver._stats["krylov"] > 2
+    assert np.abs(d - exact).max() <= 1e-6 * np.abs(exact).max()
+
+
 def test_default_tolerances_are_accurate(beam):
     mesh, fixed, f = beam
     prob = Problem(mesh, MAT, fixed, order=2)

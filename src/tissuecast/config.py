@@ -97,10 +97,12 @@ class SolverConfig:
     max_iterations: int = _f(16, lo=1, doc="Newton iterations per increment before cutting back")
     retries: int = _f(1, lo=0, hi=10, doc="retries of a failed sample with more cautious increments")
     strategy: str = _f(
-        "newton",
-        choices=("newton", "quasi-newton"),
-        doc="newton: refactorise the tangent every iteration (fastest on the phantom: large swings); quasi-newton: reuse the last factorisation, co-rotated, while the residual falls fast",
+        "krylov",
+        choices=("newton", "quasi-newton", "krylov"),
+        doc="newton: refactorise the tangent every iteration; quasi-newton: reuse the last factorisation, co-rotated, while the residual falls fast; krylov: solve with each new tangent by conjugate gradients preconditioned by the last factorisation, refactorising only when that needs more than krylov_iterations steps",
     )
+    krylov_iterations: int = _f(12, lo=1, hi=1000, doc="krylov: most conjugate-gradient steps per Newton iteration before refactorising")
+    krylov_tolerance: float = _f(1e-2, lo=0.0, lo_open=True, hi=0.5, doc="krylov: relative residual of the linear solve that ends the conjugate gradients")
     rotation_aware: bool = _f(True, doc="line search moves the rigid-rotation part of each step along an arc (large swings about the fixed vertices)")
     refactor_ratio: float = _f(0.5, lo=0.0, hi=1.0, doc="quasi-newton: refactorise when an iteration reduced the residual norm by less than this factor")
     max_quasi_newton: int = _f(2, lo=1, doc="quasi-newton: refactorise after this many iterations with a reused factorisation")
