@@ -132,3 +132,16 @@ def test_simulate_cli_creates_continues_and_refuses(tmp_path, capsys):
     assert "this run: 0 samples" in capsys.readouterr().out
     assert main([a if a != "5" else "6" for a in args]) == 2  # --samples 6 on a 5-sample store
     assert "dataset.n_samples: 5 in the store, 6 now" in capsys.readouterr().err
+
+
+def test_retries_take_a_different_more_cautious_path():
+    from tissuecast.config import SolverConfig
+    from tissuecast.dataset.worker import retry_solver_config
+
+    base = SolverConfig()
+    assert retry_solver_config(base, 0) is base
+    r1, r2 = retry_solver_config(base, 1), retry_solver_config(base, 2)
+    assert base.strategy == "krylov" and r1.strategy == r2.strategy == "newton"
+    assert r1.initial_increment == base.initial_increment / 4 and r2.min_increment == base.min_increment / 16
+    assert (r1.max_iterations, r2.max_iterations) == (2 * base.max_iterations, 4 * base.max_iterations)
+    assert (r1.max_increments, r2.max_increments) == (2 * base.max_increments, 4 * base.max_increments)

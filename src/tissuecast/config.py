@@ -94,7 +94,7 @@ class SolverConfig:
     )
     min_increment: float = _f(1e-5, lo=0.0, lo_open=True, hi=1.0, doc="smallest load fraction before giving up")
     max_increments: int = _f(200, lo=1, doc="maximum number of increments")
-    max_iterations: int = _f(16, lo=1, doc="Newton iterations per increment before cutting back")
+    max_iterations: int = _f(30, lo=1, doc="Newton iterations per increment before cutting back (krylov directions are inexact: hard phantom increments needed 17-30)")
     retries: int = _f(1, lo=0, hi=10, doc="retries of a failed sample with more cautious increments")
     strategy: str = _f(
         "krylov",

@@ -114,17 +114,22 @@ class SampleResult:
 def retry_solver_config(base: SolverConfig, attempt: int) -> SolverConfig:
     """Solver settings of attempt ``attempt`` (0 = as configured).
 
-    Each retry divides the first increment and the smallest increment by 4 and doubles the
-    allowed number of increments: a more cautious load path that is still deterministic.
+    Each retry divides the first increment and the smallest increment by 4, doubles the
+    allowed numbers of increments and of iterations per increment, and solves with exact
+    Newton directions (``strategy = "newton"``): a different, more cautious path that is
+    still deterministic. (Retrying with the same strategy and iteration cap stalled at the
+    same load fraction: the cap, not the increment size, was what failed.)
     """
     if attempt == 0:
         return base
     k = 4.0**attempt
     return dataclasses.replace(
         base,
+        strategy="newton",
         initial_increment=base.initial_increment / k,
         min_increment=base.min_increment / k,
         max_increments=base.max_increments * 2**attempt,
+        max_iterations=base.max_iterations * 2**attempt,
     )
 
 
