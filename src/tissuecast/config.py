@@ -133,7 +133,7 @@ class DatasetConfig:
     workers: int = _f(0, lo=0, hi=256, doc="local worker processes; 0 = automatic")
     scheduler: str = _f("", doc="Dask scheduler address tcp://HOST:PORT; empty = local")
     alpha: float = _f(0.0, lo=0.0, doc="LBO force magnitude alpha (N); 0 = calibrate to forces.target_max_displacement")
-    calibration_samples: int = _f(8, lo=1, hi=1000, doc="pilot samples of the force-magnitude calibration")
+    calibration_samples: int = _f(24, lo=1, hi=1000, doc="pilot samples of the force-magnitude calibration (per-sample peaks spread 5-50 mm on the phantom: 8 pilots put q90 at 30 mm where 22 samples had p90 44 mm)")
     calibration_quantile: float = _f(0.9, lo=0.0, hi=1.0, doc="quantile of per-sample max displacement that meets the target")
 
 
