@@ -100,9 +100,6 @@ class Solver:
         self._cdisp = values.ravel()
         self._free = self.assembler.free_dofs
         self._n = problem.n_vertices
-        a = self.assembler
-        rows = np.repeat(np.arange(a.n_free), np.diff(a.indptr))
-        self._diag = np.flatnonzero(a.indices == rows)  # positions of K's diagonal in its CSR data
         self._tau = 0.0
 
     # ------------------------------------------------------------------ helpers
@@ -134,11 +131,12 @@ class Solver:
             return
         except NotPositiveDefinite:
             log.debug("tangent not positive definite")
-        diag = data[self._diag]
+        idx = self.assembler.diagonal_index
+        diag = data[idx]
         tau = max(0.5 * self._tau, 1e-3)
         while tau <= 10.0:
             shifted = data.copy()
-            shifted[self._diag] += tau * diag
+            shifted[idx] += tau * diag
             self._stats["factorizations"] += 1
             try:
                 self.linear.factorize(shifted)
@@ -156,18 +154,18 @@ class Solver:
         except NotPositiveDefinite:
             raise _Failed("projected tangent stiffness could not be factorised") from None
 
-    def _direction(self, r: np.ndarray) -> np.ndarray:
-        """-K^-1 r with the last factorised tangent K, co-rotated by the rigid rotation R
-        applied since it was factorised: d = -R K^-1 R^T r (node by node)."""
+    def _rotated_solve(self, v: np.ndarray) -> np.ndarray:
+        """K^-1 v with the last factorised tangent K, co-rotated by the rigid rotation R
+        applied since it was factorised: R K^-1 R^T v (node by node)."""
         rot = self._rotation
-        z = self.linear.solve((r.reshape(-1, 3) @ rot).ravel())
+        z = self.linear.solve((v.reshape(-1, 3) @ rot).ravel())
         self._stats["solves"] += 1
-        return -(z.reshape(-1, 3) @ rot.T).ravel()
+        return (z.reshape(-1, 3) @ rot.T).ravel()
 
     def _krylov(self, u: np.ndarray, r: np.ndarray):
         """-K^-1 r for the tangent K at u by preconditioned conjugate gradients.
 
-        The preconditioner is the last factorisation, co-rotated (see :meth:`_direction`).
+        The preconditioner is the last factorisation, co-rotated (:meth:`_rotated_solve`).
         Returns ``(d, None)`` when the relative residual fell below ``krylov_tolerance``
         within ``krylov_iterations`` steps (or negative curvature was met after the first
         step: the iterate so far is still a descent direction), else ``(None, K data)`` so
@@ -176,12 +174,7 @@ class Solver:
         cfg = self.config
         _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
         k = self.assembler.matrix(data)
-        rot = self._rotation
-
-        def precondition(v):
-            self._stats["solves"] += 1
-            return (self.linear.solve((v.reshape(-1, 3) @ rot).ravel()).reshape(-1, 3) @ rot.T).ravel()
-
+        precondition = self._rotated_solve
         b = -r
         x = np.zeros_like(b)
         res = b.copy()
@@ -252,7 +245,7 @@ class Solver:
                 fresh = True
                 reuses = 0
             if d is None:
-                d = self._direction(r)
+                d = -self._rotated_solve(r)
             step = self._line_search(u, d, pi, r, fext)
             if step is None:
                 if fresh:
@@ -286,10 +279,8 @@ class Solver:
             ratio = np.linalg.norm(r) / max(rnorm_old, 1e-300)
             reuses += 0 if fresh else 1
             fresh = False
-            if strategy == "krylov":
-                need_factor = False
-            else:
-                need_factor = strategy == "newton" or ratio > refactor_ratio or reuses >= max_qn
+            need_factor = strategy == "newton" or (
+                strategy == "quasi-newton" and (ratio > refactor_ratio or reuses >= max_qn))
         raise _Failed(f"no convergence in {cfg.max_iterations} iterations")
 
     # --------------------------------------------------------------------- solve
