@@ -9,6 +9,7 @@ import pytest
 
 from tissuecast.config import Config, with_overrides
 from tissuecast.dataset import SPLIT_CODES, make_plan, sample_seed
+from tissuecast.dataset.plan import generation_order
 from tissuecast.dataset.calibrate import _quantile, calibrate_alpha
 from tissuecast.errors import DatasetError
 
@@ -44,6 +45,22 @@ def test_test2_betas_equal_counts():
     betas, counts = np.unique(plan.beta[2000:], return_counts=True)
     np.testing.assert_allclose(betas, np.linspace(0, 1, 11))
     assert counts.max() - counts.min() <= 1 and counts.sum() == 200
+
+
+def test_generation_order_interleaves_splits_in_proportion():
+    plan = make_plan(Config())
+    order = generation_order(plan.split, np.arange(plan.n_samples))
+    assert np.array_equal(np.sort(order), np.arange(plan.n_samples))
+    share = {code: np.mean(plan.split == code) for code in range(4)}
+    for m in (1, 10, 57, 300, 1111, 2200):  # every prefix holds each split within one sample
+        counts = np.bincount(plan.split[order[:m]], minlength=4)
+        for code in range(4):
+            assert abs(counts[code] - m * share[code]) <= 1.0, (m, code)
+    test2 = order[plan.split[order] == SPLIT_CODES["test2"]]
+    assert np.array_equal(test2, np.arange(2000, 2200))  # by index, so the betas cycle
+    # the order depends on the set of indices only, not on how they are listed
+    rest = order[500:]
+    assert np.array_equal(generation_order(plan.split, rest[::-1]), generation_order(plan.split, rest))
 
 
 def test_plan_is_deterministic_and_seed_dependent():

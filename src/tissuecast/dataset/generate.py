@@ -21,7 +21,7 @@ from ..config import Config, config_from_dict, config_to_dict, config_to_toml, l
 from ..errors import DatasetError
 from .calibrate import calibrate_alpha, initial_alpha
 from .executors import make_executor
-from .plan import make_plan
+from .plan import generation_order, make_plan
 from .reader import open_dataset
 from .store import StoreWriter
 from .worker import Recipe, Task
@@ -228,10 +228,14 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
 
 
 def _solve_pending(writer: StoreWriter, ex, progress: bool, run: dict) -> None:
-    """Solve every pending sample at the calibrated alpha, writing results as they come."""
+    """Solve every pending sample at the calibrated alpha, writing results as they come.
+
+    The splits are interleaved (:func:`~.plan.generation_order`), so a run stopped part-way
+    leaves a store whose done samples already cover every split in proportion.
+    """
     alpha = float(writer.calibration["alpha"])
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
-    pending = writer.pending()
+    pending = generation_order(writer.read("samples/split"), writer.pending())
     t_start = last_flush = time.monotonic()
     unflushed = 0
     bar = _Progress(len(writer.status), len(writer.status) - len(pending), progress)

@@ -13,6 +13,9 @@ that any sample can be recomputed alone and in any order (the basis of exact res
   so the counts per beta differ by at most one (200 samples over 11 betas: 19 or 18 each).
 * Per-sample seed: ``SeedSequence([seed, index]).generate_state(1, uint64)[0]``; the sample's
   random numbers come from ``numpy.random.default_rng(sample_seed)`` and nothing else.
+* Generation order (:func:`generation_order`): the splits are interleaved in proportion, so
+  a store stopped part-way (or a long run inspected while it goes) holds train, valid,
+  test-1 and test-2 samples in the planned ratio. The order changes no sample's numbers.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import numpy as np
 
 from ..config import Config
 
-__all__ = ["SPLIT_NAMES", "SPLIT_CODES", "SamplePlan", "make_plan", "sample_seed", "SPLIT_STREAM"]
+__all__ = ["SPLIT_NAMES", "SPLIT_CODES", "SamplePlan", "make_plan", "sample_seed", "generation_order", "SPLIT_STREAM"]
 
 #: Integer codes of the split labels, as stored in ``samples/split``.
 SPLIT_NAMES: dict[int, str] = {0: "train", 1: "valid", 2: "test1", 3: "test2"}
@@ -86,3 +89,27 @@ def make_plan(cfg: Config) -> SamplePlan:
     beta[n:] = betas[np.arange(n2) % len(betas)]
     seed = np.array([sample_seed(ds.seed, i) for i in range(n + n2)], dtype=np.uint64)
     return SamplePlan(split=split, beta=beta, seed=seed, n_lbo=n)
+
+
+def generation_order(split: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """The order in which to solve the samples ``indices``: splits interleaved in proportion.
+
+    Sample ``i``, the ``k``-th (0-based, by index) of the ``n_s`` samples of its split in
+    ``indices``, gets the key ``(k + 1/2) / n_s``; samples are taken by ascending key (ties
+    by index). Every prefix of the order then holds each split within one sample of its
+    share, and within a split the samples come by index (test-2 betas cycle).
+
+    Args:
+        split: (N,) split codes of the whole data set.
+        indices: (m,) indices of the samples to order (e.g. the pending ones).
+
+    Returns:
+        (m,) int64, a permutation of ``indices``.
+    """
+    idx = np.sort(np.asarray(indices, dtype=np.int64))
+    codes = np.asarray(split)[idx]
+    key = np.empty(len(idx))
+    for c in np.unique(codes):
+        members = np.flatnonzero(codes == c)
+        key[members] = (np.arange(len(members)) + 0.5) / len(members)
+    return idx[np.lexsort((idx, key))]
