@@ -29,23 +29,22 @@ import numpy as np
 
 def unit_responses(mesh, fixed, basis, youngs_modulus=0.021, poisson_ratio=0.45):
     """(20, 3, n, 3) mm vertex displacements of the small-strain P2 solid under unit LBO modes."""
-    from tissuecast.config import SolverConfig
     from tissuecast.fem import NeoHookean, Problem, Solver
-    from tissuecast.fem.linear import make_linear_solver
+    from tissuecast.forces import lbo_field
 
     problem = Problem(mesh, NeoHookean(youngs_modulus, poisson_ratio), np.asarray(fixed), order=2)
-    assembler = Solver(problem, SolverConfig()).assembler
+    solver = Solver(problem)
+    assembler, linear = solver.assembler, solver.linear
     _, data, _ = assembler.tangent(np.zeros((assembler.n_nodes, 3)))
-    linear = make_linear_solver("auto", assembler)
     linear.factorize(data)
-    n, nb = mesh.n_points, basis.vectors.shape[1]
-    modes = np.zeros((n, nb))
-    modes[basis.vertices] = basis.vectors
+    n, nb = mesh.n_points, basis.n_vectors
     out = np.zeros((nb, 3, n, 3))
     for i in range(nb):
         for c in range(3):
+            unit = np.zeros((nb, 3))
+            unit[i, c] = 1.0
             f = np.zeros((assembler.n_nodes, 3))
-            f[:n, c] = modes[:, i]
+            f[:n] = lbo_field(basis, unit, 1.0, n)
             u = np.zeros(assembler.n_dofs)
             u[assembler.free_dofs] = linear.solve(f.ravel()[assembler.free_dofs])
             out[i, c] = u.reshape(-1, 3)[:n]
