@@ -35,6 +35,9 @@ def _points_of(mesh) -> np.ndarray:
     return pts
 
 
+FIXED_RULES = ("compact", "spread")
+
+
 def _pick(score: np.ndarray, eligible: np.ndarray, largest: bool) -> int:
     """Index of the best eligible score; near-ties (rtol 1e-12) go to the lowest index."""
     s = np.where(eligible, score if largest else -score, -np.inf)
@@ -205,14 +208,27 @@ def select_fixed_vertices(
     exclude=(),
     min_depth: float | None = None,
     depth_fraction: float = 0.5,
+    rule: str = "spread",
+    spacing: float = 5.0,
 ) -> np.ndarray:
-    """Choose the pinned (fixed) vertices: interior, deep inside, well separated, never a marker.
+    """Choose the pinned (fixed) vertices: interior, deep inside, never a marker.
 
-    Rule: candidates are interior vertices (not on the outer surface) that are not in
+    Candidates are interior vertices (not on the outer surface) that are not in
     ``exclude`` and whose distance to the outer surface (:func:`surface_depth`) is at least
-    ``min_depth`` mm (default ``depth_fraction`` x the largest depth of any vertex). Among
-    them the pins are spread as widely as possible, so that together they hold the body
-    against rotation about *every* axis:
+    ``min_depth`` mm (default ``depth_fraction`` x the largest depth of any vertex).
+    Two rules place the pins among them; they give two different learning problems
+    (``benchmarks/pin_identifiability.py`` and ``benchmarks/pin_rules.py`` measure both):
+
+    ``rule="compact"`` (a small anchor deep inside, like the paper's 3 interior vertices):
+    the deepest candidate, then greedily the candidate that keeps the pinned group smallest
+    (least largest distance to the pins so far) while lying at least ``spacing`` mm from every
+    pin and, for the third, at least ``spacing / 2`` mm off the line through the first two (a
+    real triangle, so no free hinge axis). The body is held at one small region and *swings*
+    about it under dead loads: the fields are dominated by a few near-rigid rotations, which
+    5 markers identify well (phantom, linear elasticity: 5-marker floor 0.2-0.3 mm).
+
+    ``rule="spread"``: the pins are spread as widely as possible, so that together they hold
+    the body against rotation about *every* axis:
 
     1. the candidate farthest from the candidates' centroid, then the candidate farthest
        from that one (the two ends of the candidate cloud's longest extent);
@@ -222,10 +238,11 @@ def select_fixed_vertices(
 
     ``count == 1`` takes the deepest candidate. Ties go to the lowest id.
 
-    Why: three pins close to one line leave the body free to *swing* about that line
-    under dead loads. On the phantom, the earlier rule (deepest, then farthest-point: a
-    29 x 10 mm pinned triangle) needed 88 s and 111 factorisations for a 27 mm P2 sample;
-    this rule (55 x 15 mm) needed 14 s and 21 for the same force field scaled to 27 mm.
+    Displacements then come from strain in many independent directions: the fields are
+    high-dimensional and 5 markers cannot pin them down (phantom, linear elasticity: n_w 21,
+    5-marker floor 2.1 mm). Three pins close to one *line* (neither rule) leave a hinge: on
+    the phantom a 29 x 10 mm near-collinear triangle needed 88 s and 111 factorisations for
+    a 27 mm P2 sample, the spread rule (55 x 15 mm) 14 s and 21.
 
     Args:
         mesh: the tetrahedral mesh.
@@ -233,6 +250,8 @@ def select_fixed_vertices(
         exclude: 0-based ids never to choose (the markers).
         min_depth: minimum distance to the surface in mm; overrides ``depth_fraction``.
         depth_fraction: fraction (0..1) of the maximum depth used when ``min_depth`` is None.
+        rule: ``"compact"`` or ``"spread"`` (see above).
+        spacing: smallest distance between compact pins, mm.
 
     Returns:
         (count,) int64, 0-based vertex ids in pick order.
@@ -246,6 +265,10 @@ def select_fixed_vertices(
         raise MarkerError(f"fixed vertex count must be an integer >= 1, got {count!r}")
     if not 0.0 <= depth_fraction <= 1.0:
         raise MarkerError(f"depth_fraction must lie in [0, 1], got {depth_fraction!r}")
+    if rule not in FIXED_RULES:
+        raise MarkerError(f"unknown fixed-vertex rule {rule!r}; use one of {', '.join(FIXED_RULES)}")
+    if not (np.isfinite(spacing) and spacing > 0):
+        raise MarkerError(f"fixed-vertex spacing must be a positive length in mm, got {spacing!r}")
     exclude = validate_vertex_ids(mesh, exclude, "excluded vertices", allow_empty=True)
     interior = mesh.interior_vertices
     if len(interior) == 0:
@@ -267,6 +290,8 @@ def select_fixed_vertices(
     everyone = np.ones(len(cand), bool)
     if count == 1:
         return cand[[_pick(cdepth, everyone, largest=True)]].astype(np.int64)
+    if rule == "compact":
+        return cand[_compact_pins(pts, cdepth, count, spacing)].astype(np.int64)
     first = _pick(np.linalg.norm(pts - pts.mean(axis=0), axis=1), everyone, largest=True)
     second = _pick(np.linalg.norm(pts - pts[first], axis=1), everyone, largest=True)
     chosen = [first, second]
@@ -286,6 +311,30 @@ def select_fixed_vertices(
         chosen.append(j)
         nearest = np.minimum(nearest, np.linalg.norm(pts - pts[j], axis=1))
     return cand[np.asarray(chosen)].astype(np.int64)
+
+
+def _compact_pins(pts: np.ndarray, depth: np.ndarray, count: int, spacing: float) -> np.ndarray:
+    """Indices into ``pts`` of the compact rule (see :func:`select_fixed_vertices`)."""
+    everyone = np.ones(len(pts), bool)
+    chosen = [_pick(depth, everyone, largest=True)]
+    dist = np.linalg.norm(pts - pts[chosen[0]], axis=1)[None]  # (chosen, candidates)
+    while len(chosen) < count:
+        eligible = dist.min(axis=0) >= spacing
+        if len(chosen) == 2:
+            axis = pts[chosen[1]] - pts[chosen[0]]
+            axis = axis / np.linalg.norm(axis)
+            rel = pts - pts[chosen[0]]
+            eligible &= np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1) >= 0.5 * spacing
+        if not eligible.any():
+            raise MarkerError(
+                f"no room for {count} compact fixed vertices {spacing:g} mm apart among the deep "
+                "interior vertices; use a smaller spacing, fewer fixed vertices, a smaller "
+                "depth_fraction or rule 'spread'"
+            )
+        j = _pick(dist.max(axis=0), eligible, largest=False)
+        chosen.append(j)
+        dist = np.vstack([dist, np.linalg.norm(pts - pts[j], axis=1)])
+    return np.asarray(chosen)
 
 
 def validate_vertex_ids(mesh: TetMesh, ids, what: str = "vertex ids", *, other=None,
@@ -365,5 +414,6 @@ def markers_and_fixed(mesh: TetMesh, config=None) -> tuple[np.ndarray, np.ndarra
         fixed = validate_vertex_ids(mesh, config.fixed_ids, "fixed vertices", other=markers)
     else:
         fixed = select_fixed_vertices(mesh, count=config.fixed_count, exclude=markers,
-                                      depth_fraction=config.fixed_depth_fraction)
+                                      depth_fraction=config.fixed_depth_fraction,
+                                      rule=config.fixed_rule, spacing=config.fixed_spacing)
     return markers, fixed
