@@ -120,6 +120,20 @@ def test_other_mesh_is_refused(made, tmp_path):
         simulate(with_overrides(cfg, mesh={"path": str(other)}), path, progress=False, solver_factory=FAKE)
 
 
+def test_other_pins_under_the_same_config_are_refused(made, monkeypatch):
+    """A store whose fixed vertices differ from what the same config gives now (a changed
+    default rule) is not continued with the config's pins."""
+    cfg, path, _ = made
+    before = store_arrays(path)
+    import tissuecast.markers as tm
+
+    real = tm.select_fixed_vertices
+    monkeypatch.setattr(tm, "select_fixed_vertices", lambda *a, **k: real(*a, **k)[::-1].copy())
+    with pytest.raises(DatasetError, match=r"has fixed vertices \[.*\] but this config gives.*fixed_ids"):
+        simulate(cfg, path, progress=False, solver_factory=FAKE)
+    assert store_arrays(path) == before
+
+
 def test_unknown_or_newer_schema_refused(made, tmp_path):
     _, path, _ = made
     import shutil

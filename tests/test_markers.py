@@ -196,6 +196,33 @@ def test_fixed_vertices_on_a_box_by_hand():
     np.testing.assert_array_equal(mesh.points[four[3]], [4, 6, 6])
 
 
+def test_compact_fixed_vertices_on_a_box_by_hand():
+    mesh = box_mesh(6, 8, 14)  # ids grow with x, then y, then z fastest; candidates as above
+    # 1st: the deepest candidate (depth 3), lowest id: (3, 3, 3).
+    # spacing 1: 2nd: the six neighbours at 1 mm tie -> lowest id (2, 3, 3); 3rd: >= 1 mm from
+    # both and >= 0.5 mm off their line, least largest distance: on this grid no point is 1 mm
+    # from both, sqrt(2) is the least (8 ties) -> lowest id (2, 2, 3).
+    fixed = select_fixed_vertices(mesh, rule="compact", spacing=1.0)
+    np.testing.assert_array_equal(mesh.points[fixed], [[3, 3, 3], [2, 3, 3], [2, 2, 3]])
+    # spacing 2: 2nd: only (3, 3, 5) and (3, 5, 3) are exactly 2 mm away (x in [2, 4]) -> (3, 3, 5);
+    # 3rd: a point at squared distance 4 from both would need z = 4 and dx^2 + dy^2 = 3: none;
+    # squared distance 5 from both: z = 4 and (dx, dy) = (0, +-2) -> (3, 5, 4) (y = 1 is too shallow).
+    fixed = select_fixed_vertices(mesh, rule="compact", spacing=2.0)
+    np.testing.assert_array_equal(mesh.points[fixed], [[3, 3, 3], [3, 3, 5], [3, 5, 4]])
+    sep = np.linalg.norm(mesh.points[fixed][:, None] - mesh.points[fixed][None], axis=2)
+    assert sep[np.triu_indices(3, 1)].min() >= 2.0
+    # pinned triangle area: compact |(0, 0, 2) x (0, 2, 1)| / 2 = 2 mm^2; spread (see above)
+    # |(2, 4, 10) x (0, 0, 10)| / 2 = 22.36 mm^2
+    area = lambda f: np.linalg.norm(np.cross(*(mesh.points[f[1:]] - mesh.points[f[0]]))) / 2  # noqa: E731
+    assert area(fixed) == pytest.approx(2.0) and area(select_fixed_vertices(mesh)) == pytest.approx(22.36, abs=0.01)
+    with pytest.raises(MarkerError, match=r"no room for 3 compact fixed vertices 20 mm apart.*smaller spacing"):
+        select_fixed_vertices(mesh, rule="compact", spacing=20.0)
+    with pytest.raises(MarkerError, match=r"unknown fixed-vertex rule 'tight'; use one of compact, spread"):
+        select_fixed_vertices(mesh, rule="tight")
+    with pytest.raises(MarkerError, match="spacing must be a positive length"):
+        select_fixed_vertices(mesh, rule="compact", spacing=0.0)
+
+
 def test_fixed_vertices_exclude_and_min_depth():
     mesh = box_mesh(6, 8, 14)
     first = select_fixed_vertices(mesh)[0]

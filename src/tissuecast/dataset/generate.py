@@ -60,7 +60,7 @@ def setup_from_config(cfg: Config):
     return mesh, np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
 
 
-def _check_same(writer: StoreWriter, cfg: Config, mesh) -> None:
+def _check_same(writer: StoreWriter, cfg: Config, mesh, markers=None, fixed=None) -> None:
     stored = data_config(config_from_dict(tomllib.loads(writer.config_toml)))
     now = data_config(cfg)
     diffs = [f"{sec}.{k}: {stored[sec].get(k)!r} in the store, {now[sec].get(k)!r} now"
@@ -76,6 +76,16 @@ def _check_same(writer: StoreWriter, cfg: Config, mesh) -> None:
         raise DatasetError(
             f"data set {str(writer.path)!r} was made on a different mesh (fingerprint {str(fp)[:12]}..., this mesh "
             f"{mesh.fingerprint()[:12]}...); use the original mesh or another --store path; a store is never overwritten")
+    for what, now in (("markers", markers), ("fixed", fixed)):
+        if now is None:
+            continue
+        stored_ids = np.asarray(writer.read(what), dtype=np.int64)
+        if not np.array_equal(stored_ids, now):
+            raise DatasetError(
+                f"data set {str(writer.path)!r} has {what} vertices {stored_ids.tolist()} but this config gives "
+                f"{np.asarray(now).tolist()} (e.g. a store from a version with another default rule); set "
+                f"markers.{'ids' if what == 'markers' else 'fixed_ids'} to the stored ids to continue it, or choose "
+                "another --store path; a store is never overwritten")
 
 
 _FLUSH_SECONDS = 2.0  # per-sample values and statuses reach the disk at least this often ...
@@ -126,7 +136,7 @@ def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
     mesh, markers, fixed = setup_from_config(cfg)
     if path.exists():
         writer = StoreWriter.open(path)
-        _check_same(writer, cfg, mesh)
+        _check_same(writer, cfg, mesh, markers, fixed)
         return writer
     from ..forces import lbo_basis
 
