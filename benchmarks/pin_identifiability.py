@@ -11,13 +11,22 @@ per-sample maximum displacement is 30 mm (the data-set rule):
   the whole field from the 5 markers' displacements (least squares on 1600 samples). In
   linear elasticity this is exact regression, so what remains is what 5 markers cannot see.
 
-Measured on the phantom (2 cores): the current spread-triangle pins [1129, 615, 646]: n_w 21,
-first component 87 % of the variance, floor 2.1 mm; the earlier near-collinear pins
-[769, 1012, 1129] (the body swings about them): n_w 8, first component 99.5 %, floor 0.46 mm.
-The nonlinear paper-preset data set with the spread pins behaves alike (test-1 mean
-Offset_max 2.9 mm after 529 training samples, error independent of the sample's size).
+Measured on the phantom (2 cores):
 
-    python benchmarks/pin_identifiability.py [--fixed 1129,615,646 --fixed 769,1012,1129]
+=================================  ====  ===================  =====================
+pins (0-based)                      n_w   PCA 1-3 variance     5-marker floor
+=================================  ====  ===================  =====================
+compact [769, 801, 703] (default)   5    46 / 44 / 10 %       0.25 mm, 100 % < 1 mm
+spread [1129, 615, 646]             21   87 / 4 / 3 %         2.12 mm, 2 % < 1 mm
+near-collinear [769, 1012, 1129]    8    99.5 / 0.1 / 0.1 %   0.46 mm, 100 % < 1 mm
+=================================  ====  ===================  =====================
+
+Compact pins: the body swings about a small anchor (three near-rigid rotations carry the
+fields); spread pins: it strains in ~60 independent directions that 5 markers cannot see.
+The nonlinear data sets agree: test-1 mean Offset_max 2.9-3.2 mm with the spread pins and
+0.68 mm with the compact ones after a few hundred training samples.
+
+    python benchmarks/pin_identifiability.py [--fixed 769,801,703 --fixed 1129,615,646]
 """
 
 from __future__ import annotations
@@ -77,7 +86,7 @@ def measure(responses, markers, n_train=1600, n_test=400, seed=0, target=30.0, q
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--fixed", action="append", help="comma-separated 0-based fixed vertex ids (repeatable); "
-                    "default: the current rule's pins and the earlier near-collinear ones")
+                    "default: the compact and spread rules' pins and the earlier near-collinear ones")
     args = ap.parse_args(argv)
 
     from tissuecast.forces import lbo_basis
@@ -88,7 +97,7 @@ def main(argv=None) -> int:
     markers = select_markers(mesh)
     basis = lbo_basis(mesh, 20)
     sets = [[int(v) for v in s.split(",")] for s in args.fixed] if args.fixed else [
-        select_fixed_vertices(mesh, exclude=markers).tolist(), [769, 1012, 1129]]
+        select_fixed_vertices(mesh, exclude=markers, rule=rule).tolist() for rule in ("compact", "spread")] + [[769, 1012, 1129]]
     print(f"phantom P2, linear elasticity, markers {markers.tolist()}, fields scaled to q90 max = 30 mm")
     print(f"{'fixed vertices':>22} | {'n_w (<1 mm)':>11} | {'variance of PCA 1-4':>28} | 5-marker floor: mean Offset_max, share < 1 mm")
     for fixed in sets:

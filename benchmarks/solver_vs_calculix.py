@@ -100,6 +100,8 @@ def main(argv=None) -> int:
                     help="wanted maximum displacement of the P2 solution, mm (default 25 30)")
     ap.add_argument("--rms-force", type=float, help="RMS surface nodal force (N) to start the calibration from "
                     f"(default {PHANTOM_RMS_FORCE} for the phantom, {QUICK_RMS_FORCE} with --quick)")
+    ap.add_argument("--fixed-rule", default="compact", choices=("compact", "spread"),
+                    help="fixed-vertex rule (default compact, the library's; spread: the body strains instead of swinging)")
     ap.add_argument("--seed", type=int, help=f"seed of the LBO weights (default {PHANTOM_SEED}; {QUICK_SEED} with --quick)")
     ap.add_argument("--repeats", type=int, default=3, help="timed solves per built-in configuration (median)")
     ap.add_argument("--workdir", help="keep ccx's files here (default: a temporary folder)")
@@ -113,7 +115,7 @@ def main(argv=None) -> int:
 
     mesh = build_mesh(args.quick)
     markers = select_markers(mesh)
-    fixed = select_fixed_vertices(mesh, 3, exclude=markers)
+    fixed = select_fixed_vertices(mesh, 3, exclude=markers, rule=args.fixed_rule)
     material = NeoHookean(0.021, 0.45)
     basis = lbo_basis(mesh, 20)
     rms = args.rms_force or (QUICK_RMS_FORCE if args.quick else PHANTOM_RMS_FORCE)

@@ -78,6 +78,7 @@ def test_markers_on_phantom_writes_csv_json_vtu(tmp_path, capsys):
     assert doc["fixed"]["ids"] == fixed.tolist()
     np.testing.assert_allclose(doc["markers"]["coordinates"], m.points[markers])
     assert doc["parameters"]["min_distance_mm"] == 10.0 and doc["mesh_fingerprint"] == m.fingerprint()
+    assert doc["parameters"]["fixed_rule"] == "compact" and doc["parameters"]["fixed_spacing_mm"] == 5.0
     rows = list(csv.DictReader(open(tmp_path / "out" / "fm.csv")))
     assert [r["role"] for r in rows] == ["marker"] * 5 + ["fixed"] * 3
     assert [int(r["vertex_id_0based"]) for r in rows] == markers.tolist() + fixed.tolist()
@@ -96,6 +97,21 @@ def test_markers_with_user_given_ids(tmp_path, capsys):
     doc = json.loads((tmp_path / "u.json").read_text())
     assert doc["markers"]["ids"] == [3, 7, 11] and doc["fixed"]["ids"] == [1000, 1001]
     assert doc["parameters"]["user_given_markers"] is True
+
+
+
+def test_markers_fixed_rule_flags(tmp_path, capsys):
+    m = tc.phantom()
+    markers = tc.select_markers(m)
+    for rule, spacing in (("spread", None), ("compact", 8.0)):
+        args = ["markers", "phantom", "--fixed-rule", rule, "--out", str(tmp_path / rule)]
+        assert main(args + (["--fixed-spacing", str(spacing)] if spacing else [])) == 0
+        doc = json.loads((tmp_path / f"{rule}.json").read_text())
+        want = tc.select_fixed_vertices(m, exclude=markers, rule=rule, spacing=spacing or 5.0)
+        assert doc["fixed"]["ids"] == want.tolist() and doc["parameters"]["fixed_rule"] == rule
+    assert doc["fixed"]["ids"] == [769, 1078, 1009]  # compact at 8 mm: sides 8.0, 8.3, 8.4 mm
+    assert main(["markers", "phantom", "--fixed-rule", "compact", "--fixed-spacing", "40", "--out", str(tmp_path / "x")]) == 2
+    assert "no room for 3 compact fixed vertices" in capsys.readouterr().err
 
 
 def test_markers_png(tmp_path, capsys):

@@ -177,7 +177,7 @@ def test_surface_depth_of_a_box_is_distance_to_its_faces():
 # ---------------------------------------------------------------- fixed vertices
 def test_fixed_vertices_on_a_box_by_hand():
     mesh = box_mesh(6, 8, 14)  # 945 vertices, depths 0..3 mm
-    fixed = select_fixed_vertices(mesh)
+    fixed = select_fixed_vertices(mesh, rule="spread")
     # deep = depth >= 1.5, i.e. x in [2, 4], y in [2, 6], z in [2, 12].
     # candidates: the 3 x 5 x 11 grid x in [2, 4], y in [2, 6], z in [2, 12]; centroid (3, 4, 7).
     # 1st: farthest from the centroid: the 8 corners tie (squared distance 30) -> lowest id (2, 2, 2).
@@ -191,7 +191,7 @@ def test_fixed_vertices_on_a_box_by_hand():
     np.testing.assert_array_equal(mesh.points[select_fixed_vertices(mesh, count=1)], [[3, 3, 3]])
     # a 4th pin: farthest-point, the candidate whose nearest pin is farthest away: (4, 6, 6),
     # 6 mm from each of (2, 2, 2), (4, 6, 12) and (2, 2, 12) (e.g. (4, 6, 7) is 5 mm from (4, 6, 12))
-    four = select_fixed_vertices(mesh, count=4)
+    four = select_fixed_vertices(mesh, count=4, rule="spread")
     np.testing.assert_array_equal(four[:3], fixed)
     np.testing.assert_array_equal(mesh.points[four[3]], [4, 6, 6])
 
@@ -214,7 +214,7 @@ def test_compact_fixed_vertices_on_a_box_by_hand():
     # pinned triangle area: compact |(0, 0, 2) x (0, 2, 1)| / 2 = 2 mm^2; spread (see above)
     # |(2, 4, 10) x (0, 0, 10)| / 2 = 22.36 mm^2
     area = lambda f: np.linalg.norm(np.cross(*(mesh.points[f[1:]] - mesh.points[f[0]]))) / 2  # noqa: E731
-    assert area(fixed) == pytest.approx(2.0) and area(select_fixed_vertices(mesh)) == pytest.approx(22.36, abs=0.01)
+    assert area(fixed) == pytest.approx(2.0) and area(select_fixed_vertices(mesh, rule="spread")) == pytest.approx(22.36, abs=0.01)
     with pytest.raises(MarkerError, match=r"no room for 3 compact fixed vertices 20 mm apart.*smaller spacing"):
         select_fixed_vertices(mesh, rule="compact", spacing=20.0)
     with pytest.raises(MarkerError, match=r"unknown fixed-vertex rule 'tight'; use one of compact, spread"):
@@ -225,11 +225,11 @@ def test_compact_fixed_vertices_on_a_box_by_hand():
 
 def test_fixed_vertices_exclude_and_min_depth():
     mesh = box_mesh(6, 8, 14)
-    first = select_fixed_vertices(mesh)[0]
-    fixed = select_fixed_vertices(mesh, count=4, exclude=[first])
+    first = select_fixed_vertices(mesh, rule="spread")[0]
+    fixed = select_fixed_vertices(mesh, count=4, exclude=[first], rule="spread")
     assert first not in fixed
     assert np.all(surface_depth(mesh, fixed) >= 1.5)
-    fixed = select_fixed_vertices(mesh, count=2, min_depth=3.0)
+    fixed = select_fixed_vertices(mesh, count=2, min_depth=3.0, rule="spread")
     np.testing.assert_allclose(surface_depth(mesh, fixed), 3.0)
     with pytest.raises(MarkerError, match=r"only 27 interior vertices.*smaller count"):
         select_fixed_vertices(mesh, count=28, min_depth=3.0)  # depth 3: 1 x 3 x 9 vertices
@@ -267,11 +267,12 @@ def test_phantom_markers_and_fixed_vertices():
     assert markers[0] == 96 and len(np.unique(markers)) == 5
     d = np.linalg.norm(mesh.points[markers][:, None] - mesh.points[markers][None], axis=2)
     assert d[np.triu_indices(5, 1)].min() > 10.0
-    fixed = select_fixed_vertices(mesh, count=3, exclude=markers)
+    deepest = surface_depth(mesh, mesh.interior_vertices).max()
+    fixed = select_fixed_vertices(mesh, count=3, exclude=markers, rule="spread")
     assert not np.isin(fixed, markers).any()
     assert np.isin(fixed, mesh.interior_vertices).all()
     depth = surface_depth(mesh, fixed)
-    assert depth.min() >= 0.5 * surface_depth(mesh, mesh.interior_vertices).max()
+    assert depth.min() >= 0.5 * deepest
     sep = np.linalg.norm(mesh.points[fixed][:, None] - mesh.points[fixed][None], axis=2)
     assert sep[np.triu_indices(3, 1)].min() > 10.0
     # a wide pinned triangle (the earlier rule's was 29 x 10 mm: the body swung about it)
@@ -279,6 +280,13 @@ def test_phantom_markers_and_fixed_vertices():
     assert np.linalg.norm(b - a) > 50.0
     assert np.linalg.norm(np.cross(b - a, c - a)) / np.linalg.norm(b - a) > 14.0
     np.testing.assert_array_equal(fixed, [1129, 615, 646])
+    # the default, compact: the deepest vertex and two more 5-6.3 mm away (a small real triangle)
+    compact = select_fixed_vertices(mesh, count=3, exclude=markers)
+    np.testing.assert_array_equal(compact, [769, 801, 703])
+    assert surface_depth(mesh, compact[:1])[0] == pytest.approx(deepest)
+    assert np.all(surface_depth(mesh, compact) >= 0.5 * deepest) and not np.isin(compact, markers).any()
+    sep = np.linalg.norm(mesh.points[compact][:, None] - mesh.points[compact][None], axis=2)[np.triu_indices(3, 1)]
+    assert 5.0 <= sep.min() and sep.max() < 6.5
 
 
 # ------------------------------------------------------------ config-driven choice
@@ -291,11 +299,16 @@ def test_markers_and_fixed_from_config():
     markers, fixed = markers_and_fixed(mesh, cfg)
     np.testing.assert_array_equal(markers, select_markers(mesh, count=4, start=5, min_distance=3.0))
     np.testing.assert_array_equal(fixed, select_fixed_vertices(mesh, count=3, exclude=markers))
+    _, spread = markers_and_fixed(mesh, MarkerConfig(count=4, start=5, min_distance=3.0, fixed_rule="spread"))
+    np.testing.assert_array_equal(spread, select_fixed_vertices(mesh, count=3, exclude=markers, rule="spread"))
+    _, wide = markers_and_fixed(mesh, MarkerConfig(count=4, start=5, min_distance=3.0, fixed_spacing=2.0))
+    np.testing.assert_array_equal(wide, select_fixed_vertices(mesh, count=3, exclude=markers, spacing=2.0))
+    assert not np.array_equal(wide, fixed)
     markers, fixed = markers_and_fixed(mesh, MarkerConfig(ids=(1, 2), fixed_ids=(453, 7)))
     np.testing.assert_array_equal(markers, [1, 2])
     np.testing.assert_array_equal(fixed, [453, 7])
     with pytest.raises(MarkerError, match=r"\[2\] are both fixed vertices and markers"):
         markers_and_fixed(mesh, MarkerConfig(ids=(1, 2), fixed_ids=(2,)))
     # a deeper fixed-vertex rule
-    _, fixed = markers_and_fixed(mesh, MarkerConfig(ids=(0,), fixed_depth_fraction=1.0))
+    _, fixed = markers_and_fixed(mesh, MarkerConfig(ids=(0,), fixed_depth_fraction=1.0, fixed_rule="spread"))
     np.testing.assert_allclose(surface_depth(mesh, fixed), 3.0)

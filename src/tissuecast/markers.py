@@ -208,7 +208,7 @@ def select_fixed_vertices(
     exclude=(),
     min_depth: float | None = None,
     depth_fraction: float = 0.5,
-    rule: str = "spread",
+    rule: str = "compact",
     spacing: float = 5.0,
 ) -> np.ndarray:
     """Choose the pinned (fixed) vertices: interior, deep inside, never a marker.

@@ -43,6 +43,11 @@ def register(sub) -> None:
     p.add_argument("--min-distance", type=float, metavar="MM", help=f"d_min in mm (default {d.min_distance:g})")
     p.add_argument("--ids", type=int, nargs="+", metavar="ID", help="use these 0-based marker ids instead of choosing")
     p.add_argument("--fixed-count", type=int, help=f"number of fixed vertices (default {d.fixed_count})")
+    p.add_argument("--fixed-rule", choices=("compact", "spread"),
+                   help=f"fixed-vertex placement (default {d.fixed_rule}): compact = a small pinned triangle deep "
+                   "inside, the body swings about it; spread = as far apart as possible")
+    p.add_argument("--fixed-spacing", type=float, metavar="MM",
+                   help=f"smallest distance between compact fixed vertices in mm (default {d.fixed_spacing:g})")
     p.add_argument("--fixed-ids", type=int, nargs="+", metavar="ID", help="use these 0-based fixed vertex ids")
     p.add_argument("--out", default="markers", metavar="PREFIX", help="output prefix (default 'markers')")
     p.add_argument("--png", action="store_true", help="also render PREFIX.png (needs pyvista, extra 'viz')")
@@ -52,7 +57,8 @@ def register(sub) -> None:
 def run(args) -> int:
     cfg = load_config(args.config)
     given = {"count": args.count, "start": args.start, "min_distance": args.min_distance, "ids": args.ids,
-             "fixed_count": args.fixed_count, "fixed_ids": args.fixed_ids}
+             "fixed_count": args.fixed_count, "fixed_ids": args.fixed_ids, "fixed_rule": args.fixed_rule,
+             "fixed_spacing": args.fixed_spacing}
     cfg = with_overrides(cfg, markers={k: v for k, v in given.items() if v is not None})
     mc = cfg.markers
     mesh_name = args.mesh or cfg.mesh.path or PHANTOM_WORD
@@ -67,7 +73,9 @@ def run(args) -> int:
         "min_distance_mm": mc.min_distance,
         "user_given_markers": bool(mc.ids),
         "fixed_count": len(fixed),
-        "fixed_depth_fraction": getattr(mc, "fixed_depth_fraction", None),
+        "fixed_depth_fraction": mc.fixed_depth_fraction,
+        "fixed_rule": mc.fixed_rule,
+        "fixed_spacing_mm": mc.fixed_spacing,
         "user_given_fixed": bool(mc.fixed_ids),
     }
     prefix = Path(args.out)
