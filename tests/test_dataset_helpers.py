@@ -61,6 +61,28 @@ def fake_solver_factory(mesh, fixed, cfg):
     return make
 
 
+def dying_solver_factory(mesh, fixed, cfg):
+    """The fake solver, except that the worker process dies (os._exit) on its first solve
+    while the file named by ``TISSUECAST_TEST_DIE`` exists (the file is removed first)."""
+    import os
+
+    fake = fake_solver_factory(mesh, fixed, cfg)
+
+    def make(solver_cfg):
+        inner = fake(solver_cfg)
+
+        def solve(forces, initial_guess=None):
+            flag = os.environ.get("TISSUECAST_TEST_DIE")
+            if flag and os.path.exists(flag):
+                os.remove(flag)
+                os._exit(1)
+            return inner.solve(forces, initial_guess)
+
+        return SimpleNamespace(solve=solve)
+
+    return make
+
+
 def store_arrays(path) -> dict:
     """Every array of a store as raw bytes, by path (``samples/seconds`` excluded: wall-clock)."""
     import zarr

@@ -134,6 +134,21 @@ def test_other_pins_under_the_same_config_are_refused(made, monkeypatch):
     assert store_arrays(path) == before
 
 
+def test_a_worker_that_dies_gives_one_clear_error_and_the_store_resumes(made, tmp_path, monkeypatch):
+    cfg, ref_path, _ = made
+    flag = tmp_path / "die"
+    flag.touch()
+    monkeypatch.setenv("TISSUECAST_TEST_DIE", str(flag))  # inherited by the spawned worker
+    path = tmp_path / "died.zarr"
+    with pytest.raises(DatasetError, match="worker process stopped abruptly.*run the same command again"):
+        simulate(cfg, path, progress=False, solver_factory="test_dataset_helpers:dying_solver_factory", workers=1)
+    assert not flag.exists() and open_dataset(path).summary()["totals"]["pending"] > 0
+    simulate(cfg, path, progress=False, solver_factory="test_dataset_helpers:dying_solver_factory", workers=1)
+    ref, got = store_arrays(ref_path), store_arrays(path)
+    for name in ("samples/status", "samples/displacements", "samples/forces", "samples/alpha"):
+        assert got[name] == ref[name], name
+
+
 def test_unknown_or_newer_schema_refused(made, tmp_path):
     _, path, _ = made
     import shutil

@@ -19,7 +19,7 @@ import threading
 import time
 from typing import Iterable, Iterator
 
-from ..errors import require
+from ..errors import DatasetError, require
 from .worker import Recipe, SampleResult, Task, context_for, solve_task
 
 __all__ = ["LocalExecutor", "DaskExecutor", "make_executor", "default_workers"]
@@ -93,7 +93,13 @@ class LocalExecutor:
         futures = [self._pool.submit(_run, t) for t in tasks]
         try:
             for f in cf.as_completed(futures):
-                yield f.result()
+                try:
+                    result = f.result()
+                except cf.process.BrokenProcessPool as exc:
+                    raise DatasetError(
+                        "a worker process stopped abruptly (killed, or out of memory: try fewer --workers); the "
+                        "samples finished so far are saved: run the same command again to continue") from exc
+                yield result
         finally:
             for f in futures:
                 f.cancel()
