@@ -89,6 +89,7 @@ def main(argv=None) -> int:
                     "default: the compact and spread rules' pins and the earlier near-collinear ones")
     args = ap.parse_args(argv)
 
+    from tissuecast.config import FIXED_RULES
     from tissuecast.forces import lbo_basis
     from tissuecast.markers import select_fixed_vertices, select_markers
     from tissuecast.mesh.phantom import phantom
@@ -97,7 +98,7 @@ def main(argv=None) -> int:
     markers = select_markers(mesh)
     basis = lbo_basis(mesh, 20)
     sets = [[int(v) for v in s.split(",")] for s in args.fixed] if args.fixed else [
-        select_fixed_vertices(mesh, exclude=markers, rule=rule).tolist() for rule in ("compact", "spread")] + [[769, 1012, 1129]]
+        select_fixed_vertices(mesh, exclude=markers, rule=rule).tolist() for rule in FIXED_RULES] + [[769, 1012, 1129]]
     print(f"phantom P2, linear elasticity, markers {markers.tolist()}, fields scaled to q90 max = 30 mm")
     print(f"{'fixed vertices':>22} | {'n_w (<1 mm)':>11} | {'variance of PCA 1-4':>28} | 5-marker floor: mean Offset_max, share < 1 mm")
     for fixed in sets:

@@ -36,7 +36,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from tissuecast.config import SolverConfig  # noqa: E402
+from tissuecast.config import FIXED_RULES, SolverConfig  # noqa: E402
 from tissuecast.fem import NeoHookean, Problem, Solver  # noqa: E402
 from tissuecast.fem.calculix import ccx_executable, solve_calculix  # noqa: E402
 from tissuecast.forces import field_scale, lbo_basis, lbo_field, random_lbo_weights  # noqa: E402
@@ -103,7 +103,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rms-force", type=float, help="RMS surface nodal force (N) to start the calibration from "
                     f"(default {PHANTOM_RMS_FORCE} for the phantom with compact pins, "
                     f"{PHANTOM_FIELDS['spread'][1]} with spread pins, {QUICK_RMS_FORCE} with --quick)")
-    ap.add_argument("--fixed-rule", default="compact", choices=("compact", "spread"),
+    ap.add_argument("--fixed-rule", default="compact", choices=FIXED_RULES,
                     help="fixed-vertex rule (default compact, the library's; spread: the body strains instead of swinging)")
     ap.add_argument("--seed", type=int, help=f"seed of the LBO weights (default {PHANTOM_SEED}, spread pins {PHANTOM_FIELDS['spread'][0]}; "
                     f"{QUICK_SEED} with --quick)")

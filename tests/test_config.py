@@ -69,6 +69,8 @@ def test_partial_file_keeps_other_defaults(tmp_path):
         ({"material": {"poisson_ratio": 0.5}}, "material.poisson_ratio", "out of range"),
         ({"material": {"youngs_modulus": 0.0}}, "material.youngs_modulus", "out of range"),
         ({"markers": {"count": 0}}, "markers.count", "out of range"),
+        ({"markers": {"fixed_spacing": 0.0}}, "markers.fixed_spacing", "out of range"),
+        ({"markers": {"fixed_rule": "tight"}}, "markers.fixed_rule", "is not allowed"),
         ({"serve": {"port": 70000}}, "serve.port", "out of range"),
         ({"material": {"youngs_modulus": float("nan")}}, "material.youngs_modulus", "must be finite"),
         ({"mesh": {"units": "inch"}}, "mesh.units", "is not allowed"),

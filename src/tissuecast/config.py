@@ -56,6 +56,10 @@ class MeshConfig:
     surface_mesh_size: float = _f(3.0, lo=0.0, lo_open=True, doc="target tet size (mm) when tetrahedralising a surface")
 
 
+#: Fixed-vertex placement rules (see :func:`tissuecast.markers.select_fixed_vertices`).
+FIXED_RULES = ("compact", "spread")
+
+
 @dataclass(frozen=True)
 class MarkerConfig:
     """Fiducial markers (revised k-center clustering) and fixed vertices."""
@@ -67,7 +71,7 @@ class MarkerConfig:
     fixed_count: int = _f(3, lo=1, hi=50, doc="number of fixed (pinned) vertices")
     fixed_ids: tuple[int, ...] = _f((), doc="user-given 0-based fixed vertex ids")
     fixed_depth_fraction: float = _f(0.5, lo=0.0, hi=1.0, doc="fixed vertices are at least this share of the largest depth below the surface")
-    fixed_rule: str = _f("compact", choices=("compact", "spread"), doc="how the fixed vertices are placed: 'compact' = a small pinned triangle deep inside (the body swings about it), 'spread' = as far apart as possible (see select_fixed_vertices)")
+    fixed_rule: str = _f("compact", choices=FIXED_RULES, doc="how the fixed vertices are placed: 'compact' = a small pinned triangle deep inside (the body swings about it), 'spread' = as far apart as possible (see select_fixed_vertices)")
     fixed_spacing: float = _f(5.0, lo=0.0, lo_open=True, doc="smallest distance (mm) between compact fixed vertices")
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .config import FIXED_RULES
 from .errors import MarkerError
 from .mesh.tetmesh import TetMesh
 
@@ -33,9 +34,6 @@ def _points_of(mesh) -> np.ndarray:
     if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 1 or not np.isfinite(pts).all():
         raise MarkerError(f"expected a TetMesh or finite (n, 3) points in mm, got an array of shape {pts.shape}")
     return pts
-
-
-FIXED_RULES = ("compact", "spread")
 
 
 def _pick(score: np.ndarray, eligible: np.ndarray, largest: bool) -> int:
@@ -217,7 +215,7 @@ def select_fixed_vertices(
     ``exclude`` and whose distance to the outer surface (:func:`surface_depth`) is at least
     ``min_depth`` mm (default ``depth_fraction`` x the largest depth of any vertex).
     Two rules place the pins among them; they give two different learning problems
-    (``benchmarks/pin_identifiability.py`` and ``benchmarks/pin_rules.py`` measure both):
+    (``benchmarks/pin_identifiability.py`` measures both):
 
     ``rule="compact"`` (a small anchor deep inside, like the paper's 3 interior vertices):
     the deepest candidate, then greedily the candidate that keeps the pinned group smallest
@@ -296,10 +294,7 @@ def select_fixed_vertices(
     second = _pick(np.linalg.norm(pts - pts[first], axis=1), everyone, largest=True)
     chosen = [first, second]
     if count >= 3:
-        axis = pts[second] - pts[first]
-        axis = axis / max(float(np.linalg.norm(axis)), 1e-300)
-        rel = pts - pts[first]
-        off_line = np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
+        off_line = _distance_to_line(pts, pts[first], pts[second])
         eligible = everyone.copy()
         eligible[chosen] = False
         chosen.append(_pick(off_line, eligible, largest=True))
@@ -313,6 +308,14 @@ def select_fixed_vertices(
     return cand[np.asarray(chosen)].astype(np.int64)
 
 
+def _distance_to_line(pts: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) distances of ``pts`` to the straight line through ``a`` and ``b``."""
+    axis = b - a
+    axis = axis / max(float(np.linalg.norm(axis)), 1e-300)
+    rel = pts - a
+    return np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1)
+
+
 def _compact_pins(pts: np.ndarray, depth: np.ndarray, count: int, spacing: float) -> np.ndarray:
     """Indices into ``pts`` of the compact rule (see :func:`select_fixed_vertices`)."""
     everyone = np.ones(len(pts), bool)
@@ -321,10 +324,7 @@ def _compact_pins(pts: np.ndarray, depth: np.ndarray, count: int, spacing: float
     while len(chosen) < count:
         eligible = dist.min(axis=0) >= spacing
         if len(chosen) == 2:
-            axis = pts[chosen[1]] - pts[chosen[0]]
-            axis = axis / np.linalg.norm(axis)
-            rel = pts - pts[chosen[0]]
-            eligible &= np.linalg.norm(rel - np.outer(rel @ axis, axis), axis=1) >= 0.5 * spacing
+            eligible &= _distance_to_line(pts, pts[chosen[0]], pts[chosen[1]]) >= 0.5 * spacing
         if not eligible.any():
             raise MarkerError(
                 f"no room for {count} compact fixed vertices {spacing:g} mm apart among the deep "

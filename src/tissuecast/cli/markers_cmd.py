@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..config import MarkerConfig, load_config, with_overrides
+from ..config import FIXED_RULES, MarkerConfig, load_config, with_overrides
 from ..errors import require
 from ..markers import markers_and_fixed
 from ..mesh import TetMesh
@@ -43,7 +43,7 @@ def register(sub) -> None:
     p.add_argument("--min-distance", type=float, metavar="MM", help=f"d_min in mm (default {d.min_distance:g})")
     p.add_argument("--ids", type=int, nargs="+", metavar="ID", help="use these 0-based marker ids instead of choosing")
     p.add_argument("--fixed-count", type=int, help=f"number of fixed vertices (default {d.fixed_count})")
-    p.add_argument("--fixed-rule", choices=("compact", "spread"),
+    p.add_argument("--fixed-rule", choices=FIXED_RULES,
                    help=f"fixed-vertex placement (default {d.fixed_rule}): compact = a small pinned triangle deep "
                    "inside, the body swings about it; spread = as far apart as possible")
     p.add_argument("--fixed-spacing", type=float, metavar="MM",

@@ -60,7 +60,7 @@ def setup_from_config(cfg: Config):
     return mesh, np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
 
 
-def _check_same(writer: StoreWriter, cfg: Config, mesh, markers=None, fixed=None) -> None:
+def _check_same(writer: StoreWriter, cfg: Config, mesh, markers: np.ndarray, fixed: np.ndarray) -> None:
     stored = data_config(config_from_dict(tomllib.loads(writer.config_toml)))
     now = data_config(cfg)
     diffs = [f"{sec}.{k}: {stored[sec].get(k)!r} in the store, {now[sec].get(k)!r} now"
@@ -77,8 +77,6 @@ def _check_same(writer: StoreWriter, cfg: Config, mesh, markers=None, fixed=None
             f"data set {str(writer.path)!r} was made on a different mesh (fingerprint {str(fp)[:12]}..., this mesh "
             f"{mesh.fingerprint()[:12]}...); use the original mesh or another --store path; a store is never overwritten")
     for what, now in (("markers", markers), ("fixed", fixed)):
-        if now is None:
-            continue
         stored_ids = np.asarray(writer.read(what), dtype=np.int64)
         if not np.array_equal(stored_ids, now):
             raise DatasetError(
