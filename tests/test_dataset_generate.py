@@ -18,12 +18,14 @@ from tissuecast.dataset import open_dataset, simulate
 
 from test_dataset_helpers import small_config, store_arrays, store_attrs, write_config
 
-N_LBO, N_TEST2 = 120, 9
+N_LBO, N_TEST2, N_BASIS = 120, 9, 16
 
 
 def _config(folder):
-    # calibrated to a 4 mm target on 2 pilot samples; 120 + 9 samples of ~0.05 s each
-    return small_config(folder, n_samples=N_LBO, n_test2=N_TEST2, alpha=0.0, calibration_samples=2)
+    # calibrated to a 4 mm target on 2 pilot samples; 120 + 9 samples of ~0.05 s each; the
+    # first 16 samples (solved from zero) build the reduced-model predictor of the others
+    cfg = small_config(folder, n_samples=N_LBO, n_test2=N_TEST2, alpha=0.0, calibration_samples=2)
+    return with_overrides(cfg, dataset={"predictor_samples": N_BASIS})
 
 
 def _same_store(a, b):
@@ -69,7 +71,8 @@ def _done_count(path) -> int:
         return 0
 
 
-def test_resume_after_kill_is_bit_identical(reference, tmp_path):
+@pytest.mark.parametrize("kill_at", [8, 60], ids=["while-building-the-predictor", "after-it"])
+def test_resume_after_kill_is_bit_identical(reference, tmp_path, kill_at):
     cfg, ref_path, _ = reference
     cfg_file = write_config(cfg, tmp_path / "cfg.toml")
     store = tmp_path / "killed.zarr"
@@ -77,18 +80,52 @@ def test_resume_after_kill_is_bit_identical(reference, tmp_path):
            "--no-progress"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 120
-    while _done_count(store) < 10 and proc.poll() is None and time.monotonic() < deadline:
+    while _done_count(store) < kill_at and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert proc.poll() is None, f"the run ended before it could be killed: {proc.stderr.read().decode()[-500:]}"
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     done = _done_count(store)
-    assert 10 <= done < N_LBO + N_TEST2, done
+    assert kill_at <= done < N_LBO + N_TEST2, done
     assert open_dataset(store).summary()["totals"]["pending"] > 0  # readable after kill -9
     # workers notice that their parent is gone and exit by themselves
     rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
     _same_store(store, ref_path)
+
+
+def test_predictor_starts_later_samples_near_their_solution(reference):
+    cfg, path, _ = reference
+    ds = open_dataset(path)
+    done = ds.status == 1
+    model = ds.summary()["predictor"]["model"]
+    assert model["snapshots"] == N_BASIS and 1 <= model["modes"] <= N_BASIS and model["fit_error"] <= 0.01
+    basis = np.arange(N_LBO + N_TEST2) < N_BASIS
+    assert (ds.predicted[basis] == 0).all()  # the basis samples are solved from zero
+    warm = done & ~basis & (ds.predicted == 1)
+    assert warm.sum() >= 0.9 * (~basis).sum()
+    # from the prediction the full solver needs fewer iterations than from zero
+    assert ds.iterations[warm].mean() < 0.8 * ds.iterations[done & basis].mean()
+    # ... and reaches the same equilibrium: re-solve some of them from zero
+    from tissuecast.dataset.generate import setup_from_config
+    from tissuecast.fem import NeoHookean, Problem, Solver
+
+    mesh, _, fixed = setup_from_config(cfg)
+    solver = Solver(Problem(mesh, NeoHookean(cfg.material.youngs_modulus, cfg.material.poisson_ratio), fixed,
+                            order=cfg.solver.order), cfg.solver)
+    for i in np.flatnonzero(warm)[:5]:
+        cold = solver.solve(ds.forces[i].astype(np.float64)).displacement
+        peak = np.abs(cold).max()
+        assert np.abs(ds.displacements[i] - cold).max() <= 2e-3 * peak
+
+
+def test_no_predictor_solves_every_sample_from_zero(tmp_path):
+    cfg = with_overrides(small_config(tmp_path, n_samples=6, n_test2=0, alpha=0.04, workers=1),
+                         dataset={"predictor": "none", "predictor_samples": 2})
+    simulate(cfg, tmp_path / "cold.zarr", progress=False)
+    ds = open_dataset(tmp_path / "cold.zarr")
+    assert (ds.status == 1).all() and (ds.predicted == 0).all()
+    assert ds.summary()["predictor"]["model"] is None
 
 
 def test_dask_cluster_gives_the_same_store(reference, tmp_path):

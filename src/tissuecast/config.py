@@ -141,6 +141,9 @@ class DatasetConfig:
     alpha: float = _f(0.0, lo=0.0, doc="LBO force magnitude alpha (N); 0 = calibrate to forces.target_max_displacement")
     calibration_samples: int = _f(24, lo=1, hi=1000, doc="pilot samples of the force-magnitude calibration (per-sample peaks spread 5-50 mm on the phantom: 8 pilots put q90 at 30 mm where 22 samples had p90 44 mm)")
     calibration_quantile: float = _f(0.9, lo=0.0, hi=1.0, doc="quantile of per-sample max displacement that meets the target")
+    predictor: str = _f("reduced", choices=("reduced", "none"), doc="initial guess of each solve: reduced = a reduced-order model (POD-Galerkin, ECSW hyper-reduction) built from the first predictor_samples full solutions, so that the full Newton solver starts near the answer (every sample is still converged by the full solver); none = solve every sample from zero")
+    predictor_samples: int = _f(40, lo=2, hi=100000, doc="LBO samples (the first ones, 0-based ids 0..n-1) solved from zero whose full solutions build the reduced model")
+    predictor_tolerance: float = _f(0.01, lo=0.0, lo_open=True, hi=0.5, doc="ECSW hyper-reduction: relative error of the reduced internal forces on the snapshots")
 
 
 @dataclass(frozen=True)

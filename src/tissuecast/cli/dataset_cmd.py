@@ -59,6 +59,17 @@ def print_summary(s: dict) -> None:
         print(f"solver: {tm['seconds_mean']:.2f} s/sample mean (max {tm['seconds_max']:.2f} s, total "
               f"{tm['seconds_total']:.0f} s of worker time), {tm['increments_mean']:.1f} increments and "
               f"{tm['iterations_mean']:.1f} Newton iterations per done sample, {tm['retried']} retried")
+    pr = s.get("predictor") or {}
+    if pr.get("model"):
+        m = pr["model"]
+        print(f"reduced-model predictor: {m['modes']} modes from {m['snapshots']} samples, {m['elements']} ECSW "
+              f"elements (force error {m['fit_error']:.3g})")
+    for key, label in (("from_zero", "from zero"), ("predicted", "from the prediction"),
+                       ("prediction_failed", "prediction failed, from zero")):
+        st = pr.get(key) or {}
+        if st.get("samples") and pr.get("model"):
+            print(f"  {label:<29} {st['samples']:>6} samples, {st['seconds_mean']:.2f} s, "
+                  f"{st['iterations_mean']:.1f} iterations, {st['factorizations_mean']:.1f} factorisations each")
     if s["failures"]:
         print(f"failed samples ({len(s['failures'])}, excluded from select(status='done')):")
         for i, reason in list(s["failures"].items())[:10]:

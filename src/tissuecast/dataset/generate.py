@@ -145,6 +145,9 @@ def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
 
 def _recipe(writer: StoreWriter, solver_factory: str | None) -> Recipe:
     kw = {"solver_factory": solver_factory} if solver_factory else {}
+    if writer.reduced is not None:
+        kw.update(reduced_basis=writer.read("reduced/basis"), reduced_elements=writer.read("reduced/elements"),
+                  reduced_weights=writer.read("reduced/weights"))
     return Recipe(writer.config_toml, writer.read("mesh/points"), writer.read("mesh/tets"), writer.read("fixed"),
                   writer.read("lbo/vertices"), writer.read("lbo/vectors"), writer.read("lbo/eigenvalues"),
                   writer.read("lbo/mass"), **kw)
@@ -210,7 +213,8 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
            "sample_phase_samples": 0, "parent_io_seconds": 0.0}
     if len(writer.pending()) or writer.calibration is None:
         recipe = _recipe(writer, solver_factory)
-        with make_executor(recipe, scheduler=scheduler, workers=workers) as ex:
+        ex = make_executor(recipe, scheduler=scheduler, workers=workers).__enter__()
+        try:
             run["executor"] = ex.describe()
             log.info("simulating %d pending of %d samples on %s", len(writer.pending()), len(writer.status),
                      run["executor"])
@@ -224,7 +228,22 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
                         writer.write_sample(r)
                         run["solved"] += 1
                 writer.flush()
+                _keep_snapshots(writer, cfg, reusable)
+            if cfg.dataset.predictor == "reduced" and writer.reduced is None and len(writer.pending()):
+                tr = time.monotonic()
+                if _build_reduced(writer, ex, cfg, run):
+                    run["reduced_seconds"] = time.monotonic() - tr
+                    recipe = _recipe(writer, solver_factory)
+                    ex.__exit__(None, None, None)  # workers get the recipe with the reduced model
+                    ex = make_executor(recipe, scheduler=scheduler, workers=workers).__enter__()
+                    log.info("reduced model: %d modes, %d elements (ECSW error %.3g), built in %.1f s",
+                             writer.reduced["modes"], writer.reduced["elements"], writer.reduced["fit_error"],
+                             run["reduced_seconds"])
             _solve_pending(writer, ex, progress, run)
+        except BaseException as exc:
+            ex.__exit__(type(exc), exc, exc.__traceback__)
+            raise
+        ex.__exit__(None, None, None)
     elapsed = time.monotonic() - t0
     summary = open_dataset(path).summary()
     run["seconds"] = elapsed
@@ -233,6 +252,65 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
     run["sample_phase_samples_per_minute"] = 60.0 * run["sample_phase_samples"] / phase if phase > 0 else 0.0
     summary["run"] = run
     return summary
+
+
+def _basis_samples(writer: StoreWriter, cfg: Config) -> np.ndarray:
+    """Ids of the samples whose full solutions build the reduced model: the first LBO samples."""
+    n_lbo = int(writer.root.attrs["n_lbo"])
+    return np.arange(min(cfg.dataset.predictor_samples, n_lbo), dtype=np.int64)
+
+
+def _keep_snapshots(writer: StoreWriter, cfg: Config, results) -> None:
+    """Store the nodal solutions of basis samples among ``results`` (solved from zero)."""
+    if cfg.dataset.predictor != "reduced" or writer.reduced is not None:
+        return
+    for r in results:
+        if r.nodal is None or r.status != 1 or r.predicted:
+            continue
+        rows = writer.snapshot_rows(_basis_samples(writer, cfg), len(r.nodal))
+        hit = np.flatnonzero(rows == r.index)
+        if len(hit):
+            writer.write_snapshot(int(hit[0]), r.nodal)
+
+
+def _build_reduced(writer: StoreWriter, ex, cfg: Config, run: dict) -> bool:
+    """Solve the basis samples (from zero) that have no stored snapshot, then fit and store
+    the reduced model. Returns False (and logs why) when it cannot be built."""
+    from ..fem import NeoHookean, Problem
+    from ..fem.reduced import ReducedModel
+    from ..mesh import TetMesh
+
+    mesh = TetMesh(writer.read("mesh/points"), writer.read("mesh/tets"))
+    problem = Problem(mesh, NeoHookean(cfg.material.youngs_modulus, cfg.material.poisson_ratio), writer.read("fixed"),
+                      order=cfg.solver.order)
+    samples = _basis_samples(writer, cfg)
+    rows = writer.snapshot_rows(samples, len(problem.nodes))
+    have = writer.snapshot_done()
+    todo = [int(i) for i, ok in zip(rows, have) if not ok and writer.status[i] != 2]
+    if todo:
+        alpha = float(writer.calibration["alpha"])
+        seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
+        log.info("solving %d samples from zero for the reduced model", len(todo))
+        tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo]
+        for r in ex.imap_unordered(tasks):
+            if r.nodal is None and r.status == 1:
+                log.warning("the solver returns no nodal displacements; data set solved without a predictor")
+                return False
+            if writer.status[r.index] == 0:
+                writer.write_sample(r)
+                run["solved"] += 1
+            _keep_snapshots(writer, cfg, [r])
+        writer.flush()
+    have = writer.snapshot_done()
+    if have.sum() < 2:
+        log.warning("fewer than 2 basis samples converged; data set solved without a predictor")
+        return False
+    snaps = np.stack([writer.root["reduced/snapshots"][i] for i in np.flatnonzero(have)])
+    model = ReducedModel.fit(problem, snaps, tolerance=cfg.dataset.predictor_tolerance)
+    writer.set_reduced(model.basis, model.elements, model.weights, {
+        "modes": model.n_modes, "elements": int(len(model.elements)), "fit_error": float(model.fit_error),
+        "snapshots": int(have.sum())})
+    return True
 
 
 def _solve_pending(writer: StoreWriter, ex, progress: bool, run: dict) -> None:

@@ -104,6 +104,14 @@ class Dataset:
     del _per_sample
 
     @cached_property
+    def predicted(self) -> np.ndarray:
+        """(N,) int8 initial guess of each solve: 0 zero, 1 the reduced model, 2 the reduced
+        model did not converge (then zero). All 0 in stores made before the predictor existed."""
+        if "predicted" not in self._root["samples"]:
+            return np.zeros(self.n_samples, dtype=np.int8)
+        return self._array("samples/predicted")
+
+    @cached_property
     def split_codes(self) -> np.ndarray:
         """(N,) int8 split codes (0 train, 1 valid, 2 test1, 3 test2)."""
         return self._array("samples/split")
@@ -185,6 +193,17 @@ class Dataset:
             keep &= self.status == _STATUS_CODES[status]
         return np.flatnonzero(keep)
 
+    def _predictor_summary(self) -> dict:
+        done = self.status == 1
+        out = {"model": self._root.attrs.get("reduced")}
+        for code, name in ((0, "from_zero"), (1, "predicted"), (2, "prediction_failed")):
+            sel = done & (self.predicted == code)
+            out[name] = {"samples": int(sel.sum()),
+                         "seconds_mean": float(self.seconds[sel].mean()) if sel.any() else 0.0,
+                         "iterations_mean": float(self.iterations[sel].mean()) if sel.any() else 0.0,
+                         "factorizations_mean": float(self.factorizations[sel].mean()) if sel.any() else 0.0}
+        return out
+
     def summary(self) -> dict:
         """Counts by split and status, per-sample maximum displacement and timing statistics."""
         counts = {}
@@ -214,6 +233,7 @@ class Dataset:
                        "increments_mean": float(incs.mean()) if len(incs) else 0.0,
                        "iterations_mean": float(its.mean()) if len(its) else 0.0,
                        "retried": int(np.sum(self.attempts[self.status > 0] > 1))},
+            "predictor": self._predictor_summary(),
             "calibration": self.calibration,
             "failures": self.failures,
         }

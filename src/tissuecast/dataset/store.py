@@ -33,6 +33,18 @@ vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
       samples/load_fraction (N,) float64 share of the load reached (1 when done)
       samples/max_displacement (N,) float32 mm, largest vertex displacement (NaN unless done)
       samples/seconds       (N,) float64 wall-clock solve time (the only non-reproducible array)
+      samples/predicted     (N,) int8 initial guess: 0 zero, 1 the reduced model's prediction,
+                            2 the reduced model did not converge (then from zero)
+      reduced/samples       (s,) int64 ids of the samples whose full solutions built the reduced
+                            model (dataset.predictor = "reduced"; absent otherwise)
+      reduced/snapshots     (s, n_nodes, 3) float64 mm their displacements at every element node
+                            (vertices first, then P2 mid-edge nodes in TetMesh.edges order);
+                            NaN until solved; one chunk per sample
+      reduced/basis         (n_free, r) float64 the reduced basis over the free dofs (node-major
+                            x, y, z; nodes of fixed vertices left out)
+      reduced/elements (k,) int64, reduced/weights (k,) float64   ECSW elements (0-based) and
+                            weights; the root attribute ``reduced`` ({modes, elements, fit_error,
+                            snapshots}) is written last and marks the model complete
 
 Chunks are compressed with Blosc/zstd. Only the parent process writes; every chunk write is
 atomic (zarr's LocalStore writes a temporary file and renames it). A sample's field chunks
@@ -78,7 +90,9 @@ SCALARS = {
     "load_fraction": ("float64", np.nan),
     "max_displacement": ("float32", np.nan),
     "seconds": ("float64", np.nan),
+    "predicted": ("int8", 0),
 }
+_ADDED_LATER = ("predicted",)  # per-sample arrays that stores of earlier releases lack (created on open)
 
 
 def package_versions() -> dict[str, str]:
@@ -126,6 +140,12 @@ class StoreWriter:
     def __init__(self, path: Path, root):
         self.path, self.root = path, root
         self.samples = root["samples"]
+        for name in _ADDED_LATER:
+            if name not in self.samples:
+                dtype, fill = SCALARS[name]
+                n = self.samples["status"].shape[0]
+                self.samples.create_array(name, shape=(n,), dtype=dtype, chunks=(min(_BLOCK, n),), fill_value=fill,
+                                          compressors=_compressor(), dimension_names=("sample",))
         self._arrays = {name: self.samples[name] for name in (*SCALARS, "displacements", "forces", "weights")}
         self._mem = {name: np.array(self._arrays[name][...]) for name in (*SCALARS, "weights")}
         self.status = self._mem["status"]
@@ -212,6 +232,46 @@ class StoreWriter:
         """A whole stored array as numpy (e.g. ``"mesh/points"``)."""
         return np.asarray(self.root[name][...])
 
+    # ------------------------------------------------------------ reduced model
+    @property
+    def reduced(self) -> dict | None:
+        """The reduced model's record (None until it is complete)."""
+        return self.root.attrs.get("reduced")
+
+    def snapshot_rows(self, samples: np.ndarray, n_nodes: int) -> np.ndarray:
+        """The ``reduced/samples`` ids (created as ``samples`` on first use); (s,) int64."""
+        if "reduced/samples" not in self.root:
+            comp = _compressor()
+            samples = np.asarray(samples, dtype=np.int64)
+            self.root.create_array("reduced/snapshots", shape=(len(samples), n_nodes, 3), dtype="float64",
+                                   chunks=(1, n_nodes, 3), fill_value=np.nan, compressors=comp,
+                                   dimension_names=("snapshot", "node", "axis"))
+            a = self.root.create_array("reduced/samples", shape=samples.shape, dtype="int64",
+                                       chunks=samples.shape, compressors=comp)
+            a[...] = samples  # written last: its presence means the snapshot array exists
+        return self.read("reduced/samples")
+
+    def snapshot_done(self) -> np.ndarray:
+        """(s,) bool, True where ``reduced/snapshots`` holds a solution."""
+        a = self.root["reduced/snapshots"]
+        return np.array([bool(np.isfinite(a[i, 0, 0])) for i in range(a.shape[0])])
+
+    def write_snapshot(self, row: int, nodal: np.ndarray) -> None:
+        """Store one basis sample's displacements at every element node (one atomic chunk write)."""
+        self.root["reduced/snapshots"][row] = np.asarray(nodal, dtype=np.float64)
+
+    def set_reduced(self, basis: np.ndarray, elements: np.ndarray, weights: np.ndarray, record: dict) -> None:
+        """Store the reduced model; the ``reduced`` attribute last."""
+        comp = _compressor()
+        for name, data in (("basis", basis), ("elements", elements), ("weights", weights)):
+            data = np.ascontiguousarray(data)
+            key = f"reduced/{name}"
+            if key in self.root:
+                del self.root[key]
+            a = self.root.create_array(key, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=comp)
+            a[...] = data
+        self.root.attrs["reduced"] = json.loads(json.dumps(record))
+
     def pending(self) -> np.ndarray:
         """Indices of samples not solved yet, ascending."""
         return np.flatnonzero(self.status == PENDING)
@@ -232,7 +292,8 @@ class StoreWriter:
         m["weights"][i] = r.weights
         values = {"alpha": r.alpha, "increments": r.increments, "iterations": r.iterations,
                   "factorizations": r.factorizations, "attempts": r.attempts, "load_fraction": r.load_fraction,
-                  "max_displacement": r.max_displacement if r.status == DONE else np.nan, "seconds": r.seconds}
+                  "max_displacement": r.max_displacement if r.status == DONE else np.nan, "seconds": r.seconds,
+                  "predicted": r.predicted}
         for name, v in values.items():
             m[name][i] = v
         if r.status == FAILED:

@@ -44,6 +44,8 @@ class Recipe:
         basis_vertices: (s,) int64; basis_vectors: (s, n_b) float64 1/mm;
         basis_eigenvalues: (n_b,) 1/mm^2; basis_mass: (s,) mm^2 -- the stored LBO basis.
         solver_factory: ``"module:function"`` building the solver (see :func:`fem_solver_factory`).
+        reduced_basis, reduced_elements, reduced_weights: the data set's reduced-order
+            predictor (:class:`~tissuecast.fem.reduced.ReducedModel`), or None (solve from zero).
     """
 
     config_toml: str
@@ -55,13 +57,17 @@ class Recipe:
     basis_eigenvalues: np.ndarray
     basis_mass: np.ndarray
     solver_factory: str = "tissuecast.dataset.worker:fem_solver_factory"
+    reduced_basis: np.ndarray | None = None
+    reduced_elements: np.ndarray | None = None
+    reduced_weights: np.ndarray | None = None
 
     @property
     def key(self) -> str:
         """Content hash identifying this recipe (worker processes cache contexts by it)."""
         h = hashlib.sha256(self.config_toml.encode() + self.solver_factory.encode())
-        for a in (self.points, self.tets, self.fixed, self.basis_vertices, self.basis_vectors):
-            h.update(np.ascontiguousarray(a).tobytes())
+        for a in (self.points, self.tets, self.fixed, self.basis_vertices, self.basis_vectors, self.reduced_basis,
+                  self.reduced_elements, self.reduced_weights):
+            h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
         return h.hexdigest()
 
 
@@ -85,6 +91,10 @@ class SampleResult:
         status: 1 done, 2 failed.  reason: failure message ('' when done).
         load_fraction: share of the load reached (1.0 when done).
         attempts: solver attempts used (1 + retries used).
+        predicted: 0 solved from zero, 1 started from the reduced model's prediction,
+            2 the reduced model did not converge (solved from zero).
+        nodal: (n_nodes, 3) float64 mm at every element node (P2: mid-edge nodes too), or
+            None; the reduced model is built from these.
     """
 
     index: int
@@ -102,6 +112,8 @@ class SampleResult:
     load_fraction: float
     attempts: int
     reason: str = ""
+    predicted: int = 0
+    nodal: np.ndarray | None = None
 
     @property
     def max_displacement(self) -> float:
@@ -161,6 +173,12 @@ class SampleContext:
         module, _, name = recipe.solver_factory.partition(":")
         self._make_solver = getattr(importlib.import_module(module), name)(self.mesh, self.fixed, self.config)
         self._solvers: dict[int, object] = {}
+        self.reduced = None
+        if recipe.reduced_basis is not None:
+            from ..fem.reduced import ReducedModel
+
+            self.reduced = ReducedModel(self.solver(0).problem, recipe.reduced_basis, recipe.reduced_elements,
+                                        recipe.reduced_weights)
 
     def solver(self, attempt: int):
         """The solver of retry level ``attempt`` (built on first use, then reused)."""
@@ -209,8 +227,11 @@ def _counts(res) -> tuple[int, int, int]:
 def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     """Solve one sample, retrying with more cautious increments ``solver.retries`` times.
 
-    A ConvergenceError (or a numerical breakdown: ArithmeticError, LinAlgError) after the
-    last retry makes a failed result carrying the reason; any other exception propagates.
+    With a reduced model in the recipe, the first attempt starts from its prediction
+    (``predicted`` 1), or from zero when the reduced problem did not converge (2); retries
+    always start from zero. A ConvergenceError (or a numerical breakdown: ArithmeticError,
+    LinAlgError) after the last retry makes a failed result carrying the reason; any other
+    exception propagates.
     """
     ctx = context_for(recipe)
     forces, weights = ctx.forces(task)
@@ -219,9 +240,15 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     reasons = []
     load_fraction = 0.0
     retries = ctx.config.solver.retries
+    predicted = 0
     for attempt in range(retries + 1):
+        guess = None
+        if attempt == 0 and ctx.reduced is not None:
+            guess = ctx.reduced.predict(forces)
+            predicted = 1 if guess is not None else 2
         try:
-            res = ctx.solver(attempt).solve(forces)
+            solver = ctx.solver(attempt)
+            res = solver.solve(forces) if guess is None else solver.solve(forces, initial_guess=guess)
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
@@ -232,10 +259,12 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
             load_fraction = max(load_fraction, float(getattr(res, "load_fraction", 0.0)))
             reasons.append(f"attempt {attempt + 1}: not converged at load fraction {load_fraction:.4g}")
             continue
+        nodal = getattr(res, "nodal_displacement", None)
         return SampleResult(task.index, 1, np.asarray(res.displacement, dtype=np.float32), forces.astype(np.float32),
                             weights, task.alpha, task.beta, task.seed, *map(int, totals),
-                            time.perf_counter() - t0, 1.0, attempt + 1)
+                            time.perf_counter() - t0, 1.0, attempt + 1, predicted=predicted,
+                            nodal=None if nodal is None else np.asarray(nodal, dtype=np.float64))
     log.debug("sample %d failed: %s", task.index, reasons[-1])
     return SampleResult(task.index, 2, None, forces.astype(np.float32), weights, task.alpha, task.beta, task.seed,
                         *map(int, totals), time.perf_counter() - t0, load_fraction, retries + 1,
-                        "; ".join(reasons))
+                        "; ".join(reasons), predicted=predicted)

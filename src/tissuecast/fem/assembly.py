@@ -135,11 +135,18 @@ class Assembler:
         p, _, j = self.material.stress_and_tangent(f, tangent=False)
         return self._scatter_force(p), float(j.min())
 
-    def _scatter_force(self, p: np.ndarray) -> np.ndarray:
+    def element_forces(self, u: np.ndarray) -> np.ndarray:
+        """Internal forces of every element before assembly, (m, nn, 3) N (u: (n_nodes, 3) mm)."""
+        p, _, _ = self.material.stress_and_tangent(self.deformation_gradient(u), tangent=False)
+        return self._element_force(p)
+
+    def _element_force(self, p: np.ndarray) -> np.ndarray:
         g = self.geometry
         pw = p * g.weight[..., None, None]  # (m, q, 3, 3)
-        fe = np.einsum("mqaJ,mqiJ->mai", g.grad, pw)  # (m, nn, 3)
-        return np.bincount(self._edofs, weights=fe.ravel(), minlength=self.n_dofs)
+        return np.einsum("mqaJ,mqiJ->mai", g.grad, pw)  # (m, nn, 3)
+
+    def _scatter_force(self, p: np.ndarray) -> np.ndarray:
+        return np.bincount(self._edofs, weights=self._element_force(p).ravel(), minlength=self.n_dofs)
 
     def tangent(self, u: np.ndarray, project: bool = False) -> tuple[np.ndarray, np.ndarray, float]:
         """Internal forces and the tangent stiffness on the free dofs.

@@ -1,0 +1,93 @@
+"""Reduced-order predictor: ECSW weights, Galerkin exactness, and what it saves the full solver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.optimize import nnls
+
+from tissuecast.config import SolverConfig
+from tissuecast.errors import SolverSetupError
+from tissuecast.fem import NeoHookean, Problem, Solver
+from tissuecast.fem.reduced import ReducedModel, ecsw_weights
+
+from mesh_factories import box_grid
+
+MAT = NeoHookean(0.021, 0.45)
+
+
+def _bar(order):
+    """A 4 x 1 x 1 cm bar (P1 or P2) clamped at x = 0, with its end loads."""
+    mesh = box_grid(4, 2, 2, size=(10.0, 5.0, 5.0))
+    fixed = np.flatnonzero(mesh.points[:, 0] == 0.0)
+    end = np.flatnonzero(mesh.points[:, 0] == mesh.points[:, 0].max())
+    return Problem(mesh, MAT, fixed, order=order), end
+
+
+def _forces(problem, end, direction, total):
+    f = np.zeros((problem.n_vertices, 3))
+    f[end] = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction) * total / len(end)
+    return f
+
+
+def test_ecsw_weights_meet_the_tolerance_sparsely_and_agree_with_nnls():
+    rng = np.random.default_rng(0)
+    g = np.abs(rng.standard_normal((60, 200))) + 0.3 * rng.standard_normal((60, 200))
+    b = g.sum(axis=1)
+    x = ecsw_weights(g, b, 1e-2)
+    assert (x >= 0).all()
+    assert np.linalg.norm(g @ x - b) <= 1e-2 * np.linalg.norm(b)
+    assert 0 < (x > 0).sum() < 60  # far fewer than the 200 columns
+    # run to the end it is the non-negative least-squares optimum
+    exact = ecsw_weights(g, b, 1e-12)
+    _, best = nnls(g, b)
+    assert np.linalg.norm(g @ exact - b) == pytest.approx(best, abs=1e-8 * np.linalg.norm(b))
+
+
+@pytest.mark.parametrize("order", [1, 2])
+def test_reduced_solution_is_exact_when_the_basis_holds_the_answer(order):
+    problem, end = _bar(order)
+    solver = Solver(problem, SolverConfig(force_tolerance=1e-9, displacement_tolerance=1e-9))  # tight
+    f = _forces(problem, end, [0.0, 0.3, 1.0], 0.02)
+    truth = solver.solve(f).nodal_displacement
+    assert np.abs(truth).max() > 5.0  # large deformation (mm)
+    # the basis holds the answer and the equilibria on the way to it (a straight line from
+    # zero to a large rotation would cross an energy barrier: a subspace must hold the path)
+    path = [solver.solve(s * f).nodal_displacement for s in (0.25, 0.5, 0.75)]
+    free = np.flatnonzero(problem.free_mask)
+    basis = np.linalg.qr(np.column_stack([u.ravel()[free] for u in (*path, truth)]))[0]
+    m = len(problem.connectivity)
+    model = ReducedModel(problem, basis, np.arange(m), np.ones(m))  # every element, weight 1
+    guess = model.predict(f, tolerance=1e-10)
+    assert np.abs(guess - truth).max() <= 1e-6 * np.abs(truth).max()
+
+
+def test_fitted_model_predicts_new_loads_and_saves_newton_iterations():
+    problem, end = _bar(2)
+    solver = Solver(problem)
+    rng = np.random.default_rng(3)
+    directions = rng.standard_normal((12, 3)) * [0.3, 1.0, 1.0]
+    snaps = [solver.solve(_forces(problem, end, d, 0.015)).nodal_displacement for d in directions]
+    model = ReducedModel.fit(problem, np.stack(snaps), tolerance=0.01)
+    assert model.n_modes <= 12 and 0 < len(model.elements) < len(problem.connectivity)
+    assert model.fit_error <= 0.01
+    f = _forces(problem, end, [0.1, 0.6, -0.8], 0.015)
+    cold = solver.solve(f)
+    guess = model.predict(f)
+    peak = np.abs(cold.nodal_displacement).max()
+    assert np.abs(guess - cold.nodal_displacement).max() <= 0.05 * peak
+    warm = solver.solve(f, initial_guess=guess)
+    assert warm.iterations < cold.iterations
+    assert np.abs(warm.displacement - cold.displacement).max() <= 2e-3 * peak
+
+
+def test_bad_snapshots_and_prescribed_displacements_are_refused():
+    problem, end = _bar(1)
+    with pytest.raises(SolverSetupError, match="snapshots must be"):
+        ReducedModel.fit(problem, np.zeros((2, 5, 3)))
+    with pytest.raises(SolverSetupError, match="all zero"):
+        ReducedModel.fit(problem, np.zeros((2, len(problem.nodes), 3)))
+    moved = Problem(problem.mesh, MAT, problem.fixed, order=1, prescribed={int(end[0]): [0.0, 0.0, 1.0]})
+    free = int(moved.free_mask.sum())
+    with pytest.raises(SolverSetupError, match="prescribed"):
+        ReducedModel(moved, np.eye(free, 1), np.arange(2), np.ones(2))
