@@ -105,8 +105,9 @@ class Dataset:
 
     @cached_property
     def predicted(self) -> np.ndarray:
-        """(N,) int8 initial guess of each solve: 0 zero, 1 the reduced model, 2 the reduced
-        model did not converge (then zero). All 0 in stores made before the predictor existed."""
+        """(N,) int8 initial guess of each solve: 0 zero (no reduced model yet), 1 the reduced
+        model's prediction, 2 the prediction did not work (then zero). All 0 in stores made
+        before the predictor existed."""
         if "predicted" not in self._root["samples"]:
             return np.zeros(self.n_samples, dtype=np.int8)
         return self._array("samples/predicted")

@@ -91,8 +91,9 @@ class SampleResult:
         status: 1 done, 2 failed.  reason: failure message ('' when done).
         load_fraction: share of the load reached (1.0 when done).
         attempts: solver attempts used (1 + retries used).
-        predicted: 0 solved from zero, 1 started from the reduced model's prediction,
-            2 the reduced model did not converge (solved from zero).
+        predicted: 0 solved from zero (no reduced model), 1 converged from the reduced
+            model's prediction, 2 the prediction did not work (the reduced problem or the
+            solve from it did not converge) and the sample was solved from zero.
         nodal: (n_nodes, 3) float64 mm at every element node (P2: mid-edge nodes too), or
             None; the reduced model is built from these.
     """
@@ -227,9 +228,9 @@ def _counts(res) -> tuple[int, int, int]:
 def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     """Solve one sample, retrying with more cautious increments ``solver.retries`` times.
 
-    With a reduced model in the recipe, the first attempt starts from its prediction
-    (``predicted`` 1), or from zero when the reduced problem did not converge (2); retries
-    always start from zero. A ConvergenceError (or a numerical breakdown: ArithmeticError,
+    With a reduced model in the recipe, a first try starts from its prediction (``predicted``
+    1; 2 when the reduced problem did not converge and there is no prediction); should that
+    try fail, the usual attempts from zero follow, so a prediction never makes a sample fail. A ConvergenceError (or a numerical breakdown: ArithmeticError,
     LinAlgError) after the last retry makes a failed result carrying the reason; any other
     exception propagates.
     """
@@ -241,23 +242,28 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     load_fraction = 0.0
     retries = ctx.config.solver.retries
     predicted = 0
-    for attempt in range(retries + 1):
-        guess = None
-        if attempt == 0 and ctx.reduced is not None:
-            guess = ctx.reduced.predict(forces)
-            predicted = 1 if guess is not None else 2
+    tries = [(attempt, None) for attempt in range(retries + 1)]
+    if ctx.reduced is not None:
+        guess = ctx.reduced.predict(forces)
+        predicted = 1 if guess is not None else 2
+        if guess is not None:
+            tries.insert(0, (0, guess))  # then, should it fail, the usual attempts from zero
+    for attempt, guess in tries:
         try:
             solver = ctx.solver(attempt)
             res = solver.solve(forces) if guess is None else solver.solve(forces, initial_guess=guess)
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
-            reasons.append(f"attempt {attempt + 1}: {type(exc).__name__}: {exc}")
+            reasons.append(f"attempt {attempt + 1}{' from the prediction' if guess is not None else ''}: "
+                           f"{type(exc).__name__}: {exc}")
+            predicted = 2 if guess is not None else predicted
             continue
         totals += _counts(res)
         if not getattr(res, "converged", True):  # a solver that reports instead of raising
             load_fraction = max(load_fraction, float(getattr(res, "load_fraction", 0.0)))
             reasons.append(f"attempt {attempt + 1}: not converged at load fraction {load_fraction:.4g}")
+            predicted = 2 if guess is not None else predicted
             continue
         nodal = getattr(res, "nodal_displacement", None)
         return SampleResult(task.index, 1, np.asarray(res.displacement, dtype=np.float32), forces.astype(np.float32),
