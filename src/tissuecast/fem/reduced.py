@@ -26,8 +26,12 @@ an Armijo line search on the reduced energy and load increments with cut-backs, 
 the nodal displacement field, or None when the reduced problem does not converge (the
 caller then solves from zero, as without a predictor).
 
-Measured on the phantom (P2, compact pins, 40 snapshots; see ``benchmarks/dataset_throughput.py``):
-see the README's results.
+Measured on the phantom (P2, compact pins, 40 snapshots, 40 modes, 499 of 5066 elements;
+``benchmarks/dataset_throughput.py``, one worker's time): a sample from the prediction took
+1.38 s (3.2 Newton iterations, 1 factorisation) against 4.77 s from zero (12.8 iterations,
+5.3 factorisations), and the two solutions differed by <= 0.09 % of the peak displacement.
+Galerkin solutions are ~2-20 % off the full ones (a linear subspace represents the swing of
+the body about its pins only roughly) but well inside Newton's quadratic basin.
 """
 
 from __future__ import annotations
@@ -233,14 +237,20 @@ class ReducedModel:
     def _energy(self, q: np.ndarray, fr: np.ndarray) -> float:
         return self._sub.assembler.energy(self._state(q)) - float(fr @ q)
 
-    def predict(self, forces: np.ndarray, max_iterations: int = 40, tolerance: float = 1e-4) -> np.ndarray | None:
+    def predict(self, forces: np.ndarray, max_iterations: int = 40, tolerance: float = 1e-3,
+                first_increment: float = 1.0) -> np.ndarray | None:
         """Reduced equilibrium under ``forces``: (n_nodes, 3) nodal displacements, mm, or None.
 
         Args:
             forces: (n, 3) float, N, dead loads on the vertices (as for :meth:`Solver.solve`).
             max_iterations: reduced Newton iterations per load increment.
             tolerance: stop when the reduced residual is below ``tolerance`` times the reduced
-                load and the last correction below ``tolerance`` times the solution.
+                load, or the last correction below ``tolerance`` times the solution.
+            first_increment: load fraction of the first increment (cut by 4 on failure).
+                Measured on 12 phantom samples (P2, compact pins, 40 modes): the full load at
+                once took 17 reduced iterations (0.26 s) where halves took 23 (0.35 s); the
+                full solve after either took 2.8 iterations; tolerance 1e-3 against 1e-4 saved
+                7 % of the prediction and no full iteration.
         """
         t0 = time.perf_counter()
         f = check_forces(self.problem, forces)
@@ -251,7 +261,7 @@ class ReducedModel:
         asm = sub.assembler
         r = self.n_modes
         q = np.zeros(r)
-        lam, dlam = 0.0, 0.5
+        lam, dlam = 0.0, float(first_increment)
         prev = None
         iterations = 0
         while lam < 1.0:
