@@ -7,6 +7,12 @@ Public API::
     solver = Solver(problem, config)           # reusable: per-mesh work done once
     result = solver.solve(forces, initial_guess=None)
 
+    # many solves of one problem (data sets): a reduced-order model of earlier solutions
+    # predicts the answer, the full solver converges from there
+    from tissuecast.fem.reduced import ReducedModel
+    model = ReducedModel.fit(problem, snapshots)  # (s, n_nodes, 3) nodal_displacement of solves
+    result = solver.solve(forces, initial_guess=model.predict(forces))
+
 Units: mm, N, MPa. Vertex ids are 0-based.
 """
 
