@@ -91,3 +91,26 @@ def test_bad_snapshots_and_prescribed_displacements_are_refused():
     free = int(moved.free_mask.sum())
     with pytest.raises(SolverSetupError, match="prescribed"):
         ReducedModel(moved, np.eye(free, 1), np.arange(2), np.ones(2))
+
+
+def test_best_rotation_recovers_a_rigid_rotation():
+    from tissuecast.fem.linesearch import rotation_matrix
+    from tissuecast.fem.solver import _best_rotation
+
+    problem, _ = _bar(2)
+    r = rotation_matrix(np.array([0.3, -0.5, 0.9]))
+    x = problem.nodes
+    u = (x - x.mean(0)) @ r.T + x.mean(0) + [1.0, 2.0, 3.0] - x
+    assert np.allclose(_best_rotation(x, u), r, atol=1e-12)
+
+
+def test_reference_preconditioner_saves_factorisations_from_a_guess():
+    problem, end = _bar(2)
+    f = _forces(problem, end, [0.2, 0.5, -0.8], 0.015)
+    cold = Solver(problem).solve(f)
+    guess = cold.nodal_displacement * 0.97  # a guess 3 % off
+    plain = Solver(problem, SolverConfig(reference_preconditioner=False)).solve(f, initial_guess=guess)
+    ref = Solver(problem).solve(f, initial_guess=guess)
+    assert ref.factorizations < plain.factorizations
+    peak = np.abs(cold.displacement).max()
+    assert np.abs(ref.displacement - cold.displacement).max() <= 2e-3 * peak

@@ -23,6 +23,11 @@ prescribed displacements scale with ``lambda``):
    positive definite (compressed regions, or the body swinging through an unstable
    orientation) is shifted, ``K + tau diag(K)`` with the smallest ``tau`` of a 4x ladder
    that factorises, so ``d`` stays a descent direction (see :meth:`Solver._factorize`).
+   A solve with an initial guess (``reference_preconditioner``) starts with the stiffness
+   at zero displacement, factorised once per Solver and co-rotated by the guess's best-fit
+   rotation, as its preconditioner: from reduced-model guesses on 31 phantom samples this
+   took 0.26 factorisations and 1.04 s per solve against 1.06 and 1.14 s. (From zero it
+   hurt, 20 iterations and 10.5 factorisations against 16 and 6.7, so cold starts do not.)
 3. Line search on ``Pi`` (Armijo, quadratic backtracking; near round-off, a lower residual
    norm), rejecting any step that makes ``J <= 0`` at a quadrature point. With
    ``rotation_aware`` the step's best-fit rigid rotation about the constrained nodes'
@@ -101,6 +106,8 @@ class Solver:
         self._free = self.assembler.free_dofs
         self._n = problem.n_vertices
         self._tau = 0.0
+        self._reference = None  # linear solver holding the factorised stiffness at u = 0 (on first use)
+        self._active = self.linear  # the factorisation the preconditioner uses now
 
     # ------------------------------------------------------------------ helpers
     def nodal_field(self, vertex_values: np.ndarray) -> np.ndarray:
@@ -124,6 +131,7 @@ class Solver:
         """
         if data is None:
             _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
+        self._active = self.linear
         self._stats["factorizations"] += 1
         try:
             self.linear.factorize(data)
@@ -158,7 +166,7 @@ class Solver:
         """K^-1 v with the last factorised tangent K, co-rotated by the rigid rotation R
         applied since it was factorised: R K^-1 R^T v (node by node)."""
         rot = self._rotation
-        z = self.linear.solve((v.reshape(-1, 3) @ rot).ravel())
+        z = self._active.solve((v.reshape(-1, 3) @ rot).ravel())
         self._stats["solves"] += 1
         return (z.reshape(-1, 3) @ rot.T).ravel()
 
@@ -325,6 +333,12 @@ class Solver:
                        "history": []}
         self._tau = 0.0
         self._factor_valid = False
+        self._active = self.linear
+        if (guess is not None and cfg.strategy == "krylov" and cfg.reference_preconditioner
+                and self._reference_factor() is not None):
+            self._active = self._reference
+            self._factor_valid = True
+            self._rotation = _best_rotation(self.problem.nodes, guess)
         u_conv = np.zeros(n_dofs)
         lam, dlam = 0.0, (1.0 if guess is not None else float(cfg.initial_increment))
         prev = None  # (increment displacement, increment size) of the last converged increment
@@ -363,6 +377,19 @@ class Solver:
                 dlam = min(1.0, dlam * _GROW)
         return self._result(u_conv, 1.0, True, increments, cutbacks, t0, fext)
 
+    def _reference_factor(self):
+        """The linear solver holding the factorised stiffness at zero displacement (built once;
+        None if it is not positive definite, e.g. rigid-body motion left free)."""
+        if self._reference is None:
+            ref = make_linear_solver(self.config.linear_solver, self.assembler)
+            _, data, _ = self.assembler.tangent(np.zeros((len(self.problem.nodes), 3)))
+            try:
+                ref.factorize(data)
+            except NotPositiveDefinite:
+                ref = False
+            self._reference = ref
+        return self._reference or None
+
     def _predict(self, u_conv, lam, lam_new, prev, guess) -> np.ndarray:
         candidates = []
         if guess is not None and lam == 0.0:
@@ -396,6 +423,17 @@ class Solver:
             cutbacks=cutbacks,
             solves=st["solves"],
         )
+
+
+def _best_rotation(nodes: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The rotation R that best maps the reference nodes onto the displaced ones (Kabsch):
+    ``x + u - c' ~= R (x - c)`` in least squares over all nodes."""
+    x = nodes - nodes.mean(axis=0)
+    y = nodes + u.reshape(-1, 3)
+    y = y - y.mean(axis=0)
+    a, _, bt = np.linalg.svd(y.T @ x)
+    d = np.sign(np.linalg.det(a @ bt)) or 1.0
+    return a @ np.diag([1.0, 1.0, d]) @ bt
 
 
 def solve(problem: Problem, forces: np.ndarray, config: SolverConfig | None = None, initial_guess=None) -> SolveResult:
