@@ -165,6 +165,8 @@ class ReducedModel:
         rows = pos[full_dofs]
         self._sub = _Sub(asm, sub_nodes, self.basis[rows], rows)
         self._n = problem.n_vertices
+        self.fit_error: float | None = None  # ECSW force error of fit(), if fitted here
+        self.last_iterations, self.last_seconds = 0, 0.0  # of the last predict()
         self._h0 = None  # reduced stiffness at zero displacement (the linear start), on first use
 
     @property
