@@ -9,6 +9,7 @@ the store (except ``samples/seconds``, the wall-clock times, and the ``created``
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
 import time
@@ -213,8 +214,8 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
            "sample_phase_samples": 0, "parent_io_seconds": 0.0}
     if len(writer.pending()) or writer.calibration is None:
         recipe = _recipe(writer, solver_factory)
-        ex = make_executor(recipe, scheduler=scheduler, workers=workers).__enter__()
-        try:
+        with contextlib.ExitStack() as executors:
+            ex = executors.enter_context(make_executor(recipe, scheduler=scheduler, workers=workers))
             run["executor"] = ex.describe()
             log.info("simulating %d pending of %d samples on %s", len(writer.pending()), len(writer.status),
                      run["executor"])
@@ -233,17 +234,13 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
                 tr = time.monotonic()
                 if _build_reduced(writer, ex, cfg, run):
                     run["reduced_seconds"] = time.monotonic() - tr
-                    recipe = _recipe(writer, solver_factory)
-                    ex.__exit__(None, None, None)  # workers get the recipe with the reduced model
-                    ex = make_executor(recipe, scheduler=scheduler, workers=workers).__enter__()
+                    executors.close()  # new workers, with the recipe holding the reduced model
+                    ex = executors.enter_context(make_executor(_recipe(writer, solver_factory), scheduler=scheduler,
+                                                               workers=workers))
                     log.info("reduced model: %d modes, %d elements (ECSW error %.3g), built in %.1f s",
                              writer.reduced["modes"], writer.reduced["elements"], writer.reduced["fit_error"],
                              run["reduced_seconds"])
             _solve_pending(writer, ex, progress, run)
-        except BaseException as exc:
-            ex.__exit__(type(exc), exc, exc.__traceback__)
-            raise
-        ex.__exit__(None, None, None)
     elapsed = time.monotonic() - t0
     summary = open_dataset(path).summary()
     run["seconds"] = elapsed
@@ -301,15 +298,15 @@ def _build_reduced(writer: StoreWriter, ex, cfg: Config, run: dict) -> bool:
                 run["solved"] += 1
             _keep_snapshots(writer, cfg, [r])
         writer.flush()
-    have = writer.snapshot_done()
-    if have.sum() < 2:
+    snaps = writer.read("reduced/snapshots")
+    snaps = snaps[np.isfinite(snaps[:, 0, 0])]  # NaN rows: basis samples that failed
+    if len(snaps) < 2:
         log.warning("fewer than 2 basis samples converged; data set solved without a predictor")
         return False
-    snaps = np.stack([writer.root["reduced/snapshots"][i] for i in np.flatnonzero(have)])
     model = ReducedModel.fit(problem, snaps, tolerance=cfg.dataset.predictor_tolerance)
     writer.set_reduced(model.basis, model.elements, model.weights, {
         "modes": model.n_modes, "elements": int(len(model.elements)), "fit_error": float(model.fit_error),
-        "snapshots": int(have.sum())})
+        "snapshots": len(snaps)})
     return True
 
 

@@ -151,6 +151,7 @@ class StoreWriter:
         self.status = self._mem["status"]
         self._failures = dict(root.attrs.get("failures") or {})
         self._dirty: set[int] = set()  # blocks of the 1-D arrays changed since the last flush
+        self._snapshot_rows: np.ndarray | None = None  # reduced/samples, once read or created
 
     # ------------------------------------------------------------ creation / opening
     @classmethod
@@ -240,6 +241,8 @@ class StoreWriter:
 
     def snapshot_rows(self, samples: np.ndarray, n_nodes: int) -> np.ndarray:
         """The ``reduced/samples`` ids (created as ``samples`` on first use); (s,) int64."""
+        if self._snapshot_rows is not None:
+            return self._snapshot_rows
         if "reduced/samples" not in self.root:
             comp = _compressor()
             samples = np.asarray(samples, dtype=np.int64)
@@ -249,7 +252,8 @@ class StoreWriter:
             a = self.root.create_array("reduced/samples", shape=samples.shape, dtype="int64",
                                        chunks=samples.shape, compressors=comp)
             a[...] = samples  # written last: its presence means the snapshot array exists
-        return self.read("reduced/samples")
+        self._snapshot_rows = self.read("reduced/samples")
+        return self._snapshot_rows
 
     def snapshot_done(self) -> np.ndarray:
         """(s,) bool, True where ``reduced/snapshots`` holds a solution."""

@@ -36,6 +36,8 @@ class Assembler:
         geometry: the reference gradients and weights of every element.
         free_dofs: (n_free,) int, global ids of the free dofs; the stiffness and the
             reduced vectors are ordered like this.
+        element_dofs: (m, 3 nn) int, global dof ids of each element (node a, component i
+            -> column 3 a + i).
         indptr, indices: CSR structure of the (n_free, n_free) stiffness (full, symmetric).
     """
 
@@ -62,6 +64,7 @@ class Assembler:
         # element dof ids, layout (a, i) -> 3 a + i
         edofs = (3 * self.connectivity[:, :, None] + np.arange(3)).reshape(m, 3 * nn)
         self._edofs = edofs.ravel()
+        self.element_dofs = edofs  # (m, 3 nn) global dof ids of each element, layout (a, i)
         local = np.full(self.n_dofs, -1, dtype=np.int64)
         local[self.free_dofs] = np.arange(self.n_free)
         le = local[edofs]  # (m, 3nn)

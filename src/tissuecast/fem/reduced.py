@@ -42,6 +42,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 
 from ..errors import SolverSetupError
 from .assembly import Assembler
@@ -123,9 +124,14 @@ class _Sub:
     """The sampled elements as a small mesh of their own (weights folded into the quadrature)."""
 
     assembler: Assembler
-    nodes: np.ndarray  # (n_sub,) ids of the full problem's nodes
     basis: np.ndarray  # (n_sub_free, r) rows of V at the sub-mesh's free dofs
-    free_rows: np.ndarray  # (n_sub_free,) positions of those dofs in the full free-dof vector
+
+
+def _free_position(free_mask: np.ndarray) -> np.ndarray:
+    """(3 n_nodes,) int: each dof's row in the free-dof vector (and of the basis), -1 if constrained."""
+    pos = np.full(len(free_mask), -1, dtype=np.int64)
+    pos[free_mask] = np.arange(int(free_mask.sum()))
+    return pos
 
 
 class ReducedModel:
@@ -140,8 +146,7 @@ class ReducedModel:
     """
 
     def __init__(self, problem: Problem, basis: np.ndarray, elements: np.ndarray, weights: np.ndarray) -> None:
-        nodes_c, values = problem.constrained_nodes
-        if np.any(values != 0.0):
+        if np.any(problem.constrained_nodes[1] != 0.0):
             raise SolverSetupError("the reduced model supports fixed (zero) displacements only, not prescribed ones")
         self.problem = problem
         free_mask = problem.free_mask
@@ -160,10 +165,7 @@ class ReducedModel:
         asm = Assembler(problem.nodes[sub_nodes], local, problem.order, problem.material, sub_free)
         asm.geometry = dataclasses.replace(asm.geometry, weight=asm.geometry.weight * self.weights[:, None])
         full_dofs = (3 * sub_nodes[:, None] + np.arange(3)).ravel()[sub_free]
-        pos = np.full(3 * len(problem.nodes), -1, dtype=np.int64)
-        pos[self.free_dofs] = np.arange(len(self.free_dofs))
-        rows = pos[full_dofs]
-        self._sub = _Sub(asm, sub_nodes, self.basis[rows], rows)
+        self._sub = _Sub(asm, self.basis[_free_position(free_mask)[full_dofs]])
         self._n = problem.n_vertices
         self.fit_error: float | None = None  # ECSW force error of fit(), if fitted here
         self.last_iterations, self.last_seconds = 0, 0.0  # of the last predict()
@@ -202,10 +204,7 @@ class ReducedModel:
         basis = u[:, :keep]
         asm = Assembler(problem.nodes, problem.connectivity, problem.order, problem.material, problem.free_mask)
         m, nn = problem.connectivity.shape
-        edofs = (3 * problem.connectivity[:, :, None] + np.arange(3)).reshape(m, 3 * nn)
-        pos = np.full(asm.n_dofs, -1, dtype=np.int64)
-        pos[free] = np.arange(len(free))
-        erows = pos[edofs]  # (m, 3nn), -1 at constrained dofs
+        erows = _free_position(problem.free_mask)[asm.element_dofs]  # (m, 3nn), -1 at constrained dofs
         vfull = np.vstack([basis, np.zeros((1, keep))])  # row -1 -> zeros
         ve = vfull[erows]  # (m, 3nn, r)
         blocks = []
@@ -281,23 +280,22 @@ class ReducedModel:
             lam_new = min(1.0, lam + dlam)
             fr = lam_new * fr_full
             qn = q + (lam_new - lam) / prev[1] * prev[0] if prev is not None else lam_new * q_lin
-            if not np.isfinite(self._energy(qn, fr)):
+            e0 = self._energy(qn, fr)
+            if not np.isfinite(e0):
                 qn = q.copy()
+                e0 = self._energy(qn, fr)
             ok = False
             for _ in range(max_iterations):
                 iterations += 1
-                fint, data, jmin = asm.tangent(self._state(qn))
+                fint, data, _ = asm.tangent(self._state(qn))
                 grad = sub.basis.T @ fint[asm.free_dofs] - fr
-                k = asm.matrix(data)
-                h = sub.basis.T @ (k @ sub.basis)
+                h = sub.basis.T @ (asm.matrix(data) @ sub.basis)
                 try:
-                    np.linalg.cholesky(h)
-                    dq = -np.linalg.solve(h, grad)
-                except np.linalg.LinAlgError:
+                    dq = -cho_solve(cho_factor(h), grad)
+                except np.linalg.LinAlgError:  # not positive definite: |eigenvalues|, a descent direction
                     ev, vec = np.linalg.eigh(0.5 * (h + h.T))
                     ev = np.maximum(np.abs(ev), 1e-8 * max(float(np.abs(ev).max()), 1e-300))
                     dq = -vec @ ((vec.T @ grad) / ev)
-                e0 = self._energy(qn, fr)
                 slope = float(grad @ dq)
                 step = 1.0
                 while step > 1e-4:
@@ -307,7 +305,7 @@ class ReducedModel:
                     step *= 0.5
                 else:
                     break
-                qn = qn + step * dq
+                qn, e0 = qn + step * dq, e1
                 if (np.linalg.norm(grad) <= tolerance * np.linalg.norm(fr)
                         or np.linalg.norm(step * dq) <= tolerance * max(np.linalg.norm(qn), 1e-300)):
                     ok = True
