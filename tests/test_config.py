@@ -80,6 +80,10 @@ def test_partial_file_keeps_other_defaults(tmp_path):
         ({"solver": {"krylov_iterations": 0}}, "solver.krylov_iterations", "out of range"),
         ({"forces": {"betas": [0.5, 1.5]}}, "betas", "must be numbers in [0, 1]"),
         ({"dataset": {"split": [8, 1]}}, "split", "three non-negative numbers"),
+        ({"dataset": {"predictor": "pod"}}, "dataset.predictor", "is not allowed"),
+        ({"dataset": {"predictor_samples": 1}}, "dataset.predictor_samples", "out of range"),
+        ({"dataset": {"predictor_tolerance": 0.0}}, "dataset.predictor_tolerance", "out of range"),
+        ({"solver": {"reference_preconditioner": "yes"}}, "solver.reference_preconditioner", "must be"),
     ],
 )
 def test_bad_values_raise_config_error_naming_the_key(data, key, text):
