@@ -7,6 +7,7 @@ import pytest
 from mesh_factories import box_grid
 
 from tissuecast.fem import NeoHookean, Problem
+from tissuecast.fem import kernels
 from tissuecast.fem.assembly import Assembler
 from tissuecast.mesh import TetMesh
 
@@ -25,11 +26,16 @@ def smooth_state(nodes, rng, amplitude):
     return amplitude * feats @ rng.standard_normal((feats.shape[1], 3))
 
 
+BACKENDS = ["numpy", pytest.param("numba", marks=pytest.mark.skipif(not kernels.available(), reason="numba missing"))]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("order", [1, 2])
-def test_tangent_equals_finite_difference_of_residual(order):
+def test_tangent_equals_finite_difference_of_residual(order, backend):
     mesh = distorted_box()
     prob = Problem(mesh, NeoHookean(0.021, 0.45), fixed=[0, 3, 12], order=order)
-    asm = Assembler(prob.nodes, prob.connectivity, order, prob.material, prob.free_mask)
+    asm = Assembler(prob.nodes, prob.connectivity, order, prob.material, prob.free_mask, backend=backend)
+    assert asm.backend == backend
     rng = np.random.default_rng(1)
     for _ in range(3):
         u = smooth_state(prob.nodes, rng, 0.4)
@@ -69,10 +75,11 @@ def test_projected_tangent_is_positive_definite_and_exact_when_already_pd(order)
     assert eig.min() > 0
 
 
-def test_internal_forces_are_self_equilibrated():
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_internal_forces_are_self_equilibrated(backend):
     mesh = distorted_box(seed=3)
     prob = Problem(mesh, NeoHookean(), fixed=[0, 3, 12], order=2)
-    asm = Assembler(prob.nodes, prob.connectivity, 2, prob.material, prob.free_mask)
+    asm = Assembler(prob.nodes, prob.connectivity, 2, prob.material, prob.free_mask, backend=backend)
     u = smooth_state(prob.nodes, np.random.default_rng(4), 0.5)
     fint, _ = asm.internal_force(u)
     f = fint.reshape(-1, 3)

@@ -101,7 +101,7 @@ def package_versions() -> dict[str, str]:
     from importlib import metadata
 
     out = {"python": platform.python_version()}
-    for name in ("tissuecast", "numpy", "scipy", "zarr", "scikit-sparse", "robust-laplacian", "meshio"):
+    for name in ("tissuecast", "numpy", "scipy", "numba", "zarr", "scikit-sparse", "robust-laplacian", "meshio"):
         try:
             out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:

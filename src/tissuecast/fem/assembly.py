@@ -4,7 +4,10 @@ All elements are processed at once (numpy batched products, no Python loop over 
 The sparsity pattern of the stiffness restricted to the free degrees of freedom and the
 index of every element-matrix entry in the CSR data array are computed once, when the
 :class:`Assembler` is built; each assembly is then one batched kernel and one
-``np.bincount``.
+``np.bincount``. When numba is installed the tangent, energy and internal forces run as
+compiled fused loops instead (:mod:`.kernels`, ~3x faster for the tangent, ~8x for energy and
+forces on the P2 phantom; same numbers to round-off). ``backend`` (or the environment
+variable ``TISSUECAST_KERNELS=numpy|numba``) chooses.
 
 Degrees of freedom: node ``a`` (a vertex, or for P2 a mid-edge node numbered after the
 vertices), component ``i`` (x, y, z) is dof ``3 a + i``.
@@ -12,9 +15,13 @@ vertices), component ``i`` (x, y, z) is dof ``3 a + i``.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import scipy.sparse as sp
 
+from ..errors import DependencyError, SolverSetupError
+from . import kernels
 from .elements import ElementGeometry, reference_gradients
 from .material import NeoHookean
 
@@ -31,8 +38,11 @@ class Assembler:
         material: the constitutive law.
         free: (3 n_nodes,) bool, True for the unknown dofs (False: fixed or prescribed).
         rule: quadrature rule (``"default"`` or ``"high"``, see :func:`~.elements.quadrature`).
+        backend: ``"numba"`` (compiled loops, :mod:`.kernels`), ``"numpy"`` (batched products)
+            or ``"auto"``: ``$TISSUECAST_KERNELS`` if set, else numba when installed.
 
     Attributes:
+        backend: the kernels in use, ``"numba"`` or ``"numpy"``.
         geometry: the reference gradients and weights of every element.
         free_dofs: (n_free,) int, global ids of the free dofs; the stiffness and the
             reduced vectors are ordered like this.
@@ -49,6 +59,7 @@ class Assembler:
         material: NeoHookean,
         free: np.ndarray,
         rule: str = "default",
+        backend: str = "auto",
     ) -> None:
         self.nodes = np.asarray(nodes, dtype=np.float64)
         self.connectivity = np.asarray(connectivity, dtype=np.int64)
@@ -86,6 +97,7 @@ class Assembler:
         self._upper = np.flatnonzero(upper)
         self.upper_indptr = np.searchsorted(r[upper], np.arange(self.n_free + 1)).astype(np.int64)
         self.upper_indices = c[upper].astype(np.int64)
+        self.backend = _backend(backend, material)
 
     # ----------------------------------------------------------------- kinematics
     def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
@@ -107,6 +119,8 @@ class Assembler:
     # -------------------------------------------------------------------- kernels
     def energy(self, u: np.ndarray) -> float:
         """Total strain energy in mJ (N mm); ``inf`` if any quadrature point has J <= 0."""
+        if self.backend == "numba":
+            return kernels.energy(self, u)
         w = self.material.energy(self.deformation_gradient(u))
         return float(np.sum(w * self.geometry.weight))
 
@@ -119,6 +133,8 @@ class Assembler:
         Returns:
             ``(energy mJ (inf if any J <= 0), f_int (3 n_nodes,) N, min J)``.
         """
+        if self.backend == "numba":
+            return kernels.energy_and_force(self, u)
         f = self.deformation_gradient(u)
         p, _, j = self.material.stress_and_tangent(f, tangent=False)
         jmin = float(j.min())
@@ -134,6 +150,9 @@ class Assembler:
         Returns:
             ``(f_int (3 n_nodes,) float N, min J over quadrature points)``.
         """
+        if self.backend == "numba":
+            _, fint, jmin = kernels.energy_and_force(self, u)
+            return fint, jmin
         f = self.deformation_gradient(u)
         p, _, j = self.material.stress_and_tangent(f, tangent=False)
         return self._scatter_force(p), float(j.min())
@@ -164,6 +183,8 @@ class Assembler:
             ``(f_int (3 n_nodes,) N, K data (nnz,) N/mm in the CSR order of
             ``indptr``/``indices``, min J)``.
         """
+        if not project and self.backend == "numba":
+            return kernels.tangent(self, u)
         g = self.geometry
         f = self.deformation_gradient(u)
         if not project:
@@ -223,3 +244,19 @@ class Assembler:
         return sp.csc_matrix(
             (data[self._upper], self.upper_indices, self.upper_indptr), shape=(self.n_free, self.n_free)
         )
+
+
+def _backend(choice: str, material) -> str:
+    """Resolve ``Assembler(backend=...)``: "numba" or "numpy"."""
+    if choice == "auto":
+        choice = os.environ.get("TISSUECAST_KERNELS", "auto").strip().lower() or "auto"
+    if choice not in ("auto", "numba", "numpy"):
+        raise SolverSetupError(f"kernel backend must be 'auto', 'numba' or 'numpy', got {choice!r} "
+                         "(argument backend or $TISSUECAST_KERNELS)")
+    compiled_ok = kernels.available() and type(material) is NeoHookean
+    if choice == "numba" and not compiled_ok:
+        raise DependencyError("kernel backend 'numba' needs numba (pip install \"tissuecast[fast]\") "
+                         "and the NeoHookean material")
+    if choice == "auto":
+        return "numba" if compiled_ok else "numpy"
+    return choice
