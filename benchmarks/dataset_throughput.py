@@ -144,7 +144,7 @@ def main() -> None:
         m = pr["model"]
         print(f"  reduced-model predictor: {m['snapshots']} samples from zero + fit = "
               f"{run.get('reduced_seconds', 0.0):.1f} s (fixed cost); {m['modes']} modes, {m['elements']} ECSW elements")
-        for key in ("from_zero", "predicted", "prediction_failed"):
+        for key in ("from_zero", "from_previous_round", "predicted", "prediction_failed"):
             st = pr[key]
             if st["samples"]:
                 print(f"    {key:<18} {st['samples']:>5} samples: {st['seconds_mean']:.2f} s, "

@@ -101,7 +101,9 @@ def test_predictor_starts_later_samples_near_their_solution(reference):
     model = ds.summary()["predictor"]["model"]
     assert model["snapshots"] == N_BASIS and 1 <= model["modes"] <= N_BASIS and model["fit_error"] <= 0.01
     basis = np.arange(N_LBO + N_TEST2) < N_BASIS
-    assert (ds.predicted[basis] == 0).all()  # the basis samples are solved from zero
+    pilots = np.arange(N_LBO + N_TEST2) < 2
+    # the basis samples are solved from zero, the calibration pilots from their previous round
+    assert (ds.predicted[basis & ~pilots] == 0).all() and (ds.predicted[pilots] == 3).all()
     warm = done & ~basis & (ds.predicted == 1)
     assert warm.sum() >= 0.9 * (~basis).sum()
     # from the prediction the full solver needs fewer iterations than from zero
@@ -117,6 +119,44 @@ def test_predictor_starts_later_samples_near_their_solution(reference):
         cold = solver.solve(ds.forces[i].astype(np.float64)).displacement
         peak = np.abs(cold).max()
         assert np.abs(ds.displacements[i] - cold).max() <= 2e-3 * peak
+
+
+def test_calibration_pilots_start_from_their_previous_round(reference):
+    cfg, path, _ = reference
+    ds = open_dataset(path)
+    rounds = ds.calibration["rounds"]
+    assert len(rounds) >= 2
+    from tissuecast.dataset.generate import setup_from_config
+    from tissuecast.fem import NeoHookean, Problem, Solver
+
+    mesh, _, fixed = setup_from_config(cfg)
+    solver = Solver(Problem(mesh, NeoHookean(cfg.material.youngs_modulus, cfg.material.poisson_ratio), fixed,
+                            order=cfg.solver.order), cfg.solver)
+    for i in (0, 1):  # the last round's pilots are samples 0 and 1, at the same equilibrium as from zero
+        assert ds.predicted[i] == 3
+        cold = solver.solve(ds.forces[i].astype(np.float64))
+        assert np.abs(ds.displacements[i] - cold.displacement).max() <= 2e-3 * np.abs(cold.displacement).max()
+        assert ds.iterations[i] < cold.iterations
+
+
+def test_interrupted_before_the_calibration_record_calibrates_again_identically(reference, tmp_path, monkeypatch):
+    cfg, ref_path, _ = reference
+    from tissuecast.dataset.store import StoreWriter
+
+    store = tmp_path / "cut.zarr"
+    real = StoreWriter.set_calibration
+
+    def killed(self, record):
+        raise KeyboardInterrupt  # the pilots are written, the calibration record is not
+
+    monkeypatch.setattr(StoreWriter, "set_calibration", killed)
+    with pytest.raises(KeyboardInterrupt):
+        simulate(cfg, store, progress=False)
+    ds = open_dataset(store)
+    assert ds.calibration is None and (ds.status[:2] == 1).all() and (ds.status[2:] == 0).all()
+    monkeypatch.setattr(StoreWriter, "set_calibration", real)
+    simulate(cfg, store, progress=False)
+    _same_store(store, ref_path)
 
 
 def test_no_predictor_solves_every_sample_from_zero(tmp_path):

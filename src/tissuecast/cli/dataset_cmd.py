@@ -65,7 +65,8 @@ def print_summary(s: dict) -> None:
         print(f"reduced-model predictor: {m['modes']} modes from {m['snapshots']} samples, {m['elements']} ECSW "
               f"elements (force error {m['fit_error']:.3g})")
     for key, label in (("from_zero", "from zero"), ("predicted", "from the prediction"),
-                       ("prediction_failed", "prediction failed, from zero")):
+                       ("prediction_failed", "prediction failed, from zero"),
+                       ("from_previous_round", "pilots, from previous round")):
         st = pr.get(key) or {}
         if st.get("samples") and pr.get("model"):
             print(f"  {label:<29} {st['samples']:>6} samples, {st['seconds_mean']:.2f} s, "

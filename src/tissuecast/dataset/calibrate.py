@@ -19,6 +19,10 @@ Rule (documented in the store's ``calibration`` attribute):
   largest alpha at which the quantile is still finite: the record says
   ``limited_by_failures`` and the data set stays below the target rather than failing.
 * If ``dataset.alpha`` > 0 in the config, it is used as is and no pilots are solved.
+* From the second round on, each pilot's solve starts from its own solution of the previous
+  round (see ``generate._calibrate``); the answers are the same within the solver
+  tolerances, and the rounds are deterministic, so a repeated calibration gives the same
+  record bit for bit.
 
 So a softer material, a larger tumour or a different mesh resolution all land near the
 target: the rule measures the mesh at hand, not a fixed force.

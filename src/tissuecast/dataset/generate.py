@@ -170,8 +170,10 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
     last: list = []
 
     def pilot_max(alpha: float) -> np.ndarray:
-        last[:] = sorted(ex.imap_unordered([Task(i, int(seeds[i]), float(betas[i]), alpha) for i in pilots]),
-                         key=lambda r: r.index)
+        # each pilot starts from its solution of the previous round (if it converged)
+        prev = {r.index: r.nodal for r in last if r.status == 1 and r.nodal is not None}
+        last[:] = sorted(ex.imap_unordered([Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i))
+                                            for i in pilots]), key=lambda r: r.index)
         return np.array([r.max_displacement for r in last])
 
     basis = LBOBasis(recipe.basis_vertices, recipe.basis_vectors, recipe.basis_eigenvalues, recipe.basis_mass)
@@ -223,13 +225,15 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
                 tc = time.monotonic()
                 record, reusable = _calibrate(writer, ex, cfg, recipe)
                 run["calibration_seconds"] = time.monotonic() - tc
-                writer.set_calibration(record)
                 for r in reusable:  # pilot solves at the final alpha are the samples themselves
                     if writer.status[r.index] == 0:
                         writer.write_sample(r)
                         run["solved"] += 1
                 writer.flush()
                 _keep_snapshots(writer, cfg, reusable)
+                # the record last: a run killed before it calibrates again (the same rounds,
+                # bit for bit) instead of solving the written pilots again from zero
+                writer.set_calibration(record)
             if cfg.dataset.predictor == "reduced" and writer.reduced is None and len(writer.pending()):
                 tr = time.monotonic()
                 if _build_reduced(writer, ex, cfg, run):
@@ -258,11 +262,11 @@ def _basis_samples(writer: StoreWriter, cfg: Config) -> np.ndarray:
 
 
 def _keep_snapshots(writer: StoreWriter, cfg: Config, results) -> None:
-    """Store the nodal solutions of basis samples among ``results`` (solved from zero)."""
+    """Store the nodal solutions of basis samples among ``results`` (none is from the reduced model)."""
     if cfg.dataset.predictor != "reduced" or writer.reduced is not None:
         return
     for r in results:
-        if r.nodal is None or r.status != 1 or r.predicted:
+        if r.nodal is None or r.status != 1 or r.predicted == 1:
             continue
         rows = writer.snapshot_rows(_basis_samples(writer, cfg), len(r.nodal))
         hit = np.flatnonzero(rows == r.index)

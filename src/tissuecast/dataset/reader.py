@@ -106,8 +106,8 @@ class Dataset:
     @cached_property
     def predicted(self) -> np.ndarray:
         """(N,) int8 initial guess of each solve: 0 zero (no reduced model yet), 1 the reduced
-        model's prediction, 2 the prediction did not work (then zero). All 0 in stores made
-        before the predictor existed."""
+        model's prediction, 2 the guess did not work (then zero), 3 a calibration pilot's
+        solution of the previous round. All 0 in stores made before the predictor existed."""
         if "predicted" not in self._root["samples"]:
             return np.zeros(self.n_samples, dtype=np.int8)
         return self._array("samples/predicted")
@@ -197,7 +197,7 @@ class Dataset:
     def _predictor_summary(self) -> dict:
         done = self.status == 1
         out = {"model": self._root.attrs.get("reduced")}
-        for code, name in ((0, "from_zero"), (1, "predicted"), (2, "prediction_failed")):
+        for code, name in ((0, "from_zero"), (1, "predicted"), (2, "prediction_failed"), (3, "from_previous_round")):
             sel = done & (self.predicted == code)
             out[name] = {"samples": int(sel.sum()),
                          "seconds_mean": float(self.seconds[sel].mean()) if sel.any() else 0.0,

@@ -34,7 +34,8 @@ vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
       samples/max_displacement (N,) float32 mm, largest vertex displacement (NaN unless done)
       samples/seconds       (N,) float64 wall-clock solve time (the only non-reproducible array)
       samples/predicted     (N,) int8 initial guess: 0 zero (no reduced model yet), 1 the
-                            reduced model's prediction, 2 the prediction did not work (then zero)
+                            reduced model's prediction, 2 the guess did not work (then zero),
+                            3 a calibration pilot's solution of the previous round
       reduced/samples       (s,) int64 ids of the samples whose full solutions built the reduced
                             model (dataset.predictor = "reduced"; absent otherwise)
       reduced/snapshots     (s, n_nodes, 3) float64 mm their displacements at every element node

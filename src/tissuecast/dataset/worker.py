@@ -19,7 +19,7 @@ import importlib
 import logging
 import time
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -73,12 +73,17 @@ class Recipe:
 
 @dataclass(frozen=True)
 class Task:
-    """One sample to solve: its index, seed, kind and force magnitude alpha (N)."""
+    """One sample to solve: its index, seed, kind and force magnitude alpha (N).
+
+    ``guess``: optional (n_nodes, 3) mm nodal displacements to start from (a calibration
+    pilot's solution of the previous round); without it the reduced model predicts, if any.
+    """
 
     index: int
     seed: int
     beta: float  # NaN for LBO samples, the LBO share for test-2 samples
     alpha: float
+    guess: np.ndarray | None = field(default=None, compare=False, repr=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,8 +97,10 @@ class SampleResult:
         load_fraction: share of the load reached (1.0 when done).
         attempts: solver attempts used (1 + retries used).
         predicted: 0 solved from zero (no reduced model), 1 converged from the reduced
-            model's prediction, 2 the prediction did not work (the reduced problem or the
-            solve from it did not converge) and the sample was solved from zero.
+            model's prediction, 2 the initial guess did not work (the reduced problem or the
+            solve from the guess did not converge) and the sample was solved from zero,
+            3 converged from the task's guess (a calibration pilot started from its solution
+            of the previous round).
         nodal: (n_nodes, 3) float64 mm at every element node (P2: mid-edge nodes too), or
             None; the reduced model is built from these.
     """
@@ -228,9 +235,10 @@ def _counts(res) -> tuple[int, int, int]:
 def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     """Solve one sample, retrying with more cautious increments ``solver.retries`` times.
 
-    With a reduced model in the recipe, a first try starts from its prediction (``predicted``
-    1; 2 when the reduced problem did not converge and there is no prediction); should that
-    try fail, the usual attempts from zero follow, so a prediction never makes a sample fail. A ConvergenceError (or a numerical breakdown: ArithmeticError,
+    With a guess in the task (``predicted`` 3), or else a reduced model in the recipe, a first
+    try starts from it (``predicted`` 1; 2 when the reduced problem did not converge and there
+    is no prediction); should that try fail, the usual attempts from zero follow, so a guess
+    never makes a sample fail. A ConvergenceError (or a numerical breakdown: ArithmeticError,
     LinAlgError) after the last retry makes a failed result carrying the reason; any other
     exception propagates.
     """
@@ -243,7 +251,10 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     retries = ctx.config.solver.retries
     predicted = 0
     tries = [(attempt, None) for attempt in range(retries + 1)]
-    if ctx.reduced is not None:
+    if task.guess is not None:
+        predicted = 3
+        tries.insert(0, (0, np.asarray(task.guess, dtype=np.float64)))
+    elif ctx.reduced is not None:
         guess = ctx.reduced.predict(forces)
         predicted = 1 if guess is not None else 2
         if guess is not None:
@@ -255,7 +266,8 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
-            reasons.append(f"attempt {attempt + 1}{' from the prediction' if guess is not None else ''}: "
+            start = " from the previous round's solution" if predicted == 3 else " from the prediction"
+            reasons.append(f"attempt {attempt + 1}{start if guess is not None else ''}: "
                            f"{type(exc).__name__}: {exc}")
             predicted = 2 if guess is not None else predicted
             continue
