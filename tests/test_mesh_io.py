@@ -273,7 +273,9 @@ def test_real_gmsh_files_first_and_second_order(tmp_path):
     """Files written by gmsh itself: msh 2.2/4.1 with surface groups, and a 10-node .inp
     deck whose CPS6 surface elements meshio cannot read (they are skipped)."""
     gmsh = pytest.importorskip("gmsh")
-    gmsh.initialize(readConfigFiles=False, interruptible=False)
+    from tissuecast.mesh.mesher import start_gmsh
+
+    start_gmsh(gmsh)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.model.add("box")
@@ -318,3 +320,28 @@ def test_mixed_triangle_orientation_is_repaired(tmp_path):
     a = read_mesh(tmp_path / "mixed.stl", mesh_size=4.0)
     b = read_mesh(tmp_path / "clean.stl", mesh_size=4.0)
     assert a.volume == pytest.approx(b.volume, rel=1e-4)  # vertex order can move gmsh nodes a little
+
+
+def test_meshing_with_gmsh_leaves_broken_pipes_as_python_errors():
+    """gmsh's initialisation resets SIGPIPE to the default action (kill the process); after
+    tetrahedralising, a write to a closed pipe must still raise BrokenPipeError, or a data-set
+    run whose worker died would vanish without its error."""
+    pytest.importorskip("gmsh")
+    import subprocess
+    import sys
+
+    code = (
+        "import os\n"
+        "from tissuecast.mesh.phantom import icosphere\n"
+        "from tissuecast.mesh.mesher import tetrahedralize_surface\n"
+        "p, t = icosphere(2)\n"
+        "tetrahedralize_surface(10.0 * p, t, mesh_size=4.0)\n"
+        "r, w = os.pipe(); os.close(r)\n"
+        "try:\n"
+        "    os.write(w, b'x')\n"
+        "except BrokenPipeError:\n"
+        "    print('BrokenPipeError')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, (out.returncode, out.stderr[-500:])
+    assert out.stdout.strip() == "BrokenPipeError"

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
+import threading
 
 import numpy as np
 import scipy.sparse as sp
@@ -23,6 +25,19 @@ __all__ = ["merge_duplicate_points", "check_closed_surface", "orient_surface", "
 
 log = logging.getLogger(__name__)
 
+
+
+def start_gmsh(gmsh) -> None:
+    """``gmsh.initialize()``, then give SIGPIPE back to Python.
+
+    gmsh's initialisation resets SIGPIPE to the system default, which makes any later write
+    to a closed pipe kill the whole process instead of raising ``BrokenPipeError`` (Python
+    ignores SIGPIPE); e.g. a data-set run whose worker process died would vanish without its
+    clear error. We restore Python's setting (main thread only; no SIGPIPE on Windows).
+    """
+    gmsh.initialize(readConfigFiles=False, interruptible=False)
+    if hasattr(signal, "SIGPIPE") and threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGPIPE, signal.SIG_IGN)
 
 def merge_duplicate_points(points: np.ndarray, triangles: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
     """Merge coincident vertices (STL files store each triangle's corners separately).
@@ -174,7 +189,7 @@ def tetrahedralize_surface(
     gmsh = require("gmsh", "mesh", "Tetrahedralising a surface")
     started = gmsh.isInitialized()
     if not started:
-        gmsh.initialize(readConfigFiles=False, interruptible=False)
+        start_gmsh(gmsh)
     try:
         gmsh.option.setNumber("General.Terminal", 0)
         gmsh.option.setNumber("General.Verbosity", 1)
