@@ -252,11 +252,11 @@ def _backend(choice: str, material) -> str:
         choice = os.environ.get("TISSUECAST_KERNELS", "auto").strip().lower() or "auto"
     if choice not in ("auto", "numba", "numpy"):
         raise SolverSetupError(f"kernel backend must be 'auto', 'numba' or 'numpy', got {choice!r} "
-                         "(argument backend or $TISSUECAST_KERNELS)")
+                               "(argument backend or $TISSUECAST_KERNELS)")
     compiled_ok = kernels.available() and type(material) is NeoHookean
     if choice == "numba" and not compiled_ok:
         raise DependencyError("kernel backend 'numba' needs numba (pip install \"tissuecast[fast]\") "
-                         "and the NeoHookean material")
+                              "and the NeoHookean material")
     if choice == "auto":
         return "numba" if compiled_ok else "numpy"
     return choice
