@@ -75,6 +75,23 @@ if numba is not None:
         return j, js, i1
 
     @_jit
+    def _lowest(jmin, j):
+        """Running minimum of J over quadrature points; a NaN (an invalid state) sticks."""
+        if jmin != jmin:
+            return jmin
+        return j if (j != j or j < jmin) else jmin
+
+    @_jit
+    def _stress(f, h, js, i1, mu, kappa, p):
+        """First Piola-Kirchhoff stress into ``p``; returns ``(mu J^-2/3, kappa J (J - 1))``."""
+        a_ = mu * js ** (-2.0 / 3.0)
+        b_ = kappa * js * (js - 1.0)
+        for i in range(3):
+            for jj in range(3):
+                p[i, jj] = a_ * (f[i, jj] - i1 / 3.0 * h[i, jj]) + b_ * h[i, jj]
+        return a_, b_
+
+    @_jit
     def _gather(u, conn, e, ue):
         for a in range(conn.shape[1]):
             n = conn[e, a]
@@ -104,13 +121,8 @@ if numba is not None:
             for q in range(nq):
                 g = grad[e, q]
                 j, js, i1 = _kinematics(ue, g, f, h)
-                if j < jmin or j != j:  # NaN sticks (an invalid state)
-                    jmin = j if jmin == jmin else jmin
-                a_ = mu * js ** (-2.0 / 3.0)
-                b_ = kappa * js * (js - 1.0)
-                for i in range(3):
-                    for jj in range(3):
-                        p[i, jj] = a_ * (f[i, jj] - i1 / 3.0 * h[i, jj]) + b_ * h[i, jj]
+                jmin = _lowest(jmin, j)
+                a_, b_ = _stress(f, h, js, i1, mu, kappa, p)
                 wq = weight[e, q]
                 chh = (a_ * (2.0 / 9.0) * i1 + kappa * (2.0 * js * js - js)) * wq
                 ct = (a_ * i1 / 3.0 - b_) * wq
@@ -165,6 +177,7 @@ if numba is not None:
         ue = np.zeros((nn, 3))
         f = np.zeros((3, 3))
         h = np.zeros((3, 3))
+        p = np.zeros((3, 3))
         energy = 0.0
         jmin = np.inf
         for e in range(m):
@@ -172,20 +185,14 @@ if numba is not None:
             for q in range(nq):
                 g = grad[e, q]
                 j, js, i1 = _kinematics(ue, g, f, h)
-                if j < jmin or j != j:  # NaN sticks (an invalid state)
-                    jmin = j if jmin == jmin else jmin
+                jmin = _lowest(jmin, j)
                 wq = weight[e, q]
-                j23 = js ** (-2.0 / 3.0)
-                energy += wq * (c10 * (j23 * i1 - 3.0) + (js - 1.0) ** 2 / d1)
+                energy += wq * (c10 * (js ** (-2.0 / 3.0) * i1 - 3.0) + (js - 1.0) ** 2 / d1)
                 if want_force:
-                    a_ = mu * j23
-                    b_ = kappa * js * (js - 1.0)
+                    _stress(f, h, js, i1, mu, kappa, p)
                     for i in range(3):
-                        p0 = a_ * (f[i, 0] - i1 / 3.0 * h[i, 0]) + b_ * h[i, 0]
-                        p1 = a_ * (f[i, 1] - i1 / 3.0 * h[i, 1]) + b_ * h[i, 1]
-                        p2 = a_ * (f[i, 2] - i1 / 3.0 * h[i, 2]) + b_ * h[i, 2]
                         for a in range(nn):
-                            fint[3 * conn[e, a] + i] += wq * (p0 * g[a, 0] + p1 * g[a, 1] + p2 * g[a, 2])
+                            fint[3 * conn[e, a] + i] += wq * (p[i, 0] * g[a, 0] + p[i, 1] * g[a, 1] + p[i, 2] * g[a, 2])
         if not jmin > 0.0:
             energy = np.inf
         return energy, fint, jmin

@@ -26,7 +26,6 @@ __all__ = ["merge_duplicate_points", "check_closed_surface", "orient_surface", "
 log = logging.getLogger(__name__)
 
 
-
 def start_gmsh(gmsh) -> None:
     """``gmsh.initialize()``, then give SIGPIPE back to Python.
 
@@ -38,6 +37,7 @@ def start_gmsh(gmsh) -> None:
     gmsh.initialize(readConfigFiles=False, interruptible=False)
     if hasattr(signal, "SIGPIPE") and threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGPIPE, signal.SIG_IGN)
+
 
 def merge_duplicate_points(points: np.ndarray, triangles: np.ndarray, tol: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
     """Merge coincident vertices (STL files store each triangle's corners separately).
