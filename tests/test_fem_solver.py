@@ -97,7 +97,8 @@ def test_krylov_direction_solves_the_current_tangent():
 
     mesh = grid(3, 2, 2, size=(1.0, 1.0, 1.0))
     prob = Problem(mesh, MAT, np.flatnonzero(mesh.points[:, 0] < 1e-9), order=2)  # clamped face
-    solver = Solver(prob, SolverConfig(strategy="krylov", krylov_tolerance=1e-8, krylov_iterations=200))
+    solver = Solver(prob, SolverConfig(strategy="krylov", krylov_tolerance=1e-8, krylov_iterations=200,
+                                       krylov_recycle=0))
     solver._stats = {"solves": 0, "krylov": 0, "factorizations": 0, "shifted": 0, "projected": 0}
     solver._rotation = np.eye(3)
     rng = np.random.default_rng(1)
@@ -114,6 +115,45 @@ def test_krylov_direction_solves_the_current_tangent():
     d, rest = solver._krylov(u.ravel(), r)
     assert rest is None and solver._stats["krylov"] > 2
     assert np.abs(d - exact).max() <= 1e-6 * np.abs(exact).max()
+
+
+def test_recycled_krylov_is_exact_and_needs_fewer_steps():
+    """Deflated CG (krylov_recycle): each direction still solves its own tangent to the
+    tolerance, and the directions recycled from earlier tangents (plus the rotations about
+    the pins) save conjugate-gradient steps on a sequence of tangents along a load path."""
+    from mesh_factories import box_grid as grid
+
+    mesh = grid(4, 3, 3, size=(2.0, 1.5, 1.5))
+    pins = np.argsort(np.linalg.norm(mesh.points - mesh.points.mean(axis=0), axis=1))[:3]
+    prob = Problem(mesh, MAT, pins, order=2)
+    rng = np.random.default_rng(3)
+    states = []
+    u = np.zeros((len(prob.nodes), 3))
+    for _ in range(4):  # small smooth displacements (a swing and a stretch): positive-definite tangents
+        u = u + 0.01 * (prob.nodes - prob.nodes.mean(axis=0)) @ rng.normal(size=(3, 3))
+        u[prob.constrained_nodes[0]] = 0.0
+        states.append(u.copy())
+    rhs = [rng.normal(size=3 * len(prob.nodes))[Solver(prob).assembler.free_dofs] for _ in states]
+    steps = {}
+    for cap in (0, 20):
+        solver = Solver(prob, SolverConfig(strategy="krylov", krylov_tolerance=1e-6, krylov_iterations=500,
+                                           krylov_recycle=cap))
+        solver._stats = {"solves": 0, "krylov": 0, "factorizations": 0, "shifted": 0, "projected": 0}
+        solver._rotation = np.eye(3)
+        solver._recycled = None
+        solver._factorize(np.zeros(solver.assembler.n_dofs))  # the reference stiffness as preconditioner
+        for state, r in zip(states, rhs):
+            _, data, _ = solver.assembler.tangent(state)
+            k = solver.assembler.matrix(data)
+            exact = -np.linalg.solve(k.toarray(), r)
+            d, rest = solver._krylov(state.ravel(), r)
+            assert rest is None
+            assert np.linalg.norm(k @ d + r) <= 1e-6 * np.linalg.norm(r) * (1 + 1e-9)
+            assert np.abs(d - exact).max() <= 1e-4 * np.abs(exact).max()
+        steps[cap] = solver._stats["krylov"]
+        if cap:
+            assert solver._recycled is not None and 0 < solver._recycled.shape[1] <= cap
+    assert steps[20] < steps[0]
 
 
 def test_default_tolerances_are_accurate(beam):

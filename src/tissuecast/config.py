@@ -109,6 +109,7 @@ class SolverConfig:
     )
     krylov_iterations: int = _f(20, lo=1, hi=1000, doc="krylov: most conjugate-gradient steps per Newton iteration before refactorising")
     krylov_tolerance: float = _f(5e-2, lo=0.0, lo_open=True, hi=0.5, doc="krylov: relative residual of the linear solve that ends the conjugate gradients (an inexact Newton direction; convergence is judged on the nonlinear residual and correction). On phantom samples 5e-2 / 20 steps took 23 % less time than 1e-2 / 12 from reduced-model guesses (24 samples) and 18 % less from zero (6), with a few more Newton iterations and fewer factorisations")
+    krylov_recycle: int = _f(20, lo=0, hi=200, doc="krylov: most conjugate-gradient directions of earlier Newton iterations of the same solve kept as a deflation subspace (Galerkin start and projection with the new tangent); 0 = plain preconditioned CG")
     reference_preconditioner: bool = _f(True, doc="krylov, solves with an initial guess: until the first factorisation, precondition with the stiffness at zero displacement (factorised once per Solver), co-rotated by the guess's best-fit rotation; from reduced-model guesses 0.26 instead of 1.06 factorisations per phantom sample, 9 % less time")
     rotation_aware: bool = _f(True, doc="line search moves the rigid-rotation part of each step along an arc (large swings about the fixed vertices)")
     refactor_ratio: float = _f(0.5, lo=0.0, hi=1.0, doc="quasi-newton: refactorise when an iteration reduced the residual norm by less than this factor")
