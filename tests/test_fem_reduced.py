@@ -44,8 +44,9 @@ def test_ecsw_weights_meet_the_tolerance_sparsely_and_agree_with_nnls():
     assert np.linalg.norm(g @ exact - b) == pytest.approx(best, abs=1e-8 * np.linalg.norm(b))
 
 
+@pytest.mark.parametrize("method", ["bfgs", "newton"])
 @pytest.mark.parametrize("order", [1, 2])
-def test_reduced_solution_is_exact_when_the_basis_holds_the_answer(order):
+def test_reduced_solution_is_exact_when_the_basis_holds_the_answer(order, method):
     problem, end = _bar(order)
     solver = Solver(problem, SolverConfig(force_tolerance=1e-9, displacement_tolerance=1e-9))  # tight
     f = _forces(problem, end, [0.0, 0.3, 1.0], 0.02)
@@ -58,7 +59,7 @@ def test_reduced_solution_is_exact_when_the_basis_holds_the_answer(order):
     basis = np.linalg.qr(np.column_stack([u.ravel()[free] for u in (*path, truth)]))[0]
     m = len(problem.connectivity)
     model = ReducedModel(problem, basis, np.arange(m), np.ones(m))  # every element, weight 1
-    guess = model.predict(f, tolerance=1e-10)
+    guess = model.predict(f, tolerance=1e-10, method=method, bfgs_tolerance=1e-10)
     assert np.abs(guess - truth).max() <= 1e-6 * np.abs(truth).max()
 
 
@@ -79,6 +80,24 @@ def test_fitted_model_predicts_new_loads_and_saves_newton_iterations():
     warm = solver.solve(f, initial_guess=guess)
     assert warm.iterations < cold.iterations
     assert np.abs(warm.displacement - cold.displacement).max() <= 2e-3 * peak
+    # quasi-Newton (default) and Newton find the same reduced equilibrium
+    newton = model.predict(f, method="newton", tolerance=1e-8)
+    bfgs = model.predict(f, bfgs_tolerance=1e-8)
+    assert np.abs(bfgs - newton).max() <= 1e-4 * peak
+    assert np.abs(guess - newton).max() <= 1e-2 * peak  # the default stopping tests
+
+
+def test_quasi_newton_prediction_falls_back_to_newton(monkeypatch):
+    problem, end = _bar(2)
+    solver = Solver(problem)
+    snaps = [solver.solve(_forces(problem, end, d, 0.01)).nodal_displacement for d in ([0, 1, 0], [0, 0, 1], [1, 1, 1])]
+    model = ReducedModel.fit(problem, np.stack(snaps))
+    f = _forces(problem, end, [0.2, 0.5, 0.5], 0.01)
+    newton = model.predict(f, method="newton")
+    monkeypatch.setattr(model, "_bfgs", lambda *args: None)  # e.g. its line search failed
+    assert np.array_equal(model.predict(f), newton)
+    with pytest.raises(SolverSetupError, match="method must be 'bfgs' or 'newton'"):
+        model.predict(f, method="lbfgs")
 
 
 def test_bad_snapshots_and_prescribed_displacements_are_refused():

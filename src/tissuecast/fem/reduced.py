@@ -20,11 +20,13 @@ problem:
    non-negative least-squares active-set method that stops at the tolerance.
 
 Solve (:meth:`ReducedModel.predict`): Galerkin projection ``u = V q`` with the internal
-forces, energy and tangent evaluated on the sampled elements only (weighted), Newton with
-an Armijo line search on the reduced energy and load increments with cut-backs, all in
-``r`` unknowns; a few milliseconds per iteration instead of a sparse factorisation. Returns
-the nodal displacement field, or None when the reduced problem does not converge (the
-caller then solves from zero, as without a predictor).
+forces and energy evaluated on the sampled elements only (weighted), minimising the reduced
+energy in ``r`` unknowns by BFGS from the reduced linear-elastic answer (inverse reduced
+stiffness at zero as the first inverse Hessian, Armijo line search): ~0.6 ms per iteration,
+no tangent. If that fails, Newton with the reduced tangent, an Armijo line search and load
+increments with cut-backs (a few milliseconds per iteration). Returns the nodal displacement
+field, or None when the reduced problem does not converge (the caller then solves from zero,
+as without a predictor).
 
 Measured on the phantom (P2, compact pins, 40 snapshots, 40 modes, 511 of 5066 elements;
 ``benchmarks/dataset_throughput.py``, one worker's time, compiled kernels): a sample from the
@@ -241,15 +243,30 @@ class ReducedModel:
         return self._sub.assembler.energy(self._state(q)) - float(fr @ q)
 
     def predict(self, forces: np.ndarray, max_iterations: int = 40, tolerance: float = 1e-2,
-                first_increment: float = 1.0) -> np.ndarray | None:
+                first_increment: float = 1.0, method: str = "bfgs",
+                bfgs_tolerance: float = 3e-4) -> np.ndarray | None:
         """Reduced equilibrium under ``forces``: (n_nodes, 3) nodal displacements, mm, or None.
 
         Args:
             forces: (n, 3) float, N, dead loads on the vertices (as for :meth:`Solver.solve`).
-            max_iterations: reduced Newton iterations per load increment.
-            tolerance: stop when the reduced residual is below ``tolerance`` times the reduced
-                load, or the last correction below ``tolerance`` times the solution.
-            first_increment: load fraction of the first increment (cut by 4 on failure).
+            max_iterations: reduced Newton iterations per load increment (``5 x`` that for
+                the quasi-Newton iterations of ``method="bfgs"``).
+            tolerance: Newton: stop when the reduced residual is below ``tolerance`` times the
+                reduced load, or the last correction below ``tolerance`` times the solution.
+            first_increment: Newton: load fraction of the first increment (cut by 4 on failure).
+            method: ``"bfgs"`` (default): quasi-Newton on the reduced energy from the reduced
+                linear-elastic answer, with the inverse reduced stiffness at zero displacement
+                as the first inverse Hessian and BFGS updates, so that each iteration costs
+                one energy-and-forces evaluation on the sampled elements and no tangent; it
+                falls back to Newton (below) if its line search fails. ``"newton"``: reduced
+                Newton with load increments.
+            bfgs_tolerance: BFGS: the same stopping tests with this factor. Measured on the
+                phantom (P2, compact pins, 40 modes, one process): 0.066 s per prediction
+                instead of Newton's 0.111 s, guesses as good (median 6.6 % off the full
+                solution against 6.3 %) and the full solve after them as fast (3.4 Newton
+                iterations; 24 samples); on the 25.6 mm benchmark sample 0.063 s instead
+                of 0.107 s (93 quasi-Newton iterations against 13 Newton ones) and a guess
+                13.8 % off instead of 15.8 %. 1e-2 stopped too early there (48 % off).
                 Measured on 12 phantom samples (P2, compact pins, 40 modes): the full load at
                 once took 17 reduced iterations (0.26 s) where halves took 23 (0.35 s); the
                 full solve after either took 2.8 iterations; tolerance 1e-3 against 1e-4 saved
@@ -261,6 +278,8 @@ class ReducedModel:
                 (20 LBO, 11 test-2), the same 3.0 full iterations after.
         """
         t0 = time.perf_counter()
+        if method not in ("bfgs", "newton"):
+            raise SolverSetupError(f"method must be 'bfgs' or 'newton', got {method!r}")
         f = check_forces(self.problem, forces)
         fext = np.zeros(3 * len(self.problem.nodes))
         fext[: 3 * self._n] = f.ravel()
@@ -276,6 +295,12 @@ class ReducedModel:
             q_lin = np.linalg.solve(self._h0, fr_full)
         except np.linalg.LinAlgError:
             q_lin = np.zeros(r)
+        if method == "bfgs":
+            found = self._bfgs(q_lin, fr_full, bfgs_tolerance, 5 * max_iterations)
+            if found is not None:
+                q, iterations = found
+                return self._done(q, iterations, t0)
+            log.debug("reduced model: quasi-Newton line search failed; reduced Newton instead")
         lam, dlam = 0.0, float(first_increment)
         prev = None
         iterations = 0
@@ -322,8 +347,61 @@ class ReducedModel:
                 if dlam < 1.0 / 64.0:
                     log.debug("reduced model: no convergence at load fraction %.3g", lam)
                     return None
+        return self._done(q, iterations, t0)
+
+    def _done(self, q: np.ndarray, iterations: int, t0: float) -> np.ndarray:
         u = np.zeros(3 * len(self.problem.nodes))
         u[self.free_dofs] = self.basis @ q
         self.last_iterations = iterations
         self.last_seconds = time.perf_counter() - t0
         return u.reshape(-1, 3)
+
+    def _bfgs(self, q: np.ndarray, fr: np.ndarray, tolerance: float, max_iterations: int):
+        """Minimise the reduced energy from ``q`` by BFGS (inverse Hessian from the reduced
+        stiffness at zero, Armijo backtracking, updates skipped without positive curvature).
+        Returns ``(q, iterations)``, or None when the line search fails."""
+        sub = self._sub
+        asm = sub.assembler
+        free = asm.free_dofs
+
+        def energy_gradient(q):
+            e, fint, jmin = asm.energy_and_force(self._state(q))
+            if not jmin > 0.0:
+                return np.inf, None
+            return e - float(fr @ q), sub.basis.T @ fint[free] - fr
+
+        e, g = energy_gradient(q)
+        if not np.isfinite(e):  # the linear answer inverts a sampled element: start from zero
+            q = np.zeros_like(q)
+            e, g = energy_gradient(q)
+        try:
+            h0 = np.linalg.inv(self._h0)
+        except np.linalg.LinAlgError:
+            return None
+        h = h0.copy()
+        eye = np.eye(len(q))
+        fnorm = np.linalg.norm(fr)
+        for iteration in range(1, max_iterations + 1):
+            d = -h @ g
+            slope = float(g @ d)
+            if not slope < 0.0:  # not a descent direction: restart from the initial inverse
+                h = h0.copy()
+                d = -h @ g
+                slope = float(g @ d)
+            step = 1.0
+            while step > 1e-6:
+                e1, g1 = energy_gradient(q + step * d)
+                if e1 <= e + 1e-4 * step * slope:
+                    break
+                step *= 0.5
+            else:
+                return None
+            s, y = step * d, g1 - g
+            q, e, g = q + s, e1, g1
+            sy = float(s @ y)
+            if sy > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
+                rho = 1.0 / sy
+                h = (eye - rho * np.outer(s, y)) @ h @ (eye - rho * np.outer(y, s)) + rho * np.outer(s, s)
+            if np.linalg.norm(g) <= tolerance * fnorm or np.linalg.norm(s) <= tolerance * max(np.linalg.norm(q), 1e-300):
+                return q, iteration
+        return None
