@@ -261,21 +261,22 @@ class ReducedModel:
                 falls back to Newton (below) if its line search fails. ``"newton"``: reduced
                 Newton with load increments.
             bfgs_tolerance: BFGS: the same stopping tests with this factor. Measured on the
-                phantom (P2, compact pins, 40 modes, one process): 0.066 s per prediction
-                instead of Newton's 0.111 s, guesses as good (median 6.6 % off the full
-                solution against 6.3 %) and the full solve after them as fast (3.4 Newton
-                iterations; 24 samples); on the 25.6 mm benchmark sample 0.063 s instead
-                of 0.107 s (93 quasi-Newton iterations against 13 Newton ones) and a guess
-                13.8 % off instead of 15.8 %. 1e-2 stopped too early there (48 % off).
-                Measured on 12 phantom samples (P2, compact pins, 40 modes): the full load at
-                once took 17 reduced iterations (0.26 s) where halves took 23 (0.35 s); the
-                full solve after either took 2.8 iterations; tolerance 1e-3 against 1e-4 saved
-                7 % of the prediction and no full iteration, 1e-2 against 1e-3 22 % more
-                (0.081 s instead of 0.104 s, compiled kernels; 24 samples) for the same full
-                solve time. The first increment starts from
-                the reduced linear-elastic answer (from zero if that inverts a sampled element):
-                12.8 instead of 17.1 reduced iterations (0.19 s instead of 0.26 s) on 31 samples
-                (20 LBO, 11 test-2), the same 3.0 full iterations after.
+                phantom (P2, compact pins, 40 modes, one process, 24 samples): 0.066 s per
+                prediction instead of Newton's 0.111 s, guesses as good (median 6.6 % off the
+                full solution against 6.3 %) and the full solve after them as fast (3.42
+                against 3.33 Newton iterations); 1e-3 gave median 7.7 % and 3.50 iterations.
+                On the 25.6 mm benchmark sample: 0.065 s instead of 0.107 s (102 quasi-Newton
+                iterations against 13 Newton ones), a guess 14.7 % off instead of 15.8 %;
+                1e-2 stopped too early there (48 % off).
+
+        Newton, measured on 12 phantom samples (P2, compact pins, 40 modes): the full load at
+        once took 17 reduced iterations (0.26 s) where halves took 23 (0.35 s); the full solve
+        after either took 2.8 iterations; tolerance 1e-3 against 1e-4 saved 7 % of the
+        prediction and no full iteration, 1e-2 against 1e-3 22 % more (0.081 s instead of
+        0.104 s, compiled kernels; 24 samples) for the same full solve time. The first
+        increment starts from the reduced linear-elastic answer (from zero if that inverts a
+        sampled element): 12.8 instead of 17.1 reduced iterations (0.19 s instead of 0.26 s)
+        on 31 samples (20 LBO, 11 test-2), the same 3.0 full iterations after.
         """
         t0 = time.perf_counter()
         if method not in ("bfgs", "newton"):
