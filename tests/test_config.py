@@ -78,6 +78,7 @@ def test_partial_file_keeps_other_defaults(tmp_path):
         ({"solver": {"strategy": "cg"}}, "solver.strategy", "is not allowed"),
         ({"solver": {"krylov_tolerance": 0.0}}, "solver.krylov_tolerance", "out of range"),
         ({"solver": {"krylov_iterations": 0}}, "solver.krylov_iterations", "out of range"),
+        ({"solver": {"krylov_recycle": -1}}, "solver.krylov_recycle", "out of range"),
         ({"forces": {"betas": [0.5, 1.5]}}, "betas", "must be numbers in [0, 1]"),
         ({"dataset": {"split": [8, 1]}}, "split", "three non-negative numbers"),
         ({"dataset": {"predictor": "pod"}}, "dataset.predictor", "is not allowed"),
