@@ -39,6 +39,7 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from tissuecast.config import FIXED_RULES, SolverConfig  # noqa: E402
+from tissuecast.errors import ConvergenceError  # noqa: E402
 from tissuecast.fem import NeoHookean, Problem, Solver  # noqa: E402
 from tissuecast.fem.calculix import ccx_executable, solve_calculix  # noqa: E402
 from tissuecast.forces import field_scale, lbo_basis, lbo_field, random_lbo_weights  # noqa: E402
@@ -96,6 +97,52 @@ def time_ours(problem: Problem, forces: np.ndarray, repeats: int, config=None):
     return results[-1], setup, statistics.median(seconds)
 
 
+def time_batch(solver, model, forces, basis, field_rms, n_points, size, peak_range, repeats) -> dict:
+    """The benchmark sample with ``size - 1`` others, one by one and with ``Solver.solve_batch``.
+
+    The others are LBO fields of the data set's distribution (seeds 2000, 2001, ...), each
+    rescaled (from reduced-model guesses, at most 5 solves) until its solution peaks inside
+    ``peak_range``, so that the batch is as hard as the sample; fields that do not get there
+    are skipped. Both timings include the reduced-model predictions.
+    """
+    low, high = peak_range
+    fields, seeds, seed = [forces], [], 2000
+    while len(fields) < size and seed < 2000 + 10 * size:
+        f = lbo_field(basis, random_lbo_weights(np.random.default_rng(seed), 20), field_rms, n_points)
+        for _ in range(5):
+            try:
+                peak = solver.solve(f, initial_guess=model.predict(f)).max_displacement
+            except ConvergenceError:
+                break
+            if low <= peak <= high:
+                fields.append(f)
+                seeds.append(seed)
+                break
+            f = f * min(2.0, max(0.5, (0.5 * (low + high) / peak) ** 0.5))
+        seed += 1
+    t0 = time.perf_counter()
+    solo = []
+    for f in fields:
+        t1 = time.perf_counter()
+        solo.append(solver.solve(f, initial_guess=model.predict(f)))
+        if len(solo) == 1:
+            solo_first = time.perf_counter() - t1
+    t_solo = (time.perf_counter() - t0) / len(fields)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = solver.solve_batch(fields, [model.predict(f) for f in fields])
+        times.append((time.perf_counter() - t0) / len(fields))
+    for r in out:
+        if isinstance(r, Exception):
+            raise r
+    rounds = max(r.solves for r in out)
+    diff = max(float(np.abs(a.displacement - b.displacement).max()) / b.max_displacement for a, b in zip(out, solo))
+    return {"batch": statistics.median(times), "solo": t_solo, "solo_first": solo_first, "result": out[0],
+            "seeds": seeds, "peaks": [r.max_displacement for r in out], "iterations": [r.iterations for r in out],
+            "solves": [r.solves for r in out], "rounds": rounds, "diff": diff}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="coarse phantom (~200-250 vertices, gmsh) instead of the phantom")
@@ -118,6 +165,10 @@ def main(argv=None) -> int:
     ap.add_argument("--predictor", type=int, default=40, metavar="N",
                     help="also time our P2 solve started from a reduced-order model built from N other LBO samples "
                     "of the same magnitude solved from zero, as data sets do (default 40; 0 = skip)")
+    ap.add_argument("--batch", type=int, default=8, metavar="B",
+                    help="with --predictor: also solve the sample together with B-1 other samples calibrated to the same "
+                    "--range, their triangular solves gathered (Solver.solve_batch), and report seconds per sample of "
+                    "the batch against the same samples solved one by one (default 8; 0 or 1 = skip)")
     ap.add_argument("--strategy", default=SolverConfig().strategy, choices=("krylov", "newton", "quasi-newton"),
                     help=f"our solver's strategy (default {SolverConfig().strategy!r})")
     args = ap.parse_args(argv)
@@ -153,7 +204,7 @@ def main(argv=None) -> int:
     ours_peak = _peak_mb(resource.RUSAGE_SELF)
     rows.append(("tissuecast P2", 2, "-", sec2, setup2, r2, ours_peak))
     rows.append(("tissuecast P1", 1, "-", sec1, setup1, r1, ours_peak))
-    warm = None
+    warm = batch = None
     if args.predictor:
         from tissuecast.fem.reduced import ReducedModel
 
@@ -180,6 +231,11 @@ def main(argv=None) -> int:
         amortised = (t_snap + t_fit) / 2200.0
         warm = (sec_w, amortised, t_snap, t_fit, statistics.median(preds), model)
         rows.append(("P2 + predictor", 2, "-", sec_w, 0.0, rw, _peak_mb(resource.RUSAGE_SELF)))
+        if args.batch > 1:
+            batch = time_batch(solver, model, forces, basis, scale * rms / field_scale(basis), mesh.n_points,
+                               args.batch, args.range, args.repeats)
+            rows.append((f"P2 + pred. x{args.batch}", 2, "-", batch["batch"], 0.0, batch["result"],
+                         _peak_mb(resource.RUSAGE_SELF)))
 
     ccx = {}
     if not args.no_ccx:
@@ -212,11 +268,21 @@ def main(argv=None) -> int:
               f"{args.predictor} samples solved from zero ({t_snap:.1f} s) and a {t_fit:.1f} s fit; its prediction "
               f"takes {t_pred:.2f} s of the {sec_w:.2f} s; over a 2200-sample data set that fixed cost adds "
               f"{amortised:.3f} s per sample")
+    if batch:
+        print(f"P2 + pred. x{args.batch}: the sample and {args.batch - 1} others (LBO seeds "
+              f"{batch['seeds']}, each scaled so that its solution peaks in {args.range[0]:g}-{args.range[1]:g} mm: "
+              f"{', '.join(f'{p:.1f}' for p in batch['peaks'])} mm) solved together, seconds per sample including the "
+              f"predictions: {batch['batch']:.3f} s; the same samples one by one: {batch['solo']:.3f} s per sample "
+              f"(this sample alone {batch['solo_first']:.3f} s); Newton iterations {batch['iterations']}, "
+              f"preconditioner solves {batch['solves']} in {batch['rounds']} gathered rounds; batch vs one by one: "
+              f"max difference {batch['diff']:.1e} of the peak")
     for nt, res in ccx.items():
         print(f"ratio ccx ({nt} thread{'s' if nt > 1 else ''}) / tissuecast P2 per sample: {res.seconds / sec2:.1f}x "
               f"(P1: {res.seconds / sec1:.1f}x)"
               + (f"; P2 + predictor, fixed cost amortised over 2200 samples: {res.seconds / (warm[0] + warm[1]):.1f}x"
-                 if warm else ""))
+                 if warm else "")
+              + (f"; P2 + predictor in batches of {args.batch}, same amortisation: "
+                 f"{res.seconds / (batch['batch'] + warm[1]):.1f}x" if batch else ""))
     return 0
 
 

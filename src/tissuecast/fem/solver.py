@@ -67,10 +67,21 @@ prescribed displacements scale with ``lambda``):
 The result of a solve depends only on the problem, the forces, the initial guess and the
 configuration (no state is carried from one solve to the next), so data sets are
 reproducible bit for bit.
+
+Several samples together (:meth:`Solver.solve_batch`): the Newton solves of a batch run in
+lockstep, and their preconditioner applications with the shared reference factorisation
+are gathered into one triangular solve with several right-hand sides, which costs little
+more than one (the solve streams the factor from memory: 16.9 / 26.2 / 33.0 ms for
+1 / 4 / 8 right-hand sides on the P2 phantom, one thread). The iterations of each sample
+are those of its single solve; its numbers differ from the single solve's by round-off
+(1e-13 to 3e-8 of the peak in the tests and on the phantom) and are reproducible for the
+same batch.
 """
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 import time
 
@@ -126,6 +137,7 @@ class Solver:
         self._reference = None  # linear solver holding the factorised stiffness at u = 0 (on first use)
         self._active = self.linear  # the factorisation the preconditioner uses now
         self._recycled = None  # krylov: (n_free, k) directions of this solve's earlier iterations
+        self._twins: list = []  # solve_batch: copies sharing the assembler and the reference factorisation
 
     # ------------------------------------------------------------------ helpers
     def nodal_field(self, vertex_values: np.ndarray) -> np.ndarray:
@@ -180,11 +192,17 @@ class Solver:
         except NotPositiveDefinite:
             raise _Failed("projected tangent stiffness could not be factorised") from None
 
-    def _rotated_solve(self, v: np.ndarray) -> np.ndarray:
+    def _rotated_solve(self, v: np.ndarray):
         """K^-1 v with the last factorised tangent K, co-rotated by the rigid rotation R
-        applied since it was factorised: R K^-1 R^T v (node by node)."""
+        applied since it was factorised: R K^-1 R^T v (node by node).
+
+        A generator (``yield from``): it yields ``(factorisation, R^T v)`` and receives
+        ``K^-1 R^T v`` from whoever drives the solve, so that :meth:`solve_batch` can
+        gather the triangular solves of several samples into one multi-right-hand-side
+        solve.
+        """
         rot = self._rotation
-        z = self._active.solve((v.reshape(-1, 3) @ rot).ravel())
+        z = yield self._active, (v.reshape(-1, 3) @ rot).ravel()
         self._stats["solves"] += 1
         return (z.reshape(-1, 3) @ rot.T).ravel()
 
@@ -206,7 +224,6 @@ class Solver:
         cfg = self.config
         _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
         k = self.assembler.matrix(data)
-        precondition = self._rotated_solve
         b = -r
         target = cfg.krylov_tolerance * np.linalg.norm(b)
         space = self._deflation(u, k)
@@ -225,7 +242,7 @@ class Solver:
         if np.linalg.norm(res) <= target:
             result = (x, None)
         else:
-            z = precondition(res)
+            z = yield from self._rotated_solve(res)
             p = z if project is None else project(z)
             rz = float(res @ z)
             for step in range(cfg.krylov_iterations):
@@ -243,7 +260,7 @@ class Solver:
                     self._stats["krylov"] += step + 1
                     result = (x, None)
                     break
-                z = precondition(res)
+                z = yield from self._rotated_solve(res)
                 rz_new = float(res @ z)
                 p = (z if project is None else project(z)) + (rz_new / rz) * p
                 rz = rz_new
@@ -326,7 +343,7 @@ class Solver:
         for _ in range(cfg.max_iterations):
             d = data = None
             if strategy == "krylov" and not need_factor:
-                d, data = self._krylov(u, r)
+                d, data = yield from self._krylov(u, r)
                 need_factor = d is None
             if need_factor:
                 self._factorize(u, data)
@@ -335,7 +352,7 @@ class Solver:
                 fresh = True
                 reuses = 0
             if d is None:
-                d = -self._rotated_solve(r)
+                d = -(yield from self._rotated_solve(r))
             step = self._line_search(u, d, pi, r, fext)
             if step is None:
                 if fresh:
@@ -395,22 +412,101 @@ class Solver:
             ConvergenceError: the minimum increment or the increment budget was reached;
                 ``load_fraction`` and ``result`` (partial) are attached.
         """
+        return _drive(self._steps(forces, initial_guess))
+
+    def solve_batch(self, forces, initial_guesses=None) -> list:
+        """Solve several force fields together, their triangular solves gathered.
+
+        The samples are solved in lockstep: each round advances every unfinished sample to
+        its next preconditioner application, and the applications that use the same
+        factorisation (with ``reference_preconditioner``: the stiffness at zero, shared by
+        all samples until one factorises its own tangent) are done as one
+        multi-right-hand-side solve. A supernodal triangular solve is bound by reading the
+        factor from memory, so k right-hand sides cost far less than k solves: measured on
+        the P2 phantom (23904 dofs, one thread) 16.9 / 26.2 / 33.0 ms for 1 / 4 / 8 of them.
+        Everything else (tangents, line searches, convergence tests) is per sample and
+        exactly as in :meth:`solve`.
+
+        Each sample converges to the same tolerances as with :meth:`solve`; the numbers
+        differ from its single solve by round-off (a column of a multi-right-hand-side solve
+        is not bitwise the single solve), and depend only on the batch (the same batch gives
+        the same bits).
+
+        Args:
+            forces: sequence of (n, 3) float arrays, N, as for :meth:`solve`.
+            initial_guesses: None, or a sequence of the same length whose entries are None or
+                guesses as for :meth:`solve`.
+
+        Returns:
+            One entry per force field, in order: its :class:`SolveResult`, or the
+            :class:`~tissuecast.errors.ConvergenceError` it raised (carrying the partial
+            result), so that one sample that fails does not lose the others. ``seconds`` of
+            each result is the batch's wall time divided by the number of samples.
+
+        Raises:
+            SolverSetupError: invalid forces or guesses (before anything is solved).
+        """
+        forces = list(forces)
+        guesses = [None] * len(forces) if initial_guesses is None else list(initial_guesses)
+        if len(guesses) != len(forces):
+            raise SolverSetupError(
+                f"initial_guesses has {len(guesses)} entries for {len(forces)} force fields; give one per field (None for none)"
+            )
+        for f, g in zip(forces, guesses):
+            check_forces(self.problem, f)
+            self._nodal_guess(g)
+        t0 = time.perf_counter()
+        cfg = self.config
+        if cfg.strategy == "krylov" and cfg.reference_preconditioner and any(g is not None for g in guesses):
+            self._reference_factor()  # built once here, so that every sample shares it
+        while len(self._twins) < len(forces) - 1:
+            twin = copy.copy(self)
+            twin.linear = twin._active = make_linear_solver(cfg.linear_solver, self.assembler)
+            twin._twins = []
+            self._twins.append(twin)
+        solvers = [self] + self._twins[: len(forces) - 1]
+        steps = [s._steps(f, g) for s, f, g in zip(solvers, forces, guesses)]
+        out: list = [None] * len(forces)
+        reply: list = [None] * len(forces)
+        active = list(range(len(forces)))
+        while active:
+            groups: dict = {}  # factorisation -> [(sample, vector)], samples in order
+            for i in active:
+                try:
+                    factor, v = steps[i].send(reply[i])
+                except StopIteration as stop:
+                    out[i] = stop.value
+                    continue
+                except ConvergenceError as exc:
+                    out[i] = exc
+                    continue
+                groups.setdefault(id(factor), (factor, []))[1].append((i, v))
+            active = []
+            for factor, items in groups.values():
+                if len(items) == 1:
+                    reply[items[0][0]] = factor.solve(items[0][1])
+                else:
+                    z = factor.solve(np.column_stack([v for _, v in items]))
+                    for k, (i, _) in enumerate(items):
+                        reply[i] = np.ascontiguousarray(z[:, k])
+                active += [i for i, _ in items]
+            active.sort()
+        share = (time.perf_counter() - t0) / max(len(forces), 1)
+        for i, r in enumerate(out):
+            if isinstance(r, SolveResult):
+                out[i] = dataclasses.replace(r, seconds=share)
+        return out
+
+    def _steps(self, forces, initial_guess):
+        """The body of :meth:`solve` as a generator of preconditioner applications
+        (see :meth:`_rotated_solve`); returns the :class:`SolveResult`."""
         t0 = time.perf_counter()
         cfg = self.config
         f = check_forces(self.problem, forces)
         n_dofs = self.assembler.n_dofs
         fext = np.zeros(n_dofs)
         fext[: 3 * self._n] = f.ravel()
-        guess = None
-        if initial_guess is not None:
-            g = np.asarray(initial_guess, dtype=np.float64)
-            n_nodes = len(self.problem.nodes)
-            if g.shape not in ((self._n, 3), (n_nodes, 3)) or not np.all(np.isfinite(g)):
-                raise SolverSetupError(
-                    f"initial_guess must be a finite ({self._n}, 3) array of vertex displacements in mm "
-                    f"(or ({n_nodes}, 3) at every element node), got shape {g.shape}"
-                )
-            guess = (g if len(g) == n_nodes else self.nodal_field(g)).ravel().copy()
+        guess = self._nodal_guess(initial_guess)
         self._stats = {"iterations": 0, "factorizations": 0, "solves": 0, "shifted": 0, "projected": 0, "krylov": 0,
                        "history": []}
         self._tau = 0.0
@@ -437,7 +533,7 @@ class Solver:
                 if attempts > cfg.max_increments:
                     raise _Failed(f"the budget of {cfg.max_increments} increments is spent")
                 it0 = self._stats["iterations"]
-                u = self._increment(u, u_conv, lam_new, fext, qhist)
+                u = yield from self._increment(u, u_conv, lam_new, fext, qhist)
             except _Failed as exc:
                 cutbacks += 1
                 self._factor_valid = False
@@ -459,6 +555,19 @@ class Solver:
             if self._stats["iterations"] - it0 <= cfg.grow_iterations:
                 dlam = min(1.0, dlam * _GROW)
         return self._result(u_conv, 1.0, True, increments, cutbacks, t0, fext)
+
+    def _nodal_guess(self, initial_guess) -> np.ndarray | None:
+        """The checked initial guess at every element node, flattened (None stays None)."""
+        if initial_guess is None:
+            return None
+        g = np.asarray(initial_guess, dtype=np.float64)
+        n_nodes = len(self.problem.nodes)
+        if g.shape not in ((self._n, 3), (n_nodes, 3)) or not np.all(np.isfinite(g)):
+            raise SolverSetupError(
+                f"initial_guess must be a finite ({self._n}, 3) array of vertex displacements in mm "
+                f"(or ({n_nodes}, 3) at every element node), got shape {g.shape}"
+            )
+        return (g if len(g) == n_nodes else self.nodal_field(g)).ravel().copy()
 
     def _reference_factor(self):
         """The linear solver holding the factorised stiffness at zero displacement (built once;
@@ -506,6 +615,18 @@ class Solver:
             cutbacks=cutbacks,
             solves=st["solves"],
         )
+
+
+def _drive(steps):
+    """Run a generator of preconditioner applications (:meth:`Solver._rotated_solve`) with
+    one solve each; returns the generator's return value."""
+    reply = None
+    try:
+        while True:
+            factor, v = steps.send(reply)
+            reply = factor.solve(v)
+    except StopIteration as stop:
+        return stop.value
 
 
 def _best_rotation(nodes: np.ndarray, u: np.ndarray) -> np.ndarray:
