@@ -67,22 +67,25 @@ def build_mesh(quick: bool):
     return tetrahedralize_surface(*phantom_surface(3), 9.0)
 
 
-def calibrate(problem: Problem, unit_forces: np.ndarray, low: float, high: float) -> tuple[float, int]:
+def calibrate(problem: Problem, unit_forces: np.ndarray, low: float, high: float,
+              solve=None) -> tuple[float, int, bool]:
     """Scale of ``unit_forces`` whose P2 solution peaks inside [low, high] mm.
 
     Starts at 1 and rescales by sqrt(target / peak) (target = the middle of the range):
-    with the phantom's fixed vertices the peak grows much faster than the load.
+    with the phantom's fixed vertices the peak grows much faster than the load. At most 5
+    solves, by ``solve`` (forces -> SolveResult; default: a new Solver from zero). Returns
+    the scale, the number of solves and whether the last one landed inside the range.
     """
-    solver = Solver(problem)
+    solve = solve or Solver(problem).solve
     target = 0.5 * (low + high)
     scale, solves = 1.0, 0
     for _ in range(5):
-        peak = solver.solve(scale * unit_forces).max_displacement
+        peak = solve(scale * unit_forces).max_displacement
         solves += 1
         if low <= peak <= high:
-            break
+            return scale, solves, True
         scale *= min(2.0, max(0.5, (target / peak) ** 0.5))  # damped: the response can grow fast
-    return scale, solves
+    return scale, solves, False
 
 
 def time_ours(problem: Problem, forces: np.ndarray, repeats: int, config=None):
@@ -101,24 +104,21 @@ def time_batch(solver, model, forces, basis, field_rms, n_points, size, peak_ran
     """The benchmark sample with ``size - 1`` others, one by one and with ``Solver.solve_batch``.
 
     The others are LBO fields of the data set's distribution (seeds 2000, 2001, ...), each
-    rescaled (from reduced-model guesses, at most 5 solves) until its solution peaks inside
-    ``peak_range``, so that the batch is as hard as the sample; fields that do not get there
-    are skipped. Both timings include the reduced-model predictions.
+    rescaled by :func:`calibrate` (solving from reduced-model guesses) until its solution
+    peaks inside ``peak_range``, so that the batch is as hard as the sample; fields that do
+    not get there are skipped. Both timings include the reduced-model predictions.
     """
-    low, high = peak_range
     fields, seeds, seed = [forces], [], 2000
     while len(fields) < size and seed < 2000 + 10 * size:
         f = lbo_field(basis, random_lbo_weights(np.random.default_rng(seed), 20), field_rms, n_points)
-        for _ in range(5):
-            try:
-                peak = solver.solve(f, initial_guess=model.predict(f)).max_displacement
-            except ConvergenceError:
-                break
-            if low <= peak <= high:
-                fields.append(f)
-                seeds.append(seed)
-                break
-            f = f * min(2.0, max(0.5, (0.5 * (low + high) / peak) ** 0.5))
+        try:
+            scale, _, landed = calibrate(solver.problem, f, *peak_range,
+                                         solve=lambda x: solver.solve(x, initial_guess=model.predict(x)))
+        except ConvergenceError:
+            landed = False
+        if landed:
+            fields.append(scale * f)
+            seeds.append(seed)
         seed += 1
     t0 = time.perf_counter()
     solo = []
@@ -187,7 +187,7 @@ def main(argv=None) -> int:
     print(f"mesh: {mesh}; P2 nodes {len(mesh.points10)}; fixed vertices {fixed.tolist()} (0-based)")
     print(f"our solver: strategy {args.strategy!r}, {os.environ['OPENBLAS_NUM_THREADS']} BLAS thread(s)")
     t0 = time.perf_counter()
-    scale, n_cal = calibrate(p2, unit, *args.range)
+    scale, n_cal, _ = calibrate(p2, unit, *args.range)
     forces = scale * unit
     print(f"forces: LBO field (20 modes, seed {seed}), RMS surface nodal force "
           f"{np.sqrt((forces[mesh.surface_vertices] ** 2).sum(1).mean()):.4g} N, net force "

@@ -180,8 +180,8 @@ def test_initial_guess_at_the_solution_needs_no_work(beam):
 def test_batch_gathers_the_solves_and_matches_single_solves(beam):
     """solve_batch: the samples that start from guesses share the reference factorisation,
     whose solves are gathered into multi-column ones; each result equals its single solve to
-    far below the convergence tolerance, a repeated batch gives the same bits, and a failing sample is returned as its
-    ConvergenceError without losing the others."""
+    far below the convergence tolerance, a repeated batch gives the same bits, and a failing
+    sample is returned as its ConvergenceError without losing the others."""
     mesh, fixed, f = beam
     cfg = dataclasses.replace(SolverConfig(), min_increment=1e-3, max_increments=40)
     solver = Solver(Problem(mesh, MAT, fixed, order=2), cfg)
@@ -220,6 +220,8 @@ def test_batch_gathers_the_solves_and_matches_single_solves(beam):
         solver.solve_batch(fields, guesses[:2])
     with pytest.raises(SolverSetupError):
         solver.solve_batch([f, f[:3]])
+    with pytest.raises(SolverSetupError, match="initial_guess must be a finite"):
+        solver.solve_batch([f, f], [None, first.displacement[:3]])
 
 
 def test_impossible_load_raises_convergence_error_with_load_fraction(beam):

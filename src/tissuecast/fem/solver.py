@@ -456,11 +456,13 @@ class Solver:
         guesses = [None] * len(forces) if initial_guesses is None else list(initial_guesses)
         if len(guesses) != len(forces):
             raise SolverSetupError(
-                f"initial_guesses has {len(guesses)} entries for {len(forces)} force fields; give one per field (None for none)"
+                f"initial_guesses has {len(guesses)} entries for {len(forces)} force fields; "
+                "give one per field (None for none)"
             )
-        for f, g in zip(forces, guesses):
+        for f in forces:
             check_forces(self.problem, f)
-            self._nodal_guess(g)
+        # checked and extended to every element node once; _steps only checks them again
+        guesses = [None if g is None else self._nodal_guess(g).reshape(-1, 3) for g in guesses]
         t0 = time.perf_counter()
         cfg = self.config
         if cfg.strategy == "krylov" and cfg.reference_preconditioner and any(g is not None for g in guesses):
