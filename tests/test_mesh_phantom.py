@@ -80,7 +80,12 @@ def test_surface_vertices_lie_on_the_analytic_surface():
 
 
 def test_make_phantom_script_reproduces_the_shipped_mesh(tmp_path):
-    """scripts/make_phantom.py regenerates the phantom; gmsh may differ slightly across versions."""
+    """scripts/make_phantom.py regenerates the phantom.
+
+    gmsh's output depends on the machine, not only on its version (4.15.2 gave 5066
+    tetrahedra on one machine and 5064 on another, same vertices and volume), so only what is
+    stable is checked here; the shipped phantom.npz is what must be exact (tests above).
+    """
     import runpy
     from pathlib import Path
 
@@ -89,8 +94,16 @@ def test_make_phantom_script_reproduces_the_shipped_mesh(tmp_path):
     mod = runpy.run_path(str(script))
     assert mod["main"]([str(tmp_path / "p.npz")]) == 0
     data = np.load(tmp_path / "p.npz", allow_pickle=False)
-    regenerated = tc.mesh.TetMesh(data["points"], data["tets"])
-    assert abs(regenerated.n_points - VERTICES) <= 0.05 * VERTICES
-    assert regenerated.volume == pytest.approx(VOLUME_MM3, rel=5e-3)
-    if str(data["gmsh_version"]) == "4.15.2":
-        assert (regenerated.n_points, regenerated.n_tets) == (VERTICES, TETS)
+    m = tc.mesh.TetMesh(data["points"], data["tets"])
+    assert abs(m.n_points - VERTICES) <= 0.03 * VERTICES
+    assert abs(m.n_tets - TETS) <= 0.03 * TETS
+    assert m.volume == pytest.approx(VOLUME_MM3, rel=5e-3)
+    assert m.n_flipped == 0
+    # closed surface whose triangles face outwards: the enclosed volume is the mesh volume
+    check_closed_surface(m.points, m.surface_triangles)
+    a, b, c = (m.points[m.surface_triangles[:, k]] for k in range(3))
+    enclosed = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0
+    assert enclosed == pytest.approx(m.volume, rel=1e-9)
+    q = m.quality
+    assert q.radius_ratio_min > 0.4 and q.radius_ratio_mean > 0.8
+    np.testing.assert_allclose(m.extent, PHANTOM_EXTENT, atol=0.5)
