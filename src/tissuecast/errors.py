@@ -11,6 +11,7 @@ __all__ = [
     "TissuecastError",
     "MeshError",
     "MeshFormatError",
+    "LabelMapError",
     "MarkerError",
     "ConfigError",
     "ConvergenceError",
@@ -31,6 +32,11 @@ class MeshError(TissuecastError, ValueError):
 
 class MeshFormatError(MeshError):
     """A mesh file is missing, of an unknown format, or holds no usable tetrahedra."""
+
+
+class LabelMapError(MeshError):
+    """A label map (segmented scan) cannot be meshed: unreadable, not 3-D, no spacing, an unknown
+    or empty label or segment, or a label made of several pieces."""
 
 
 class MarkerError(TissuecastError, ValueError):
