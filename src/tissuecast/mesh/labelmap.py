@@ -194,13 +194,13 @@ def _read_nrrd(path: Path) -> tuple[np.ndarray, np.ndarray]:
         header = nrrd.read_header(str(path))
     except Exception as exc:
         raise LabelMapError(f"could not read '{path}' as NRRD ({type(exc).__name__}: {exc})") from exc
-    hint = "save it with 'space directions' and 'space origin' (3D Slicer, ITK and pynrrd do)"
-    if "space directions" not in header and "spacings" not in header:
-        raise LabelMapError(f"'{path}' has no voxel spacing (neither 'space directions' nor 'spacings' in its header); {hint}")
     if int(header.get("dimension", 0)) < 3:
         raise LabelMapError(
             f"'{path}' is a 2-D image (voxel grid {list(header.get('sizes', []))}); a 3-D label map is needed to mesh a volume"
         )
+    hint = "save it with 'space directions' and 'space origin' (3D Slicer, ITK and pynrrd do)"
+    if "space directions" not in header and "spacings" not in header:
+        raise LabelMapError(f"'{path}' has no voxel spacing (neither 'space directions' nor 'spacings' in its header); {hint}")
     units = [u for u in header.get("space units", []) if u]
     if any(u != "mm" for u in units):
         raise LabelMapError(f"'{path}' has space units {units}; tissuecast reads NRRD label maps in mm (as 3D Slicer writes them)")

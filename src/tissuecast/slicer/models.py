@@ -162,7 +162,10 @@ def read_model(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if grid is None or grid.GetNumberOfPoints() == 0:
         raise MeshFormatError(f"VTK found no unstructured grid in '{path}'")
     points = ns.vtk_to_numpy(grid.GetPoints().GetData()).astype(np.float64)
-    types = ns.vtk_to_numpy(grid.GetCellTypesArray())
+    try:
+        types = ns.vtk_to_numpy(grid.GetCellTypes())  # VTK >= 9.6
+    except TypeError:
+        types = ns.vtk_to_numpy(grid.GetCellTypesArray())
     offsets = ns.vtk_to_numpy(grid.GetCells().GetOffsetsArray())
     connectivity = ns.vtk_to_numpy(grid.GetCells().GetConnectivityArray())
     tets = np.array([connectivity[offsets[i]: offsets[i] + 4] for i in np.flatnonzero(types == _VTK_TETRA)], dtype=np.int64)
