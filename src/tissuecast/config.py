@@ -193,6 +193,8 @@ class ServeConfig:
     transform_mode: str = _f("frame", choices=("frame", "each"), doc="TRANSFORM input: predict once all markers are fresh (frame) or on every update (each)")
     max_marker_offset: float = _f(100.0, lo=0.0, lo_open=True, doc="reject markers farther than this (mm) from their reference position")
     client_timeout: float = _f(5.0, lo=0.0, lo_open=True, doc="seconds an incomplete message may wait for its remaining bytes")
+    client_frame: str = _f("LPS", choices=("LPS", "RAS"), doc="frame of the replies, and of the markers when no registration is set: LPS = the model's (scan's) frame, RAS = 3D Slicer's world (what OpenIGTLinkIF sends and expects)")
+    tracker_to_client: tuple[float, ...] = _f((), doc="registration from the tracker frame (where markers are measured) to the client frame: 16 numbers, a 4x4 matrix row by row (mm); empty = markers arrive in the client frame. A TRANSFORM TrackerToRas / ReferenceToRas / TrackerToImage replaces it at run time")
 
 
 @dataclass(frozen=True)
@@ -306,6 +308,13 @@ def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, ForceConfig):
         if not obj.betas or any(not 0.0 <= b <= 1.0 for b in obj.betas):
             raise ConfigError(f"{prefix}betas must be numbers in [0, 1], got {list(obj.betas)}")
+    if isinstance(obj, ServeConfig) and obj.tracker_to_client:
+        from .frames import FrameError, check_transform
+
+        try:
+            check_transform(obj.tracker_to_client, f"{prefix}tracker_to_client")
+        except FrameError as exc:
+            raise ConfigError(f"{exc} (empty = no registration)") from exc
     if isinstance(obj, SolverConfig) and obj.min_increment > obj.initial_increment:
         raise ConfigError(f"{prefix}min_increment ({obj.min_increment}) must not exceed initial_increment ({obj.initial_increment})")
 
