@@ -100,12 +100,11 @@ def markups_document(lists: list[MarkupList], coordinate_system: str = "LPS") ->
         points = []
         for i, (xyz, label, description) in enumerate(zip(positions, markup.labels, markup.descriptions)):
             defined = bool(np.isfinite(xyz).all())
+            point = {"id": str(i + 1), "label": label, "description": description, "associatedNodeID": ""}
+            if defined:  # the schema wants 3 numbers; a point without position has no "position" key
+                point["position"] = [float(v) for v in xyz]
             points.append({
-                "id": str(i + 1),
-                "label": label,
-                "description": description,
-                "associatedNodeID": "",
-                "position": [float(v) for v in xyz] if defined else "",
+                **point,
                 "orientation": list(_ORIENTATION[system]),
                 "selected": True,
                 "locked": True,
