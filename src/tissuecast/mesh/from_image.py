@@ -5,8 +5,8 @@ Steps (:func:`mesh_label_map`):
 1. **Pieces**: the label's 6-connected components; several are refused with their sizes
    unless ``keep_largest``. Internal cavities (background enclosed by the label) are
    refused unless ``fill_cavities`` (tissuecast meshes solid bodies).
-2. **Surface**: marching cubes (scikit-image, Lewiner) at the 0.5 level of the padded
-   binary mask, in voxel indices, then mapped to LPS mm by the map's voxel-to-LPS matrix
+2. **Surface**: marching cubes (scikit-image, Lewiner) at the 0.501 level of the padded
+   binary mask (just above 0.5: diagonal-only contacts stay apart, no non-manifold ties), in voxel indices, then mapped to LPS mm by the map's voxel-to-LPS matrix
    (spacing, direction/oblique axes and origin).
 3. **Smoothing that does not shrink**: Taubin's lambda/mu filter (uniform Laplacian,
    lambda = 0.5, mu = -0.53) removes the voxel staircase while keeping the enclosed volume.
@@ -49,6 +49,11 @@ SMOOTHING_ITERATIONS = 30
 # Taubin's filter: lambda > 0 smooths, mu < -lambda un-shrinks; pass band k = 1/lambda + 1/mu = 0.11
 _TAUBIN_LAMBDA = 0.5
 _TAUBIN_MU = -0.53
+# iso-level of marching cubes on the 0/1 mask: just above 0.5, so that the saddle of a face
+# whose two labelled voxels touch only diagonally (value exactly 0.5) falls outside and the
+# voxels stay apart, as in the 6-connected pieces; at exactly 0.5 such ties give
+# non-manifold edges. Vertices move by 0.001 voxel.
+_MC_LEVEL = 0.501
 # sample spacing of the surfaces compared by label_map_fidelity, in voxels
 _FIDELITY_SAMPLING = 0.25
 
@@ -139,7 +144,7 @@ def label_surface(labelmap: LabelMap, *, smoothing_iterations: int = SMOOTHING_I
     """
     skimage_measure = require("skimage.measure", "image", "Surface extraction from label maps")
     padded = np.pad(labelmap.mask, 1).astype(np.float32)
-    ijk, triangles, _, _ = skimage_measure.marching_cubes(padded, level=0.5, method="lewiner", allow_degenerate=False)
+    ijk, triangles, _, _ = skimage_measure.marching_cubes(padded, level=_MC_LEVEL, method="lewiner", allow_degenerate=False)
     points = labelmap.to_lps(ijk.astype(np.float64) - 1.0)
     points = taubin_smooth(points, triangles, smoothing_iterations)
     return points, np.asarray(triangles, dtype=np.int64)
