@@ -9,6 +9,12 @@ from scipy.spatial.transform import Rotation
 
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 
+#: the closed-form test shapes: name -> (semi-axes mm, voxel spacing mm, mesh size mm)
+ELLIPSOIDS = {
+    "ellipsoid 22x15x11, voxels 0.9x1.3x2.0, size 3": ((22.0, 15.0, 11.0), (0.9, 1.3, 2.0), 3.0),
+    "ellipsoid 15x11x8, voxels 0.6x0.9x1.5, size 2": ((15.0, 11.0, 8.0), (0.6, 0.9, 1.5), 2.0),
+}
+
 
 def oblique_grid(shape, spacing, angles_deg=(20.0, -35.0, 50.0), centre=(10.0, -20.0, 30.0)) -> np.ndarray:
     """(4, 4) voxel -> LPS matrix: rotated (oblique) axes, anisotropic spacing, the grid centred on ``centre``."""

@@ -8,7 +8,7 @@ import os
 import numpy as np
 import pytest
 
-from labelmap_factories import LPS_TO_RAS, ellipsoid_mask, oblique_grid, write_nifti, write_nrrd, write_segmentation
+from labelmap_factories import ELLIPSOIDS, ellipsoid_mask, oblique_grid, write_nifti, write_nrrd, write_segmentation
 
 pytest.importorskip("skimage")
 pytest.importorskip("slicerio")
@@ -19,11 +19,7 @@ from tissuecast.errors import ConfigError, LabelMapError  # noqa: E402
 from tissuecast.mesh.from_image import label_map_fidelity, label_pieces, mesh_from_image, mesh_label_map  # noqa: E402
 from tissuecast.mesh.labelmap import LabelMap, read_label_map  # noqa: E402
 
-# (semi-axes mm, voxel spacing mm, mesh size mm)
-SHAPES = {
-    "ellipsoid 22x15x11, voxels 0.9x1.3x2.0, size 3": ((22.0, 15.0, 11.0), (0.9, 1.3, 2.0), 3.0),
-    "ellipsoid 12x9x7, voxels 0.7x1.0x1.6, size 2": ((12.0, 9.0, 7.0), (0.7, 1.0, 1.6), 2.0),
-}
+SHAPES = ELLIPSOIDS
 CENTRE = np.array([10.0, -20.0, 30.0])
 
 
