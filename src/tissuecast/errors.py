@@ -13,6 +13,8 @@ __all__ = [
     "MeshFormatError",
     "LabelMapError",
     "MarkerError",
+    "MarkupsError",
+    "FrameError",
     "ConfigError",
     "ConvergenceError",
     "SolverSetupError",
@@ -41,6 +43,14 @@ class LabelMapError(MeshError):
 
 class MarkerError(TissuecastError, ValueError):
     """Fiducial markers or fixed vertices cannot be chosen or are invalid."""
+
+
+class MarkupsError(MarkerError):
+    """A 3D Slicer markups file (.mrk.json, .fcsv) is unreadable or holds no usable point list."""
+
+
+class FrameError(TissuecastError, ValueError):
+    """A coordinate system or frame transform is unknown or unusable (not LPS/RAS, singular)."""
 
 
 class ConfigError(TissuecastError, ValueError):

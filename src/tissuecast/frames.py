@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .errors import TissuecastError
+from .errors import FrameError
 
 __all__ = ["COORDINATE_SYSTEMS", "LPS_TO_RAS", "FrameError", "convert_points", "check_transform", "apply_transform",
            "apply_rotation"]
@@ -23,10 +23,6 @@ __all__ = ["COORDINATE_SYSTEMS", "LPS_TO_RAS", "FrameError", "convert_points", "
 COORDINATE_SYSTEMS = ("LPS", "RAS")
 #: LPS <-> RAS (its own inverse): negate x and y
 LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
-
-
-class FrameError(TissuecastError, ValueError):
-    """A coordinate system or transform is unknown or unusable."""
 
 
 def _check_system(name: str) -> str:

@@ -216,6 +216,9 @@ def _read_nrrd(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return voxels, _check_geometry(volume["ijkToLPS"], path, hint)
 
 
+_SEG_HINT = "save the segmentation again from 3D Slicer (it writes the reference geometry)"
+
+
 def _read_segmentation(path: Path, label: int | None, segment: str | None) -> LabelMap:
     slicerio = require("slicerio", "image", "Reading 3D Slicer segmentations")
     try:
@@ -226,7 +229,7 @@ def _read_segmentation(path: Path, label: int | None, segment: str | None) -> La
     voxels = np.asarray(seg["voxels"])
     layered = voxels.ndim == 4
     if not segments:  # a plain label map saved as .seg.nrrd
-        return LabelMap(_pick_label(_check_voxels(voxels, path), label, path), _check_geometry(seg["ijkToLPS"], path, ""),
+        return LabelMap(_pick_label(_check_voxels(voxels, path), label, path), _check_geometry(seg["ijkToLPS"], path, _SEG_HINT),
                         f"'{path}'")
     names = [s.get("name", s.get("id", "?")) for s in segments]
     if segment is None and label is not None:
@@ -259,7 +262,7 @@ def _read_segmentation(path: Path, label: int | None, segment: str | None) -> La
     if not mask.any():
         raise LabelMapError(f"segment {name!r} of '{path}' is empty (no voxel has its label value {value}); "
                             "paint it in the Segment Editor or choose another segment")
-    return LabelMap(mask, _check_geometry(seg["ijkToLPS"], path, ""), f"'{path}' segment {name!r}")
+    return LabelMap(mask, _check_geometry(seg["ijkToLPS"], path, _SEG_HINT), f"'{path}' segment {name!r}")
 
 
 def _pick_label(voxels: np.ndarray, label: int | None, path: Path) -> np.ndarray:

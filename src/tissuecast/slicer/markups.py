@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import MarkerError
+from ..errors import MarkupsError
 from ..frames import COORDINATE_SYSTEMS, convert_points
 
 __all__ = [
@@ -48,10 +48,6 @@ _SCHEMA_FILE = "markups-schema-v1.0.3.json"
 _FCSV_COLUMNS = ["id", "x", "y", "z", "ow", "ox", "oy", "oz", "vis", "sel", "lock", "label", "desc", "associatedNodeID"]
 # a point's identity orientation (Slicer's default) as Slicer writes it in each system
 _ORIENTATION = {"RAS": (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), "LPS": (-1.0, 0.0, 0.0, 0.0, -1.0, 0.0, 0.0, 0.0, 1.0)}
-
-
-class MarkupsError(MarkerError):
-    """A markups file is unreadable, or holds no usable point list."""
 
 
 @dataclass(frozen=True)
