@@ -51,9 +51,14 @@ def _f(default, *, lo=None, hi=None, lo_open=False, hi_open=False, choices=None,
 class MeshConfig:
     """Where the tetrahedral mesh comes from."""
 
-    path: str = _f("", doc="mesh file; empty = the built-in phantom")
-    units: str = _f("mm", choices=("mm", "cm", "m"), doc="length unit of the file")
-    surface_mesh_size: float = _f(3.0, lo=0.0, lo_open=True, doc="target tet size (mm) when tetrahedralising a surface")
+    path: str = _f("", doc="mesh file, closed surface file, or label map (.nii, .nii.gz, .nrrd, .seg.nrrd: meshed in the scan's LPS frame); empty = the built-in phantom")
+    units: str = _f("mm", choices=("mm", "cm", "m"), doc="length unit of the file (label maps: always their own physical units, mm)")
+    surface_mesh_size: float = _f(3.0, lo=0.0, lo_open=True, doc="target tet size (mm) when tetrahedralising a surface or a label map")
+    label: int = _f(0, lo=0, doc="label map: voxel value to mesh; 0 = the only non-zero value of the map")
+    segment: str = _f("", doc="3D Slicer segmentation (.seg.nrrd): segment name or ID to mesh; empty = by label, or the only segment")
+    keep_largest: bool = _f(False, doc="label map: keep the largest face-connected piece of the label instead of refusing several")
+    fill_cavities: bool = _f(False, doc="label map: fill background enclosed by the label instead of refusing it")
+    smoothing_iterations: int = _f(30, lo=0, hi=1000, doc="label map: Taubin (non-shrinking) smoothing passes of the marching-cubes surface")
 
 
 #: Fixed-vertex placement rules (see :func:`tissuecast.markers.select_fixed_vertices`).
@@ -194,6 +199,8 @@ class ServeConfig:
     transform_mode: str = _f("frame", choices=("frame", "each"), doc="TRANSFORM input: predict once all markers are fresh (frame) or on every update (each)")
     max_marker_offset: float = _f(100.0, lo=0.0, lo_open=True, doc="reject markers farther than this (mm) from their reference position")
     client_timeout: float = _f(5.0, lo=0.0, lo_open=True, doc="seconds an incomplete message may wait for its remaining bytes")
+    client_frame: str = _f("LPS", choices=("LPS", "RAS"), doc="frame of the replies, and of the markers when no registration is set: LPS = the model's (scan's) frame, RAS = 3D Slicer's world (what OpenIGTLinkIF sends and expects)")
+    tracker_to_client: tuple[float, ...] = _f((), doc="registration from the tracker frame (where markers are measured) to the client frame: 16 numbers, a 4x4 matrix row by row (mm); empty = markers arrive in the client frame. A TRANSFORM TrackerToRas / ReferenceToRas / TrackerToImage replaces it at run time")
 
 
 @dataclass(frozen=True)
@@ -283,6 +290,19 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
 
 
 def _cross_checks(obj: Any, prefix: str) -> None:
+    if isinstance(obj, MeshConfig):
+        from .mesh.labelmap import label_map_format
+
+        kind = label_map_format(obj.path) if obj.path else None
+        if (obj.label or obj.segment) and kind is None:
+            raise ConfigError(f"{prefix}label and {prefix}segment apply only when {prefix}path names a label map "
+                              f"(.nii, .nii.gz, .nrrd, .seg.nrrd), got path {obj.path!r}")
+        if obj.segment and kind != "segmentation":
+            raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
+                              f"{obj.path!r} is not one: use {prefix}label")
+        if kind is not None and obj.units != "mm":
+            raise ConfigError(f"{prefix}units applies to mesh files; a label map is read in its own physical units (mm), "
+                              f"remove {prefix}units = {obj.units!r}")
     if isinstance(obj, DatasetConfig):
         if len(obj.split) != 3 or any(s < 0 for s in obj.split) or sum(obj.split) <= 0:
             raise ConfigError(f"{prefix}split must be three non-negative numbers (train, valid, test-1), got {list(obj.split)}")
@@ -294,6 +314,13 @@ def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, ForceConfig):
         if not obj.betas or any(not 0.0 <= b <= 1.0 for b in obj.betas):
             raise ConfigError(f"{prefix}betas must be numbers in [0, 1], got {list(obj.betas)}")
+    if isinstance(obj, ServeConfig) and obj.tracker_to_client:
+        from .frames import FrameError, check_transform
+
+        try:
+            check_transform(obj.tracker_to_client, f"{prefix}tracker_to_client")
+        except FrameError as exc:
+            raise ConfigError(f"{exc} (empty = no registration)") from exc
     if isinstance(obj, SolverConfig) and obj.min_increment > obj.initial_increment:
         raise ConfigError(f"{prefix}min_increment ({obj.min_increment}) must not exceed initial_increment ({obj.initial_increment})")
 

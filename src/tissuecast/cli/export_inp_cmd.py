@@ -71,7 +71,7 @@ def run(args) -> int:
     from .mesh_cmd import PHANTOM_WORD, load_mesh_argument
 
     cfg = load_config(args.config)
-    mesh = load_mesh_argument(args.mesh, units=cfg.mesh.units, mesh_size=cfg.mesh.surface_mesh_size)
+    mesh = load_mesh_argument(args.mesh, units=cfg.mesh.units, mesh_size=cfg.mesh.surface_mesh_size, mesh_config=cfg.mesh)
     markers, fixed = markers_and_fixed(mesh, cfg.markers)
     forces = _read_forces(args.forces) if args.forces else _example_forces(mesh, cfg, args.seed, args.force_rms)
     order = args.order or cfg.solver.order

@@ -54,9 +54,9 @@ def setup_from_config(cfg: Config):
         ``(mesh TetMesh, markers (n_d,) int64, fixed (k,) int64)``.
     """
     from ..markers import markers_and_fixed
-    from ..mesh import phantom, read_mesh
+    from ..mesh.source import mesh_from_config
 
-    mesh = read_mesh(cfg.mesh.path, units=cfg.mesh.units) if cfg.mesh.path else phantom()
+    mesh = mesh_from_config(cfg.mesh)
     markers, fixed = markers_and_fixed(mesh, cfg.markers)
     return mesh, np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
 
