@@ -223,7 +223,7 @@ def select_fixed_vertices(
     pin and, for the third, at least ``spacing / 2`` mm off the line through the first two (a
     real triangle, so no free hinge axis). The body is held at one small region and *swings*
     about it under dead loads: the fields are dominated by a few near-rigid rotations, which
-    5 markers identify well (phantom, linear elasticity: 5-marker floor 0.2-0.3 mm).
+    5 markers identify well.
 
     ``rule="spread"``: the pins are spread as widely as possible, so that together they hold
     the body against rotation about *every* axis:
@@ -237,10 +237,9 @@ def select_fixed_vertices(
     ``count == 1`` takes the deepest candidate. Ties go to the lowest id.
 
     Displacements then come from strain in many independent directions: the fields are
-    high-dimensional and 5 markers cannot pin them down (phantom, linear elasticity: n_w 21,
-    5-marker floor 2.1 mm). Three pins close to one *line* (neither rule) leave a hinge: on
-    the phantom a 29 x 10 mm near-collinear triangle needed 88 s and 111 factorisations for
-    a 27 mm P2 sample, the spread rule (55 x 15 mm) 14 s and 21.
+    high-dimensional and 5 markers cannot pin them down. Three pins close to one *line*
+    (neither rule) leave a hinge the solver struggles with. Measured figures of both rules:
+    ``docs/solver.md`` and ``benchmarks/pin_identifiability.py``.
 
     Args:
         mesh: the tetrahedral mesh.

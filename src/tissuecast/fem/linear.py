@@ -6,13 +6,11 @@ is done once, each :meth:`factorize` call only redoes the numeric factorisation.
 
 Backends:
 
-* ``"cholmod"`` -- supernodal Cholesky of SuiteSparse through ``sksparse.cholmod``
-  (fastest here: for a 22k-dof P2 solid of phantom size, nested-dissection ordering,
-  nnz(L) ~ 9e6: analysis 0.13 s once, each factorisation 0.26-0.36 s and each solve
-  ~0.01 s on one idle core; AMD ordering gave 11e6 and 0.45 s).
+* ``"cholmod"`` -- supernodal Cholesky of SuiteSparse through ``sksparse.cholmod`` with a
+  nested-dissection ordering (the fastest here; figures in ``docs/solver.md``).
 * ``"pardiso"`` -- Intel MKL PARDISO through ``pypardiso`` when it is installed
   (symmetric indefinite mode, so it never needs a fallback).
-* ``"superlu"`` -- SciPy's SuperLU, always available, ~10x slower (3.8 s for the same matrix).
+* ``"superlu"`` -- SciPy's SuperLU, always available, the slowest.
 
 A stiffness that is not positive definite (possible far from equilibrium, under
 compression) raises :class:`NotPositiveDefinite` from the Cholesky backend; the Newton

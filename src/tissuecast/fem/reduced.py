@@ -1,11 +1,10 @@
 """A reduced-order model of the nonlinear problem, used to predict a full solve's answer.
 
 A data set solves thousands of problems that differ only in their forces, and their
-solutions live near a low-dimensional subspace (the surrogate's PCA needs ~11 modes for
-1 mm). :class:`ReducedModel` exploits that to give the full Newton solver an initial guess
-close to the answer, which turns a cold solve (load increments, globalisation, several
-factorisations) into ~3 Newton iterations without a factorisation of its own. The guess is only a
-guess: every sample is still converged by the full solver to its usual tolerances, so a
+solutions live near a low-dimensional subspace. :class:`ReducedModel` exploits that to give
+the full Newton solver an initial guess close to the answer, which turns a cold solve (load
+increments, globalisation, several factorisations) into a few Newton iterations, usually
+without a factorisation of its own. The guess is only a guess: every sample is still converged by the full solver to its usual tolerances, so a
 data set's displacements are full finite-element solutions either way.
 
 Construction (:meth:`ReducedModel.fit`), from full solutions ("snapshots") of the same
@@ -22,19 +21,15 @@ problem:
 Solve (:meth:`ReducedModel.predict`): Galerkin projection ``u = V q`` with the internal
 forces and energy evaluated on the sampled elements only (weighted), minimising the reduced
 energy in ``r`` unknowns by BFGS from the reduced linear-elastic answer (inverse reduced
-stiffness at zero as the first inverse Hessian, Armijo line search): ~0.6 ms per iteration,
-no tangent. If that fails, Newton with the reduced tangent, an Armijo line search and load
-increments with cut-backs (a few milliseconds per iteration). Returns the nodal displacement
+stiffness at zero as the first inverse Hessian, Armijo line search): one energy-and-forces
+pass on the sampled elements per iteration, no tangent. If that fails, Newton with the
+reduced tangent, an Armijo line search and load increments with cut-backs. Returns the nodal displacement
 field, or None when the reduced problem does not converge (the caller then solves from zero,
 as without a predictor).
 
-Measured on the phantom (P2, compact pins, 40 snapshots, 40 modes, 511 of 5066 elements;
-``benchmarks/dataset_throughput.py``, one worker's time, compiled kernels): a sample from the
-prediction took 0.70 s (3.4 Newton iterations, 0.0 factorisations) against 4.08 s from zero
-(15.8 iterations, 4.0 factorisations), and re-solved side by side the two solutions differed
-by <= 0.005 % of the peak displacement.
-Galerkin solutions are ~2-20 % off the full ones (a linear subspace represents the swing of
-the body about its pins only roughly) but well inside Newton's quadratic basin.
+Galerkin solutions are only roughly right (a linear subspace represents the swing of the body
+about its pins only roughly) but well inside Newton's quadratic basin. Measurements and the
+history of the predictor: ``docs/solver.md``.
 """
 
 from __future__ import annotations
@@ -260,23 +255,10 @@ class ReducedModel:
                 one energy-and-forces evaluation on the sampled elements and no tangent; it
                 falls back to Newton (below) if its line search fails. ``"newton"``: reduced
                 Newton with load increments.
-            bfgs_tolerance: BFGS: the same stopping tests with this factor. Measured on the
-                phantom (P2, compact pins, 40 modes, one process, 24 samples): 0.066 s per
-                prediction instead of Newton's 0.111 s, guesses as good (median 6.6 % off the
-                full solution against 6.3 %) and the full solve after them as fast (3.42
-                against 3.33 Newton iterations); 1e-3 gave median 7.7 % and 3.50 iterations.
-                On the 25.6 mm benchmark sample: 0.065 s instead of 0.107 s (102 quasi-Newton
-                iterations against 13 Newton ones), a guess 14.7 % off instead of 15.8 %;
-                1e-2 stopped too early there (48 % off).
+            bfgs_tolerance: BFGS: the same stopping tests with this factor.
 
-        Newton, measured on 12 phantom samples (P2, compact pins, 40 modes): the full load at
-        once took 17 reduced iterations (0.26 s) where halves took 23 (0.35 s); the full solve
-        after either took 2.8 iterations; tolerance 1e-3 against 1e-4 saved 7 % of the
-        prediction and no full iteration, 1e-2 against 1e-3 22 % more (0.081 s instead of
-        0.104 s, compiled kernels; 24 samples) for the same full solve time. The first
-        increment starts from the reduced linear-elastic answer (from zero if that inverts a
-        sampled element): 12.8 instead of 17.1 reduced iterations (0.19 s instead of 0.26 s)
-        on 31 samples (20 LBO, 11 test-2), the same 3.0 full iterations after.
+        Newton's first increment starts from the reduced linear-elastic answer (from zero if
+        that inverts a sampled element).
         """
         t0 = time.perf_counter()
         if method not in ("bfgs", "newton"):

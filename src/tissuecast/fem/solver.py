@@ -8,74 +8,38 @@ prescribed displacements scale with ``lambda``):
 1. Predictor: the initial guess (first increment) or a linear extrapolation of the last
    converged increment; rejected if it inverts an element.
 2. Direction ``d = -K^-1 r`` (``r``: internal minus external forces on the free dofs).
-   Strategy ``"krylov"`` (default) assembles the tangent ``K`` at every iteration but
-   solves with it by conjugate gradients preconditioned by the last factorisation,
-   co-rotated by the rigid rotation applied since (``R K_old^-1 R^T``), to a relative
-   residual of ``krylov_tolerance``; only when that takes more than ``krylov_iterations``
-   steps (or ``K`` is not positive definite) is ``K`` factorised. The linear solve is
-   inexact on purpose (defaults 5e-2 and 20 steps): on phantom samples this took 23 % less
-   time than 1e-2 and 12 steps from reduced-model guesses (0.45 s, 3.5 iterations, 0.0
-   factorisations against 0.58 s, 3.1, 0.3; 24 samples) and 18 % less from zero (2.69 s
-   against 3.29 s; 6 samples); tighter solves (down to 1e-4) saved no Newton iteration.
-   The conjugate gradients are deflated (``krylov_recycle``, default 20): the search
-   directions of the solve's earlier Newton iterations, and the three infinitesimal rigid
-   rotations about the constrained nodes' centroid, span a subspace ``W`` in which each
-   new system is solved exactly first (Galerkin with the new tangent, ``K W`` costs one
-   sparse product with ``W``), and the iterations then stay K-conjugate to ``W``. The
-   modes the reused factorisation resolves badly (mostly the body's soft swing about its
-   pins) are thereby solved once per solve instead of once per Newton iteration. Measured
-   on phantom samples (P2, compact pins, one process): from reduced-model guesses 15.9
-   instead of 24.2 preconditioner solves and 0.62 s instead of 0.74 s per sample (24
-   samples, 3.3-3.5 Newton iterations either way); from zero 67 instead of 95 solves, 1.0
-   instead of 3.0 factorisations, 3.20 s instead of 4.05 s (6 samples); on the 25.6 mm
-   benchmark sample 31 instead of 62 solves, 0.96 s instead of 1.34 s.
-   ``"newton"`` factorises at every iteration; ``"quasi-newton"`` reuses the last factorisation as it is
-   (``d = -R K^-1 R^T r``) for up to ``max_quasi_newton`` iterations while the residual
-   norm falls by ``refactor_ratio`` per iteration. Measured on 19 phantom samples (P2,
-   11-38 mm, single-threaded BLAS as in data generation): krylov took 5.9 s per sample
-   with 3.9 factorisations against newton's 11.2 s with 23 (same iterations, 16 per
-   sample). Triangular solves are slow with multi-threaded OpenBLAS (several times a
-   single thread's time), so run the krylov strategy with one BLAS thread. A tangent that is not
-   positive definite (compressed regions, or the body swinging through an unstable
-   orientation) is shifted, ``K + tau diag(K)`` with the smallest ``tau`` of a 4x ladder
-   that factorises, so ``d`` stays a descent direction (see :meth:`Solver._factorize`).
-   A solve with an initial guess (``reference_preconditioner``) starts with the stiffness
-   at zero displacement, factorised once per Solver and co-rotated by the guess's best-fit
-   rotation, as its preconditioner: from reduced-model guesses on 31 phantom samples this
-   took 0.26 factorisations and 1.04 s per solve against 1.06 and 1.14 s. (From zero it
-   hurt, 20 iterations and 10.5 factorisations against 16 and 6.7, so cold starts do not.)
-3. Line search on ``Pi`` (Armijo, quadratic backtracking; near round-off, a lower residual
-   norm), rejecting any step that makes ``J <= 0`` at a quadrature point. With
-   ``rotation_aware`` the step's best-fit rigid rotation about the constrained nodes'
-   centroid is applied as a finite rotation (the trial path is an arc, not a straight
-   line). The samples of the paper's set-up (3 interior pinned vertices, unbalanced dead
-   loads) mostly *swing* about the pins; on the phantom this cut Newton iterations
-   ~2-10 fold.
+   Strategy ``"krylov"`` (default) assembles the tangent ``K`` at every iteration and solves
+   with it by conjugate gradients preconditioned by the last factorisation, co-rotated by
+   the rigid rotation applied since (``R K_old^-1 R^T``), to a relative residual of
+   ``krylov_tolerance`` in at most ``krylov_iterations`` steps, deflated by the rigid
+   rotations about the constrained nodes' centroid and the search directions of the solve's
+   earlier iterations (``krylov_recycle``); only when that fails is ``K`` factorised.
+   ``"newton"`` factorises at every iteration; ``"quasi-newton"`` reuses the last
+   factorisation as it is while the residual falls by ``refactor_ratio`` per iteration. A
+   tangent that is not positive definite is shifted, ``K + tau diag(K)``. A solve with an
+   initial guess (``reference_preconditioner``) is preconditioned by the stiffness at zero
+   displacement, factorised once per Solver and co-rotated by the guess's best-fit rotation.
+3. Line search on ``Pi`` (Armijo, quadratic backtracking), rejecting any step that makes
+   ``J <= 0`` at a quadrature point; with ``rotation_aware`` the step's rigid rotation about
+   the constrained nodes' centroid is applied as a finite rotation.
 4. Convergence (Abaqus-like; both must hold): the largest residual component
-   ``<= force_tolerance * q``, where ``q`` is the mean magnitude of the applied nodal
-   forces and support reactions (averaged over the increments so far), and the largest
-   correction, multiplied by ``rho / (1 - rho)`` when the observed contraction ``rho`` of
-   the corrections is slow, ``<= displacement_tolerance *`` the largest displacement of the
-   increment. Defaults 5e-3 and 1e-2 (Abaqus' R_n and C_n) give solutions within ~0.1 % of
-   tightly converged ones. A residual below ``1e-3 force_tolerance q`` is accepted alone.
-5. Increment control: after an increment converged within ``grow_iterations`` iterations
-   the next one is 1.5x larger; a failed increment (``max_iterations`` reached, line
-   search failure, inverted elements) is retried from the last converged state with a
-   quarter of the load step. Below ``min_increment``, or after ``max_increments`` attempts,
+   ``<= force_tolerance * q`` (``q`` the mean magnitude of the applied nodal forces and
+   support reactions) and the largest correction, scaled by ``rho / (1 - rho)`` when the
+   corrections contract slowly, ``<= displacement_tolerance *`` the largest displacement of
+   the increment.
+5. Increment control: an increment converged within ``grow_iterations`` iterations makes the
+   next one 1.5x larger; a failed one is retried with a quarter of the load step; below
+   ``min_increment`` or after ``max_increments`` attempts
    :class:`~tissuecast.errors.ConvergenceError` is raised with the load fraction reached.
 
 The result of a solve depends only on the problem, the forces, the initial guess and the
 configuration (no state is carried from one solve to the next), so data sets are
-reproducible bit for bit.
+reproducible bit for bit. :meth:`Solver.solve_batch` solves several force fields in
+lockstep and gathers their preconditioner solves with the shared reference factorisation
+into multi-right-hand-side solves; each sample's numbers then differ from its single solve
+by round-off and depend only on the batch.
 
-Several samples together (:meth:`Solver.solve_batch`): the Newton solves of a batch run in
-lockstep, and their preconditioner applications with the shared reference factorisation
-are gathered into one triangular solve with several right-hand sides, which costs little
-more than one (the solve streams the factor from memory: 16.9 / 26.2 / 33.0 ms for
-1 / 4 / 8 right-hand sides on the P2 phantom, one thread). The iterations of each sample
-are those of its single solve; its numbers differ from the single solve's by round-off
-(1e-13 to 3e-8 of the peak in the tests and on the phantom) and are reproducible for the
-same batch.
+Design, measurements and the history of what was tried: ``docs/solver.md``.
 """
 
 from __future__ import annotations
@@ -154,10 +118,6 @@ class Solver:
         The shift starts at half the last one that worked in this solve (at least 1e-3)
         and grows 4x per failed attempt; past tau = 10 the projected stiffness (material
         tangent clamped to its positive-definite part at each quadrature point) is used.
-        Measured on the phantom (P2, wide pinned triangle, 4 force fields of 11-37 mm):
-        the shift took 27 / 19 / 84 / 16 s where the projected stiffness took
-        56 / 79 / 93 / 14 s: the projection throws away the geometric (stress) stiffness
-        of compressed regions and then converges only linearly.
         """
         if data is None:
             _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
@@ -421,16 +381,12 @@ class Solver:
         its next preconditioner application, and the applications that use the same
         factorisation (with ``reference_preconditioner``: the stiffness at zero, shared by
         all samples until one factorises its own tangent) are done as one
-        multi-right-hand-side solve. A supernodal triangular solve is bound by reading the
-        factor from memory, so k right-hand sides cost far less than k solves: measured on
-        the P2 phantom (23904 dofs, one thread) 16.9 / 26.2 / 33.0 ms for 1 / 4 / 8 of them.
+        multi-right-hand-side solve (a supernodal triangular solve is bound by reading the
+        factor from memory, so k right-hand sides cost far less than k solves).
         Everything else (tangents, line searches, convergence tests) is per sample and
-        exactly as in :meth:`solve`. On 8 phantom samples peaking at 25-30 mm, from
-        reduced-model guesses (``benchmarks/solver_vs_calculix.py``): 0.645 s per sample
-        against 0.922 s one by one (43 gathered rounds for 215 solves). Each sample beyond
-        the first is solved by a copy of this solver (kept for later batches) that shares
-        its assembler and reference factorisation; a copy that must factorise its own
-        tangent holds that factor too (~75 MB on the phantom).
+        exactly as in :meth:`solve`. Each sample beyond the first is solved by a copy of
+        this solver (kept for later batches) that shares its assembler and reference
+        factorisation; a copy that must factorise its own tangent holds that factor too.
 
         Each sample converges to the same tolerances as with :meth:`solve`; the numbers
         differ from its single solve by round-off (a column of a multi-right-hand-side solve
