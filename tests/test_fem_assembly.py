@@ -137,3 +137,32 @@ def test_indefinite_tangent_is_shifted_by_the_smallest_working_tau(order):
     assert solver._stats["factorizations"] == 2 + int(round(np.log(tau / 1e-3) / np.log(4.0)))
     with pytest.raises(NotPositiveDefinite):
         solver.linear.factorize(k)
+
+
+@pytest.mark.parametrize("backend", ["cholmod", "superlu"])
+def test_spawned_linear_solver_has_its_own_factor_and_the_same_bits(backend):
+    """LinearSolver.spawn: a second solver of the same pattern factorises another matrix
+    without touching the first one's factor, and (sharing the symbolic analysis) solves
+    bit for bit like a solver that analysed the pattern afresh."""
+    if backend == "cholmod":
+        pytest.importorskip("sksparse")
+    from tissuecast.fem.linear import make_linear_solver
+
+    prob = Problem(distorted_box(seed=1), NeoHookean(0.021, 0.45), fixed=[0, 3, 12], order=2)
+    asm = Assembler(prob.nodes, prob.connectivity, prob.order, prob.material, prob.free_mask)
+    rng = np.random.default_rng(4)
+    _, k0, _ = asm.tangent(np.zeros_like(prob.nodes))
+    k1 = k0.copy()
+    k1[asm.diagonal_index] *= 1.5  # another positive-definite matrix of the same pattern
+    first = make_linear_solver(backend, asm)
+    other = first.spawn()
+    assert type(other) is type(first) and other is not first
+    first.factorize(k0)
+    other.factorize(k1)
+    b = rng.normal(size=asm.n_free)
+    for solver, data in ((first, k0), (other, k1)):
+        dense = asm.matrix(data).toarray()
+        np.testing.assert_allclose(solver.solve(b), np.linalg.solve(dense, b), rtol=1e-8, atol=1e-12)
+    fresh = make_linear_solver(backend, asm)
+    fresh.factorize(k1)
+    np.testing.assert_array_equal(fresh.solve(b), other.solve(b))
