@@ -349,3 +349,17 @@ def test_line_search_lengthens_a_newton_step_that_is_too_short():
     s, x, *_ = line_search(Quadratic(), straight(exact), free, exact, 0.0, r0, fext)
     assert s == 1.0
     np.testing.assert_allclose(x, exact, rtol=1e-12)
+
+
+def test_build_problem_takes_material_and_order_from_the_config(beam):
+    from tissuecast.config import Config, with_overrides
+    from tissuecast.fem import build_problem
+
+    mesh, fixed, _ = beam
+    cfg = with_overrides(Config(), material={"youngs_modulus": 0.03, "poisson_ratio": 0.4}, solver={"order": 1})
+    problem = build_problem(mesh, cfg, fixed)
+    assert problem.order == 1 and problem.material.youngs_modulus == 0.03 and problem.material.poisson_ratio == 0.4
+    np.testing.assert_array_equal(problem.fixed, fixed)
+    assert build_problem(mesh, cfg, fixed, order=2).order == 2
+    with pytest.raises(SolverSetupError, match="at least 3"):
+        build_problem(mesh, cfg, fixed[:2])

@@ -24,7 +24,7 @@ from .calibrate import calibrate_alpha, initial_alpha
 from .executors import make_executor
 from .plan import generation_order, make_plan
 from .reader import open_dataset
-from .store import StoreWriter
+from .store import StoreWriter, read_lbo_basis
 from .worker import Recipe, Task
 
 __all__ = ["simulate", "setup_from_config", "data_config"]
@@ -150,8 +150,7 @@ def _recipe(writer: StoreWriter, solver_factory: str | None) -> Recipe:
         kw.update(reduced_basis=writer.read("reduced/basis"), reduced_elements=writer.read("reduced/elements"),
                   reduced_weights=writer.read("reduced/weights"))
     return Recipe(writer.config_toml, writer.read("mesh/points"), writer.read("mesh/tets"), writer.read("fixed"),
-                  writer.read("lbo/vertices"), writer.read("lbo/vectors"), writer.read("lbo/eigenvalues"),
-                  writer.read("lbo/mass"), **kw)
+                  read_lbo_basis(writer.root), **kw)
 
 
 def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[dict, list]:
@@ -159,9 +158,6 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
     ds = cfg.dataset
     if ds.alpha > 0:
         return {"rule": "given (dataset.alpha)", "alpha": ds.alpha, "converged": True, "rounds": []}, []
-    from ..forces import LBOBasis
-    from ..mesh import TetMesh
-
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     n_lbo = int(writer.root.attrs["n_lbo"])
     pilots = list(range(min(ds.calibration_samples, n_lbo)))
@@ -176,10 +172,8 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
                                             for i in pilots]), key=lambda r: r.index)
         return np.array([r.max_displacement for r in last])
 
-    basis = LBOBasis(recipe.basis_vertices, recipe.basis_vectors, recipe.basis_eigenvalues, recipe.basis_mass)
-    mesh = TetMesh(recipe.points, recipe.tets)
     target = cfg.forces.target_max_displacement
-    alpha0 = initial_alpha(basis, mesh, recipe.fixed, cfg.material.youngs_modulus, target)
+    alpha0 = initial_alpha(recipe.basis, recipe.mesh, recipe.fixed, cfg.material.youngs_modulus, target)
     record = calibrate_alpha(pilot_max, alpha0, target, quantile=ds.calibration_quantile)
     record["pilots"] = pilots
     reusable = [r for r in last if r.alpha == record["alpha"]]
@@ -277,13 +271,11 @@ def _keep_snapshots(writer: StoreWriter, cfg: Config, results) -> None:
 def _build_reduced(writer: StoreWriter, ex, cfg: Config, run: dict) -> bool:
     """Solve the basis samples (from zero) that have no stored snapshot, then fit and store
     the reduced model. Returns False (and logs why) when it cannot be built."""
-    from ..fem import NeoHookean, Problem
+    from ..fem import build_problem
     from ..fem.reduced import ReducedModel
     from ..mesh import TetMesh
 
-    mesh = TetMesh(writer.read("mesh/points"), writer.read("mesh/tets"))
-    problem = Problem(mesh, NeoHookean(cfg.material.youngs_modulus, cfg.material.poisson_ratio), writer.read("fixed"),
-                      order=cfg.solver.order)
+    problem = build_problem(TetMesh(writer.read("mesh/points"), writer.read("mesh/tets")), cfg, writer.read("fixed"))
     samples = _basis_samples(writer, cfg)
     rows = writer.snapshot_rows(samples, len(problem.nodes))
     have = writer.snapshot_done()

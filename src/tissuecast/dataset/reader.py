@@ -11,7 +11,7 @@ import numpy as np
 from ..config import Config, config_from_dict
 from ..errors import DatasetError
 from .plan import SPLIT_CODES, SPLIT_NAMES
-from .store import STATUS_NAMES, _open_root, check_schema
+from .store import STATUS_NAMES, _open_root, check_schema, read_lbo_basis
 
 __all__ = ["Dataset", "open_dataset", "max_displacement_stats"]
 
@@ -149,9 +149,7 @@ class Dataset:
     @cached_property
     def basis(self):
         """The stored :class:`~tissuecast.forces.LBOBasis`."""
-        from ..forces import LBOBasis
-
-        return LBOBasis(*(self._array(f"lbo/{k}") for k in ("vertices", "vectors", "eigenvalues", "mass")))
+        return read_lbo_basis(self._root)
 
     @property
     def config_toml(self) -> str:

@@ -69,7 +69,8 @@ from ..errors import DatasetError, require
 from .plan import SPLIT_NAMES, SamplePlan
 from .worker import SampleResult
 
-__all__ = ["SCHEMA", "SCHEMA_VERSION", "STATUS_NAMES", "StoreWriter", "package_versions", "check_schema"]
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "STATUS_NAMES", "StoreWriter", "package_versions", "check_schema",
+           "read_lbo_basis"]
 
 SCHEMA = "tissuecast.dataset"
 SCHEMA_VERSION = 1
@@ -128,6 +129,16 @@ def check_schema(root, path) -> None:
     if not isinstance(version, int) or version > SCHEMA_VERSION or version < 1:
         raise DatasetError(f"data set {str(path)!r} has schema version {version!r}, but this tissuecast reads "
                            f"versions 1..{SCHEMA_VERSION}; upgrade tissuecast to read it")
+
+
+def read_lbo_basis(root):
+    """The stored :class:`~tissuecast.forces.LBOBasis` of a store's root group (read-only arrays)."""
+    from ..forces import LBOBasis
+
+    arrays = [np.asarray(root[f"lbo/{k}"][...]) for k in ("vertices", "vectors", "eigenvalues", "mass")]
+    for a in arrays:
+        a.setflags(write=False)
+    return LBOBasis(*arrays)
 
 
 class StoreWriter:

@@ -20,12 +20,16 @@ import logging
 import time
 import tomllib
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from ..config import Config, SolverConfig, config_from_dict
 from ..errors import ConvergenceError
+
+if TYPE_CHECKING:
+    from ..forces import LBOBasis
+    from ..mesh import TetMesh
 
 __all__ = ["Recipe", "Task", "SampleResult", "SampleContext", "context_for", "solve_task", "retry_solver_config",
            "fem_solver_factory"]
@@ -41,8 +45,7 @@ class Recipe:
         config_toml: the data set's configuration as TOML text.
         points: (n, 3) float64 mesh vertices, mm.  tets: (m, 4) int64.
         fixed: (k,) int64 fixed vertex ids.
-        basis_vertices: (s,) int64; basis_vectors: (s, n_b) float64 1/mm;
-        basis_eigenvalues: (n_b,) 1/mm^2; basis_mass: (s,) mm^2 -- the stored LBO basis.
+        basis: the stored :class:`~tissuecast.forces.LBOBasis`.
         solver_factory: ``"module:function"`` building the solver (see :func:`fem_solver_factory`).
         reduced_basis, reduced_elements, reduced_weights: the data set's reduced-order
             predictor (:class:`~tissuecast.fem.reduced.ReducedModel`), or None (solve from zero).
@@ -52,10 +55,7 @@ class Recipe:
     points: np.ndarray
     tets: np.ndarray
     fixed: np.ndarray
-    basis_vertices: np.ndarray
-    basis_vectors: np.ndarray
-    basis_eigenvalues: np.ndarray
-    basis_mass: np.ndarray
+    basis: "LBOBasis"
     solver_factory: str = "tissuecast.dataset.worker:fem_solver_factory"
     reduced_basis: np.ndarray | None = None
     reduced_elements: np.ndarray | None = None
@@ -65,10 +65,22 @@ class Recipe:
     def key(self) -> str:
         """Content hash identifying this recipe (worker processes cache contexts by it)."""
         h = hashlib.sha256(self.config_toml.encode() + self.solver_factory.encode())
-        for a in (self.points, self.tets, self.fixed, self.basis_vertices, self.basis_vectors, self.reduced_basis,
+        for a in (self.points, self.tets, self.fixed, self.basis.vertices, self.basis.vectors, self.reduced_basis,
                   self.reduced_elements, self.reduced_weights):
             h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
         return h.hexdigest()
+
+    @property
+    def config(self) -> Config:
+        """The data set's configuration."""
+        return config_from_dict(tomllib.loads(self.config_toml))
+
+    @property
+    def mesh(self) -> "TetMesh":
+        """The data set's mesh (built anew on each access)."""
+        from ..mesh import TetMesh
+
+        return TetMesh(self.points, self.tets)
 
 
 @dataclass(frozen=True)
@@ -159,10 +171,9 @@ def fem_solver_factory(mesh, fixed: np.ndarray, cfg: Config) -> Callable[[Solver
     Returns a function mapping solver settings to a reusable ``Solver`` with
     ``.solve(forces (n,3) N) -> SolveResult`` (raising ConvergenceError on failure).
     """
-    from ..fem import NeoHookean, Problem, Solver
+    from ..fem import Solver, build_problem
 
-    material = NeoHookean(youngs_modulus=cfg.material.youngs_modulus, poisson_ratio=cfg.material.poisson_ratio)
-    problem = Problem(mesh, material, fixed, order=cfg.solver.order)
+    problem = build_problem(mesh, cfg, fixed)
     return lambda solver_cfg: Solver(problem, solver_cfg)
 
 
@@ -170,13 +181,12 @@ class SampleContext:
     """Per-process state: mesh, basis, config and the solvers (one per retry level)."""
 
     def __init__(self, recipe: Recipe):
-        from ..forces import LBOBasis, surface_graph_laplacian
-        from ..mesh import TetMesh
+        from ..forces import surface_graph_laplacian
 
-        self.config = config_from_dict(tomllib.loads(recipe.config_toml))
-        self.mesh = TetMesh(recipe.points, recipe.tets)
+        self.config = recipe.config
+        self.mesh = recipe.mesh
         self.fixed = np.asarray(recipe.fixed, dtype=np.int64)
-        self.basis = LBOBasis(recipe.basis_vertices, recipe.basis_vectors, recipe.basis_eigenvalues, recipe.basis_mass)
+        self.basis = recipe.basis
         self.laplacian = surface_graph_laplacian(self.mesh)
         module, _, name = recipe.solver_factory.partition(":")
         self._make_solver = getattr(importlib.import_module(module), name)(self.mesh, self.fixed, self.config)
