@@ -95,6 +95,22 @@ def test_readable_with_zarr_alone(made):
     assert s["displacements"].chunks == (1, 140, 3)
 
 
+def test_stored_codes_are_the_named_ones(made):
+    """samples/status and samples/predicted hold the SampleStatus / InitialGuess values that the
+    schema documents, and the stored labels are the enum's."""
+    from tissuecast.dataset import STATUS_NAMES, InitialGuess, SampleStatus
+
+    _, path, _ = made
+    assert {int(s): s.label for s in SampleStatus} == {0: "pending", 1: "done", 2: "failed"} == STATUS_NAMES
+    assert [int(g) for g in InitialGuess] == [0, 1, 2, 3]
+    ds = open_dataset(path)
+    assert ds.attrs["status_labels"] == {"0": "pending", "1": "done", "2": "failed"}
+    np.testing.assert_array_equal(ds.select(status="failed"), np.flatnonzero(ds.status == SampleStatus.FAILED))
+    assert set(np.unique(ds.status)) == {SampleStatus.DONE, SampleStatus.FAILED}
+    assert (ds.predicted == InitialGuess.ZERO).all()  # the fake solver's set: no reduced model
+    assert "done" in repr(ds) and f"{len(ds.select(status='failed'))} failed" in repr(ds)
+
+
 def test_rerun_is_a_no_op_and_other_config_is_refused(made, tmp_path):
     cfg, path, _ = made
     before = store_arrays(path)

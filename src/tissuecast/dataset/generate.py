@@ -21,6 +21,7 @@ import numpy as np
 from ..config import Config, config_from_dict, config_to_dict, config_to_toml, load_config
 from ..errors import DatasetError
 from .calibrate import calibrate_alpha, initial_alpha
+from .codes import InitialGuess, SampleStatus
 from .executors import make_executor
 from .plan import generation_order, make_plan
 from .reader import open_dataset
@@ -167,7 +168,7 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
 
     def pilot_max(alpha: float) -> np.ndarray:
         # each pilot starts from its solution of the previous round (if it converged)
-        prev = {r.index: r.nodal for r in last if r.status == 1 and r.nodal is not None}
+        prev = {r.index: r.nodal for r in last if r.status == SampleStatus.DONE and r.nodal is not None}
         last[:] = sorted(ex.imap_unordered([Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i))
                                             for i in pilots]), key=lambda r: r.index)
         return np.array([r.max_displacement for r in last])
@@ -220,7 +221,7 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
                 record, reusable = _calibrate(writer, ex, cfg, recipe)
                 run["calibration_seconds"] = time.monotonic() - tc
                 for r in reusable:  # pilot solves at the final alpha are the samples themselves
-                    if writer.status[r.index] == 0:
+                    if writer.status[r.index] == SampleStatus.PENDING:
                         writer.write_sample(r)
                         run["solved"] += 1
                 writer.flush()
@@ -260,7 +261,7 @@ def _keep_snapshots(writer: StoreWriter, cfg: Config, results) -> None:
     if cfg.dataset.predictor != "reduced" or writer.reduced is not None:
         return
     for r in results:
-        if r.nodal is None or r.status != 1 or r.predicted == 1:
+        if r.nodal is None or r.status != SampleStatus.DONE or r.predicted == InitialGuess.REDUCED_MODEL:
             continue
         rows = writer.snapshot_rows(_basis_samples(writer, cfg), len(r.nodal))
         hit = np.flatnonzero(rows == r.index)
@@ -279,17 +280,17 @@ def _build_reduced(writer: StoreWriter, ex, cfg: Config, run: dict) -> bool:
     samples = _basis_samples(writer, cfg)
     rows = writer.snapshot_rows(samples, len(problem.nodes))
     have = writer.snapshot_done()
-    todo = [int(i) for i, ok in zip(rows, have) if not ok and writer.status[i] != 2]
+    todo = [int(i) for i, ok in zip(rows, have) if not ok and writer.status[i] != SampleStatus.FAILED]
     if todo:
         alpha = float(writer.calibration["alpha"])
         seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
         log.info("solving %d samples from zero for the reduced model", len(todo))
         tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo]
         for r in ex.imap_unordered(tasks):
-            if r.nodal is None and r.status == 1:
+            if r.nodal is None and r.status == SampleStatus.DONE:
                 log.warning("the solver returns no nodal displacements; data set solved without a predictor")
                 return False
-            if writer.status[r.index] == 0:
+            if writer.status[r.index] == SampleStatus.PENDING:
                 writer.write_sample(r)
                 run["solved"] += 1
             _keep_snapshots(writer, cfg, [r])
@@ -329,7 +330,7 @@ def _solve_pending(writer: StoreWriter, ex, progress: bool, run: dict) -> None:
                 writer.flush()
                 last_flush, unflushed = time.monotonic(), 0
             run["parent_io_seconds"] += time.monotonic() - tw
-            bar.update(int(np.sum(writer.status == 2)))
+            bar.update(int(np.sum(writer.status == SampleStatus.FAILED)))
         writer.flush()
     finally:
         bar.close()

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..config import Config, SolverConfig, config_from_dict
 from ..errors import ConvergenceError
+from .codes import InitialGuess, SampleStatus
 
 if TYPE_CHECKING:
     from ..forces import LBOBasis
@@ -105,20 +106,21 @@ class SampleResult:
     Attributes:
         displacement: (n, 3) float32 mm at the vertices; None when the sample failed.
         forces: (n, 3) float32 nodal forces, N.  weights: (n_b, 3) float64 LBO weights W.
-        status: 1 done, 2 failed.  reason: failure message ('' when done).
+        status: :class:`~.codes.SampleStatus` DONE or FAILED.  reason: failure message ('' when done).
         load_fraction: share of the load reached (1.0 when done).
         attempts: solver attempts used (1 + retries used).
-        predicted: 0 solved from zero (no reduced model), 1 converged from the reduced
-            model's prediction, 2 the initial guess did not work (the reduced problem or the
-            solve from the guess did not converge) and the sample was solved from zero,
-            3 converged from the task's guess (a calibration pilot started from its solution
-            of the previous round).
+        predicted: :class:`~.codes.InitialGuess`: ZERO solved from zero (no reduced model),
+            REDUCED_MODEL converged from the reduced model's prediction, GUESS_FAILED the
+            initial guess did not work (the reduced problem or the solve from the guess did
+            not converge) and the sample was solved from zero, PREVIOUS_ROUND converged from
+            the task's guess (a calibration pilot started from its solution of the previous
+            round).
         nodal: (n_nodes, 3) float64 mm at every element node (P2: mid-edge nodes too), or
             None; the reduced model is built from these.
     """
 
     index: int
-    status: int
+    status: SampleStatus
     displacement: np.ndarray | None
     forces: np.ndarray
     weights: np.ndarray
@@ -132,7 +134,7 @@ class SampleResult:
     load_fraction: float
     attempts: int
     reason: str = ""
-    predicted: int = 0
+    predicted: InitialGuess = InitialGuess.ZERO
     nodal: np.ndarray | None = None
 
     @property
@@ -242,15 +244,30 @@ def _counts(res) -> tuple[int, int, int]:
     return int(getattr(res, "increments", 0)), int(getattr(res, "iterations", 0)), int(getattr(res, "factorizations", 0))
 
 
+def _tries(ctx: SampleContext, task: Task, forces: np.ndarray) -> tuple[list, InitialGuess]:
+    """The solver attempts of a sample, in order, as ``(retry level, initial guess or None)``,
+    and the initial-guess code they start with: the task's guess or else the reduced model's
+    prediction first (if any), then the usual attempts from zero."""
+    tries = [(attempt, None) for attempt in range(ctx.config.solver.retries + 1)]
+    if task.guess is not None:
+        return [(0, np.asarray(task.guess, dtype=np.float64))] + tries, InitialGuess.PREVIOUS_ROUND
+    if ctx.reduced is None:
+        return tries, InitialGuess.ZERO
+    guess = ctx.reduced.predict(forces)
+    if guess is None:
+        return tries, InitialGuess.GUESS_FAILED
+    return [(0, guess)] + tries, InitialGuess.REDUCED_MODEL
+
+
 def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     """Solve one sample, retrying with more cautious increments ``solver.retries`` times.
 
-    With a guess in the task (``predicted`` 3), or else a reduced model in the recipe, a first
-    try starts from it (``predicted`` 1; 2 when the reduced problem did not converge and there
-    is no prediction); should that try fail, the usual attempts from zero follow, so a guess
-    never makes a sample fail. A ConvergenceError (or a numerical breakdown: ArithmeticError,
-    LinAlgError) after the last retry makes a failed result carrying the reason; any other
-    exception propagates.
+    With a guess in the task (``predicted`` PREVIOUS_ROUND), or else a reduced model in the
+    recipe, a first try starts from it (``predicted`` REDUCED_MODEL; GUESS_FAILED when the
+    reduced problem did not converge and there is no prediction); should that try fail, the
+    usual attempts from zero follow, so a guess never makes a sample fail. A
+    ConvergenceError (or a numerical breakdown: ArithmeticError, LinAlgError) after the last
+    retry makes a failed result carrying the reason; any other exception propagates.
     """
     ctx = context_for(recipe)
     forces, weights = ctx.forces(task)
@@ -258,17 +275,7 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     totals = np.zeros(3, dtype=np.int64)
     reasons = []
     load_fraction = 0.0
-    retries = ctx.config.solver.retries
-    predicted = 0
-    tries = [(attempt, None) for attempt in range(retries + 1)]
-    if task.guess is not None:
-        predicted = 3
-        tries.insert(0, (0, np.asarray(task.guess, dtype=np.float64)))
-    elif ctx.reduced is not None:
-        guess = ctx.reduced.predict(forces)
-        predicted = 1 if guess is not None else 2
-        if guess is not None:
-            tries.insert(0, (0, guess))  # then, should it fail, the usual attempts from zero
+    tries, predicted = _tries(ctx, task, forces)
     for attempt, guess in tries:
         try:
             solver = ctx.solver(attempt)
@@ -276,23 +283,24 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
-            start = " from the previous round's solution" if predicted == 3 else " from the prediction"
+            start = (" from the previous round's solution" if predicted == InitialGuess.PREVIOUS_ROUND
+                     else " from the prediction")
             reasons.append(f"attempt {attempt + 1}{start if guess is not None else ''}: "
                            f"{type(exc).__name__}: {exc}")
-            predicted = 2 if guess is not None else predicted
+            predicted = InitialGuess.GUESS_FAILED if guess is not None else predicted
             continue
         totals += _counts(res)
         if not getattr(res, "converged", True):  # a solver that reports instead of raising
             load_fraction = max(load_fraction, float(getattr(res, "load_fraction", 0.0)))
             reasons.append(f"attempt {attempt + 1}: not converged at load fraction {load_fraction:.4g}")
-            predicted = 2 if guess is not None else predicted
+            predicted = InitialGuess.GUESS_FAILED if guess is not None else predicted
             continue
         nodal = getattr(res, "nodal_displacement", None)
-        return SampleResult(task.index, 1, np.asarray(res.displacement, dtype=np.float32), forces.astype(np.float32),
-                            weights, task.alpha, task.beta, task.seed, *map(int, totals),
+        return SampleResult(task.index, SampleStatus.DONE, np.asarray(res.displacement, dtype=np.float32),
+                            forces.astype(np.float32), weights, task.alpha, task.beta, task.seed, *map(int, totals),
                             time.perf_counter() - t0, 1.0, attempt + 1, predicted=predicted,
                             nodal=None if nodal is None else np.asarray(nodal, dtype=np.float64))
     log.debug("sample %d failed: %s", task.index, reasons[-1])
-    return SampleResult(task.index, 2, None, forces.astype(np.float32), weights, task.alpha, task.beta, task.seed,
-                        *map(int, totals), time.perf_counter() - t0, load_fraction, retries + 1,
-                        "; ".join(reasons), predicted=predicted)
+    return SampleResult(task.index, SampleStatus.FAILED, None, forces.astype(np.float32), weights, task.alpha,
+                        task.beta, task.seed, *map(int, totals), time.perf_counter() - t0, load_fraction,
+                        ctx.config.solver.retries + 1, "; ".join(reasons), predicted=predicted)
