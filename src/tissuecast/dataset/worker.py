@@ -6,8 +6,8 @@ problem and its :class:`~tissuecast.fem.Solver` once (:func:`context_for`) and r
 for every sample it is given, so per-sample cost is the solve alone.
 
 A sample's result is a pure function of (recipe, task): the force field comes from the
-sample's own seed, the solve starts from zero displacement, and worker processes run their
-BLAS single-threaded (see :mod:`.executors`). Hence the same sample gives the same bits on
+sample's own seed, the solve starts from zero, the task's guess or the recipe's reduced-model
+prediction, and worker processes run their BLAS single-threaded (see :mod:`.executors`). Hence the same sample gives the same bits on
 any worker, in any order, in a first run or after a resume.
 """
 
