@@ -363,3 +363,23 @@ def test_build_problem_takes_material_and_order_from_the_config(beam):
     assert build_problem(mesh, cfg, fixed, order=2).order == 2
     with pytest.raises(SolverSetupError, match="at least 3"):
         build_problem(mesh, cfg, fixed[:2])
+
+
+def test_convergence_test_by_hand():
+    """converged(): both criteria, the residual alone far below its tolerance, and the
+    correction scaled by rho / (1 - rho) while the corrections contract slowly."""
+    from tissuecast.fem.convergence import converged, correction_estimate, reference_force
+
+    assert correction_estimate(1.0, None) == 1.0
+    assert correction_estimate(0.5, 1.0) == 0.5  # rho 0.5: rho / (1 - rho) = 1
+    assert correction_estimate(0.9, 1.0) == pytest.approx(0.9 * 9.0)  # rho 0.9: 9x
+    assert correction_estimate(0.99, 1.0) == 0.99  # not contracting: the raw correction
+    tol = dict(force_tolerance=5e-3, displacement_tolerance=1e-2)
+    assert converged(rmax=4e-3, q=1.0, cmax=0.05, estimate=0.05, dmax=10.0, umax=10.0, **tol)
+    assert not converged(rmax=6e-3, q=1.0, cmax=0.05, estimate=0.05, dmax=10.0, umax=10.0, **tol)  # residual
+    assert not converged(rmax=4e-3, q=1.0, cmax=0.05, estimate=0.2, dmax=10.0, umax=10.0, **tol)  # correction
+    assert converged(rmax=4e-6, q=1.0, cmax=5.0, estimate=5.0, dmax=10.0, umax=10.0, **tol)  # residual alone
+    assert converged(rmax=4e-3, q=1.0, cmax=1e-12, estimate=1.0, dmax=0.0, umax=10.0, **tol)  # round-off
+    fext = np.array([0.0, 3.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # 5 N on node 0
+    fint = np.array([0.0, 3.0, 4.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0])  # 1 N reaction on node 2
+    assert reference_force(fint, fext, np.array([2])) == pytest.approx(3.0)  # mean of 5 and 1

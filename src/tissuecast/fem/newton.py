@@ -11,8 +11,8 @@ one Solver serves any number of runs, one by one or in lockstep.
 
 :meth:`SolveRun.steps` is a generator of preconditioner applications (see
 :func:`.krylov.corotated_solve`) that returns the :class:`~tissuecast.fem.result.SolveResult`;
-the Solver drives it. The algorithm is described in :mod:`tissuecast.fem.solver` and, with
-its history, in ``docs/solver.md``.
+the Solver drives it. The convergence test is :func:`.convergence.converged`. The algorithm is
+described in :mod:`tissuecast.fem.solver` and, with its history, in ``docs/solver.md``.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..errors import ConvergenceError
+from .convergence import RESIDUAL_ALONE, converged, correction_estimate, reference_force
 from .krylov import corotated_solve, deflated_cg, deflation_space, recycle, rigid_rotations
 from .linear import NotPositiveDefinite
 from .linesearch import line_search, step_path
@@ -33,7 +34,7 @@ from .result import SolveResult
 if TYPE_CHECKING:
     from .solver import Solver
 
-__all__ = ["SolveRun", "SolveCounts", "converged", "correction_estimate", "best_rotation"]
+__all__ = ["SolveRun", "SolveCounts", "best_rotation"]
 
 log = logging.getLogger(__name__)
 
@@ -43,14 +44,6 @@ INCREMENT_GROWTH = 1.5
 CUTBACK = 0.25
 #: A load fraction this close to 1 is 1 (no sliver of an increment left over by round-off).
 LOAD_SNAP = 1e-9
-#: A residual below this share of the force tolerance is converged without the correction
-#: test (e.g. an increment that starts in equilibrium, or a residual at round-off).
-RESIDUAL_ALONE = 1e-3
-#: A correction below this share of the largest displacement is round-off: it cannot shrink.
-CORRECTION_ROUNDOFF = 1e-12
-#: Corrections contracting by more than this ratio per iteration are not converging
-#: linearly, and ``rho / (1 - rho)`` would blow up: the raw correction is tested instead.
-SLOW_CONTRACTION = 0.95
 #: First shift ``tau`` of an indefinite tangent, ``K + tau diag(K)``: a mild regularisation.
 SHIFT_FIRST = 1e-3
 #: A new ladder starts at this share of the last shift that worked in the solve.
@@ -89,49 +82,6 @@ class _Iterations:
     fresh: bool = False  # the direction was computed with a factorisation made this iteration
     reuses: int = 0  # iterations since the last factorisation (quasi-newton)
     last_correction: float | None = None  # largest correction of the previous iteration, mm
-
-
-def correction_estimate(cmax: float, previous: float | None) -> float:
-    """The largest correction ``cmax`` (mm), scaled by ``rho / (1 - rho)`` when the corrections
-    contract slowly (``rho = cmax / previous``), as an estimate of the remaining error."""
-    rho = cmax / previous if previous else 0.0
-    return cmax * max(1.0, rho / (1.0 - rho)) if rho < SLOW_CONTRACTION else cmax
-
-
-def converged(rmax: float, q: float, cmax: float, estimate: float, dmax: float, umax: float,
-              force_tolerance: float, displacement_tolerance: float) -> bool:
-    """The Abaqus-like convergence test of a Newton iteration.
-
-    Args:
-        rmax: largest residual force component, N.
-        q: reference force (mean magnitude of applied forces and reactions), N.
-        cmax: largest correction of the iteration, mm; estimate: it, scaled by the
-            contraction (:func:`correction_estimate`).
-        dmax: largest displacement of the increment, mm; umax: largest displacement, mm.
-        force_tolerance, displacement_tolerance: R_n and C_n.
-
-    Returns:
-        True when the residual is small (``rmax <= force_tolerance * q``) and so is the
-        correction (``estimate <= displacement_tolerance * dmax``, or round-off), or when the
-        residual alone is far below its tolerance.
-    """
-    if rmax <= RESIDUAL_ALONE * force_tolerance * q:
-        return True
-    return rmax <= force_tolerance * q and (estimate <= displacement_tolerance * dmax
-                                            or cmax <= CORRECTION_ROUNDOFF * umax)
-
-
-def reference_force(fint: np.ndarray, fext: np.ndarray, cnodes: np.ndarray) -> float:
-    """Mean magnitude (N) of the applied nodal forces and the support reactions.
-
-    Args:
-        fint, fext: (3 n_nodes,) internal and external nodal forces, N.
-        cnodes: (c,) constrained node ids.
-    """
-    mags = np.linalg.norm(fext.reshape(-1, 3), axis=1)
-    reac = np.linalg.norm((fint - fext).reshape(-1, 3)[cnodes], axis=1)
-    vals = np.concatenate([mags[mags > 0.0], reac])
-    return float(vals.mean()) if len(vals) else 0.0
 
 
 def best_rotation(nodes: np.ndarray, u: np.ndarray) -> np.ndarray:
