@@ -238,6 +238,16 @@ def test_cli_info_and_export(made, tmp_path, capsys):
     info = json.loads(capsys.readouterr().out)
     assert info["n_samples"] == 13 and sum(c["done"] for c in info["counts"].values()) == info["totals"]["done"]
     ds = open_dataset(path)
+    # the non-rigid part of every done sample, next to its peak displacement
+    from tissuecast.registration import nonrigid_part
+
+    done = ds.select(status="done")
+    nr = nonrigid_part(ds.mesh.points, np.asarray(ds.displacements[done], dtype=np.float64))
+    assert info["nonrigid_part"]["count"] == len(done)
+    assert info["nonrigid_part"]["median"] == pytest.approx(float(np.median(nr)))
+    share = nr / ds.max_displacement[done]
+    assert info["nonrigid_share"]["median"] == pytest.approx(float(np.median(share)), rel=1e-6)
+    assert "non-rigid part" in out
     i = int(ds.select(status="done")[0])
     out_file = tmp_path / "s.vtu"
     assert main(["dataset", "export", str(path), "--sample", str(i), str(out_file)]) == 0

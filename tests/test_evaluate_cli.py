@@ -38,6 +38,7 @@ def test_train_evaluate_predict(run, capsys):
     assert main(["evaluate", str(folder / "model"), "--out", str(folder / "rep"), "--renders", "0"]) == 0
     out = capsys.readouterr().out
     assert "test-1 mean Offset_max" in out and (folder / "rep" / "index.html").is_file()
+    assert "rigid" in out and "PCA floor" in out and "non-rigid part" in out
     ev = json.loads((folder / "rep" / "evaluation.json").read_text())
     assert {"valid", "test1", "test2"} <= set(ev["sets"]) and len(ev["by_beta"]) == 3
 
@@ -63,6 +64,13 @@ def test_train_evaluate_predict(run, capsys):
     vtu = meshio.read(folder / "u.vtu")
     np.testing.assert_allclose(vtu.point_data["displacement"], model.predict(d), atol=1e-6)
     assert vtu.point_data["uncertainty"].shape == (model.n_vertices,)
+    # the rigid-registration baseline from the same file, and its clear refusal of --uncertainty
+    assert main(["predict", str(folder / "model"), "--markers", str(csv_in), "--method", "rigid",
+                 "--out", str(folder / "r.csv")]) == 0
+    rows = np.loadtxt(folder / "r.csv", delimiter=",", skiprows=1)
+    np.testing.assert_allclose(rows[:, 2:5], model.predict(d, method="rigid"), atol=1e-5)
+    assert main(["predict", str(folder / "model"), "--markers", str(csv_in), "--method", "rigid", "--uncertainty"]) == 2
+    assert "--uncertainty comes from the MLP" in capsys.readouterr().err
     # wrong number of values is one clear error
     bad = folder / "bad.csv"
     bad.write_text("1,2,3\n4,5,6\n")

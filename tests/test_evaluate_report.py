@@ -53,6 +53,29 @@ def test_evaluation_matches_direct_metrics(evaluation, model, ds):
     assert t1.sigma_spearman.shape == t1.indices.shape and np.all(np.abs(t1.sigma_spearman) <= 1 + 1e-12)
 
 
+def test_evaluation_reports_rigid_baseline_floor_and_nonrigid_part(evaluation, model, ds):
+    from tissuecast.registration import fit_rigid, nonrigid_part
+
+    t1 = evaluation.sets["test1"]
+    bench = ds.displacements[t1.indices].astype(np.float64)
+    p = ds.mesh.points
+    # rigid registration from the markers, computed here sample by sample
+    for k in (0, 7):
+        ref = p[model.markers]
+        fit = fit_rigid(ref, ref + bench[k, model.markers])
+        e = np.linalg.norm(fit.apply(p) - (p + bench[k]), axis=1)
+        assert t1.offsets["rigid"][k] == pytest.approx([e.mean(), e.max()], rel=1e-9)
+    np.testing.assert_allclose(t1.nonrigid, nonrigid_part(p, bench), rtol=1e-12)
+    # the PCA floor is the closest point of the model's affine PCA space: per sample, its RMS
+    # vertex error is never above the model's
+    pred = model.predict(model.marker_displacements(bench))
+    floor = model.pca_projection(bench)
+    rms = lambda a: np.sqrt(((a - bench) ** 2).sum(axis=(1, 2)))  # noqa: E731
+    assert np.all(rms(floor) <= rms(pred) + 1e-9)
+    assert t1.gain_over_rigid == pytest.approx(t1.rigid.offset_max / t1.mlp.offset_max)
+    assert evaluation.model_summary["pca"]["n_components"] == model.n_components
+
+
 def test_spearman_rows_known_values():
     a = np.array([[1.0, 2, 3, 4], [1, 2, 3, 4], [1, 5, 2, 2]])
     b = np.array([[10.0, 20, 30, 40], [4, 3, 2, 1], [1, 5, 2, 2]])
@@ -71,11 +94,14 @@ def test_report_is_written(tmp_path, model, ds, evaluation):
 
     index = write_report(tmp_path / "rep", model, ds, evaluation, renders=1)
     page = index.read_text()
-    assert "Measured versus the paper" in page and "0.889 – 1.181" in page
+    assert "Measured versus the baselines and the paper" in page and "0.889 – 1.181" in page
+    assert "rigid registration" in page and "non-rigid part" in page and "PCA floor" in page
     for png in ("boxplots.png", "beta.png", "training.png"):
         assert (tmp_path / "rep" / png).stat().st_size > 1000 and png in page
     data = json.loads((tmp_path / "rep" / "evaluation.json").read_text())
     assert data["sets"]["test1"]["mlp"]["offset_max"] == pytest.approx(evaluation.sets["test1"].mlp.offset_max)
+    assert data["sets"]["test1"]["rigid"]["offset_max"] == pytest.approx(evaluation.sets["test1"].rigid.offset_max)
+    assert data["sets"]["test1"]["gain_over_rigid"] == pytest.approx(evaluation.sets["test1"].gain_over_rigid)
     with (tmp_path / "rep" / "samples.csv").open() as fh:
         rows = list(csv.DictReader(fh))
     assert len(rows) == sum(r.indices.size for r in evaluation.sets.values())

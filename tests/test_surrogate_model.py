@@ -22,7 +22,8 @@ def data():
 @pytest.fixture(scope="module")
 def model(data):
     mesh, U = data
-    m = DeformationModel(epochs=300, patience=0, batch_size=64, learning_rate=3e-3, ensemble=2, pca_max_error=0.05)
+    m = DeformationModel(epochs=300, patience=0, batch_size=64, learning_rate=3e-3, ensemble=2, pca_rule="paper",
+                         pca_max_error=0.05)
     return m.fit(U, MARKERS, mesh=mesh, fixed=[0, 1, 2], train_idx=np.arange(350), valid_idx=np.arange(350, 400))
 
 
@@ -43,6 +44,24 @@ def test_mlp_beats_ridge_and_pca_rule_is_used(model, data):
     assert model.pca_curve_.chosen == 8
     assert mlp.offset_max < 0.6 * ridge.offset_max, (mlp, ridge)
     assert mlp.offset_mean < 0.6 * ridge.offset_mean
+
+
+def test_validation_rule_keeps_the_components_the_data_use(data):
+    mesh, U = data
+    m = DeformationModel(epochs=300, patience=0, batch_size=64, learning_rate=3e-3, ensemble=2, pca_max_components=30)
+    m.fit(U, MARKERS, mesh=mesh, fixed=[0, 1, 2], train_idx=np.arange(350), valid_idx=np.arange(350, 400))
+    choice = m.pca_choice_
+    assert choice["rule"].startswith("validation") and choice["trained_components"] == 30
+    # the fields live in 8 PCA directions: the floor vanishes there and the model stops improving
+    curve = choice["validation_curve"]
+    assert m.n_components == 8
+    assert curve["floor_offset_max"][7] < 1e-4 < curve["floor_offset_max"][6]
+    assert min(curve["model_offset_max"]) >= curve["model_offset_max"][7] / 1.01
+    # the truncated model is the one the curve measured
+    valid = U[350:400].astype(np.float64)
+    e = np.linalg.norm(m.predict(m.marker_displacements(valid)) - valid, axis=2).max(axis=1).mean()
+    assert e == pytest.approx(curve["model_offset_max"][7], rel=1e-4)
+    assert all(w.weights[-1].shape[0] == 8 for w in m.members_)
 
 
 def test_input_layouts_agree(model, data):
@@ -101,9 +120,38 @@ def test_save_load_round_trip(model, data, tmp_path):
     np.testing.assert_array_equal(loaded.fixed, [0, 1, 2])
     np.testing.assert_array_equal(loaded.mesh.tets, model.mesh.tets)
     assert loaded.ensemble_size == 2 and loaded.pca_curve_.chosen == 8
+    assert loaded.pca_choice_ == model.pca_choice_ and loaded.pca_choice_["rule"].startswith("paper")
+    np.testing.assert_array_equal(loaded.predict(d, method="rigid"), model.predict(d, method="rigid"))
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
     assert meta["units"]["length"] == "mm" and meta["markers"] == MARKERS.tolist()
     assert not list(tmp_path.glob("m/*.pkl")) and not list(tmp_path.glob("m/*.pt"))
+
+
+def test_rigid_and_ridge_methods_of_predict(model, data):
+    from scipy.spatial.transform import Rotation
+
+    from tissuecast.errors import RegistrationError
+
+    mesh, U = data
+    d = model.marker_displacements(U[400:403])
+    np.testing.assert_array_equal(model.predict(d, method="ridge"), model.predict_ridge(d))
+    np.testing.assert_array_equal(model.predict(d, method="rigid"), model.predict_rigid(d))
+    # a rigid motion of the markers moves the whole mesh rigidly, exactly
+    p = mesh.points
+    rot = Rotation.from_rotvec([0.2, -0.1, 0.3]).as_matrix()
+    truth = p @ rot.T + [1.0, -2.0, 3.0] - p
+    np.testing.assert_allclose(model.predict(truth[MARKERS], method="rigid"), truth, atol=1e-9)
+    np.testing.assert_allclose(model.predict_from_positions(p[MARKERS] + truth[MARKERS], method="rigid"), truth, atol=1e-9)
+    # an untracked marker is left out of the fit; the other four still determine the motion
+    moved = truth[MARKERS].copy()
+    moved[1] = np.nan
+    np.testing.assert_allclose(model.predict(moved, missing=[1], method="rigid"), truth, atol=1e-9)
+    with pytest.raises(RegistrationError, match="at least 3"):
+        model.predict(moved, missing=[0, 1, 2], method="rigid")
+    with pytest.raises(ModelError, match="unknown prediction method"):
+        model.predict(d, method="kabsch")
+    with pytest.raises(ModelError, match="missing markers"):
+        model.predict(d, missing=[1], method="ridge")
 
 
 def test_onnx_equals_numpy(model, data, tmp_path):

@@ -148,18 +148,24 @@ class DatasetConfig:
     predictor_tolerance: float = _f(0.01, lo=0.0, lo_open=True, hi=0.5, doc="ECSW hyper-reduction: relative error of the reduced internal forces")
 
 
+#: Rules choosing the number of PCA components (see :class:`SurrogateConfig`).
+PCA_RULES = ("validation", "paper")
+
+
 @dataclass(frozen=True)
 class SurrogateConfig:
     """PCA + MLP surrogate and the ridge baseline."""
 
-    n_components: int = _f(0, lo=0, doc="PCA components n_w; 0 = the paper's rule")
-    pca_max_error: float = _f(1.0, lo=0.0, lo_open=True, doc="n_w rule: max vertex reconstruction error (mm)")
-    pca_folds: int = _f(5, lo=2, hi=50, doc="folds of the n_w cross-validation")
+    n_components: int = _f(0, lo=0, doc="PCA components n_w; 0 = chosen by pca_rule")
+    pca_rule: str = _f("validation", choices=PCA_RULES, doc="n_w when n_components = 0: 'validation' = lowest validation mean Offset_max of the trained model; 'paper' = the 1 mm rule")
+    pca_max_components: int = _f(64, lo=1, hi=1000, doc="validation rule: the network is trained on this many components, then truncated")
+    pca_max_error: float = _f(1.0, lo=0.0, lo_open=True, doc="paper rule: max cross-validated vertex reconstruction error (mm)")
+    pca_folds: int = _f(5, lo=2, hi=50, doc="paper rule: folds of the n_w cross-validation")
     hidden: tuple[int, ...] = _f((128, 64), doc="hidden layer widths")
-    epochs: int = _f(2000, lo=1, doc="maximum training epochs")
+    epochs: int = _f(2500, lo=1, doc="maximum training epochs")
     batch_size: int = _f(128, lo=1, doc="mini-batch size")
-    learning_rate: float = _f(1e-3, lo=0.0, lo_open=True, hi=1.0, doc="Adam learning rate")
-    patience: int = _f(200, lo=0, doc="early-stopping patience in epochs; 0 = off")
+    learning_rate: float = _f(3e-3, lo=0.0, lo_open=True, hi=1.0, doc="Adam (peak) learning rate")
+    patience: int = _f(250, lo=0, doc="early-stopping patience in epochs; 0 = off")
     noise_sigma: float = _f(0.0, lo=0.0, doc="marker noise augmentation (mm)")
     ridge_ratio: float = _f(1e-3, lo=0.0, doc="ridge a2/a1")
     seed: int = _f(0, lo=0, doc="training seed")

@@ -17,6 +17,7 @@ __all__ = [
     "SolverSetupError",
     "DatasetError",
     "ModelError",
+    "RegistrationError",
     "DependencyError",
 ]
 
@@ -64,6 +65,10 @@ class DatasetError(TissuecastError, ValueError):
 
 class ModelError(TissuecastError, ValueError):
     """A surrogate model is unfitted, incompatible, or given input of the wrong shape."""
+
+
+class RegistrationError(TissuecastError, ValueError):
+    """A rigid registration is ill-posed (fewer than 3 points, collinear points, bad shapes)."""
 
 
 class DependencyError(TissuecastError, ImportError):

@@ -54,6 +54,16 @@ def print_summary(s: dict) -> None:
             print(f"  {name:<7} {_stats_line(st)}")
     for beta, st in s["max_displacement_by_beta"].items():
         print(f"  beta={beta:<4} median {st['median']:.2f}  max {st['max']:.2f}  (n={st['count']})")
+    if s.get("nonrigid_part"):
+        print("per-sample non-rigid part (mm): largest vertex residual after the best rigid fit of the whole field")
+        print(f"  all     {_stats_line(s['nonrigid_part'])}")
+        for name, st in s["nonrigid_part_by_split"].items():
+            if st:
+                print(f"  {name:<7} {_stats_line(st)}")
+        sh = s["nonrigid_share"]
+        print(f"  as a share of the sample's peak displacement: p25 {100 * sh['p25']:.0f} %  median "
+              f"{100 * sh['median']:.0f} %  p75 {100 * sh['p75']:.0f} %  (a body that mostly swings rigidly has a small "
+              "share; rigid registration from the markers is then a strong baseline)")
     tm = s["timing"]
     if tm["solved"]:
         print(f"solver: {tm['seconds_mean']:.2f} s/sample mean (max {tm['seconds_max']:.2f} s, total "
@@ -80,7 +90,7 @@ def print_summary(s: dict) -> None:
 def run_info(args) -> int:
     from ..dataset import open_dataset
 
-    s = open_dataset(args.store).summary()
+    s = open_dataset(args.store).summary(deformation=True)
     if args.json:
         print(json.dumps(s, indent=2))
     else:

@@ -27,7 +27,10 @@ def register(sub) -> None:
                    help="the file holds tracked marker positions (mm, model frame); reference positions are subtracted")
     p.add_argument("--out", help="output file .vtu, .csv or .json (default: print a summary only)")
     p.add_argument("--uncertainty", action="store_true", help="add the ensemble's per-vertex uncertainty (ensemble >= 2)")
-    p.add_argument("--ridge", action="store_true", help="use the ridge baseline instead of the MLP")
+    p.add_argument("--method", choices=("mlp", "rigid", "ridge"), default="mlp",
+                   help="mlp: the learned model (default); rigid: rigid registration from the markers (the baseline "
+                        "navigation systems use; a fallback); ridge: the paper's ridge baseline")
+    p.add_argument("--ridge", action="store_const", const="ridge", dest="method", help="same as --method ridge")
     p.set_defaults(func=run)
 
 
@@ -128,12 +131,15 @@ def run(args) -> int:
         raise ModelError("a marker has only some coordinates given; give x, y and z, or leave all three empty")
     t = time.perf_counter()
     sigma = None
-    if args.ridge:
-        u = model.predict_ridge(d)
-    elif args.uncertainty:
-        u, sigma = model.predict_with_uncertainty(d, missing=missing if missing.any() else None)
+    miss = missing if missing.any() else None
+    if args.uncertainty and args.method != "mlp":
+        from ..errors import ModelError
+
+        raise ModelError(f"--uncertainty comes from the MLP ensemble; drop it or use --method mlp (not {args.method})")
+    if args.uncertainty:
+        u, sigma = model.predict_with_uncertainty(d, missing=miss)
     else:
-        u = model.predict(d, missing=missing if missing.any() else None)
+        u = model.predict(d, missing=miss, method=args.method)
     sec = time.perf_counter() - t
     for b in range(u.shape[0]):
         mag = np.linalg.norm(u[b], axis=1)

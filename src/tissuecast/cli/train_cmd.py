@@ -52,7 +52,13 @@ def run(args) -> int:
         return 0
     print(f"model saved to {out}")
     print(f"  {model!r}")
-    print(f"  training samples {tr['n_train']}, validation {tr['n_valid']}, PCA components n_w = {tr['n_components']}")
+    print(f"  training samples {tr['n_train']}, validation {tr['n_valid']}, PCA components n_w = {tr['n_components']} "
+          f"(rule: {tr.get('pca_rule', '?')})")
+    vc = (model.pca_choice_ or {}).get("validation_curve")
+    if vc:
+        k = tr["n_components"] - 1
+        print(f"  validation mean Offset_max at n_w = {k + 1}: model {vc['model_offset_max'][k]:.3f} mm, "
+              f"PCA floor {vc['floor_offset_max'][k]:.3f} mm")
     for k, m in enumerate(tr["members"]):
         print(f"  member {k}: {m['epochs_run']} epochs (best {m['best_epoch']}), {m['seconds']:.1f} s, "
               f"best validation loss {m['best_valid_loss']:.3g}")

@@ -197,6 +197,15 @@ class Dataset:
             keep &= self.status == _STATUS_CODES[status]
         return np.flatnonzero(keep)
 
+    def _deformation_summary(self) -> dict:
+        nr = self.nonrigid_part()
+        done = self.status == SampleStatus.DONE
+        share = nr / np.where(self.max_displacement > 0, self.max_displacement, np.nan)
+        return {"nonrigid_part": max_displacement_stats(nr[done]),
+                "nonrigid_part_by_split": {name: max_displacement_stats(nr[done & (self.split_codes == code)])
+                                           for code, name in SPLIT_NAMES.items()},
+                "nonrigid_share": max_displacement_stats(share[done])}
+
     def _predictor_summary(self) -> dict:
         done = self.status == SampleStatus.DONE
         out = {"model": self._root.attrs.get("reduced")}
@@ -208,8 +217,29 @@ class Dataset:
                          "factorizations_mean": float(self.factorizations[sel].mean()) if sel.any() else 0.0}
         return out
 
-    def summary(self) -> dict:
-        """Counts by split and status, per-sample maximum displacement and timing statistics."""
+    def nonrigid_part(self) -> np.ndarray:
+        """(N,) float64 mm: each done sample's non-rigid part, the largest vertex residual after
+        the best rigid fit of its whole displacement field (NaN unless done; see
+        :func:`tissuecast.registration.nonrigid_part`)."""
+        from ..registration import nonrigid_part
+
+        out = np.full(self.n_samples, np.nan)
+        done = np.flatnonzero(self.status == SampleStatus.DONE)
+        points = self.mesh.points
+        for s in range(0, done.size, 256):
+            idx = done[s:s + 256]
+            out[idx] = nonrigid_part(points, self._s["displacements"].get_orthogonal_selection(
+                (idx, slice(None), slice(None))))
+        return out
+
+    def summary(self, *, deformation: bool = False) -> dict:
+        """Counts by split and status, per-sample maximum displacement and timing statistics.
+
+        Args:
+            deformation: also the distribution of the non-rigid part of the done samples
+                (reads every displacement field), overall, per split and as a share of the
+                sample's peak displacement.
+        """
         counts = {}
         for code, name in SPLIT_NAMES.items():
             in_split = self.split_codes == code
@@ -237,6 +267,7 @@ class Dataset:
                        "increments_mean": float(incs.mean()) if len(incs) else 0.0,
                        "iterations_mean": float(its.mean()) if len(its) else 0.0,
                        "retried": int(np.sum(self.attempts[self.status != SampleStatus.PENDING] > 1))},
+            **(self._deformation_summary() if deformation else {}),
             "predictor": self._predictor_summary(),
             "calibration": self.calibration,
             "failures": self.failures,

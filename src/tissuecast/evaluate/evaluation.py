@@ -1,4 +1,9 @@
-"""Evaluate a DeformationModel on a data set: MLP and ridge side by side, per split and beta.
+"""Evaluate a DeformationModel on a data set: the MLP next to its baselines, per split and beta.
+
+Every set shows the learned model (MLP), rigid registration from the same markers (what
+navigation systems do today), the paper's ridge baseline, the PCA floor (the best any
+prediction on the model's PCA basis can do), and the size of the deformations: peak
+displacement and non-rigid part (:func:`tissuecast.registration.nonrigid_part`).
 
 All distances in mm, times in seconds. The inputs of every prediction are the benchmark
 (FEM) displacements of the model's markers, as in the paper.
@@ -15,7 +20,7 @@ from scipy.stats import rankdata
 from ..errors import ModelError
 from .metrics import SetSummary, summarize_offsets
 
-__all__ = ["SetResult", "Evaluation", "evaluate_model", "spearman_rows", "SPLITS"]
+__all__ = ["SetResult", "Evaluation", "evaluate_model", "spearman_rows", "SPLITS", "METHODS", "METHOD_LABELS"]
 
 SPLITS = ("train", "valid", "test1", "test2")
 
@@ -30,6 +35,13 @@ def spearman_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(den > 0, (ra * rb).sum(axis=1) / np.where(den > 0, den, 1.0), 0.0)
 
 
+#: Predictors compared on every set: the learned model, its baselines, and the PCA floor
+#: (the projection of the true field on the model's PCA basis: what no prediction of this
+#: model can beat).
+METHODS = ("mlp", "rigid", "ridge", "pca_floor")
+METHOD_LABELS = {"mlp": "MLP", "rigid": "rigid registration", "ridge": "ridge", "pca_floor": "PCA floor"}
+
+
 @dataclass(eq=False)
 class SetResult:
     """Per-sample results on one set of samples.
@@ -38,9 +50,13 @@ class SetResult:
         name: 'test1', 'test2', 'test2 beta=0.5', ...
         indices: (k,) sample indices in the data set.
         beta: (k,) LBO share of the force field (NaN for LBO samples).
-        mlp_mean, mlp_max: (k,) Offset_mean and Offset_max of the MLP, mm.
-        ridge_mean, ridge_max: (k,) the same for the ridge baseline, mm.
+        offsets: {method: (k, 2) float64 [Offset_mean, Offset_max] per sample, mm} for every
+            method of :data:`METHODS`: 'mlp' the learned model, 'rigid' rigid registration
+            from the markers (Kabsch), 'ridge' the paper's baseline, 'pca_floor' the true
+            field's projection on the PCA basis.
         max_displacement: (k,) largest benchmark vertex displacement per sample, mm.
+        nonrigid: (k,) non-rigid part per sample, mm: the largest vertex residual after the
+            best rigid fit of the whole benchmark field.
         sigma_spearman: (k,) per-sample Spearman correlation of predicted uncertainty and
             true vertex error (ensembles only, else empty).
         sigma_max: (k,) largest per-vertex uncertainty per sample, mm (ensembles only).
@@ -49,30 +65,69 @@ class SetResult:
     name: str
     indices: np.ndarray
     beta: np.ndarray
-    mlp_mean: np.ndarray
-    mlp_max: np.ndarray
-    ridge_mean: np.ndarray
-    ridge_max: np.ndarray
+    offsets: dict
     max_displacement: np.ndarray
+    nonrigid: np.ndarray
     sigma_spearman: np.ndarray = field(default_factory=lambda: np.zeros(0))
     sigma_max: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
+    def summary(self, method: str) -> SetSummary:
+        """Offsets of ``method`` (one of :data:`METHODS`) summarised over the set."""
+        o = self.offsets[method]
+        return summarize_offsets(o[:, 0], o[:, 1])
+
     @property
     def mlp(self) -> SetSummary:
-        return summarize_offsets(self.mlp_mean, self.mlp_max)
+        return self.summary("mlp")
 
     @property
     def ridge(self) -> SetSummary:
-        return summarize_offsets(self.ridge_mean, self.ridge_max)
+        return self.summary("ridge")
+
+    @property
+    def rigid(self) -> SetSummary:
+        return self.summary("rigid")
+
+    @property
+    def pca_floor(self) -> SetSummary:
+        return self.summary("pca_floor")
+
+    @property
+    def mlp_mean(self) -> np.ndarray:
+        return self.offsets["mlp"][:, 0]
+
+    @property
+    def mlp_max(self) -> np.ndarray:
+        return self.offsets["mlp"][:, 1]
+
+    @property
+    def gain_over_rigid(self) -> float:
+        """Mean Offset_max of rigid registration divided by the MLP's (> 1: the model helps)."""
+        return float(self.rigid.offset_max / max(self.mlp.offset_max, 1e-300))
 
     def subset(self, keep: np.ndarray, name: str) -> "SetResult":
         pick = lambda a: a[keep] if a.size else a  # noqa: E731
-        return SetResult(name, self.indices[keep], self.beta[keep], self.mlp_mean[keep], self.mlp_max[keep],
-                         self.ridge_mean[keep], self.ridge_max[keep], self.max_displacement[keep],
-                         pick(self.sigma_spearman), pick(self.sigma_max))
+        return SetResult(name, self.indices[keep], self.beta[keep], {k: v[keep] for k, v in self.offsets.items()},
+                         self.max_displacement[keep], self.nonrigid[keep], pick(self.sigma_spearman),
+                         pick(self.sigma_max))
+
+    def deformation(self) -> dict:
+        """Size of the deformations (mm): peak displacement and non-rigid part, median / p90 /
+        max over the set, and the median share of the peak that is non-rigid."""
+        share = self.nonrigid / np.maximum(self.max_displacement, 1e-300)
+        return {"max_displacement_median": float(np.median(self.max_displacement)),
+                "max_displacement_p90": float(np.percentile(self.max_displacement, 90)),
+                "max_displacement_max": float(self.max_displacement.max()),
+                "nonrigid_median": float(np.median(self.nonrigid)),
+                "nonrigid_p90": float(np.percentile(self.nonrigid, 90)),
+                "nonrigid_max": float(self.nonrigid.max()),
+                "nonrigid_share_median": float(np.median(share))}
 
     def as_dict(self) -> dict:
-        d = {"name": self.name, "count": int(self.indices.size), "mlp": self.mlp.as_dict(), "ridge": self.ridge.as_dict()}
+        d = {"name": self.name, "count": int(self.indices.size)}
+        d.update({m: self.summary(m).as_dict() for m in METHODS})
+        d["gain_over_rigid"] = self.gain_over_rigid
+        d["deformation"] = self.deformation()
         if self.sigma_spearman.size:
             d["uncertainty"] = {
                 "vertex_spearman_mean": float(self.sigma_spearman.mean()),
@@ -105,9 +160,10 @@ class Evaluation:
         for name, r in self.sets.items():
             for i in range(r.indices.size):
                 row = {"set": name, "index": int(r.indices[i]), "beta": float(r.beta[i]),
-                       "max_displacement": float(r.max_displacement[i]),
-                       "mlp_offset_mean": float(r.mlp_mean[i]), "mlp_offset_max": float(r.mlp_max[i]),
-                       "ridge_offset_mean": float(r.ridge_mean[i]), "ridge_offset_max": float(r.ridge_max[i])}
+                       "max_displacement": float(r.max_displacement[i]), "nonrigid_part": float(r.nonrigid[i])}
+                for m in METHODS:
+                    row[f"{m}_offset_mean"] = float(r.offsets[m][i, 0])
+                    row[f"{m}_offset_max"] = float(r.offsets[m][i, 1])
                 if r.sigma_spearman.size:
                     row["sigma_spearman"] = float(r.sigma_spearman[i])
                     row["sigma_max"] = float(r.sigma_max[i])
@@ -115,9 +171,28 @@ class Evaluation:
         return rows
 
 
+def _offsets(pred: np.ndarray, bench: np.ndarray) -> np.ndarray:
+    """(B, 2) [Offset_mean, Offset_max] of predictions (B, n, 3) against the benchmark, mm."""
+    e = np.linalg.norm(pred - bench, axis=2)
+    return np.stack([e.mean(axis=1), e.max(axis=1)], axis=1)
+
+
+def _rigid_offsets(model, d: np.ndarray, bench: np.ndarray) -> np.ndarray:
+    """Offsets of rigid registration; NaN when the markers cannot define one (< 3, collinear)."""
+    from ..errors import RegistrationError
+
+    try:
+        return _offsets(model.predict_rigid(d), bench)
+    except RegistrationError:
+        return np.full((len(bench), 2), np.nan)
+
+
 def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: str, chunk: int = 256) -> SetResult:
-    parts = {k: [] for k in ("mm", "mx", "rm", "rx", "md", "ss", "sm")}
+    from ..registration import nonrigid_part
+
+    parts = {k: [] for k in (*METHODS, "md", "nr", "ss", "sm")}
     unc = model.ensemble_size > 1
+    points = model.mesh.points
     for s in range(0, idx.size, chunk):
         bench = np.asarray(U[idx[s:s + chunk]], dtype=np.float64)
         d = model.marker_displacements(bench)
@@ -125,18 +200,17 @@ def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: s
             pred, sigma = model.predict_with_uncertainty(d)
         else:
             pred = model.predict(d)
-        e = np.linalg.norm(pred - bench, axis=2)
-        er = np.linalg.norm(model.predict_ridge(d) - bench, axis=2)
-        parts["mm"].append(e.mean(axis=1))
-        parts["mx"].append(e.max(axis=1))
-        parts["rm"].append(er.mean(axis=1))
-        parts["rx"].append(er.max(axis=1))
+        parts["mlp"].append(_offsets(pred, bench))
+        parts["rigid"].append(_rigid_offsets(model, d, bench))
+        parts["ridge"].append(_offsets(model.predict_ridge(d), bench))
+        parts["pca_floor"].append(_offsets(model.pca_projection(bench), bench))
         parts["md"].append(np.linalg.norm(bench, axis=2).max(axis=1))
+        parts["nr"].append(nonrigid_part(points, bench))
         if unc:
-            parts["ss"].append(spearman_rows(sigma, e))
+            parts["ss"].append(spearman_rows(sigma, np.linalg.norm(pred - bench, axis=2)))
             parts["sm"].append(sigma.max(axis=1))
     cat = lambda k: np.concatenate(parts[k]) if parts[k] else np.zeros(0)  # noqa: E731
-    return SetResult(name, idx, beta, cat("mm"), cat("mx"), cat("rm"), cat("rx"), cat("md"), cat("ss"), cat("sm"))
+    return SetResult(name, idx, beta, {m: cat(m) for m in METHODS}, cat("md"), cat("nr"), cat("ss"), cat("sm"))
 
 
 def _timing(model, U, idx, repeats: int = 2000) -> dict:
@@ -156,7 +230,7 @@ def _timing(model, U, idx, repeats: int = 2000) -> dict:
 
 
 def evaluate_model(model, dataset, splits=("valid", "test1", "test2")) -> Evaluation:
-    """Offsets of the MLP and the ridge baseline on the converged samples of each split.
+    """Offsets of the MLP, its baselines and the PCA floor on the converged samples of each split.
 
     Args:
         model: a fitted :class:`~tissuecast.surrogate.DeformationModel` on the data set's mesh.
@@ -179,6 +253,8 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2")) -> Evalua
         for b in np.unique(t2.beta[np.isfinite(t2.beta)]):
             by_beta.append((float(b), t2.subset(t2.beta == b, f"test2 beta={b:g}")))
     timing_idx = np.asarray(dataset.select("test1", status="done"), dtype=np.int64)
+    choice = dict(getattr(model, "pca_choice_", None) or {})
+    choice.pop("validation_curve", None)
     summary = {"n_components": model.n_components, "markers": model.markers.tolist(), "ensemble": model.ensemble_size,
-               "hidden": list(model.members_[0].hidden), "training": getattr(model, "training_", None)}
+               "hidden": list(model.members_[0].hidden), "pca": choice, "training": getattr(model, "training_", None)}
     return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=_timing(model, U, timing_idx), model_summary=summary)

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..errors import require
 
-__all__ = ["boxplots", "beta_curve", "pca_curve", "training_curves", "marker_count_curve", "architecture_grid"]
+__all__ = ["boxplots", "beta_curve", "pca_curve", "pca_validation_curve", "training_curves", "marker_count_curve", "architecture_grid"]
 
 PAPER_BETA = {0.0: 1.181, 0.5: 0.889}  # test-2 mean Offset_max (mm) quoted in the paper
 
@@ -28,44 +28,54 @@ def _save(fig, path: Path) -> Path:
     return path
 
 
+#: method -> (short label, colour) of the report's figures
+_STYLE = {"mlp": ("MLP", "tab:blue"), "rigid": ("rigid", "tab:green"), "ridge": ("ridge", "tab:orange"),
+          "pca_floor": ("PCA floor", "tab:gray")}
+
+
 def boxplots(evaluation, path: Path) -> Path:
-    """Offset_mean and Offset_max per set, MLP next to ridge."""
+    """Offset_mean and Offset_max per set: MLP, rigid registration, ridge and the PCA floor."""
     plt = _plt()
     sets = [s for s in ("valid", "test1", "test2") if s in evaluation.sets]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for ax, (attr, label) in zip(axes, (("mean", "Offset_mean (mm)"), ("max", "Offset_max (mm)"))):
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    for ax, (col, label) in zip(axes, ((0, "Offset_mean (mm)"), (1, "Offset_max (mm)"))):
         data, labels, colors = [], [], []
         for s in sets:
             r = evaluation.sets[s]
-            data += [getattr(r, f"mlp_{attr}"), getattr(r, f"ridge_{attr}")]
-            labels += [f"{s}\nMLP", f"{s}\nridge"]
-            colors += ["tab:blue", "tab:orange"]
+            for m, (short, c) in _STYLE.items():
+                v = r.offsets[m][:, col]
+                data.append(v[np.isfinite(v)])
+                labels.append(f"{s}\n{short}")
+                colors.append(c)
         bp = ax.boxplot(data, patch_artist=True, showfliers=True)
-        ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
+        ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=7)
         for patch, c in zip(bp["boxes"], colors):
             patch.set_facecolor(c)
             patch.set_alpha(0.5)
-        if attr == "max":
+        if col == 1:
             ax.axhline(1.0, color="k", ls=":", lw=1, label="1 mm")
             ax.legend(loc="upper left", fontsize=8)
+        ax.set_yscale("log")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
     return _save(fig, path)
 
 
 def beta_curve(evaluation, path: Path) -> Path:
-    """Test-2 mean Offset_max / Offset_mean versus beta, MLP and ridge, paper points."""
+    """Test-2 mean Offset_max / Offset_mean versus beta for every method, paper points."""
     plt = _plt()
     b = np.array([x for x, _ in evaluation.by_beta])
-    fig, ax = plt.subplots(figsize=(6.5, 4))
-    for attr, ls in (("max", "-"), ("mean", "--")):
-        ax.plot(b, [getattr(r, f"mlp_{attr}").mean() for _, r in evaluation.by_beta], "o" + ls, color="tab:blue", label=f"MLP Offset_{attr}")
-        ax.plot(b, [getattr(r, f"ridge_{attr}").mean() for _, r in evaluation.by_beta], "s" + ls, color="tab:orange", label=f"ridge Offset_{attr}")
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    for col, ls, name in ((1, "-", "max"), (0, "--", "mean")):
+        for m, (short, c) in _STYLE.items():
+            ax.plot(b, [np.nanmean(r.offsets[m][:, col]) for _, r in evaluation.by_beta], "o" + ls, ms=4, color=c,
+                    label=f"{short} Offset_{name}")
     ax.plot(list(PAPER_BETA), list(PAPER_BETA.values()), "k*", ms=10, label="paper MLP Offset_max")
     ax.set_xlabel("beta (LBO share of the test-2 force field)")
     ax.set_ylabel("mean over samples (mm)")
+    ax.set_yscale("log")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7, ncol=2)
     return _save(fig, path)
 
 
@@ -80,6 +90,22 @@ def pca_curve(curve, path: Path) -> Path:
     ax.axvline(curve.chosen, color="tab:red", ls="--", lw=1, label=f"chosen n_w = {curve.chosen} (paper: 27)")
     ax.set_xlabel("number of PCA components n_w")
     ax.set_ylabel("reconstruction error (mm)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def pca_validation_curve(curve: dict, chosen: int, path: Path) -> Path:
+    """Validation mean Offset_max of the model truncated to n_w components, and of the fields'
+    own projection (the PCA floor), versus n_w."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    k = np.asarray(curve["n_components"])
+    ax.semilogy(k, curve["model_offset_max"], "o-", ms=3, label="model (network truncated to n_w)")
+    ax.semilogy(k, curve["floor_offset_max"], "s-", ms=3, color="tab:gray", label="PCA floor (projection of the true field)")
+    ax.axvline(chosen, color="tab:red", ls="--", lw=1, label=f"chosen n_w = {chosen}")
+    ax.set_xlabel("number of PCA components n_w")
+    ax.set_ylabel("validation mean Offset_max (mm)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     return _save(fig, path)
@@ -104,8 +130,11 @@ def marker_count_curve(rows: list[dict], path: Path) -> Path:
     plt = _plt()
     n = np.array([r["n_markers"] for r in rows], dtype=float)
     fig, ax = plt.subplots(figsize=(6.5, 4))
-    ax.semilogy(n, [r["mlp_offset_max"] for r in rows], "o-", label="MLP mean Offset_max")
-    ax.semilogy(n, [r["ridge_offset_max"] for r in rows], "s-", label="ridge mean Offset_max")
+    for key, style, label in (("mlp_offset_max", "o-", "MLP"), ("rigid_offset_max", "^-", "rigid registration"),
+                              ("ridge_offset_max", "s-", "ridge"), ("pca_floor_offset_max", "v--", "PCA floor")):
+        if key in rows[0]:
+            ax.semilogy(n, [r[key] for r in rows], style, ms=4, color=_STYLE[key.rsplit("_offset", 1)[0]][1],
+                        label=f"{label} mean Offset_max")
     ax.semilogy([3, 5, 10, 20], [2.205, 0.837, 0.485, 0.302], "k*", ms=10, label="paper (MLP)")
     ax.set_xlabel("number of fiducial markers n_d")
     ax.set_ylabel("test-1 mean Offset_max (mm)")

@@ -4,7 +4,8 @@
 
     index.html            tables next to the paper's figures, plots, renders (opens offline)
     evaluation.json       every number of the page
-    samples.csv           per-sample Offset_mean / Offset_max, MLP and ridge
+    samples.csv           per-sample Offset_mean / Offset_max of the MLP, rigid registration,
+                          ridge and the PCA floor; peak displacement and non-rigid part
     *.png                 figures and 3D renders
     vtu/*.vtu             benchmark / predicted displacement and vertex error per rendered sample
 """
@@ -20,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from . import figures
+from .evaluation import METHOD_LABELS
 from .render import render_comparison, write_vtu
 
 __all__ = ["write_report", "paper_table", "format_evaluation"]
@@ -46,34 +48,51 @@ def _table(head: list[str], rows: list[list]) -> str:
     return f"<table><tr>{h}</tr>{body}</table>"
 
 
+#: Columns of the headline tables: the learned model, then what it is compared with.
+COLUMNS = ("mlp", "rigid", "ridge", "pca_floor")
+
+
 def paper_table(evaluation) -> list[list]:
-    """Rows (quantity, MLP, ridge, paper) comparing measured figures with the paper's."""
+    """Rows ``[quantity, MLP, rigid, ridge, PCA floor, paper]`` comparing the learned model with
+    rigid registration from the markers, the paper's ridge baseline, the PCA floor and the
+    paper's figures; then the size of the deformations (peak and non-rigid part)."""
     rows = []
     t1 = evaluation.sets.get("test1")
+    dash = ["–"] * len(COLUMNS)
     if t1 is not None:
-        m, r = t1.mlp, t1.ridge
+        s = [t1.summary(m) for m in COLUMNS]
         rows += [
-            ["test-1 mean Offset_max (mm)", m.offset_max, r.offset_max, "0.533 (architecture table) / 0.837 (n_d table)"],
-            ["test-1 mean Offset_mean (mm)", m.offset_mean, r.offset_mean, "0.146 – 0.287"],
-            ["test-1 share with Offset_max < 1 mm (%)", 100 * m.share_below, 100 * r.share_below, "98"],
-            ["test-1 worst Offset_max (mm)", m.worst_offset_max, r.worst_offset_max, "–"],
+            ["test-1 mean Offset_max (mm)", *[x.offset_max for x in s], "0.533 (architecture table) / 0.837 (n_d table)"],
+            ["test-1 mean Offset_mean (mm)", *[x.offset_mean for x in s], "0.146 – 0.287"],
+            ["test-1 share with Offset_max < 1 mm (%)", *[100 * x.share_below for x in s], "98"],
+            ["test-1 worst Offset_max (mm)", *[x.worst_offset_max for x in s], "–"],
+            ["test-1 gain over rigid registration (mean Offset_max ratio)", t1.gain_over_rigid, *dash[1:], "–"],
+        ]
+        dfm = t1.deformation()
+        rows += [
+            ["test-1 peak displacement, median / p90 (mm)", f"{dfm['max_displacement_median']:.2f} / "
+             f"{dfm['max_displacement_p90']:.2f}", *dash[1:], "~30 (largest)"],
+            ["test-1 non-rigid part, median / p90 (mm; median share of peak)",
+             f"{dfm['nonrigid_median']:.2f} / {dfm['nonrigid_p90']:.2f} ({100 * dfm['nonrigid_share_median']:.0f} %)",
+             *dash[1:], "–"],
         ]
     if evaluation.by_beta:
-        mx = [b.mlp.offset_max for _, b in evaluation.by_beta]
-        rx = [b.ridge.offset_max for _, b in evaluation.by_beta]
-        mm = [b.mlp.offset_mean for _, b in evaluation.by_beta]
-        rm = [b.ridge.offset_mean for _, b in evaluation.by_beta]
-        rows += [
-            ["test-2 mean Offset_max, range over beta (mm)", f"{min(mx):.3f} – {max(mx):.3f}", f"{min(rx):.3f} – {max(rx):.3f}", "0.889 – 1.181"],
-            ["test-2 mean Offset_mean, range over beta (mm)", f"{min(mm):.3f} – {max(mm):.3f}", f"{min(rm):.3f} – {max(rm):.3f}", "0.350 – 0.453"],
-        ]
+        for what, attr, paper in (("Offset_max", "offset_max", "0.889 – 1.181"), ("Offset_mean", "offset_mean", "0.350 – 0.453")):
+            cells = []
+            for m in COLUMNS:
+                v = [getattr(b.summary(m), attr) for _, b in evaluation.by_beta]
+                cells.append(f"{min(v):.3f} – {max(v):.3f}")
+            rows.append([f"test-2 mean {what}, range over beta (mm)", *cells, paper])
     ps = evaluation.predict_seconds
     if ps:
-        rows.append(["prediction time, one case (µs, p50 / p99)", f"{ps['p50'] * 1e6:.0f} / {ps['p99'] * 1e6:.0f}", "–", "< 500000"])
-    tr = evaluation.model_summary.get("training") or {}
+        rows.append(["prediction time, one case (µs, p50 / p99)", f"{ps['p50'] * 1e6:.0f} / {ps['p99'] * 1e6:.0f}",
+                     *dash[1:], "< 500000"])
+    ms = evaluation.model_summary
+    tr = ms.get("training") or {}
     if tr:
-        rows.append(["training time (s; PCA rule + MLP)", tr.get("seconds", float("nan")), "–", "1022 (MLP only)"])
-    rows.append(["PCA components n_w", evaluation.model_summary["n_components"], "–", "27"])
+        rows.append(["training time (s; PCA choice + MLP)", tr.get("seconds", float("nan")), *dash[1:], "1022 (MLP only)"])
+    rule = str((ms.get("pca") or {}).get("rule", "")).split(" (")[0]
+    rows.append([f"PCA components n_w{' (' + rule + ' rule)' if rule else ''}", ms["n_components"], *dash[1:], "27"])
     return rows
 
 
@@ -81,9 +100,22 @@ def _summary_rows(evaluation) -> list[list]:
     rows = []
     items = list(evaluation.sets.items()) + [(f"test-2 β={b:g}", r) for b, r in evaluation.by_beta]
     for name, r in items:
-        for label, s in (("MLP", r.mlp), ("ridge", r.ridge)):
-            rows.append([f"{name} {label}", s.count, s.offset_mean, s.offset_max, s.offset_max_percentiles[50.0],
-                         s.offset_max_percentiles[95.0], s.worst_offset_max, 100 * s.share_below])
+        for m in COLUMNS:
+            s = r.summary(m)
+            rows.append([f"{name} {METHOD_LABELS[m]}", s.count, s.offset_mean, s.offset_max,
+                         s.offset_max_percentiles[50.0], s.offset_max_percentiles[95.0], s.worst_offset_max,
+                         100 * s.share_below])
+    return rows
+
+
+def _deformation_rows(evaluation) -> list[list]:
+    rows = []
+    items = list(evaluation.sets.items()) + [(f"test-2 β={b:g}", r) for b, r in evaluation.by_beta]
+    for name, r in items:
+        d = r.deformation()
+        rows.append([name, r.indices.size, d["max_displacement_median"], d["max_displacement_p90"],
+                     d["nonrigid_median"], d["nonrigid_p90"], 100 * d["nonrigid_share_median"],
+                     r.rigid.offset_max, r.mlp.offset_max, r.gain_over_rigid])
     return rows
 
 
@@ -155,10 +187,18 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studie
     ms = evaluation.model_summary
     parts.append(f"<p>Model: {html.escape(repr(model))}<br>Data set: {html.escape(repr(dataset))}<br>"
                  f"Units: mm. Vertex ids 0-based; markers {ms['markers']}.</p>")
-    parts.append("<h2>Measured versus the paper</h2>")
-    parts.append(_table(["quantity", "MLP (measured)", "ridge (measured)", "paper"], paper_table(evaluation)))
-    parts.append("<p><small>Paper: Liu et al. 2020, H&amp;N tumour mesh, Abaqus data set; here: this data set "
-                 "(see the data-set summary). Times measured on this machine.</small></p>")
+    parts.append("<h2>Measured versus the baselines and the paper</h2>")
+    parts.append(_table(["quantity", *(METHOD_LABELS[m] for m in COLUMNS), "paper"], paper_table(evaluation)))
+    parts.append("<p><small>Rigid registration: the best rotation and translation of the markers' reference "
+                 "positions onto their tracked positions (Kabsch), applied to the whole mesh — what a navigation "
+                 "system does with fiducials alone. PCA floor: the true field projected on the model's PCA basis, "
+                 "the best any prediction of this model can do. Non-rigid part: the largest vertex residual after the "
+                 "best rigid fit of the whole true field. Paper: Liu et al. 2020, H&amp;N tumour mesh, Abaqus data set; "
+                 "here: this data set (see the data-set summary). Times measured on this machine.</small></p>")
+    parts.append("<h2>How much of the deformation is not rigid</h2>")
+    parts.append(_table(["set", "samples", "peak displacement median", "peak p90", "non-rigid part median",
+                         "non-rigid p90", "non-rigid share of peak, median (%)", "rigid mean Offset_max",
+                         "MLP mean Offset_max", "gain over rigid"], _deformation_rows(evaluation)))
     parts.append("<h2>Per set</h2>")
     parts.append(_table(["set", "samples", "mean Offset_mean", "mean Offset_max", "median Offset_max", "p95 Offset_max",
                          "worst Offset_max", "% Offset_max < 1 mm"], _summary_rows(evaluation)))
@@ -170,6 +210,10 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studie
     figs = [("Offsets per set (boxplots)", figures.boxplots(evaluation, folder / "boxplots.png"))]
     if evaluation.by_beta:
         figs.append(("Test-2 error versus β", figures.beta_curve(evaluation, folder / "beta.png")))
+    vcurve = (getattr(model, "pca_choice_", None) or {}).get("validation_curve")
+    if vcurve:
+        figs.append(("Choice of n_w: validation error of the trained model and the PCA floor versus n_w",
+                     figures.pca_validation_curve(vcurve, model.n_components, folder / "pca_validation.png")))
     if getattr(model, "pca_curve_", None) is not None:
         figs.append(("PCA reconstruction error versus n_w (cross-validated on the training set)",
                      figures.pca_curve(model.pca_curve_, folder / "pca.png")))
@@ -197,10 +241,16 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studie
 
 def format_evaluation(evaluation) -> str:
     """Plain-text table of the headline figures (for terminals and logs)."""
-    lines = [f"{'quantity':48s} {'MLP':>16s} {'ridge':>16s}   paper"]
-    for q, m, r, p in paper_table(evaluation):
-        lines.append(f"{q:48s} {m if isinstance(m, str) else _fmt(m):>16s} {r if isinstance(r, str) else _fmt(r):>16s}   {p}")
+    heads = ("MLP", "rigid", "ridge", "PCA floor")
+    lines = [f"{'quantity':62s} " + " ".join(f"{h:>15s}" for h in heads) + "   paper"]
+    for q, *cells, p in paper_table(evaluation):
+        text = [c if isinstance(c, str) else _fmt(c) for c in cells]
+        if all(t == "–" for t in text[1:]):  # a figure of the model alone: one wide cell
+            lines.append(f"{q:62s} {text[0]:>15s}" + " " * 48 + f"   {p}")
+        else:
+            lines.append(f"{q:62s} " + " ".join(f"{t:>15s}" for t in text) + f"   {p}")
     if evaluation.by_beta:
-        lines.append("test-2 per beta: " + ", ".join(f"β={b:g}: {r.mlp.offset_max:.3f} (ridge {r.ridge.offset_max:.3f})"
-                                                 for b, r in evaluation.by_beta))
+        lines.append("test-2 mean Offset_max per beta, MLP (rigid, ridge): " + ", ".join(
+            f"β={b:g}: {r.mlp.offset_max:.3f} ({r.rigid.offset_max:.3f}, {r.ridge.offset_max:.3f})"
+            for b, r in evaluation.by_beta))
     return "\n".join(lines)

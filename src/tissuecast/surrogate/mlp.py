@@ -36,10 +36,10 @@ class TrainOptions:
     """Training hyper-parameters (see :class:`tissuecast.config.SurrogateConfig`)."""
 
     hidden: tuple[int, ...] = (128, 64)
-    epochs: int = 2000
+    epochs: int = 2500
     batch_size: int = 128
-    learning_rate: float = 1e-3
-    patience: int = 200
+    learning_rate: float = 3e-3
+    patience: int = 250
     schedule: str = "onecycle"
     output_scaling: str = "global"
     weight_decay: float = 0.0
@@ -98,6 +98,17 @@ class MLPWeights:
             if i < last:
                 np.maximum(h, 0.0, out=h)
         return h * self.y_std + self.y_mean
+
+    def truncated(self, n_components: int) -> "MLPWeights":
+        """The same network predicting only the first ``n_components`` PCA weights (the last
+        layer's rows and the output scaling cut; the other outputs were independent rows)."""
+        k = int(n_components)
+        if not 1 <= k <= self.y_mean.size:
+            raise ModelError(f"n_components must be in [1, {self.y_mean.size}], got {n_components}")
+        return MLPWeights(weights=(*self.weights[:-1], self.weights[-1][:k].copy()),
+                          biases=(*self.biases[:-1], self.biases[-1][:k].copy()),
+                          x_mean=self.x_mean, x_std=self.x_std, y_mean=self.y_mean[:k].copy(),
+                          y_std=self.y_std[:k].copy(), masked=self.masked)
 
     def tensors(self, prefix: str) -> dict[str, np.ndarray]:
         """Flat name -> array dict for safetensors/npz storage."""

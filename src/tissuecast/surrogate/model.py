@@ -41,6 +41,74 @@ def _surrogate_config(config, overrides: dict) -> SurrogateConfig:
     return config
 
 
+# The validation rule keeps the smallest n_w whose validation mean Offset_max is within this
+# share of the best one (components past it change the error by less than its noise) ...
+_VALIDATION_TOLERANCE = 0.01
+# ... and whose PCA floor is at most this share of that error, so that truncation is not what
+# limits accuracy (errors add about in quadrature: a floor of 0.4 e adds < 9 % to e).
+_FLOOR_SHARE = 0.4
+
+
+def _train_options(c: SurrogateConfig, seed: int) -> TrainOptions:
+    return TrainOptions(
+        hidden=tuple(c.hidden), epochs=c.epochs, batch_size=c.batch_size, learning_rate=c.learning_rate,
+        patience=c.patience, schedule=c.schedule, output_scaling=c.output_scaling,
+        weight_decay=c.weight_decay, noise_sigma=c.noise_sigma, marker_dropout=c.marker_dropout, seed=seed,
+    )
+
+
+def _choose_by_validation(members: list[MLPWeights], basis: PCABasis, Xv: np.ndarray, Uv: np.ndarray) -> tuple[int, dict]:
+    """The n_w at which the networks' predicted weights are cut, and the curves behind it.
+
+    For every n_w the validation mean Offset_max of the truncated networks (ensemble mean)
+    and of the fields' own projection (the PCA floor) are measured; the smallest n_w within
+    ``_VALIDATION_TOLERANCE`` of the best model error whose floor is at most ``_FLOOR_SHARE``
+    of the model's error is kept (the best n_w if no floor is that small).
+
+    Args:
+        members: networks predicting all ``basis.n_components`` weights.
+        basis: the PCA basis they were trained on (K components).
+        Xv: (M, 3 n_d) validation marker displacements, mm.
+        Uv: (M, 3 n) validation fields, mm.
+
+    Returns:
+        ``(n_w, {"n_components": 1..K, "model_offset_max": (K,), "floor_offset_max": (K,)})``
+        with the validation mean Offset_max (mm) of the truncated model and of the fields'
+        own projection (the PCA floor) for every n_w.
+    """
+    W = np.mean([m.predict_weights(Xv) for m in members], axis=0)  # (M, K) ensemble-mean weights
+    true_w = basis.transform(Uv)
+    K = basis.n_components
+    model, floor = np.empty(K), np.empty(K)
+    res_model = Uv - basis.mean  # residual fields with 0 components
+    res_floor = res_model.copy()
+    for k in range(K):
+        ck = basis.components[k]
+        res_model -= np.outer(W[:, k], ck)
+        res_floor -= np.outer(true_w[:, k], ck)
+        model[k] = np.linalg.norm(res_model.reshape(len(Uv), -1, 3), axis=2).max(axis=1).mean()
+        floor[k] = np.linalg.norm(res_floor.reshape(len(Uv), -1, 3), axis=2).max(axis=1).mean()
+    good = model <= model.min() * (1.0 + _VALIDATION_TOLERANCE)
+    small_floor = good & (floor <= _FLOOR_SHARE * model)
+    n_w = int(np.flatnonzero(small_floor if small_floor.any() else model == model.min())[0]) + 1
+    return n_w, {"n_components": list(range(1, K + 1)), "model_offset_max": model.tolist(),
+                 "floor_offset_max": floor.tolist()}
+
+
+def _ridge_components(basis: PCABasis, markers: np.ndarray, ratio: float, Xv: np.ndarray, Uv: np.ndarray) -> int:
+    """The n_w (<= the basis's) at which the ridge baseline has its lowest validation mean
+    Offset_max: with few markers, ridge on many components is under-determined and much worse
+    than on a few, so the baseline is reported at its best rather than at the MLP's n_w."""
+    best, best_k = np.inf, basis.n_components
+    for k in range(1, basis.n_components + 1):
+        r = fit_ridge(basis.truncated(k), markers, ratio)
+        pred = basis.truncated(k).inverse_transform(r.weights(Xv))
+        e = np.linalg.norm((pred - Uv).reshape(len(Uv), -1, 3), axis=2).max(axis=1).mean()
+        if e < best:
+            best, best_k = e, k
+    return int(best_k)
+
+
 class DeformationModel:
     """PCA + MLP surrogate of nonlinear FEM (Liu et al. 2020), with the ridge baseline.
 
@@ -162,9 +230,14 @@ class DeformationModel:
         c = self.config
         curve = None
         if c.n_components:
-            n_w = min(c.n_components, min(Ut.shape))
-        else:
+            n_w, rule = min(c.n_components, min(Ut.shape)), "fixed (surrogate.n_components)"
+        elif c.pca_rule == "paper":
             n_w, curve = choose_n_components(Ut, c.pca_max_error, min(c.pca_folds, len(Ut)), seed=c.seed)
+            rule = f"paper ({c.pca_folds}-fold reconstruction error < {c.pca_max_error:g} mm)"
+        else:
+            n_w = min(c.pca_max_components, len(Ut) - 1, Ut.shape[1])  # trained on all, truncated below
+            rule = "validation (lowest validation mean Offset_max)"
+        n_w = max(int(n_w), 1)
         t_pca = time.perf_counter()
         basis = fit_pca(Ut, n_w)
         cols = marker_columns(mk)
@@ -172,21 +245,24 @@ class DeformationModel:
         Yt, Yv = basis.transform(Ut), basis.transform(Uv)
         members, summaries = [], []
         for k in range(c.ensemble):
-            opts = TrainOptions(
-                hidden=tuple(c.hidden), epochs=c.epochs, batch_size=c.batch_size, learning_rate=c.learning_rate,
-                patience=c.patience, schedule=c.schedule, output_scaling=c.output_scaling,
-                weight_decay=c.weight_decay, noise_sigma=c.noise_sigma, marker_dropout=c.marker_dropout,
-                seed=c.seed + 1000 * k,
-            )
-            w, s = train_mlp(Xt, Yt, Xv, Yv, opts)
+            w, s = train_mlp(Xt, Yt, Xv, Yv, _train_options(c, seed=c.seed + 1000 * k))
             members.append(w)
             summaries.append(s)
+        choice = {"rule": rule, "n_components": n_w}
+        if not c.n_components and c.pca_rule == "validation":
+            n_w, curve_v = _choose_by_validation(members, basis, Xv, Uv)
+            basis, members = basis.truncated(n_w), [m.truncated(n_w) for m in members]
+            choice = {"rule": rule, "n_components": n_w, "trained_components": int(curve_v["n_components"][-1]),
+                      "validation_curve": curve_v}
+        choice["ridge_components"] = _ridge_components(basis, mk, c.ridge_ratio, Xv, Uv)
+        self.pca_choice_ = choice
         self._set_state(mesh=mesh, markers=mk, fixed=fx, basis=basis, members=members, curve=curve)
         self.summaries_ = summaries
         self.training_ = {
             "n_train": int(len(train_idx)),
             "n_valid": int(len(valid_idx)),
             "n_components": int(n_w),
+            "pca_rule": rule,
             "pca_seconds": t_pca - t0,
             "mlp_seconds": float(sum(s.seconds for s in summaries)),
             "seconds": time.perf_counter() - t0,
@@ -203,11 +279,14 @@ class DeformationModel:
         self.pca_ = basis
         self.pca_curve_ = curve
         self.members_ = list(members)
-        self.ridge_: RidgeBaseline = fit_ridge(basis, self.markers_, self.config.ridge_ratio)
+        k_ridge = int((getattr(self, "pca_choice_", None) or {}).get("ridge_components") or basis.n_components)
+        ridge_basis = basis.truncated(min(k_ridge, basis.n_components))
+        self.ridge_: RidgeBaseline = fit_ridge(ridge_basis, self.markers_, self.config.ridge_ratio)
         self.compiled_ = CompiledSurrogate(self.members_, basis)
         cols = marker_columns(self.markers_)
         # ridge as one affine map of the marker displacements: u = d @ R + r0
-        self._ridge_map = (self.ridge_.matrix.T @ basis.components, basis.mean - self.ridge_.marker_mean @ self.ridge_.matrix.T @ basis.components)
+        proj = self.ridge_.matrix.T @ ridge_basis.components
+        self._ridge_map = (proj, basis.mean - self.ridge_.marker_mean @ proj)
         self._marker_cols = cols
 
     @classmethod
@@ -237,38 +316,80 @@ class DeformationModel:
         self._fitted()
         return marker_batch(marker_displacements, self.markers_.size, missing, self.members_[0].masked)
 
-    def predict(self, marker_displacements, *, missing=None) -> np.ndarray:
+    def predict(self, marker_displacements, *, missing=None, method: str = "mlp") -> np.ndarray:
         """Displacement field from marker displacements.
 
         Args:
             marker_displacements: (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) float, mm.
             missing: optional untracked markers: indices into the marker list, or a bool mask
-                (n_d,) / (B, n_d). Needs a model trained with ``marker_dropout > 0``.
+                (n_d,) / (B, n_d). The MLP needs a model trained with ``marker_dropout > 0``;
+                the rigid baseline registers on the tracked markers (>= 3, not collinear).
+            method: ``"mlp"`` (the learned model, ensemble mean), ``"rigid"`` (rigid
+                registration from the markers: the baseline navigation systems use, and a
+                fallback) or ``"ridge"`` (the paper's ridge baseline; no missing markers).
 
         Returns:
-            (n, 3) float64 mm for one sample, (B, n, 3) for a batch (ensemble mean).
+            (n, 3) float64 mm for one sample, (B, n, 3) for a batch.
         """
+        if method == "rigid":
+            return self.predict_rigid(marker_displacements, missing=missing)
+        if method == "ridge":
+            if missing is not None:
+                raise ModelError("the ridge baseline cannot predict with missing markers; use method='mlp' or 'rigid'")
+            return self.predict_ridge(marker_displacements)
+        if method != "mlp":
+            raise ModelError(f"unknown prediction method {method!r}; use 'mlp', 'rigid' or 'ridge'")
         d, miss, single = self._marker_batch(marker_displacements, missing)
         u = self.compiled_.fields(d, miss).reshape(d.shape[0], -1, 3)
         return u[0] if single else u
 
-    def predict_from_positions(self, positions, *, missing=None) -> np.ndarray:
+    def predict_from_positions(self, positions, *, missing=None, method: str = "mlp") -> np.ndarray:
         """Displacement field from tracked marker positions (n_d, 3) or (B, n_d, 3) mm.
 
         The positions must be in the model's (mesh) coordinate frame; the reference
-        (undeformed) marker positions are subtracted.
+        (undeformed) marker positions are subtracted. ``method`` as in :meth:`predict`.
         """
         self._fitted()
         p = np.asarray(positions, dtype=np.float64)
         if p.shape[-2:] != (self.n_markers, 3) or p.ndim not in (2, 3):
             raise ModelError(f"marker positions must be ({self.n_markers}, 3) or (B, {self.n_markers}, 3) mm, got {p.shape}")
-        return self.predict(p - self.reference_marker_positions, missing=missing)
+        return self.predict(p - self.reference_marker_positions, missing=missing, method=method)
 
     def predict_ridge(self, marker_displacements) -> np.ndarray:
-        """The paper's ridge-regression baseline: (n, 3) or (B, n, 3) mm, same inputs as :meth:`predict`."""
+        """The paper's ridge-regression baseline: (n, 3) or (B, n, 3) mm, same inputs as :meth:`predict`.
+
+        It uses the first ``pca_choice_["ridge_components"]`` components of the model's basis,
+        the number at which ridge had its lowest validation error.
+        """
         d, _, single = self._marker_batch(marker_displacements)
         R, r0 = self._ridge_map
         u = (d @ R + r0).reshape(d.shape[0], -1, 3)
+        return u[0] if single else u
+
+    def predict_rigid(self, marker_displacements, *, missing=None) -> np.ndarray:
+        """Rigid-registration baseline: the mesh moved by the best rigid fit (Kabsch) of the
+        markers' reference positions to their displaced positions.
+
+        Args:
+            marker_displacements: as for :meth:`predict`, mm.
+            missing: optional untracked markers (left out of the fit; >= 3 must remain).
+
+        Returns:
+            (n, 3) or (B, n, 3) float64 mm.
+
+        Raises:
+            RegistrationError: fewer than 3 tracked markers, or tracked markers on one line.
+        """
+        from ..registration import rigid_registration_field
+
+        self._fitted()
+        d, miss, single = marker_batch(marker_displacements, self.markers_.size, missing, masked=True)
+        d = d.reshape(d.shape[0], -1, 3)
+        points = self.mesh_.points
+        if miss is None:
+            u = rigid_registration_field(points, self.markers_, d)
+        else:
+            u = np.stack([rigid_registration_field(points, self.markers_[~m], di[~m]) for di, m in zip(d, miss)])
         return u[0] if single else u
 
     def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
@@ -288,6 +409,15 @@ class DeformationModel:
         dev = ((W - W.mean(axis=0)) @ C).reshape(W.shape[0], d.shape[0], -1, 3)
         sigma = np.sqrt((dev**2).sum(axis=3).mean(axis=0))
         return (u[0], sigma[0]) if single else (u, sigma)
+
+    def pca_projection(self, fields) -> np.ndarray:
+        """Projection of displacement fields on the model's PCA basis: (n, 3) or (B, n, 3) mm
+        -> same shape. No prediction of this model can come closer to a field than this (the
+        PCA truncation floor)."""
+        self._fitted()
+        f = np.asarray(fields, dtype=np.float64)
+        flat = f.reshape(-1, self.pca_.n_features)
+        return self.pca_.inverse_transform(self.pca_.transform(flat)).reshape(f.shape)
 
     def marker_displacements(self, fields) -> np.ndarray:
         """Marker displacements (B, n_d, 3) mm picked from full fields (B, n, 3) mm."""

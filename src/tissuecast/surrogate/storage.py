@@ -83,6 +83,7 @@ def save_model(model, folder, *, onnx: bool = False) -> None:
         "config": model.run_config,
         "dataset_path": model.dataset_path,
         "pca_curve": None if model.pca_curve_ is None else model.pca_curve_.as_dict(),
+        "pca_choice": getattr(model, "pca_choice_", None),
         "training": getattr(model, "training_", None),
         "files": {"weights": "weights.safetensors", "pca": "pca.npz", "mesh": "mesh.npz"},
     }
@@ -149,6 +150,8 @@ def load_model(cls, folder):
     model.run_config = meta.get("config")
     model.dataset_path = meta.get("dataset_path")
     curve = PCACurve.from_dict(meta["pca_curve"]) if meta.get("pca_curve") else None
+    model.pca_choice_ = meta.get("pca_choice") or {"rule": "paper" if curve else "unrecorded",
+                                                   "n_components": basis.n_components}
     model._set_state(mesh=mesh, markers=meta["markers"], fixed=meta["fixed"], basis=basis, members=members, curve=curve)
     if meta.get("training"):
         model.training_ = meta["training"]
