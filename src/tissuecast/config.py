@@ -75,8 +75,8 @@ class MarkerConfig:
     ids: tuple[int, ...] = _f((), doc="user-given 0-based marker ids (overrides count/start)")
     fixed_count: int = _f(3, lo=1, hi=50, doc="number of fixed (pinned) vertices")
     fixed_ids: tuple[int, ...] = _f((), doc="user-given 0-based fixed vertex ids")
-    fixed_depth_fraction: float = _f(0.5, lo=0.0, hi=1.0, doc="fixed vertices are at least this share of the largest depth below the surface")
-    fixed_rule: str = _f("compact", choices=FIXED_RULES, doc="how the fixed vertices are placed: 'compact' = a small pinned triangle deep inside (the body swings about it), 'spread' = as far apart as possible (see select_fixed_vertices)")
+    fixed_depth_fraction: float = _f(0.5, lo=0.0, hi=1.0, doc="fixed vertices lie at least this share of the largest depth below the surface")
+    fixed_rule: str = _f("compact", choices=FIXED_RULES, doc="fixed-vertex rule: 'compact' = a small pinned triangle deep inside, 'spread' = as far apart as possible")
     fixed_spacing: float = _f(5.0, lo=0.0, lo_open=True, doc="smallest distance (mm) between compact fixed vertices")
 
 
@@ -101,21 +101,21 @@ class SolverConfig:
         lo=0.0,
         lo_open=True,
         hi=1.0,
-        doc="first load fraction of a cold start (a solve with an initial guess starts at the full load); 0.5 took 28 factorisations per phantom sample against 45 for 1.0",
+        doc="first load fraction of a cold start (a solve with an initial guess starts at the full load)",
     )
     min_increment: float = _f(1e-5, lo=0.0, lo_open=True, hi=1.0, doc="smallest load fraction before giving up")
     max_increments: int = _f(200, lo=1, doc="maximum number of increments")
-    max_iterations: int = _f(30, lo=1, doc="Newton iterations per increment before cutting back (krylov directions are inexact: hard phantom increments needed 17-30)")
+    max_iterations: int = _f(30, lo=1, doc="Newton iterations per increment before cutting back")
     retries: int = _f(1, lo=0, hi=10, doc="retries of a failed sample with more cautious increments")
     strategy: str = _f(
         "krylov",
         choices=("newton", "quasi-newton", "krylov"),
-        doc="newton: refactorise the tangent every iteration; quasi-newton: reuse the last factorisation, co-rotated, while the residual falls fast; krylov: solve with each new tangent by conjugate gradients preconditioned by the last factorisation, refactorising only when that needs more than krylov_iterations steps",
+        doc="newton: factorise every tangent; quasi-newton: reuse the last factorisation; krylov: CG preconditioned by the last factorisation",
     )
     krylov_iterations: int = _f(20, lo=1, hi=1000, doc="krylov: most conjugate-gradient steps per Newton iteration before refactorising")
-    krylov_tolerance: float = _f(5e-2, lo=0.0, lo_open=True, hi=0.5, doc="krylov: relative residual of the linear solve that ends the conjugate gradients (an inexact Newton direction; convergence is judged on the nonlinear residual and correction). On phantom samples 5e-2 / 20 steps took 23 % less time than 1e-2 / 12 from reduced-model guesses (24 samples) and 18 % less from zero (6), with a few more Newton iterations and fewer factorisations")
-    krylov_recycle: int = _f(20, lo=0, hi=200, doc="krylov: most conjugate-gradient directions of earlier Newton iterations of the same solve kept as a deflation subspace (Galerkin start and projection with the new tangent); 0 = plain preconditioned CG")
-    reference_preconditioner: bool = _f(True, doc="krylov, solves with an initial guess: until the first factorisation, precondition with the stiffness at zero displacement (factorised once per Solver), co-rotated by the guess's best-fit rotation; from reduced-model guesses 0.26 instead of 1.06 factorisations per phantom sample, 9 % less time")
+    krylov_tolerance: float = _f(5e-2, lo=0.0, lo_open=True, hi=0.5, doc="krylov: relative residual that ends the conjugate gradients (an inexact Newton direction)")
+    krylov_recycle: int = _f(20, lo=0, hi=200, doc="krylov: most CG directions of the solve's earlier Newton iterations kept to deflate the next ones; 0 = plain preconditioned CG")
+    reference_preconditioner: bool = _f(True, doc="krylov, solves with a guess: precondition with the stiffness at zero displacement (factorised once per Solver), co-rotated")
     rotation_aware: bool = _f(True, doc="line search moves the rigid-rotation part of each step along an arc (large swings about the fixed vertices)")
     refactor_ratio: float = _f(0.5, lo=0.0, hi=1.0, doc="quasi-newton: refactorise when an iteration reduced the residual norm by less than this factor")
     max_quasi_newton: int = _f(2, lo=1, doc="quasi-newton: refactorise after this many iterations with a reused factorisation")
@@ -146,11 +146,11 @@ class DatasetConfig:
     workers: int = _f(0, lo=0, hi=256, doc="local worker processes; 0 = automatic")
     scheduler: str = _f("", doc="Dask scheduler address tcp://HOST:PORT; empty = local")
     alpha: float = _f(0.0, lo=0.0, doc="LBO force magnitude alpha (N); 0 = calibrate to forces.target_max_displacement")
-    calibration_samples: int = _f(24, lo=1, hi=1000, doc="pilot samples of the force-magnitude calibration (per-sample peaks spread 5-50 mm on the phantom: 8 pilots put q90 at 30 mm where 22 samples had p90 44 mm)")
+    calibration_samples: int = _f(24, lo=1, hi=1000, doc="pilot samples of the force-magnitude calibration")
     calibration_quantile: float = _f(0.9, lo=0.0, hi=1.0, doc="quantile of per-sample max displacement that meets the target")
-    predictor: str = _f("reduced", choices=("reduced", "none"), doc="initial guess of each solve: reduced = a reduced-order model (POD-Galerkin, ECSW hyper-reduction) built from the first predictor_samples full solutions, so that the full Newton solver starts near the answer (every sample is still converged by the full solver); none = solve every sample from zero")
-    predictor_samples: int = _f(40, lo=2, hi=100000, doc="LBO samples (the first ones, 0-based ids 0..n-1) solved from zero whose full solutions build the reduced model")
-    predictor_tolerance: float = _f(0.01, lo=0.0, lo_open=True, hi=0.5, doc="ECSW hyper-reduction: relative error of the reduced internal forces on the snapshots")
+    predictor: str = _f("reduced", choices=("reduced", "none"), doc="initial guess of each solve: reduced = a reduced-order model of the first predictor_samples solutions; none = zero")
+    predictor_samples: int = _f(40, lo=2, hi=100000, doc="the first LBO samples (ids 0..n-1), solved from zero, whose solutions build the reduced model")
+    predictor_tolerance: float = _f(0.01, lo=0.0, lo_open=True, hi=0.5, doc="ECSW hyper-reduction: relative error of the reduced internal forces")
 
 
 #: Rules choosing the number of PCA components (see :class:`SurrogateConfig`).
