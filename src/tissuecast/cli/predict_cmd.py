@@ -5,7 +5,10 @@ Input (mm): CSV with one marker per row (x, y, z; n_d rows per sample) or one sa
 ``{"positions": [...]}`` / a bare nested list. Empty cells, ``nan`` or ``null`` for all three
 coordinates of a marker mark it as not tracked (models trained with marker_dropout > 0).
 Output: .vtu (mesh + point data; one file per sample for batches), .csv (sample, vertex,
-ux, uy, uz[, sigma]) or .json. Vertex ids are 0-based.
+ux, uy, uz[, sigma][, error_bound]) or .json. Vertex ids are 0-based. With a calibrated
+model (trained with surrogate.calibration_share > 0) every vertex gets its conformal error
+bound (``error_bound_mm``: the error is below it with probability --coverage) and each
+sample's out-of-distribution alarm is printed.
 """
 
 from __future__ import annotations
@@ -31,6 +34,8 @@ def register(sub) -> None:
                    help="mlp: the learned model (default); rigid: rigid registration from the markers (the baseline "
                         "navigation systems use; a fallback); ridge: the paper's ridge baseline")
     p.add_argument("--ridge", action="store_const", const="ridge", dest="method", help="same as --method ridge")
+    p.add_argument("--coverage", type=float, metavar="C",
+                   help="nominal coverage of the per-vertex error bounds, in (0, 1) (default: the model's, 0.9)")
     p.set_defaults(func=run)
 
 
@@ -82,7 +87,7 @@ def read_marker_file(path: Path, n_d: int) -> tuple[np.ndarray, bool | None]:
     return arr.reshape(-1, n_d, 3), flag
 
 
-def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None) -> list[Path]:
+def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.ndarray | None = None) -> list[Path]:
     from ..errors import ModelError
 
     suf = out.suffix.lower()
@@ -96,20 +101,26 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None) -> list[Pa
             data = {"displacement": u[b]}
             if sigma is not None:
                 data["uncertainty"] = sigma[b]
+            if bound is not None:
+                data["error_bound_mm"] = bound[b]
             files.append(write_vtu(p, model.mesh, data))
         return files
     if suf == ".csv":
         with out.open("w", newline="") as fh:
             w = csv.writer(fh)
-            w.writerow(["sample", "vertex", "ux_mm", "uy_mm", "uz_mm"] + (["sigma_mm"] if sigma is not None else []))
+            w.writerow(["sample", "vertex", "ux_mm", "uy_mm", "uz_mm"] + (["sigma_mm"] if sigma is not None else [])
+                       + (["error_bound_mm"] if bound is not None else []))
             for b in range(B):
                 for i in range(u.shape[1]):
-                    w.writerow([b, i, *(f"{x:.6g}" for x in u[b, i])] + ([f"{sigma[b, i]:.6g}"] if sigma is not None else []))
+                    w.writerow([b, i, *(f"{x:.6g}" for x in u[b, i])] + ([f"{sigma[b, i]:.6g}"] if sigma is not None else [])
+                               + ([f"{bound[b, i]:.6g}"] if bound is not None else []))
         return [out]
     if suf == ".json":
         doc = {"units": "mm", "vertex_ids": "0-based", "displacement": u.tolist()}
         if sigma is not None:
             doc["uncertainty"] = sigma.tolist()
+        if bound is not None:
+            doc["error_bound_mm"] = bound.tolist()
         out.write_text(json.dumps(doc), encoding="utf-8")
         return [out]
     raise ModelError(f"unknown output format {out.suffix!r}; use .vtu, .csv or .json")
@@ -141,13 +152,26 @@ def run(args) -> int:
     else:
         u = model.predict(d, missing=miss, method=args.method)
     sec = time.perf_counter() - t
+    bound, alarms = None, None
+    if model.has_trust and args.method == "mlp" and miss is None:
+        trusted = model.predict_trusted(d, coverage=args.coverage)
+        bound, alarms, coverage = trusted.error_bound, trusted.alarms, trusted.coverage
+    elif args.coverage is not None:
+        from ..errors import ModelError
+
+        raise ModelError("--coverage needs error bounds: a model trained with surrogate.calibration_share > 0, "
+                         "--method mlp and every marker tracked")
     for b in range(u.shape[0]):
         mag = np.linalg.norm(u[b], axis=1)
         extra = f", max uncertainty {sigma[b].max():.3f} mm" if sigma is not None else ""
         miss = f", missing markers {np.flatnonzero(missing[b]).tolist()}" if missing[b].any() else ""
+        if bound is not None:
+            extra += f", error bound ({100 * coverage:g} %) median {np.median(bound[b]):.3f} / max {bound[b].max():.3f} mm"
         print(f"sample {b}: max displacement {mag.max():.3f} mm at vertex {int(mag.argmax())}{extra}{miss}")
+        if alarms is not None and alarms[b].raised:
+            print(f"sample {b}: ALARM: {alarms[b].text}")
     print(f"predicted {u.shape[0]} sample(s) of {u.shape[1]} vertices in {sec * 1e3:.2f} ms")
     if args.out:
-        for f in _write(Path(args.out), model, u, sigma):
+        for f in _write(Path(args.out), model, u, sigma, bound):
             print(f"wrote {f}")
     return 0
