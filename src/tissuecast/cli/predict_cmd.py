@@ -36,6 +36,8 @@ def register(sub) -> None:
     p.add_argument("--ridge", action="store_const", const="ridge", dest="method", help="same as --method ridge")
     p.add_argument("--coverage", type=float, metavar="C",
                    help="nominal coverage of the per-vertex error bounds, in (0, 1) (default: the model's, 0.9)")
+    p.add_argument("--false-alarm", type=float, metavar="RATE",
+                   help="false-alarm rate of the out-of-distribution alarm, in (0, 1) (default: the model's, 0.01)")
     p.set_defaults(func=run)
 
 
@@ -154,13 +156,13 @@ def run(args) -> int:
     sec = time.perf_counter() - t
     bound, alarms = None, None
     if model.has_trust and args.method == "mlp" and miss is None:
-        trusted = model.predict_trusted(d, coverage=args.coverage)
+        trusted = model.predict_trusted(d, coverage=args.coverage, false_alarm=args.false_alarm)
         bound, alarms, coverage = trusted.error_bound, trusted.alarms, trusted.coverage
-    elif args.coverage is not None:
+    elif args.coverage is not None or args.false_alarm is not None:
         from ..errors import ModelError
 
-        raise ModelError("--coverage needs error bounds: a model trained with surrogate.calibration_share > 0, "
-                         "--method mlp and every marker tracked")
+        raise ModelError("--coverage and --false-alarm need a calibrated model (trained with "
+                         "surrogate.calibration_share > 0), --method mlp and every marker tracked")
     for b in range(u.shape[0]):
         mag = np.linalg.norm(u[b], axis=1)
         extra = f", max uncertainty {sigma[b].max():.3f} mm" if sigma is not None else ""
@@ -170,6 +172,12 @@ def run(args) -> int:
         print(f"sample {b}: max displacement {mag.max():.3f} mm at vertex {int(mag.argmax())}{extra}{miss}")
         if alarms is not None and alarms[b].raised:
             print(f"sample {b}: ALARM: {alarms[b].text}")
+    if bound is not None and not np.isfinite(bound).all():
+        print(f"note: the bounds are infinite: {model.trust_.conformal.n_calibration} calibration samples are too few "
+              f"for {100 * coverage:g} % coverage; use a lower --coverage or re-train with a larger calibration_share")
+    if alarms is not None and not np.isfinite(alarms[0].distance_threshold):
+        print("note: the alarm is off: too few calibration samples for this false-alarm rate; use a larger "
+              "--false-alarm or re-train with a larger calibration_share")
     print(f"predicted {u.shape[0]} sample(s) of {u.shape[1]} vertices in {sec * 1e3:.2f} ms")
     if args.out:
         for f in _write(Path(args.out), model, u, sigma, bound):

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["conformal_rank", "conformal_quantile", "VertexConformal", "fit_vertex_conformal", "reliability_curve"]
+__all__ = ["conformal_rank", "conformal_quantile", "min_calibration_samples", "VertexConformal", "fit_vertex_conformal", "reliability_curve"]
 
 
 def conformal_rank(m: int, coverage: float) -> int:
@@ -29,6 +29,14 @@ def conformal_rank(m: int, coverage: float) -> int:
         raise ModelError(f"coverage must be in (0, 1), got {coverage}")
     # a tiny slack so that e.g. (m + 1) * 0.9 = 180.00000000000003 gives 180, not 181
     return int(np.ceil((m + 1) * coverage - 1e-9))
+
+
+def min_calibration_samples(coverage: float) -> int:
+    """Fewest calibration samples giving a finite bound at ``coverage`` (9 for 0.9, 19 for 0.95, 99 for 0.99)."""
+    m = max(1, int(np.floor(coverage / (1.0 - coverage))) - 1)
+    while conformal_rank(m, coverage) > m:
+        m += 1
+    return m
 
 
 def conformal_quantile(scores, coverage: float, axis: int = 0) -> np.ndarray:

@@ -283,18 +283,26 @@ class DeformationModel:
 
         Args:
             dataset: a :class:`tissuecast.dataset.Dataset` (from ``open_dataset``).
-            config: settings; default: the data set's own config.
+            config: settings; default: the data set's own config. Its ``markers.ids``, when
+                given, replace the store's markers (the store holds every vertex's
+                displacement, e.g. for markers planned by ``tissuecast markers plan``).
         """
         from .data import dataset_arrays
 
         if config is None:
             config = getattr(dataset, "config", None)
         arrays = dataset_arrays(dataset)
+        markers = arrays.markers
+        if isinstance(config, Config) and config.markers.ids:
+            from ..markers import validate_vertex_ids
+
+            markers = validate_vertex_ids(arrays.mesh, config.markers.ids, "markers.ids", other=arrays.fixed,
+                                          other_what="the store's fixed vertices")
         model = cls(config, **overrides)
         path = getattr(dataset, "path", None)
         model.dataset_path = str(Path(path).resolve()) if path is not None else None
         return model.fit(
-            arrays.displacements, arrays.markers, mesh=arrays.mesh, fixed=arrays.fixed,
+            arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed,
             train_idx=arrays.train_idx, valid_idx=arrays.valid_idx,
         )
 

@@ -22,18 +22,21 @@ the per-vertex conformal quantile.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..errors import ModelError
-from .conformal import VertexConformal, fit_vertex_conformal
+from .conformal import VertexConformal, fit_vertex_conformal, min_calibration_samples
 from .ood import InputDistance, MarkerConsistency, OODScores, calibrate_ood, fit_input_distance, fit_marker_consistency
 from .pca import PCABasis, fit_pca
 from .quadratic import QuadraticRegression, fit_quadratic
 from .ridge import marker_columns
 
 __all__ = ["TrustLayer", "Alarm", "TrustedPrediction", "fit_trust", "split_calibration", "FEATURE_NAMES", "FILE", "MIN_SAMPLES"]
+
+log = logging.getLogger(__name__)
 
 FILE = "trust.npz"
 FEATURE_NAMES = ("log_disagreement_max", "log_disagreement_mean", "log_marker_miss", "log_distance", "log_peak_marker")
@@ -57,8 +60,10 @@ class Alarm:
         raised: whether either score passed its threshold.
         distance: input-distance score; ``distance_threshold`` its alarm level.
         consistency: marker-consistency score (NaN with one marker); ``consistency_threshold``.
-        marker: index (0-based, model marker order) of the marker farthest from where the
-            others put it, -1 without a consistency score.
+        marker: index (0-based, model marker order) of the marker farthest (in units of its
+            residual scale) from where the others put it, -1 without a consistency score. A
+            glitch of one marker also moves where the others put the rest, so this is a hint,
+            not an identification.
         marker_residual: that distance, mm.
     """
 
@@ -85,8 +90,9 @@ class Alarm:
             return "prediction within the simulated range"
         parts = []
         if self.inconsistent_markers:
-            parts.append(f"marker {self.marker} is {self.marker_residual:.1f} mm from where the other markers place it "
-                         f"(score {self.consistency:.1f} > {self.consistency_threshold:.1f}): swapped, slipped or mistracked?")
+            parts.append(f"markers disagree (score {self.consistency:.1f} > {self.consistency_threshold:.1f}; most: marker "
+                         f"{self.marker}, {self.marker_residual:.1f} mm from where the other markers place it): a swapped, "
+                         "slipped or mistracked marker?")
         if self.far_from_training:
             parts.append(f"marker input far from every simulated deformation (distance {self.distance:.2f} > "
                          f"{self.distance_threshold:.2f}): do not trust the predicted shape")
@@ -320,6 +326,12 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
     fc, hc, ec, dc = pieces(sets[2])
     conformal = fit_vertex_conformal(ec, draft._sigma(fc, hc))
     ood = calibrate_ood(distance, consistency, dv, dc)
+    m = len(sets[2])
+    for what, level in (("error bounds at coverage", coverage), ("alarm at false-alarm rate", 1.0 - false_alarm)):
+        if m < min_calibration_samples(level):
+            log.warning("%d calibration samples are too few for finite %s %g (needs %d): raise "
+                        "surrogate.calibration_share or use a larger data set", m, what,
+                        coverage if "bounds" in what else false_alarm, min_calibration_samples(level))
     return TrustLayer(mk, basis, second, beta, conformal, ood, coverage, false_alarm)
 
 
