@@ -81,15 +81,15 @@ def test_greedy_on_the_proxy_finds_both_informative_vertices_and_respects_spacin
 
 def test_plan_markers_on_a_data_set_count_and_target():
     ds = FakeDataset(n=200, n_test2=0)
-    plan = plan_markers(ds, 4, region="any")
+    plan = plan_markers(ds, 4, region="any", shortlist=8)
     assert plan.count == 4 and len(set(plan.markers.tolist())) == 4
     assert not np.isin(plan.markers, ds.fixed).any()
     assert np.all(np.diff(plan.proxy_errors) < 0)  # each greedy step lowers the validation error here
     target = float(plan.proxy_errors[2]) * 1.0001  # reached with 3 markers, not with 2
-    tplan = plan_markers(ds, target_mm=target, region="any")
+    tplan = plan_markers(ds, target_mm=target, region="any", shortlist=8)
     assert tplan.count == 3 and tplan.target_reached
     np.testing.assert_array_equal(tplan.markers, plan.markers[:3])
-    unreachable = plan_markers(ds, target_mm=1e-9, max_count=3, region="any")
+    unreachable = plan_markers(ds, target_mm=1e-9, max_count=3, region="any", shortlist=8)
     assert unreachable.count == 3 and unreachable.target_reached is False
     with pytest.raises(MarkerError, match="either"):
         plan_markers(ds, 3, target_mm=1.0)

@@ -63,7 +63,8 @@ def _check(count: int, candidates: np.ndarray, min_distance: float, points) -> N
     if count < 1:
         raise MarkerError(f"the number of markers must be >= 1, got {count}")
     if count > candidates.size:
-        raise MarkerError(f"{count} markers requested but only {candidates.size} candidate vertices; lower --count or widen the candidates")
+        raise MarkerError(f"{count} markers requested but only {candidates.size} candidate vertices; "
+                          "lower --count or widen the candidates")
     if min_distance > 0 and points is None:
         raise MarkerError("a minimum marker spacing needs the vertex positions (points)")
 

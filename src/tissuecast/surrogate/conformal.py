@@ -20,7 +20,8 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["conformal_rank", "conformal_quantile", "min_calibration_samples", "VertexConformal", "fit_vertex_conformal", "reliability_curve"]
+__all__ = ["conformal_rank", "conformal_quantile", "min_calibration_samples", "VertexConformal", "fit_vertex_conformal",
+           "reliability_curve"]
 
 
 def conformal_rank(m: int, coverage: float) -> int:

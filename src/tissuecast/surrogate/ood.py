@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from ..errors import ModelError
 from .conformal import conformal_quantile
-from .quadratic import QuadraticRegression, fit_quadratic
+from .quadratic import fit_quadratic
 
 __all__ = ["InputDistance", "MarkerConsistency", "OODScores", "fit_input_distance", "fit_marker_consistency",
            "calibrate_ood", "SCORE_NAMES"]

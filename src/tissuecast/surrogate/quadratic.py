@@ -41,14 +41,16 @@ class QuadraticRegression:
     directions: np.ndarray
     coef: np.ndarray
 
+    def __post_init__(self):
+        q = len(self.directions)
+        object.__setattr__(self, "_pairs", np.triu_indices(q))  # the products p_a p_b, a <= b
+
     def features(self, X) -> np.ndarray:
         """(B, F) features of inputs (B, d)."""
         Z = (np.asarray(X, dtype=np.float64) - self.mean) / self.scale
         P = Z @ self.directions.T
-        q = P.shape[1]
-        iu = np.triu_indices(q)
-        quad = (P[:, :, None] * P[:, None, :])[:, iu[0], iu[1]]
-        return np.hstack([np.ones((len(Z), 1)), Z, quad])
+        a, b = self._pairs
+        return np.hstack([np.ones((len(Z), 1)), Z, P[:, a] * P[:, b]])
 
     def predict(self, X) -> np.ndarray:
         """(B, m) predictions for inputs (B, d)."""

@@ -288,8 +288,8 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
     if len(np.unique(np.concatenate(sets))) != sum(len(s) for s in sets):
         raise ModelError("training, validation and calibration samples must be disjoint")
     if len(sets[1]) < MIN_SAMPLES or len(sets[2]) < MIN_SAMPLES:
-        raise ModelError(f"the trust layer needs >= {MIN_SAMPLES} validation and calibration samples each, got {len(sets[1])} and "
-                         f"{len(sets[2])}; raise surrogate.calibration_share or use a larger data set")
+        raise ModelError(f"the trust layer needs >= {MIN_SAMPLES} validation and calibration samples each, got "
+                         f"{len(sets[1])} and {len(sets[2])}; raise surrogate.calibration_share or use a larger data set")
     U = displacements
     mk = model.markers
     cols = marker_columns(mk)
