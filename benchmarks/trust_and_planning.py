@@ -175,47 +175,47 @@ def displace_marker(d, size, rng) -> np.ndarray:
 
 def scaled_load_fields(ds, args) -> dict:
     """FEM fields of test-1 force fields scaled to ``--load-scales`` x the largest training load
-    (Frobenius norm of the nodal forces), solved with tissuecast's solver; cached."""
+    (Frobenius norm of the nodal forces) and ``--own-scales`` x their own load, solved with
+    tissuecast's solver from the store's config; each solve is cached in ``--cache`` (resumable)."""
     from tissuecast.errors import ConvergenceError
     from tissuecast.fem import NeoHookean, Problem, Solver
 
-    cache = Path(args.cache) / f"scaled_loads_{ds.path.name}.npz"
-    if cache.is_file():
-        with np.load(cache, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+    cache = Path(args.cache) / f"scaled_loads_{ds.path.name}"
+    cache.mkdir(parents=True, exist_ok=True)
     cfg = ds.config
     F = np.asarray(ds.forces)
     train = split_indices(ds, "train")
     t1 = split_indices(ds, "test1")[: args.load_samples]
     largest = float(np.sqrt((F[train].astype(np.float64) ** 2).sum(axis=(1, 2))).max())
-    problem = Problem(ds.mesh, NeoHookean(youngs_modulus=cfg.material.youngs_modulus, poisson_ratio=cfg.material.poisson_ratio),
-                      np.asarray(ds.fixed), order=cfg.solver.order)
-    solver = Solver(problem, cfg.solver)
+    solver = None
     fields, scale_of, sample_of, ok, seconds = [], [], [], [], []
     # positive scale s: the load rescaled to s x the largest training load; negative -s: s x its own load
     for s in [*args.load_scales, *(-x for x in args.own_scales)]:
         for i in t1:
-            f = F[i].astype(np.float64)
-            f *= s * largest / np.sqrt((f**2).sum()) if s > 0 else -s
-            t = time.perf_counter()
-            try:
-                u = solver.solve(f).displacement
-                ok.append(True)
-            except ConvergenceError:
-                u = np.full(F.shape[1:], np.nan)
-                ok.append(False)
-            seconds.append(time.perf_counter() - t)
-            fields.append(u)
+            path = cache / f"scale{s:+g}_sample{i}.npz"
+            if not path.is_file():
+                if solver is None:
+                    material = NeoHookean(youngs_modulus=cfg.material.youngs_modulus, poisson_ratio=cfg.material.poisson_ratio)
+                    solver = Solver(Problem(ds.mesh, material, np.asarray(ds.fixed), order=cfg.solver.order), cfg.solver)
+                f = F[i].astype(np.float64)
+                f *= s * largest / np.sqrt((f**2).sum()) if s > 0 else -s
+                t = time.perf_counter()
+                try:
+                    u, good = solver.solve(f).displacement, True
+                except ConvergenceError:
+                    u, good = np.full(F.shape[1:], np.nan), False
+                np.savez(path, u=u, converged=good, seconds=time.perf_counter() - t)
+                label = f"x{s:g} of the largest" if s > 0 else f"x{-s:g} of its own"
+                what = f"peak {np.linalg.norm(u, axis=1).max():.1f} mm" if good else "did not converge"
+                print(f"  load {label}, sample {i}: {what} ({time.perf_counter() - t:.1f} s)", flush=True)
+            with np.load(path, allow_pickle=False) as z:
+                fields.append(z["u"])
+                ok.append(bool(z["converged"]))
+                seconds.append(float(z["seconds"]))
             scale_of.append(s)
             sample_of.append(i)
-            what = f"peak {np.linalg.norm(u, axis=1).max():.1f} mm" if ok[-1] else "did not converge"
-            label = f"x{s:g} of the largest" if s > 0 else f"x{-s:g} of its own"
-            print(f"  load {label}, sample {i}: {what} ({seconds[-1]:.1f} s)", flush=True)
-    res = {"fields": np.asarray(fields), "scale": np.asarray(scale_of), "sample": np.asarray(sample_of),
-           "converged": np.asarray(ok), "seconds": np.asarray(seconds), "largest_train_load": np.float64(largest)}
-    cache.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(cache, **res)
-    return res
+    return {"fields": np.asarray(fields), "scale": np.asarray(scale_of), "sample": np.asarray(sample_of),
+            "converged": np.asarray(ok), "seconds": np.asarray(seconds), "largest_train_load": largest}
 
 
 def part_alarm(ds, model, U, args, out: dict) -> None:
