@@ -246,23 +246,36 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
     if not args.skip_fem:
         loads = scaled_load_fields(ds, args)
         ok = loads["converged"]
+        train_peak = np.asarray(ds.max_displacement, dtype=np.float64)[split_indices(ds, "train")]
+        p95, pmax = np.percentile(train_peak, 95), train_peak.max()
+        print(f"training peak displacement: p95 {p95:.1f} mm, max {pmax:.1f} mm")
         res["loads"] = {}
         for s in np.unique(loads["scale"]):
+            label = f"{s:g}x the largest training load" if s > 0 else f"{-s:g}x its own load"
             pick = (loads["scale"] == s) & ok
             n_all = int((loads["scale"] == s).sum())
+            row = {"solved": n_all, "converged": int(pick.sum())}
             if pick.any():
                 fields = loads["fields"][pick]
-                r = rate(fields[:, model.markers, :])
+                d = fields[:, model.markers, :]
+                raised = np.array([a.raised for a in model.predict_trusted(d).alarms])
                 peak = np.linalg.norm(fields, axis=2).max(axis=1)
-                err = offsets_max(model.predict(fields[:, model.markers, :]), fields)
+                err = offsets_max(model.predict(d), fields)
+                beyond = peak > pmax
+                row.update(detected=float(raised.mean()), peak_median=float(np.median(peak)),
+                           beyond_training_max=int(beyond.sum()),
+                           detected_beyond_max=float(raised[beyond].mean()) if beyond.any() else float("nan"),
+                           detected_beyond_p95=float(raised[peak > p95].mean()) if (peak > p95).any() else float("nan"),
+                           mlp_offset_max_detected=float(err[raised].mean()) if raised.any() else float("nan"),
+                           mlp_offset_max_missed=float(err[~raised].mean()) if (~raised).any() else float("nan"))
+                print(f"(c) loads {label}: detected {100 * row['detected']:.1f} % of {row['converged']} converged "
+                      f"({n_all - row['converged']} of {n_all} did not converge); median peak {row['peak_median']:.1f} mm; "
+                      f"{row['beyond_training_max']} beyond the training max, detected {100 * row['detected_beyond_max']:.0f} %; "
+                      f"beyond training p95 detected {100 * row['detected_beyond_p95']:.0f} %; MLP mean Offset_max "
+                      f"{row['mlp_offset_max_detected']:.2f} mm where detected, {row['mlp_offset_max_missed']:.2f} where not")
             else:
-                r, peak, err = float("nan"), np.array([np.nan]), np.array([np.nan])
-            label = f"{s:g}x the largest training load" if s > 0 else f"{-s:g}x its own load"
-            res["loads"][label] = {"detected": r, "converged": int(pick.sum()), "solved": n_all,
-                                     "peak_median": float(np.median(peak)), "mlp_offset_max_mean": float(np.mean(err))}
-            print(f"(c) loads {label}: detected {100 * r:.1f} % of {int(pick.sum())} converged "
-                  f"({n_all - int(pick.sum())} of {n_all} did not converge); median peak {np.median(peak):.1f} mm, "
-                  f"MLP mean Offset_max there {np.mean(err):.2f} mm")
+                print(f"(c) loads {label}: none of {n_all} converged")
+            res["loads"][label] = row
     out["alarm"] = res
 
 
