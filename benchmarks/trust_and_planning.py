@@ -258,7 +258,9 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
             if pick.any():
                 fields = loads["fields"][pick]
                 d = fields[:, model.markers, :]
-                raised = np.array([a.raised for a in model.predict_trusted(d).alarms])
+                trusted = model.predict_trusted(d)
+                raised = np.array([a.raised for a in trusted.alarms])
+                cover = float(np.mean(np.linalg.norm(trusted.displacement - fields, axis=2) <= trusted.error_bound))
                 peak = np.linalg.norm(fields, axis=2).max(axis=1)
                 err = offsets_max(model.predict(d), fields)
                 beyond = peak > pmax
@@ -267,12 +269,14 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
                            detected_beyond_max=float(raised[beyond].mean()) if beyond.any() else float("nan"),
                            detected_beyond_p95=float(raised[peak > p95].mean()) if (peak > p95).any() else float("nan"),
                            mlp_offset_max_detected=float(err[raised].mean()) if raised.any() else float("nan"),
-                           mlp_offset_max_missed=float(err[~raised].mean()) if (~raised).any() else float("nan"))
+                           mlp_offset_max_missed=float(err[~raised].mean()) if (~raised).any() else float("nan"),
+                           bound_coverage_90=cover)
                 print(f"(c) loads {label}: detected {100 * row['detected']:.1f} % of {row['converged']} converged "
                       f"({n_all - row['converged']} of {n_all} did not converge); median peak {row['peak_median']:.1f} mm; "
                       f"{row['beyond_training_max']} beyond the training max, detected {100 * row['detected_beyond_max']:.0f} %; "
                       f"beyond training p95 detected {100 * row['detected_beyond_p95']:.0f} %; MLP mean Offset_max "
-                      f"{row['mlp_offset_max_detected']:.2f} mm where detected, {row['mlp_offset_max_missed']:.2f} where not")
+                      f"{row['mlp_offset_max_detected']:.2f} mm where detected, {row['mlp_offset_max_missed']:.2f} where not; "
+                      f"90 % bounds cover {100 * cover:.1f} % of vertices")
             else:
                 print(f"(c) loads {label}: none of {n_all} converged")
             res["loads"][label] = row

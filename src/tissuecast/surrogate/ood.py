@@ -10,9 +10,9 @@ Two scores per input d (n_d, 3) mm:
 - **consistency** of the markers with each other: each marker's displacement is predicted
   from the other markers' by a quadratic ridge regression fitted on the training inputs
   (:mod:`tissuecast.surrogate.quadratic`: where the field the others imply puts that
-  marker); the score is the largest residual in units of that marker's residual scale on
-  validation samples. Large for a swapped marker, a tracking glitch, a marker that moved
-  in the tissue.
+  marker); the score is the Mahalanobis distance of the vector of all markers' residuals
+  under its validation mean and covariance. Large for a swapped marker, a tracking
+  glitch, a marker that moved in the tissue.
 
 The two scores, each divided by its median on validation samples, are combined by their
 maximum; the alarm threshold is the split-conformal ``1 - alpha`` quantile of that combined
@@ -89,32 +89,53 @@ def fit_input_distance(X, neighbours: int = NEIGHBOURS) -> InputDistance:
 class MarkerConsistency:
     """Leave-one-marker-out predictions of each marker's displacement.
 
+    The score of an input is the Mahalanobis distance of its residual vector (every
+    marker's predicted minus observed displacement, 3 n_d numbers) under the residuals'
+    mean and covariance on validation samples: residuals of different markers are
+    correlated (a marker is an input to the others' predictions), which the distance uses.
+
     Attributes:
         regressions: n_d maps from the other markers' (3 n_d - 3) displacements to this
             marker's (3,), mm.
-        scale: (n_d,) root-mean-square residual of each marker on validation samples, mm.
+        scale: (n_d,) root-mean-square residual distance of each marker on validation samples, mm.
+        mean: (3 n_d,) mean validation residual vector, mm.
+        precision: (3 n_d, 3 n_d) inverse of the (shrunk) validation residual covariance, 1/mm^2.
     """
 
     regressions: tuple
     scale: np.ndarray
+    mean: np.ndarray
+    precision: np.ndarray
+
+    def residual_vectors(self, X) -> np.ndarray:
+        """(B, 3 n_d) predicted minus observed displacement of every marker, mm."""
+        X = np.asarray(X, dtype=np.float64)
+        out = np.empty_like(X)
+        for j, reg in enumerate(self.regressions):
+            cols = np.s_[3 * j:3 * j + 3]
+            out[:, cols] = reg.predict(np.delete(X, cols, axis=1)) - X[:, cols]
+        return out
 
     def residuals(self, X) -> np.ndarray:
         """(B, n_d) distance (mm) of each marker from where the other markers put it."""
-        X = np.asarray(X, dtype=np.float64)
-        n_d = X.shape[1] // 3
-        out = np.empty((len(X), n_d))
-        for j, reg in enumerate(self.regressions):
-            others = np.delete(X, np.s_[3 * j:3 * j + 3], axis=1)
-            out[:, j] = np.linalg.norm(reg.predict(others) - X[:, 3 * j:3 * j + 3], axis=1)
-        return out
+        R = self.residual_vectors(X)
+        return np.linalg.norm(R.reshape(len(R), -1, 3), axis=2)
 
     def __call__(self, X) -> np.ndarray:
-        """(B,) largest residual in units of its marker's scale (dimensionless)."""
-        return (self.residuals(X) / self.scale).max(axis=1)
+        """(B,) Mahalanobis distance of the residual vectors (dimensionless)."""
+        return _mahalanobis(self.residual_vectors(X) - self.mean, self.precision)
+
+
+def _mahalanobis(R: np.ndarray, precision: np.ndarray) -> np.ndarray:
+    return np.sqrt(np.maximum(np.einsum("bi,ij,bj->b", R, precision, R), 0.0))
 
 
 def fit_marker_consistency(X_train, X_valid) -> MarkerConsistency | None:
-    """Fit on training inputs (N_t, 3 n_d) mm, scale on validation inputs; None for n_d < 2."""
+    """Fit on training inputs (N_t, 3 n_d) mm, residual statistics on validation inputs; None for n_d < 2.
+
+    The covariance is shrunk towards its mean variance with weight ``p / (p + N_v)``
+    (p = 3 n_d), so that it stays invertible with few validation samples.
+    """
     X_train = np.asarray(X_train, dtype=np.float64)
     X_valid = np.asarray(X_valid, dtype=np.float64)
     n_d = X_train.shape[1] // 3
@@ -124,10 +145,18 @@ def fit_marker_consistency(X_train, X_valid) -> MarkerConsistency | None:
     for j in range(n_d):
         cols = np.s_[3 * j:3 * j + 3]
         regs.append(fit_quadratic(np.delete(X_train, cols, axis=1), X_train[:, cols]))
-    unscaled = MarkerConsistency(tuple(regs), np.ones(n_d))
-    r = unscaled.residuals(X_valid)
-    scale = np.sqrt((r**2).mean(axis=0))
-    return MarkerConsistency(tuple(regs), np.maximum(scale, 1e-9 * max(float(scale.max()), 1e-300)))
+    p = 3 * n_d
+    draft = MarkerConsistency(tuple(regs), np.ones(n_d), np.zeros(p), np.eye(p))
+    R = draft.residual_vectors(X_valid)
+    mean = R.mean(axis=0)
+    cov = np.cov(R, rowvar=False).reshape(p, p) if len(R) > 1 else np.zeros((p, p))
+    avg = max(float(np.trace(cov)) / p, 1e-18)
+    shrink = p / (p + len(R))
+    cov = (1.0 - shrink) * cov + shrink * avg * np.eye(p)
+    dist = np.linalg.norm(R.reshape(len(R), -1, 3), axis=2)
+    scale = np.sqrt((dist**2).mean(axis=0))
+    return MarkerConsistency(tuple(regs), np.maximum(scale, 1e-9 * max(float(scale.max()), 1e-300)), mean,
+                             np.linalg.inv(cov))
 
 
 @dataclass(frozen=True, eq=False)

@@ -9,8 +9,8 @@ A :class:`TrustLayer` is fitted after the network, from three disjoint splits:
 - **valid**: the learned error model, a linear regression of the log of each sample's
   Offset_max on log features of the input alone (the largest and mean disagreement between
   the network and the second predictor, how far the network's field misses the markers it
-  was given, the input distance, the peak marker displacement), and the residual scale of
-  each marker's consistency regression;
+  was given, the input distance, the peak marker displacement), the mean and covariance of
+  the consistency residuals, and the medians that put the two alarm scores on one scale;
 - **calibration** (held out from the training split, see ``surrogate.calibration_share``):
   the split-conformal scores of the bounds (:mod:`.conformal`) and of the alarm.
 
@@ -190,7 +190,7 @@ class TrustLayer:
         cons = self.ood.consistency
         if cons is not None:
             res = cons.residuals(d)
-            c_score = (res / cons.scale).max(axis=1)
+            c_score = cons(d)
             worst = (res / cons.scale).argmax(axis=1)
         else:
             res, c_score, worst = None, np.full(len(d), np.nan), np.full(len(d), -1)
@@ -222,6 +222,8 @@ class TrustLayer:
         out["ood.consistency.count"] = np.int64(0 if cons is None else len(cons.regressions))
         if cons is not None:
             out["ood.consistency.scale"] = cons.scale
+            out["ood.consistency.mean"] = cons.mean
+            out["ood.consistency.precision"] = cons.precision
             for j, reg in enumerate(cons.regressions):
                 out.update(reg.arrays(f"ood.consistency.{j}."))
         return out
@@ -236,7 +238,8 @@ class TrustLayer:
         cons = None
         if count:
             regs = tuple(QuadraticRegression.from_arrays(a, f"ood.consistency.{j}.") for j in range(count))
-            cons = MarkerConsistency(regs, np.asarray(a["ood.consistency.scale"], dtype=np.float64))
+            cons = MarkerConsistency(regs, *(np.asarray(a[f"ood.consistency.{k}"], dtype=np.float64)
+                                             for k in ("scale", "mean", "precision")))
         return cls(markers=np.asarray(a["markers"], dtype=np.int64), basis=basis,
                    second=QuadraticRegression.from_arrays(a, "second."),
                    error_model=np.asarray(a["error_model"], dtype=np.float64),
