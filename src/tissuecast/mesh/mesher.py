@@ -161,6 +161,8 @@ def tetrahedralize_surface(
     *,
     interior_size: float | None = None,
     optimize: bool = True,
+    feature_angle: float = 40.0,
+    curvature_points: int = 0,
 ) -> TetMesh:
     """Fill a closed triangulated surface with tetrahedra using gmsh.
 
@@ -173,6 +175,10 @@ def tetrahedralize_surface(
         mesh_size: target edge length in mm (> 0) on the surface (and inside, by default).
         interior_size: target edge length in mm inside the volume, if different.
         optimize: run gmsh's and Netgen's quality optimisers (recommended).
+        feature_angle: edges whose faces meet at a sharper angle (degrees) are kept as
+            sharp edges; 180 keeps none (smooth organic surfaces).
+        curvature_points: > 0 shrinks the edge length where the surface is curved, to at
+            most 2 pi R / curvature_points (R the local radius of curvature); 0 = off.
 
     Returns:
         The tetrahedral mesh (coordinates in mm).
@@ -198,7 +204,7 @@ def tetrahedralize_surface(
         surf = gmsh.model.addDiscreteEntity(2)
         gmsh.model.mesh.addNodes(2, surf, np.arange(1, len(points) + 1), points.ravel())
         gmsh.model.mesh.addElementsByType(surf, 2, [], (triangles + 1).ravel())
-        gmsh.model.mesh.classifySurfaces(math.radians(40), True, True, math.pi)
+        gmsh.model.mesh.classifySurfaces(math.radians(feature_angle), True, True, math.pi)
         gmsh.model.mesh.createGeometry()
         loop = gmsh.model.geo.addSurfaceLoop([e[1] for e in gmsh.model.getEntities(2)])
         gmsh.model.geo.addVolume([loop])
@@ -206,7 +212,7 @@ def tetrahedralize_surface(
         for name, value in [
             ("Mesh.MeshSizeMin", 0.5 * mesh_size),
             ("Mesh.MeshSizeMax", mesh_size),
-            ("Mesh.MeshSizeFromCurvature", 0),
+            ("Mesh.MeshSizeFromCurvature", int(curvature_points)),
             ("Mesh.MeshSizeExtendFromBoundary", 1),
             ("Mesh.Algorithm", 6),
             ("Mesh.Algorithm3D", 1),
