@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import block_diag
 
-from .mlp import MLPWeights
+from .weights import MLPWeights
 from .pca import PCABasis
 
 __all__ = ["CompiledSurrogate"]

@@ -20,10 +20,11 @@ from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
 from ..errors import ModelError
 from .fastpath import CompiledSurrogate
 from .inputs import marker_batch
-from .mlp import MLPWeights, TrainOptions, train_mlp
+from .mlp import TrainOptions, train_mlp
 from .pca import PCABasis, PCACurve, choose_n_components, fit_pca
 from .ridge import RidgeBaseline, fit_ridge, marker_columns
 from .trust import TrustedPrediction, fit_trust, split_calibration
+from .weights import MLPWeights
 
 __all__ = ["DeformationModel"]
 
@@ -501,7 +502,7 @@ class DeformationModel:
         export_onnx(self, path)
 
     def torch_module(self):
-        """The equivalent torch module (float32), see :func:`tissuecast.surrogate.mlp.torch_network`."""
+        """The equivalent torch module (float32), see :func:`tissuecast.surrogate.network.torch_network`."""
         from .network import torch_network
 
         self._fitted()

@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ..errors import require
-
-if TYPE_CHECKING:
-    from .mlp import MLPWeights
+from .weights import MLPWeights
 
 __all__ = ["build_network", "torch_network"]
 

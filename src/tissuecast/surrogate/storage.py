@@ -25,8 +25,9 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ModelError, require
-from .mlp import MLPWeights, TrainingSummary
+from .mlp import TrainingSummary
 from .pca import PCABasis, PCACurve
+from .weights import MLPWeights
 
 __all__ = ["FORMAT", "SCHEMA", "save_model", "load_model", "export_onnx", "read_metadata"]
 
