@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ModelError, require
+from .encoding import input_width, masked_input
 from .network import build_network
 from .weights import MLPWeights
 
@@ -137,9 +138,9 @@ def train_mlp(X_train, Y_train, X_valid, Y_valid, options: TrainOptions = TrainO
         xm, xs = torch.as_tensor(x_mean, dtype=f32), torch.as_tensor(x_std, dtype=f32)
         Xvt = (torch.as_tensor(Xv, dtype=f32) - xm) / xs
         if masked:
-            Xvt = torch.cat([Xvt, torch.ones(Xvt.shape[0], n_d)], dim=1)
+            Xvt = masked_input(Xvt, torch.ones(Xvt.shape[0], n_d), torch)
         Yvt = torch.as_tensor((Yv - y_mean) / y_std, dtype=f32)
-        net = build_network(torch, X.shape[1] + (n_d if masked else 0), o.hidden, Y.shape[1])
+        net = build_network(torch, input_width(n_d, masked), o.hidden, Y.shape[1])
         opt = torch.optim.Adam(net.parameters(), lr=o.learning_rate, weight_decay=o.weight_decay)
         N = X.shape[0]
         bs = min(int(o.batch_size), N)
@@ -170,7 +171,7 @@ def train_mlp(X_train, Y_train, X_valid, Y_valid, options: TrainOptions = TrainO
                     drop = torch.rand(len(idx), generator=gen) < o.marker_dropout
                     which = torch.randint(0, n_d, (len(idx),), generator=gen)
                     pres[drop, which[drop]] = 0.0
-                    xb = torch.cat([xb * pres.repeat_interleave(3, dim=1), pres], dim=1)
+                    xb = masked_input(xb, pres, torch)
                 loss = torch.nn.functional.mse_loss(net(xb), Yt[idx])
                 opt.zero_grad(set_to_none=True)
                 loss.backward()

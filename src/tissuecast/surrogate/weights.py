@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ModelError
+from .encoding import masked_input
 
 __all__ = ["MLPWeights"]
 
@@ -47,15 +48,14 @@ class MLPWeights:
         return tuple(int(w.shape[0]) for w in self.weights[:-1])
 
     def features(self, marker_displacements: np.ndarray, present: np.ndarray | None = None) -> np.ndarray:
-        """Network input (B, 3 n_d [+ n_d]) from displacements (B, 3 n_d) mm and present (B, n_d) bool."""
+        """Network input (B, 3 n_d [+ n_d]) (:mod:`.encoding`) from displacements (B, 3 n_d) mm
+        (finite) and present (B, n_d) bool or 1/0 (default: every marker tracked)."""
         x = (np.asarray(marker_displacements, dtype=np.float64) - self.x_mean) / self.x_std
         if not self.masked:
             return x
         if present is None:
             present = np.ones((x.shape[0], self.n_markers))
-        pres = np.asarray(present, dtype=np.float64)
-        x = np.where(np.repeat(pres, 3, axis=1) > 0, x, 0.0)
-        return np.concatenate([x, pres], axis=1)
+        return masked_input(x, np.asarray(present, dtype=np.float64))
 
     def predict_weights(self, marker_displacements, present=None) -> np.ndarray:
         """PCA weights (B, n_w) mm; float64 reference implementation of the forward pass."""
