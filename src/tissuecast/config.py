@@ -155,6 +155,9 @@ class DatasetConfig:
 
 #: Rules choosing the number of PCA components (see :class:`SurrogateConfig`).
 PCA_RULES = ("validation", "paper")
+#: Learning-rate schedules and PCA-weight scalings of the MLP's training (see :mod:`tissuecast.surrogate.mlp`).
+SCHEDULES = ("onecycle", "cosine", "constant")
+OUTPUT_SCALINGS = ("global", "component")
 
 
 @dataclass(frozen=True)
@@ -174,8 +177,8 @@ class SurrogateConfig:
     noise_sigma: float = _f(0.0, lo=0.0, doc="marker noise augmentation (mm)")
     ridge_ratio: float = _f(1e-3, lo=0.0, doc="ridge a2/a1")
     seed: int = _f(0, lo=0, doc="training seed")
-    schedule: str = _f("onecycle", choices=("onecycle", "cosine", "constant"), doc="learning-rate schedule")
-    output_scaling: str = _f("global", choices=("global", "component"), doc="PCA-weight scaling of the loss")
+    schedule: str = _f("onecycle", choices=SCHEDULES, doc="learning-rate schedule")
+    output_scaling: str = _f("global", choices=OUTPUT_SCALINGS, doc="PCA-weight scaling of the loss")
     weight_decay: float = _f(0.0, lo=0.0, doc="Adam weight decay")
     marker_dropout: float = _f(0.0, lo=0.0, hi=1.0, doc="share of training samples with one marker hidden; > 0 enables missing-marker input")
     ensemble: int = _f(1, lo=1, hi=64, doc="networks trained with different seeds (>= 2 gives uncertainty)")

@@ -20,7 +20,7 @@ from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
 from ..errors import ModelError
 from .fastpath import CompiledSurrogate
 from .inputs import marker_batch
-from .mlp import TrainOptions, train_mlp
+from .mlp import train_mlp
 from .pca import PCABasis, PCACurve, choose_n_components, fit_pca
 from .ridge import RidgeBaseline, fit_ridge, marker_columns
 from .trust import TrustedPrediction, fit_trust, split_calibration
@@ -49,14 +49,9 @@ _VALIDATION_TOLERANCE = 0.01
 # ... and whose PCA floor is at most this share of that error, so that truncation is not what
 # limits accuracy (errors add about in quadrature: a floor of 0.4 e adds < 9 % to e).
 _FLOOR_SHARE = 0.4
-
-
-def _train_options(c: SurrogateConfig, seed: int) -> TrainOptions:
-    return TrainOptions(
-        hidden=tuple(c.hidden), epochs=c.epochs, batch_size=c.batch_size, learning_rate=c.learning_rate,
-        patience=c.patience, schedule=c.schedule, output_scaling=c.output_scaling,
-        weight_decay=c.weight_decay, noise_sigma=c.noise_sigma, marker_dropout=c.marker_dropout, seed=seed,
-    )
+#: Member k of an ensemble trains with seed ``surrogate.seed + ENSEMBLE_SEED_STRIDE * k``: far
+#: enough apart that runs with neighbouring seeds share no member.
+ENSEMBLE_SEED_STRIDE = 1000
 
 
 def _choose_by_validation(members: list[MLPWeights], basis: PCABasis, Xv: np.ndarray, Uv: np.ndarray) -> tuple[int, dict]:
@@ -256,7 +251,7 @@ class DeformationModel:
         Yt, Yv = basis.transform(Ut), basis.transform(Uv)
         members, summaries = [], []
         for k in range(c.ensemble):
-            w, s = train_mlp(Xt, Yt, Xv, Yv, _train_options(c, seed=c.seed + 1000 * k))
+            w, s = train_mlp(Xt, Yt, Xv, Yv, c, seed=c.seed + ENSEMBLE_SEED_STRIDE * k)
             members.append(w)
             summaries.append(s)
         choice = {"rule": rule, "n_components": n_w}
