@@ -32,7 +32,6 @@ class CompiledSurrogate:
         self.n_members = len(members)
         self.n_markers = m0.n_markers
         self.masked = m0.masked
-        nd3 = 3 * self.n_markers
         xm, xs = m0.x_mean.astype(f8), m0.x_std.astype(f8)
         ys, ym = m0.y_std.astype(f8), m0.y_mean.astype(f8)
         C = basis.components
