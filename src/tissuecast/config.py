@@ -195,6 +195,12 @@ class EvaluateConfig:
     renders: int = _f(3, lo=0, hi=100, doc="number of samples rendered in 3D")
 
 
+#: How TRANSFORM marker input triggers predictions, and the frames a client may work in
+#: (see :mod:`tissuecast.serve.session`, :mod:`tissuecast.serve.frames`).
+TRANSFORM_MODES = ("frame", "each")
+CLIENT_FRAMES = ("LPS", "RAS")
+
+
 @dataclass(frozen=True)
 class ServeConfig:
     """OpenIGTLink server."""
@@ -202,10 +208,10 @@ class ServeConfig:
     host: str = _f("127.0.0.1", doc="bind address (localhost unless asked otherwise)")
     port: int = _f(18944, lo=1, hi=65535, doc="TCP port (OpenIGTLink default 18944)")
     full_field: bool = _f(False, doc="send the full vertex field (POLYDATA TissueField) after every surface")
-    transform_mode: str = _f("frame", choices=("frame", "each"), doc="TRANSFORM input: predict once all markers are fresh (frame) or on every update (each)")
+    transform_mode: str = _f("frame", choices=TRANSFORM_MODES, doc="TRANSFORM input: predict once all markers are fresh (frame) or on every update (each)")
     max_marker_offset: float = _f(100.0, lo=0.0, lo_open=True, doc="reject markers farther than this (mm) from their reference position")
     client_timeout: float = _f(5.0, lo=0.0, lo_open=True, doc="seconds an incomplete message may wait for its remaining bytes")
-    client_frame: str = _f("LPS", choices=("LPS", "RAS"), doc="frame of the replies, and of the markers when no registration is set: LPS = the model's (scan's) frame, RAS = 3D Slicer's world (what OpenIGTLinkIF sends and expects)")
+    client_frame: str = _f("LPS", choices=CLIENT_FRAMES, doc="frame of the replies, and of the markers when no registration is set: LPS = the model's (scan's) frame, RAS = 3D Slicer's world (what OpenIGTLinkIF sends and expects)")
     tracker_to_client: tuple[float, ...] = _f((), doc="registration from the tracker frame (where markers are measured) to the client frame: 16 numbers, a 4x4 matrix row by row (mm); empty = markers arrive in the client frame. A TRANSFORM TrackerToRas / ReferenceToRas / TrackerToImage replaces it at run time")
 
 
