@@ -35,7 +35,7 @@ def _add_mesh_options(p, surface: bool = True) -> None:
     p.add_argument("--units", choices=sorted(UNITS), default="mm", help="length unit of the input file (converted to mm)")
     if surface:
         p.add_argument("--mesh-size", type=float, default=None, metavar="MM",
-                       help="target edge length (mm) when the input is a closed surface (default 3)")
+                       help=f"target edge length (mm) when the input is a closed surface (default {MeshConfig.surface_mesh_size:g})")
 
 
 def register(sub) -> None:

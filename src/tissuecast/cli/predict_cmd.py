@@ -41,9 +41,9 @@ def register(sub) -> None:
                         "navigation systems use; a fallback); ridge: the paper's ridge baseline")
     p.add_argument("--ridge", action="store_const", const="ridge", dest="method", help="same as --method ridge")
     p.add_argument("--coverage", type=float, metavar="C",
-                   help="nominal coverage of the per-vertex error bounds, in (0, 1) (default: the model's, 0.9)")
+                   help="nominal coverage of the per-vertex error bounds, in (0, 1) (default: the model's surrogate.coverage)")
     p.add_argument("--false-alarm", type=float, metavar="RATE",
-                   help="false-alarm rate of the out-of-distribution alarm, in (0, 1) (default: the model's, 0.01)")
+                   help="false-alarm rate of the out-of-distribution alarm, in (0, 1) (default: the model's surrogate.false_alarm_rate)")
     p.set_defaults(func=run)
 
 

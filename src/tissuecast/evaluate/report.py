@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import EvaluateConfig
 from . import figures
 from .evaluation import METHOD_LABELS
 from .render import render_comparison, write_vtu
@@ -163,7 +164,8 @@ def _read_csv(path: Path) -> list[dict]:
         return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(fh)]
 
 
-def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studies_folder=None, title="tissuecast report") -> Path:
+def write_report(folder, model, dataset, evaluation, *, renders: int = EvaluateConfig.renders, studies_folder=None,
+                 title="tissuecast report") -> Path:
     """Write the report folder and return the path of ``index.html``.
 
     Args:

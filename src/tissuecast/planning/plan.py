@@ -20,14 +20,16 @@ from ..surrogate.data import dataset_arrays
 from ..surrogate.pca import fit_pca
 from .candidates import candidate_vertices
 from .proxy import QuadraticProxy
-from .selection import greedy_markers
+from .selection import SHORTLIST, greedy_markers
 
-__all__ = ["MarkerPlan", "plan_markers", "validation_error"]
+__all__ = ["MarkerPlan", "plan_markers", "validation_error", "MAX_COUNT"]
 
 log = logging.getLogger(__name__)
 
 #: PCA components of the training fields the planner works with.
 PLAN_COMPONENTS = 64
+#: The largest marker count searched for a target error (as many as the marker-count study's).
+MAX_COUNT = 20
 
 
 @dataclass(eq=False)
@@ -84,8 +86,8 @@ def validation_error(arrays, markers, config=None) -> float:
     return float(np.linalg.norm(pred - bench, axis=2).max(axis=1).mean())
 
 
-def plan_markers(dataset, count: int | None = None, *, target_mm: float | None = None, max_count: int = 20,
-                 region: str = "surface", min_distance: float = 0.0, allowed=None, shortlist: int = 24,
+def plan_markers(dataset, count: int | None = None, *, target_mm: float | None = None, max_count: int = MAX_COUNT,
+                 region: str = "surface", min_distance: float = 0.0, allowed=None, shortlist: int = SHORTLIST,
                  confirm: bool = False, config=None,
                  on_step: Callable[[int, np.ndarray, float], None] | None = None) -> MarkerPlan:
     """Choose markers from a data set's simulated fields.
