@@ -21,6 +21,11 @@ from ..surrogate.data import dataset_arrays, split_indices
 
 __all__ = ["architecture_study", "marker_count_study", "pca_study", "write_rows", "study_markers"]
 
+#: When a marker count does not fit at the configured spacing, the spacing shrinks by this
+#: factor per try, at most this many times (0.75^30 ~ 2e-4 of it: any mesh then holds them).
+SPACING_SHRINK = 0.75
+SPACING_TRIES = 30
+
 log = logging.getLogger(__name__)
 
 
@@ -109,7 +114,7 @@ def architecture_study(dataset, config: Config, *, widths=(32, 64, 128, 256), re
 
 def study_markers(mesh, count: int, config: Config) -> tuple[np.ndarray, float]:
     """``count`` markers by revised k-center from the config's start vertex; d_min is reduced
-    (x 0.75 steps) when the mesh cannot hold that many at the configured spacing.
+    (by :data:`SPACING_SHRINK` per try) when the mesh cannot hold that many at the configured spacing.
 
     Returns:
         ``(markers (count,) int64, d_min used in mm)``.
@@ -118,11 +123,11 @@ def study_markers(mesh, count: int, config: Config) -> tuple[np.ndarray, float]:
 
     mc = config.markers
     d_min = mc.min_distance
-    for _ in range(30):
+    for _ in range(SPACING_TRIES):
         try:
             return select_markers(mesh, count=count, start=mc.start, min_distance=d_min), d_min
         except MarkerError:
-            d_min *= 0.75
+            d_min *= SPACING_SHRINK
     raise ModelError(f"cannot place {count} markers on this mesh even with d_min = {d_min:.3g} mm")
 
 
