@@ -2,8 +2,8 @@
 
 The loop never waits on one client: it reads whatever bytes have arrived, lets the client's
 :class:`~tissuecast.serve.session.ClientSession` answer every complete message at once
-(a prediction takes well under a millisecond) and sends replies without blocking; what a
-slow reader does not take is queued for that client only. Per-client limits keep one bad
+(predictions are short next to a network round trip, see docs/serving.md) and sends replies
+without blocking; what a slow reader does not take is queued for that client only. Per-client limits keep one bad
 peer from hurting the others:
 
 - a body announced larger than ``max_body_bytes`` closes the connection unread;
@@ -11,7 +11,7 @@ peer from hurting the others:
 - more than ``max_output_bytes`` of unsent replies (a client that stops reading) closes it;
 - any unexpected exception while serving a client is logged and closes that client only.
 
-The server binds to 127.0.0.1 unless another host is given. Connections and disconnections
+The server binds to ``serve.host`` (127.0.0.1, this machine only) unless another host is given. Connections and disconnections
 are logged (logger ``tissuecast.serve.server``, level INFO).
 """
 
