@@ -33,7 +33,8 @@ def register(sub) -> None:
     how.add_argument("--count", type=int, help="number of markers")
     how.add_argument("--target-mm", type=float, metavar="MM",
                      help="the fewest markers whose validation mean Offset_max reaches this (mm)")
-    q.add_argument("--max-count", type=int, default=MAX_COUNT, help=f"largest count searched with --target-mm (default {MAX_COUNT})")
+    q.add_argument("--max-count", type=int, default=MAX_COUNT,
+                   help=f"largest count searched with --target-mm (default {MAX_COUNT})")
     q.add_argument("--region", choices=REGIONS, default="surface",
                    help="candidate vertices: surface (optical tracking, default), any (interior fiducials seen by "
                         "ultrasound allowed), interior")

@@ -34,9 +34,11 @@ def register(sub) -> None:
     p.add_argument("--full-field", action="store_true", default=None,
                    help="also send the full vertex field (POLYDATA TissueField) after every surface")
     p.add_argument("--transform-mode", choices=TRANSFORM_MODES,
-                   help=f"TRANSFORM input: predict when every marker is fresh (frame) or on each update (default {d.transform_mode})")
+                   help="TRANSFORM input: predict when every marker is fresh (frame) or on each update "
+                        f"(default {d.transform_mode})")
     p.add_argument("--max-offset", type=float, dest="max_marker_offset",
-                   help=f"reject markers farther than this many mm from their reference position (default {d.max_marker_offset:g})")
+                   help="reject markers farther than this many mm from their reference position "
+                        f"(default {d.max_marker_offset:g})")
     p.add_argument("--client-frame", choices=CLIENT_FRAMES,
                    help=f"frame of replies and of markers without registration (default {d.client_frame}; LPS = the model's, "
                         "RAS for 3D Slicer)")

@@ -8,7 +8,8 @@ import numpy as np
 
 from ..errors import require
 
-__all__ = ["boxplots", "beta_curve", "pca_curve", "pca_validation_curve", "training_curves", "marker_count_curve", "architecture_grid"]
+__all__ = ["boxplots", "beta_curve", "pca_curve", "pca_validation_curve", "training_curves", "marker_count_curve",
+           "architecture_grid"]
 
 PAPER_BETA = {0.0: 1.181, 0.5: 0.889}  # test-2 mean Offset_max (mm) quoted in the paper
 PAPER_MARKER_COUNTS = {3: 2.205, 5: 0.837, 10: 0.485, 20: 0.302}  # test-1 mean Offset_max (mm) per n_d, the paper
@@ -158,7 +159,8 @@ def architecture_grid(rows: list[dict], path: Path) -> Path:
                 err[i, j] = np.mean([r["mlp_offset_max"] for r in sel])
                 sec[i, j] = np.mean([r["seconds"] for r in sel])
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for ax, data, title, fmt in ((axes[0], err, "test-1 mean Offset_max (mm)", "{:.3f}"), (axes[1], sec, "training time (s)", "{:.1f}")):
+    panels = ((axes[0], err, "test-1 mean Offset_max (mm)", "{:.3f}"), (axes[1], sec, "training time (s)", "{:.1f}"))
+    for ax, data, title, fmt in panels:
         im = ax.imshow(data, cmap="viridis")
         ax.set_xticks(range(len(n2)), n2)
         ax.set_yticks(range(len(n1)), n1)

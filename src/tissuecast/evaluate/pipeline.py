@@ -85,7 +85,8 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
     model, ds = train_from_store(config, paths.store, model_folder=paths.model)
     seconds["train"] = time.perf_counter() - t
     t = time.perf_counter()
-    evaluation, index = evaluate_and_report(model, ds, paths.report, renders=config.evaluate.renders, title=f"tissuecast: {config.name}")
+    evaluation, index = evaluate_and_report(model, ds, paths.report, renders=config.evaluate.renders,
+                                            title=f"tissuecast: {config.name}")
     seconds["evaluate"] = time.perf_counter() - t
     return {"paths": paths, "dataset": summary, "model": model, "evaluation": evaluation, "report": index, "seconds": seconds}
 

@@ -200,7 +200,8 @@ def _table_sections(title: str, model, dataset, evaluation) -> list[str]:
     if any(unc.values()):
         parts.append("<h2>Uncertainty (ensemble spread)</h2>")
         parts.append(_table(["set", "mean per-sample Spearman(σ, vertex error)", "Spearman(max σ, Offset_max) over samples"],
-                            [[k, u["vertex_spearman_mean"], u["sample_spearman_sigma_max_vs_offset_max"]] for k, u in unc.items() if u]))
+                            [[k, u["vertex_spearman_mean"], u["sample_spearman_sigma_max_vs_offset_max"]]
+                             for k, u in unc.items() if u]))
     return parts
 
 
@@ -221,9 +222,11 @@ def _figures(folder: Path, model, evaluation, studies_folder) -> list[tuple[str,
         figs.append(("Training: validation loss", figures.training_curves(members, folder / "training.png")))
     sf = Path(studies_folder) if studies_folder else folder
     if (sf / "study_markers.csv").is_file():
-        figs.append(("Study: number of markers", figures.marker_count_curve(_read_csv(sf / "study_markers.csv"), folder / "markers.png")))
+        figs.append(("Study: number of markers",
+                     figures.marker_count_curve(_read_csv(sf / "study_markers.csv"), folder / "markers.png")))
     if (sf / "study_architecture.csv").is_file():
-        figs.append(("Study: hidden layers", figures.architecture_grid(_read_csv(sf / "study_architecture.csv"), folder / "architecture.png")))
+        figs.append(("Study: hidden layers",
+                     figures.architecture_grid(_read_csv(sf / "study_architecture.csv"), folder / "architecture.png")))
     return figs
 
 
@@ -261,7 +264,8 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = EvaluateC
         parts.append(trust_section(model, dataset, folder))
     if renders:
         parts += _render_section(folder, model, dataset, evaluation, renders)
-    page = f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{CSS}</style></head><body>{''.join(parts)}</body></html>"
+    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>")
     index = folder / "index.html"
     index.write_text(page, encoding="utf-8")
     return index

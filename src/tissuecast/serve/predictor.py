@@ -212,7 +212,8 @@ class SurfacePredictor:
         if prediction.uncertainty is not None and self.has_uncertainty:
             template.values[UNCERTAINTY_NAME][:] = prediction.uncertainty[self.surface_ids]
         if self.has_bounds:
-            template.values[BOUND_NAME][:] = np.nan if prediction.error_bound is None else prediction.error_bound[self.surface_ids]
+            bound = prediction.error_bound
+            template.values[BOUND_NAME][:] = np.nan if bound is None else bound[self.surface_ids]
         return template.finish(SURFACE_DEVICE, prediction.timestamp)
 
     def field_message(self, prediction: Prediction, frames: ClientFrames | None = None) -> memoryview:
