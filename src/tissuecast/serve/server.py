@@ -11,8 +11,8 @@ peer from hurting the others:
 - more than ``max_output_bytes`` of unsent replies (a client that stops reading) closes it;
 - any unexpected exception while serving a client is logged and closes that client only.
 
-The server binds to ``serve.host`` (127.0.0.1, this machine only) unless another host is given. Connections and disconnections
-are logged (logger ``tissuecast.serve.server``, level INFO).
+The server binds to ``serve.host`` (127.0.0.1, this machine only) unless another host is
+given. Connections and disconnections are logged (logger ``tissuecast.serve.server``, level INFO).
 """
 
 from __future__ import annotations

@@ -318,7 +318,7 @@ class DeformationModel:
         """
         if not self.has_trust:
             raise ModelError("this model has no calibrated error bounds or alarm; re-train it with "
-                             "surrogate.calibration_share > 0 (e.g. 0.125)")
+                             f"surrogate.calibration_share > 0 (e.g. {SurrogateConfig.calibration_share:g})")
         d, _, single = self._marker_batch(marker_displacements)
         u = self.compiled_.fields(d).reshape(d.shape[0], -1, 3)
         bounds, alarms = self.trust_.assess(d, u, coverage=coverage, false_alarm=false_alarm)

@@ -20,6 +20,8 @@ __all__ = ["PCABasis", "PCACurve", "fit_pca", "choose_n_components"]
 #: When fewer than rank / GRAM_RANK_RATIO components of a wide matrix are wanted, the leading
 #: eigenvectors of its (N, N) Gram matrix are computed instead of a full thin SVD.
 GRAM_RANK_RATIO = 4
+# Singular values below this share of the largest are round-off (a fold's Gram matrix is rank-deficient).
+_RANK_RTOL = 1e-12
 
 log = logging.getLogger(__name__)
 
@@ -235,7 +237,7 @@ def _curve(A, G, order, parts, K, max_error, full_curve):
         lam, U = eigh(Gc, subset_by_index=[len(train) - k_fold, len(train) - 1])
         lam, U = lam[::-1], U[:, ::-1]
         sv = np.sqrt(np.maximum(lam, 0.0))
-        keep = sv > 1e-12 * max(sv[0], 1e-300)
+        keep = sv > _RANK_RTOL * max(sv[0], 1e-300)
         comps = (U[:, keep].T @ (A[train] - mean)) / sv[keep][:, None]
         comps /= np.linalg.norm(comps, axis=1, keepdims=True)
         resid = A[held] - mean  # (m, p): reconstruction error with 0 components
