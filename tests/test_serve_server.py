@@ -347,3 +347,41 @@ def test_failing_model_gets_error_reply_and_server_survives(model):
         assert client.receive().text == "model evaluation failed: RuntimeError: simulated failure"
         assert_surface(client.predict(positions), model, positions)
         assert srv.stats["internal_errors"] == 0
+
+
+def test_rigid_method_serves_the_markers_rigid_motion(model):
+    """serve.method = "rigid": a rigid motion of the markers moves the whole surface rigidly."""
+    from scipy.spatial.transform import Rotation
+
+    from tissuecast.config import Config, with_overrides
+
+    rotation = Rotation.from_rotvec([0.05, -0.08, 0.12]).as_matrix()
+    shift = np.array([1.5, -2.0, 0.7])
+    centre = model.mesh.points.mean(axis=0)
+    moved = lambda p: (p - centre) @ rotation.T + centre + shift  # noqa: E731
+    positions = moved(model.reference_marker_positions).astype(np.float32).astype(np.float64)
+    serve = with_overrides(Config(), serve={"method": "rigid"}).serve
+    with IGTLServer.from_config(model, serve, host="127.0.0.1", port=0) as srv, IGTLClient(*srv.address) as client:
+        assert srv.predictor.method == "rigid" and not srv.predictor.has_uncertainty
+        reply = client.predict(positions)
+    expected = moved(model.mesh.points)[model.mesh.surface_vertices]
+    np.testing.assert_allclose(reply.polydata.points, expected, rtol=0, atol=1e-3)  # float32 points, markers float32
+    learned, _ = expected_surface(model, positions)
+    assert np.abs(learned - expected).max() > 1e-2  # the learned model's answer differs: the rigid path was used
+
+
+def test_rigid_method_errors(model):
+    from tissuecast.errors import ConfigError, ModelError
+
+    with pytest.raises(ConfigError, match="unknown serving method 'affine'"):
+        SurfacePredictor(model, method="affine")
+
+    class NoRigid:
+        mesh = model.mesh
+        reference_marker_positions = model.reference_marker_positions
+
+        def predict_from_positions(self, positions):
+            return np.zeros((model.mesh.n_points, 3))
+
+    with pytest.raises(ModelError, match="no predict_rigid"):
+        SurfacePredictor(NoRigid(), method="rigid")

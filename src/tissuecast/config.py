@@ -199,6 +199,7 @@ class EvaluateConfig:
 #: (see :mod:`tissuecast.serve.session`, :mod:`tissuecast.serve.frames`).
 TRANSFORM_MODES = ("frame", "each")
 CLIENT_FRAMES = ("LPS", "RAS")
+SERVE_METHODS = ("mlp", "rigid")
 
 
 @dataclass(frozen=True)
@@ -213,6 +214,7 @@ class ServeConfig:
     client_timeout: float = _f(5.0, lo=0.0, lo_open=True, doc="seconds an incomplete message may wait for its remaining bytes")
     client_frame: str = _f("LPS", choices=CLIENT_FRAMES, doc="frame of replies, and of markers without registration: LPS = the model's (scan's), RAS = 3D Slicer's world (OpenIGTLinkIF)")
     tracker_to_client: tuple[float, ...] = _f((), doc="tracker -> client frame registration: a 4x4 matrix row by row (16 numbers, mm); empty = none; a TRANSFORM TrackerToRas replaces it")
+    method: str = _f("mlp", choices=SERVE_METHODS, doc="prediction: the learned model (mlp) or the rigid registration of the markers (rigid, the fallback baseline)")
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import sys
 
-from ..config import CLIENT_FRAMES, TRANSFORM_MODES, ServeConfig, load_config, with_overrides
+from ..config import CLIENT_FRAMES, SERVE_METHODS, TRANSFORM_MODES, ServeConfig, load_config, with_overrides
 from ..errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -42,6 +42,9 @@ def register(sub) -> None:
     p.add_argument("--client-frame", choices=CLIENT_FRAMES,
                    help=f"frame of replies and of markers without registration (default {d.client_frame}; LPS = the model's, "
                         "RAS for 3D Slicer)")
+    p.add_argument("--method", choices=SERVE_METHODS,
+                   help=f"prediction (default {d.method}): the learned model, or rigid registration of the markers "
+                        "(the navigation systems' baseline, a fallback)")
     p.add_argument("--no-uncertainty", action="store_true", help="do not send ensemble uncertainty")
     p.set_defaults(func=run)
 
@@ -51,7 +54,8 @@ def run(args) -> int:
     from ..surrogate.robust import load_model_folder
 
     cfg = load_config(args.config)
-    overrides = {k: getattr(args, k) for k in ("host", "full_field", "transform_mode", "max_marker_offset", "client_frame")
+    overrides = {k: getattr(args, k) for k in ("host", "full_field", "transform_mode", "max_marker_offset", "client_frame",
+                                                 "method")
                  if getattr(args, k) is not None}
     if args.port:  # 0 (any free port) is allowed here but not in a config file
         overrides["port"] = args.port
@@ -59,7 +63,7 @@ def run(args) -> int:
     port = 0 if args.port == 0 else serve.port
     model = load_model_folder(args.model)  # a DeformationModel or a SubModelSet folder
     predictor = SurfacePredictor(model, max_marker_offset=serve.max_marker_offset,
-                                 use_uncertainty=not args.no_uncertainty)
+                                 use_uncertainty=not args.no_uncertainty, method=serve.method)
     try:
         server = IGTLServer.from_config(predictor, serve, port=port)
     except OSError as exc:  # address in use, unknown host, no permission for ports < 1024
@@ -71,6 +75,8 @@ def run(args) -> int:
           f"TRANSFORM Marker0..Marker{n_d - 1} ({serve.transform_mode} mode); registration: TRANSFORM "
           "TrackerToRas / ReferenceToRas / TrackerToImage", flush=True)
     print(f"  frames: {server.frames.describe()}", flush=True)
+    if serve.method != "mlp":
+        print(f"  method: {serve.method} (the learned model is not used)", flush=True)
     print(f"  output: POLYDATA TissueSurface ({len(predictor.surface_ids)} points, "
           f"{len(model.mesh.surface_triangles)} triangles"
           f"{', uncertainty_mm' if predictor.has_uncertainty else ''}); GET_POLYDATA TissueField -> "

@@ -30,8 +30,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from ..config import ServeConfig
-from ..errors import MarkerError, ModelError
+from ..config import SERVE_METHODS, ServeConfig
+from ..errors import ConfigError, MarkerError, ModelError
 from .frames import ClientFrames
 from .polydata import PolyDataTemplate
 
@@ -99,14 +99,22 @@ class SurfacePredictor:
         max_marker_offset: largest accepted distance (mm) of a marker from its reference
             position; larger ones are rejected as a likely registration/unit error.
         use_uncertainty: send per-vertex uncertainty when the model provides it.
+        method: ``"mlp"`` (the learned model) or ``"rigid"`` (the best rigid motion of the
+            markers applied to the whole mesh: the navigation systems' baseline, a fallback
+            when the learned model is not to be trusted; no uncertainty or bounds are sent).
     """
 
     def __init__(self, model: ServableModel, *, max_marker_offset: float = ServeConfig.max_marker_offset,
-                 use_uncertainty: bool = True):
+                 use_uncertainty: bool = True, method: str = ServeConfig.method):
         mesh = model.mesh
         reference = np.asarray(model.reference_marker_positions, dtype=np.float64)
         if reference.ndim != 2 or reference.shape[1] != 3 or not np.isfinite(reference).all():
             raise ModelError(f"model.reference_marker_positions must be finite (n_d, 3) mm, got shape {reference.shape}")
+        if method not in SERVE_METHODS:
+            raise ConfigError(f"unknown serving method {method!r}; use one of {', '.join(SERVE_METHODS)}")
+        if method != "mlp" and not callable(getattr(model, "predict_rigid", None)):
+            raise ModelError(f"this model cannot serve method={method!r} (it has no predict_rigid); serve it with method='mlp'")
+        self.method = method
         self.model = model
         self.reference = reference
         self.n_markers = len(reference)
@@ -115,6 +123,7 @@ class SurfacePredictor:
         self.supports_missing = bool(getattr(model, "supports_missing_markers", False))
         self.has_uncertainty = bool(
             use_uncertainty
+            and method == "mlp"
             and callable(getattr(model, "predict_with_uncertainty", None))
             and getattr(model, "ensemble_size", 2) >= 2
         )
@@ -122,7 +131,8 @@ class SurfacePredictor:
         self.surface_ids = np.asarray(mesh.surface_vertices, dtype=np.int64)
         triangles = np.asarray(mesh.surface_triangles, dtype=np.int64)
         local = np.searchsorted(self.surface_ids, triangles)
-        self.has_bounds = bool(getattr(model, "has_trust", False) and callable(getattr(model, "predict_trusted", None)))
+        self.has_bounds = bool(method == "mlp" and getattr(model, "has_trust", False)
+                               and callable(getattr(model, "predict_trusted", None)))
         extra = [(UNCERTAINTY_NAME, "scalars")] if self.has_uncertainty else []
         extra += [(BOUND_NAME, "scalars")] if self.has_bounds else []
         self.surface = PolyDataTemplate(len(self.surface_ids), local, extra)
@@ -175,7 +185,9 @@ class SurfacePredictor:
         extra = {} if missing is None else {"missing": missing}
         try:
             bound, alarm, mean = None, None, None
-            if self.has_bounds and missing is None:  # bounds and alarm need every marker
+            if self.method == "rigid":
+                mean = self.model.predict_rigid(positions - self.reference, **extra)
+            elif self.has_bounds and missing is None:  # bounds and alarm need every marker
                 trusted = self.model.predict_trusted(positions - self.reference)
                 bound, alarm, mean = np.asarray(trusted.error_bound, dtype=np.float64).reshape(self.n_points), \
                     trusted.alarms, trusted.displacement

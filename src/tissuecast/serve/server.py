@@ -104,11 +104,12 @@ class IGTLServer:
         max_marker_offset: float = ServeConfig.max_marker_offset,
         messages_per_turn: int = MESSAGES_PER_TURN,
         frames: ClientFrames | None = None,
+        method: str = ServeConfig.method,
     ):
         if isinstance(model, SurfacePredictor):
             self.predictor = model
         else:
-            self.predictor = SurfacePredictor(model, max_marker_offset=max_marker_offset)
+            self.predictor = SurfacePredictor(model, max_marker_offset=max_marker_offset, method=method)
         self.frames = frames if frames is not None else ClientFrames()
         self._session_options = dict(full_field=full_field, transform_mode=transform_mode, max_body_bytes=max_body_bytes,
                                      frames=self.frames)
@@ -135,10 +136,11 @@ class IGTLServer:
     @classmethod
     def from_config(cls, model: ServableModel | SurfacePredictor, config: ServeConfig, **options) -> "IGTLServer":
         """A server set up as a ``[serve]`` config section says (host, port, full_field,
-        transform_mode, client_timeout, max_marker_offset, client_frame, tracker_to_client);
+        transform_mode, client_timeout, max_marker_offset, client_frame, tracker_to_client, method);
         ``options`` (any argument of the constructor) take precedence."""
         settings = dict(full_field=config.full_field, transform_mode=config.transform_mode,
-                        client_timeout=config.client_timeout, max_marker_offset=config.max_marker_offset)
+                        client_timeout=config.client_timeout, max_marker_offset=config.max_marker_offset,
+                        method=config.method)
         settings.update(options)
         if "frames" not in settings:
             settings["frames"] = ClientFrames(config.client_frame, config.tracker_to_client or None)
