@@ -99,7 +99,7 @@ def main() -> None:
             folder = Path(tmp) / "model"
             model.save(folder)
             ensemble.save(Path(tmp) / "ensemble")
-        print(f"mesh: {mesh.n_points} vertices, surface {len(mesh.surface_vertices)} vertices / "
+        print(f"mesh: {mesh.n_vertices} vertices, surface {len(mesh.surface_vertices)} vertices / "
               f"{len(mesh.surface_triangles)} triangles; {model!r}")
         positions = model.reference_marker_positions
         predictor = SurfacePredictor(model)
@@ -114,7 +114,7 @@ def main() -> None:
             return pyigtl.PolyDataMessage(points=pts, polygons=tris, device_name="TissueSurface").pack()
 
         print(f"\n{'microseconds':<52s} {'p50':>9s} {'p99':>9s} {'max':>9s}")
-        W = np.random.default_rng(0).random((64, 3 * mesh.n_points))
+        W = np.random.default_rng(0).random((64, 3 * mesh.n_vertices))
         h = np.random.default_rng(1).random((1, 64))
         print(row("machine jitter floor: one fixed (1x64)@(64x3n) matmul", per_call(lambda: h @ W, n)))
         print(row("model.predict_from_positions", per_call(lambda: model.predict_from_positions(positions + 1.0), n)))

@@ -55,7 +55,7 @@ def main(argv: list[str]) -> int:
         f = label_map_fidelity(mesh, labelmap)
         sec = time.perf_counter() - start
         vs = f"{100 * (mesh.volume - exact) / exact:+7.2f}%" if exact else "       -"
-        print(f"{name:44s} {size:5.1f} {mesh.n_points:6d} {100 * f.volume_error:+7.2f}% {f.hausdorff_voxels:6.2f} "
+        print(f"{name:44s} {size:5.1f} {mesh.n_vertices:6d} {100 * f.volume_error:+7.2f}% {f.hausdorff_voxels:6.2f} "
               f"{f.hausdorff_mm:6.2f} {mesh.quality.radius_ratio_min:6.3f} {vs} {sec:5.1f}s")
     return 0
 

@@ -46,7 +46,7 @@ def unit_responses(mesh, fixed, basis, youngs_modulus=0.021, poisson_ratio=0.45)
     assembler, linear = solver.assembler, solver.linear
     _, data, _ = assembler.tangent(np.zeros((assembler.n_nodes, 3)))
     linear.factorize(data)
-    n, nb = mesh.n_points, basis.n_vectors
+    n, nb = mesh.n_vertices, basis.n_vectors
     out = np.zeros((nb, 3, n, 3))
     for i in range(nb):
         for c in range(3):

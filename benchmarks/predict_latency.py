@@ -30,7 +30,7 @@ def paper_size_model(ensemble: int = 1):
 
     rng = np.random.default_rng(0)
     mesh = phantom()
-    n, n_w, n_d, hidden = mesh.n_points, 27, 5, (128, 64)
+    n, n_w, n_d, hidden = mesh.n_vertices, 27, 5, (128, 64)
     q, _ = np.linalg.qr(rng.normal(size=(3 * n, n_w)))
     basis = PCABasis(mean=rng.normal(size=3 * n), components=q.T.copy(), singular_values=np.ones(n_w), n_samples=1600)
     members = []

@@ -80,9 +80,9 @@ def main(argv=None) -> int:
     if args.alpha is None:
         args.alpha = {"compact": 0.00589, "spread": 0.0678}[args.fixed_rule]
     basis = lbo_basis(mesh, 20)
-    fields = [lbo_field(basis, random_lbo_weights(np.random.default_rng(s), 20), args.alpha, mesh.n_points) for s in range(args.samples)]
+    fields = [lbo_field(basis, random_lbo_weights(np.random.default_rng(s), 20), args.alpha, mesh.n_vertices) for s in range(args.samples)]
     material = NeoHookean(0.021, 0.45)
-    print(f"phantom: {mesh.n_points} vertices, {mesh.n_tets} tets; fixed {fixed.tolist()}; alpha {args.alpha}; {args.samples} samples")
+    print(f"phantom: {mesh.n_vertices} vertices, {mesh.n_tets} tets; fixed {fixed.tolist()}; alpha {args.alpha}; {args.samples} samples")
 
     order_of = {v: VARIANTS[v][0] for v in args.variants}
     ref_needed = "p2-guess" in args.variants or any(order_of[v] == 2 for v in args.variants)

@@ -100,7 +100,7 @@ def time_ours(problem: Problem, forces: np.ndarray, repeats: int, config=None):
     return results[-1], setup, statistics.median(seconds)
 
 
-def time_batch(solver, model, forces, basis, field_rms, n_points, size, peak_range, repeats) -> dict:
+def time_batch(solver, model, forces, basis, field_rms, n_vertices, size, peak_range, repeats) -> dict:
     """The benchmark sample with ``size - 1`` others, one by one and with ``Solver.solve_batch``.
 
     The others are LBO fields of the data set's distribution (seeds 2000, 2001, ...), each
@@ -110,7 +110,7 @@ def time_batch(solver, model, forces, basis, field_rms, n_points, size, peak_ran
     """
     fields, seeds, seed = [forces], [], 2000
     while len(fields) < size and seed < 2000 + 10 * size:
-        f = lbo_field(basis, random_lbo_weights(np.random.default_rng(seed), 20), field_rms, n_points)
+        f = lbo_field(basis, random_lbo_weights(np.random.default_rng(seed), 20), field_rms, n_vertices)
         try:
             scale, _, landed = calibrate(solver.problem, f, *peak_range,
                                          solve=lambda x: solver.solve(x, initial_guess=model.predict(x)))
@@ -181,7 +181,7 @@ def main(argv=None) -> int:
     phantom_seed, phantom_rms = PHANTOM_FIELDS[args.fixed_rule]
     rms = args.rms_force or (QUICK_RMS_FORCE if args.quick else phantom_rms)
     seed = args.seed if args.seed is not None else (QUICK_SEED if args.quick else phantom_seed)
-    unit = lbo_field(basis, random_lbo_weights(np.random.default_rng(seed), 20), rms / field_scale(basis), mesh.n_points)
+    unit = lbo_field(basis, random_lbo_weights(np.random.default_rng(seed), 20), rms / field_scale(basis), mesh.n_vertices)
     p2 = Problem(mesh, material, fixed, order=2)
     p1 = Problem(mesh, material, fixed, order=1)
     print(f"mesh: {mesh}; P2 nodes {len(mesh.points10)}; fixed vertices {fixed.tolist()} (0-based)")
@@ -213,7 +213,7 @@ def main(argv=None) -> int:
         snaps = []
         for i in range(args.predictor):  # the data set's distribution: other LBO weights, same magnitude
             w = random_lbo_weights(np.random.default_rng(1000 + i), 20)
-            f = lbo_field(basis, w, scale * rms / field_scale(basis), mesh.n_points)
+            f = lbo_field(basis, w, scale * rms / field_scale(basis), mesh.n_vertices)
             snaps.append(solver.solve(f).nodal_displacement)
         t_snap = time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -232,7 +232,7 @@ def main(argv=None) -> int:
         warm = (sec_w, amortised, t_snap, t_fit, statistics.median(preds), model)
         rows.append(("P2 + predictor", 2, "-", sec_w, 0.0, rw, _peak_mb(resource.RUSAGE_SELF)))
         if args.batch > 1:
-            batch = time_batch(solver, model, forces, basis, scale * rms / field_scale(basis), mesh.n_points,
+            batch = time_batch(solver, model, forces, basis, scale * rms / field_scale(basis), mesh.n_vertices,
                                args.batch, args.range, args.repeats)
             rows.append((f"P2 + pred. x{args.batch}", 2, "-", batch["batch"], 0.0, batch["result"],
                          _peak_mb(resource.RUSAGE_SELF)))

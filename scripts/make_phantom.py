@@ -33,7 +33,7 @@ def main(argv: list[str]) -> int:
     )
     q = mesh.quality
     print(f"wrote {out}")
-    print(f"vertices {mesh.n_points}, tetrahedra {mesh.n_tets}, surface vertices {len(mesh.surface_vertices)}, "
+    print(f"vertices {mesh.n_vertices}, tetrahedra {mesh.n_tets}, surface vertices {len(mesh.surface_vertices)}, "
           f"surface triangles {len(mesh.surface_triangles)}")
     print(f"extent {np.round(mesh.extent, 3).tolist()} mm, volume {mesh.volume:.3f} mm^3, "
           f"radius ratio min {q.radius_ratio_min:.3f} mean {q.radius_ratio_mean:.3f}")

@@ -87,7 +87,7 @@ def smooth_solver_factory(mesh, fixed, cfg):
 
     A = mesh.vertex_adjacency.astype(float)
     deg = np.asarray(A.sum(axis=1)).ravel()
-    P = sp.diags(1.0 / (deg + 1.0)) @ (A + sp.eye(mesh.n_points))
+    P = sp.diags(1.0 / (deg + 1.0)) @ (A + sp.eye(mesh.n_vertices))
 
     def make(solver_cfg):
         def solve(forces, initial_guess=None):

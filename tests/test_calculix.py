@@ -54,7 +54,7 @@ def test_deck_reads_back_with_meshio_and_keeps_ids(tmp_path, order):
     meshio = pytest.importorskip("meshio")
     mesh = box_mesh(2, 3, 2, (10.0, 12.0, 8.0))
     rng = np.random.default_rng(1)
-    forces = rng.normal(size=(mesh.n_points, 3)) * 0.01
+    forces = rng.normal(size=(mesh.n_vertices, 3)) * 0.01
     forces[mesh.interior_vertices] = 0.0
     forces[0, 1] = 0.0  # zero components are not written
     fixed = mesh.interior_vertices[:2]
@@ -67,10 +67,10 @@ def test_deck_reads_back_with_meshio_and_keeps_ids(tmp_path, order):
     np.testing.assert_array_equal(back.cells[0].data, cells)
     # for C3D10 the midpoint of an edge between two fixed vertices is fixed too (as in fem.Problem)
     e = mesh.edges
-    fixed_mid = mesh.n_points + np.flatnonzero(np.isin(e, fixed).all(axis=1)) if order == 2 else []
+    fixed_mid = mesh.n_vertices + np.flatnonzero(np.isin(e, fixed).all(axis=1)) if order == 2 else []
     assert order == 1 or len(fixed_mid) == 1  # the two chosen vertices share an edge
     np.testing.assert_array_equal(np.sort(back.point_sets["NFIXED"]), np.sort(np.r_[fixed, fixed_mid]))
-    np.testing.assert_array_equal(back.point_sets["NVERT"], np.arange(mesh.n_points))
+    np.testing.assert_array_equal(back.point_sets["NVERT"], np.arange(mesh.n_vertices))
     np.testing.assert_array_equal(back.point_sets["MARKERS"], [3, 7])
 
     text = path.read_text()
@@ -95,7 +95,7 @@ def test_deck_reads_back_with_meshio_and_keeps_ids(tmp_path, order):
 
 def test_deck_prescribed_displacements_skip_free_components(tmp_path):
     mesh = box_mesh(1, 1, 1)
-    f = np.zeros((mesh.n_points, 3))
+    f = np.zeros((mesh.n_vertices, 3))
     path = cx.write_inp(tmp_path / "p.inp", mesh, MAT, [], f, prescribed={0: [0.0, np.nan, 0.5], 7: [np.nan] * 3})
     assert _section(path.read_text(), "*BOUNDARY") == ["1, 1, 1, 0.0", "1, 3, 3, 0.5"]
     assert "*CLOAD" not in path.read_text()
@@ -106,7 +106,7 @@ def test_deck_prescribed_displacements_skip_free_components(tmp_path):
 
 def test_write_inp_rejects_bad_input(tmp_path):
     mesh = box_mesh(1, 1, 1)
-    f = np.zeros((mesh.n_points, 3))
+    f = np.zeros((mesh.n_vertices, 3))
     out = tmp_path / "x.inp"
     with pytest.raises(SolverSetupError, match="shape"):
         cx.write_inp(out, mesh, MAT, [0], f[:-1])
@@ -130,7 +130,7 @@ def test_write_inp_rejects_bad_input(tmp_path):
 def test_deck_numbers_fit_ccx_field_width(tmp_path):
     """ccx rejects numbers longer than 20 characters (e.g. ``-2.786959021906976E-05``)."""
     mesh = box_mesh(1, 1, 1).scaled(1.0 / 3.0)
-    forces = np.zeros((mesh.n_points, 3))
+    forces = np.zeros((mesh.n_vertices, 3))
     forces[7] = [-2.786959021906976e-05, 1.0 / 3.0, -1e-300 / 3.0]
     text = cx.write_inp(tmp_path / "w.inp", mesh, MAT, [0, 1, 2], forces).read_text()
     numbers = [x.strip() for ln in text.splitlines() if not ln.startswith("*") and "," in ln for x in ln.split(",")]
@@ -147,7 +147,7 @@ def test_export_inp_cli_writes_the_configured_deck(tmp_path, capsys):
 
     mesh = phantom()
     markers, fixed = markers_and_fixed(mesh)
-    forces = np.zeros((mesh.n_points, 3))
+    forces = np.zeros((mesh.n_vertices, 3))
     forces[mesh.surface_vertices[:2]] = [[0.01, 0.0, -0.02], [0.0, 0.03, 0.0]]
     np.save(tmp_path / "f.npy", forces)
     assert main(["export-inp", "phantom", str(tmp_path / "a.inp"), "--forces", str(tmp_path / "f.npy")]) == 0
@@ -303,7 +303,7 @@ def test_ccx_uniaxial_block_matches_closed_form(tmp_path, nominal_stress):
     length = 10.0
     mesh = box_mesh(3, 3, 3, (length, length, length))
     p = mesh.points
-    forces = np.zeros((mesh.n_points, 3))
+    forces = np.zeros((mesh.n_vertices, 3))
     tri = mesh.surface_triangles
     top = tri[np.isclose(p[tri][:, :, 2], length).all(axis=1)]
     area = 0.5 * np.linalg.norm(np.cross(p[top[:, 1]] - p[top[:, 0]], p[top[:, 2]] - p[top[:, 0]]), axis=1)
@@ -314,7 +314,7 @@ def test_ccx_uniaxial_block_matches_closed_form(tmp_path, nominal_stress):
     path = cx.write_inp(tmp_path / "uni.inp", mesh, MAT, [], forces, order=1,
                         prescribed=(np.flatnonzero(keep), sym[keep]))
     run = cx.run_ccx(path)
-    u = cx.read_displacements(run.dat, mesh.n_points)
+    u = cx.read_displacements(run.dat, mesh.n_vertices)
     lam, t = uniaxial_closed_form(MAT, nominal_stress)
     assert abs(lam - 1.0) > 0.1
     np.testing.assert_allclose(u[:, 2], (lam - 1.0) * p[:, 2], atol=2e-5 * length)
@@ -334,13 +334,13 @@ def test_ccx_c3d10_block_stretched_by_prescribed_displacement_matches_closed_for
     value = np.where(np.isclose(p, 0.0), 0.0, np.nan)  # rollers on x = 0, y = 0, z = 0
     value[np.isclose(p[:, 2], length), 2] = (stretch - 1.0) * length
     keep = ~np.isnan(value).all(axis=1)
-    path = cx.write_inp(tmp_path / "stretch.inp", mesh, MAT, [], np.zeros((mesh.n_points, 3)), order=2,
+    path = cx.write_inp(tmp_path / "stretch.inp", mesh, MAT, [], np.zeros((mesh.n_vertices, 3)), order=2,
                         prescribed=(np.flatnonzero(keep), value[keep]))
     text = path.read_text()
-    top_mid = mesh.n_points + np.flatnonzero(np.isclose(mesh.points10[mesh.n_points :, 2], length))
+    top_mid = mesh.n_vertices + np.flatnonzero(np.isclose(mesh.points10[mesh.n_vertices :, 2], length))
     assert all(f"{k + 1}, 3, 3, 3.0" in text for k in top_mid)  # mid-edge nodes follow their edge
     run = cx.run_ccx(path)
-    u = cx.read_displacements(run.dat, mesh.n_points)
+    u = cx.read_displacements(run.dat, mesh.n_vertices)
 
     def lateral_stress(t):
         j = stretch * t * t
@@ -357,7 +357,7 @@ def test_ccx_c3d10_block_stretched_by_prescribed_displacement_matches_closed_for
 def test_ccx_failure_raises_convergence_error_with_load_fraction(tmp_path):
     mesh = box_mesh(1, 1, 2, (10.0, 10.0, 20.0))
     p = mesh.points
-    forces = np.zeros((mesh.n_points, 3))
+    forces = np.zeros((mesh.n_vertices, 3))
     forces[np.isclose(p[:, 2], 20.0), 2] = -50.0  # crushes the column: elements invert early
     path = cx.write_inp(tmp_path / "crush.inp", mesh, MAT, np.flatnonzero(np.isclose(p[:, 2], 0.0)), forces)
     with pytest.raises(ConvergenceError, match="smaller than minimum") as info:
@@ -374,7 +374,7 @@ def test_ccx_failure_raises_convergence_error_with_load_fraction(tmp_path):
         cx.solve_calculix(problem, forces)
     partial = info.value.result
     assert not partial.converged and partial.load_fraction == info.value.load_fraction < 0.05
-    assert partial.displacement.shape == (mesh.n_points, 3) and partial.cutbacks > 0
+    assert partial.displacement.shape == (mesh.n_vertices, 3) and partial.cutbacks > 0
 
 
 # ------------------------------------------------------------ ccx vs the built-in solver
@@ -394,7 +394,7 @@ def _smooth_problem(mesh, rms_force: float, seed: int = 0, order: int = 2, rule:
     fixed = select_fixed_vertices(mesh, 3, exclude=select_markers(mesh), rule=rule)
     basis = lbo_basis(mesh, 20)
     weights = random_lbo_weights(np.random.default_rng(seed), 20)
-    forces = lbo_field(basis, weights, rms_force / field_scale(basis), mesh.n_points)
+    forces = lbo_field(basis, weights, rms_force / field_scale(basis), mesh.n_vertices)
     return Problem(mesh, MAT, fixed, order=order), forces
 
 

@@ -19,7 +19,7 @@ def test_mesh_info_phantom_prints_the_figures(capsys):
     assert main(["mesh", "info", "phantom"]) == 0
     out = capsys.readouterr().out
     m = tc.phantom()
-    assert f"vertices           {m.n_points}  ({len(m.surface_vertices)} on the surface" in out
+    assert f"vertices           {m.n_vertices}  ({len(m.surface_vertices)} on the surface" in out
     assert f"tetrahedra         {m.n_tets}" in out
     assert f"surface triangles  {len(m.surface_triangles)}" in out
     assert f"volume             {m.volume:.2f} mm^3" in out
@@ -55,7 +55,7 @@ def test_mesh_convert_surface_to_volume(tmp_path, capsys):
     assert main(["mesh", "convert", str(tmp_path / "cube.stl"), str(tmp_path / "cube.vtu"), "--mesh-size", "4"]) == 0
     m = read_mesh(tmp_path / "cube.vtu")
     assert m.volume == pytest.approx(1728.0, rel=1e-9)
-    assert m.n_points > 27
+    assert m.n_vertices > 27
 
 
 def test_mesh_phantom_writes_the_phantom(tmp_path, capsys):

@@ -23,7 +23,7 @@ def beam():
     mesh = box_grid(8, 2, 2, size=(0.5, 0.5, 0.5))
     x = mesh.points[:, 0]
     fixed = np.flatnonzero(x < 1e-9)
-    f = np.zeros((mesh.n_points, 3))
+    f = np.zeros((mesh.n_vertices, 3))
     tip = np.flatnonzero(x > 4 - 1e-9)
     f[tip, 2] = -2e-4 / len(tip)
     f[tip, 1] = 5e-5 / len(tip)
@@ -39,22 +39,22 @@ def test_reactions_balance_applied_forces(beam, order):
     assert res.max_displacement > 0.5  # large deflection: the test is nonlinear
     total = res.nodal_reaction.sum(axis=0) + f.sum(axis=0)
     assert np.abs(total).max() <= 1e-8 * np.abs(f.sum(axis=0)).max()
-    free = np.setdiff1d(np.arange(mesh.n_points), fixed)
+    free = np.setdiff1d(np.arange(mesh.n_vertices), fixed)
     assert np.all(res.reaction[free] == 0.0)
     # moment balance about the origin in the deformed configuration
     x = res.nodal_displacement + Problem(mesh, MAT, fixed, order=order).nodes
     fnodal = np.zeros_like(x)
-    fnodal[: mesh.n_points] = f
+    fnodal[: mesh.n_vertices] = f
     moment = np.cross(x, res.nodal_reaction + fnodal).sum(axis=0)
-    assert np.abs(moment).max() <= 1e-7 * np.abs(np.cross(x[: mesh.n_points], f).sum(axis=0)).max()
+    assert np.abs(moment).max() <= 1e-7 * np.abs(np.cross(x[: mesh.n_vertices], f).sum(axis=0)).max()
 
 
 def test_result_record_is_complete(beam):
     mesh, fixed, f = beam
     res = Solver(Problem(mesh, MAT, fixed, order=2)).solve(f)
-    assert res.displacement.shape == (mesh.n_points, 3)
-    assert res.nodal_displacement.shape == (mesh.n_points + len(mesh.edges), 3)
-    np.testing.assert_array_equal(res.nodal_displacement[: mesh.n_points], res.displacement)
+    assert res.displacement.shape == (mesh.n_vertices, 3)
+    assert res.nodal_displacement.shape == (mesh.n_vertices + len(mesh.edges), 3)
+    np.testing.assert_array_equal(res.nodal_displacement[: mesh.n_vertices], res.displacement)
     assert res.iterations >= res.increments >= 1 and res.factorizations >= 1 and res.solves >= res.iterations
     assert len(res.residual_history) == res.iterations and res.seconds > 0
     assert np.all(res.displacement[fixed] == 0.0)
@@ -238,7 +238,7 @@ def test_prescribed_displacement_and_reaction(beam):
     mesh, fixed, _ = beam
     tip = np.flatnonzero(mesh.points[:, 0] > 4 - 1e-9)
     pres = {int(v): (0.0, 0.0, -0.8) for v in tip}
-    res = solve(Problem(mesh, MAT, fixed, order=2, prescribed=pres), np.zeros((mesh.n_points, 3)))
+    res = solve(Problem(mesh, MAT, fixed, order=2, prescribed=pres), np.zeros((mesh.n_vertices, 3)))
     np.testing.assert_allclose(res.displacement[tip], np.tile([0.0, 0.0, -0.8], (len(tip), 1)), atol=1e-14)
     # the supports pull the tip down and the clamp holds it: reactions balance
     assert res.reaction[tip, 2].sum() < 0
@@ -254,7 +254,7 @@ def test_setup_errors(beam):
     with pytest.raises(SolverSetupError, match="at least 3"):
         Problem(mesh, MAT, fixed[:2])
     with pytest.raises(SolverSetupError, match="outside"):
-        Problem(mesh, MAT, [0, 1, mesh.n_points])
+        Problem(mesh, MAT, [0, 1, mesh.n_vertices])
     with pytest.raises(SolverSetupError, match="repeats"):
         Problem(mesh, MAT, [0, 0, 1, 2])
     with pytest.raises(SolverSetupError, match="order"):

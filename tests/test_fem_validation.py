@@ -31,7 +31,7 @@ def homogeneous_solve(mesh, grad, order):
     bnd = mesh.surface_vertices
     prescribed = (bnd, mesh.points[bnd] @ grad.T)
     prob = Problem(mesh, MAT, fixed=[], order=order, prescribed=prescribed)
-    res = Solver(prob, TIGHT).solve(np.zeros((mesh.n_points, 3)))
+    res = Solver(prob, TIGHT).solve(np.zeros((mesh.n_vertices, 3)))
     return prob, res
 
 
@@ -118,7 +118,7 @@ def cantilever(k, order, load):
     x = mesh.points[:, 0]
     fixed = np.flatnonzero(x < 1e-9)
     tip = np.flatnonzero(x > 4 - 1e-9)
-    f = np.zeros((mesh.n_points, 3))
+    f = np.zeros((mesh.n_vertices, 3))
     f[tip, 2] = -load / len(tip)
     res = solve(Problem(mesh, MAT, fixed, order=order), f, TIGHT)
     mid = np.flatnonzero(np.abs(x - 2.0) < 1e-9)
@@ -135,17 +135,17 @@ def test_small_loads_reproduce_linear_elasticity():
     x = mesh.points[:, 0]
     prob = Problem(mesh, MAT, np.flatnonzero(x < 1e-9), order=2)
     solver = Solver(prob)
-    f = np.zeros((mesh.n_points, 3))
+    f = np.zeros((mesh.n_vertices, 3))
     tip = np.flatnonzero(x > 4 - 1e-9)
     f[tip, 2] = -load / len(tip)
     asm = solver.assembler
     _, k0, _ = asm.tangent(np.zeros((len(prob.nodes), 3)))
     rhs = np.zeros(asm.n_dofs)
-    rhs[: 3 * mesh.n_points] = f.ravel()
+    rhs[: 3 * mesh.n_vertices] = f.ravel()
     solver.linear.factorize(k0)
     lin = np.zeros(asm.n_dofs)
     lin[asm.free_dofs] = solver.linear.solve(rhs[asm.free_dofs])
-    lin = lin.reshape(-1, 3)[: mesh.n_points]
+    lin = lin.reshape(-1, 3)[: mesh.n_vertices]
     assert np.abs(res_small.displacement - lin).max() <= 1e-3 * np.abs(lin).max()
 
 

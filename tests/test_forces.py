@@ -141,19 +141,19 @@ def test_random_weights_are_uniform_and_reproducible():
 def test_lbo_field_is_alpha_b_w_on_the_surface_and_zero_inside(sphere):
     b = lbo_basis(sphere, n=8)
     w = random_lbo_weights(np.random.default_rng(1), 8)
-    f = lbo_field(b, w, 2.5, sphere.n_points)
-    assert f.shape == (sphere.n_points, 3)
+    f = lbo_field(b, w, 2.5, sphere.n_vertices)
+    assert f.shape == (sphere.n_vertices, 3)
     np.testing.assert_allclose(f[b.vertices], 2.5 * b.vectors @ w, rtol=1e-12, atol=1e-15)
     np.testing.assert_array_equal(f[sphere.interior_vertices], 0.0)
-    np.testing.assert_allclose(lbo_field(b, w, 5.0, sphere.n_points), 2 * f, rtol=1e-14)
+    np.testing.assert_allclose(lbo_field(b, w, 5.0, sphere.n_vertices), 2 * f, rtol=1e-14)
     with pytest.raises(ConfigError, match=r"\(8, 3\)"):
-        lbo_field(b, w[:5], 1.0, sphere.n_points)
+        lbo_field(b, w[:5], 1.0, sphere.n_vertices)
 
 
 def test_field_scale_is_the_rms_nodal_force_per_unit_alpha(potato):
     b = lbo_basis(potato, n=20)
     rng = np.random.default_rng(2)
-    ms = [np.mean(np.sum(lbo_field(b, random_lbo_weights(rng, 20), 1.0, potato.n_points)[b.vertices] ** 2, 1))
+    ms = [np.mean(np.sum(lbo_field(b, random_lbo_weights(rng, 20), 1.0, potato.n_vertices)[b.vertices] ** 2, 1))
           for _ in range(3000)]
     np.testing.assert_allclose(np.sqrt(np.mean(ms)), field_scale(b), rtol=0.03)
     # M-orthonormal columns: sum_i m_i B_ik^2 = 1, so the scale is ~ sqrt(n / area)
@@ -188,7 +188,7 @@ def test_smoothing_preserves_the_degree_weighted_total_and_bounds(sphere):
     deg = np.diff((lap != 0).astype(int).tocsr().indptr) - 1  # neighbours (row minus diagonal)
     deg[deg < 0] = 0
     rng = np.random.default_rng(4)
-    f = np.zeros((sphere.n_points, 3))
+    f = np.zeros((sphere.n_vertices, 3))
     f[rng.choice(sphere.surface_vertices, 3, replace=False)] = rng.normal(size=(3, 3))
     g = smooth(f, lap, iterations=20, rate=0.1)
     np.testing.assert_allclose(deg @ g, deg @ f, rtol=1e-12)
@@ -201,7 +201,7 @@ def test_support_spreads_one_ring_per_iteration(sphere):
     lap = surface_graph_laplacian(sphere)
     adj = (lap != 0).astype(float)
     hops = shortest_path(adj, unweighted=True, indices=[17])[0]
-    f = np.zeros((sphere.n_points, 3))
+    f = np.zeros((sphere.n_vertices, 3))
     f[17, 2] = 1.0
     for k in (1, 2, 5):
         g = smooth(f, lap, iterations=k, rate=0.1)
@@ -210,21 +210,21 @@ def test_support_spreads_one_ring_per_iteration(sphere):
 
 def test_lsc_field_draws_loads_away_from_fixed_vertices(sphere):
     fixed = sphere.surface_vertices[:600]  # leaves 42 loadable surface vertices
-    raw = lsc_field(sphere, np.random.default_rng(8), n_points=3, iterations=0, magnitude=2.0, exclude=fixed)
+    raw = lsc_field(sphere, np.random.default_rng(8), n_forces=3, iterations=0, magnitude=2.0, exclude=fixed)
     loaded = np.flatnonzero(np.linalg.norm(raw, axis=1) > 0)
     assert len(loaded) == 3 and not np.isin(loaded, fixed).any()
     np.testing.assert_allclose(np.linalg.norm(raw[loaded], axis=1), 2.0)
-    again = lsc_field(sphere, np.random.default_rng(8), n_points=3, iterations=0, magnitude=2.0, exclude=fixed)
+    again = lsc_field(sphere, np.random.default_rng(8), n_forces=3, iterations=0, magnitude=2.0, exclude=fixed)
     np.testing.assert_array_equal(raw, again)
-    smoothed = lsc_field(sphere, np.random.default_rng(8), n_points=3, iterations=20, magnitude=2.0, exclude=fixed)
+    smoothed = lsc_field(sphere, np.random.default_rng(8), n_forces=3, iterations=20, magnitude=2.0, exclude=fixed)
     np.testing.assert_allclose(smoothed, smooth(raw, surface_graph_laplacian(sphere), 20, 0.1), rtol=1e-13)
-    with pytest.raises(ConfigError, match="1 <= n_points <= 42"):
-        lsc_field(sphere, np.random.default_rng(0), n_points=43, exclude=fixed)
+    with pytest.raises(ConfigError, match="1 <= n_forces <= 42"):
+        lsc_field(sphere, np.random.default_rng(0), n_forces=43, exclude=fixed)
 
 
 def test_lsc_field_matches_reference_norm(sphere):
     b = lbo_basis(sphere, n=20)
-    ref = lbo_field(b, random_lbo_weights(np.random.default_rng(0), 20), 3.0, sphere.n_points)
+    ref = lbo_field(b, random_lbo_weights(np.random.default_rng(0), 20), 3.0, sphere.n_vertices)
     f = lsc_field(sphere, np.random.default_rng(1), reference=ref)
     np.testing.assert_allclose(np.linalg.norm(f), np.linalg.norm(ref), rtol=1e-12)
 

@@ -171,7 +171,7 @@ def test_sphere_surface_volume_and_size_convergence(tmp_path):
     fine = read_mesh(tmp_path / "sphere.stl", mesh_size=2.5)
     assert abs(fine.volume / exact - 1) < 0.02
     assert abs(fine.volume - exact) < abs(coarse.volume - exact)  # a finer surface is closer
-    assert fine.n_points > 2 * coarse.n_points
+    assert fine.n_vertices > 2 * coarse.n_vertices
     assert np.linalg.norm(fine.points[fine.surface_vertices], axis=1) == pytest.approx(10.0, abs=0.02)
 
 

@@ -18,12 +18,12 @@ FINGERPRINT = "a9d8e7ad3311f7ef0ba8b1ea06388b2fa9039bcc14bc04792cd4a1a82f743ecf"
 
 def test_exact_counts_volume_and_fingerprint():
     m = tc.phantom()
-    assert (m.n_points, m.n_tets) == (VERTICES, TETS)
+    assert (m.n_vertices, m.n_tets) == (VERTICES, TETS)
     assert (len(m.surface_vertices), len(m.surface_triangles)) == (SURFACE_VERTICES, SURFACE_TRIANGLES)
     assert m.volume == pytest.approx(VOLUME_MM3, rel=1e-6)
     assert m.fingerprint() == FINGERPRINT
     assert m.n_flipped == 0
-    assert 1100 <= m.n_points <= 1200 and 4500 <= m.n_tets <= 9000
+    assert 1100 <= m.n_vertices <= 1200 and 4500 <= m.n_tets <= 9000
 
 
 def test_size_matches_the_paper():
@@ -41,7 +41,7 @@ def test_quality_and_interior():
     depth, _ = cKDTree(m.points[m.surface_vertices]).query(m.points[m.interior_vertices])
     assert len(m.interior_vertices) == VERTICES - SURFACE_VERTICES
     assert depth.max() > 9.0 and (depth > 6.0).sum() >= 50
-    assert 96 < m.n_points  # the paper's start vertex (0-based 96) exists
+    assert 96 < m.n_vertices  # the paper's start vertex (0-based 96) exists
 
 
 def test_phantom_is_cached_and_immutable():
@@ -95,7 +95,7 @@ def test_make_phantom_script_reproduces_the_shipped_mesh(tmp_path):
     assert mod["main"]([str(tmp_path / "p.npz")]) == 0
     data = np.load(tmp_path / "p.npz", allow_pickle=False)
     m = tc.mesh.TetMesh(data["points"], data["tets"])
-    assert abs(m.n_points - VERTICES) <= 0.03 * VERTICES
+    assert abs(m.n_vertices - VERTICES) <= 0.03 * VERTICES
     assert abs(m.n_tets - TETS) <= 0.03 * TETS
     assert m.volume == pytest.approx(VOLUME_MM3, rel=5e-3)
     assert m.n_flipped == 0

@@ -19,7 +19,7 @@ def enclosed_volume(mesh: TetMesh) -> float:
 @pytest.mark.parametrize("split, n_edges, n_flipped", [(5, 18, 2), (6, 19, 3)])
 def test_cube_split_counts(split, n_edges, n_flipped):
     m = cube(split, side=10.0)
-    assert m.n_points == 8 and m.n_tets == split
+    assert m.n_vertices == m.n_points == 8 and m.n_tets == split
     assert len(m.surface_triangles) == 12
     assert m.surface_vertices.tolist() == list(range(8))
     assert m.interior_vertices.size == 0
@@ -62,10 +62,10 @@ def test_surface_normals_point_outward_on_phantom():
 def test_structured_box_counts_follow_formulas(nx, ny, nz):
     h = (0.5, 2.0, 1.5)
     m = box_grid(nx, ny, nz, size=h)
-    assert m.n_points == (nx + 1) * (ny + 1) * (nz + 1)
+    assert m.n_vertices == (nx + 1) * (ny + 1) * (nz + 1)
     assert m.n_tets == 6 * nx * ny * nz
     assert len(m.surface_triangles) == 4 * (nx * ny + ny * nz + nx * nz)
-    assert len(m.surface_vertices) == m.n_points - (nx - 1) * (ny - 1) * (nz - 1)
+    assert len(m.surface_vertices) == m.n_vertices - (nx - 1) * (ny - 1) * (nz - 1)
     assert len(m.interior_vertices) == (nx - 1) * (ny - 1) * (nz - 1)
     axis = nx * (ny + 1) * (nz + 1) + (nx + 1) * ny * (nz + 1) + (nx + 1) * (ny + 1) * nz
     face = nx * ny * (nz + 1) + nx * (ny + 1) * nz + (nx + 1) * ny * nz
@@ -92,12 +92,12 @@ def test_edges_are_sorted_unique_pairs():
 def test_tets10_midpoints():
     m = box_grid(2, 1, 1, size=(1.0, 2.0, 3.0))
     t10, p10 = m.tets10, m.points10
-    assert t10.shape == (m.n_tets, 10) and p10.shape == (m.n_points + len(m.edges), 3)
+    assert t10.shape == (m.n_tets, 10) and p10.shape == (m.n_vertices + len(m.edges), 3)
     np.testing.assert_array_equal(t10[:, :4], m.tets)
     for k, (a, b) in enumerate(TET_EDGES):
         np.testing.assert_allclose(p10[t10[:, 4 + k]], 0.5 * (m.points[m.tets[:, a]] + m.points[m.tets[:, b]]))
     # every mid-edge node is shared by all tets around its edge: n + e distinct nodes in total
-    assert len(np.unique(t10)) == m.n_points + len(m.edges)
+    assert len(np.unique(t10)) == m.n_vertices + len(m.edges)
 
 
 def test_quality_of_regular_tet_is_one():

@@ -14,7 +14,7 @@ from _surrogate_synthetic import FakeDataset, box_mesh
 def _fields(mesh, latents, informative, rng, noise=0.1):
     """Each latent moves one 'informative' vertex by up to 5 mm and every vertex a little along
     random directions (0.05 mm) below the independent noise (0.1 mm): only the informative vertices see it."""
-    n = mesh.n_points
+    n = mesh.n_vertices
     N = len(latents)
     U = noise * rng.normal(size=(N, n, 3))
     for j, v in enumerate(informative):
@@ -29,13 +29,13 @@ def test_candidates_follow_region_mask_and_exclusions():
     surf = np.asarray(mesh.surface_vertices)
     np.testing.assert_array_equal(candidate_vertices(mesh, region="surface"), np.sort(surf))
     inner = candidate_vertices(mesh, region="interior")
-    assert len(inner) + len(surf) == mesh.n_points and not np.isin(inner, surf).any()
+    assert len(inner) + len(surf) == mesh.n_vertices and not np.isin(inner, surf).any()
     c = candidate_vertices(mesh, region="any", allowed=[5, 7, 9, 11], exclude=[7])
     np.testing.assert_array_equal(c, [5, 9, 11])
     with pytest.raises(MarkerError, match="unknown candidate region"):
         candidate_vertices(mesh, region="skin")
     with pytest.raises(MarkerError, match="outside|0-based"):
-        candidate_vertices(mesh, allowed=[mesh.n_points])
+        candidate_vertices(mesh, allowed=[mesh.n_vertices])
     with pytest.raises(MarkerError, match="no candidate"):
         candidate_vertices(mesh, region="interior", allowed=surf)
 
@@ -46,7 +46,7 @@ def test_qr_picks_the_informative_vertex_and_matches_scalar_pivoted_qr():
     U = _fields(mesh, rng.uniform(-1, 1, (400, 1)), [137], rng)
     basis = fit_pca(U.reshape(len(U), -1), 5)
     modes = basis.components * basis.singular_values[:, None]
-    cand = np.arange(mesh.n_points)
+    cand = np.arange(mesh.n_vertices)
     assert qr_markers(modes, cand, 1)[0] == 137
     # with one column per vertex (x only) the block pivoting is ordinary pivoted QR (PySensors' QR optimizer)
     x_only = modes.reshape(5, -1, 3)[:, :, 0]
@@ -65,7 +65,7 @@ def test_greedy_on_the_proxy_finds_both_informative_vertices_and_respects_spacin
     basis = fit_pca(train.reshape(400, -1), 12)
     proxy = QuadraticProxy(basis, train, valid)
     modes = basis.components * basis.singular_values[:, None]
-    cand = np.arange(mesh.n_points)
+    cand = np.arange(mesh.n_vertices)
     picked, scores = greedy_markers(proxy, modes, cand, 2, shortlist=10)
     assert sorted(picked.tolist()) == inf
     assert scores[1] < scores[0] and scores[1] < proxy(np.array([0, 1]))  # better than two arbitrary vertices

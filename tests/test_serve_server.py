@@ -381,7 +381,7 @@ def test_rigid_method_errors(model):
         reference_marker_positions = model.reference_marker_positions
 
         def predict_from_positions(self, positions):
-            return np.zeros((model.mesh.n_points, 3))
+            return np.zeros((model.mesh.n_vertices, 3))
 
     with pytest.raises(ModelError, match="no predict_rigid"):
         SurfacePredictor(NoRigid(), method="rigid")

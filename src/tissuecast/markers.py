@@ -182,7 +182,7 @@ def surface_depth(mesh: TetMesh, ids: np.ndarray | None = None) -> np.ndarray:
     Returns:
         (k,) float, mm; 0 for surface vertices.
     """
-    ids = np.arange(mesh.n_points) if ids is None else np.asarray(ids, dtype=np.int64)
+    ids = np.arange(mesh.n_vertices) if ids is None else np.asarray(ids, dtype=np.int64)
     pts = mesh.points[ids]
     tri = mesh.points[mesh.surface_triangles]  # (t, 3, 3)
     cen = tri.mean(axis=1)
@@ -381,7 +381,7 @@ def validate_vertex_ids(mesh: TetMesh, ids, what: str = "vertex ids", *, other=N
         if not np.issubdtype(arr.dtype, np.number) or not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
             raise MarkerError(f"{what} must be integer vertex ids, got {arr.tolist()}")
     arr = arr.astype(np.int64)
-    n = mesh.n_points
+    n = mesh.n_vertices
     bad = arr[(arr < 0) | (arr >= n)]
     if bad.size:
         raise MarkerError(

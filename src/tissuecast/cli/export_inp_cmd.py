@@ -61,7 +61,7 @@ def _example_forces(mesh, cfg, seed: int, rms: float) -> np.ndarray:
 
     basis = lbo_basis(mesh, n=cfg.forces.n_basis)
     weights = random_lbo_weights(np.random.default_rng(seed), basis.n_vectors)
-    return lbo_field(basis, weights, rms / field_scale(basis), mesh.n_points)
+    return lbo_field(basis, weights, rms / field_scale(basis), mesh.n_vertices)
 
 
 def run(args) -> int:
@@ -82,7 +82,7 @@ def run(args) -> int:
         title=f"{cfg.name}: {args.mesh if args.mesh == PHANTOM_WORD else Path(args.mesh).name}, "
               f"E={material.youngs_modulus} MPa, nu={material.poisson_ratio}",
     )
-    print(f"wrote {out}: {mesh.n_points} vertices, {mesh.n_tets} {'C3D10' if order == 2 else 'C3D4'} elements, "
+    print(f"wrote {out}: {mesh.n_vertices} vertices, {mesh.n_tets} {'C3D10' if order == 2 else 'C3D4'} elements, "
           f"fixed vertices {fixed.tolist()} (0-based; nodes {(fixed + 1).tolist()} in the deck), "
           f"markers {markers.tolist()} (node set MARKERS), max |force| {np.linalg.norm(forces, axis=1).max():.4g} N")
     print(f"run it with: cd {out.resolve().parent} && ccx -i {out.stem}")

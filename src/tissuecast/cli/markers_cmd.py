@@ -85,7 +85,7 @@ def run(args) -> int:
     if prefix.parent != Path("."):
         prefix.parent.mkdir(parents=True, exist_ok=True)
     surface = set(mesh.surface_vertices.tolist())
-    print(f"mesh {mesh_name}: {mesh.n_points} vertices; ids are 0-based (add 1 for the paper / Abaqus)")
+    print(f"mesh {mesh_name}: {mesh.n_vertices} vertices; ids are 0-based (add 1 for the paper / Abaqus)")
     print(f"{'role':7s} {'#':>2s} {'id':>6s} {'x (mm)':>9s} {'y (mm)':>9s} {'z (mm)':>9s}  where")
     for role, k, i, (x, y, z) in _rows(mesh, markers, fixed):
         where = "surface" if i in surface else "interior"

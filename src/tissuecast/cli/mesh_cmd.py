@@ -82,7 +82,7 @@ def mesh_summary(mesh: TetMesh) -> dict:
     """Figures of a mesh as plain numbers (lengths mm, areas mm^2, volumes mm^3)."""
     lo, hi = mesh.bounding_box
     return {
-        "vertices": mesh.n_points,
+        "vertices": mesh.n_vertices,
         "tetrahedra": mesh.n_tets,
         "reoriented_tetrahedra": mesh.n_flipped,
         "surface_vertices": int(len(mesh.surface_vertices)),
@@ -128,7 +128,7 @@ def run_info(args) -> int:
 def run_convert(args) -> int:
     mesh = load_mesh_argument(args.input, args.units, args.mesh_size)
     written = write_mesh(args.output, mesh)
-    print(f"read {args.input}: {mesh.n_points} vertices, {mesh.n_tets} tetrahedra (mm)")
+    print(f"read {args.input}: {mesh.n_vertices} vertices, {mesh.n_tets} tetrahedra (mm)")
     for path in written:
         print(f"wrote {path}")
     return 0
@@ -138,7 +138,7 @@ def run_phantom(args) -> int:
     mesh = phantom()
     written = write_mesh(args.output, mesh)
     ext = np.round(mesh.extent, 1)
-    print(f"phantom: {mesh.n_points} vertices, {mesh.n_tets} tetrahedra, {ext[0]} x {ext[1]} x {ext[2]} mm")
+    print(f"phantom: {mesh.n_vertices} vertices, {mesh.n_tets} tetrahedra, {ext[0]} x {ext[1]} x {ext[2]} mm")
     for path in written:
         print(f"wrote {path}")
     return 0
@@ -173,7 +173,7 @@ def run_from_image(args) -> int:
         print(f"label              {labelmap.source}: {int(labelmap.mask.sum())} voxels of "
               f"{' x '.join(f'{v:.3g}' for v in spacing)} mm"
               + (f" ({int(mask.sum())} meshed)" if mask.sum() != labelmap.mask.sum() else ""))
-        print(f"mesh               {mesh.n_points} vertices, {mesh.n_tets} tetrahedra at size {args.size:g} mm, "
+        print(f"mesh               {mesh.n_vertices} vertices, {mesh.n_tets} tetrahedra at size {args.size:g} mm, "
               f"LPS coordinates (the scan's frame)")
         print(f"volume             mesh {fidelity.mesh_volume:.1f} mm^3, voxels {fidelity.label_volume:.1f} mm^3 "
               f"({100 * fidelity.volume_error:+.2f} %)")

@@ -80,7 +80,7 @@ def run(args) -> int:
     print(f"  output: POLYDATA TissueSurface ({len(predictor.surface_ids)} points, "
           f"{len(model.mesh.surface_triangles)} triangles"
           f"{', uncertainty_mm' if predictor.has_uncertainty else ''}); GET_POLYDATA TissueField -> "
-          f"POLYDATA TissueField ({predictor.n_points} points{', every prediction' if serve.full_field else ''}); "
+          f"POLYDATA TissueField ({predictor.n_vertices} points{', every prediction' if serve.full_field else ''}); "
           "errors: STRING ERROR", flush=True)
     print("press Ctrl+C to stop", file=sys.stderr, flush=True)
     try:

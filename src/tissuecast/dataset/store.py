@@ -199,7 +199,7 @@ class StoreWriter:
         put("lbo/vectors", np.asarray(basis.vectors, dtype=np.float64))
         put("lbo/eigenvalues", np.asarray(basis.eigenvalues, dtype=np.float64))
         put("lbo/mass", np.asarray(basis.mass, dtype=np.float64))
-        n, nv, nb = plan.n_samples, mesh.n_points, basis.vectors.shape[1]
+        n, nv, nb = plan.n_samples, mesh.n_vertices, basis.vectors.shape[1]
         s = root.create_group("samples")
         s.create_array("displacements", shape=(n, nv, 3), dtype="float32", chunks=(1, nv, 3),
                        fill_value=np.nan, compressors=comp, dimension_names=("sample", "vertex", "axis"))

@@ -217,10 +217,10 @@ class SampleContext:
 
         rng = np.random.default_rng(np.uint64(task.seed))
         w = random_lbo_weights(rng, self.basis.n_vectors)
-        f = lbo_field(self.basis, w, task.alpha, self.mesh.n_points)
+        f = lbo_field(self.basis, w, task.alpha, self.mesh.n_vertices)
         if not np.isnan(task.beta):
             fc = self.config.forces
-            f_lsc = lsc_field(self.mesh, rng, n_points=fc.lsc_points, iterations=fc.lsc_iterations, rate=fc.lsc_rate,
+            f_lsc = lsc_field(self.mesh, rng, n_forces=fc.lsc_points, iterations=fc.lsc_iterations, rate=fc.lsc_rate,
                               exclude=self.fixed, reference=f, laplacian=self.laplacian)
             f = blend(f, f_lsc, task.beta)
         return f, w

@@ -245,7 +245,7 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2")) -> Evalua
             ``beta``, ``mesh`` and ``select(split, status)``).
         splits: which splits to evaluate ('train', 'valid', 'test1', 'test2').
     """
-    if model.n_vertices != dataset.mesh.n_points or model.mesh.fingerprint() != dataset.mesh.fingerprint():
+    if model.n_vertices != dataset.mesh.n_vertices or model.mesh.fingerprint() != dataset.mesh.fingerprint():
         raise ModelError("the model was trained on another mesh than this data set's; evaluate it on its own data set")
     U = dataset.displacements
     beta = np.asarray(dataset.beta, dtype=np.float64)

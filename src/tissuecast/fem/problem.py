@@ -101,7 +101,7 @@ class Problem:
             raise SolverSetupError(f"material must be a NeoHookean, got {type(self.material).__name__}")
         if self.order not in (1, 2):
             raise SolverSetupError(f"order must be 1 (4-node tets) or 2 (10-node tets), got {self.order!r}")
-        n = self.mesh.n_points
+        n = self.mesh.n_vertices
         fixed = _vertex_ids(self.fixed, n, "fixed")
         pids, pvals = _parse_prescribed(self.prescribed, n)
         both = np.intersect1d(fixed, pids)
@@ -129,7 +129,7 @@ class Problem:
     @property
     def n_vertices(self) -> int:
         """Number of mesh vertices (rows of forces and displacements)."""
-        return self.mesh.n_points
+        return self.mesh.n_vertices
 
     @cached_property
     def nodes(self) -> np.ndarray:
@@ -144,7 +144,7 @@ class Problem:
     @cached_property
     def constrained_nodes(self) -> tuple[np.ndarray, np.ndarray]:
         """``(node ids (c,), displacement at full load (c, 3) mm)`` of every constrained node."""
-        n = self.mesh.n_points
+        n = self.mesh.n_vertices
         value = np.full((n, 3), np.nan)
         value[self.fixed] = 0.0
         value[self._pids] = self._pvals

@@ -1,6 +1,6 @@
 """Random surface force fields: the LBO basis and training fields, and test-2 (LSC) fields.
 
-All forces are dead nodal loads in N, arrays of shape (n_points, 3), zero off the surface.
+All forces are dead nodal loads in N, arrays of shape (n_vertices, 3), zero off the surface.
 """
 
 from .fields import field_scale, lbo_field, random_lbo_weights

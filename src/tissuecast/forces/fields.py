@@ -37,32 +37,32 @@ def random_lbo_weights(rng: np.random.Generator, n: int) -> np.ndarray:
     return rng.uniform(-1.0, 1.0, size=(int(n), 3))
 
 
-def lbo_field(basis: LBOBasis, weights: np.ndarray, alpha: float, n_points: int) -> np.ndarray:
+def lbo_field(basis: LBOBasis, weights: np.ndarray, alpha: float, n_vertices: int) -> np.ndarray:
     """Nodal force field ``alpha * B @ W`` on the surface vertices, zero elsewhere.
 
     Args:
         basis: the surface LBO basis (``vectors`` (s, n)).
         weights: (n, 3) float, dimensionless weights W.
         alpha: magnitude in N per unit weight of the basis as stored (see module notes).
-        n_points: number of mesh vertices.
+        n_vertices: number of mesh vertices.
 
     Returns:
-        (n_points, 3) float64, N.
+        (n_vertices, 3) float64, N.
 
     Raises:
-        ConfigError: weights of the wrong shape, non-finite alpha, or ``n_points`` too small.
+        ConfigError: weights of the wrong shape, non-finite alpha, or ``n_vertices`` too small.
     """
     w = np.asarray(weights, dtype=np.float64)
     if w.shape != (basis.n_vectors, 3):
         raise ConfigError(f"LBO weights must have shape ({basis.n_vectors}, 3) to match the basis, got {w.shape}")
     if not np.isfinite(alpha):
         raise ConfigError(f"force magnitude alpha must be finite, got {alpha!r}")
-    if n_points <= int(basis.vertices.max()):
+    if n_vertices <= int(basis.vertices.max()):
         raise ConfigError(
-            f"n_points={n_points} is too small for the basis (largest surface vertex id "
+            f"n_vertices={n_vertices} is too small for the basis (largest surface vertex id "
             f"{int(basis.vertices.max())}); pass the mesh's vertex count"
         )
-    f = np.zeros((int(n_points), 3))
+    f = np.zeros((int(n_vertices), 3))
     f[basis.vertices] = float(alpha) * (basis.vectors @ w)
     return f
 

@@ -33,7 +33,7 @@ def surface_graph_laplacian(mesh: TetMesh) -> sp.csr_matrix:
     tri = mesh.surface_triangles
     i = tri[:, [0, 1, 2]].ravel()
     j = tri[:, [1, 2, 0]].ravel()
-    n = mesh.n_points
+    n = mesh.n_vertices
     adj = sp.coo_matrix((np.ones(2 * len(i)), (np.r_[i, j], np.r_[j, i])), shape=(n, n)).tocsr()
     adj.data[:] = 1.0  # each surface edge is shared by two triangles: count it once
     deg = np.asarray(adj.sum(axis=1)).ravel()
@@ -68,7 +68,7 @@ def smooth(forces: np.ndarray, laplacian: sp.spmatrix, iterations: int = 20, rat
 def lsc_field(
     mesh: TetMesh,
     rng: np.random.Generator,
-    n_points: int = 3,
+    n_forces: int = 3,
     iterations: int = 20,
     rate: float = 0.1,
     magnitude: float = 1.0,
@@ -76,11 +76,11 @@ def lsc_field(
     reference: np.ndarray | None = None,
     laplacian: sp.spmatrix | None = None,
 ) -> np.ndarray:
-    """A random test-2 field: ``n_points`` concentrated forces, smoothed on the surface.
+    """A random test-2 field: ``n_forces`` concentrated forces, smoothed on the surface.
 
-    Random draws, in this order: ``rng.choice(candidates, n_points, replace=False)`` picks
+    Random draws, in this order: ``rng.choice(candidates, n_forces, replace=False)`` picks
     the loaded vertices among the surface vertices not in ``exclude`` (sorted ids);
-    ``rng.standard_normal((n_points, 3))``, normalised, gives directions uniform on the sphere.
+    ``rng.standard_normal((n_forces, 3))``, normalised, gives directions uniform on the sphere.
     Each loaded vertex gets a force of ``magnitude`` N, then :func:`smooth` spreads them.
 
     Magnitude rule: if ``reference`` is given (typically the LBO field it will be blended
@@ -90,7 +90,7 @@ def lsc_field(
     Args:
         mesh: the tetrahedral mesh.
         rng: numpy random generator.
-        n_points: number of concentrated forces (paper: 3).
+        n_forces: number of concentrated forces (paper: 3).
         iterations: smoothing steps (paper: 20).
         rate: smoothing rate gamma (paper: 0.1).
         magnitude: concentrated force magnitude in N (before smoothing).
@@ -105,14 +105,14 @@ def lsc_field(
         ConfigError: too few candidate vertices, bad magnitude or reference.
     """
     cand = np.setdiff1d(mesh.surface_vertices, np.asarray(exclude, dtype=np.int64))
-    if not 1 <= n_points <= len(cand):
-        raise ConfigError(f"test-2 fields need 1 <= n_points <= {len(cand)} loadable surface vertices, got {n_points}")
+    if not 1 <= n_forces <= len(cand):
+        raise ConfigError(f"test-2 fields need 1 <= n_forces <= {len(cand)} loadable surface vertices, got {n_forces}")
     if not np.isfinite(magnitude) or magnitude <= 0:
         raise ConfigError(f"concentrated force magnitude must be > 0 N, got {magnitude!r}")
-    ids = rng.choice(cand, size=int(n_points), replace=False)
-    d = rng.standard_normal((int(n_points), 3))
+    ids = rng.choice(cand, size=int(n_forces), replace=False)
+    d = rng.standard_normal((int(n_forces), 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    f = np.zeros((mesh.n_points, 3))
+    f = np.zeros((mesh.n_vertices, 3))
     np.add.at(f, ids, float(magnitude) * d)
     lap = surface_graph_laplacian(mesh) if laplacian is None else laplacian
     f = smooth(f, lap, iterations, rate)

@@ -297,7 +297,7 @@ def write_mesh(path: str | Path, mesh: TetMesh, point_data: dict | None = None, 
 
     path = Path(path)
     ext = _extension(path)
-    pdata = _check_data(point_data, mesh.n_points, "point_data")
+    pdata = _check_data(point_data, mesh.n_vertices, "point_data")
     cdata = _check_data(cell_data, mesh.n_tets, "cell_data")
     if ext in (".node", ".ele", ".face"):
         from .tetgen import write_tetgen
@@ -306,7 +306,7 @@ def write_mesh(path: str | Path, mesh: TetMesh, point_data: dict | None = None, 
         return write_tetgen(path, mesh.points, tets, mesh.surface_triangles)
     if ext in SURFACE_FORMATS:
         verts = mesh.surface_vertices
-        renum = np.full(mesh.n_points, -1, dtype=np.int64)
+        renum = np.full(mesh.n_vertices, -1, dtype=np.int64)
         renum[verts] = np.arange(len(verts))
         tri = renum[mesh.surface_triangles].astype(np.int32)
         meshio.write(path, meshio.Mesh(mesh.points[verts], [("triangle", tri)]), file_format=SURFACE_FORMATS[ext])

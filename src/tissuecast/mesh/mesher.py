@@ -347,5 +347,5 @@ def tetrahedralize_surface(
     else:
         tags, coords, tet_nodes = _gmsh_in_child(points, triangles, options, timeout)
     mesh = _tet_mesh(tags, coords, tet_nodes)
-    log.info("gmsh: %d vertices, %d tetrahedra at mesh size %.3g mm", mesh.n_points, mesh.n_tets, mesh_size)
+    log.info("gmsh: %d vertices, %d tetrahedra at mesh size %.3g mm", mesh.n_vertices, mesh.n_tets, mesh_size)
     return mesh

@@ -177,8 +177,13 @@ class TetMesh:
 
     # ------------------------------------------------------------------ sizes
     @property
+    def n_vertices(self) -> int:
+        """Number of vertices (the package's one name for the vertex count)."""
+        return len(self.points)
+
+    @property
     def n_points(self) -> int:
-        """Number of vertices."""
+        """Number of vertices, under meshio's and pyvista's name (same as :attr:`n_vertices`)."""
         return len(self.points)
 
     @property
@@ -188,7 +193,7 @@ class TetMesh:
 
     def __repr__(self) -> str:
         return (
-            f"TetMesh({self.n_points} vertices, {self.n_tets} tetrahedra, "
+            f"TetMesh({self.n_vertices} vertices, {self.n_tets} tetrahedra, "
             f"{len(self.surface_vertices)} on the surface, volume {self.volume:.1f} mm^3)"
         )
 
@@ -247,7 +252,7 @@ class TetMesh:
     @cached_property
     def interior_vertices(self) -> np.ndarray:
         """(n - s,) int: sorted ids of vertices not on the outer surface."""
-        mask = np.ones(self.n_points, dtype=bool)
+        mask = np.ones(self.n_vertices, dtype=bool)
         mask[self.surface_vertices] = False
         return np.flatnonzero(mask)
 
@@ -275,7 +280,7 @@ class TetMesh:
 
         Nodes 0..n-1 are the mesh vertices; node ``n + e`` is the midpoint of ``edges[e]``.
         """
-        t = np.hstack([self.tets, self.n_points + self._edges[1]])
+        t = np.hstack([self.tets, self.n_vertices + self._edges[1]])
         t.setflags(write=False)
         return t
 
@@ -291,7 +296,7 @@ class TetMesh:
     def vertex_adjacency(self) -> sp.csr_matrix:
         """(n, n) sparse 0/1 matrix: 1 where two vertices share an edge."""
         e = self.edges
-        n = self.n_points
+        n = self.n_vertices
         a = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n))
         return a.tocsr()
 

@@ -35,7 +35,7 @@ def candidate_vertices(mesh, *, region: str = "surface", allowed=None, exclude=(
         MarkerError: unknown region, a mask of the wrong shape or with ids outside the mesh,
             or no candidate left.
     """
-    n = int(mesh.n_points)
+    n = int(mesh.n_vertices)
     if region not in REGIONS:
         raise MarkerError(f"unknown candidate region {region!r}; use one of {', '.join(REGIONS)}")
     keep = np.zeros(n, dtype=bool)

@@ -118,7 +118,7 @@ class SurfacePredictor:
         self.model = model
         self.reference = reference
         self.n_markers = len(reference)
-        self.n_points = int(mesh.n_points)
+        self.n_vertices = int(mesh.n_vertices)
         self.max_marker_offset = float(max_marker_offset)
         self.supports_missing = bool(getattr(model, "supports_missing_markers", False))
         self.has_uncertainty = bool(
@@ -136,7 +136,7 @@ class SurfacePredictor:
         extra = [(UNCERTAINTY_NAME, "scalars")] if self.has_uncertainty else []
         extra += [(BOUND_NAME, "scalars")] if self.has_bounds else []
         self.surface = PolyDataTemplate(len(self.surface_ids), local, extra)
-        self.field = PolyDataTemplate(self.n_points, triangles, [(DISPLACEMENT_NAME, "vectors"), *extra])
+        self.field = PolyDataTemplate(self.n_vertices, triangles, [(DISPLACEMENT_NAME, "vectors"), *extra])
         self.surface_reference = self.points[self.surface_ids]
 
     def check_positions(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
@@ -189,16 +189,16 @@ class SurfacePredictor:
                 mean = self.model.predict_rigid(positions - self.reference, **extra)
             elif self.has_bounds and missing is None:  # bounds and alarm need every marker
                 trusted = self.model.predict_trusted(positions - self.reference)
-                bound, alarm, mean = np.asarray(trusted.error_bound, dtype=np.float64).reshape(self.n_points), \
+                bound, alarm, mean = np.asarray(trusted.error_bound, dtype=np.float64).reshape(self.n_vertices), \
                     trusted.alarms, trusted.displacement
             if self.has_uncertainty:
                 mean, spread = self.model.predict_with_uncertainty(positions - self.reference, **extra)
-                uncertainty = np.asarray(spread, dtype=np.float64).reshape(self.n_points)
+                uncertainty = np.asarray(spread, dtype=np.float64).reshape(self.n_vertices)
             else:
                 uncertainty = None
                 if mean is None:
                     mean = self.model.predict_from_positions(positions, **extra)
-            displacement = np.asarray(mean, dtype=np.float64).reshape(self.n_points, 3)
+            displacement = np.asarray(mean, dtype=np.float64).reshape(self.n_vertices, 3)
         except ModelError as exc:  # the model refused this input (e.g. too many untracked markers)
             log.warning("model refused the marker input: %s", exc)
             raise PredictionError(f"model refused the input: {exc}") from exc

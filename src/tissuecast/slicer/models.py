@@ -91,8 +91,8 @@ def write_model(
         points = points + u
         data["displacement_mm"] = u
     for name, values in data.items():
-        if len(values) != mesh.n_points:
-            raise MeshFormatError(f"point data {name!r} has {len(values)} rows for {mesh.n_points} vertices")
+        if len(values) != mesh.n_vertices:
+            raise MeshFormatError(f"point data {name!r} has {len(values)} rows for {mesh.n_vertices} vertices")
     _, _, legacy, xml, ns = _vtk()
     if suffix == ".vtp":
         ids = mesh.surface_vertices

@@ -50,11 +50,11 @@ def _check_fit_inputs(displacements, markers, mesh) -> tuple[np.ndarray, np.ndar
     U = np.asarray(displacements)
     if U.ndim != 3 or U.shape[2] != 3:
         raise ModelError(f"displacements must be (N, n, 3) mm, got shape {U.shape}")
-    if U.shape[1] != mesh.n_points:
-        raise ModelError(f"displacements have {U.shape[1]} vertices but the mesh has {mesh.n_points}")
+    if U.shape[1] != mesh.n_vertices:
+        raise ModelError(f"displacements have {U.shape[1]} vertices but the mesh has {mesh.n_vertices}")
     mk = np.asarray(markers, dtype=np.int64).ravel()
-    if mk.size == 0 or mk.min() < 0 or mk.max() >= mesh.n_points or np.unique(mk).size != mk.size:
-        raise ModelError(f"markers must be distinct 0-based vertex ids in [0, {mesh.n_points}), got {mk.tolist()}")
+    if mk.size == 0 or mk.min() < 0 or mk.max() >= mesh.n_vertices or np.unique(mk).size != mk.size:
+        raise ModelError(f"markers must be distinct 0-based vertex ids in [0, {mesh.n_vertices}), got {mk.tolist()}")
     return U, mk
 
 
@@ -126,7 +126,7 @@ class DeformationModel:
 
     @property
     def n_vertices(self) -> int:
-        return int(self.mesh.n_points)
+        return int(self.mesh.n_vertices)
 
     @property
     def n_components(self) -> int:

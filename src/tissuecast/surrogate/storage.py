@@ -71,7 +71,7 @@ def save_model(model, folder, *, onnx: bool = False) -> None:
         "versions": _versions(),
         "units": {"length": "mm", "displacement": "mm"},
         "vertex_ids": "0-based",
-        "n_vertices": int(model.mesh_.n_points),
+        "n_vertices": int(model.mesh_.n_vertices),
         "n_tets": int(model.mesh_.n_tets),
         "mesh_fingerprint": model.mesh_.fingerprint(),
         "markers": model.markers_.tolist(),
@@ -150,7 +150,7 @@ def load_model(cls, folder):
                      n_samples=int(p["n_samples"]))
     m = _npz(folder / meta["files"]["mesh"], ["points", "tets"])
     mesh = TetMesh(m["points"], m["tets"])
-    if mesh.fingerprint() != meta["mesh_fingerprint"] or basis.n_features != 3 * mesh.n_points:
+    if mesh.fingerprint() != meta["mesh_fingerprint"] or basis.n_features != 3 * mesh.n_vertices:
         raise ModelError(f"the mesh in {str(folder)!r} does not match the model's metadata; the folder is corrupt")
     sc = config_from_dict({"surrogate": meta["surrogate_config"]}).surrogate
     model = cls(sc)

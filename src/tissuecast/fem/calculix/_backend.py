@@ -48,7 +48,7 @@ def solve_calculix(problem, forces, *, workdir=None, threads: int = 1, timeout: 
 
     t0 = time.perf_counter()
     mesh = problem.mesh
-    n = mesh.n_points
+    n = mesh.n_vertices
     order = int(getattr(problem, "order", 2))
     with tempfile.TemporaryDirectory(prefix="tissuecast-ccx-") as tmp:
         folder = Path(workdir) if workdir is not None else Path(tmp)

@@ -63,7 +63,7 @@ def _constrained_nodes(mesh, order: int, fixed, pre_ids, pre_val):
     Returns:
         ``(fixed nodes (k,), prescribed nodes (p,), values (p, 3) mm with NaN = free)``.
     """
-    n = mesh.n_points
+    n = mesh.n_vertices
     value = np.full((n, 3), np.nan)
     value[pre_ids] = pre_val
     is_fixed = np.zeros(n, dtype=bool)
@@ -162,7 +162,7 @@ def write_inp(
     """
     if order not in (1, 2):
         raise SolverSetupError(f"order must be 1 (C3D4) or 2 (C3D10), got {order!r}")
-    n = mesh.n_points
+    n = mesh.n_vertices
     c10, d1 = _material_constants(material)
     f, fixed, pre_ids, pre_val = _checked_setup(mesh, fixed, forces, prescribed)
     _check_increments(initial_increment, min_increment, max_increment)
@@ -179,7 +179,7 @@ def write_inp(
 
 def _checked_setup(mesh, fixed, forces, prescribed):
     """``(forces (n, 3), fixed (k,) sorted, prescribed ids (p,), values (p, 3))``, checked."""
-    n = mesh.n_points
+    n = mesh.n_vertices
     f = _as_forces(forces, n)
     fixed = np.unique(_as_ids(fixed, n, "fixed vertices"))
     pre_ids, pre_val = _as_prescribed(prescribed, n)
@@ -204,7 +204,7 @@ def _check_increments(initial_increment: float, min_increment: float, max_increm
 
 def _mesh_lines(mesh, order: int, title: str) -> list[str]:
     """Header, nodes (1-based), elements and the vertex node set NVERT."""
-    n = mesh.n_points
+    n = mesh.n_vertices
     if order == 2:
         nodes, elements, etype = mesh.points10, mesh.tets10, "C3D10"
     else:
