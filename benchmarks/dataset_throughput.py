@@ -44,7 +44,8 @@ TARGET_MINUTES = 15.0
 # cProfile buckets: (label, predicate on (file, function name))
 _BUCKETS = [
     ("tangent assembly", lambda f, n: f.endswith("assembly.py") and n == "tangent"),
-    ("residual/energy assembly", lambda f, n: f.endswith("assembly.py") and n in ("energy_and_force", "internal_force", "energy")),
+    ("residual/energy assembly",
+     lambda f, n: f.endswith("assembly.py") and n in ("energy_and_force", "internal_force", "energy")),
     ("factorisation", lambda f, n: f.endswith("linear.py") and n == "factorize"),
     ("triangular solves", lambda f, n: f.endswith("linear.py") and n == "solve"),
     ("reduced-model prediction", lambda f, n: f.endswith("reduced.py") and n == "predict"),
@@ -95,7 +96,8 @@ def _profile(store: Path, indices) -> tuple[dict, float, list]:
         cold = ctx.solver(0).solve(forces)
         sec = time.perf_counter() - t
         peak = float(np.abs(cold.displacement).max())
-        diff = float(np.abs(warm.displacement - cold.displacement).max()) / peak if warm.status == SampleStatus.DONE else float("nan")
+        diff = (float(np.abs(warm.displacement - cold.displacement).max()) / peak
+                if warm.status == SampleStatus.DONE else float("nan"))
         pairs.append((warm.seconds, sec, warm.iterations, cold.iterations, warm.factorizations, cold.factorizations,
                       diff, warm.predicted))
     return out, setup, pairs
@@ -154,7 +156,8 @@ def main() -> None:
     if md:
         print(f"  per-sample max displacement (mm): median {md['median']:.1f}, p90 {md['p90']:.1f}, max {md['max']:.1f}")
     io = run["parent_io_seconds"] / max(run["sample_phase_samples"], 1)
-    print(f"  parent I/O: {1000 * io:.1f} ms per sample ({100 * run['parent_io_seconds'] / max(run['sample_phase_seconds'], 1e-9):.1f} % of the sample phase)")
+    share = 100 * run["parent_io_seconds"] / max(run["sample_phase_seconds"], 1e-9)
+    print(f"  parent I/O: {1000 * io:.1f} ms per sample ({share:.1f} % of the sample phase)")
     print(f"projected full paper data set ({PAPER_SAMPLES} samples): {projected:.1f} min "
           f"= {projected / TARGET_MINUTES:.2f} x the {TARGET_MINUTES:.0f}-minute target")
     if args.profile:

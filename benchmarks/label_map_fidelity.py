@@ -48,7 +48,8 @@ def rows(real: bool):
 
 
 def main(argv: list[str]) -> int:
-    print(f"{'label':44s} {'size':>5s} {'verts':>6s} {'vol err':>8s} {'H vox':>6s} {'H mm':>6s} {'rr min':>6s} {'vs exact':>8s} {'time':>6s}")
+    print(f"{'label':44s} {'size':>5s} {'verts':>6s} {'vol err':>8s} {'H vox':>6s} {'H mm':>6s} "
+          f"{'rr min':>6s} {'vs exact':>8s} {'time':>6s}")
     for name, labelmap, size, exact in rows("--real" in argv):
         start = time.perf_counter()
         mesh = mesh_label_map(labelmap, size)

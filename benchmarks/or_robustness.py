@@ -116,7 +116,8 @@ class Study:
         fixed_aug = self.fit("noise_sigma=0.5", noise_sigma=0.5)
         rows = []
         for sigma in SIGMAS:
-            matched = plain if sigma == 0 else (fixed_aug if sigma == 0.5 else self.fit(f"noise_sigma={sigma}", noise_sigma=sigma))
+            matched = (plain if sigma == 0 else
+                       fixed_aug if sigma == 0.5 else self.fit(f"noise_sigma={sigma}", noise_sigma=sigma))
             rows.append({"sigma": sigma, "no_augmentation": self.noisy_error(plain, sigma, draws),
                          "matched_augmentation": self.noisy_error(matched, sigma, draws),
                          "augmentation_0.5": self.noisy_error(fixed_aug, sigma, draws)})

@@ -100,7 +100,8 @@ def main(argv=None) -> int:
     sets = [[int(v) for v in s.split(",")] for s in args.fixed] if args.fixed else [
         select_fixed_vertices(mesh, exclude=markers, rule=rule).tolist() for rule in FIXED_RULES] + [[769, 1012, 1129]]
     print(f"phantom P2, linear elasticity, markers {markers.tolist()}, fields scaled to q90 max = 30 mm")
-    print(f"{'fixed vertices':>22} | {'n_w (<1 mm)':>11} | {'variance of PCA 1-4':>28} | 5-marker floor: mean Offset_max, share < 1 mm")
+    print(f"{'fixed vertices':>22} | {'n_w (<1 mm)':>11} | {'variance of PCA 1-4':>28} | "
+          "5-marker floor: mean Offset_max, share < 1 mm")
     for fixed in sets:
         r = measure(unit_responses(mesh, fixed, basis), markers)
         print(f"{str(fixed):>22} | {r['n_w']!s:>11} | {str(r['variance_share']):>28} | "

@@ -66,12 +66,14 @@ def smooth_perturbation(mesh, rng, rms: float) -> np.ndarray:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--samples", type=int, default=3)
-    ap.add_argument("--fixed-rule", default="compact", choices=FIXED_RULES, help="fixed-vertex rule (default compact, the library's)")
+    ap.add_argument("--fixed-rule", default="compact", choices=FIXED_RULES,
+                    help="fixed-vertex rule (default compact, the library's)")
     ap.add_argument("--alpha", type=float, help="LBO force magnitude (N per unit weight); default: the paper-preset phantom data "
                     "set's calibrated value for the rule (24 pilots): compact 0.00589, spread 0.0678")
     ap.add_argument("--variants", nargs="+", default=["p1-krylov", "p2-newton", "p2-krylov", "p2-guess"], choices=list(VARIANTS))
     ap.add_argument("--no-calibrate", dest="calibrate", action="store_false", help="keep alpha for every field")
-    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help="SolverConfig overrides for every variant, e.g. max_iterations=10")
+    ap.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="SolverConfig overrides for every variant, e.g. max_iterations=10")
     args = ap.parse_args(argv)
 
     mesh = tc.phantom()
@@ -80,9 +82,11 @@ def main(argv=None) -> int:
     if args.alpha is None:
         args.alpha = {"compact": 0.00589, "spread": 0.0678}[args.fixed_rule]
     basis = lbo_basis(mesh, 20)
-    fields = [lbo_field(basis, random_lbo_weights(np.random.default_rng(s), 20), args.alpha, mesh.n_vertices) for s in range(args.samples)]
+    fields = [lbo_field(basis, random_lbo_weights(np.random.default_rng(s), 20), args.alpha, mesh.n_vertices)
+              for s in range(args.samples)]
     material = NeoHookean(0.021, 0.45)
-    print(f"phantom: {mesh.n_vertices} vertices, {mesh.n_tets} tets; fixed {fixed.tolist()}; alpha {args.alpha}; {args.samples} samples")
+    print(f"phantom: {mesh.n_vertices} vertices, {mesh.n_tets} tets; fixed {fixed.tolist()}; alpha {args.alpha}; "
+          f"{args.samples} samples")
 
     order_of = {v: VARIANTS[v][0] for v in args.variants}
     ref_needed = "p2-guess" in args.variants or any(order_of[v] == 2 for v in args.variants)
@@ -132,9 +136,11 @@ def main(argv=None) -> int:
     base = next((r[2] for r in rows if r[0] == "p2-newton"), np.nan)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     print()
-    print(f"{'variant':17s} {'setup s':>8s} {'s/sample':>9s} {'x p2-newton':>11s} {'factor.':>8s} {'iter.':>6s} {'solves':>7s} {'incr.':>6s} {'max mm':>7s} {'diff %':>7s}")
+    print(f"{'variant':17s} {'setup s':>8s} {'s/sample':>9s} {'x p2-newton':>11s} {'factor.':>8s} {'iter.':>6s} "
+          f"{'solves':>7s} {'incr.':>6s} {'max mm':>7s} {'diff %':>7s}")
     for name, setup, sec, fac, it, sol, inc, mx, diff in rows:
-        print(f"{name:17s} {setup:8.2f} {sec:9.2f} {base / sec:11.2f} {fac:8.1f} {it:6.1f} {sol:7.1f} {inc:6.1f} {mx:7.1f} {100 * diff:7.3f}")
+        print(f"{name:17s} {setup:8.2f} {sec:9.2f} {base / sec:11.2f} {fac:8.1f} {it:6.1f} {sol:7.1f} {inc:6.1f} "
+              f"{mx:7.1f} {100 * diff:7.3f}")
     print(f"peak resident memory of the process: {peak:.0f} MiB")
     return 0
 

@@ -154,14 +154,16 @@ def main(argv=None) -> int:
                     f"{PHANTOM_FIELDS['spread'][1]} with spread pins, {QUICK_RMS_FORCE} with --quick)")
     ap.add_argument("--fixed-rule", default="compact", choices=FIXED_RULES,
                     help="fixed-vertex rule (default compact, the library's; spread: the body strains instead of swinging)")
-    ap.add_argument("--seed", type=int, help=f"seed of the LBO weights (default {PHANTOM_SEED}, spread pins {PHANTOM_FIELDS['spread'][0]}; "
+    ap.add_argument("--seed", type=int,
+                    help=f"seed of the LBO weights (default {PHANTOM_SEED}, spread pins {PHANTOM_FIELDS['spread'][0]}; "
                     f"{QUICK_SEED} with --quick)")
     ap.add_argument("--repeats", type=int, default=3, help="timed solves per built-in configuration (median)")
     ap.add_argument("--workdir", help="keep ccx's files here (default: a temporary folder)")
     ap.add_argument("--no-ccx", action="store_true", help="skip CalculiX (built-in solver only)")
     ap.add_argument("--tolerances", type=float, nargs=2, metavar=("FORCE", "DISP"),
                     help="convergence tolerances for both solvers (default: each one's defaults, 0.005 0.01)")
-    ap.add_argument("--blas-threads", type=int, default=1, help="BLAS threads of our solver (default 1, like data-generation workers)")
+    ap.add_argument("--blas-threads", type=int, default=1,
+                    help="BLAS threads of our solver (default 1, like data-generation workers)")
     ap.add_argument("--predictor", type=int, default=40, metavar="N",
                     help="also time our P2 solve started from a reduced-order model built from N other LBO samples "
                     "of the same magnitude solved from zero, as data sets do (default 40; 0 = skip)")
@@ -244,7 +246,7 @@ def main(argv=None) -> int:
             folder = Path(args.workdir) / f"threads{nt}" if args.workdir else Path(tempfile.mkdtemp(prefix="ccx-bench-"))
             res = solve_calculix(p2, forces, workdir=folder, threads=nt, **deck)
             ccx[nt] = res
-            rows.append((f"ccx 2.20 C3D10", 2, nt, res.seconds, 0.0, res, _peak_mb(resource.RUSAGE_CHILDREN)))
+            rows.append(("ccx 2.20 C3D10", 2, nt, res.seconds, 0.0, res, _peak_mb(resource.RUSAGE_CHILDREN)))
 
     ref = ccx[min(ccx)].displacement if ccx else r2.displacement
     ref_max = float(np.linalg.norm(ref, axis=1).max())

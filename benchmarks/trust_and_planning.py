@@ -132,7 +132,8 @@ def part_bounds(ds, model, U, args, out: dict) -> None:
     print(f"{'set':14s} {'n':>4s} {'OffMax':>7s} | {'cov 90%':>7s} {'med b90':>7s} | {'cov 95%':>7s} {'med b95':>7s} | "
           f"{'rho sample':>10s} {'rho vertex':>10s}")
     for name, r in rows.items():
-        print(f"{name:14s} {r['count']:4d} {r['offset_max']:7.3f} | {100 * r['coverage_0.9']:6.1f}% {r['median_bound_0.9']:7.3f} | "
+        print(f"{name:14s} {r['count']:4d} {r['offset_max']:7.3f} | "
+              f"{100 * r['coverage_0.9']:6.1f}% {r['median_bound_0.9']:7.3f} | "
               f"{100 * r['coverage_0.95']:6.1f}% {r['median_bound_0.95']:7.3f} | {r['sample_spearman']:10.3f} "
               f"{r['vertex_spearman']:10.3f}")
     if model.ensemble_size > 1:

@@ -63,7 +63,8 @@ def main(run_dir: str = "walkthrough/run", out: str = "docs/img/walkthrough_ches
     radius = 0.03 * float(np.linalg.norm(mesh.extent))
     for p in (mesh.points + u)[model.markers]:
         plotter.add_mesh(pv.Sphere(radius=radius, center=p), color="black")
-    plotter.add_text(f"CT slice {k} (z = {z:.0f} mm, LPS) with the predicted tumour surface", font_size=14, color="white", shadow=True)
+    plotter.add_text(f"CT slice {k} (z = {z:.0f} mm, LPS) with the predicted tumour surface", font_size=14, color="white",
+                     shadow=True)
     plotter.camera_position = [tuple(centre + np.array([120.0, 260.0, 330.0])), tuple(centre), (0.0, 0.0, 1.0)]
     plotter.camera.zoom(1.25)
     plotter.add_axes(xlabel="L", ylabel="P", zlabel="S")

@@ -95,7 +95,8 @@ def test_bad_values_raise_config_error_naming_the_key(data, key, text):
 
 
 def test_out_of_range_message_gives_the_allowed_range():
-    with pytest.raises(ConfigError, match=r"material\.poisson_ratio = 0\.5 is out of range; allowed values are in \(-1\.0, 0\.5\)"):
+    message = r"material\.poisson_ratio = 0\.5 is out of range; allowed values are in \(-1\.0, 0\.5\)"
+    with pytest.raises(ConfigError, match=message):
         config_from_dict({"material": {"poisson_ratio": 0.5}})
     with pytest.raises(ConfigError, match=r"allowed keys in \[markers\]: count, fixed_count, .*min_distance, start"):
         config_from_dict({"markers": {"cout": 5}})

@@ -20,7 +20,8 @@ def ds():
 
 @pytest.fixture(scope="module")
 def model(ds):
-    return DeformationModel.from_dataset(ds, epochs=150, patience=0, n_components=8, ensemble=2, learning_rate=3e-3, batch_size=64)
+    return DeformationModel.from_dataset(ds, epochs=150, patience=0, n_components=8, ensemble=2, learning_rate=3e-3,
+                                         batch_size=64)
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +111,8 @@ def test_report_is_written(tmp_path, model, ds, evaluation):
 
     vtu = meshio.read(tmp_path / "rep" / "vtu" / "test1_median.vtu")
     err = vtu.point_data["vertex_error"]
-    np.testing.assert_allclose(err, np.linalg.norm(vtu.point_data["predicted_displacement"] - vtu.point_data["benchmark_displacement"], axis=1))
+    difference = vtu.point_data["predicted_displacement"] - vtu.point_data["benchmark_displacement"]
+    np.testing.assert_allclose(err, np.linalg.norm(difference, axis=1))
     t1 = np.sort(evaluation.sets["test1"].mlp_max)
     assert np.max(err) == pytest.approx(t1[t1.size // 2], rel=1e-6)  # the rendered "median" sample
 

@@ -93,12 +93,14 @@ def test_simple_shear_closed_form():
     p = MAT.stress(f)
     sigma = p @ f.T
     mu = MAT.mu
-    np.testing.assert_allclose(sigma, [[2 / 3 * mu * g**2, mu * g, 0], [mu * g, -mu * g**2 / 3, 0], [0, 0, -mu * g**2 / 3]], atol=1e-15)
+    expected = [[2 / 3 * mu * g**2, mu * g, 0], [mu * g, -mu * g**2 / 3, 0], [0, 0, -mu * g**2 / 3]]
+    np.testing.assert_allclose(sigma, expected, atol=1e-15)
     assert p[0, 1] == pytest.approx(mu * g)
     assert p[1, 0] == pytest.approx(mu * g * (3 + g**2) / 3)
 
 
-@pytest.mark.parametrize("kwargs", [{"youngs_modulus": 0.0}, {"youngs_modulus": float("nan")}, {"poisson_ratio": 0.5}, {"poisson_ratio": -1.0}])
+@pytest.mark.parametrize("kwargs", [{"youngs_modulus": 0.0}, {"youngs_modulus": float("nan")}, {"poisson_ratio": 0.5},
+                                    {"poisson_ratio": -1.0}])
 def test_bad_parameters_raise(kwargs):
     with pytest.raises(SolverSetupError):
         NeoHookean(**kwargs)

@@ -34,7 +34,7 @@ def icosphere(level):
     for _ in range(level):
         cache = {}
 
-        def mid(a, b):
+        def mid(a, b, cache=cache):
             key = (min(a, b), max(a, b))
             if key not in cache:
                 m = verts[a] + verts[b]
@@ -77,8 +77,8 @@ def test_sphere_eigenvalues_are_l_l_plus_1_over_r_squared(sphere):
     assert abs(lam[0]) < 1e-10
     r2 = 100.0
     groups = {1: lam[1:4], 2: lam[4:9], 3: lam[9:16]}
-    for l, g in groups.items():
-        np.testing.assert_allclose(g, l * (l + 1) / r2, rtol=0.02)
+    for degree, g in groups.items():
+        np.testing.assert_allclose(g, degree * (degree + 1) / r2, rtol=0.02)
     # multiplicities 1, 3, 5: equal within a group, a clear gap between groups
     np.testing.assert_allclose(lam[1:4], lam[1], rtol=1e-8)
     np.testing.assert_allclose(lam[4:9], lam[4], rtol=1e-8)

@@ -214,7 +214,8 @@ def test_compact_fixed_vertices_on_a_box_by_hand():
     # pinned triangle area: compact |(0, 0, 2) x (0, 2, 1)| / 2 = 2 mm^2; spread (see above)
     # |(2, 4, 10) x (0, 0, 10)| / 2 = 22.36 mm^2
     area = lambda f: np.linalg.norm(np.cross(*(mesh.points[f[1:]] - mesh.points[f[0]]))) / 2  # noqa: E731
-    assert area(fixed) == pytest.approx(2.0) and area(select_fixed_vertices(mesh, rule="spread")) == pytest.approx(22.36, abs=0.01)
+    assert area(fixed) == pytest.approx(2.0)
+    assert area(select_fixed_vertices(mesh, rule="spread")) == pytest.approx(22.36, abs=0.01)
     with pytest.raises(MarkerError, match=r"no room for 3 compact fixed vertices 20 mm apart.*smaller spacing"):
         select_fixed_vertices(mesh, rule="compact", spacing=20.0)
     with pytest.raises(MarkerError, match=r"unknown fixed-vertex rule 'tight'; use one of compact, spread"):

@@ -66,14 +66,16 @@ def test_fcsv_reads_like_slicerio_and_old_files_are_ras(tmp_path):
     np.testing.assert_array_equal(ours.positions, [p["position"] for p in theirs["controlPoints"]])
     assert ours.labels == tuple(p["label"] for p in theirs["controlPoints"])
     old = tmp_path / "old.fcsv"
-    old.write_text("# Markups fiducial file version = 4.6\n# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID\n"
+    old.write_text("# Markups fiducial file version = 4.6\n"
+                   "# columns = id,x,y,z,ow,ox,oy,oz,vis,sel,lock,label,desc,associatedNodeID\n"
                    "vtkMRMLMarkupsFiducialNode_0,1.5,-2,3,0,0,0,1,1,1,0,F-1,,\n")
     np.testing.assert_array_equal(read_markups(old)[0].positions, [[-1.5, 2.0, 3.0]])
 
 
 def test_bad_markups_files_are_refused(tmp_path):
     bad = tmp_path / "b.mrk.json"
-    bad.write_text(json.dumps({"@schema": "x", "markups": [{"type": "Fiducial", "coordinateSystem": "XYZ", "controlPoints": []}]}))
+    bad.write_text(json.dumps({"@schema": "x",
+                               "markups": [{"type": "Fiducial", "coordinateSystem": "XYZ", "controlPoints": []}]}))
     with pytest.raises(MarkupsError, match="unknown coordinate system 'XYZ'"):
         read_markups(bad)
     bad.write_text(json.dumps({"@schema": "x", "markups": [{"type": "Line", "controlPoints": []}]}))

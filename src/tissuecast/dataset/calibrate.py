@@ -138,7 +138,8 @@ def _bracket(lo, hi, alpha: float, q: float, target: float):
         ref = prev_lo if prev_lo is not None else hi if hi is not None and math.isfinite(hi[1]) else None
     else:
         prev_hi, hi = hi, (alpha, q)
-        ref = lo if lo is not None else prev_hi if prev_hi is not None and math.isfinite(q) and math.isfinite(prev_hi[1]) else None
+        usable = prev_hi is not None and math.isfinite(q) and math.isfinite(prev_hi[1])
+        ref = lo if lo is not None else prev_hi if usable else None
     return lo, hi, ref
 
 

@@ -350,7 +350,10 @@ def _remove_partial(tmp: Path) -> None:
     """Remove an interrupted store creation, but only if it is ours."""
     meta = tmp / "zarr.json"
     try:
-        ours = json.loads(meta.read_text()).get("attributes", {}).get("schema") == SCHEMA if meta.is_file() else not any(tmp.iterdir())
+        if meta.is_file():
+            ours = json.loads(meta.read_text()).get("attributes", {}).get("schema") == SCHEMA
+        else:
+            ours = not any(tmp.iterdir())
     except (OSError, ValueError):
         ours = False
     if not ours:

@@ -7,8 +7,9 @@ for every sample it is given, so per-sample cost is the solve alone.
 
 A sample's result is a pure function of (recipe, task): the force field comes from the
 sample's own seed, the solve starts from zero, the task's guess or the recipe's reduced-model
-prediction, and worker processes run their BLAS single-threaded (see :mod:`.executors`). Hence the same sample gives the same bits on
-any worker, in any order, in a first run or after a resume.
+prediction, and worker processes run their BLAS single-threaded (see :mod:`.executors`).
+Hence the same sample gives the same bits on any worker, in any order, in a first run or
+after a resume.
 """
 
 from __future__ import annotations

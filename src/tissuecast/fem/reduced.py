@@ -4,8 +4,9 @@ A data set solves thousands of problems that differ only in their forces, and th
 solutions live near a low-dimensional subspace. :class:`ReducedModel` exploits that to give
 the full Newton solver an initial guess close to the answer, which turns a cold solve (load
 increments, globalisation, several factorisations) into a few Newton iterations, usually
-without a factorisation of its own. The guess is only a guess: every sample is still converged by the full solver to its usual tolerances, so a
-data set's displacements are full finite-element solutions either way.
+without a factorisation of its own. The guess is only a guess: every sample is still
+converged by the full solver to its usual tolerances, so a data set's displacements are full
+finite-element solutions either way.
 
 Construction (:meth:`ReducedModel.fit`), from full solutions ("snapshots") of the same
 problem:

@@ -7,8 +7,9 @@ column's nodal entries are ~ 1/sqrt(surface area) (1/mm), independent of the ver
 ``alpha`` is in N per unit weight *of the basis as stored*: the force on surface vertex i is
 ``alpha * sum_k B[i, k] W[k, :]`` N (strictly alpha is in N mm, since B is in 1/mm).
 Refining the mesh at a fixed area leaves the nodal forces' size unchanged, so the total force
-grows with the number of surface vertices; calibrate alpha on the mesh at hand. :func:`field_scale` gives the RMS nodal force magnitude
-of a random field per unit alpha, so magnitude calibration can reason in N directly.
+grows with the number of surface vertices; calibrate alpha on the mesh at hand.
+:func:`field_scale` gives the RMS nodal force magnitude of a random field per unit alpha, so
+magnitude calibration can reason in N directly.
 """
 
 from __future__ import annotations
