@@ -16,10 +16,11 @@ from ...errors import SolverSetupError
 __all__ = ["write_inp"]
 
 
-def _as_forces(forces, n: int) -> np.ndarray:
+def _as_forces(forces, n: int, n_nodes: int | None = None) -> np.ndarray:
     f = np.asarray(forces, dtype=np.float64)
-    if f.shape != (n, 3):
-        raise SolverSetupError(f"forces must have shape ({n}, 3) (N per mesh vertex), got {f.shape}")
+    if f.shape != (n, 3) and f.shape != (n_nodes, 3):
+        raise SolverSetupError(f"forces must have shape ({n}, 3) (N per mesh vertex)"
+                               f"{'' if n_nodes is None else f' or ({n_nodes}, 3) (per element node)'}, got {f.shape}")
     if not np.isfinite(f).all():
         raise SolverSetupError(f"forces hold {int((~np.isfinite(f)).sum())} non-finite values; fix the force field")
     return f
@@ -121,6 +122,7 @@ def write_inp(
     force_tolerance: float | None = None,
     displacement_tolerance: float | None = None,
     title: str = "tissuecast neo-Hookean problem",
+    scenario=None,
 ) -> Path:
     """Write the problem as a CalculiX/Abaqus input deck.
 
@@ -130,8 +132,8 @@ def write_inp(
         material: neo-Hookean material with ``c10`` and ``d1`` (MPa, 1/MPa), e.g.
             :class:`tissuecast.fem.NeoHookean`.
         fixed: (k,) int, 0-based ids of vertices held in all three directions.
-        forces: (n, 3) float, N: dead nodal loads on the vertices (corner nodes); zero
-            components are not written.
+        forces: (n, 3) float, N: dead nodal loads on the vertices (corner nodes), or
+            (n_nodes, 3) on every element node; zero components are not written.
         order: 2 for quadratic C3D10 elements, 1 for linear C3D4.
         prescribed: optional prescribed vertex displacements (mm), ramped over the step,
             as ``{vertex: (3,)}`` or ``(ids (p,), values (p, 3))``; a NaN component is free.
@@ -146,6 +148,8 @@ def write_inp(
             ``*CONTROLS, PARAMETERS=FIELD`` (residual / average force, correction / increment
             of displacement); None keeps the defaults 0.005 and 0.01 (both programs').
         title: ``*HEADING`` text.
+        scenario: optional :class:`~._scenario.DeckScenario`: springs to ground, a gravity
+            load, per-element materials.
 
     Returns:
         The path written.
@@ -158,7 +162,7 @@ def write_inp(
         raise SolverSetupError(f"order must be 1 (C3D4) or 2 (C3D10), got {order!r}")
     n = mesh.n_points
     c10, d1 = _material_constants(material)
-    f = _as_forces(forces, n)
+    f = _as_forces(forces, n, len(mesh.points10) if order == 2 else None)
     fixed = np.unique(_as_ids(fixed, n, "fixed vertices"))
     pre_ids, pre_val = _as_prescribed(prescribed, n)
     both = np.intersect1d(fixed, pre_ids)
@@ -200,11 +204,13 @@ def write_inp(
         ids = _as_ids(ids, n, f"node set {name}")
         if ids.size:
             out += [f"*NSET, NSET={name}"] + _id_lines(ids + 1)
+    if scenario is None:
+        out += ["*MATERIAL, NAME=TISSUE", "*HYPERELASTIC, NEO HOOKE", f"{_num(c10)}, {_num(d1)}",
+                "*SOLID SECTION, ELSET=TISSUE, MATERIAL=TISSUE"]
+    else:
+        out += scenario.material_lines(material, len(elements), _num)
+        out += scenario.spring_lines(len(elements) + 1, _num)
     out += [
-        "*MATERIAL, NAME=TISSUE",
-        "*HYPERELASTIC, NEO HOOKE",
-        f"{_num(c10)}, {_num(d1)}",
-        "*SOLID SECTION, ELSET=TISSUE, MATERIAL=TISSUE",
         f"*STEP, NLGEOM={'YES' if nlgeom else 'NO'}, INC={int(max_increments)}",
         "*STATIC",
         f"{_num(initial_increment)}, 1.0, {_num(min_increment)}, {_num(max_increment)}",
@@ -223,6 +229,8 @@ def write_inp(
     nz = np.argwhere(f != 0)
     if nz.size:
         out += ["*CLOAD"] + [f"{i + 1}, {d + 1}, {_num(f[i, d])}" for i, d in nz.tolist()]
+    if scenario is not None:
+        out += scenario.step_lines(_num)
     out += ["*NODE PRINT, NSET=NVERT", "U", "*NODE FILE", "U", "*END STEP", ""]
     path = Path(path)
     path.write_text("\n".join(out))

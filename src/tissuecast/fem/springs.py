@@ -1,0 +1,69 @@
+"""Linear springs from element nodes to fixed ground (an elastic support of the body).
+
+Each spring holds one node with a constant symmetric 3x3 stiffness ``K_a`` (N/mm) in the
+reference directions: force ``-K_a u_a``, energy ``u_a . K_a u_a / 2``. CalculiX's SPRING1
+elements behave the same way under NLGEOM (one per principal direction of ``K_a``, oriented by
+``*SPRING, ORIENTATION``), so a deck written from these springs describes the same discrete
+problem. :mod:`tissuecast.scenario.springs` builds them from a stiffness per unit area of a
+surface region.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import SolverSetupError
+
+__all__ = ["NodalSprings"]
+
+
+@dataclass(frozen=True, eq=False)
+class NodalSprings:
+    """Linear springs from element nodes to fixed ground.
+
+    Attributes:
+        nodes: (s,) int64 sorted node ids (P2: vertices first, then mid-edge nodes).
+        stiffness: (s, 3, 3) float, N/mm, symmetric positive semi-definite per node.
+
+    Raises:
+        SolverSetupError: wrong shapes, repeated or negative node ids, non-finite, asymmetric
+            or indefinite stiffness.
+    """
+
+    nodes: np.ndarray
+    stiffness: np.ndarray
+
+    def __post_init__(self) -> None:
+        nodes = np.asarray(self.nodes, dtype=np.int64).ravel()
+        k = np.asarray(self.stiffness, dtype=np.float64)
+        if k.shape != (len(nodes), 3, 3):
+            raise SolverSetupError(f"spring stiffness must have shape ({len(nodes)}, 3, 3) (one 3x3 N/mm per node), "
+                                   f"got {k.shape}")
+        if len(np.unique(nodes)) != len(nodes) or (nodes.size and nodes.min() < 0):
+            raise SolverSetupError("spring nodes must be distinct non-negative node ids (0-based)")
+        if not np.all(np.isfinite(k)) or not np.allclose(k, np.swapaxes(k, 1, 2), rtol=1e-12, atol=0.0):
+            raise SolverSetupError("spring stiffness must be finite and symmetric per node")
+        if k.size and np.linalg.eigvalsh(k).min() < -1e-12 * max(float(np.abs(k).max()), 1e-300):
+            raise SolverSetupError("spring stiffness must be positive semi-definite per node (a spring never pushes "
+                                   "the node away from where it is held)")
+        object.__setattr__(self, "nodes", nodes)
+        object.__setattr__(self, "stiffness", k)
+
+    def __len__(self) -> int:
+        return len(self.nodes)
+
+    def without(self, nodes: np.ndarray) -> "NodalSprings":
+        """The springs of the nodes not in ``nodes`` ((k,) int)."""
+        keep = ~np.isin(self.nodes, nodes)
+        return NodalSprings(self.nodes[keep], self.stiffness[keep])
+
+    def forces(self, u: np.ndarray) -> np.ndarray:
+        """Spring forces on the nodes, ``-K_a u_a``: (s, 3) N for nodal displacements ``u``
+        ((n_nodes, 3) mm)."""
+        return -np.einsum("sij,sj->si", self.stiffness, u[self.nodes])
+
+    def energy(self, u: np.ndarray) -> float:
+        """Stored energy ``sum_a u_a . K_a u_a / 2`` in mJ for ``u`` (n_nodes, 3) mm."""
+        return float(-0.5 * np.sum(self.forces(u) * u[self.nodes]))
