@@ -525,7 +525,7 @@ def config_to_dict(cfg: Any) -> dict:
         if dataclasses.is_dataclass(v):
             out[f.name] = config_to_dict(v)
         elif isinstance(v, tuple):
-            out[f.name] = list(v)
+            out[f.name] = [config_to_dict(x) if dataclasses.is_dataclass(x) else x for x in v]
         else:
             out[f.name] = v
     return out

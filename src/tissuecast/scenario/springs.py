@@ -2,7 +2,9 @@
 
 A surface region with stiffness per unit area ``k_n`` normal to it and ``k_t`` along it
 (N/mm^3 = MPa/mm) becomes one linear spring per surface node: node ``a`` with lumped area
-``A_a`` (see :func:`~.surface.lumped_areas`) and unit normal ``n_a`` gets the 3x3 stiffness
+``A_a = integral(N_a) dA`` (P1: a third of each triangle at each vertex; P2: a third at each
+mid-edge node, none at the corners; see :func:`~tissuecast.mesh.surface.lumped_areas` for
+why and how it compares with HRZ lumping) and unit normal ``n_a`` gets the 3x3 stiffness
 
     K_a = A_a (k_t I + (k_n - k_t) n_a n_a^T)   N/mm,
 

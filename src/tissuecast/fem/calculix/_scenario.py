@@ -82,7 +82,7 @@ class DeckScenario:
             name = "TISSUE" if self.materials is None else f"TISSUE{k + 1}"
             out += [f"*MATERIAL, NAME={name}", "*HYPERELASTIC, NEO HOOKE", f"{num(mat.c10)}, {num(mat.d1)}"]
             if self.acceleration is not None:
-                out += ["*DENSITY", num(self.density)]
+                out += ["*DENSITY", num(float(self.density))]
             if self.materials is not None:
                 out += [f"*ELSET, ELSET={name}"] + _id_lines(ids + 1)
             out.append(f"*SOLID SECTION, ELSET={name}, MATERIAL={name}")
@@ -113,12 +113,12 @@ class DeckScenario:
             lam = lam[::-1]
             orient = f"OR{node + 1}"
             out += [f"*ORIENTATION, NAME={orient}, SYSTEM=RECTANGULAR",
-                    ", ".join(num(x) for x in np.r_[q[:, 0], q[:, 1]])]
+                    ", ".join(num(float(x)) for x in np.r_[q[:, 0], q[:, 1]])]
             for dof in range(3):
                 if lam[dof] <= _ISOTROPIC_RTOL * top:
                     continue
                 out += [f"*ELEMENT, TYPE=SPRING1, ELSET=SP{eid}", f"{eid}, {node + 1}",
-                        f"*SPRING, ELSET=SP{eid}, ORIENTATION={orient}", str(dof + 1), num(lam[dof])]
+                        f"*SPRING, ELSET=SP{eid}, ORIENTATION={orient}", str(dof + 1), num(float(lam[dof]))]
                 eid += 1
         for (dof, value), items in shared.items():
             name = f"SP{items[0][0]}"
@@ -135,5 +135,5 @@ class DeckScenario:
         if size == 0.0:
             return []
         d = a / size
-        return ["*DLOAD", f"TISSUE, GRAV, {num(size)}, {num(d[0])}, {num(d[1])}, {num(d[2])}"]
+        return ["*DLOAD", "TISSUE, GRAV, " + ", ".join(num(float(x)) for x in (size, *d))]
 
