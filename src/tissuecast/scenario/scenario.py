@@ -31,7 +31,8 @@ from .regions import surface_region
 from .springs import surface_springs
 from ..mesh.surface import vertex_normals
 
-__all__ = ["Scenario", "ScenarioDraw", "build_scenario", "scenario_rng", "free_rigid_motions", "SCENARIO_STREAM"]
+__all__ = ["Scenario", "ScenarioDraw", "build_scenario", "scenario_from_config", "scenario_rng", "free_rigid_motions",
+           "SCENARIO_STREAM"]
 
 #: Second SeedSequence word of a sample's scenario draws: ``SeedSequence([sample_seed, SCENARIO_STREAM])``.
 SCENARIO_STREAM = 2**63 - 3
@@ -253,3 +254,26 @@ def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshT
     sites = indentation_sites(mesh, sc.indentation, normals, supported) if sc.indentation.enabled else None
     gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
     return Scenario(sc, mesh, order, pinned, attached, region, springs, materials, normals, sites, gravity)
+
+
+def scenario_from_config(config: Config):
+    """The mesh, fiducial markers, pinned vertices and resolved scenario a config describes.
+
+    The mesh is ``mesh.path`` (with its named regions, :func:`~tissuecast.mesh.tags.read_mesh_tags`)
+    or the built-in phantom; material draws use ``dataset.seed``.
+
+    Returns:
+        ``(mesh, markers (n_d,) int64, fixed (k,) int64, scenario)``.
+    """
+    from ..markers import markers_and_fixed
+    from ..mesh import phantom, read_mesh
+    from ..mesh.tags import read_mesh_tags
+
+    if config.mesh.path:
+        mesh = read_mesh(config.mesh.path, units=config.mesh.units, mesh_size=config.mesh.surface_mesh_size)
+        tags = read_mesh_tags(config.mesh.path)
+    else:
+        mesh, tags = phantom(), MeshTags()
+    markers, fixed = markers_and_fixed(mesh, config.markers)
+    markers, fixed = np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
+    return mesh, markers, fixed, build_scenario(mesh, config, fixed, tags, material_seed=config.dataset.seed)
