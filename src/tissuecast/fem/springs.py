@@ -67,3 +67,54 @@ class NodalSprings:
     def energy(self, u: np.ndarray) -> float:
         """Stored energy ``sum_a u_a . K_a u_a / 2`` in mJ for ``u`` (n_nodes, 3) mm."""
         return float(-0.5 * np.sum(self.forces(u) * u[self.nodes]))
+
+
+class SpringAssembly:
+    """The springs' share of an :class:`~.assembly.Assembler`'s forces, energy and tangent.
+
+    A spring couples the three dofs of one node, and that node's 3x3 block is already in the
+    element stiffness pattern, so the springs add constant values at fixed positions of the
+    CSR data (found once here): no new sparsity pattern, no new symbolic factorisation.
+    Springs at constrained dofs only reach the reactions.
+
+    Args:
+        springs: the nodal springs.
+        assembler: the assembler of the same nodes (its free dofs and CSR pattern).
+    """
+
+    def __init__(self, springs: NodalSprings, assembler) -> None:
+        self.springs = springs
+        n_dofs = assembler.n_dofs
+        if len(springs) and springs.nodes.max() >= n_dofs // 3:
+            raise SolverSetupError(f"spring node {int(springs.nodes.max())} is outside the {n_dofs // 3} element nodes")
+        self.dofs = (3 * springs.nodes[:, None] + np.arange(3)).ravel()  # (3 s,)
+        local = np.full(n_dofs, -1, dtype=np.int64)
+        local[assembler.free_dofs] = np.arange(assembler.n_free)
+        rows = np.repeat(local[self.dofs].reshape(-1, 3), 3, axis=1).ravel()  # (9 s,) (a, i, j) -> row of (a, i)
+        cols = np.tile(local[self.dofs].reshape(-1, 3), (1, 3)).ravel()
+        keep = (rows >= 0) & (cols >= 0)
+        n = assembler.n_free
+        entry_rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(assembler.indptr))
+        keys = entry_rows * n + assembler.indices  # ascending: CSR rows, then columns, sorted
+        want = rows[keep] * n + cols[keep]
+        pos = np.searchsorted(keys, want)
+        if np.any(keys[np.minimum(pos, len(keys) - 1)] != want):  # pragma: no cover - a node's block is always there
+            raise SolverSetupError("a spring's 3x3 block is not in the stiffness pattern")
+        self.positions = pos
+        self.values = springs.stiffness.reshape(-1)[keep]
+
+    def add_tangent(self, data: np.ndarray) -> np.ndarray:
+        """CSR stiffness data (nnz,) N/mm with the springs added (in place; returned)."""
+        np.add.at(data, self.positions, self.values)
+        return data
+
+    def forces(self, u: np.ndarray) -> np.ndarray:
+        """(3 n_nodes,) N: the springs' pull-back ``K_a u_a`` on their nodes, the same sign as
+        internal forces (their sum with them balances the applied loads); ``u`` (n_nodes, 3) mm."""
+        out = np.zeros(u.size)
+        out[self.dofs] = np.einsum("sij,sj->si", self.springs.stiffness, u[self.springs.nodes]).ravel()
+        return out
+
+    def energy(self, u: np.ndarray) -> float:
+        """Stored energy in mJ for nodal displacements ``u`` (n_nodes, 3) mm."""
+        return self.springs.energy(u)
