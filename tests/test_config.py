@@ -29,7 +29,7 @@ def test_defaults_are_the_papers_values():
     assert c.forces.target_max_displacement == 30.0
     assert c.dataset.n_samples == 2000 and c.dataset.split == (8.0, 1.0, 1.0) and c.dataset.n_test2 == 200
     assert c.surrogate.hidden == (128, 64) and c.surrogate.pca_max_error == 1.0 and c.surrogate.pca_folds == 5
-    assert c.surrogate.ridge_ratio == 1e-3 and c.surrogate.learning_rate == 1e-3
+    assert c.surrogate.ridge_ratio == 1e-3 and c.surrogate.learning_rate == 3e-3
     assert c.mesh.units == "mm" and c.mesh.path == ""
     assert c.serve.port == 18944 and c.serve.host == "127.0.0.1"
 

@@ -1,4 +1,5 @@
-"""``tissuecast evaluate MODEL``: accuracy on the data set (MLP and ridge) and the HTML report."""
+"""``tissuecast evaluate MODEL``: accuracy on the data set (the MLP next to rigid registration,
+ridge and the PCA floor) and the HTML report."""
 
 from __future__ import annotations
 
@@ -8,8 +9,10 @@ from pathlib import Path
 
 def register(sub) -> None:
     p = sub.add_parser("evaluate", help="evaluate a model on its data set and write the report",
-                       description="Offset_mean / Offset_max on valid, test-1 and test-2 (per beta), MLP next to the "
-                                   "ridge baseline, prediction time; writes index.html with figures, renders and VTU files.")
+                       description="Offset_mean / Offset_max on valid, test-1 and test-2 (per beta): the MLP next to "
+                                   "rigid registration from the same markers, the ridge baseline and the PCA floor, with "
+                                   "the peak displacement and non-rigid part of the samples; prediction time; writes "
+                                   "index.html with figures, renders and VTU files.")
     p.add_argument("model", help="model folder (from `tissuecast train`)")
     p.add_argument("--store", help="data-set store (default: the store the model was trained on)")
     p.add_argument("--out", help="report folder (default: the model folder's sibling 'report')")

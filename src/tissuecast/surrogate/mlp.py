@@ -36,10 +36,10 @@ class TrainOptions:
     """Training hyper-parameters (see :class:`tissuecast.config.SurrogateConfig`)."""
 
     hidden: tuple[int, ...] = (128, 64)
-    epochs: int = 2000
+    epochs: int = 2500
     batch_size: int = 128
-    learning_rate: float = 1e-3
-    patience: int = 200
+    learning_rate: float = 3e-3
+    patience: int = 250
     schedule: str = "onecycle"
     output_scaling: str = "global"
     weight_decay: float = 0.0

@@ -42,8 +42,11 @@ def _surrogate_config(config, overrides: dict) -> SurrogateConfig:
 
 
 # The validation rule keeps the smallest n_w whose validation mean Offset_max is within this
-# share of the best one: components past it change the error by less than its noise.
+# share of the best one (components past it change the error by less than its noise) ...
 _VALIDATION_TOLERANCE = 0.01
+# ... and whose PCA floor is at most this share of that error, so that truncation is not what
+# limits accuracy (errors add about in quadrature: a floor of 0.4 e adds < 9 % to e).
+_FLOOR_SHARE = 0.4
 
 
 def _train_options(c: SurrogateConfig, seed: int) -> TrainOptions:
@@ -55,8 +58,12 @@ def _train_options(c: SurrogateConfig, seed: int) -> TrainOptions:
 
 
 def _choose_by_validation(members: list[MLPWeights], basis: PCABasis, Xv: np.ndarray, Uv: np.ndarray) -> tuple[int, dict]:
-    """n_w of the lowest validation mean Offset_max when the networks' predicted weights are
-    cut after n_w components, and the curves behind the choice.
+    """The n_w at which the networks' predicted weights are cut, and the curves behind it.
+
+    For every n_w the validation mean Offset_max of the truncated networks (ensemble mean)
+    and of the fields' own projection (the PCA floor) are measured; the smallest n_w within
+    ``_VALIDATION_TOLERANCE`` of the best model error whose floor is at most ``_FLOOR_SHARE``
+    of the model's error is kept (the best n_w if no floor is that small).
 
     Args:
         members: networks predicting all ``basis.n_components`` weights.
@@ -81,9 +88,25 @@ def _choose_by_validation(members: list[MLPWeights], basis: PCABasis, Xv: np.nda
         res_floor -= np.outer(true_w[:, k], ck)
         model[k] = np.linalg.norm(res_model.reshape(len(Uv), -1, 3), axis=2).max(axis=1).mean()
         floor[k] = np.linalg.norm(res_floor.reshape(len(Uv), -1, 3), axis=2).max(axis=1).mean()
-    n_w = int(np.flatnonzero(model <= model.min() * (1.0 + _VALIDATION_TOLERANCE))[0]) + 1
+    good = model <= model.min() * (1.0 + _VALIDATION_TOLERANCE)
+    small_floor = good & (floor <= _FLOOR_SHARE * model)
+    n_w = int(np.flatnonzero(small_floor if small_floor.any() else model == model.min())[0]) + 1
     return n_w, {"n_components": list(range(1, K + 1)), "model_offset_max": model.tolist(),
                  "floor_offset_max": floor.tolist()}
+
+
+def _ridge_components(basis: PCABasis, markers: np.ndarray, ratio: float, Xv: np.ndarray, Uv: np.ndarray) -> int:
+    """The n_w (<= the basis's) at which the ridge baseline has its lowest validation mean
+    Offset_max: with few markers, ridge on many components is under-determined and much worse
+    than on a few, so the baseline is reported at its best rather than at the MLP's n_w."""
+    best, best_k = np.inf, basis.n_components
+    for k in range(1, basis.n_components + 1):
+        r = fit_ridge(basis.truncated(k), markers, ratio)
+        pred = basis.truncated(k).inverse_transform(r.weights(Xv))
+        e = np.linalg.norm((pred - Uv).reshape(len(Uv), -1, 3), axis=2).max(axis=1).mean()
+        if e < best:
+            best, best_k = e, k
+    return int(best_k)
 
 
 class DeformationModel:
@@ -231,8 +254,9 @@ class DeformationModel:
             basis, members = basis.truncated(n_w), [m.truncated(n_w) for m in members]
             choice = {"rule": rule, "n_components": n_w, "trained_components": int(curve_v["n_components"][-1]),
                       "validation_curve": curve_v}
-        self._set_state(mesh=mesh, markers=mk, fixed=fx, basis=basis, members=members, curve=curve)
+        choice["ridge_components"] = _ridge_components(basis, mk, c.ridge_ratio, Xv, Uv)
         self.pca_choice_ = choice
+        self._set_state(mesh=mesh, markers=mk, fixed=fx, basis=basis, members=members, curve=curve)
         self.summaries_ = summaries
         self.training_ = {
             "n_train": int(len(train_idx)),
@@ -255,11 +279,14 @@ class DeformationModel:
         self.pca_ = basis
         self.pca_curve_ = curve
         self.members_ = list(members)
-        self.ridge_: RidgeBaseline = fit_ridge(basis, self.markers_, self.config.ridge_ratio)
+        k_ridge = int((getattr(self, "pca_choice_", None) or {}).get("ridge_components") or basis.n_components)
+        ridge_basis = basis.truncated(min(k_ridge, basis.n_components))
+        self.ridge_: RidgeBaseline = fit_ridge(ridge_basis, self.markers_, self.config.ridge_ratio)
         self.compiled_ = CompiledSurrogate(self.members_, basis)
         cols = marker_columns(self.markers_)
         # ridge as one affine map of the marker displacements: u = d @ R + r0
-        self._ridge_map = (self.ridge_.matrix.T @ basis.components, basis.mean - self.ridge_.marker_mean @ self.ridge_.matrix.T @ basis.components)
+        proj = self.ridge_.matrix.T @ ridge_basis.components
+        self._ridge_map = (proj, basis.mean - self.ridge_.marker_mean @ proj)
         self._marker_cols = cols
 
     @classmethod
@@ -329,7 +356,11 @@ class DeformationModel:
         return self.predict(p - self.reference_marker_positions, missing=missing, method=method)
 
     def predict_ridge(self, marker_displacements) -> np.ndarray:
-        """The paper's ridge-regression baseline: (n, 3) or (B, n, 3) mm, same inputs as :meth:`predict`."""
+        """The paper's ridge-regression baseline: (n, 3) or (B, n, 3) mm, same inputs as :meth:`predict`.
+
+        It uses the first ``pca_choice_["ridge_components"]`` components of the model's basis,
+        the number at which ridge had its lowest validation error.
+        """
         d, _, single = self._marker_batch(marker_displacements)
         R, r0 = self._ridge_map
         u = (d @ R + r0).reshape(d.shape[0], -1, 3)

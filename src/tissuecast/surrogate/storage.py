@@ -150,9 +150,9 @@ def load_model(cls, folder):
     model.run_config = meta.get("config")
     model.dataset_path = meta.get("dataset_path")
     curve = PCACurve.from_dict(meta["pca_curve"]) if meta.get("pca_curve") else None
-    model._set_state(mesh=mesh, markers=meta["markers"], fixed=meta["fixed"], basis=basis, members=members, curve=curve)
     model.pca_choice_ = meta.get("pca_choice") or {"rule": "paper" if curve else "unrecorded",
                                                    "n_components": basis.n_components}
+    model._set_state(mesh=mesh, markers=meta["markers"], fixed=meta["fixed"], basis=basis, members=members, curve=curve)
     if meta.get("training"):
         model.training_ = meta["training"]
         model.summaries_ = [TrainingSummary(**{k: (tuple(map(tuple, v)) if k == "valid_history" else v) for k, v in s.items()})
