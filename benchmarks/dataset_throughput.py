@@ -61,6 +61,7 @@ def _profile(store: Path, indices) -> tuple[dict, float, list]:
     """
     import numpy as np
 
+    from tissuecast.dataset import SampleStatus
     from tissuecast.dataset.generate import _recipe
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task, context_for, solve_task
@@ -94,7 +95,7 @@ def _profile(store: Path, indices) -> tuple[dict, float, list]:
         cold = ctx.solver(0).solve(forces)
         sec = time.perf_counter() - t
         peak = float(np.abs(cold.displacement).max())
-        diff = float(np.abs(warm.displacement - cold.displacement).max()) / peak if warm.status == 1 else float("nan")
+        diff = float(np.abs(warm.displacement - cold.displacement).max()) / peak if warm.status == SampleStatus.DONE else float("nan")
         pairs.append((warm.seconds, sec, warm.iterations, cold.iterations, warm.factorizations, cold.factorizations,
                       diff, warm.predicted))
     return out, setup, pairs
@@ -159,10 +160,10 @@ def main() -> None:
     if args.profile:
         import numpy as np
 
-        from tissuecast.dataset import open_dataset
+        from tissuecast.dataset import SampleStatus, open_dataset
 
         ds = open_dataset(store)
-        later = np.flatnonzero((ds.status == 1) & (np.arange(len(ds)) >= cfg.dataset.predictor_samples))
+        later = np.flatnonzero((ds.status == SampleStatus.DONE) & (np.arange(len(ds)) >= cfg.dataset.predictor_samples))
         buckets, setup, pairs = _profile(store, later[: args.profile])
         total = sum(buckets.values())
         print(f"where a worker's time goes ({len(pairs)} samples in-process, {total:.1f} s; per-process solver "

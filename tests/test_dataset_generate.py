@@ -14,7 +14,7 @@ import pytest
 import zarr
 
 from tissuecast.config import with_overrides
-from tissuecast.dataset import open_dataset, simulate
+from tissuecast.dataset import InitialGuess, SampleStatus, open_dataset, simulate
 
 from test_dataset_helpers import small_config, store_arrays, store_attrs, write_config
 
@@ -61,7 +61,7 @@ def test_reference_run_is_complete_and_calibrated(reference):
     # the whole data set lands near the target: median within a factor 2, most samples converge
     st = summary["max_displacement"]
     assert 2.0 < st["median"] < 8.0
-    assert ds.increments[ds.status == 1].min() >= 1
+    assert ds.increments[ds.status == SampleStatus.DONE].min() >= 1
 
 
 def _done_count(path) -> int:
@@ -97,24 +97,24 @@ def test_resume_after_kill_is_bit_identical(reference, tmp_path, kill_at):
 def test_predictor_starts_later_samples_near_their_solution(reference):
     cfg, path, _ = reference
     ds = open_dataset(path)
-    done = ds.status == 1
+    done = ds.status == SampleStatus.DONE
     model = ds.summary()["predictor"]["model"]
     assert model["snapshots"] == N_BASIS and 1 <= model["modes"] <= N_BASIS and model["fit_error"] <= 0.01
     basis = np.arange(N_LBO + N_TEST2) < N_BASIS
     pilots = np.arange(N_LBO + N_TEST2) < 2
     # the basis samples are solved from zero, the calibration pilots from their previous round
-    assert (ds.predicted[basis & ~pilots] == 0).all() and (ds.predicted[pilots] == 3).all()
-    warm = done & ~basis & (ds.predicted == 1)
+    assert (ds.predicted[basis & ~pilots] == InitialGuess.ZERO).all()
+    assert (ds.predicted[pilots] == InitialGuess.PREVIOUS_ROUND).all()
+    warm = done & ~basis & (ds.predicted == InitialGuess.REDUCED_MODEL)
     assert warm.sum() >= 0.9 * (~basis).sum()
     # from the prediction the full solver needs fewer iterations than from zero
     assert ds.iterations[warm].mean() < 0.8 * ds.iterations[done & basis].mean()
     # ... and reaches the same equilibrium: re-solve some of them from zero
     from tissuecast.dataset.generate import setup_from_config
-    from tissuecast.fem import NeoHookean, Problem, Solver
+    from tissuecast.fem import Solver, build_problem
 
     mesh, _, fixed = setup_from_config(cfg)
-    solver = Solver(Problem(mesh, NeoHookean(cfg.material.youngs_modulus, cfg.material.poisson_ratio), fixed,
-                            order=cfg.solver.order), cfg.solver)
+    solver = Solver(build_problem(mesh, cfg, fixed), cfg.solver)
     for i in np.flatnonzero(warm)[:5]:
         cold = solver.solve(ds.forces[i].astype(np.float64)).displacement
         peak = np.abs(cold).max()
@@ -127,13 +127,12 @@ def test_calibration_pilots_start_from_their_previous_round(reference):
     rounds = ds.calibration["rounds"]
     assert len(rounds) >= 2
     from tissuecast.dataset.generate import setup_from_config
-    from tissuecast.fem import NeoHookean, Problem, Solver
+    from tissuecast.fem import Solver, build_problem
 
     mesh, _, fixed = setup_from_config(cfg)
-    solver = Solver(Problem(mesh, NeoHookean(cfg.material.youngs_modulus, cfg.material.poisson_ratio), fixed,
-                            order=cfg.solver.order), cfg.solver)
+    solver = Solver(build_problem(mesh, cfg, fixed), cfg.solver)
     for i in (0, 1):  # the last round's pilots are samples 0 and 1, at the same equilibrium as from zero
-        assert ds.predicted[i] == 3
+        assert ds.predicted[i] == InitialGuess.PREVIOUS_ROUND
         cold = solver.solve(ds.forces[i].astype(np.float64))
         assert np.abs(ds.displacements[i] - cold.displacement).max() <= 2e-3 * np.abs(cold.displacement).max()
         assert ds.iterations[i] < cold.iterations
@@ -164,7 +163,7 @@ def test_no_predictor_solves_every_sample_from_zero(tmp_path):
                          dataset={"predictor": "none", "predictor_samples": 2})
     simulate(cfg, tmp_path / "cold.zarr", progress=False)
     ds = open_dataset(tmp_path / "cold.zarr")
-    assert (ds.status == 1).all() and (ds.predicted == 0).all()
+    assert (ds.status == SampleStatus.DONE).all() and (ds.predicted == InitialGuess.ZERO).all()
     assert ds.summary()["predictor"]["model"] is None
 
 
@@ -204,7 +203,7 @@ def test_simulate_cli_creates_continues_and_refuses(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "this run: 7 samples" in out and "train" in out
     ds = open_dataset(store)
-    assert len(ds) == 7 and ds.config.dataset.n_samples == 5 and (ds.status == 1).all()
+    assert len(ds) == 7 and ds.config.dataset.n_samples == 5 and (ds.status == SampleStatus.DONE).all()
     assert main(args) == 0
     assert "this run: 0 samples" in capsys.readouterr().out
     assert main([a if a != "5" else "6" for a in args]) == 2  # --samples 6 on a 5-sample store

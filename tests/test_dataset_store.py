@@ -95,6 +95,38 @@ def test_readable_with_zarr_alone(made):
     assert s["displacements"].chunks == (1, 140, 3)
 
 
+def test_stored_codes_are_the_named_ones(made):
+    """samples/status and samples/predicted hold the SampleStatus / InitialGuess values that the
+    schema documents, and the stored labels are the enum's."""
+    from tissuecast.dataset import STATUS_NAMES, InitialGuess, SampleStatus
+
+    _, path, _ = made
+    assert {int(s): s.label for s in SampleStatus} == {0: "pending", 1: "done", 2: "failed"} == STATUS_NAMES
+    assert [int(g) for g in InitialGuess] == [0, 1, 2, 3]
+    ds = open_dataset(path)
+    assert ds.attrs["status_labels"] == {"0": "pending", "1": "done", "2": "failed"}
+    np.testing.assert_array_equal(ds.select(status="failed"), np.flatnonzero(ds.status == SampleStatus.FAILED))
+    assert set(np.unique(ds.status)) == {SampleStatus.DONE, SampleStatus.FAILED}
+    assert (ds.predicted == InitialGuess.ZERO).all()  # the fake solver's set: no reduced model
+    assert "done" in repr(ds) and f"{len(ds.select(status='failed'))} failed" in repr(ds)
+
+
+def test_run_figures_of_a_first_call(made):
+    """simulate()["run"]: the keys the CLI and the benchmarks read, and figures that add up."""
+    from tissuecast.dataset.generate import Phase, SimulationRun
+
+    _, _, summary = made
+    run = summary["run"]
+    assert list(run) == ["solved", "executor", "calibration_seconds", "sample_phase_seconds", "sample_phase_samples",
+                         "parent_io_seconds", "seconds", "samples_per_minute", "sample_phase_samples_per_minute"]
+    assert run["solved"] == summary["n_samples"] == 13  # a new store: every sample solved in this call
+    assert 0 < run["sample_phase_samples"] <= run["solved"]
+    assert run["samples_per_minute"] == pytest.approx(60.0 * 13 / run["seconds"])
+    built = SimulationRun("x", Phase(2, 1.0), Phase(3, 4.0, built=True), Phase(5, 10.0, 0.5), seconds=20.0).as_dict()
+    assert built["solved"] == 10 and built["reduced_seconds"] == 4.0 and built["parent_io_seconds"] == 0.5
+    assert built["samples_per_minute"] == 30.0 and built["sample_phase_samples_per_minute"] == 30.0
+
+
 def test_rerun_is_a_no_op_and_other_config_is_refused(made, tmp_path):
     cfg, path, _ = made
     before = store_arrays(path)

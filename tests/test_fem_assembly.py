@@ -106,13 +106,14 @@ def test_structured_element_stiffness_equals_generic_contraction(order):
 
 @pytest.mark.parametrize("order", [1, 2])
 def test_indefinite_tangent_is_shifted_by_the_smallest_working_tau(order):
-    """Solver._factorize: an indefinite K (strong compression) is replaced by K + tau diag(K)
+    """SolveRun.factorize: an indefinite K (strong compression) is replaced by K + tau diag(K)
     with tau from the ladder 1e-3 x 4^k; the factor then solves that shifted system, and the
     next indefinite K starts the ladder at tau / 2."""
     pytest.importorskip("sksparse")  # a Cholesky backend tells "not positive definite"
     from tissuecast.config import SolverConfig
     from tissuecast.fem import Solver
     from tissuecast.fem.linear import NotPositiveDefinite
+    from tissuecast.fem.newton import SolveRun
 
     mesh = distorted_box(seed=2)
     prob = Problem(mesh, NeoHookean(0.021, 0.45), fixed=[0, 3, 12], order=order)
@@ -121,11 +122,10 @@ def test_indefinite_tangent_is_shifted_by_the_smallest_working_tau(order):
     _, k, _ = solver.assembler.tangent(u)
     kmat = solver.assembler.matrix(k).toarray()
     assert np.linalg.eigvalsh(kmat).min() < 0
-    solver._stats = {"factorizations": 0, "shifted": 0, "projected": 0}
-    solver._tau = 0.0
-    solver._factorize(u.ravel())
-    tau = solver._tau
-    assert solver._stats["shifted"] == 1 and solver._stats["projected"] == 0
+    run = SolveRun(solver, np.zeros(solver.assembler.n_dofs))
+    run.factorize(u.ravel())
+    tau = run.tau
+    assert run.counts.shifted == 1 and run.counts.projected == 0
     ladder = 1e-3 * 4.0 ** np.arange(10)
     assert np.isclose(ladder, tau, rtol=1e-12).any()
     shifted = kmat + tau * np.diag(np.diag(kmat))
@@ -133,7 +133,36 @@ def test_indefinite_tangent_is_shifted_by_the_smallest_working_tau(order):
     if tau > 1e-3:  # the previous rung was not positive definite: tau is the smallest that works
         assert np.linalg.eigvalsh(kmat + tau / 4 * np.diag(np.diag(kmat))).min() < 0
     b = np.random.default_rng(0).normal(size=len(kmat))
-    np.testing.assert_allclose(solver.linear.solve(b), np.linalg.solve(shifted, b), rtol=1e-8, atol=1e-12)
-    assert solver._stats["factorizations"] == 2 + int(round(np.log(tau / 1e-3) / np.log(4.0)))
+    np.testing.assert_allclose(run.linear.solve(b), np.linalg.solve(shifted, b), rtol=1e-8, atol=1e-12)
+    assert run.counts.factorizations == 2 + int(round(np.log(tau / 1e-3) / np.log(4.0)))
     with pytest.raises(NotPositiveDefinite):
-        solver.linear.factorize(k)
+        run.linear.factorize(k)
+
+
+@pytest.mark.parametrize("backend", ["cholmod", "superlu"])
+def test_spawned_linear_solver_has_its_own_factor_and_the_same_bits(backend):
+    """LinearSolver.spawn: a second solver of the same pattern factorises another matrix
+    without touching the first one's factor, and (sharing the symbolic analysis) solves
+    bit for bit like a solver that analysed the pattern afresh."""
+    if backend == "cholmod":
+        pytest.importorskip("sksparse")
+    from tissuecast.fem.linear import make_linear_solver
+
+    prob = Problem(distorted_box(seed=1), NeoHookean(0.021, 0.45), fixed=[0, 3, 12], order=2)
+    asm = Assembler(prob.nodes, prob.connectivity, prob.order, prob.material, prob.free_mask)
+    rng = np.random.default_rng(4)
+    _, k0, _ = asm.tangent(np.zeros_like(prob.nodes))
+    k1 = k0.copy()
+    k1[asm.diagonal_index] *= 1.5  # another positive-definite matrix of the same pattern
+    first = make_linear_solver(backend, asm)
+    other = first.spawn()
+    assert type(other) is type(first) and other is not first
+    first.factorize(k0)
+    other.factorize(k1)
+    b = rng.normal(size=asm.n_free)
+    for solver, data in ((first, k0), (other, k1)):
+        dense = asm.matrix(data).toarray()
+        np.testing.assert_allclose(solver.solve(b), np.linalg.solve(dense, b), rtol=1e-8, atol=1e-12)
+    fresh = make_linear_solver(backend, asm)
+    fresh.factorize(k1)
+    np.testing.assert_array_equal(fresh.solve(b), other.solve(b))

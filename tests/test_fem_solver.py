@@ -11,6 +11,7 @@ from mesh_factories import box_grid
 from tissuecast.config import SolverConfig
 from tissuecast.errors import ConvergenceError, SolverSetupError
 from tissuecast.fem import NeoHookean, Problem, SolveResult, Solver, solve
+from tissuecast.fem.newton import SolveRun
 from tissuecast.fem.solver import _drive
 
 MAT = NeoHookean(0.021, 0.45)
@@ -92,7 +93,7 @@ def test_krylov_strategy_agrees_and_saves_factorisations(beam):
 
 
 def test_krylov_direction_solves_the_current_tangent():
-    """_krylov: with the tangent at u itself factorised, one CG step is exact; with an older
+    """SolveRun.krylov_direction: with the tangent at u itself factorised, one CG step is exact; with an older
     factorisation CG converges to K(u)^-1 r within krylov_tolerance."""
     from mesh_factories import box_grid as grid
 
@@ -100,21 +101,20 @@ def test_krylov_direction_solves_the_current_tangent():
     prob = Problem(mesh, MAT, np.flatnonzero(mesh.points[:, 0] < 1e-9), order=2)  # clamped face
     solver = Solver(prob, SolverConfig(strategy="krylov", krylov_tolerance=1e-8, krylov_iterations=200,
                                        krylov_recycle=0))
-    solver._stats = {"solves": 0, "krylov": 0, "factorizations": 0, "shifted": 0, "projected": 0}
-    solver._rotation = np.eye(3)
+    run = SolveRun(solver, np.zeros(solver.assembler.n_dofs))
     rng = np.random.default_rng(1)
     u = 0.005 * rng.normal(size=(len(prob.nodes), 3))  # small enough that K(u) is positive definite
     u[prob.constrained_nodes[0]] = 0.0
     r = rng.normal(size=solver.assembler.n_free)
     _, data, _ = solver.assembler.tangent(u)
     exact = -np.linalg.solve(solver.assembler.matrix(data).toarray(), r)
-    solver._factorize(u.ravel())
-    d, rest = _drive(solver._krylov(u.ravel(), r))
-    assert rest is None and solver._stats["krylov"] == 1
+    run.factorize(u.ravel())
+    d, rest = _drive(run.krylov_direction(u.ravel(), r))
+    assert rest is None and run.counts.krylov_steps == 1
     np.testing.assert_allclose(d, exact, rtol=1e-8, atol=1e-12 * np.abs(exact).max())
-    solver._factorize(np.zeros_like(u).ravel())  # an older (reference) tangent as preconditioner
-    d, rest = _drive(solver._krylov(u.ravel(), r))
-    assert rest is None and solver._stats["krylov"] > 2
+    run.factorize(np.zeros_like(u).ravel())  # an older (reference) tangent as preconditioner
+    d, rest = _drive(run.krylov_direction(u.ravel(), r))
+    assert rest is None and run.counts.krylov_steps > 2
     assert np.abs(d - exact).max() <= 1e-6 * np.abs(exact).max()
 
 
@@ -139,21 +139,19 @@ def test_recycled_krylov_is_exact_and_needs_fewer_steps():
     for cap in (0, 20):
         solver = Solver(prob, SolverConfig(strategy="krylov", krylov_tolerance=1e-6, krylov_iterations=500,
                                            krylov_recycle=cap))
-        solver._stats = {"solves": 0, "krylov": 0, "factorizations": 0, "shifted": 0, "projected": 0}
-        solver._rotation = np.eye(3)
-        solver._recycled = None
-        solver._factorize(np.zeros(solver.assembler.n_dofs))  # the reference stiffness as preconditioner
+        run = SolveRun(solver, np.zeros(solver.assembler.n_dofs))
+        run.factorize(np.zeros(solver.assembler.n_dofs))  # the reference stiffness as preconditioner
         for state, r in zip(states, rhs):
             _, data, _ = solver.assembler.tangent(state)
             k = solver.assembler.matrix(data)
             exact = -np.linalg.solve(k.toarray(), r)
-            d, rest = _drive(solver._krylov(state.ravel(), r))
+            d, rest = _drive(run.krylov_direction(state.ravel(), r))
             assert rest is None
             assert np.linalg.norm(k @ d + r) <= 1e-6 * np.linalg.norm(r) * (1 + 1e-9)
             assert np.abs(d - exact).max() <= 1e-4 * np.abs(exact).max()
-        steps[cap] = solver._stats["krylov"]
+        steps[cap] = run.counts.krylov_steps
         if cap:
-            assert solver._recycled is not None and 0 < solver._recycled.shape[1] <= cap
+            assert run.recycled is not None and 0 < run.recycled.shape[1] <= cap
     assert steps[20] < steps[0]
 
 
@@ -192,7 +190,7 @@ def test_batch_gathers_the_solves_and_matches_single_solves(beam):
     guesses = [first.nodal_displacement * 1.03, first.displacement * 0.6, first.nodal_displacement, None, None]
     single = [solver.solve(x, initial_guess=g) for x, g in zip(fields[:4], guesses[:4])]
     widths = []
-    reference = solver._reference_factor()
+    reference = solver.reference_factor()
     plain = reference.solve
 
     def counting(b):
@@ -351,3 +349,37 @@ def test_line_search_lengthens_a_newton_step_that_is_too_short():
     s, x, *_ = line_search(Quadratic(), straight(exact), free, exact, 0.0, r0, fext)
     assert s == 1.0
     np.testing.assert_allclose(x, exact, rtol=1e-12)
+
+
+def test_build_problem_takes_material_and_order_from_the_config(beam):
+    from tissuecast.config import Config, with_overrides
+    from tissuecast.fem import build_problem
+
+    mesh, fixed, _ = beam
+    cfg = with_overrides(Config(), material={"youngs_modulus": 0.03, "poisson_ratio": 0.4}, solver={"order": 1})
+    problem = build_problem(mesh, cfg, fixed)
+    assert problem.order == 1 and problem.material.youngs_modulus == 0.03 and problem.material.poisson_ratio == 0.4
+    np.testing.assert_array_equal(problem.fixed, fixed)
+    assert build_problem(mesh, cfg, fixed, order=2).order == 2
+    with pytest.raises(SolverSetupError, match="at least 3"):
+        build_problem(mesh, cfg, fixed[:2])
+
+
+def test_convergence_test_by_hand():
+    """converged(): both criteria, the residual alone far below its tolerance, and the
+    correction scaled by rho / (1 - rho) while the corrections contract slowly."""
+    from tissuecast.fem.convergence import converged, correction_estimate, reference_force
+
+    assert correction_estimate(1.0, None) == 1.0
+    assert correction_estimate(0.5, 1.0) == 0.5  # rho 0.5: rho / (1 - rho) = 1
+    assert correction_estimate(0.9, 1.0) == pytest.approx(0.9 * 9.0)  # rho 0.9: 9x
+    assert correction_estimate(0.99, 1.0) == 0.99  # not contracting: the raw correction
+    tol = dict(force_tolerance=5e-3, displacement_tolerance=1e-2)
+    assert converged(rmax=4e-3, q=1.0, cmax=0.05, estimate=0.05, dmax=10.0, umax=10.0, **tol)
+    assert not converged(rmax=6e-3, q=1.0, cmax=0.05, estimate=0.05, dmax=10.0, umax=10.0, **tol)  # residual
+    assert not converged(rmax=4e-3, q=1.0, cmax=0.05, estimate=0.2, dmax=10.0, umax=10.0, **tol)  # correction
+    assert converged(rmax=4e-6, q=1.0, cmax=5.0, estimate=5.0, dmax=10.0, umax=10.0, **tol)  # residual alone
+    assert converged(rmax=4e-3, q=1.0, cmax=1e-12, estimate=1.0, dmax=0.0, umax=10.0, **tol)  # round-off
+    fext = np.array([0.0, 3.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # 5 N on node 0
+    fint = np.array([0.0, 3.0, 4.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0])  # 1 N reaction on node 2
+    assert reference_force(fint, fext, np.array([2])) == pytest.approx(3.0)  # mean of 5 and 1

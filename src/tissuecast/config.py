@@ -58,9 +58,14 @@ def _f(default, *, lo=None, hi=None, lo_open=False, hi_open=False, choices=None,
 class MeshConfig:
     """Where the tetrahedral mesh comes from."""
 
-    path: str = _f("", doc="mesh file; empty = the built-in phantom")
-    units: str = _f("mm", choices=("mm", "cm", "m"), doc="length unit of the file")
-    surface_mesh_size: float = _f(3.0, lo=0.0, lo_open=True, doc="target tet size (mm) when tetrahedralising a surface")
+    path: str = _f("", doc="mesh file, closed surface file, or label map (.nii, .nii.gz, .nrrd, .seg.nrrd: meshed in the scan's LPS frame); empty = the built-in phantom")
+    units: str = _f("mm", choices=("mm", "cm", "m"), doc="length unit of the file (label maps: always their own physical units, mm)")
+    surface_mesh_size: float = _f(3.0, lo=0.0, lo_open=True, doc="target tet size (mm) when tetrahedralising a surface or a label map")
+    label: int = _f(0, lo=0, doc="label map: voxel value to mesh; 0 = the only non-zero value of the map")
+    segment: str = _f("", doc="3D Slicer segmentation (.seg.nrrd): segment name or ID to mesh; empty = by label, or the only segment")
+    keep_largest: bool = _f(False, doc="label map: keep the largest face-connected piece of the label instead of refusing several")
+    fill_cavities: bool = _f(False, doc="label map: fill background enclosed by the label instead of refusing it")
+    smoothing_iterations: int = _f(30, lo=0, hi=1000, doc="label map: Taubin (non-shrinking) smoothing passes of the marching-cubes surface")
 
 
 #: Fixed-vertex placement rules (see :func:`tissuecast.markers.select_fixed_vertices`).
@@ -77,8 +82,8 @@ class MarkerConfig:
     ids: tuple[int, ...] = _f((), doc="user-given 0-based marker ids (overrides count/start)")
     fixed_count: int = _f(3, lo=1, hi=50, doc="number of fixed (pinned) vertices")
     fixed_ids: tuple[int, ...] = _f((), doc="user-given 0-based fixed vertex ids")
-    fixed_depth_fraction: float = _f(0.5, lo=0.0, hi=1.0, doc="fixed vertices are at least this share of the largest depth below the surface")
-    fixed_rule: str = _f("compact", choices=FIXED_RULES, doc="how the fixed vertices are placed: 'compact' = a small pinned triangle deep inside (the body swings about it), 'spread' = as far apart as possible (see select_fixed_vertices)")
+    fixed_depth_fraction: float = _f(0.5, lo=0.0, hi=1.0, doc="fixed vertices lie at least this share of the largest depth below the surface")
+    fixed_rule: str = _f("compact", choices=FIXED_RULES, doc="fixed-vertex rule: 'compact' = a small pinned triangle deep inside, 'spread' = as far apart as possible")
     fixed_spacing: float = _f(5.0, lo=0.0, lo_open=True, doc="smallest distance (mm) between compact fixed vertices")
 
 
@@ -103,21 +108,21 @@ class SolverConfig:
         lo=0.0,
         lo_open=True,
         hi=1.0,
-        doc="first load fraction of a cold start (a solve with an initial guess starts at the full load); 0.5 took 28 factorisations per phantom sample against 45 for 1.0",
+        doc="first load fraction of a cold start (a solve with an initial guess starts at the full load)",
     )
     min_increment: float = _f(1e-5, lo=0.0, lo_open=True, hi=1.0, doc="smallest load fraction before giving up")
     max_increments: int = _f(200, lo=1, doc="maximum number of increments")
-    max_iterations: int = _f(30, lo=1, doc="Newton iterations per increment before cutting back (krylov directions are inexact: hard phantom increments needed 17-30)")
+    max_iterations: int = _f(30, lo=1, doc="Newton iterations per increment before cutting back")
     retries: int = _f(1, lo=0, hi=10, doc="retries of a failed sample with more cautious increments")
     strategy: str = _f(
         "krylov",
         choices=("newton", "quasi-newton", "krylov"),
-        doc="newton: refactorise the tangent every iteration; quasi-newton: reuse the last factorisation, co-rotated, while the residual falls fast; krylov: solve with each new tangent by conjugate gradients preconditioned by the last factorisation, refactorising only when that needs more than krylov_iterations steps",
+        doc="newton: factorise every tangent; quasi-newton: reuse the last factorisation; krylov: CG preconditioned by the last factorisation",
     )
     krylov_iterations: int = _f(20, lo=1, hi=1000, doc="krylov: most conjugate-gradient steps per Newton iteration before refactorising")
-    krylov_tolerance: float = _f(5e-2, lo=0.0, lo_open=True, hi=0.5, doc="krylov: relative residual of the linear solve that ends the conjugate gradients (an inexact Newton direction; convergence is judged on the nonlinear residual and correction). On phantom samples 5e-2 / 20 steps took 23 % less time than 1e-2 / 12 from reduced-model guesses (24 samples) and 18 % less from zero (6), with a few more Newton iterations and fewer factorisations")
-    krylov_recycle: int = _f(20, lo=0, hi=200, doc="krylov: most conjugate-gradient directions of earlier Newton iterations of the same solve kept as a deflation subspace (Galerkin start and projection with the new tangent); 0 = plain preconditioned CG")
-    reference_preconditioner: bool = _f(True, doc="krylov, solves with an initial guess: until the first factorisation, precondition with the stiffness at zero displacement (factorised once per Solver), co-rotated by the guess's best-fit rotation; from reduced-model guesses 0.26 instead of 1.06 factorisations per phantom sample, 9 % less time")
+    krylov_tolerance: float = _f(5e-2, lo=0.0, lo_open=True, hi=0.5, doc="krylov: relative residual that ends the conjugate gradients (an inexact Newton direction)")
+    krylov_recycle: int = _f(20, lo=0, hi=200, doc="krylov: most CG directions of the solve's earlier Newton iterations kept to deflate the next ones; 0 = plain preconditioned CG")
+    reference_preconditioner: bool = _f(True, doc="krylov, solves with a guess: precondition with the stiffness at zero displacement (factorised once per Solver), co-rotated")
     rotation_aware: bool = _f(True, doc="line search moves the rigid-rotation part of each step along an arc (large swings about the fixed vertices)")
     refactor_ratio: float = _f(0.5, lo=0.0, hi=1.0, doc="quasi-newton: refactorise when an iteration reduced the residual norm by less than this factor")
     max_quasi_newton: int = _f(2, lo=1, doc="quasi-newton: refactorise after this many iterations with a reused factorisation")
@@ -149,11 +154,11 @@ class DatasetConfig:
     workers: int = _f(0, lo=0, hi=256, doc="local worker processes; 0 = automatic")
     scheduler: str = _f("", doc="Dask scheduler address tcp://HOST:PORT; empty = local")
     alpha: float = _f(0.0, lo=0.0, doc="LBO force magnitude alpha (N); 0 = calibrate to forces.target_max_displacement")
-    calibration_samples: int = _f(24, lo=1, hi=1000, doc="pilot samples of the force-magnitude calibration (per-sample peaks spread 5-50 mm on the phantom: 8 pilots put q90 at 30 mm where 22 samples had p90 44 mm)")
+    calibration_samples: int = _f(24, lo=1, hi=1000, doc="pilot samples of the force-magnitude calibration")
     calibration_quantile: float = _f(0.9, lo=0.0, hi=1.0, doc="quantile of per-sample max displacement that meets the target")
-    predictor: str = _f("reduced", choices=("reduced", "none"), doc="initial guess of each solve: reduced = a reduced-order model (POD-Galerkin, ECSW hyper-reduction) built from the first predictor_samples full solutions, so that the full Newton solver starts near the answer (every sample is still converged by the full solver); none = solve every sample from zero")
-    predictor_samples: int = _f(40, lo=2, hi=100000, doc="LBO samples (the first ones, 0-based ids 0..n-1) solved from zero whose full solutions build the reduced model")
-    predictor_tolerance: float = _f(0.01, lo=0.0, lo_open=True, hi=0.5, doc="ECSW hyper-reduction: relative error of the reduced internal forces on the snapshots")
+    predictor: str = _f("reduced", choices=("reduced", "none"), doc="initial guess of each solve: reduced = a reduced-order model of the first predictor_samples solutions; none = zero")
+    predictor_samples: int = _f(40, lo=2, hi=100000, doc="the first LBO samples (ids 0..n-1), solved from zero, whose solutions build the reduced model")
+    predictor_tolerance: float = _f(0.01, lo=0.0, lo_open=True, hi=0.5, doc="ECSW hyper-reduction: relative error of the reduced internal forces")
 
 
 #: Rules choosing the number of PCA components (see :class:`SurrogateConfig`).
@@ -202,6 +207,8 @@ class ServeConfig:
     transform_mode: str = _f("frame", choices=("frame", "each"), doc="TRANSFORM input: predict once all markers are fresh (frame) or on every update (each)")
     max_marker_offset: float = _f(100.0, lo=0.0, lo_open=True, doc="reject markers farther than this (mm) from their reference position")
     client_timeout: float = _f(5.0, lo=0.0, lo_open=True, doc="seconds an incomplete message may wait for its remaining bytes")
+    client_frame: str = _f("LPS", choices=("LPS", "RAS"), doc="frame of the replies, and of the markers when no registration is set: LPS = the model's (scan's) frame, RAS = 3D Slicer's world (what OpenIGTLinkIF sends and expects)")
+    tracker_to_client: tuple[float, ...] = _f((), doc="registration from the tracker frame (where markers are measured) to the client frame: 16 numbers, a 4x4 matrix row by row (mm); empty = markers arrive in the client frame. A TRANSFORM TrackerToRas / ReferenceToRas / TrackerToImage replaces it at run time")
 
 
 # ------------------------------------------------------------------- scenario
@@ -407,6 +414,19 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
 
 
 def _cross_checks(obj: Any, prefix: str) -> None:
+    if isinstance(obj, MeshConfig):
+        from .mesh.labelmap import label_map_format
+
+        kind = label_map_format(obj.path) if obj.path else None
+        if (obj.label or obj.segment) and kind is None:
+            raise ConfigError(f"{prefix}label and {prefix}segment apply only when {prefix}path names a label map "
+                              f"(.nii, .nii.gz, .nrrd, .seg.nrrd), got path {obj.path!r}")
+        if obj.segment and kind != "segmentation":
+            raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
+                              f"{obj.path!r} is not one: use {prefix}label")
+        if kind is not None and obj.units != "mm":
+            raise ConfigError(f"{prefix}units applies to mesh files; a label map is read in its own physical units (mm), "
+                              f"remove {prefix}units = {obj.units!r}")
     if isinstance(obj, DatasetConfig):
         if len(obj.split) != 3 or any(s < 0 for s in obj.split) or sum(obj.split) <= 0:
             raise ConfigError(f"{prefix}split must be three non-negative numbers (train, valid, test-1), got {list(obj.split)}")
@@ -418,6 +438,13 @@ def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, ForceConfig):
         if not obj.betas or any(not 0.0 <= b <= 1.0 for b in obj.betas):
             raise ConfigError(f"{prefix}betas must be numbers in [0, 1], got {list(obj.betas)}")
+    if isinstance(obj, ServeConfig) and obj.tracker_to_client:
+        from .frames import FrameError, check_transform
+
+        try:
+            check_transform(obj.tracker_to_client, f"{prefix}tracker_to_client")
+        except FrameError as exc:
+            raise ConfigError(f"{exc} (empty = no registration)") from exc
     if isinstance(obj, SolverConfig) and obj.min_increment > obj.initial_increment:
         raise ConfigError(f"{prefix}min_increment ({obj.min_increment}) must not exceed initial_increment ({obj.initial_increment})")
     if isinstance(obj, RegionConfig):

@@ -11,7 +11,10 @@ __all__ = [
     "TissuecastError",
     "MeshError",
     "MeshFormatError",
+    "LabelMapError",
     "MarkerError",
+    "MarkupsError",
+    "FrameError",
     "ConfigError",
     "ConvergenceError",
     "SolverSetupError",
@@ -34,8 +37,21 @@ class MeshFormatError(MeshError):
     """A mesh file is missing, of an unknown format, or holds no usable tetrahedra."""
 
 
+class LabelMapError(MeshError):
+    """A label map (segmented scan) cannot be meshed: unreadable, not 3-D, no spacing, an unknown
+    or empty label or segment, or a label made of several pieces."""
+
+
 class MarkerError(TissuecastError, ValueError):
     """Fiducial markers or fixed vertices cannot be chosen or are invalid."""
+
+
+class MarkupsError(MarkerError):
+    """A 3D Slicer markups file (.mrk.json, .fcsv) is unreadable or holds no usable point list."""
+
+
+class FrameError(TissuecastError, ValueError):
+    """A coordinate system or frame transform is unknown or unusable (not LPS/RAS, singular)."""
 
 
 class ConfigError(TissuecastError, ValueError):

@@ -223,7 +223,7 @@ def select_fixed_vertices(
     pin and, for the third, at least ``spacing / 2`` mm off the line through the first two (a
     real triangle, so no free hinge axis). The body is held at one small region and *swings*
     about it under dead loads: the fields are dominated by a few near-rigid rotations, which
-    5 markers identify well (phantom, linear elasticity: 5-marker floor 0.2-0.3 mm).
+    5 markers identify well.
 
     ``rule="spread"``: the pins are spread as widely as possible, so that together they hold
     the body against rotation about *every* axis:
@@ -237,10 +237,9 @@ def select_fixed_vertices(
     ``count == 1`` takes the deepest candidate. Ties go to the lowest id.
 
     Displacements then come from strain in many independent directions: the fields are
-    high-dimensional and 5 markers cannot pin them down (phantom, linear elasticity: n_w 21,
-    5-marker floor 2.1 mm). Three pins close to one *line* (neither rule) leave a hinge: on
-    the phantom a 29 x 10 mm near-collinear triangle needed 88 s and 111 factorisations for
-    a 27 mm P2 sample, the spread rule (55 x 15 mm) 14 s and 21.
+    high-dimensional and 5 markers cannot pin them down. Three pins close to one *line*
+    (neither rule) leave a hinge the solver struggles with. Measured figures of both rules:
+    ``docs/solver.md`` and ``benchmarks/pin_identifiability.py``.
 
     Args:
         mesh: the tetrahedral mesh.
@@ -257,6 +256,19 @@ def select_fixed_vertices(
     Raises:
         MarkerError: bad arguments, or fewer than ``count`` candidates.
     """
+    _check_fixed_arguments(mesh, count, depth_fraction, rule, spacing)
+    exclude = validate_vertex_ids(mesh, exclude, "excluded vertices", allow_empty=True)
+    cand, cdepth = _fixed_candidates(mesh, count, exclude, min_depth, depth_fraction)
+    pts = mesh.points[cand]
+    if count == 1:
+        return cand[[_pick(cdepth, np.ones(len(cand), bool), largest=True)]].astype(np.int64)
+    if rule == "compact":
+        return cand[_compact_pins(pts, cdepth, count, spacing)].astype(np.int64)
+    return cand[_spread_pins(pts, count)].astype(np.int64)
+
+
+def _check_fixed_arguments(mesh, count, depth_fraction, rule, spacing) -> None:
+    """Raise MarkerError for arguments of :func:`select_fixed_vertices` out of their range."""
     if not isinstance(mesh, TetMesh):
         raise MarkerError(f"select_fixed_vertices needs a TetMesh, got {type(mesh).__name__}")
     if isinstance(count, bool) or int(count) != count or count < 1:
@@ -267,7 +279,10 @@ def select_fixed_vertices(
         raise MarkerError(f"unknown fixed-vertex rule {rule!r}; use one of {', '.join(FIXED_RULES)}")
     if not (np.isfinite(spacing) and spacing > 0):
         raise MarkerError(f"fixed-vertex spacing must be a positive length in mm, got {spacing!r}")
-    exclude = validate_vertex_ids(mesh, exclude, "excluded vertices", allow_empty=True)
+
+
+def _fixed_candidates(mesh: TetMesh, count: int, exclude: np.ndarray, min_depth, depth_fraction: float):
+    """``(ids (c,), depth (c,) mm)`` of the interior vertices deep enough and not excluded."""
     interior = mesh.interior_vertices
     if len(interior) == 0:
         raise MarkerError(
@@ -277,19 +292,18 @@ def select_fixed_vertices(
     depth = surface_depth(mesh, interior)
     limit = depth_fraction * float(depth.max()) if min_depth is None else float(min_depth)
     ok = (depth >= limit) & ~np.isin(interior, exclude)
-    cand, cdepth = interior[ok], depth[ok]
-    if len(cand) < count:
+    if ok.sum() < count:
         raise MarkerError(
-            f"only {len(cand)} interior vertices are at least {limit:.3g} mm deep and not excluded, "
+            f"only {int(ok.sum())} interior vertices are at least {limit:.3g} mm deep and not excluded, "
             f"but {count} fixed vertices were asked for; use a smaller count, min_depth or "
             f"depth_fraction, or give fixed vertex ids explicitly"
         )
-    pts = mesh.points[cand]
-    everyone = np.ones(len(cand), bool)
-    if count == 1:
-        return cand[[_pick(cdepth, everyone, largest=True)]].astype(np.int64)
-    if rule == "compact":
-        return cand[_compact_pins(pts, cdepth, count, spacing)].astype(np.int64)
+    return interior[ok], depth[ok]
+
+
+def _spread_pins(pts: np.ndarray, count: int) -> np.ndarray:
+    """Indices into ``pts`` of the spread rule (see :func:`select_fixed_vertices`)."""
+    everyone = np.ones(len(pts), bool)
     first = _pick(np.linalg.norm(pts - pts.mean(axis=0), axis=1), everyone, largest=True)
     second = _pick(np.linalg.norm(pts - pts[first], axis=1), everyone, largest=True)
     chosen = [first, second]
@@ -300,12 +314,12 @@ def select_fixed_vertices(
         chosen.append(_pick(off_line, eligible, largest=True))
     nearest = np.min([np.linalg.norm(pts - pts[c], axis=1) for c in chosen], axis=0)
     while len(chosen) < count:
-        free = np.ones(len(cand), bool)
+        free = np.ones(len(pts), bool)
         free[chosen] = False
         j = _pick(nearest, free, largest=True)
         chosen.append(j)
         nearest = np.minimum(nearest, np.linalg.norm(pts - pts[j], axis=1))
-    return cand[np.asarray(chosen)].astype(np.int64)
+    return np.asarray(chosen)
 
 
 def _distance_to_line(pts: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -99,15 +99,15 @@ def run_info(args) -> int:
 
 
 def run_export(args) -> int:
-    from ..dataset import open_dataset
+    from ..dataset import SampleStatus, open_dataset
     from ..mesh import write_mesh
 
     ds = open_dataset(args.store)
     i = args.sample
     if not 0 <= i < ds.n_samples:
         raise DatasetError(f"sample {i} does not exist; the data set has samples 0..{ds.n_samples - 1}")
-    if ds.status[i] != 1:
-        state = {0: "pending", 2: "failed"}[int(ds.status[i])]
+    if ds.status[i] != SampleStatus.DONE:
+        state = SampleStatus(int(ds.status[i])).label
         raise DatasetError(f"sample {i} is {state}, so it has no displacement; pick a done sample "
                            "(`tissuecast dataset info` lists the counts)")
     u = np.asarray(ds.displacements[i], dtype=np.float64)

@@ -65,17 +65,17 @@ def _example_forces(mesh, cfg, seed: int, rms: float) -> np.ndarray:
 
 
 def run(args) -> int:
-    from ..fem import NeoHookean
+    from ..fem import build_problem
     from ..fem.calculix import write_inp
     from ..markers import markers_and_fixed
     from .mesh_cmd import PHANTOM_WORD, load_mesh_argument
 
     cfg = load_config(args.config)
-    mesh = load_mesh_argument(args.mesh, units=cfg.mesh.units, mesh_size=cfg.mesh.surface_mesh_size)
+    mesh = load_mesh_argument(args.mesh, units=cfg.mesh.units, mesh_size=cfg.mesh.surface_mesh_size, mesh_config=cfg.mesh)
     markers, fixed = markers_and_fixed(mesh, cfg.markers)
     forces = _read_forces(args.forces) if args.forces else _example_forces(mesh, cfg, args.seed, args.force_rms)
-    order = args.order or cfg.solver.order
-    material = NeoHookean(cfg.material.youngs_modulus, cfg.material.poisson_ratio)
+    problem = build_problem(mesh, cfg, fixed, order=args.order)
+    order, material = problem.order, problem.material
     out = write_inp(
         args.out, mesh, material, fixed, forces, order=order, node_sets={"MARKERS": markers},
         initial_increment=args.initial_increment, max_increment=max(args.max_increment, args.initial_increment),

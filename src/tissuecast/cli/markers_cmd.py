@@ -2,8 +2,9 @@
 
 Writes ``PREFIX.csv`` and ``PREFIX.json`` (0-based ids, coordinates in mm, role, the
 parameters), ``PREFIX.vtu`` (the points as VTK vertices with ``role`` 1 = marker,
-2 = fixed, ``vertex_id`` and ``order`` arrays; open it in ParaView/Slicer next to the mesh)
-and, with ``--png``, ``PREFIX.png`` (the surface, markers red, fixed vertices blue).
+2 = fixed, ``vertex_id`` and ``order`` arrays; open it in ParaView/Slicer next to the mesh),
+``PREFIX.mrk.json`` (3D Slicer markups: point lists ``FiducialMarkers`` and
+``FixedVertices``, LPS mm in the mesh's frame; drag it into Slicer next to the scan) and, with ``--png``, ``PREFIX.png`` (the surface, markers red, fixed vertices blue).
 """
 
 from __future__ import annotations
@@ -63,7 +64,7 @@ def run(args) -> int:
     mc = cfg.markers
     mesh_name = args.mesh or cfg.mesh.path or PHANTOM_WORD
     units = args.units or cfg.mesh.units
-    mesh = load_mesh_argument(mesh_name, units, args.mesh_size or cfg.mesh.surface_mesh_size)
+    mesh = load_mesh_argument(mesh_name, units, args.mesh_size or cfg.mesh.surface_mesh_size, cfg.mesh)
     markers, fixed = markers_and_fixed(mesh, mc)
     params = {
         "mesh": mesh_name,
@@ -89,6 +90,7 @@ def run(args) -> int:
         print(f"{role:7s} {k + 1:2d} {i:6d} {x:9.3f} {y:9.3f} {z:9.3f}  {where}")
     written = [_write_csv(prefix, mesh, markers, fixed, surface), _write_json(prefix, mesh, markers, fixed, params)]
     written.append(_write_vtu(prefix, mesh, markers, fixed))
+    written.append(write_markers_markups(prefix.with_name(prefix.name + ".mrk.json"), mesh, markers, fixed))
     if args.png:
         written.append(render_markers_png(prefix.with_name(prefix.name + ".png"), mesh, markers, fixed))
     for path in written:
@@ -133,6 +135,25 @@ def _write_vtu(prefix: Path, mesh, markers, fixed) -> Path:
     order = np.r_[np.arange(len(markers)), np.arange(len(fixed))]
     data = {"role": role.astype(np.int32), "vertex_id": ids, "order": order.astype(np.int32)}
     return write_point_set(prefix.with_name(prefix.name + ".vtu"), mesh.points[ids], data)
+
+
+#: names of the two point lists in PREFIX.mrk.json (Slicer node names)
+MARKERS_LIST, FIXED_LIST = "FiducialMarkers", "FixedVertices"
+
+
+def write_markers_markups(path: Path, mesh: TetMesh, markers: np.ndarray, fixed: np.ndarray) -> Path:
+    """Markers and fixed vertices as two Slicer point lists (``.mrk.json``, LPS mm, the mesh's frame).
+
+    Point labels are ``M1``.. / ``F1``.. in pick order; descriptions give the 0-based vertex id.
+    """
+    from ..slicer.markups import MarkupList, write_markups
+
+    lists = [
+        MarkupList(name, mesh.points[ids], tuple(f"{tag}{k + 1}" for k in range(len(ids))),
+                   tuple(f"vertex {int(i)} (0-based)" for i in ids))
+        for name, tag, ids in ((MARKERS_LIST, "M", markers), (FIXED_LIST, "F", fixed))
+    ]
+    return write_markups(path, lists, "LPS")
 
 
 def render_markers_png(path: Path, mesh: TetMesh, markers: np.ndarray, fixed: np.ndarray, size=(1200, 900)) -> Path:

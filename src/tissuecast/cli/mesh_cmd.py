@@ -2,20 +2,32 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 
+from ..config import MeshConfig
 from ..mesh import TetMesh, phantom, read_mesh, write_mesh
 from ..mesh.io import SURFACE_FORMATS, UNITS, VOLUME_FORMATS
+from ..mesh.labelmap import LABEL_MAP_SUFFIXES, label_map_format
+from ..mesh.source import mesh_from_config
 
 PHANTOM_WORD = "phantom"
 
 
-def load_mesh_argument(name: str, units: str = "mm", mesh_size: float | None = None) -> TetMesh:
-    """The mesh a CLI argument names: a file, or the word ``phantom`` for the built-in one."""
+def load_mesh_argument(name: str, units: str = "mm", mesh_size: float | None = None, mesh_config=None) -> TetMesh:
+    """The mesh a CLI argument names: a mesh, surface or label-map file, or the word ``phantom``.
+
+    A label map is meshed with the options of ``mesh_config`` (a MeshConfig; defaults if None).
+    """
     if name == PHANTOM_WORD:
         return phantom()
+    if label_map_format(name) is not None:
+        mc = mesh_config or MeshConfig()
+        if mesh_size:
+            mc = dataclasses.replace(mc, surface_mesh_size=mesh_size)
+        return mesh_from_config(mc, path=name)
     return read_mesh(name, units=units, mesh_size=mesh_size)
 
 
@@ -41,6 +53,25 @@ def register(sub) -> None:
     conv.add_argument("output", help="output file; its extension picks the format")
     _add_mesh_options(conv)
     conv.set_defaults(func=run_convert)
+    img = msub.add_parser(
+        "from-image", help="tetrahedral mesh of one label of a segmented scan (label map or Slicer segmentation)",
+        description="Reads " + " ".join(LABEL_MAP_SUFFIXES) + " (NIfTI with nibabel, NRRD and Slicer .seg.nrrd with "
+        "slicerio), meshes one label by marching cubes, Taubin smoothing and gmsh, and reports the mesh quality and how "
+        "closely it follows the voxels. Coordinates stay in the scan's physical frame, LPS mm: .vtu/.vtk/.vtp outputs "
+        "say SPACE=LPS as 3D Slicer does, so the mesh overlays the scan in Slicer.")
+    img.add_argument("scan", help="label map (.nii, .nii.gz, .nrrd) or 3D Slicer segmentation (.seg.nrrd)")
+    img.add_argument("output", help="output mesh (.vtu, .vtk, .vtp surface, or any mesh format)")
+    d = MeshConfig()
+    img.add_argument("--label", type=int, help="voxel value to mesh (default: the only non-zero value)")
+    img.add_argument("--segment", help="segment name or ID of a .seg.nrrd segmentation")
+    img.add_argument("--size", type=float, default=d.surface_mesh_size, metavar="MM",
+                     help=f"target tetrahedron edge length in mm (default {d.surface_mesh_size:g})")
+    img.add_argument("--keep-largest", action="store_true", help="keep the largest piece instead of refusing several")
+    img.add_argument("--fill-cavities", action="store_true", help="fill internal cavities instead of refusing them")
+    img.add_argument("--smoothing", type=int, default=d.smoothing_iterations, metavar="N",
+                     help=f"Taubin smoothing passes (default {d.smoothing_iterations}; 0 = raw marching cubes)")
+    img.add_argument("--json", action="store_true", help="print the figures as JSON")
+    img.set_defaults(func=run_from_image)
     ph = msub.add_parser("phantom", help="write the built-in phantom to a file")
     ph.add_argument("output", help="output file (e.g. phantom.vtu, phantom.inp, phantom.node)")
     ph.set_defaults(func=run_phantom)
@@ -113,4 +144,46 @@ def run_phantom(args) -> int:
     print(f"phantom: {mesh.n_points} vertices, {mesh.n_tets} tetrahedra, {ext[0]} x {ext[1]} x {ext[2]} mm")
     for path in written:
         print(f"wrote {path}")
+    return 0
+
+
+def write_scan_mesh(path, mesh: TetMesh) -> list:
+    """Write a mesh in the scan's LPS frame: .vtu/.vtk/.vtp as 3D Slicer models (SPACE=LPS), else any format."""
+    from pathlib import Path
+
+    from ..slicer.models import MODEL_SUFFIXES, write_model
+
+    if Path(path).suffix.lower() in MODEL_SUFFIXES:
+        return [write_model(path, mesh)]
+    return write_mesh(path, mesh)
+
+
+def run_from_image(args) -> int:
+    from ..mesh.from_image import label_map_fidelity, label_pieces, mesh_label_map
+    from ..mesh.labelmap import LabelMap, read_label_map
+
+    labelmap = read_label_map(args.scan, label=args.label, segment=args.segment)
+    mask = label_pieces(labelmap.mask, keep_largest=args.keep_largest, fill_cavities=args.fill_cavities, source=labelmap.source)
+    piece = LabelMap(mask, labelmap.ijk_to_lps, labelmap.source)
+    mesh = mesh_label_map(piece, args.size, smoothing_iterations=args.smoothing)
+    fidelity = label_map_fidelity(mesh, piece)
+    written = write_scan_mesh(args.output, mesh)
+    spacing = labelmap.spacing
+    if args.json:
+        print(json.dumps({"scan": args.scan, "label": labelmap.source, "coordinate_system": "LPS",
+                          "spacing_mm": spacing.tolist(), "fidelity": fidelity.as_dict(), **mesh_summary(mesh)}, indent=2))
+    else:
+        print(f"label              {labelmap.source}: {int(labelmap.mask.sum())} voxels of "
+              f"{' x '.join(f'{v:.3g}' for v in spacing)} mm" + (f" ({int(mask.sum())} meshed)" if mask.sum() != labelmap.mask.sum() else ""))
+        print(f"mesh               {mesh.n_points} vertices, {mesh.n_tets} tetrahedra at size {args.size:g} mm, "
+              f"LPS coordinates (the scan's frame)")
+        print(f"volume             mesh {fidelity.mesh_volume:.1f} mm^3, voxels {fidelity.label_volume:.1f} mm^3 "
+              f"({100 * fidelity.volume_error:+.2f} %)")
+        print(f"surface distance   Hausdorff {fidelity.hausdorff_mm:.2f} mm = {fidelity.hausdorff_voxels:.2f} voxel "
+              f"(to the label's voxel boundary), mean {fidelity.mean_distance_mm:.2f} mm")
+        q = mesh.quality
+        print(f"radius ratio       min {q.radius_ratio_min:.3f}  mean {q.radius_ratio_mean:.3f}  (1 = regular tet)")
+        print(f"edge length (mm)   min {q.edge_length_min:.3f}  mean {q.edge_length_mean:.3f}  max {q.edge_length_max:.3f}")
+        for path in written:
+            print(f"wrote {path}")
     return 0

@@ -2,10 +2,15 @@
 
 Input (mm): CSV with one marker per row (x, y, z; n_d rows per sample) or one sample per row
 (3 n_d values), an optional header line; or JSON ``{"displacements": [...]}`` /
-``{"positions": [...]}`` / a bare nested list. Empty cells, ``nan`` or ``null`` for all three
-coordinates of a marker mark it as not tracked (models trained with marker_dropout > 0).
-Output: .vtu (mesh + point data; one file per sample for batches), .csv (sample, vertex,
-ux, uy, uz[, sigma]) or .json. Vertex ids are 0-based.
+``{"positions": [...]}`` / a bare nested list; or 3D Slicer markups (.mrk.json, .fcsv):
+marker positions in model marker order, converted from RAS when the file says so (one
+point list, or the one named FiducialMarkers; a point without a defined position is an
+untracked marker). Empty cells, ``nan`` or ``null`` for all three coordinates of a marker
+mark it as not tracked (models trained with marker_dropout > 0).
+Output: .vtu (undeformed mesh + displacement point data; one file per sample for batches),
+.vtk (deformed mesh) or .vtp (deformed outer surface) as 3D Slicer models in LPS with
+``displacement_mm`` point data, .csv (sample, vertex, ux, uy, uz[, sigma]) or .json.
+Vertex ids are 0-based.
 """
 
 from __future__ import annotations
@@ -22,10 +27,11 @@ def register(sub) -> None:
     p = sub.add_parser("predict", help="predict the displacement field from marker displacements or positions",
                        description=__doc__.split("\n\n", 1)[1])
     p.add_argument("model", help="model folder")
-    p.add_argument("--markers", required=True, help="CSV or JSON file of marker displacements (or positions), mm")
+    p.add_argument("--markers", required=True,
+                   help="CSV or JSON file of marker displacements (or positions), mm; or Slicer markups .mrk.json/.fcsv (positions)")
     p.add_argument("--positions", action="store_true",
                    help="the file holds tracked marker positions (mm, model frame); reference positions are subtracted")
-    p.add_argument("--out", help="output file .vtu, .csv or .json (default: print a summary only)")
+    p.add_argument("--out", help="output file .vtu, .vtk, .vtp, .csv or .json (default: print a summary only)")
     p.add_argument("--uncertainty", action="store_true", help="add the ensemble's per-vertex uncertainty (ensemble >= 2)")
     p.add_argument("--method", choices=("mlp", "rigid", "ridge"), default="mlp",
                    help="mlp: the learned model (default); rigid: rigid registration from the markers (the baseline "
@@ -39,12 +45,35 @@ def _cell(v: str) -> float:
     return float("nan") if v == "" or v.lower() in ("nan", "null", "none") else float(v)
 
 
+def read_markups_positions(path: Path, n_d: int) -> np.ndarray:
+    """(1, n_d, 3) marker positions (LPS mm, NaN = untracked) from a Slicer .mrk.json/.fcsv file."""
+    from ..errors import ModelError
+    from ..slicer.markups import read_markups
+    from .markers_cmd import MARKERS_LIST
+
+    lists = read_markups(path)
+    if len(lists) > 1:
+        named = [m for m in lists if m.name == MARKERS_LIST]
+        if len(named) != 1:
+            raise ModelError(f"{str(path)!r} holds {len(lists)} point lists ({', '.join(repr(m.name) for m in lists)}); "
+                             f"keep one, or name the markers' list {MARKERS_LIST!r}")
+        lists = named
+    positions = lists[0].positions
+    if len(positions) != n_d:
+        raise ModelError(f"{str(path)!r}: point list {lists[0].name!r} has {len(positions)} points; this model needs its "
+                         f"{n_d} markers, in model marker order")
+    return positions[None]
+
+
 def read_marker_file(path: Path, n_d: int) -> tuple[np.ndarray, bool | None]:
     """-> ((B, n_d, 3) float mm with NaN for untracked markers, positions flag from JSON or None)."""
     from ..errors import ModelError
+    from ..slicer.markups import MARKUPS_SUFFIXES
 
     if not path.is_file():
         raise FileNotFoundError(f"marker file {str(path)!r} does not exist")
+    if path.name.lower().endswith(MARKUPS_SUFFIXES):
+        return read_markups_positions(path, n_d), True
     flag = None
     if path.suffix.lower() == ".json":
         try:
@@ -98,6 +127,15 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None) -> list[Pa
                 data["uncertainty"] = sigma[b]
             files.append(write_vtu(p, model.mesh, data))
         return files
+    if suf in (".vtk", ".vtp"):
+        from ..slicer.models import write_model
+
+        files = []
+        for b in range(B):
+            p = out if B == 1 else out.with_name(f"{out.stem}_{b:03d}{out.suffix}")
+            extra = {"uncertainty_mm": sigma[b]} if sigma is not None else None
+            files.append(write_model(p, model.mesh, displacement=u[b], point_data=extra))
+        return files
     if suf == ".csv":
         with out.open("w", newline="") as fh:
             w = csv.writer(fh)
@@ -112,7 +150,7 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None) -> list[Pa
             doc["uncertainty"] = sigma.tolist()
         out.write_text(json.dumps(doc), encoding="utf-8")
         return [out]
-    raise ModelError(f"unknown output format {out.suffix!r}; use .vtu, .csv or .json")
+    raise ModelError(f"unknown output format {out.suffix!r}; use .vtu, .vtk, .vtp, .csv or .json")
 
 
 def run(args) -> int:

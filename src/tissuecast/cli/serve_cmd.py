@@ -1,10 +1,14 @@
 """``tissuecast serve MODEL``: stream predicted deformations to navigation software over OpenIGTLink.
 
-Send marker positions (mm, model frame) as one POINT message (n_d points, model marker
-order) or as TRANSFORM messages ``Marker0``..``Marker{n_d-1}``; the server answers with
-POLYDATA ``TissueSurface`` (deformed outer surface) and, on ``GET_POLYDATA TissueField`` or
-with ``--full-field``, POLYDATA ``TissueField`` (every vertex, with ``displacement_mm``).
-Errors come back as STRING ``ERROR``. See :mod:`tissuecast.serve` for the full protocol.
+Send marker positions (mm) as one POINT message (n_d points, model marker order) or as
+TRANSFORM messages ``Marker0``..``Marker{n_d-1}``; the server answers with POLYDATA
+``TissueSurface`` (deformed outer surface) and, on ``GET_POLYDATA TissueField`` or with
+``--full-field``, POLYDATA ``TissueField`` (every vertex, with ``displacement_mm``).
+Frames: replies are in the model's (scan's) LPS frame, or RAS with ``--client-frame RAS``
+(3D Slicer's OpenIGTLinkIF); a registration TRANSFORM ``TrackerToRas``, ``ReferenceToRas``
+or ``TrackerToImage`` (or ``serve.tracker_to_client`` in the config) makes the server read
+markers in the tracker frame and answer in the target frame. Errors come back as STRING
+``ERROR``. See :mod:`tissuecast.serve` for the full protocol.
 """
 
 from __future__ import annotations
@@ -32,16 +36,18 @@ def register(sub) -> None:
                    help="TRANSFORM input: predict when every marker is fresh (frame, default) or on each update")
     p.add_argument("--max-offset", type=float, dest="max_marker_offset",
                    help="reject markers farther than this many mm from their reference position (default 100)")
+    p.add_argument("--client-frame", choices=("LPS", "RAS"),
+                   help="frame of replies and of markers without registration (default LPS = the model's; RAS for 3D Slicer)")
     p.add_argument("--no-uncertainty", action="store_true", help="do not send ensemble uncertainty")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from ..serve import IGTLServer, SurfacePredictor
+    from ..serve import ClientFrames, IGTLServer, SurfacePredictor
     from ..surrogate.robust import load_model_folder
 
     cfg = load_config(args.config)
-    overrides = {k: getattr(args, k) for k in ("host", "full_field", "transform_mode", "max_marker_offset")
+    overrides = {k: getattr(args, k) for k in ("host", "full_field", "transform_mode", "max_marker_offset", "client_frame")
                  if getattr(args, k) is not None}
     if args.port:  # 0 (any free port) is allowed here but not in a config file
         overrides["port"] = args.port
@@ -51,15 +57,18 @@ def run(args) -> int:
     predictor = SurfacePredictor(model, max_marker_offset=serve.max_marker_offset,
                                  use_uncertainty=not args.no_uncertainty)
     try:
+        frames = ClientFrames(serve.client_frame, serve.tracker_to_client or None)
         server = IGTLServer(predictor, serve.host, port, full_field=serve.full_field,
-                            transform_mode=serve.transform_mode, client_timeout=serve.client_timeout)
+                            transform_mode=serve.transform_mode, client_timeout=serve.client_timeout, frames=frames)
     except OSError as exc:  # address in use, unknown host, no permission for ports < 1024
         raise ConfigError(f"cannot listen on {serve.host}:{port}: {exc}; choose another --port or --host") from exc
     host, port = server.address
     n_d = predictor.n_markers
     print(f"serving {args.model} on {host}:{port} (OpenIGTLink)", flush=True)
     print(f"  input : POINT (any device name, {n_d} points, mm, model marker order) or "
-          f"TRANSFORM Marker0..Marker{n_d - 1} ({serve.transform_mode} mode)", flush=True)
+          f"TRANSFORM Marker0..Marker{n_d - 1} ({serve.transform_mode} mode); registration: TRANSFORM "
+          "TrackerToRas / ReferenceToRas / TrackerToImage", flush=True)
+    print(f"  frames: {frames.describe()}", flush=True)
     print(f"  output: POLYDATA TissueSurface ({len(predictor.surface_ids)} points, "
           f"{len(model.mesh.surface_triangles)} triangles"
           f"{', uncertainty_mm' if predictor.has_uncertainty else ''}); GET_POLYDATA TissueField -> "

@@ -8,7 +8,8 @@ reads one. The store layout is documented in :mod:`tissuecast.dataset.store` and
 from .generate import data_config, setup_from_config, simulate
 from .plan import SPLIT_CODES, SPLIT_NAMES, SamplePlan, make_plan, sample_seed
 from .reader import Dataset, max_displacement_stats, open_dataset
-from .store import SCHEMA, SCHEMA_VERSION, STATUS_NAMES
+from .codes import STATUS_NAMES, InitialGuess, SampleStatus
+from .store import SCHEMA, SCHEMA_VERSION
 
 __all__ = [
     "simulate",
@@ -23,6 +24,8 @@ __all__ = [
     "SPLIT_NAMES",
     "SPLIT_CODES",
     "STATUS_NAMES",
+    "SampleStatus",
+    "InitialGuess",
     "SCHEMA",
     "SCHEMA_VERSION",
 ]

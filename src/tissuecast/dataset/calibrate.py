@@ -45,6 +45,10 @@ log = logging.getLogger(__name__)
 RTOL = 0.02
 MAX_ROUNDS = 10
 FIRST_AIM = 0.5  # a first extrapolation from far below the target aims at this share of it
+#: The response exponent ``s`` of q ~ alpha^s is clipped to this range (a body held by a few
+#: pins softens, but not without bound).
+EXPONENT_MIN, EXPONENT_MAX = 0.5, 3.0
+FAILURE_DIVISOR = 4.0  # after a round with failures and no lower bound, alpha is divided by this
 
 
 def initial_alpha(basis, mesh, fixed, youngs_modulus: float, target: float, fraction: float = 0.01) -> float:
@@ -115,28 +119,44 @@ def calibrate_alpha(
             best = (alpha, q)
         if math.isfinite(q) and abs(q / target - 1.0) <= rtol:
             break
-        if math.isfinite(q) and q < target:
-            prev_lo = lo
-            lo = (alpha, q)
-            ref = prev_lo if prev_lo is not None else hi if hi is not None and math.isfinite(hi[1]) else None
-        else:
-            prev_hi = hi
-            hi = (alpha, q)
-            ref = lo if lo is not None else prev_hi if prev_hi is not None and math.isfinite(q) and math.isfinite(prev_hi[1]) else None
-        if not math.isfinite(q):
-            new = math.sqrt(lo[0] * alpha) if lo is not None else alpha / 4.0
-        elif ref is not None and ref[0] != alpha and math.isfinite(ref[1]) and 0 < ref[1] != q:
-            s = min(max(math.log(q / ref[1]) / math.log(alpha / ref[0]), 0.5), 3.0)
-            new = alpha * (target / q) ** (1.0 / s)
-        else:  # one point only: extrapolate linearly, from far below only to half the target
-            aim = FIRST_AIM * target if q < FIRST_AIM * target else target
-            new = alpha * aim / q
+        lo, hi, ref = _bracket(lo, hi, alpha, q, target)
+        new = _next_alpha(alpha, q, target, lo, ref)
         if lo is not None and hi is not None:
             if hi[0] <= lo[0] * (1.0 + rtol):
                 break  # the bracket is closed: the target lies beyond what the pilots converge at
             if not lo[0] < new < hi[0]:
                 new = math.sqrt(lo[0] * hi[0])
         alpha = new
+    return _record(rounds, best, target, quantile, rtol)
+
+
+def _bracket(lo, hi, alpha: float, q: float, target: float):
+    """The bracket ``(lo, hi)`` updated with the round ``(alpha, q)``, and the earlier round
+    ``ref`` the response exponent is measured against (None: none usable)."""
+    if math.isfinite(q) and q < target:
+        prev_lo, lo = lo, (alpha, q)
+        ref = prev_lo if prev_lo is not None else hi if hi is not None and math.isfinite(hi[1]) else None
+    else:
+        prev_hi, hi = hi, (alpha, q)
+        ref = lo if lo is not None else prev_hi if prev_hi is not None and math.isfinite(q) and math.isfinite(prev_hi[1]) else None
+    return lo, hi, ref
+
+
+def _next_alpha(alpha: float, q: float, target: float, lo, ref) -> float:
+    """The next trial alpha: after a failure, the geometric mean with the lower bound (or a
+    quarter); with two rounds, the power law through them; from one round, linear
+    extrapolation (from far below only to ``FIRST_AIM`` of the target)."""
+    if not math.isfinite(q):
+        return math.sqrt(lo[0] * alpha) if lo is not None else alpha / FAILURE_DIVISOR
+    if ref is not None and ref[0] != alpha and math.isfinite(ref[1]) and 0 < ref[1] != q:
+        s = min(max(math.log(q / ref[1]) / math.log(alpha / ref[0]), EXPONENT_MIN), EXPONENT_MAX)
+        return alpha * (target / q) ** (1.0 / s)
+    aim = FIRST_AIM * target if q < FIRST_AIM * target else target
+    return alpha * aim / q
+
+
+def _record(rounds: list, best, target: float, quantile: float, rtol: float) -> dict:
+    """The calibration record (see :func:`calibrate_alpha`) of the closest round ``best``."""
     if best is None:
         raise DatasetError(
             f"force calibration failed: every pilot sample failed to converge at every trial alpha "

@@ -122,6 +122,7 @@ class DaskExecutor:
     def __init__(self, recipe: Recipe, address: str):
         self.recipe, self.address = recipe, address
         self._client = None
+        self._recipe_future = None  # the recipe scattered to the workers (on __enter__)
 
     def __enter__(self) -> "DaskExecutor":
         distributed = require("distributed", "data", "running simulations on a Dask cluster")

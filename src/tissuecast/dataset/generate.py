@@ -1,19 +1,24 @@
 """Generate (or continue) a data set: plan, calibrate the force magnitude, solve, store.
 
-``simulate(config)`` is resumable and exact: every sample is a pure function of the stored
-set-up (mesh, fixed vertices, LBO basis, config), its own seed and the calibrated alpha, and
-is solved from zero displacement with single-threaded BLAS. Which worker solved it, in which
-order, and whether the run was interrupted (``kill -9``) and resumed do not change a bit of
-the store (except ``samples/seconds``, the wall-clock times, and the ``created`` attribute).
+``simulate(config)`` runs three phases, each skipped when the store already has its result:
+the force calibration (:mod:`.calibrate`; its last round's pilots are kept as samples), the
+reduced-order predictor (:mod:`.predictor`), and the solves of every pending sample. It is
+resumable and exact: every sample is a pure function of the stored set-up (mesh, fixed
+vertices, LBO basis, config, reduced model), its own seed and the calibrated alpha, solved
+with single-threaded BLAS. Which worker solved it, in which order, and whether the run was
+interrupted (``kill -9``) and resumed do not change a bit of the store (except
+``samples/seconds``, the wall-clock times, and the ``created`` attribute).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import sys
 import time
 import tomllib
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -21,13 +26,15 @@ import numpy as np
 from ..config import Config, config_from_dict, config_to_dict, config_to_toml, load_config
 from ..errors import DatasetError
 from .calibrate import calibrate_alpha, initial_alpha
+from .codes import SampleStatus
 from .executors import make_executor
 from .plan import generation_order, make_plan
+from .predictor import build_reduced, keep_snapshots
 from .reader import open_dataset
-from .store import StoreWriter
+from .store import StoreWriter, read_lbo_basis
 from .worker import Recipe, Task
 
-__all__ = ["simulate", "setup_from_config", "data_config"]
+__all__ = ["simulate", "setup_from_config", "data_config", "SimulationRun", "Phase"]
 
 log = logging.getLogger(__name__)
 
@@ -54,9 +61,9 @@ def setup_from_config(cfg: Config):
         ``(mesh TetMesh, markers (n_d,) int64, fixed (k,) int64)``.
     """
     from ..markers import markers_and_fixed
-    from ..mesh import phantom, read_mesh
+    from ..mesh.source import mesh_from_config
 
-    mesh = read_mesh(cfg.mesh.path, units=cfg.mesh.units) if cfg.mesh.path else phantom()
+    mesh = mesh_from_config(cfg.mesh)
     markers, fixed = markers_and_fixed(mesh, cfg.markers)
     return mesh, np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
 
@@ -150,8 +157,7 @@ def _recipe(writer: StoreWriter, solver_factory: str | None) -> Recipe:
         kw.update(reduced_basis=writer.read("reduced/basis"), reduced_elements=writer.read("reduced/elements"),
                   reduced_weights=writer.read("reduced/weights"))
     return Recipe(writer.config_toml, writer.read("mesh/points"), writer.read("mesh/tets"), writer.read("fixed"),
-                  writer.read("lbo/vertices"), writer.read("lbo/vectors"), writer.read("lbo/eigenvalues"),
-                  writer.read("lbo/mass"), **kw)
+                  read_lbo_basis(writer.root), **kw)
 
 
 def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[dict, list]:
@@ -159,9 +165,6 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
     ds = cfg.dataset
     if ds.alpha > 0:
         return {"rule": "given (dataset.alpha)", "alpha": ds.alpha, "converged": True, "rounds": []}, []
-    from ..forces import LBOBasis
-    from ..mesh import TetMesh
-
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     n_lbo = int(writer.root.attrs["n_lbo"])
     pilots = list(range(min(ds.calibration_samples, n_lbo)))
@@ -171,19 +174,57 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
 
     def pilot_max(alpha: float) -> np.ndarray:
         # each pilot starts from its solution of the previous round (if it converged)
-        prev = {r.index: r.nodal for r in last if r.status == 1 and r.nodal is not None}
+        prev = {r.index: r.nodal for r in last if r.status == SampleStatus.DONE and r.nodal is not None}
         last[:] = sorted(ex.imap_unordered([Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i))
                                             for i in pilots]), key=lambda r: r.index)
         return np.array([r.max_displacement for r in last])
 
-    basis = LBOBasis(recipe.basis_vertices, recipe.basis_vectors, recipe.basis_eigenvalues, recipe.basis_mass)
-    mesh = TetMesh(recipe.points, recipe.tets)
     target = cfg.forces.target_max_displacement
-    alpha0 = initial_alpha(basis, mesh, recipe.fixed, cfg.material.youngs_modulus, target)
+    alpha0 = initial_alpha(recipe.basis, recipe.mesh, recipe.fixed, cfg.material.youngs_modulus, target)
     record = calibrate_alpha(pilot_max, alpha0, target, quantile=ds.calibration_quantile)
     record["pilots"] = pilots
     reusable = [r for r in last if r.alpha == record["alpha"]]
     return record, reusable
+
+
+@dataclass(frozen=True)
+class Phase:
+    """What one phase of a :func:`simulate` call did."""
+
+    samples: int = 0  # data-set samples solved and written in the phase
+    seconds: float = 0.0  # wall-clock time of the phase's solves
+    io_seconds: float = 0.0  # of which the parent process spent writing the store (sample phase)
+    built: bool = False  # predictor phase: a reduced model was built and stored
+
+
+@dataclass(frozen=True)
+class SimulationRun:
+    """What one :func:`simulate` call did, phase by phase."""
+
+    executor: str = "nothing to do"  # where the samples were solved
+    calibration: Phase = field(default_factory=Phase)  # force calibration (pilots kept as samples)
+    predictor: Phase = field(default_factory=Phase)  # basis samples from zero and the reduced-model fit
+    samples: Phase = field(default_factory=Phase)  # every other pending sample
+    seconds: float = 0.0  # wall-clock time of the call
+
+    @property
+    def solved(self) -> int:
+        """Samples solved and written in this call."""
+        return self.calibration.samples + self.predictor.samples + self.samples.samples
+
+    def as_dict(self) -> dict:
+        """The ``run`` figures of :func:`simulate`'s summary (``reduced_seconds`` only when a
+        reduced model was built)."""
+        run = {"solved": self.solved, "executor": self.executor, "calibration_seconds": self.calibration.seconds,
+               "sample_phase_seconds": self.samples.seconds, "sample_phase_samples": self.samples.samples,
+               "parent_io_seconds": self.samples.io_seconds}
+        if self.predictor.built:
+            run["reduced_seconds"] = self.predictor.seconds
+        run["seconds"] = self.seconds
+        run["samples_per_minute"] = 60.0 * self.solved / self.seconds if self.solved and self.seconds > 0 else 0.0
+        phase = self.samples.seconds
+        run["sample_phase_samples_per_minute"] = 60.0 * self.samples.samples / phase if phase > 0 else 0.0
+        return run
 
 
 def simulate(config, store_path=None, *, progress: bool = True, scheduler: str | None = None,
@@ -200,8 +241,8 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
         solver_factory: ``"module:function"`` replacing the FEM solver factory (for testing).
 
     Returns:
-        The data set's :meth:`~.reader.Dataset.summary` plus ``run`` figures (samples solved
-        in this call, seconds, samples per minute, executor).
+        The data set's :meth:`~.reader.Dataset.summary` plus ``run``, the figures of this call
+        (:meth:`SimulationRun.as_dict`: samples solved, seconds, samples per minute, executor).
 
     Raises:
         DatasetError: the store belongs to another config or mesh, or is of an unknown schema.
@@ -209,112 +250,69 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
     cfg = config if isinstance(config, Config) else load_config(config)
     path = Path(store_path or cfg.dataset.store)
     writer = _open_or_create(cfg, path)
-    scheduler = cfg.dataset.scheduler if scheduler is None else scheduler
-    workers = cfg.dataset.workers if workers is None else workers
     t0 = time.monotonic()
-    run = {"solved": 0, "executor": "nothing to do", "calibration_seconds": 0.0, "sample_phase_seconds": 0.0,
-           "sample_phase_samples": 0, "parent_io_seconds": 0.0}
+    run = SimulationRun()
     if len(writer.pending()) or writer.calibration is None:
-        recipe = _recipe(writer, solver_factory)
-        with contextlib.ExitStack() as executors:
-            ex = executors.enter_context(make_executor(recipe, scheduler=scheduler, workers=workers))
-            run["executor"] = ex.describe()
-            log.info("simulating %d pending of %d samples on %s", len(writer.pending()), len(writer.status),
-                     run["executor"])
-            if writer.calibration is None:
-                tc = time.monotonic()
-                record, reusable = _calibrate(writer, ex, cfg, recipe)
-                run["calibration_seconds"] = time.monotonic() - tc
-                for r in reusable:  # pilot solves at the final alpha are the samples themselves
-                    if writer.status[r.index] == 0:
-                        writer.write_sample(r)
-                        run["solved"] += 1
-                writer.flush()
-                _keep_snapshots(writer, cfg, reusable)
-                # the record last: a run killed before it calibrates again (the same rounds,
-                # bit for bit) instead of solving the written pilots again from zero
-                writer.set_calibration(record)
-            if cfg.dataset.predictor == "reduced" and writer.reduced is None and len(writer.pending()):
-                tr = time.monotonic()
-                if _build_reduced(writer, ex, cfg, run):
-                    run["reduced_seconds"] = time.monotonic() - tr
-                    executors.close()  # new workers, with the recipe holding the reduced model
-                    ex = executors.enter_context(make_executor(_recipe(writer, solver_factory), scheduler=scheduler,
-                                                               workers=workers))
-                    log.info("reduced model: %d modes, %d elements (ECSW error %.3g), built in %.1f s",
-                             writer.reduced["modes"], writer.reduced["elements"], writer.reduced["fit_error"],
-                             run["reduced_seconds"])
-            _solve_pending(writer, ex, progress, run)
-    elapsed = time.monotonic() - t0
+        run = _run_phases(writer, cfg, progress=progress, solver_factory=solver_factory,
+                          scheduler=cfg.dataset.scheduler if scheduler is None else scheduler,
+                          workers=cfg.dataset.workers if workers is None else workers)
+    run = dataclasses.replace(run, seconds=time.monotonic() - t0)
     summary = open_dataset(path).summary()
-    run["seconds"] = elapsed
-    run["samples_per_minute"] = 60.0 * run["solved"] / elapsed if run["solved"] and elapsed > 0 else 0.0
-    phase = run["sample_phase_seconds"]
-    run["sample_phase_samples_per_minute"] = 60.0 * run["sample_phase_samples"] / phase if phase > 0 else 0.0
-    summary["run"] = run
+    summary["run"] = run.as_dict()
     return summary
 
 
-def _basis_samples(writer: StoreWriter, cfg: Config) -> np.ndarray:
-    """Ids of the samples whose full solutions build the reduced model: the first LBO samples."""
-    n_lbo = int(writer.root.attrs["n_lbo"])
-    return np.arange(min(cfg.dataset.predictor_samples, n_lbo), dtype=np.int64)
+def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_factory: str | None, scheduler: str,
+                workers: int) -> SimulationRun:
+    """Calibrate (if not done), build the predictor (if configured and not built), then solve
+    every pending sample; the executor is restarted once the reduced model exists."""
+    recipe = _recipe(writer, solver_factory)
+    with contextlib.ExitStack() as executors:
+        ex = executors.enter_context(make_executor(recipe, scheduler=scheduler, workers=workers))
+        executor = ex.describe()
+        log.info("simulating %d pending of %d samples on %s", len(writer.pending()), len(writer.status), executor)
+        calibration = _calibration_phase(writer, ex, cfg, recipe) if writer.calibration is None else Phase()
+        predictor = Phase()
+        if cfg.dataset.predictor == "reduced" and writer.reduced is None and len(writer.pending()):
+            predictor = _predictor_phase(writer, ex, cfg, recipe)
+            if predictor.built:
+                executors.close()  # new workers, with the recipe holding the reduced model
+                ex = executors.enter_context(make_executor(_recipe(writer, solver_factory), scheduler=scheduler,
+                                                           workers=workers))
+        samples = _solve_pending(writer, ex, progress)
+    return SimulationRun(executor, calibration, predictor, samples)
 
 
-def _keep_snapshots(writer: StoreWriter, cfg: Config, results) -> None:
-    """Store the nodal solutions of basis samples among ``results`` (none is from the reduced model)."""
-    if cfg.dataset.predictor != "reduced" or writer.reduced is not None:
-        return
-    for r in results:
-        if r.nodal is None or r.status != 1 or r.predicted == 1:
-            continue
-        rows = writer.snapshot_rows(_basis_samples(writer, cfg), len(r.nodal))
-        hit = np.flatnonzero(rows == r.index)
-        if len(hit):
-            writer.write_snapshot(int(hit[0]), r.nodal)
+def _calibration_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Phase:
+    """Calibrate alpha, keep the last round's pilots as samples, then record the calibration."""
+    tc = time.monotonic()
+    record, reusable = _calibrate(writer, ex, cfg, recipe)
+    seconds = time.monotonic() - tc
+    written = 0
+    for r in reusable:  # pilot solves at the final alpha are the samples themselves
+        if writer.status[r.index] == SampleStatus.PENDING:
+            writer.write_sample(r)
+            written += 1
+    writer.flush()
+    keep_snapshots(writer, cfg, reusable)
+    # the record last: a run killed before it calibrates again (the same rounds, bit for bit)
+    # instead of solving the written pilots again from zero
+    writer.set_calibration(record)
+    return Phase(samples=written, seconds=seconds)
 
 
-def _build_reduced(writer: StoreWriter, ex, cfg: Config, run: dict) -> bool:
-    """Solve the basis samples (from zero) that have no stored snapshot, then fit and store
-    the reduced model. Returns False (and logs why) when it cannot be built."""
-    from ..fem import NeoHookean, Problem
-    from ..fem.reduced import ReducedModel
-    from ..mesh import TetMesh
-
-    mesh = TetMesh(writer.read("mesh/points"), writer.read("mesh/tets"))
-    problem = Problem(mesh, NeoHookean(cfg.material.youngs_modulus, cfg.material.poisson_ratio), writer.read("fixed"),
-                      order=cfg.solver.order)
-    samples = _basis_samples(writer, cfg)
-    rows = writer.snapshot_rows(samples, len(problem.nodes))
-    have = writer.snapshot_done()
-    todo = [int(i) for i, ok in zip(rows, have) if not ok and writer.status[i] != 2]
-    if todo:
-        alpha = float(writer.calibration["alpha"])
-        seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
-        log.info("solving %d samples from zero for the reduced model", len(todo))
-        tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo]
-        for r in ex.imap_unordered(tasks):
-            if r.nodal is None and r.status == 1:
-                log.warning("the solver returns no nodal displacements; data set solved without a predictor")
-                return False
-            if writer.status[r.index] == 0:
-                writer.write_sample(r)
-                run["solved"] += 1
-            _keep_snapshots(writer, cfg, [r])
-        writer.flush()
-    snaps = writer.read("reduced/snapshots")
-    snaps = snaps[np.isfinite(snaps[:, 0, 0])]  # NaN rows: basis samples that failed
-    if len(snaps) < 2:
-        log.warning("fewer than 2 basis samples converged; data set solved without a predictor")
-        return False
-    model = ReducedModel.fit(problem, snaps, tolerance=cfg.dataset.predictor_tolerance)
-    writer.set_reduced(model.basis, model.elements, model.weights, {
-        "modes": model.n_modes, "elements": int(len(model.elements)), "fit_error": float(model.fit_error),
-        "snapshots": len(snaps)})
-    return True
+def _predictor_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Phase:
+    """Solve the basis samples and fit the reduced model (:func:`.predictor.build_reduced`)."""
+    tr = time.monotonic()
+    solved, built = build_reduced(writer, ex, cfg, recipe)
+    seconds = time.monotonic() - tr
+    if built:
+        log.info("reduced model: %d modes, %d elements (ECSW error %.3g), built in %.1f s",
+                 writer.reduced["modes"], writer.reduced["elements"], writer.reduced["fit_error"], seconds)
+    return Phase(samples=solved, seconds=seconds, built=built)
 
 
-def _solve_pending(writer: StoreWriter, ex, progress: bool, run: dict) -> None:
+def _solve_pending(writer: StoreWriter, ex, progress: bool) -> Phase:
     """Solve every pending sample at the calibrated alpha, writing results as they come.
 
     The splits are interleaved (:func:`~.plan.generation_order`), so a run stopped part-way
@@ -324,22 +322,22 @@ def _solve_pending(writer: StoreWriter, ex, progress: bool, run: dict) -> None:
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     pending = generation_order(writer.read("samples/split"), writer.pending())
     t_start = last_flush = time.monotonic()
-    unflushed = 0
+    unflushed = solved = 0
+    io_seconds = 0.0
     bar = _Progress(len(writer.status), len(writer.status) - len(pending), progress)
     try:
         for r in ex.imap_unordered(Task(int(i), int(seeds[i]), float(betas[i]), alpha) for i in pending):
             tw = time.monotonic()
             writer.write_sample(r)
-            run["solved"] += 1
-            run["sample_phase_samples"] += 1
+            solved += 1
             unflushed += 1
             if tw - last_flush > _FLUSH_SECONDS or unflushed >= _FLUSH_SAMPLES:
                 writer.flush()
                 last_flush, unflushed = time.monotonic(), 0
-            run["parent_io_seconds"] += time.monotonic() - tw
-            bar.update(int(np.sum(writer.status == 2)))
+            io_seconds += time.monotonic() - tw
+            bar.update(int(np.sum(writer.status == SampleStatus.FAILED)))
         writer.flush()
     finally:
         bar.close()
         _flush_quietly(writer)
-        run["sample_phase_seconds"] = time.monotonic() - t_start
+    return Phase(samples=solved, seconds=time.monotonic() - t_start, io_seconds=io_seconds)

@@ -11,11 +11,15 @@ import numpy as np
 from ..config import Config, config_from_dict
 from ..errors import DatasetError
 from .plan import SPLIT_CODES, SPLIT_NAMES
-from .store import STATUS_NAMES, _open_root, check_schema
+from .codes import STATUS_NAMES, InitialGuess, SampleStatus
+from .store import _open_root, check_schema, read_lbo_basis
 
 __all__ = ["Dataset", "open_dataset", "max_displacement_stats"]
 
 _STATUS_CODES = {v: k for k, v in STATUS_NAMES.items()}
+#: ``summary()["predictor"]`` key of each initial-guess code
+_PREDICTOR_KEYS = {InitialGuess.ZERO: "from_zero", InitialGuess.REDUCED_MODEL: "predicted",
+                   InitialGuess.GUESS_FAILED: "prediction_failed", InitialGuess.PREVIOUS_ROUND: "from_previous_round"}
 
 
 def open_dataset(path) -> "Dataset":
@@ -58,9 +62,10 @@ class Dataset:
         self.n_vertices = int(self._s["displacements"].shape[1])
 
     def __repr__(self) -> str:
-        counts = np.bincount(self.status.astype(np.int64), minlength=3)
-        return (f"Dataset({str(self.path)!r}, {self.n_samples} samples: {counts[1]} done, {counts[2]} failed, "
-                f"{counts[0]} pending; {self.n_vertices} vertices)")
+        counts = np.bincount(self.status.astype(np.int64), minlength=len(SampleStatus))
+        return (f"Dataset({str(self.path)!r}, {self.n_samples} samples: {counts[SampleStatus.DONE]} done, "
+                f"{counts[SampleStatus.FAILED]} failed, {counts[SampleStatus.PENDING]} pending; "
+                f"{self.n_vertices} vertices)")
 
     def __len__(self) -> int:
         return self.n_samples
@@ -93,7 +98,7 @@ class Dataset:
     alpha = _per_sample("alpha", "(N,) float64 force magnitude alpha, N (NaN for pending samples).")
     beta = _per_sample("beta", "(N,) float64 LBO share of test-2 fields; NaN for LBO samples.")
     seed = _per_sample("seed", "(N,) uint64 per-sample seeds (numpy default_rng(seed) draws the field).")
-    status = _per_sample("status", "(N,) int8: 0 pending, 1 done, 2 failed.")
+    status = _per_sample("status", "(N,) int8 :class:`~.codes.SampleStatus`: 0 pending, 1 done, 2 failed.")
     increments = _per_sample("increments", "(N,) int32 load increments (all attempts).")
     iterations = _per_sample("iterations", "(N,) int32 Newton iterations (all attempts).")
     factorizations = _per_sample("factorizations", "(N,) int32 matrix factorisations (all attempts).")
@@ -105,11 +110,11 @@ class Dataset:
 
     @cached_property
     def predicted(self) -> np.ndarray:
-        """(N,) int8 initial guess of each solve: 0 zero (no reduced model yet), 1 the reduced
-        model's prediction, 2 the guess did not work (then zero), 3 a calibration pilot's
-        solution of the previous round. All 0 in stores made before the predictor existed."""
+        """(N,) int8 :class:`~.codes.InitialGuess` of each solve: 0 zero (no reduced model yet),
+        1 the reduced model's prediction, 2 the guess did not work (then zero), 3 a calibration
+        pilot's solution of the previous round. All 0 in stores made before the predictor existed."""
         if "predicted" not in self._root["samples"]:
-            return np.zeros(self.n_samples, dtype=np.int8)
+            return np.full(self.n_samples, InitialGuess.ZERO, dtype=np.int8)
         return self._array("samples/predicted")
 
     @cached_property
@@ -149,9 +154,7 @@ class Dataset:
     @cached_property
     def basis(self):
         """The stored :class:`~tissuecast.forces.LBOBasis`."""
-        from ..forces import LBOBasis
-
-        return LBOBasis(*(self._array(f"lbo/{k}") for k in ("vertices", "vectors", "eigenvalues", "mass")))
+        return read_lbo_basis(self._root)
 
     @property
     def config_toml(self) -> str:
@@ -196,7 +199,7 @@ class Dataset:
 
     def _deformation_summary(self) -> dict:
         nr = self.nonrigid_part()
-        done = self.status == 1
+        done = self.status == SampleStatus.DONE
         share = nr / np.where(self.max_displacement > 0, self.max_displacement, np.nan)
         return {"nonrigid_part": max_displacement_stats(nr[done]),
                 "nonrigid_part_by_split": {name: max_displacement_stats(nr[done & (self.split_codes == code)])
@@ -204,9 +207,9 @@ class Dataset:
                 "nonrigid_share": max_displacement_stats(share[done])}
 
     def _predictor_summary(self) -> dict:
-        done = self.status == 1
+        done = self.status == SampleStatus.DONE
         out = {"model": self._root.attrs.get("reduced")}
-        for code, name in ((0, "from_zero"), (1, "predicted"), (2, "prediction_failed"), (3, "from_previous_round")):
+        for code, name in _PREDICTOR_KEYS.items():
             sel = done & (self.predicted == code)
             out[name] = {"samples": int(sel.sum()),
                          "seconds_mean": float(self.seconds[sel].mean()) if sel.any() else 0.0,
@@ -221,7 +224,7 @@ class Dataset:
         from ..registration import nonrigid_part
 
         out = np.full(self.n_samples, np.nan)
-        done = np.flatnonzero(self.status == 1)
+        done = np.flatnonzero(self.status == SampleStatus.DONE)
         points = self.mesh.points
         for s in range(0, done.size, 256):
             idx = done[s:s + 256]
@@ -241,14 +244,14 @@ class Dataset:
         for code, name in SPLIT_NAMES.items():
             in_split = self.split_codes == code
             counts[name] = {st: int(np.sum(in_split & (self.status == c))) for c, st in STATUS_NAMES.items()}
-        done = self.status == 1
+        done = self.status == SampleStatus.DONE
         by_split = {name: max_displacement_stats(self.max_displacement[done & (self.split_codes == code)])
                     for code, name in SPLIT_NAMES.items()}
         by_beta = {}
         test2 = done & (self.split_codes == SPLIT_CODES["test2"])
         for b in np.unique(self.beta[test2]):
             by_beta[f"{b:g}"] = max_displacement_stats(self.max_displacement[test2 & (self.beta == b)])
-        sec = self.seconds[self.status > 0]
+        sec = self.seconds[self.status != SampleStatus.PENDING]
         its = self.iterations[done]
         incs = self.increments[done]
         return {
@@ -263,7 +266,7 @@ class Dataset:
                        "seconds_max": float(sec.max()) if len(sec) else 0.0,
                        "increments_mean": float(incs.mean()) if len(incs) else 0.0,
                        "iterations_mean": float(its.mean()) if len(its) else 0.0,
-                       "retried": int(np.sum(self.attempts[self.status > 0] > 1))},
+                       "retried": int(np.sum(self.attempts[self.status != SampleStatus.PENDING] > 1))},
             **(self._deformation_summary() if deformation else {}),
             "predictor": self._predictor_summary(),
             "calibration": self.calibration,

@@ -27,15 +27,15 @@ vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
       samples/beta          (N,) float64 LBO share of test-2 samples; NaN for LBO samples
       samples/seed          (N,) uint64 per-sample seed (numpy default_rng(seed) makes the field)
       samples/split         (N,) int8 split code (split_labels)
-      samples/status        (N,) int8 0 pending, 1 done, 2 failed
+      samples/status        (N,) int8 0 pending, 1 done, 2 failed (codes.SampleStatus)
       samples/increments, iterations, factorizations   (N,) int32 solver counts (all attempts)
       samples/attempts      (N,) int8 solver attempts (1 + retries used)
       samples/load_fraction (N,) float64 share of the load reached (1 when done)
       samples/max_displacement (N,) float32 mm, largest vertex displacement (NaN unless done)
       samples/seconds       (N,) float64 wall-clock solve time (the only non-reproducible array)
-      samples/predicted     (N,) int8 initial guess: 0 zero (no reduced model yet), 1 the
-                            reduced model's prediction, 2 the guess did not work (then zero),
-                            3 a calibration pilot's solution of the previous round
+      samples/predicted     (N,) int8 initial guess (codes.InitialGuess): 0 zero (no reduced
+                            model yet), 1 the reduced model's prediction, 2 the guess did not
+                            work (then zero), 3 a calibration pilot's solution of the previous round
       reduced/samples       (s,) int64 ids of the samples whose full solutions built the reduced
                             model (dataset.predictor = "reduced"; absent otherwise)
       reduced/snapshots     (s, n_nodes, 3) float64 mm their displacements at every element node
@@ -66,15 +66,15 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError, require
+from .codes import STATUS_NAMES, InitialGuess, SampleStatus
 from .plan import SPLIT_NAMES, SamplePlan
 from .worker import SampleResult
 
-__all__ = ["SCHEMA", "SCHEMA_VERSION", "STATUS_NAMES", "StoreWriter", "package_versions", "check_schema"]
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "STATUS_NAMES", "StoreWriter", "package_versions", "check_schema",
+           "read_lbo_basis"]
 
 SCHEMA = "tissuecast.dataset"
 SCHEMA_VERSION = 1
-STATUS_NAMES = {0: "pending", 1: "done", 2: "failed"}
-PENDING, DONE, FAILED = 0, 1, 2
 _BLOCK = 256  # chunk length of the per-sample 1-D arrays and weights
 
 # per-sample scalar arrays: name -> (dtype, fill value)
@@ -83,7 +83,7 @@ SCALARS = {
     "beta": ("float64", np.nan),
     "seed": ("uint64", 0),
     "split": ("int8", -1),
-    "status": ("int8", 0),
+    "status": ("int8", SampleStatus.PENDING.value),
     "increments": ("int32", 0),
     "iterations": ("int32", 0),
     "factorizations": ("int32", 0),
@@ -91,7 +91,7 @@ SCALARS = {
     "load_fraction": ("float64", np.nan),
     "max_displacement": ("float32", np.nan),
     "seconds": ("float64", np.nan),
-    "predicted": ("int8", 0),
+    "predicted": ("int8", InitialGuess.ZERO.value),
 }
 _ADDED_LATER = ("predicted",)  # per-sample arrays that stores of earlier releases lack (created on open)
 
@@ -128,6 +128,16 @@ def check_schema(root, path) -> None:
     if not isinstance(version, int) or version > SCHEMA_VERSION or version < 1:
         raise DatasetError(f"data set {str(path)!r} has schema version {version!r}, but this tissuecast reads "
                            f"versions 1..{SCHEMA_VERSION}; upgrade tissuecast to read it")
+
+
+def read_lbo_basis(root):
+    """The stored :class:`~tissuecast.forces.LBOBasis` of a store's root group (read-only arrays)."""
+    from ..forces import LBOBasis
+
+    arrays = [np.asarray(root[f"lbo/{k}"][...]) for k in ("vertices", "vectors", "eigenvalues", "mass")]
+    for a in arrays:
+        a.setflags(write=False)
+    return LBOBasis(*arrays)
 
 
 class StoreWriter:
@@ -279,7 +289,7 @@ class StoreWriter:
 
     def pending(self) -> np.ndarray:
         """Indices of samples not solved yet, ascending."""
-        return np.flatnonzero(self.status == PENDING)
+        return np.flatnonzero(self.status == SampleStatus.PENDING)
 
     # ------------------------------------------------------------ writing
     def write_sample(self, r: SampleResult) -> None:
@@ -297,11 +307,11 @@ class StoreWriter:
         m["weights"][i] = r.weights
         values = {"alpha": r.alpha, "increments": r.increments, "iterations": r.iterations,
                   "factorizations": r.factorizations, "attempts": r.attempts, "load_fraction": r.load_fraction,
-                  "max_displacement": r.max_displacement if r.status == DONE else np.nan, "seconds": r.seconds,
+                  "max_displacement": r.max_displacement if r.status == SampleStatus.DONE else np.nan, "seconds": r.seconds,
                   "predicted": r.predicted}
         for name, v in values.items():
             m[name][i] = v
-        if r.status == FAILED:
+        if r.status == SampleStatus.FAILED:
             self._failures[str(i)] = r.reason
         self.status[i] = r.status
         self._dirty.add(i // _BLOCK)

@@ -6,8 +6,8 @@ problem and its :class:`~tissuecast.fem.Solver` once (:func:`context_for`) and r
 for every sample it is given, so per-sample cost is the solve alone.
 
 A sample's result is a pure function of (recipe, task): the force field comes from the
-sample's own seed, the solve starts from zero displacement, and worker processes run their
-BLAS single-threaded (see :mod:`.executors`). Hence the same sample gives the same bits on
+sample's own seed, the solve starts from zero, the task's guess or the recipe's reduced-model
+prediction, and worker processes run their BLAS single-threaded (see :mod:`.executors`). Hence the same sample gives the same bits on
 any worker, in any order, in a first run or after a resume.
 """
 
@@ -20,12 +20,17 @@ import logging
 import time
 import tomllib
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from ..config import Config, SolverConfig, config_from_dict
 from ..errors import ConvergenceError
+from .codes import InitialGuess, SampleStatus
+
+if TYPE_CHECKING:
+    from ..forces import LBOBasis
+    from ..mesh import TetMesh
 
 __all__ = ["Recipe", "Task", "SampleResult", "SampleContext", "context_for", "solve_task", "retry_solver_config",
            "fem_solver_factory"]
@@ -41,8 +46,7 @@ class Recipe:
         config_toml: the data set's configuration as TOML text.
         points: (n, 3) float64 mesh vertices, mm.  tets: (m, 4) int64.
         fixed: (k,) int64 fixed vertex ids.
-        basis_vertices: (s,) int64; basis_vectors: (s, n_b) float64 1/mm;
-        basis_eigenvalues: (n_b,) 1/mm^2; basis_mass: (s,) mm^2 -- the stored LBO basis.
+        basis: the stored :class:`~tissuecast.forces.LBOBasis`.
         solver_factory: ``"module:function"`` building the solver (see :func:`fem_solver_factory`).
         reduced_basis, reduced_elements, reduced_weights: the data set's reduced-order
             predictor (:class:`~tissuecast.fem.reduced.ReducedModel`), or None (solve from zero).
@@ -52,10 +56,7 @@ class Recipe:
     points: np.ndarray
     tets: np.ndarray
     fixed: np.ndarray
-    basis_vertices: np.ndarray
-    basis_vectors: np.ndarray
-    basis_eigenvalues: np.ndarray
-    basis_mass: np.ndarray
+    basis: "LBOBasis"
     solver_factory: str = "tissuecast.dataset.worker:fem_solver_factory"
     reduced_basis: np.ndarray | None = None
     reduced_elements: np.ndarray | None = None
@@ -65,10 +66,22 @@ class Recipe:
     def key(self) -> str:
         """Content hash identifying this recipe (worker processes cache contexts by it)."""
         h = hashlib.sha256(self.config_toml.encode() + self.solver_factory.encode())
-        for a in (self.points, self.tets, self.fixed, self.basis_vertices, self.basis_vectors, self.reduced_basis,
+        for a in (self.points, self.tets, self.fixed, self.basis.vertices, self.basis.vectors, self.reduced_basis,
                   self.reduced_elements, self.reduced_weights):
             h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
         return h.hexdigest()
+
+    @property
+    def config(self) -> Config:
+        """The data set's configuration."""
+        return config_from_dict(tomllib.loads(self.config_toml))
+
+    @property
+    def mesh(self) -> "TetMesh":
+        """The data set's mesh (built anew on each access)."""
+        from ..mesh import TetMesh
+
+        return TetMesh(self.points, self.tets)
 
 
 @dataclass(frozen=True)
@@ -93,20 +106,21 @@ class SampleResult:
     Attributes:
         displacement: (n, 3) float32 mm at the vertices; None when the sample failed.
         forces: (n, 3) float32 nodal forces, N.  weights: (n_b, 3) float64 LBO weights W.
-        status: 1 done, 2 failed.  reason: failure message ('' when done).
+        status: :class:`~.codes.SampleStatus` DONE or FAILED.  reason: failure message ('' when done).
         load_fraction: share of the load reached (1.0 when done).
         attempts: solver attempts used (1 + retries used).
-        predicted: 0 solved from zero (no reduced model), 1 converged from the reduced
-            model's prediction, 2 the initial guess did not work (the reduced problem or the
-            solve from the guess did not converge) and the sample was solved from zero,
-            3 converged from the task's guess (a calibration pilot started from its solution
-            of the previous round).
+        predicted: :class:`~.codes.InitialGuess`: ZERO solved from zero (no reduced model),
+            REDUCED_MODEL converged from the reduced model's prediction, GUESS_FAILED the
+            initial guess did not work (the reduced problem or the solve from the guess did
+            not converge) and the sample was solved from zero, PREVIOUS_ROUND converged from
+            the task's guess (a calibration pilot started from its solution of the previous
+            round).
         nodal: (n_nodes, 3) float64 mm at every element node (P2: mid-edge nodes too), or
             None; the reduced model is built from these.
     """
 
     index: int
-    status: int
+    status: SampleStatus
     displacement: np.ndarray | None
     forces: np.ndarray
     weights: np.ndarray
@@ -120,7 +134,7 @@ class SampleResult:
     load_fraction: float
     attempts: int
     reason: str = ""
-    predicted: int = 0
+    predicted: InitialGuess = InitialGuess.ZERO
     nodal: np.ndarray | None = None
 
     @property
@@ -159,10 +173,9 @@ def fem_solver_factory(mesh, fixed: np.ndarray, cfg: Config) -> Callable[[Solver
     Returns a function mapping solver settings to a reusable ``Solver`` with
     ``.solve(forces (n,3) N) -> SolveResult`` (raising ConvergenceError on failure).
     """
-    from ..fem import NeoHookean, Problem, Solver
+    from ..fem import Solver, build_problem
 
-    material = NeoHookean(youngs_modulus=cfg.material.youngs_modulus, poisson_ratio=cfg.material.poisson_ratio)
-    problem = Problem(mesh, material, fixed, order=cfg.solver.order)
+    problem = build_problem(mesh, cfg, fixed)
     return lambda solver_cfg: Solver(problem, solver_cfg)
 
 
@@ -170,13 +183,12 @@ class SampleContext:
     """Per-process state: mesh, basis, config and the solvers (one per retry level)."""
 
     def __init__(self, recipe: Recipe):
-        from ..forces import LBOBasis, surface_graph_laplacian
-        from ..mesh import TetMesh
+        from ..forces import surface_graph_laplacian
 
-        self.config = config_from_dict(tomllib.loads(recipe.config_toml))
-        self.mesh = TetMesh(recipe.points, recipe.tets)
+        self.config = recipe.config
+        self.mesh = recipe.mesh
         self.fixed = np.asarray(recipe.fixed, dtype=np.int64)
-        self.basis = LBOBasis(recipe.basis_vertices, recipe.basis_vectors, recipe.basis_eigenvalues, recipe.basis_mass)
+        self.basis = recipe.basis
         self.laplacian = surface_graph_laplacian(self.mesh)
         module, _, name = recipe.solver_factory.partition(":")
         self._make_solver = getattr(importlib.import_module(module), name)(self.mesh, self.fixed, self.config)
@@ -232,15 +244,30 @@ def _counts(res) -> tuple[int, int, int]:
     return int(getattr(res, "increments", 0)), int(getattr(res, "iterations", 0)), int(getattr(res, "factorizations", 0))
 
 
+def _tries(ctx: SampleContext, task: Task, forces: np.ndarray) -> tuple[list, InitialGuess]:
+    """The solver attempts of a sample, in order, as ``(retry level, initial guess or None)``,
+    and the initial-guess code they start with: the task's guess or else the reduced model's
+    prediction first (if any), then the usual attempts from zero."""
+    tries = [(attempt, None) for attempt in range(ctx.config.solver.retries + 1)]
+    if task.guess is not None:
+        return [(0, np.asarray(task.guess, dtype=np.float64))] + tries, InitialGuess.PREVIOUS_ROUND
+    if ctx.reduced is None:
+        return tries, InitialGuess.ZERO
+    guess = ctx.reduced.predict(forces)
+    if guess is None:
+        return tries, InitialGuess.GUESS_FAILED
+    return [(0, guess)] + tries, InitialGuess.REDUCED_MODEL
+
+
 def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     """Solve one sample, retrying with more cautious increments ``solver.retries`` times.
 
-    With a guess in the task (``predicted`` 3), or else a reduced model in the recipe, a first
-    try starts from it (``predicted`` 1; 2 when the reduced problem did not converge and there
-    is no prediction); should that try fail, the usual attempts from zero follow, so a guess
-    never makes a sample fail. A ConvergenceError (or a numerical breakdown: ArithmeticError,
-    LinAlgError) after the last retry makes a failed result carrying the reason; any other
-    exception propagates.
+    With a guess in the task (``predicted`` PREVIOUS_ROUND), or else a reduced model in the
+    recipe, a first try starts from it (``predicted`` REDUCED_MODEL; GUESS_FAILED when the
+    reduced problem did not converge and there is no prediction); should that try fail, the
+    usual attempts from zero follow, so a guess never makes a sample fail. A
+    ConvergenceError (or a numerical breakdown: ArithmeticError, LinAlgError) after the last
+    retry makes a failed result carrying the reason; any other exception propagates.
     """
     ctx = context_for(recipe)
     forces, weights = ctx.forces(task)
@@ -248,17 +275,7 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     totals = np.zeros(3, dtype=np.int64)
     reasons = []
     load_fraction = 0.0
-    retries = ctx.config.solver.retries
-    predicted = 0
-    tries = [(attempt, None) for attempt in range(retries + 1)]
-    if task.guess is not None:
-        predicted = 3
-        tries.insert(0, (0, np.asarray(task.guess, dtype=np.float64)))
-    elif ctx.reduced is not None:
-        guess = ctx.reduced.predict(forces)
-        predicted = 1 if guess is not None else 2
-        if guess is not None:
-            tries.insert(0, (0, guess))  # then, should it fail, the usual attempts from zero
+    tries, predicted = _tries(ctx, task, forces)
     for attempt, guess in tries:
         try:
             solver = ctx.solver(attempt)
@@ -266,23 +283,24 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
-            start = " from the previous round's solution" if predicted == 3 else " from the prediction"
+            start = (" from the previous round's solution" if predicted == InitialGuess.PREVIOUS_ROUND
+                     else " from the prediction")
             reasons.append(f"attempt {attempt + 1}{start if guess is not None else ''}: "
                            f"{type(exc).__name__}: {exc}")
-            predicted = 2 if guess is not None else predicted
+            predicted = InitialGuess.GUESS_FAILED if guess is not None else predicted
             continue
         totals += _counts(res)
         if not getattr(res, "converged", True):  # a solver that reports instead of raising
             load_fraction = max(load_fraction, float(getattr(res, "load_fraction", 0.0)))
             reasons.append(f"attempt {attempt + 1}: not converged at load fraction {load_fraction:.4g}")
-            predicted = 2 if guess is not None else predicted
+            predicted = InitialGuess.GUESS_FAILED if guess is not None else predicted
             continue
         nodal = getattr(res, "nodal_displacement", None)
-        return SampleResult(task.index, 1, np.asarray(res.displacement, dtype=np.float32), forces.astype(np.float32),
-                            weights, task.alpha, task.beta, task.seed, *map(int, totals),
+        return SampleResult(task.index, SampleStatus.DONE, np.asarray(res.displacement, dtype=np.float32),
+                            forces.astype(np.float32), weights, task.alpha, task.beta, task.seed, *map(int, totals),
                             time.perf_counter() - t0, 1.0, attempt + 1, predicted=predicted,
                             nodal=None if nodal is None else np.asarray(nodal, dtype=np.float64))
     log.debug("sample %d failed: %s", task.index, reasons[-1])
-    return SampleResult(task.index, 2, None, forces.astype(np.float32), weights, task.alpha, task.beta, task.seed,
-                        *map(int, totals), time.perf_counter() - t0, load_fraction, retries + 1,
-                        "; ".join(reasons), predicted=predicted)
+    return SampleResult(task.index, SampleStatus.FAILED, None, forces.astype(np.float32), weights, task.alpha,
+                        task.beta, task.seed, *map(int, totals), time.perf_counter() - t0, load_fraction,
+                        ctx.config.solver.retries + 1, "; ".join(reasons), predicted=predicted)

@@ -3,8 +3,9 @@
 Public API::
 
     problem = Problem(mesh, NeoHookean(0.021, 0.45), fixed=[...], order=2)
+    problem = build_problem(mesh, cfg, fixed)  # the same from a run Config (material, solver.order)
     result = solve(problem, forces)            # forces (n, 3) N -> result.displacement (n, 3) mm
-    solver = Solver(problem, config)           # reusable: per-mesh work done once
+    solver = Solver(problem, cfg.solver)       # reusable: per-mesh work done once
     result = solver.solve(forces, initial_guess=None)
 
     # many solves of one problem (data sets): a reduced-order model of earlier solutions
@@ -17,8 +18,8 @@ Units: mm, N, MPa. Vertex ids are 0-based.
 """
 
 from .material import NeoHookean
-from .problem import Problem
+from .problem import Problem, build_problem
 from .result import SolveResult
 from .solver import Solver, solve
 
-__all__ = ["NeoHookean", "Problem", "Solver", "SolveResult", "solve"]
+__all__ = ["NeoHookean", "Problem", "Solver", "SolveResult", "build_problem", "solve"]

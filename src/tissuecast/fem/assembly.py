@@ -5,8 +5,8 @@ The sparsity pattern of the stiffness restricted to the free degrees of freedom 
 index of every element-matrix entry in the CSR data array are computed once, when the
 :class:`Assembler` is built; each assembly is then one batched kernel and one
 ``np.bincount``. When numba is installed the tangent, energy and internal forces run as
-compiled fused loops instead (:mod:`.kernels`, ~3x faster for the tangent, ~8x for energy and
-forces on the P2 phantom; same numbers to round-off). ``backend`` (or the environment
+compiled fused loops instead (:mod:`.kernels`; same numbers to round-off, timings in
+``docs/solver.md``). ``backend`` (or the environment
 variable ``TISSUECAST_KERNELS=numpy|numba``) chooses.
 
 Degrees of freedom: node ``a`` (a vertex, or for P2 a mid-edge node numbered after the
@@ -222,7 +222,7 @@ class Assembler:
         w = np.matmul(grad, np.swapaxes(f, -1, -2)).reshape(m, q, 3 * nn)
         aw, hw, tw = a * wq, c_hh * wq, c_t * wq
         cvw = (-2.0 / 3.0 * aw)[..., None]
-        # c_hh v v - 2/3 a (v w + w v) as one product over 3 q terms (20 % faster than three)
+        # c_hh v v - 2/3 a (v w + w v) as one product over 3 q terms (faster than three)
         left = np.concatenate([v * hw[..., None], v * cvw, w * cvw], axis=1)  # (m, 3q, (a i))
         right = np.concatenate([v, w, v], axis=1)
         k = np.matmul(np.swapaxes(left, 1, 2), right).reshape(m, nn, 3, nn, 3)

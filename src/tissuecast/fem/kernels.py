@@ -6,16 +6,15 @@ by numba when it is installed (``pip install "tissuecast[fast]"``). The loops fu
 numpy version does in separate passes (deformation gradient, stress, element stiffness,
 scatter into the CSR data), never materialise the ``(m, 30, 30)`` element matrices, build
 each element stiffness from its upper block triangle, and take 3x3 determinants and inverses
-by cofactors. Measured on the P2 phantom (5066 elements, 23904 free dofs, one thread): the
-tangent with internal forces took 30 ms against 97 ms, energy and forces ~4 ms against 34 ms
-(``benchmarks/dataset_throughput.py`` prints the effect on a data set). Both give the same
+by cofactors (timings in ``docs/solver.md``; ``benchmarks/dataset_throughput.py`` prints the
+effect on a data set). Both give the same
 numbers to round-off (``tests/test_fem_kernels.py``); they differ in the last bits, so a data
 set is reproducible bit for bit with the same backend (its store records the numba version).
 
 The formulas are those of :mod:`.material` (stress and the structured tangent) and
 :meth:`.assembly.Assembler._stiffness_from_factors`. Compiled code is cached on disk
-(``cache=True``: the package's ``__pycache__``, else numba's user cache), so a process pays
-the ~2-5 s compilation once per installation, not once per run.
+(``cache=True``: the package's ``__pycache__``, else numba's user cache), so the compilation
+is paid once per installation, not once per run.
 """
 
 from __future__ import annotations

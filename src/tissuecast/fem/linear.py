@@ -3,16 +3,17 @@
 Every backend works on one fixed sparsity pattern (that of an
 :class:`~tissuecast.fem.assembly.Assembler`): the symbolic analysis (fill-reducing ordering)
 is done once, each :meth:`factorize` call only redoes the numeric factorisation.
+:meth:`LinearSolver.spawn` gives another solver of the same pattern with a numeric factor of
+its own that shares the symbolic analysis where the backend allows (several solves in flight
+at once, each with its own factorised tangent).
 
 Backends:
 
-* ``"cholmod"`` -- supernodal Cholesky of SuiteSparse through ``sksparse.cholmod``
-  (fastest here: for a 22k-dof P2 solid of phantom size, nested-dissection ordering,
-  nnz(L) ~ 9e6: analysis 0.13 s once, each factorisation 0.26-0.36 s and each solve
-  ~0.01 s on one idle core; AMD ordering gave 11e6 and 0.45 s).
+* ``"cholmod"`` -- supernodal Cholesky of SuiteSparse through ``sksparse.cholmod`` with a
+  nested-dissection ordering (the fastest here; figures in ``docs/solver.md``).
 * ``"pardiso"`` -- Intel MKL PARDISO through ``pypardiso`` when it is installed
   (symmetric indefinite mode, so it never needs a fallback).
-* ``"superlu"`` -- SciPy's SuperLU, always available, ~10x slower (3.8 s for the same matrix).
+* ``"superlu"`` -- SciPy's SuperLU, always available, the slowest.
 
 A stiffness that is not positive definite (possible far from equilibrium, under
 compression) raises :class:`NotPositiveDefinite` from the Cholesky backend; the Newton
@@ -62,20 +63,39 @@ class LinearSolver:
         """Solve with the last factorisation: ``b`` (n_free,) or (n_free, k) -> same shape."""
         raise NotImplementedError
 
+    def spawn(self) -> "LinearSolver":
+        """A new solver of this backend and pattern, not factorised yet, whose numeric
+        factorisations are its own (this base version redoes the symbolic analysis)."""
+        return type(self)(self.assembler)
+
 
 class CholmodSolver(LinearSolver):
-    """Supernodal Cholesky (CHOLMOD); symbolic analysis once, numeric refactorisation in place."""
+    """Supernodal Cholesky (CHOLMOD); symbolic analysis once, numeric refactorisation in place.
+
+    Args:
+        assembler: supplies the pattern.
+        ordering: CHOLMOD's fill-reducing ordering.
+        symbolic: an analysed (not factorised) ``cholmod.Factor`` of the same pattern to start
+            from instead of analysing again (see :meth:`spawn`).
+    """
 
     name = "cholmod"
 
-    def __init__(self, assembler: Assembler, ordering: str = "nesdis") -> None:
+    def __init__(self, assembler: Assembler, ordering: str = "nesdis", symbolic=None) -> None:
         super().__init__(assembler)
         from sksparse import cholmod
 
         self._cholmod = cholmod
-        pattern = assembler.lower_csc(np.ones(assembler.nnz))
-        self._factor = cholmod.analyze(pattern, mode="supernodal", ordering_method=ordering)
+        if symbolic is None:
+            pattern = assembler.lower_csc(np.ones(assembler.nnz))
+            symbolic = cholmod.analyze(pattern, mode="supernodal", ordering_method=ordering)
+        self._symbolic = symbolic  # never factorised: what spawn() copies
+        self._factor = symbolic.copy()
         self._ready = False
+
+    def spawn(self) -> "CholmodSolver":
+        """A solver with its own numeric factor and a copy of this one's symbolic analysis."""
+        return CholmodSolver(self.assembler, symbolic=self._symbolic)
 
     def factorize(self, data: np.ndarray) -> None:
         self._ready = False

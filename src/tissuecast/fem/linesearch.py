@@ -17,11 +17,31 @@ from .assembly import Assembler
 
 __all__ = ["step_path", "line_search", "rotation_matrix"]
 
+#: A rotation by less than this angle (radians) is the identity (Rodrigues' formula would
+#: divide by it).
+_SMALL_ANGLE = 1e-12
+#: Armijo's sufficient-decrease constant.
+ARMIJO = 1e-4
+#: Trial steps before the search gives up.
+MAX_TRIALS = 10
+#: Quadratic backtracking keeps the next step within these shares of the last one.
+BACKTRACK_MIN, BACKTRACK_MAX = 0.1, 0.5
+#: Step cut after a trial that inverted an element (no energy to interpolate).
+INVERTED_CUT = 0.25
+#: An expected decrease below this share of the energy's magnitude is round-off: the
+#: residual norm decides instead.
+ENERGY_ROUNDOFF = 1e-8
+#: A full step is stretched when the slope at s = 1 is still below this share of the slope
+#: at s = 0 (still running downhill) ...
+STRETCH_SLOPE = 0.5
+#: ... to the secant minimiser of the slopes, clamped to this range.
+STRETCH_MIN, STRETCH_MAX = 1.5, 4.0
+
 
 def rotation_matrix(omega: np.ndarray) -> np.ndarray:
     """Rotation by the vector ``omega`` (axis * angle in radians), Rodrigues' formula; (3, 3)."""
     ang = float(np.linalg.norm(omega))
-    if ang <= 1e-12:
+    if ang <= _SMALL_ANGLE:
         return np.eye(3)
     k = omega / ang
     kk = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
@@ -85,9 +105,10 @@ def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray,
     """Backtracking search on the potential energy along ``path``.
 
     Accepts the first trial (``s = 1, ...``) with every ``J > 0`` that satisfies Armijo's
-    condition ``Pi(s) <= Pi(0) + 1e-4 s g0`` (``g0 = d . r0 < 0``), or, when the expected
+    condition ``Pi(s) <= Pi(0) + ARMIJO s g0`` (``g0 = d . r0 < 0``), or, when the expected
     decrease is below round-off of the energy, that lowers the residual norm. Backtracks by
-    quadratic interpolation (clamped to [0.1, 0.5] s), by 4x after an inverted element.
+    quadratic interpolation (clamped to [0.1, 0.5] s), by 4x after an inverted element
+    (the constants above).
 
     Args:
         assembler: evaluates energy and internal forces.
@@ -99,31 +120,31 @@ def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray,
 
     Returns:
         ``(s, u (3 n_nodes,), Pi, f_int (3 n_nodes,), r (n_free,), rotation (3, 3))`` or None
-        if ``d`` is not a descent direction or no acceptable step was found in 10 trials.
+        if ``d`` is not a descent direction or no acceptable step was found in ``MAX_TRIALS`` trials.
     """
     g0 = float(d @ r0)
     if not g0 < 0.0:
         return None
     r0_norm = np.linalg.norm(r0)
     s = 1.0
-    for _ in range(10):
+    for _ in range(MAX_TRIALS):
         trial = path(s)
         energy, fint, jmin = assembler.energy_and_force(trial.reshape(-1, 3))
         if jmin > 0.0:
             work = float(fext @ trial)
             pi = energy - work
             r = fint[free] - fext[free]
-            if pi <= pi0 + 1e-4 * s * g0:
+            if pi <= pi0 + ARMIJO * s * g0:
                 if s == 1.0:
                     return _extrapolate(assembler, path, free, d, g0, fext, (s, trial, pi, fint, r, path.rotation))
                 return s, trial, pi, fint, r, path.rotation
-            if -g0 * s <= 1e-8 * (abs(energy) + abs(work)) and np.linalg.norm(r) < r0_norm:
+            if -g0 * s <= ENERGY_ROUNDOFF * (abs(energy) + abs(work)) and np.linalg.norm(r) < r0_norm:
                 return s, trial, pi, fint, r, path.rotation
             denom = 2.0 * (pi - pi0 - g0 * s)
-            s_new = -g0 * s * s / denom if denom > 0 else 0.5 * s
-            s = min(0.5 * s, max(0.1 * s, s_new))
+            s_new = -g0 * s * s / denom if denom > 0 else BACKTRACK_MAX * s
+            s = min(BACKTRACK_MAX * s, max(BACKTRACK_MIN * s, s_new))
         else:
-            s *= 0.25
+            s *= INVERTED_CUT
     return None
 
 
@@ -136,9 +157,9 @@ def _extrapolate(assembler: Assembler, path, free, d, g0: float, fext: np.ndarra
     taken if it lowers the energy further. Costs one energy evaluation when tried.
     """
     g1 = float(d @ accepted[4])
-    if not g1 < 0.5 * g0:
+    if not g1 < STRETCH_SLOPE * g0:
         return accepted
-    s = min(4.0, max(1.5, -g0 / max(g1 - g0, 1e-300)))
+    s = min(STRETCH_MAX, max(STRETCH_MIN, -g0 / max(g1 - g0, 1e-300)))
     trial = path(s)
     energy, fint, jmin = assembler.energy_and_force(trial.reshape(-1, 3))
     if not jmin > 0.0:

@@ -23,7 +23,7 @@ from ..errors import SolverSetupError
 from ..mesh.tetmesh import TetMesh
 from .material import NeoHookean
 
-__all__ = ["Problem", "check_forces"]
+__all__ = ["Problem", "check_forces", "build_problem"]
 
 
 def _vertex_ids(ids, n: int, what: str) -> np.ndarray:
@@ -200,3 +200,21 @@ def check_forces(problem: Problem, forces) -> np.ndarray:
             "straight into the supports: set those rows to zero"
         )
     return f.copy()
+
+
+def build_problem(mesh: TetMesh, config, fixed, *, order: int | None = None) -> Problem:
+    """The finite-element problem a run configuration describes on ``mesh``.
+
+    Args:
+        mesh: the tetrahedral mesh (mm).
+        config: a :class:`~tissuecast.config.Config`: ``material`` gives the neo-Hookean
+            constants (MPa), ``solver.order`` the element order.
+        fixed: (k,) int, 0-based ids of the fixed vertices (e.g. from
+            :func:`tissuecast.markers.markers_and_fixed`).
+        order: element order overriding ``config.solver.order`` (1 or 2).
+
+    Raises:
+        SolverSetupError: as :class:`Problem`.
+    """
+    material = NeoHookean(youngs_modulus=config.material.youngs_modulus, poisson_ratio=config.material.poisson_ratio)
+    return Problem(mesh, material, fixed, order=config.solver.order if order is None else order)

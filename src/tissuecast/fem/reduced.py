@@ -1,18 +1,17 @@
 """A reduced-order model of the nonlinear problem, used to predict a full solve's answer.
 
 A data set solves thousands of problems that differ only in their forces, and their
-solutions live near a low-dimensional subspace (the surrogate's PCA needs ~11 modes for
-1 mm). :class:`ReducedModel` exploits that to give the full Newton solver an initial guess
-close to the answer, which turns a cold solve (load increments, globalisation, several
-factorisations) into ~3 Newton iterations without a factorisation of its own. The guess is only a
-guess: every sample is still converged by the full solver to its usual tolerances, so a
+solutions live near a low-dimensional subspace. :class:`ReducedModel` exploits that to give
+the full Newton solver an initial guess close to the answer, which turns a cold solve (load
+increments, globalisation, several factorisations) into a few Newton iterations, usually
+without a factorisation of its own. The guess is only a guess: every sample is still converged by the full solver to its usual tolerances, so a
 data set's displacements are full finite-element solutions either way.
 
 Construction (:meth:`ReducedModel.fit`), from full solutions ("snapshots") of the same
 problem:
 
 1. Basis ``V`` (n_free, r): left singular vectors of the snapshot matrix (free dofs, every
-   element node), the modes with singular value above ``1e-6`` of the largest.
+   element node), the modes with singular value above ``MODE_CUTOFF`` of the largest.
 2. Hyper-reduction by energy-conserving sampling and weighting (ECSW; Farhat, Avery, Chapman
    and Cortial 2014): non-negative element weights ``xi`` with few non-zeros such that
    ``sum_e xi_e V_e^T f_e(u) ~= V^T f_int(u)`` on the (projected) snapshots and on half of
@@ -22,19 +21,15 @@ problem:
 Solve (:meth:`ReducedModel.predict`): Galerkin projection ``u = V q`` with the internal
 forces and energy evaluated on the sampled elements only (weighted), minimising the reduced
 energy in ``r`` unknowns by BFGS from the reduced linear-elastic answer (inverse reduced
-stiffness at zero as the first inverse Hessian, Armijo line search): ~0.6 ms per iteration,
-no tangent. If that fails, Newton with the reduced tangent, an Armijo line search and load
-increments with cut-backs (a few milliseconds per iteration). Returns the nodal displacement
+stiffness at zero as the first inverse Hessian, Armijo line search): one energy-and-forces
+pass on the sampled elements per iteration, no tangent. If that fails, Newton with the
+reduced tangent, an Armijo line search and load increments with cut-backs. Returns the nodal displacement
 field, or None when the reduced problem does not converge (the caller then solves from zero,
 as without a predictor).
 
-Measured on the phantom (P2, compact pins, 40 snapshots, 40 modes, 511 of 5066 elements;
-``benchmarks/dataset_throughput.py``, one worker's time, compiled kernels): a sample from the
-prediction took 0.70 s (3.4 Newton iterations, 0.0 factorisations) against 4.08 s from zero
-(15.8 iterations, 4.0 factorisations), and re-solved side by side the two solutions differed
-by <= 0.005 % of the peak displacement.
-Galerkin solutions are ~2-20 % off the full ones (a linear subspace represents the swing of
-the body about its pins only roughly) but well inside Newton's quadratic basin.
+Galerkin solutions are only roughly right (a linear subspace represents the swing of the body
+about its pins only roughly) but well inside Newton's quadratic basin. Measurements and the
+history of the predictor: ``docs/solver.md``.
 """
 
 from __future__ import annotations
@@ -54,6 +49,34 @@ from .problem import Problem, check_forces
 __all__ = ["ReducedModel", "ecsw_weights"]
 
 log = logging.getLogger(__name__)
+
+#: Basis modes keep singular values above this share of the largest (the rest is round-off).
+MODE_CUTOFF = 1e-6
+#: Load scales of the snapshots on which the ECSW weights are fitted (the states and half of
+#: them, so that the weights also hold on the way to the answer).
+ECSW_SCALES = (1.0, 0.5)
+#: Tikhonov term of the NNLS Gram matrix, relative to its mean diagonal (near-duplicate columns).
+_GRAM_REGULARISATION = 1e-14
+#: NNLS weights below this share of the largest are dropped from the active set.
+_WEIGHT_DROP = 1e-12
+#: Armijo's sufficient-decrease constant of both reduced line searches.
+ARMIJO = 1e-4
+#: Smallest line-search step of the BFGS / Newton iterations before they give up.
+BFGS_MIN_STEP = 1e-6
+NEWTON_MIN_STEP = 1e-4
+#: BFGS may take this many times the Newton iteration budget (its iterations are far cheaper).
+BFGS_ITERATION_FACTOR = 5
+#: BFGS skips an update whose curvature ``s . y`` is below this share of ``|s| |y|``.
+BFGS_CURVATURE = 1e-12
+#: An indefinite reduced tangent is replaced by its |eigenvalues|, floored at this share of the
+#: largest (a descent direction of bounded length).
+EIGENVALUE_FLOOR = 1e-8
+#: Reduced Newton load stepping: growth after a converged increment, cut after a failed one,
+#: and the smallest increment before the prediction gives up.
+INCREMENT_GROWTH = 1.5
+CUTBACK = 0.25
+MIN_INCREMENT = 1.0 / 64.0
+_TINY = 1e-300  # guards divisions by norms that may be zero
 
 
 def ecsw_weights(g: np.ndarray, b: np.ndarray, tolerance: float, max_elements: int | None = None) -> np.ndarray:
@@ -107,16 +130,16 @@ def ecsw_weights(g: np.ndarray, b: np.ndarray, tolerance: float, max_elements: i
             break
         add(j)
         for _ in range(4 * n):  # inner loop: keep the least-squares solution feasible
-            z = np.linalg.solve(gram + 1e-14 * np.trace(gram) / len(cols) * np.eye(len(cols)), gtb[cols])
+            z = np.linalg.solve(gram + _GRAM_REGULARISATION * np.trace(gram) / len(cols) * np.eye(len(cols)), gtb[cols])
             if np.all(z > 0.0):
                 x[cols] = z
                 break
             xa = x[cols]
             neg = z <= 0.0
-            step = np.min(xa[neg] / np.maximum(xa[neg] - z[neg], 1e-300))
+            step = np.min(xa[neg] / np.maximum(xa[neg] - z[neg], _TINY))
             xa = xa + step * (z - xa)
             x[cols] = xa
-            drop(xa > 1e-12 * max(float(xa.max()), 1e-300))
+            drop(xa > _WEIGHT_DROP * max(float(xa.max()), _TINY))
         xc = x[cols]
         res_norm = float(np.sqrt(max(bnorm**2 - 2.0 * xc @ gtb[cols] + xc @ gram @ xc, 0.0)))
     return x
@@ -199,7 +222,7 @@ class ReducedModel:
         free = np.flatnonzero(problem.free_mask)
         x = snaps.reshape(len(snaps), -1)[:, free].T
         u, s, _ = np.linalg.svd(x, full_matrices=False)
-        keep = int(np.sum(s > 1e-6 * s[0])) if s[0] > 0 else 0
+        keep = int(np.sum(s > MODE_CUTOFF * s[0])) if s[0] > 0 else 0
         if max_modes is not None:
             keep = min(keep, int(max_modes))
         if keep == 0:
@@ -211,7 +234,7 @@ class ReducedModel:
         vfull = np.vstack([basis, np.zeros((1, keep))])  # row -1 -> zeros
         ve = vfull[erows]  # (m, 3nn, r)
         blocks = []
-        for scale in (1.0, 0.5):
+        for scale in ECSW_SCALES:
             for snap in x.T:
                 q = basis.T @ (scale * snap)
                 uu = np.zeros(asm.n_dofs)
@@ -260,48 +283,50 @@ class ReducedModel:
                 one energy-and-forces evaluation on the sampled elements and no tangent; it
                 falls back to Newton (below) if its line search fails. ``"newton"``: reduced
                 Newton with load increments.
-            bfgs_tolerance: BFGS: the same stopping tests with this factor. Measured on the
-                phantom (P2, compact pins, 40 modes, one process, 24 samples): 0.066 s per
-                prediction instead of Newton's 0.111 s, guesses as good (median 6.6 % off the
-                full solution against 6.3 %) and the full solve after them as fast (3.42
-                against 3.33 Newton iterations); 1e-3 gave median 7.7 % and 3.50 iterations.
-                On the 25.6 mm benchmark sample: 0.065 s instead of 0.107 s (102 quasi-Newton
-                iterations against 13 Newton ones), a guess 14.7 % off instead of 15.8 %;
-                1e-2 stopped too early there (48 % off).
+            bfgs_tolerance: BFGS: the same stopping tests with this factor.
 
-        Newton, measured on 12 phantom samples (P2, compact pins, 40 modes): the full load at
-        once took 17 reduced iterations (0.26 s) where halves took 23 (0.35 s); the full solve
-        after either took 2.8 iterations; tolerance 1e-3 against 1e-4 saved 7 % of the
-        prediction and no full iteration, 1e-2 against 1e-3 22 % more (0.081 s instead of
-        0.104 s, compiled kernels; 24 samples) for the same full solve time. The first
-        increment starts from the reduced linear-elastic answer (from zero if that inverts a
-        sampled element): 12.8 instead of 17.1 reduced iterations (0.19 s instead of 0.26 s)
-        on 31 samples (20 LBO, 11 test-2), the same 3.0 full iterations after.
+        Newton's first increment starts from the reduced linear-elastic answer (from zero if
+        that inverts a sampled element).
         """
         t0 = time.perf_counter()
         if method not in ("bfgs", "newton"):
             raise SolverSetupError(f"method must be 'bfgs' or 'newton', got {method!r}")
+        fr = self._reduced_forces(forces)
+        q_lin = self._linear_answer(fr)
+        if method == "bfgs":
+            found = self._bfgs(q_lin, fr, bfgs_tolerance, BFGS_ITERATION_FACTOR * max_iterations)
+            if found is not None:
+                return self._done(*found, t0)
+            log.debug("reduced model: quasi-Newton line search failed; reduced Newton instead")
+        found = self._newton(q_lin, fr, max_iterations, tolerance, first_increment)
+        return None if found is None else self._done(*found, t0)
+
+    def _reduced_forces(self, forces: np.ndarray) -> np.ndarray:
+        """(r,) reduced external forces ``V^T f`` of checked vertex forces (n, 3), N."""
         f = check_forces(self.problem, forces)
         fext = np.zeros(3 * len(self.problem.nodes))
         fext[: 3 * self._n] = f.ravel()
-        fr_full = self.basis.T @ fext[self.free_dofs]
+        return self.basis.T @ fext[self.free_dofs]
+
+    def _linear_answer(self, fr: np.ndarray) -> np.ndarray:
+        """(r,) reduced linear-elastic answer ``H0^-1 fr`` (zero if ``H0`` is singular); the
+        reduced stiffness at zero displacement ``H0`` is built on first use."""
         sub = self._sub
-        asm = sub.assembler
-        r = self.n_modes
-        q = np.zeros(r)
         if self._h0 is None:
-            _, data, _ = asm.tangent(self._state(q))
+            asm = sub.assembler
+            _, data, _ = asm.tangent(self._state(np.zeros(self.n_modes)))
             self._h0 = sub.basis.T @ (asm.matrix(data) @ sub.basis)
-        try:  # the first increment starts from the reduced linear-elastic answer (else from zero)
-            q_lin = np.linalg.solve(self._h0, fr_full)
+        try:
+            return np.linalg.solve(self._h0, fr)
         except np.linalg.LinAlgError:
-            q_lin = np.zeros(r)
-        if method == "bfgs":
-            found = self._bfgs(q_lin, fr_full, bfgs_tolerance, 5 * max_iterations)
-            if found is not None:
-                q, iterations = found
-                return self._done(q, iterations, t0)
-            log.debug("reduced model: quasi-Newton line search failed; reduced Newton instead")
+            return np.zeros(self.n_modes)
+
+    def _newton(self, q_lin: np.ndarray, fr_full: np.ndarray, max_iterations: int, tolerance: float,
+                first_increment: float):
+        """Reduced Newton with load increments and cut-backs (the first increment starts from
+        its share of ``q_lin``). Returns ``(q, iterations)``, or None when the increment
+        falls below ``MIN_INCREMENT``."""
+        q = np.zeros(self.n_modes)
         lam, dlam = 0.0, float(first_increment)
         prev = None
         iterations = 0
@@ -309,46 +334,58 @@ class ReducedModel:
             lam_new = min(1.0, lam + dlam)
             fr = lam_new * fr_full
             qn = q + (lam_new - lam) / prev[1] * prev[0] if prev is not None else lam_new * q_lin
-            e0 = self._energy(qn, fr)
-            if not np.isfinite(e0):
-                qn = q.copy()
-                e0 = self._energy(qn, fr)
-            ok = False
-            for _ in range(max_iterations):
-                iterations += 1
-                fint, data, _ = asm.tangent(self._state(qn))
-                grad = sub.basis.T @ fint[asm.free_dofs] - fr
-                h = sub.basis.T @ (asm.matrix(data) @ sub.basis)
-                try:
-                    dq = -cho_solve(cho_factor(h), grad)
-                except np.linalg.LinAlgError:  # not positive definite: |eigenvalues|, a descent direction
-                    ev, vec = np.linalg.eigh(0.5 * (h + h.T))
-                    ev = np.maximum(np.abs(ev), 1e-8 * max(float(np.abs(ev).max()), 1e-300))
-                    dq = -vec @ ((vec.T @ grad) / ev)
-                slope = float(grad @ dq)
-                step = 1.0
-                while step > 1e-4:
-                    e1 = self._energy(qn + step * dq, fr)
-                    if e1 <= e0 + 1e-4 * step * slope:
-                        break
-                    step *= 0.5
-                else:
-                    break
-                qn, e0 = qn + step * dq, e1
-                if (np.linalg.norm(grad) <= tolerance * np.linalg.norm(fr)
-                        or np.linalg.norm(step * dq) <= tolerance * max(np.linalg.norm(qn), 1e-300)):
-                    ok = True
-                    break
+            qn, taken, ok = self._newton_increment(q, qn, fr, max_iterations, tolerance)
+            iterations += taken
             if ok:
                 prev = (qn - q, lam_new - lam)
                 q, lam = qn, lam_new
-                dlam = min(1.0, 1.5 * dlam)
+                dlam = min(1.0, INCREMENT_GROWTH * dlam)
             else:
-                dlam *= 0.25
-                if dlam < 1.0 / 64.0:
+                dlam *= CUTBACK
+                if dlam < MIN_INCREMENT:
                     log.debug("reduced model: no convergence at load fraction %.3g", lam)
                     return None
-        return self._done(q, iterations, t0)
+        return q, iterations
+
+    def _newton_increment(self, q: np.ndarray, qn: np.ndarray, fr: np.ndarray, max_iterations: int,
+                          tolerance: float):
+        """Newton iterations with an Armijo line search from ``qn`` (from ``q``, the last
+        converged state, if ``qn`` inverts a sampled element) under reduced forces ``fr``.
+        Returns ``(q, iterations, converged)``."""
+        e0 = self._energy(qn, fr)
+        if not np.isfinite(e0):
+            qn = q.copy()
+            e0 = self._energy(qn, fr)
+        for iteration in range(1, max_iterations + 1):
+            dq, grad = self._newton_direction(qn, fr)
+            slope = float(grad @ dq)
+            step = 1.0
+            while step > NEWTON_MIN_STEP:
+                e1 = self._energy(qn + step * dq, fr)
+                if e1 <= e0 + ARMIJO * step * slope:
+                    break
+                step *= 0.5
+            else:
+                return qn, iteration, False
+            qn, e0 = qn + step * dq, e1
+            if (np.linalg.norm(grad) <= tolerance * np.linalg.norm(fr)
+                    or np.linalg.norm(step * dq) <= tolerance * max(np.linalg.norm(qn), _TINY)):
+                return qn, iteration, True
+        return qn, max_iterations, False
+
+    def _newton_direction(self, q: np.ndarray, fr: np.ndarray):
+        """``(dq, gradient)``: the reduced Newton direction at ``q``, a descent direction also
+        where the reduced tangent is indefinite (its |eigenvalues| are used then)."""
+        asm, basis = self._sub.assembler, self._sub.basis
+        fint, data, _ = asm.tangent(self._state(q))
+        grad = basis.T @ fint[asm.free_dofs] - fr
+        h = basis.T @ (asm.matrix(data) @ basis)
+        try:
+            return -cho_solve(cho_factor(h), grad), grad
+        except np.linalg.LinAlgError:
+            ev, vec = np.linalg.eigh(0.5 * (h + h.T))
+            ev = np.maximum(np.abs(ev), EIGENVALUE_FLOOR * max(float(np.abs(ev).max()), _TINY))
+            return -vec @ ((vec.T @ grad) / ev), grad
 
     def _done(self, q: np.ndarray, iterations: int, t0: float) -> np.ndarray:
         u = np.zeros(3 * len(self.problem.nodes))
@@ -390,9 +427,9 @@ class ReducedModel:
                 d = -h @ g
                 slope = float(g @ d)
             step = 1.0
-            while step > 1e-6:
+            while step > BFGS_MIN_STEP:
                 e1, g1 = energy_gradient(q + step * d)
-                if e1 <= e + 1e-4 * step * slope:
+                if e1 <= e + ARMIJO * step * slope:
                     break
                 step *= 0.5
             else:
@@ -400,9 +437,9 @@ class ReducedModel:
             s, y = step * d, g1 - g
             q, e, g = q + s, e1, g1
             sy = float(s @ y)
-            if sy > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
+            if sy > BFGS_CURVATURE * np.linalg.norm(s) * np.linalg.norm(y):
                 rho = 1.0 / sy
                 h = (eye - rho * np.outer(s, y)) @ h @ (eye - rho * np.outer(y, s)) + rho * np.outer(s, s)
-            if np.linalg.norm(g) <= tolerance * fnorm or np.linalg.norm(s) <= tolerance * max(np.linalg.norm(q), 1e-300):
+            if np.linalg.norm(g) <= tolerance * fnorm or np.linalg.norm(s) <= tolerance * max(np.linalg.norm(q), _TINY):
                 return q, iteration
         return None

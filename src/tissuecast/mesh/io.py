@@ -13,6 +13,11 @@ extension          handled by
 .off .face         write: the outer surface triangles
 =================  =========================================================
 
+Coordinates are LPS (tissuecast's frame, see :mod:`tissuecast.frames`); a .vtk/.vtu file
+that states ``SPACE=RAS`` as 3D Slicer writes it is converted to LPS on reading. Files with a
+``SPACE`` string array (3D Slicer's and tissuecast's models) are read with VTK when meshio
+cannot.
+
 Reading keeps only tetrahedra (10-node tets are reduced to their 4 corners), drops vertices
 that belong to no tetrahedron (logged; the remaining vertices keep their relative order, so
 ids are unchanged when unused nodes come last, as with gmsh/Abaqus mid-edge nodes) and
@@ -87,8 +92,46 @@ def _meshio_read(path: Path, fmt: str, tolerant: bool = True):
             m = _read_inp_tolerant(path)
             if m is not None:
                 return m
+        if tolerant and fmt in ("vtu", "vtk"):  # e.g. a SPACE string array (3D Slicer models): meshio cannot read it
+            m = _read_with_vtk(path)
+            if m is not None:
+                return m
         why = str(exc).strip() or "the file is corrupt or not in this format"
         raise MeshFormatError(f"could not read '{path}' as {fmt} ({type(exc).__name__}: {why})") from exc
+
+
+def _read_with_vtk(path: Path):
+    """A .vtu/.vtk file meshio refuses, read with VTK if it is installed (None otherwise)."""
+    import meshio
+
+    try:
+        from ..slicer.models import read_model
+    except ImportError:
+        return None
+    try:
+        points, tets = read_model(path)
+    except Exception:  # noqa: BLE001 - VTK failed too: report meshio's error
+        return None
+    return meshio.Mesh(points, [("tetra", tets)])
+
+
+def _file_space(path: Path, ext: str) -> str:
+    """The coordinate system a .vtk/.vtu file states (3D Slicer's SPACE tag); LPS when none."""
+    if ext == ".vtk":
+        with open(path, "rb") as fh:
+            fh.readline()
+            header = fh.readline()
+        return "RAS" if b"SPACE=RAS" in header else "LPS"
+    if ext == ".vtu":
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+        if b'Name="SPACE"' in head:
+            try:
+                from ..slicer.models import read_model_space
+            except ImportError:
+                return "LPS"
+            return read_model_space(path) or "LPS"
+    return "LPS"
 
 
 def _read_inp_tolerant(path: Path):
@@ -189,6 +232,9 @@ def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = 
         points, tets = np.asarray(m.points, dtype=np.float64), _tets_from_meshio(m, path)
         if points.shape[1] != 3:
             raise MeshFormatError(f"'{path}' has {points.shape[1]}-D points; 3-D coordinates are needed")
+        if _file_space(path, ext) == "RAS":  # a 3D Slicer model saved in RAS: tissuecast works in LPS
+            log.info("'%s' states SPACE=RAS; converted to LPS", path)
+            points = points * np.array([-1.0, -1.0, 1.0])
     points, tets = _compact(points, tets, path)
     points = points * factor
     _check_scale(points, units, path)

@@ -3,8 +3,11 @@
 Protocol summary (details in :mod:`tissuecast.serve.session` and
 :mod:`tissuecast.serve.predictor`):
 
-- in: ``POINT`` (n_d marker positions, mm, model marker order and frame) or ``TRANSFORM``
-  messages ``Marker0``..``Marker{n_d-1}`` (translation = marker position);
+- in: ``POINT`` (n_d marker positions, mm, model marker order) or ``TRANSFORM``
+  messages ``Marker0``..``Marker{n_d-1}`` (translation = marker position); a ``TRANSFORM``
+  ``<From>To<Target>`` (``TrackerToRas``, ``ReferenceToRas``, ``TrackerToImage``) sets the
+  registration: markers are then read in the tracker frame and replies go back in the
+  target frame (:mod:`tissuecast.serve.frames`);
   ``GET_POLYDATA TissueField`` asks for the full field of the latest prediction.
 - out: ``POLYDATA TissueSurface`` (deformed outer surface; ``uncertainty_mm`` point data
   for ensembles), ``POLYDATA TissueField`` (all vertices, ``displacement_mm`` vectors),
@@ -12,6 +15,7 @@ Protocol summary (details in :mod:`tissuecast.serve.session` and
 """
 
 from .client import IGTLClient, Reply
+from .frames import ClientFrames
 from .polydata import PolyData, PolyDataTemplate, decode_polydata
 from .predictor import FIELD_DEVICE, SURFACE_DEVICE, Prediction, PredictionError, ServableModel, SurfacePredictor
 from .protocol import ProtocolError
@@ -21,6 +25,7 @@ from .session import ERROR_DEVICE, MARKER_PREFIX, ClientSession
 __all__ = [
     "IGTLServer",
     "IGTLClient",
+    "ClientFrames",
     "Reply",
     "ClientSession",
     "SurfacePredictor",

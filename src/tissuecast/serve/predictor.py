@@ -7,6 +7,9 @@ buffer and a CRC over the changed bytes only (see :mod:`tissuecast.serve.crc`).
 
 Replies (OpenIGTLink version-1 headers, timestamp copied from the marker message):
 
+Points go out in the client's frame (:class:`~tissuecast.serve.frames.ClientFrames`; the
+model's LPS frame by default).
+
 - ``POLYDATA "TissueSurface"``: the deformed outer surface. Points are the mesh's surface
   vertices in ascending id order (``mesh.surface_vertices``), moved by the predicted
   displacement (mm); polygons are ``mesh.surface_triangles`` re-indexed into those points
@@ -27,6 +30,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from ..errors import MarkerError, ModelError
+from .frames import ClientFrames
 from .polydata import PolyDataTemplate
 
 __all__ = ["ServableModel", "Prediction", "SurfacePredictor", "SURFACE_DEVICE", "FIELD_DEVICE", "PredictionError"]
@@ -176,19 +180,32 @@ class SurfacePredictor:
             raise PredictionError("the model returned non-finite displacements for these marker positions")
         return Prediction(float(timestamp), displacement, uncertainty)
 
-    def surface_message(self, prediction: Prediction) -> memoryview:
-        """The packed ``TissueSurface`` POLYDATA message (valid until the next call)."""
+    def surface_message(self, prediction: Prediction, frames: ClientFrames | None = None) -> memoryview:
+        """The packed ``TissueSurface`` POLYDATA message (valid until the next call).
+
+        Args:
+            prediction: the prediction (model frame).
+            frames: send the points in ``frames.client_frame`` (None: the model frame).
+        """
         template = self.surface
-        np.add(self.surface_reference, prediction.displacement[self.surface_ids], out=template.points, casting="unsafe")
+        if frames is None or frames.identity_out:
+            np.add(self.surface_reference, prediction.displacement[self.surface_ids], out=template.points, casting="unsafe")
+        else:
+            template.points[:] = frames.points_to_client(self.surface_reference + prediction.displacement[self.surface_ids])
         if prediction.uncertainty is not None and self.has_uncertainty:
             template.values[UNCERTAINTY_NAME][:] = prediction.uncertainty[self.surface_ids]
         return template.finish(SURFACE_DEVICE, prediction.timestamp)
 
-    def field_message(self, prediction: Prediction) -> memoryview:
-        """The packed ``TissueField`` POLYDATA message (valid until the next call)."""
+    def field_message(self, prediction: Prediction, frames: ClientFrames | None = None) -> memoryview:
+        """The packed ``TissueField`` POLYDATA message (valid until the next call); points and
+        ``displacement_mm`` vectors in ``frames.client_frame`` (None: the model frame)."""
         template = self.field
-        np.add(self.points, prediction.displacement, out=template.points, casting="unsafe")
-        template.values[DISPLACEMENT_NAME][:] = prediction.displacement
+        if frames is None or frames.identity_out:
+            np.add(self.points, prediction.displacement, out=template.points, casting="unsafe")
+            template.values[DISPLACEMENT_NAME][:] = prediction.displacement
+        else:
+            template.points[:] = frames.points_to_client(self.points + prediction.displacement)
+            template.values[DISPLACEMENT_NAME][:] = frames.vectors_to_client(prediction.displacement)
         if prediction.uncertainty is not None and self.has_uncertainty:
             template.values[UNCERTAINTY_NAME][:] = prediction.uncertainty
         return template.finish(FIELD_DEVICE, prediction.timestamp)

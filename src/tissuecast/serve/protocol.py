@@ -41,6 +41,7 @@ __all__ = [
     "parse_header",
     "message_content",
     "decode_points",
+    "decode_transform",
     "decode_transform_translation",
     "decode_string",
     "pack_string",
@@ -208,11 +209,8 @@ def decode_points(header: Header, content, *, allow_missing: bool = False) -> np
     return positions
 
 
-def decode_transform_translation(header: Header, content) -> np.ndarray:
-    """Translation (marker position) of a TRANSFORM message.
-
-    Returns:
-        (3,) float64, mm.
+def decode_transform(header: Header, content) -> np.ndarray:
+    """The 4 x 4 matrix of a TRANSFORM message (rotation/scale columns and translation, mm).
 
     Raises:
         ProtocolError: content not 48 bytes or a non-finite matrix entry.
@@ -224,7 +222,12 @@ def decode_transform_translation(header: Header, content) -> np.ndarray:
     matrix = np.asarray(_unpack(pyigtl.TransformMessage(), header, content).matrix, dtype=np.float64)
     if not np.isfinite(matrix).all():
         raise ProtocolError(f"TRANSFORM message {header.device_name!r} holds NaN or infinite values")
-    return matrix[:3, 3].copy()
+    return matrix
+
+
+def decode_transform_translation(header: Header, content) -> np.ndarray:
+    """Translation (marker position) of a TRANSFORM message: (3,) float64, mm (see :func:`decode_transform`)."""
+    return decode_transform(header, content)[:3, 3].copy()
 
 
 def decode_string(header: Header, content) -> str:

@@ -24,6 +24,7 @@ import threading
 import time
 from collections import Counter
 
+from .frames import ClientFrames
 from .predictor import ServableModel, SurfacePredictor
 from .protocol import DEFAULT_MAX_BODY_BYTES, pack_string
 from .session import ERROR_DEVICE, ClientSession
@@ -64,6 +65,9 @@ class IGTLServer:
         max_marker_offset: mm, see :class:`SurfacePredictor`.
         messages_per_turn: complete messages handled per client before the others get a
             turn (a client pipelining many requests cannot starve the rest).
+        frames: the :class:`~tissuecast.serve.frames.ClientFrames` shared by all
+            connections (None: everything in the model's LPS frame until a registration
+            TRANSFORM arrives).
     """
 
     def __init__(
@@ -80,12 +84,15 @@ class IGTLServer:
         max_clients: int = 64,
         max_marker_offset: float = 100.0,
         messages_per_turn: int = 16,
+        frames: ClientFrames | None = None,
     ):
         if isinstance(model, SurfacePredictor):
             self.predictor = model
         else:
             self.predictor = SurfacePredictor(model, max_marker_offset=max_marker_offset)
-        self._session_options = dict(full_field=full_field, transform_mode=transform_mode, max_body_bytes=max_body_bytes)
+        self.frames = frames if frames is not None else ClientFrames()
+        self._session_options = dict(full_field=full_field, transform_mode=transform_mode, max_body_bytes=max_body_bytes,
+                                     frames=self.frames)
         ClientSession(self.predictor, lambda data: None, **self._session_options)  # validate options now
         self.client_timeout = float(client_timeout)
         self.max_output_bytes = int(max_output_bytes)

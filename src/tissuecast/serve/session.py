@@ -3,16 +3,22 @@
 Requests a client may send (any header version 1 or 2; device names are case-sensitive):
 
 - ``POINT`` (any device name, e.g. ``"Markers"``): the n_d marker positions in mm, in the
-  model's marker order and coordinate frame. Reply: ``POLYDATA "TissueSurface"``. With a
+  model's marker order, in the tracker frame of the registration (or the client frame when
+  none is set: the model's LPS frame unless the server says RAS). Reply: ``POLYDATA "TissueSurface"``. With a
   model that supports missing markers (trained with marker dropout, or a
   :class:`~tissuecast.surrogate.robust.SubModelSet`), a point whose coordinates are all
   NaN marks an untracked marker; otherwise NaN/inf is an error.
 - ``TRANSFORM "Marker0"`` ... ``"Marker{n_d-1}"`` (0-based, model marker order; PLUS-style
   names such as ``"Marker0ToTracker"`` are accepted too): one marker each; the translation
-  column is the marker position (mm, model frame), the rotation is ignored. In ``"frame"``
+  column is the marker position (mm, tracker/client frame), the rotation is ignored. In ``"frame"``
   mode (default) a prediction is made once every marker has been updated since the
   previous prediction (one mesh per tracker frame); in ``"each"`` mode every update after
   the first complete set triggers a prediction with the latest position of every marker.
+- ``TRANSFORM "<From>To<Target>"`` such as ``TrackerToRas``, ``ReferenceToRas``,
+  ``TrackerToImage``: the registration from the tracker's frame to RAS (3D Slicer's world)
+  or to the image (the model's LPS frame); later marker positions are mapped by it before
+  prediction and replies are sent in the target frame (see :mod:`tissuecast.serve.frames`;
+  shared by every connection of the server). No reply.
 - ``GET_POLYDATA "TissueField"``: the full vertex field of this client's latest prediction
   (``POLYDATA "TissueField"``); ``GET_POLYDATA "TissueSurface"`` (or no device name)
   repeats the latest surface.
@@ -33,6 +39,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..frames import FrameError
+from .frames import REGISTRATION_PATTERN, ClientFrames
 from .predictor import FIELD_DEVICE, SURFACE_DEVICE, Prediction, PredictionError, SurfacePredictor
 from .protocol import (
     DEFAULT_MAX_BODY_BYTES,
@@ -40,7 +48,7 @@ from .protocol import (
     Header,
     ProtocolError,
     decode_points,
-    decode_transform_translation,
+    decode_transform,
     message_content,
     pack_string,
     parse_header,
@@ -65,6 +73,8 @@ class ClientSession:
         full_field: also send ``TissueField`` after every ``TissueSurface``.
         transform_mode: ``"frame"`` or ``"each"`` (see the module docstring).
         max_body_bytes: bodies announced larger than this close the connection unread.
+        frames: the (shared) :class:`ClientFrames`; None = a private one, everything in the
+            model's LPS frame.
 
     Attributes:
         close_reason: None while the connection is usable, else why it must be closed.
@@ -79,6 +89,7 @@ class ClientSession:
         full_field: bool = False,
         transform_mode: str = "frame",
         max_body_bytes: int = DEFAULT_MAX_BODY_BYTES,
+        frames: ClientFrames | None = None,
     ):
         if transform_mode not in TRANSFORM_MODES:
             raise ValueError(f"transform_mode must be one of {TRANSFORM_MODES}, got {transform_mode!r}")
@@ -87,6 +98,7 @@ class ClientSession:
         self.full_field = bool(full_field)
         self.transform_mode = transform_mode
         self.max_body_bytes = int(max_body_bytes)
+        self.frames = frames if frames is not None else ClientFrames()
         self.close_reason: str | None = None
         self.counts: Counter = Counter()
         self.last: Prediction | None = None
@@ -156,7 +168,7 @@ class ClientSession:
                 positions = decode_points(header, content, allow_missing=self.predictor.supports_missing)
                 self._serve(positions, header.timestamp)
             elif kind == "TRANSFORM":
-                self._on_transform(header, decode_transform_translation(header, content))
+                self._on_transform(header, decode_transform(header, content))
             elif kind == "GET_POLYDATA":
                 self._on_get(header)
             else:
@@ -165,18 +177,24 @@ class ClientSession:
                     f"accepts POINT, TRANSFORM {MARKER_PREFIX}0..{MARKER_PREFIX}{self.predictor.n_markers - 1} "
                     f"and GET_POLYDATA {FIELD_DEVICE}/{SURFACE_DEVICE}"
                 )
-        except (ProtocolError, PredictionError) as exc:
+        except (ProtocolError, PredictionError, FrameError) as exc:
             self._error(str(exc), header.timestamp)
 
-    def _on_transform(self, header: Header, position: np.ndarray) -> None:
+    def _on_transform(self, header: Header, matrix: np.ndarray) -> None:
         match = self._marker_re.fullmatch(header.device_name)
         index = int(match.group(1)) if match else -1
         if not 0 <= index < self.predictor.n_markers:
+            if REGISTRATION_PATTERN.fullmatch(header.device_name):
+                self.frames.set_from_message(header.device_name, matrix)
+                self.counts["registrations"] += 1
+                log.info("registration %s: %s", header.device_name, self.frames.describe())
+                return
             raise ProtocolError(
-                f"TRANSFORM device {header.device_name!r} is not a marker; use "
-                f"{MARKER_PREFIX}0..{MARKER_PREFIX}{self.predictor.n_markers - 1} (model marker order)"
+                f"TRANSFORM device {header.device_name!r} is not a marker ({MARKER_PREFIX}0.."
+                f"{MARKER_PREFIX}{self.predictor.n_markers - 1}, model marker order) and not a registration "
+                "(<From>To<Target>, e.g. TrackerToRas, ReferenceToRas, TrackerToImage)"
             )
-        self._positions[index] = position
+        self._positions[index] = matrix[:3, 3]
         self._seen[index] = self._fresh[index] = True
         self._stamps[index] = header.timestamp
         ready = self._fresh.all() if self.transform_mode == "frame" else self._seen.all()
@@ -190,17 +208,21 @@ class ClientSession:
         if self.last is None:
             raise ProtocolError("no prediction yet on this connection: send marker positions first")
         if header.device_name == FIELD_DEVICE:
-            self._send(self.predictor.field_message(self.last))
+            self._send(self.predictor.field_message(self.last, self.frames))
         else:
-            self._send(self.predictor.surface_message(self.last))
+            self._send(self.predictor.surface_message(self.last, self.frames))
 
     def _serve(self, positions: np.ndarray, timestamp: float) -> None:
-        prediction = self.predictor.predict(positions, timestamp)
+        prediction = self.predictor.predict(self.frames.to_model(positions), timestamp)
         self.last = prediction
         self.counts["predictions"] += 1
-        self._send(self.predictor.surface_message(prediction))
+        self._send(self.predictor.surface_message(prediction, self.frames))
         if self.full_field:
-            self._send(self.predictor.field_message(prediction))
+            self._send(self.predictor.field_message(prediction, self.frames))
+
+    def send(self, data) -> None:
+        """Send an extra packed message on this connection (e.g. a STATUS); counted as a reply."""
+        self._send(data)
 
     # ------------------------------------------------------------------ replies
     def _send(self, data) -> None:

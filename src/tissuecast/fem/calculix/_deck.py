@@ -15,6 +15,11 @@ from ...errors import SolverSetupError
 
 __all__ = ["write_inp"]
 
+#: R_n and C_n of ``*CONTROLS, PARAMETERS=FIELD`` when only one of the two is given (the
+#: defaults of both CalculiX and Abaqus, and of tissuecast's solver).
+DEFAULT_FORCE_TOLERANCE = 0.005
+DEFAULT_DISPLACEMENT_TOLERANCE = 0.01
+
 
 def _as_forces(forces, n: int, n_nodes: int | None = None) -> np.ndarray:
     f = np.asarray(forces, dtype=np.float64)
@@ -146,7 +151,8 @@ def write_inp(
         max_increments: the step's increment limit (``INC=``).
         force_tolerance, displacement_tolerance: convergence criteria R_n and C_n of
             ``*CONTROLS, PARAMETERS=FIELD`` (residual / average force, correction / increment
-            of displacement); None keeps the defaults 0.005 and 0.01 (both programs').
+            of displacement); None keeps the defaults 0.005 and 0.01 (both programs'; a
+            missing one of the two is written with its default).
         title: ``*HEADING`` text.
         scenario: optional :class:`~._scenario.DeckScenario`: springs to ground, a gravity
             load, per-element materials.
@@ -162,7 +168,25 @@ def write_inp(
         raise SolverSetupError(f"order must be 1 (C3D4) or 2 (C3D10), got {order!r}")
     n = mesh.n_points
     c10, d1 = _material_constants(material)
-    f = _as_forces(forces, n, len(mesh.points10) if order == 2 else None)
+    n_nodes = len(mesh.points10) if order == 2 else None
+    f, fixed, pre_ids, pre_val = _checked_setup(mesh, fixed, forces, prescribed, n_nodes)
+    _check_increments(initial_increment, min_increment, max_increment)
+    fixed_nodes, pre_nodes, pre_nodal = _constrained_nodes(mesh, order, fixed, pre_ids, pre_val)
+    out = _mesh_lines(mesh, order, title)
+    out += _set_lines(n, fixed_nodes, node_sets)
+    out += _material_lines(material, c10, d1, scenario, mesh.n_tets)
+    out += _step_lines(nlgeom, max_increments, (initial_increment, min_increment, max_increment),
+                       force_tolerance, displacement_tolerance)
+    out += _load_lines(fixed_nodes, pre_nodes, pre_nodal, f, scenario)
+    path = Path(path)
+    path.write_text("\n".join(out))
+    return path
+
+
+def _checked_setup(mesh, fixed, forces, prescribed, n_nodes: int | None = None):
+    """``(forces (n, 3) or (n_nodes, 3), fixed (k,) sorted, prescribed ids (p,), values (p, 3))``, checked."""
+    n = mesh.n_points
+    f = _as_forces(forces, n, n_nodes)
     fixed = np.unique(_as_ids(fixed, n, "fixed vertices"))
     pre_ids, pre_val = _as_prescribed(prescribed, n)
     both = np.intersect1d(fixed, pre_ids)
@@ -173,16 +197,24 @@ def write_inp(
         raise SolverSetupError(
             f"forces act on fixed vertices {loaded_fixed[:5].tolist()}; set their forces to zero or unfix them"
         )
+    return f, fixed, pre_ids, pre_val
+
+
+def _check_increments(initial_increment: float, min_increment: float, max_increment: float) -> None:
     if not 0 < min_increment <= initial_increment <= 1 or not min_increment <= max_increment <= 1:
         raise SolverSetupError(
             "increments must satisfy 0 < min_increment <= initial_increment <= 1 and min_increment <= max_increment <= 1, "
             f"got {min_increment}, {initial_increment}, {max_increment}"
         )
+
+
+def _mesh_lines(mesh, order: int, title: str) -> list[str]:
+    """Header, nodes (1-based), elements and the vertex node set NVERT."""
+    n = mesh.n_points
     if order == 2:
         nodes, elements, etype = mesh.points10, mesh.tets10, "C3D10"
     else:
         nodes, elements, etype = mesh.points, mesh.tets, "C3D4"
-    fixed_nodes, pre_nodes, pre_nodal = _constrained_nodes(mesh, order, fixed, pre_ids, pre_val)
     out = [
         "** tissuecast input deck for CalculiX (ccx >= 2.20) and Abaqus/Standard. Units: mm, N, MPa.",
         "** Node and element ids are 1-based: node k is 0-based mesh vertex i = k - 1 (k <= n_vertices);",
@@ -196,31 +228,51 @@ def write_inp(
     body = np.hstack([np.arange(1, len(elements) + 1)[:, None], elements + 1])
     out += [", ".join(map(str, row)) for row in body.tolist()]
     out += ["*NSET, NSET=NVERT, GENERATE", f"1, {n}, 1"]
-    if fixed_nodes.size:
-        out += ["*NSET, NSET=NFIXED"] + _id_lines(fixed_nodes + 1)
+    return out
+
+
+def _set_lines(n: int, fixed_nodes: np.ndarray, node_sets: dict | None) -> list[str]:
+    """The fixed node set NFIXED and the user's node sets (checked names and ids)."""
+    out = ["*NSET, NSET=NFIXED"] + _id_lines(fixed_nodes + 1) if fixed_nodes.size else []
     for name, ids in (node_sets or {}).items():
         if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]{0,79}", str(name)):
             raise SolverSetupError(f"node set name {name!r} must be a letter followed by letters, digits or _")
         ids = _as_ids(ids, n, f"node set {name}")
         if ids.size:
             out += [f"*NSET, NSET={name}"] + _id_lines(ids + 1)
+    return out
+
+
+def _material_lines(material, c10: float, d1: float, scenario, n_elements: int) -> list[str]:
+    """Material(s) and section(s); with a scenario also its per-region materials and springs."""
     if scenario is None:
-        out += ["*MATERIAL, NAME=TISSUE", "*HYPERELASTIC, NEO HOOKE", f"{_num(c10)}, {_num(d1)}",
+        return ["*MATERIAL, NAME=TISSUE", "*HYPERELASTIC, NEO HOOKE", f"{_num(c10)}, {_num(d1)}",
                 "*SOLID SECTION, ELSET=TISSUE, MATERIAL=TISSUE"]
-    else:
-        out += scenario.material_lines(material, len(elements), _num)
-        out += scenario.spring_lines(len(elements) + 1, _num)
-    out += [
+    return scenario.material_lines(material, n_elements, _num) + scenario.spring_lines(n_elements + 1, _num)
+
+
+def _step_lines(nlgeom: bool, max_increments: int, increments: tuple,
+                force_tolerance: float | None, displacement_tolerance: float | None) -> list[str]:
+    """The static step with its incrementation and convergence controls."""
+    initial_increment, min_increment, max_increment = increments
+    out = [
         f"*STEP, NLGEOM={'YES' if nlgeom else 'NO'}, INC={int(max_increments)}",
         "*STATIC",
         f"{_num(initial_increment)}, 1.0, {_num(min_increment)}, {_num(max_increment)}",
     ]
     if force_tolerance is not None or displacement_tolerance is not None:
-        r_n = 0.005 if force_tolerance is None else float(force_tolerance)
-        c_n = 0.01 if displacement_tolerance is None else float(displacement_tolerance)
+        r_n = DEFAULT_FORCE_TOLERANCE if force_tolerance is None else float(force_tolerance)
+        c_n = DEFAULT_DISPLACEMENT_TOLERANCE if displacement_tolerance is None else float(displacement_tolerance)
         if not (0 < r_n < 1 and 0 < c_n < 1):
             raise SolverSetupError(f"convergence tolerances must lie in (0, 1), got {r_n}, {c_n}")
         out += ["*CONTROLS, PARAMETERS=FIELD, FIELD=DISPLACEMENT", f"{_num(r_n)}, {_num(c_n)}"]
+    return out
+
+
+def _load_lines(fixed_nodes: np.ndarray, pre_nodes: np.ndarray, pre_nodal: np.ndarray, f: np.ndarray,
+                scenario=None) -> list[str]:
+    """Boundary conditions, nodal loads (non-zero components) and the output requests."""
+    out = []
     bc = ["NFIXED, 1, 3"] if fixed_nodes.size else []
     for i, v in zip(pre_nodes.tolist(), pre_nodal.tolist()):
         bc += [f"{i + 1}, {d + 1}, {d + 1}, {_num(x)}" for d, x in enumerate(v) if np.isfinite(x)]
@@ -232,6 +284,4 @@ def write_inp(
     if scenario is not None:
         out += scenario.step_lines(_num)
     out += ["*NODE PRINT, NSET=NVERT", "U", "*NODE FILE", "U", "*END STEP", ""]
-    path = Path(path)
-    path.write_text("\n".join(out))
-    return path
+    return out

@@ -1,0 +1,102 @@
+"""The data set's reduced-order predictor: which samples build it, their snapshots, the fit.
+
+With ``dataset.predictor = "reduced"`` the first ``predictor_samples`` LBO samples are solved
+from zero (the calibration pilots among them count), their nodal solutions are kept in the
+store (``reduced/snapshots``), and a :class:`~tissuecast.fem.reduced.ReducedModel` fitted to
+them is stored too; every later sample's solve starts from its prediction. The model depends
+only on the stored snapshots, so a resumed run builds the same one.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..config import Config
+from .codes import InitialGuess, SampleStatus
+from .store import StoreWriter
+from .worker import Recipe, Task
+
+__all__ = ["basis_samples", "keep_snapshots", "build_reduced"]
+
+log = logging.getLogger(__name__)
+
+#: Fewest converged basis samples a reduced model is fitted to.
+MIN_SNAPSHOTS = 2
+
+
+def basis_samples(writer: StoreWriter, cfg: Config) -> np.ndarray:
+    """Ids (s,) int64 of the samples whose full solutions build the reduced model: the first
+    LBO samples."""
+    n_lbo = int(writer.root.attrs["n_lbo"])
+    return np.arange(min(cfg.dataset.predictor_samples, n_lbo), dtype=np.int64)
+
+
+def keep_snapshots(writer: StoreWriter, cfg: Config, results) -> None:
+    """Store the nodal solutions of basis samples among ``results`` (none of which started
+    from the reduced model)."""
+    if cfg.dataset.predictor != "reduced" or writer.reduced is not None:
+        return
+    for r in results:
+        if r.nodal is None or r.status != SampleStatus.DONE or r.predicted == InitialGuess.REDUCED_MODEL:
+            continue
+        rows = writer.snapshot_rows(basis_samples(writer, cfg), len(r.nodal))
+        hit = np.flatnonzero(rows == r.index)
+        if len(hit):
+            writer.write_snapshot(int(hit[0]), r.nodal)
+
+
+def build_reduced(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[int, bool]:
+    """Solve the basis samples (from zero) that have no stored snapshot, then fit and store
+    the reduced model.
+
+    Args:
+        writer: the store.  ex: an executor holding ``recipe``.  cfg: the data set's config.
+
+    Returns:
+        ``(samples, built)``: the samples solved and written here, and whether the model was
+        built (False, with a log line saying why, when it cannot be).
+    """
+    from ..fem import build_problem
+    from ..fem.reduced import ReducedModel
+
+    problem = build_problem(recipe.mesh, cfg, recipe.fixed)
+    solved, complete = _solve_basis_samples(writer, ex, cfg, len(problem.nodes))
+    if not complete:
+        log.warning("the solver returns no nodal displacements; data set solved without a predictor")
+        return solved, False
+    snaps = writer.read("reduced/snapshots")
+    snaps = snaps[np.isfinite(snaps[:, 0, 0])]  # NaN rows: basis samples that failed
+    if len(snaps) < MIN_SNAPSHOTS:
+        log.warning("fewer than %d basis samples converged; data set solved without a predictor", MIN_SNAPSHOTS)
+        return solved, False
+    model = ReducedModel.fit(problem, snaps, tolerance=cfg.dataset.predictor_tolerance)
+    writer.set_reduced(model.basis, model.elements, model.weights, {
+        "modes": model.n_modes, "elements": int(len(model.elements)), "fit_error": float(model.fit_error),
+        "snapshots": len(snaps)})
+    return solved, True
+
+
+def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, n_nodes: int) -> tuple[int, bool]:
+    """Solve the basis samples without a stored snapshot (failed ones are not retried) and
+    store them. Returns the number written and False if the solver gives no nodal
+    displacements (then it stops there)."""
+    rows = writer.snapshot_rows(basis_samples(writer, cfg), n_nodes)
+    have = writer.snapshot_done()
+    todo = [int(i) for i, ok in zip(rows, have) if not ok and writer.status[i] != SampleStatus.FAILED]
+    if not todo:
+        return 0, True
+    alpha = float(writer.calibration["alpha"])
+    seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
+    log.info("solving %d samples from zero for the reduced model", len(todo))
+    written = 0
+    for r in ex.imap_unordered([Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo]):
+        if r.nodal is None and r.status == SampleStatus.DONE:
+            return written, False
+        if writer.status[r.index] == SampleStatus.PENDING:
+            writer.write_sample(r)
+            written += 1
+        keep_snapshots(writer, cfg, [r])
+    writer.flush()
+    return written, True

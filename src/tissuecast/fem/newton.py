@@ -1,0 +1,401 @@
+"""One nonlinear solve: its state and its load-stepped Newton iterations.
+
+A :class:`SolveRun` is made by :class:`~tissuecast.fem.solver.Solver` for every solve and
+holds everything that lives for that solve only: the external loads and prescribed values,
+the initial guess, the counters, the shift of the last indefinite tangent, the rigid rotation
+applied since the active factorisation was made, the recycled Krylov directions, the active
+factorisation and whether it is still valid, and its own numeric factor (borrowed from the
+Solver on the first factorisation and given back when the run ends). The Solver keeps only
+per-mesh things (assembler, constrained dofs, symbolic analysis, reference factorisation), so
+one Solver serves any number of runs, one by one or in lockstep.
+
+:meth:`SolveRun.steps` is a generator of preconditioner applications (see
+:func:`.krylov.corotated_solve`) that returns the :class:`~tissuecast.fem.result.SolveResult`;
+the Solver drives it. The convergence test is :func:`.convergence.converged`. The algorithm is
+described in :mod:`tissuecast.fem.solver` and, with its history, in ``docs/solver.md``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..errors import ConvergenceError
+from .convergence import RESIDUAL_ALONE, converged, correction_estimate, reference_force
+from .krylov import corotated_solve, deflated_cg, deflation_space, recycle, rigid_rotations
+from .linear import NotPositiveDefinite
+from .linesearch import line_search, step_path
+from .result import SolveResult
+
+if TYPE_CHECKING:
+    from .solver import Solver
+
+__all__ = ["SolveRun", "SolveCounts", "best_rotation"]
+
+log = logging.getLogger(__name__)
+
+#: Next load step after an increment that converged within ``grow_iterations`` iterations.
+INCREMENT_GROWTH = 1.5
+#: Load step kept after a failed increment (retried from the last converged state).
+CUTBACK = 0.25
+#: A load fraction this close to 1 is 1 (no sliver of an increment left over by round-off).
+LOAD_SNAP = 1e-9
+#: First shift ``tau`` of an indefinite tangent, ``K + tau diag(K)``: a mild regularisation.
+SHIFT_FIRST = 1e-3
+#: A new ladder starts at this share of the last shift that worked in the solve.
+SHIFT_RESTART = 0.5
+#: Growth of the shift per failed factorisation.
+SHIFT_GROWTH = 4.0
+#: Beyond this shift the tangent has little left of K: the projected stiffness is used.
+SHIFT_LAST = 10.0
+#: Guards divisions by norms that may be exactly zero.
+_TINY = 1e-300
+
+
+class IncrementFailed(Exception):
+    """An increment did not converge (internal control flow: it is retried smaller)."""
+
+
+@dataclass
+class SolveCounts:
+    """What one solve did (see :class:`~tissuecast.fem.result.SolveResult`)."""
+
+    iterations: int = 0  # Newton iterations, all increments (cut-back ones included)
+    factorizations: int = 0  # numeric factorisations, shifted attempts included
+    solves: int = 0  # preconditioner applications (triangular solves)
+    shifted: int = 0  # factorisations of a shifted tangent K + tau diag(K)
+    projected: int = 0  # factorisations of the projected (positive-definite) stiffness
+    krylov_steps: int = 0  # conjugate-gradient steps
+    residual_history: list = field(default_factory=list)  # largest residual component (N) per iteration
+
+
+@dataclass
+class _Iterations:
+    """Book-keeping of the Newton iterations of one increment."""
+
+    need_factor: bool  # the next direction needs a new factorisation
+    start: np.ndarray  # (n_free,) mm, displacements at the start of the increment
+    fresh: bool = False  # the direction was computed with a factorisation made this iteration
+    reuses: int = 0  # iterations since the last factorisation (quasi-newton)
+    last_correction: float | None = None  # largest correction of the previous iteration, mm
+
+
+def best_rotation(nodes: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The rotation R (3, 3) that best maps the reference nodes onto the displaced ones
+    (Kabsch): ``x + u - c' ~= R (x - c)`` in least squares over all nodes.
+
+    Args:
+        nodes: (n_nodes, 3) mm; u: (n_nodes, 3) or (3 n_nodes,) mm.
+    """
+    x = nodes - nodes.mean(axis=0)
+    y = nodes + u.reshape(-1, 3)
+    y = y - y.mean(axis=0)
+    a, _, bt = np.linalg.svd(y.T @ x)
+    d = np.sign(np.linalg.det(a @ bt)) or 1.0
+    return a @ np.diag([1.0, 1.0, d]) @ bt
+
+
+class SolveRun:
+    """One solve of a :class:`~tissuecast.fem.solver.Solver`: its state and iterations.
+
+    Args:
+        solver: the Solver (per-mesh set-up) this run uses.
+        fext: (3 n_nodes,) float, N: external nodal forces at full load, on every element node.
+        guess: optional (3 n_nodes,) float, mm: initial guess at full load (None: from zero).
+        prescribed: optional (3 c,) float, mm: values of the constrained dofs at full load
+            (default the problem's).
+
+    Attributes:
+        counts: :class:`SolveCounts`.
+        tau: shift of the last indefinite tangent that factorised (0 after a plain one).
+        rotation: (3, 3) rigid rotation applied since the active factorisation was made.
+        recycled: (n_free, j) Krylov directions kept from earlier iterations, or None.
+        active: the factorisation the preconditioner uses now (None before the first).
+        factor_valid: whether ``active`` may still be used (False after a failed increment).
+        linear: this run's own numeric factor, borrowed from the Solver on first need.
+    """
+
+    def __init__(self, solver: "Solver", fext: np.ndarray, guess: np.ndarray | None = None,
+                 prescribed: np.ndarray | None = None) -> None:
+        self.t0 = time.perf_counter()
+        self.solver = solver
+        self.config = solver.config
+        self.assembler = solver.assembler
+        self.fext = fext
+        self.guess = guess
+        self.prescribed = solver.prescribed_values if prescribed is None else prescribed
+        self.counts = SolveCounts()
+        self.tau = 0.0
+        self.rotation = np.eye(3)
+        self.recycled: np.ndarray | None = None
+        self.active = None
+        self.factor_valid = False
+        self.linear = None
+        cfg = self.config
+        if guess is not None and cfg.strategy == "krylov" and cfg.reference_preconditioner:
+            reference = solver.reference_factor()
+            if reference is not None:
+                self.active, self.factor_valid = reference, True
+                self.rotation = best_rotation(solver.problem.nodes, guess)
+
+    # ------------------------------------------------------------------ load stepping
+    def steps(self):
+        """The solve as a generator of preconditioner applications; returns the
+        :class:`SolveResult` or raises :class:`~tissuecast.errors.ConvergenceError`."""
+        cfg = self.config
+        u_conv = np.zeros(len(self.fext))
+        lam, dlam = 0.0, (1.0 if self.guess is not None else float(cfg.initial_increment))
+        prev = None  # (increment displacement, increment size) of the last converged increment
+        increments = cutbacks = attempts = 0
+        qhist: list = []
+        try:
+            while lam < 1.0:
+                attempts += 1
+                lam_new = min(1.0, lam + dlam)
+                if 1.0 - lam_new < LOAD_SNAP:
+                    lam_new = 1.0
+                u = self._predict(u_conv, lam, lam_new, prev)
+                try:
+                    if attempts > cfg.max_increments:
+                        raise IncrementFailed(f"the budget of {cfg.max_increments} increments is spent")
+                    it0 = self.counts.iterations
+                    u = yield from self._increment(u, u_conv, lam_new, qhist)
+                except IncrementFailed as exc:
+                    cutbacks += 1
+                    self.factor_valid = False
+                    dlam *= CUTBACK
+                    if dlam < cfg.min_increment or attempts > cfg.max_increments:
+                        raise self._stopped(u_conv, lam, increments, cutbacks, exc) from None
+                    log.debug("increment to %.4g failed (%s); cutting back to %.4g", lam_new, exc, dlam)
+                    continue
+                increments += 1
+                prev = (u - u_conv, lam_new - lam)
+                u_conv, lam = u, lam_new
+                if self.counts.iterations - it0 <= cfg.grow_iterations:
+                    dlam = min(1.0, dlam * INCREMENT_GROWTH)
+            return self._result(u_conv, 1.0, True, increments, cutbacks)
+        finally:
+            self._give_back_factor()
+
+    def _stopped(self, u_conv, lam: float, increments: int, cutbacks: int, exc) -> ConvergenceError:
+        result = self._result(u_conv, lam, False, increments, cutbacks)
+        return ConvergenceError(
+            f"the solver stopped at load fraction {lam:.4g} ({exc}); the forces may be too large "
+            "for the supports (elements invert or the body buckles) -- reduce them, fix more "
+            "vertices, or allow smaller increments (solver.min_increment)",
+            load_fraction=lam,
+            result=result,
+        )
+
+    def _predict(self, u_conv, lam, lam_new, prev) -> np.ndarray:
+        """Start of an increment: the guess, else the extrapolated last increment, else the
+        last converged state; the first that inverts no element."""
+        candidates = []
+        if self.guess is not None and lam == 0.0:
+            candidates.append(lam_new * self.guess)
+        if prev is not None:
+            candidates.append(u_conv + (lam_new - lam) / prev[1] * prev[0])
+        candidates.append(u_conv.copy())
+        for u in candidates:
+            u[self.solver.constrained_dofs] = lam_new * self.prescribed
+            if len(candidates) == 1 or self.assembler.internal_force(u.reshape(-1, 3))[1] > 0.0:
+                return u
+        return u
+
+    def _result(self, u, lam, converged, increments, cutbacks) -> SolveResult:
+        cdofs = self.solver.constrained_dofs
+        nodal = u.reshape(-1, 3).copy()
+        fint, _ = self.assembler.internal_force(nodal)
+        reaction = np.zeros_like(nodal)
+        reaction.ravel()[cdofs] = (fint - lam * self.fext)[cdofs]
+        counts = self.counts
+        return SolveResult(
+            displacement=nodal[: self.solver.problem.n_vertices].copy(),
+            converged=converged,
+            load_fraction=float(lam),
+            increments=increments,
+            iterations=counts.iterations,
+            factorizations=counts.factorizations,
+            residual_history=list(counts.residual_history),
+            seconds=time.perf_counter() - self.t0,
+            nodal_displacement=nodal,
+            nodal_reaction=reaction,
+            cutbacks=cutbacks,
+            solves=counts.solves,
+        )
+
+    # ------------------------------------------------------------------ one increment
+    def _increment(self, u: np.ndarray, u_start: np.ndarray, lam: float, qhist: list):
+        """Newton iterations to equilibrium at load fraction ``lam`` from ``u`` (a generator
+        of preconditioner applications); returns the converged displacements."""
+        cfg = self.config
+        free = self.solver.free_dofs
+        fext = lam * self.fext
+        energy, fint, jmin = self.assembler.energy_and_force(u.reshape(-1, 3))
+        if not jmin > 0.0:
+            raise IncrementFailed("the predictor inverts an element")
+        pi = energy - float(fext @ u)
+        r = fint[free] - fext[free]
+        q0 = reference_force(fint, fext, self.solver.constrained_nodes)
+        if len(r) == 0 or float(np.abs(r).max()) <= RESIDUAL_ALONE * cfg.force_tolerance * q0:
+            qhist.append(q0)
+            return u  # already in equilibrium (e.g. no load at all)
+        track = _Iterations(need_factor=cfg.strategy == "newton" or not self.factor_valid, start=u_start[free])
+        for _ in range(cfg.max_iterations):
+            d = yield from self._direction(u, r, track)
+            step = self._line_search(u, d, pi, r, fext)
+            if step is None:
+                if track.fresh:
+                    raise IncrementFailed("line search found no energy decrease along a fresh Newton direction")
+                track.need_factor = True
+                continue
+            s, u, pi, fint, r_new, rot = step
+            self.rotation = rot @ self.rotation
+            self.counts.iterations += 1
+            rnorm_old = np.linalg.norm(r)
+            r = r_new
+            if self._converged(u, r, s * d, fint, fext, qhist, track, lam):
+                qhist.append(reference_force(fint, fext, self.solver.constrained_nodes))
+                return u
+            self._next_iteration(track, np.linalg.norm(r) / max(rnorm_old, _TINY))
+        raise IncrementFailed(f"no convergence in {cfg.max_iterations} iterations")
+
+    def _direction(self, u: np.ndarray, r: np.ndarray, track: _Iterations):
+        """The Newton direction ``-K^-1 r`` by the configured strategy (a generator)."""
+        d = data = None
+        if self.config.strategy == "krylov" and not track.need_factor:
+            d, data = yield from self.krylov_direction(u, r)
+            track.need_factor = d is None
+        if track.need_factor:
+            self.factorize(u, data)
+            self.factor_valid = True
+            self.rotation = np.eye(3)
+            track.fresh, track.reuses = True, 0
+        if d is None:
+            d = -(yield from self._precondition(r))
+        return d
+
+    def _line_search(self, u, d, pi0, r0, fext):
+        sv = self.solver
+        path = step_path(sv.problem.nodes, u, d, sv.free_dofs, sv.constrained_nodes, sv.constrained_dofs,
+                         self.config.rotation_aware)
+        return line_search(self.assembler, path, sv.free_dofs, d, pi0, r0, fext)
+
+    def _converged(self, u, r, c, fint, fext, qhist, track: _Iterations, lam: float) -> bool:
+        """Record the iteration's residual and apply :func:`converged` to it."""
+        cfg = self.config
+        rmax = float(np.abs(r).max()) if len(r) else 0.0
+        self.counts.residual_history.append(rmax)
+        q = max(np.mean(qhist + [reference_force(fint, fext, self.solver.constrained_nodes)]), _TINY)
+        cmax = float(np.abs(c).max())
+        est = correction_estimate(cmax, track.last_correction)
+        dmax = float(np.abs(u[self.solver.free_dofs] - track.start).max()) if len(r) else 0.0
+        log.debug("lam %.4g it: |r|max %.3e (q %.3e) |c|max %.3e est %.3e du %.3e reuse %d",
+                  lam, rmax, q, cmax, est, dmax, track.reuses)
+        track.last_correction = cmax
+        return converged(rmax, q, cmax, est, dmax, float(np.abs(u).max()), cfg.force_tolerance,
+                         cfg.displacement_tolerance)
+
+    def _next_iteration(self, track: _Iterations, ratio: float) -> None:
+        """Whether the next iteration factorises (``ratio``: residual-norm reduction)."""
+        cfg = self.config
+        track.reuses += 0 if track.fresh else 1
+        track.fresh = False
+        track.need_factor = cfg.strategy == "newton" or (
+            cfg.strategy == "quasi-newton" and (ratio > cfg.refactor_ratio or track.reuses >= cfg.max_quasi_newton))
+
+    # ------------------------------------------------------------------ linear algebra
+    def _precondition(self, v: np.ndarray):
+        """``R K^-1 R^T v`` with the active factorisation (a generator, see
+        :func:`.krylov.corotated_solve`)."""
+        z = yield from corotated_solve(self.active, self.rotation, v)
+        self.counts.solves += 1
+        return z
+
+    def krylov_direction(self, u: np.ndarray, r: np.ndarray):
+        """-K^-1 r for the tangent K at u by deflated preconditioned conjugate gradients
+        (a generator, :mod:`.krylov`).
+
+        Args:
+            u: (3 n_nodes,) mm, current displacements.  r: (n_free,) N, residual.
+
+        Returns:
+            ``(d, None)`` when the relative residual fell below ``krylov_tolerance`` within
+            ``krylov_iterations`` steps (or negative curvature was met after some progress:
+            the iterate so far is still a descent direction), else ``(None, K data)`` so that
+            the caller factorises the tangent already assembled.
+        """
+        cfg = self.config
+        sv = self.solver
+        _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
+        k = self.assembler.matrix(data)
+        space = None
+        if cfg.krylov_recycle:
+            spin = rigid_rotations(sv.problem.nodes + u.reshape(-1, 3), sv.constrained_nodes, sv.free_dofs)
+            space, self.recycled = deflation_space(k, spin, self.recycled)
+        d, steps, found = yield from deflated_cg(k, -r, space, self._precondition, cfg.krylov_tolerance,
+                                                 cfg.krylov_iterations)
+        self.counts.krylov_steps += steps
+        self.recycled = recycle(found, space, cfg.krylov_recycle, self.recycled)
+        return (d, None) if d is not None else (None, data)
+
+    def factorize(self, u: np.ndarray, data: np.ndarray | None = None) -> None:
+        """Factorise the tangent K at u (CSR values ``data`` if already assembled) into this
+        run's own factor; if K is not positive definite, ``K + tau diag(K)`` with the smallest
+        working ``tau`` of the ladder ``max(SHIFT_FIRST, SHIFT_RESTART * last) * SHIFT_GROWTH^k``
+        up to ``SHIFT_LAST``; past that, the projected stiffness (material tangent clamped to
+        its positive-definite part at each quadrature point).
+
+        Raises:
+            IncrementFailed: not even the projected stiffness factorises.
+        """
+        if data is None:
+            _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
+        if self.linear is None:
+            self.linear = self.solver.borrow_factor()
+        self.active = self.linear
+        self.counts.factorizations += 1
+        try:
+            self.linear.factorize(data)
+            self.tau = 0.0
+            return
+        except NotPositiveDefinite:
+            log.debug("tangent not positive definite")
+        if self._factorize_shifted(data):
+            return
+        _, data, _ = self.assembler.tangent(u.reshape(-1, 3), project=True)
+        self.counts.factorizations += 1
+        try:
+            self.linear.factorize(data)
+            self.counts.projected += 1
+        except NotPositiveDefinite:
+            raise IncrementFailed("projected tangent stiffness could not be factorised") from None
+
+    def _factorize_shifted(self, data: np.ndarray) -> bool:
+        """Climb the shift ladder; True once a shifted tangent factorised."""
+        idx = self.assembler.diagonal_index
+        diag = data[idx]
+        tau = max(SHIFT_RESTART * self.tau, SHIFT_FIRST)
+        while tau <= SHIFT_LAST:
+            shifted = data.copy()
+            shifted[idx] += tau * diag
+            self.counts.factorizations += 1
+            try:
+                self.linear.factorize(shifted)
+            except NotPositiveDefinite:
+                tau *= SHIFT_GROWTH
+                continue
+            self.tau = tau
+            self.counts.shifted += 1
+            return True
+        return False
+
+    def _give_back_factor(self) -> None:
+        if self.linear is not None:
+            self.solver.give_back_factor(self.linear)
+            self.linear = self.active = None
+            self.factor_valid = False

@@ -1,0 +1,183 @@
+// A small OpenIGTLink client built with the official OpenIGTLink C++ library (Debian
+// libopenigtlink-dev), used by tests/test_serve_cpp_client.py to check the tissuecast server
+// against software nobody here wrote.
+//
+// Usage: tissuecast_igtl_client HOST PORT REGISTRATION_NAME M00 .. M33 X0 Y0 Z0 [X1 Y1 Z1 ...]
+//   1. sends TRANSFORM REGISTRATION_NAME (the 4x4 matrix, row by row), then POINT "Markers"
+//      (the marker positions, mm) and prints the POLYDATA reply, unpacked with the library's
+//      CRC check: "POLYDATA <device> <crc ok 0/1> <points> <polygons> <attributes>", then
+//      "P x y z" per point, "T i j k" per triangle, "A name components size" per attribute;
+//   2. sends malformed messages and prints each reply ("STRING <device> <crc ok> <text>"):
+//      a POINT whose body no longer matches its CRC, a POINT with one marker missing, a
+//      TRANSFORM for an unknown device;
+//   3. sends a header of an unknown version and prints the reply, then "CLOSED" when the
+//      server drops the connection.
+#include <cstdio>
+#include <cstdlib>
+#include <cstring>
+#include <list>
+#include <string>
+#include <vector>
+
+#include "igtlClientSocket.h"
+#include "igtlMessageHeader.h"
+#include "igtlPointMessage.h"
+#include "igtlPolyDataMessage.h"
+#include "igtlStringMessage.h"
+#include "igtlTransformMessage.h"
+
+static int sendPoints(igtl::ClientSocket::Pointer& socket, const std::vector<float>& xyz, size_t count, bool corrupt)
+{
+  igtl::PointMessage::Pointer message = igtl::PointMessage::New();
+  message->SetDeviceName("Markers");
+  for (size_t i = 0; i < count; ++i)
+  {
+    igtl::PointElement::Pointer point = igtl::PointElement::New();
+    char name[32];
+    std::snprintf(name, sizeof(name), "M%zu", i);
+    point->SetName(name);
+    point->SetGroupName("Fiducial");
+    point->SetRGBA(255, 0, 0, 255);
+    point->SetPosition(xyz[3 * i], xyz[3 * i + 1], xyz[3 * i + 2]);
+    point->SetRadius(2.0);
+    point->SetOwner("");
+    message->AddPointElement(point);
+  }
+  message->Pack();
+  if (corrupt)
+  {
+    // change one coordinate byte after packing: the header's CRC no longer matches the body
+    static_cast<unsigned char*>(message->GetPackBodyPointer())[100] ^= 0x5A;
+  }
+  return socket->Send(message->GetPackPointer(), message->GetPackSize());
+}
+
+static int sendTransform(igtl::ClientSocket::Pointer& socket, const char* name, const float m[16])
+{
+  igtl::TransformMessage::Pointer message = igtl::TransformMessage::New();
+  message->SetDeviceName(name);
+  igtl::Matrix4x4 matrix;
+  for (int r = 0; r < 4; ++r)
+    for (int c = 0; c < 4; ++c)
+      matrix[r][c] = m[4 * r + c];
+  message->SetMatrix(matrix);
+  message->Pack();
+  return socket->Send(message->GetPackPointer(), message->GetPackSize());
+}
+
+// Receives one message and prints it; returns 0 when the server closed the connection.
+static int receiveAndPrint(igtl::ClientSocket::Pointer& socket)
+{
+  igtl::MessageHeader::Pointer header = igtl::MessageHeader::New();
+  header->InitPack();
+  int got = socket->Receive(header->GetPackPointer(), header->GetPackSize());
+  if (got == 0)
+  {
+    std::printf("CLOSED\n");
+    return 0;
+  }
+  if (got != header->GetPackSize())
+  {
+    std::printf("SHORT_HEADER %d\n", got);
+    return 0;
+  }
+  header->Unpack();
+  if (std::strcmp(header->GetDeviceType(), "POLYDATA") == 0)
+  {
+    igtl::PolyDataMessage::Pointer polydata = igtl::PolyDataMessage::New();
+    polydata->SetMessageHeader(header);
+    polydata->AllocatePack();
+    socket->Receive(polydata->GetPackBodyPointer(), polydata->GetPackBodySize());
+    int crcOk = (polydata->Unpack(1) & igtl::MessageHeader::UNPACK_BODY) ? 1 : 0;
+    igtl::PolyDataPointArray::Pointer points = polydata->GetPoints();
+    igtl::PolyDataCellArray::Pointer polygons = polydata->GetPolygons();
+    int nPoints = points.IsNotNull() ? points->GetNumberOfPoints() : 0;
+    int nPolygons = polygons.IsNotNull() ? polygons->GetNumberOfCells() : 0;
+    std::printf("POLYDATA %s %d %d %d %d\n", header->GetDeviceName(), crcOk, nPoints, nPolygons,
+                polydata->GetNumberOfAttributes());
+    for (int i = 0; i < nPoints; ++i)
+    {
+      igtlFloat32 p[3];
+      points->GetPoint(i, p);
+      std::printf("P %.9g %.9g %.9g\n", p[0], p[1], p[2]);
+    }
+    for (int i = 0; i < nPolygons; ++i)
+    {
+      std::list<igtlUint32> cell;
+      polygons->GetCell(i, cell);
+      std::printf("T");
+      for (std::list<igtlUint32>::iterator it = cell.begin(); it != cell.end(); ++it)
+        std::printf(" %u", *it);
+      std::printf("\n");
+    }
+    for (int i = 0; i < polydata->GetNumberOfAttributes(); ++i)
+    {
+      igtl::PolyDataAttribute* attribute = polydata->GetAttribute(i);
+      std::printf("A %s %u %u\n", attribute->GetName(), attribute->GetNumberOfComponents(), attribute->GetSize());
+    }
+  }
+  else if (std::strcmp(header->GetDeviceType(), "STRING") == 0)
+  {
+    igtl::StringMessage::Pointer text = igtl::StringMessage::New();
+    text->SetMessageHeader(header);
+    text->AllocatePack();
+    socket->Receive(text->GetPackBodyPointer(), text->GetPackBodySize());
+    int crcOk = (text->Unpack(1) & igtl::MessageHeader::UNPACK_BODY) ? 1 : 0;
+    std::printf("STRING %s %d %s\n", header->GetDeviceName(), crcOk, text->GetString());
+  }
+  else
+  {
+    std::printf("OTHER %s %s\n", header->GetDeviceType(), header->GetDeviceName());
+    std::vector<char> body(header->GetBodySizeToRead());
+    if (!body.empty())
+      socket->Receive(&body[0], static_cast<int>(body.size()));
+  }
+  std::fflush(stdout);
+  return 1;
+}
+
+int main(int argc, char* argv[])
+{
+  if (argc < 4 + 16 + 3 || (argc - 4 - 16) % 3 != 0)
+  {
+    std::fprintf(stderr, "usage: %s HOST PORT REGISTRATION_NAME M00..M33 X0 Y0 Z0 [...]\n", argv[0]);
+    return 2;
+  }
+  igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
+  if (socket->ConnectToServer(argv[1], std::atoi(argv[2])) != 0)
+  {
+    std::fprintf(stderr, "cannot connect to %s:%s\n", argv[1], argv[2]);
+    return 1;
+  }
+  socket->SetReceiveTimeout(10000);
+  float matrix[16];
+  for (int i = 0; i < 16; ++i)
+    matrix[i] = static_cast<float>(std::atof(argv[4 + i]));
+  std::vector<float> xyz;
+  for (int i = 4 + 16; i < argc; ++i)
+    xyz.push_back(static_cast<float>(std::atof(argv[i])));
+  size_t count = xyz.size() / 3;
+
+  sendTransform(socket, argv[3], matrix);  // the registration: no reply
+  sendPoints(socket, xyz, count, false);
+  receiveAndPrint(socket);  // POLYDATA TissueSurface
+
+  sendPoints(socket, xyz, count, true);  // CRC mismatch
+  receiveAndPrint(socket);
+  sendPoints(socket, xyz, count - 1, false);  // one marker short
+  receiveAndPrint(socket);
+  float identity[16] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1};
+  sendTransform(socket, "Needle", identity);  // neither a marker nor a registration
+  receiveAndPrint(socket);
+
+  unsigned char garbage[58];
+  std::memset(garbage, 0, sizeof(garbage));
+  garbage[0] = 0x00;
+  garbage[1] = 0x63;  // header version 99
+  std::memcpy(garbage + 2, "POINT", 5);
+  socket->Send(garbage, sizeof(garbage));
+  if (receiveAndPrint(socket))
+    receiveAndPrint(socket);  // the server closes a stream it can no longer trust
+  socket->CloseSocket();
+  return 0;
+}
