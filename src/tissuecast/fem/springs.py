@@ -68,6 +68,24 @@ class NodalSprings:
         """Stored energy ``sum_a u_a . K_a u_a / 2`` in mJ for ``u`` (n_nodes, 3) mm."""
         return float(-0.5 * np.sum(self.forces(u) * u[self.nodes]))
 
+    def matrix(self, free: np.ndarray):
+        """The springs' stiffness on the free dofs: (n_free, n_free) sparse CSR, N/mm.
+
+        Args:
+            free: (3 n_nodes,) bool, True for the free dofs (node-major, x/y/z).
+        """
+        import scipy.sparse as sp
+
+        free = np.asarray(free, dtype=bool)
+        local = np.full(len(free), -1, dtype=np.int64)
+        local[free] = np.arange(int(free.sum()))
+        dofs = local[(3 * self.nodes[:, None] + np.arange(3))]  # (s, 3)
+        rows = np.repeat(dofs, 3, axis=1).ravel()
+        cols = np.tile(dofs, (1, 3)).ravel()
+        keep = (rows >= 0) & (cols >= 0)
+        n = int(free.sum())
+        return sp.csr_matrix((self.stiffness.reshape(-1)[keep], (rows[keep], cols[keep])), shape=(n, n))
+
 
 class SpringAssembly:
     """The springs' share of an :class:`~.assembly.Assembler`'s forces, energy and tangent.
@@ -105,7 +123,7 @@ class SpringAssembly:
 
     def add_tangent(self, data: np.ndarray) -> np.ndarray:
         """CSR stiffness data (nnz,) N/mm with the springs added (in place; returned)."""
-        np.add.at(data, self.positions, self.values)
+        data[self.positions] += self.values  # distinct positions: one node's block each
         return data
 
     def forces(self, u: np.ndarray) -> np.ndarray:

@@ -22,6 +22,7 @@ import numpy as np
 from ..config import Config, ScenarioConfig
 from ..errors import ConfigError
 from ..fem.springs import NodalSprings
+from ..fem.supports import free_rigid_motions
 from ..mesh.tags import MeshTags
 from ..mesh.tetmesh import TetMesh
 from .gravity import body_loads, cone_direction, gravity_body_force
@@ -31,14 +32,12 @@ from .regions import surface_region
 from .springs import surface_springs
 from ..mesh.surface import vertex_normals
 
-__all__ = ["Scenario", "ScenarioDraw", "build_scenario", "scenario_from_config", "scenario_rng", "free_rigid_motions",
+__all__ = ["Scenario", "ScenarioDraw", "build_scenario", "restore_scenario", "scenario_from_config", "scenario_rng",
+           "free_rigid_motions",
            "SCENARIO_STREAM"]
 
 #: Second SeedSequence word of a sample's scenario draws: ``SeedSequence([sample_seed, SCENARIO_STREAM])``.
 SCENARIO_STREAM = 2**63 - 3
-#: A rigid-body motion counts as free when the supports' stiffness along it is below this
-#: share of the stiffest one (dimensionless, rotations measured at the body's size).
-RIGID_MOTION_RTOL = 1e-9
 
 
 def scenario_rng(sample_seed) -> np.random.Generator:
@@ -106,13 +105,96 @@ class Scenario:
 
     @property
     def supported(self) -> np.ndarray:
-        """(k,) int64 sorted vertices held in all components by the static supports."""
-        return np.union1d(self.pinned, self.attached).astype(np.int64)
+        """(k,) int64 vertices held in all components by the static supports: the pins (in
+        their order), then the attached region's other vertices (ascending)."""
+        extra = self.attached[~np.isin(self.attached, self.pinned)]
+        return np.concatenate([self.pinned, extra]).astype(np.int64)
 
     @property
     def n_nodes(self) -> int:
         """Number of element nodes (rows of nodal loads)."""
         return self.mesh.n_points if self.order == 1 else len(self.mesh.points10)
+
+    @property
+    def held_nodes(self) -> np.ndarray:
+        """(h,) int64 element nodes fixed in all components: the supported vertices and, for
+        P2, the mid-edge nodes between two of them."""
+        return _held_nodes(self.mesh, self.order, self.supported)
+
+    @property
+    def plain(self) -> bool:
+        """True for the paper's set-up: pins and LBO forces only (no attached region, springs,
+        gravity change, indentation or material regions)."""
+        return bool(self.config.pins and self.config.lbo_forces and not len(self.attached) and self.springs is None
+                    and self.gravity is None and self.sites is None and self.materials is None)
+
+    @property
+    def draws_per_sample(self) -> bool:
+        """Whether samples draw a gravity direction or an indentation."""
+        return self.gravity is not None or self.sites is not None
+
+    @property
+    def can_swing(self) -> bool:
+        """Whether the body is held by pins alone (so it may swing about them as a near-rigid
+        body); False with springs or an attached region."""
+        return self.springs is None and len(self.attached) == 0
+
+    def problem(self, config: Config):
+        """The finite-element problem (:class:`~tissuecast.fem.Problem`): the supported vertices
+        fixed, the springs, the material regions; ``config`` gives the material and order."""
+        from ..fem import build_problem
+        from ..fem.material import NeoHookeanField
+
+        field = None
+        if self.materials is not None:
+            field = NeoHookeanField(self.materials.youngs_modulus, self.materials.poisson_ratio)
+        return build_problem(self.mesh, config, self.supported, order=self.order, springs=self.springs,
+                             materials=field, can_swing=self.can_swing)
+
+    def sample_loads(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None,
+                     loading: str = "nodal") -> tuple[np.ndarray, np.ndarray]:
+        """A sample's external loads on every element node: ``(surface (n_nodes, 3) N, body
+        (n_nodes, 3) N)``, both zero at the held nodes (loads there go straight into the
+        supports).
+
+        ``surface``: the field ``vertex_forces`` ((n, 3) N: the LBO or test-2 field, or None)
+        as nodal forces on the vertices (``loading = "nodal"``, the paper's) or as a traction
+        (``"traction"``, :func:`~tissuecast.forces.traction_loads`); ``body``: the draw's
+        consistent gravity-change loads (:meth:`body_loads`).
+        """
+        surface = np.zeros((self.n_nodes, 3))
+        if vertex_forces is not None:
+            vf = np.asarray(vertex_forces, dtype=np.float64)
+            if loading == "traction":
+                from ..forces import traction_loads
+
+                surface += traction_loads(self.mesh, self.order, vf)
+            else:
+                surface[: self.mesh.n_points] += vf
+        body = self.body_loads(draw)
+        held = self.held_nodes
+        surface[held] = 0.0
+        body[held] = 0.0
+        return surface, body
+
+    def loads(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None, loading: str = "nodal") -> np.ndarray:
+        """A sample's external loads on every element node, (n_nodes, 3) N: the sum of
+        :meth:`sample_loads`."""
+        surface, body = self.sample_loads(draw, vertex_forces, loading)
+        return surface + body
+
+    def arrays(self) -> dict:
+        """The resolved supports and materials as plain arrays (what a data set stores):
+        ``pinned``, ``attached``, ``spring_region`` (int64 vertex ids), ``spring_nodes`` (s,)
+        and ``spring_stiffness`` (s, 3, 3) N/mm (with springs), ``youngs_modulus`` (m,) MPa,
+        ``poisson_ratio`` (m,) and ``material_region`` (m,) int64 (with material regions)."""
+        out = {"pinned": self.pinned, "attached": self.attached, "spring_region": self.spring_region}
+        if self.springs is not None:
+            out.update(spring_nodes=self.springs.nodes, spring_stiffness=self.springs.stiffness)
+        if self.materials is not None:
+            out.update(youngs_modulus=self.materials.youngs_modulus, poisson_ratio=self.materials.poisson_ratio,
+                       material_region=self.materials.region)
+        return {k: np.asarray(v) for k, v in out.items()}
 
     def draw(self, rng: np.random.Generator) -> ScenarioDraw:
         """A sample's draws: the gravity direction (2 draws), then the indentation (4 draws)."""
@@ -159,43 +241,6 @@ class Scenario:
         if self.materials is not None:
             out["materials"] = self.materials.draws
         return out
-
-
-def free_rigid_motions(points: np.ndarray, held: np.ndarray, springs: NodalSprings | None = None) -> np.ndarray:
-    """Rigid-body motions the supports leave free.
-
-    Args:
-        points: (n_nodes, 3) float, mm, node coordinates.
-        held: (h,) int nodes fixed in all components.
-        springs: nodal springs to ground, or None.
-
-    Returns:
-        (f, 6) float: each row a free motion ``(translation (3,), rotation (3,) rad per body
-        size)`` about the nodes' centroid; no rows when every rigid motion is resisted.
-    """
-    c = points.mean(axis=0)
-    size = max(float(np.ptp(points, axis=0).max()), 1e-300)
-
-    def modes(ids):
-        x = (points[ids] - c) / size
-        r = np.zeros((len(ids), 3, 6))
-        r[:, :, :3] = np.eye(3)
-        r[:, 0, 4], r[:, 0, 5] = x[:, 2], -x[:, 1]  # omega x x
-        r[:, 1, 3], r[:, 1, 5] = -x[:, 2], x[:, 0]
-        r[:, 2, 3], r[:, 2, 4] = x[:, 1], -x[:, 0]
-        return r
-
-    g = np.zeros((6, 6))
-    held = np.asarray(held, dtype=np.int64)
-    if held.size:
-        r = modes(held)
-        g += np.einsum("aik,ail->kl", r, r)
-    if springs is not None and len(springs):
-        r = modes(springs.nodes)
-        k = springs.stiffness / max(float(np.abs(springs.stiffness).max()), 1e-300)
-        g += np.einsum("aik,aij,ajl->kl", r, k, r)
-    lam, vec = np.linalg.eigh(g)
-    return vec[:, lam <= RIGID_MOTION_RTOL * max(float(lam.max()), 1e-300)].T
 
 
 def _held_nodes(mesh: TetMesh, order: int, vertices: np.ndarray) -> np.ndarray:
@@ -256,6 +301,35 @@ def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshT
     return Scenario(sc, mesh, order, pinned, attached, region, springs, materials, normals, sites, gravity)
 
 
+def restore_scenario(mesh: TetMesh, config: Config, arrays: dict) -> Scenario:
+    """A scenario from its :meth:`Scenario.arrays` (e.g. read back from a data set), without
+    the mesh file's named regions: the supports and materials are the stored ones; normals and
+    indentation sites are recomputed from the mesh and ``config`` (they depend on nothing else)."""
+    sc = config.scenario
+    order = config.solver.order
+    normals = vertex_normals(mesh)
+    pinned, attached = (np.asarray(arrays[k], dtype=np.int64) for k in ("pinned", "attached"))
+    springs = None
+    if "spring_nodes" in arrays:
+        springs = NodalSprings(arrays["spring_nodes"], arrays["spring_stiffness"])
+    materials = None
+    if "youngs_modulus" in arrays:
+        e, nu = (np.asarray(arrays[k], dtype=np.float64) for k in ("youngs_modulus", "poisson_ratio"))
+        region = np.asarray(arrays["material_region"], dtype=np.int64)
+        names = tuple(r.name for r in sc.materials.regions)
+        draws = {}
+        for k, name in enumerate(names):
+            inside = np.flatnonzero(region == k)
+            if inside.size:
+                draws[name] = {"youngs_modulus": float(e[inside[0]]), "poisson_ratio": float(nu[inside[0]])}
+        materials = ElementMaterials(e, nu, region, names, draws)
+    supported = np.union1d(pinned, attached)
+    sites = indentation_sites(mesh, sc.indentation, normals, supported) if sc.indentation.enabled else None
+    gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
+    return Scenario(sc, mesh, order, pinned, attached, np.asarray(arrays["spring_region"], dtype=np.int64), springs,
+                    materials, normals, sites, gravity)
+
+
 def scenario_from_config(config: Config):
     """The mesh, fiducial markers, pinned vertices and resolved scenario a config describes.
 
@@ -266,14 +340,13 @@ def scenario_from_config(config: Config):
         ``(mesh, markers (n_d,) int64, fixed (k,) int64, scenario)``.
     """
     from ..markers import markers_and_fixed
-    from ..mesh import phantom, read_mesh
+    from ..mesh.labelmap import label_map_format
+    from ..mesh.source import mesh_from_config
     from ..mesh.tags import read_mesh_tags
 
-    if config.mesh.path:
-        mesh = read_mesh(config.mesh.path, units=config.mesh.units, mesh_size=config.mesh.surface_mesh_size)
-        tags = read_mesh_tags(config.mesh.path)
-    else:
-        mesh, tags = phantom(), MeshTags()
+    mesh = mesh_from_config(config.mesh)
+    path = config.mesh.path
+    tags = read_mesh_tags(path) if path and label_map_format(path) is None else MeshTags()
     markers, fixed = markers_and_fixed(mesh, config.markers)
     markers, fixed = np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
     return mesh, markers, fixed, build_scenario(mesh, config, fixed, tags, material_seed=config.dataset.seed)
