@@ -211,3 +211,23 @@ def test_spring_stiffness_is_judged_against_the_tissue_modulus():
     stiff["material"]["youngs_modulus"] = 0.001
     with pytest.raises(ConfigError, match=r"over 0\.001 mm"):
         config_from_dict(stiff)
+
+
+@pytest.mark.parametrize("section", ["forces", "scenario"])
+def test_forces_and_scenario_key_descriptions_are_one_short_line(section):
+    import dataclasses
+
+    from tissuecast.config import Config, MaterialRegionConfig
+
+    def check(obj, name):
+        for f in dataclasses.fields(obj):
+            doc = f.metadata.get("doc", "")
+            assert doc, f"{name}.{f.name} has no description"
+            assert len(doc) <= 150 and "\n" not in doc, f"{name}.{f.name}: {len(doc)} characters"
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                check(value, f"{name}.{f.name}")
+
+    check(getattr(Config(), section), section)
+    if section == "scenario":
+        check(MaterialRegionConfig(), "scenario.materials.regions")

@@ -139,7 +139,7 @@ class ForceConfig:
     lsc_iterations: int = _f(20, lo=0, hi=10000, doc="local Laplacian smoothing iterations")
     lsc_rate: float = _f(0.1, lo=0.0, lo_open=True, hi=1.0, doc="smoothing rate gamma")
     betas: tuple[float, ...] = _f((0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0), doc="LBO share beta of test-2 fields")
-    loading: str = _f("nodal", choices=("nodal", "traction"), doc="how a field acts on the mesh: nodal = forces on the vertices, the corner nodes (the paper); traction = the field divided by each vertex's area is a surface traction, applied with the elements' shape functions (mid-edge nodes too): no point loads, for bodies held by their surroundings")
+    loading: str = _f("nodal", choices=("nodal", "traction"), doc="nodal = forces on the vertices (the paper); traction = field / vertex area as a surface traction, no point loads (docs/scenarios.md)")
 
 
 @dataclass(frozen=True)
@@ -231,7 +231,7 @@ DENSITY_SPAN = (1.0e-10, 1.0e-8)
 class RegionConfig:
     """A set of outer-surface vertices chosen by one rule (e.g. where the tissue is attached)."""
 
-    rule: str = _f("none", choices=REGION_RULES, doc="none; surface = the whole outer surface; ids = the surface vertices among `ids`; tag = a named region of the mesh file (point data, point set, cell set or cell data); normal = surface vertices whose outward normal lies within `angle` of `direction`; distance = surface vertices within `distance` of `point`")
+    rule: str = _f("none", choices=REGION_RULES, doc="which outer-surface vertices: surface = all; ids = those in `ids`; tag = a mesh-file region; normal = normal within `angle` of `direction`; distance = near `point`")
     ids: tuple[int, ...] = _f((), lo=0, doc="rule 'ids': 0-based vertex ids")
     tag: str = _f("", doc="rule 'tag': name of a point-data array, point set, cell set or cell-data array of the mesh file")
     tag_value: int = _f(-1, doc="rule 'tag' on a point-data or cell-data array: the value marking the region; -1 = any non-zero value")
@@ -316,11 +316,11 @@ class ScenarioConfig:
     name: str = _f("paper", doc="label shown in reports")
     pins: bool = _f(True, doc="hold the body by the pinned vertices of [markers] (fixed_count, fixed_rule, fixed_ids)")
     lbo_forces: bool = _f(True, doc="random LBO surface forces per sample (magnitude calibrated to forces.target_max_displacement)")
-    attached: RegionConfig = field(default_factory=RegionConfig)
-    springs: SpringConfig = field(default_factory=SpringConfig)
-    gravity: GravityConfig = field(default_factory=GravityConfig)
-    indentation: IndentationConfig = field(default_factory=IndentationConfig)
-    materials: MaterialRegionsConfig = field(default_factory=MaterialRegionsConfig)
+    attached: RegionConfig = field(default_factory=RegionConfig, metadata={"doc": "surface region fixed in all components (tissue attached to bone or muscle)"})
+    springs: SpringConfig = field(default_factory=SpringConfig, metadata={"doc": "elastic support: springs tying a surface region to the surroundings"})
+    gravity: GravityConfig = field(default_factory=GravityConfig, metadata={"doc": "change of gravity between imaging and surgery"})
+    indentation: IndentationConfig = field(default_factory=IndentationConfig, metadata={"doc": "one instrument indentation per sample"})
+    materials: MaterialRegionsConfig = field(default_factory=MaterialRegionsConfig, metadata={"doc": "per-element materials (e.g. a stiffer tumour)"})
 
 
 @dataclass(frozen=True)
