@@ -231,7 +231,7 @@ DENSITY_SPAN = (1.0e-10, 1.0e-8)
 class RegionConfig:
     """A set of outer-surface vertices chosen by one rule (e.g. where the tissue is attached)."""
 
-    rule: str = _f("none", choices=REGION_RULES, doc="which outer-surface vertices: surface = all; ids = those in `ids`; tag = a mesh-file region; normal = normal within `angle` of `direction`; distance = near `point`")
+    rule: str = _f("none", choices=REGION_RULES, doc="outer-surface vertices: surface = all; ids = in `ids`; tag = a mesh-file region; normal = within `angle` of `direction`; distance = near `point`")
     ids: tuple[int, ...] = _f((), lo=0, doc="rule 'ids': 0-based vertex ids")
     tag: str = _f("", doc="rule 'tag': name of a point-data array, point set, cell set or cell-data array of the mesh file")
     tag_value: int = _f(-1, doc="rule 'tag' on a point-data or cell-data array: the value marking the region; -1 = any non-zero value")
