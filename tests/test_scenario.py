@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from mesh_factories import box_grid, regular_tet
 
-from tissuecast.config import Config, GravityConfig, IndentationConfig, RegionConfig, with_overrides
+from tissuecast.config import Config, GravityConfig, IndentationConfig, RegionConfig, config_to_dict, with_overrides
 from tissuecast.errors import ConfigError, MeshError, SolverSetupError
 from tissuecast.fem.springs import NodalSprings
 from tissuecast.forces import traction_loads
@@ -340,3 +340,27 @@ def test_a_uniform_traction_gives_the_textbook_consistent_loads(order):
         for k in range(3):
             np.add.at(tri_area, mids[:, k], a / 3.0)
         np.testing.assert_allclose(loads[mesh.n_points:], tri_area[mesh.n_points:, None] * t, rtol=1e-12, atol=1e-18)
+
+
+def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
+    from tissuecast.cli.demo_cmd import preset_config
+    from tissuecast.config import DEFAULT_SUPPORT_STIFFNESS
+    from tissuecast.scenario import scenario_from_config
+
+    emb, paper = preset_config("embedded"), preset_config("paper")
+    # paper-size set, the paper's elements, material and surrogate
+    for section in ("dataset", "surrogate", "material", "markers"):
+        a, b = (config_to_dict(getattr(c, section)) for c in (emb, paper))
+        a.pop("store", None), b.pop("store", None)
+        assert a == b, section
+    assert emb.solver.order == 2 and emb.forces.loading == "traction"
+    assert 15.0 <= emb.forces.target_max_displacement <= 30.0
+    sc = emb.scenario
+    assert not sc.pins and sc.lbo_forces and sc.gravity.enabled and sc.indentation.enabled
+    assert sc.springs.rule == "surface" and sc.attached.rule == "normal"
+    # the default support: surroundings of the tissue's modulus over 10 mm
+    assert sc.springs.normal_stiffness == sc.springs.tangential_stiffness == DEFAULT_SUPPORT_STIFFNESS
+    assert DEFAULT_SUPPORT_STIFFNESS == pytest.approx(emb.material.youngs_modulus / 10.0)
+    mesh, _, fixed, built = scenario_from_config(emb)
+    assert built.pinned.size == 0 and 0.05 * mesh.n_points < len(built.attached) < 0.25 * len(mesh.surface_vertices)
+    assert built.springs is not None and built.sites is not None and built.gravity == (1.0e-9, 9810.0)
