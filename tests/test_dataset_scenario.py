@@ -20,9 +20,9 @@ from tissuecast.config import with_overrides
 from tissuecast.dataset import InitialGuess, SampleStatus, open_dataset, simulate
 from tissuecast.scenario import scenario_from_config, scenario_rng
 
-from test_dataset_helpers import small_config, store_arrays, store_attrs, write_config
+from test_dataset_helpers import assert_same_store, done_count, small_config, write_config
 
-N_LBO, N_TEST2, N_BASIS = 40, 4, 8
+N_LBO, N_TEST2, N_BASIS = 72, 4, 8
 
 SCENARIO = {"name": "embedded", "pins": False,
             "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
@@ -39,12 +39,6 @@ def _config(folder, **dataset):
     return with_overrides(cfg, forces={"loading": "traction", "target_max_displacement": 4.0}, scenario=SCENARIO)
 
 
-def _same_store(a, b):
-    arrays_a, arrays_b = store_arrays(a), store_arrays(b)
-    assert arrays_a.keys() == arrays_b.keys()
-    differ = [k for k in arrays_a if arrays_a[k] != arrays_b[k]]
-    assert not differ, f"arrays differ: {differ}"
-    assert store_attrs(a) == store_attrs(b)
 
 
 @pytest.fixture(scope="module")
@@ -109,11 +103,6 @@ def test_the_predictor_starts_samples_with_an_indentation_near_their_solution(re
     assert ds.iterations[later].mean() < ds.iterations[cold].mean()
 
 
-def _done_count(path) -> int:
-    try:
-        return int((zarr.open_array(str(path / "samples" / "status"), mode="r")[:] > 0).sum())
-    except Exception:  # not created yet
-        return 0
 
 
 def test_resume_after_kill_is_bit_identical(reference, tmp_path):
@@ -124,23 +113,23 @@ def test_resume_after_kill_is_bit_identical(reference, tmp_path):
            "--no-progress"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 120
-    while _done_count(store) < N_BASIS + 4 and proc.poll() is None and time.monotonic() < deadline:
+    while done_count(store) < N_BASIS + 4 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert proc.poll() is None, f"the run ended before it could be killed: {proc.stderr.read().decode()[-500:]}"
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    assert N_BASIS + 4 <= _done_count(store) < N_LBO + N_TEST2
+    assert N_BASIS + 4 <= done_count(store) < N_LBO + N_TEST2
     rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
-    _same_store(store, ref_path)
+    assert_same_store(store, ref_path)
 
 
-def test_dask_cluster_gives_the_same_store(reference, tmp_path):
+def test_dask_cluster_gives_theassert_same_store(reference, tmp_path):
     distributed = pytest.importorskip("distributed")
     cfg, ref_path, _ = reference
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         simulate(cfg, tmp_path / "dask.zarr", progress=False, scheduler=cluster.scheduler_address)
-    _same_store(tmp_path / "dask.zarr", ref_path)
+    assert_same_store(tmp_path / "dask.zarr", ref_path)
 
 
 def test_failing_scenario_samples_are_retried_then_recorded(tmp_path):
