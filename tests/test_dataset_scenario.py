@@ -111,7 +111,10 @@ def test_resume_after_kill_is_bit_identical(reference, tmp_path):
     store = tmp_path / "killed.zarr"
     cmd = [sys.executable, "-m", "tissuecast.cli.main", "-q", "simulate", str(cfg_file), "--store", str(store),
            "--no-progress"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    # the rerun's parent process runs its BLAS on one thread (this process: as many as it has);
+    # the parent's solves (the calibration's first alpha) must not depend on it
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
     deadline = time.monotonic() + 120
     while done_count(store) < N_BASIS + 4 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
@@ -119,7 +122,7 @@ def test_resume_after_kill_is_bit_identical(reference, tmp_path):
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
     assert N_BASIS + 4 <= done_count(store) < N_LBO + N_TEST2
-    rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
     assert rerun.returncode == 0, rerun.stderr
     assert_same_store(store, ref_path)
 

@@ -56,6 +56,8 @@ FIRST_AIM = 0.5  # a first extrapolation from far below the target aims at this 
 #: The response exponent ``s`` of q ~ alpha^s is clipped to this range (a body held by a few
 #: pins softens, but not without bound).
 EXPONENT_MIN, EXPONENT_MAX = 0.5, 3.0
+#: Significant digits of the first alpha of a scenario's calibration (:func:`linear_alpha`).
+LINEAR_ALPHA_DIGITS = 6
 FAILURE_DIVISOR = 4.0  # after a round with failures and no lower bound, alpha is divided by this
 
 
@@ -83,7 +85,11 @@ def linear_alpha(recipe, tasks, target: float, quantile: float = 0.9, aim: float
     The pilots' LBO fields at unit alpha, applied as the scenario applies them
     (``forces.loading``) but without its other loads, are solved with the stiffness at zero
     displacement (supports, springs, material regions); alpha is set so that the ``quantile``
-    of their peak vertex displacements is ``aim * target``.
+    of their peak vertex displacements is ``aim * target``, rounded to
+    :data:`LINEAR_ALPHA_DIGITS` significant digits: these solves run in the parent process,
+    whose BLAS may use any number of threads, and the last bits of a multi-threaded
+    factorisation depend on that number; rounded, the first alpha (and so every later bit of
+    the data set) is the same in any process.
 
     Args:
         recipe: the data set's :class:`~.worker.Recipe` (with its scenario).
@@ -115,7 +121,7 @@ def linear_alpha(recipe, tasks, target: float, quantile: float = 0.9, aim: float
     q = _quantile(np.array(peaks), quantile)
     if not q > 0.0:
         raise DatasetError("the pilots' LBO fields do not move the body (zero linear response); check the scenario")
-    return aim * target / q
+    return float(f"{aim * target / q:.{LINEAR_ALPHA_DIGITS}g}")
 
 
 def _quantile(values: np.ndarray, q: float) -> float:
