@@ -152,7 +152,7 @@ def test_failing_scenario_samples_are_retried_then_recorded(tmp_path):
 
 def test_a_model_knows_its_scenario_and_the_evaluation_states_it(reference, tmp_path):
     from tissuecast.evaluate.evaluation import evaluate_model
-    from tissuecast.evaluate.report import format_evaluation
+    from tissuecast.evaluate.report import format_evaluation, write_report
     from tissuecast.surrogate import DeformationModel
 
     _, path, _ = reference
@@ -162,7 +162,10 @@ def test_a_model_knows_its_scenario_and_the_evaluation_states_it(reference, tmp_
     model.save(tmp_path / "m")
     again = DeformationModel.load(tmp_path / "m")
     assert again.scenario == ds.scenario
-    text = format_evaluation(evaluate_model(again, ds))
+    evaluation = evaluate_model(again, ds)
+    text = format_evaluation(evaluation)
     assert "scenario: embedded" in text
     assert "supports: attached region of" in text and "elastic support on 110 surface vertices" in text
     assert "loads: LBO surface forces; gravity change" in text and "one indentation (patch radius 11 mm" in text
+    page = write_report(tmp_path / "report", again, ds, evaluation, renders=0).read_text()
+    assert "<h2>Scenario</h2>" in page and "elastic support on 110 surface vertices" in page
