@@ -144,3 +144,109 @@ def test_config_show_cli(tmp_path, capsys):
     path = tmp_path / "shown.toml"
     path.write_text(out)
     assert load_config(path).markers.count == 9
+
+
+# ------------------------------------------------------------------------- scenario
+EMBEDDED = {"pins": False, "attached": {"rule": "normal", "direction": [0, -1, 0], "angle": 30.0},
+            "springs": {"rule": "surface", "tangential_stiffness": 0.001},
+            "gravity": {"enabled": True, "cone_angle": 20.0}, "indentation": {"enabled": True},
+            "materials": {"cell_data": "region", "regions": [
+                {"name": "tumour", "value": 2, "youngs_modulus": 0.063, "youngs_modulus_range": [0.05, 0.08]},
+                {"name": "core", "rule": "distance", "point": [1.0, 2.0, 3.0], "distance": 5.0}]}}
+
+
+def test_scenario_defaults_are_the_papers_and_nested_tables_round_trip(tmp_path):
+    sc = Config().scenario
+    assert sc.pins and sc.lbo_forces and sc.attached.rule == "none" and sc.springs.rule == "none"
+    assert not sc.gravity.enabled and not sc.indentation.enabled and sc.materials.regions == ()
+    assert sc.springs.normal_stiffness == pytest.approx(0.021 / 10.0, rel=1e-12)  # E over 10 mm, N/mm^3
+    assert sc.gravity.density == 1e-9 and sc.gravity.acceleration == 9810.0
+    cfg = with_overrides(Config(), scenario=EMBEDDED)
+    assert cfg.scenario.materials.regions[0].youngs_modulus_range == (0.05, 0.08)
+    assert cfg.scenario.materials.regions[1].rule == "distance"
+    for comments in (True, False):
+        text = config_to_toml(cfg, comments=comments)
+        assert "[scenario.gravity]" in text and text.count("[[scenario.materials.regions]]") == 2
+        path = tmp_path / "s.toml"
+        path.write_text(text)
+        assert load_config(path) == cfg
+    # a sub-table given in part keeps its other keys (and the other sub-tables)
+    more = with_overrides(cfg, scenario={"gravity": {"density": 1.05e-9}})
+    assert more.scenario.gravity.density == 1.05e-9 and more.scenario.gravity.cone_angle == 20.0
+    assert more.scenario.springs == cfg.scenario.springs
+
+
+@pytest.mark.parametrize(
+    "scenario, key, text",
+    [
+        ({"attached": {"rule": "back"}}, "scenario.attached.rule", "is not allowed"),
+        ({"attached": {"rule": "ids"}}, "scenario.attached.rule", "needs scenario.attached.ids"),
+        ({"attached": {"rule": "tag"}}, "scenario.attached.rule", "needs scenario.attached.tag"),
+        ({"attached": {"rule": "normal", "direction": [0, 0, 0]}}, "scenario.attached.direction", "not all zero"),
+        ({"springs": {"rule": "distance", "point": [1, 2]}}, "scenario.springs.point", "3 numbers"),
+        ({"attached": {"ids": [-1]}}, "scenario.attached.ids[0]", "out of range"),
+        ({"attached": {"angle": 200.0}}, "scenario.attached.angle", "out of range"),
+        ({"springs": {"rule": "surface", "normal_stiffness": 2.1e6}}, "scenario.springs.normal_stiffness", "N/m^3"),
+        ({"springs": {"rule": "surface", "tangential_stiffness": 1e-9}}, "scenario.springs.tangential_stiffness",
+         "per unit area"),
+        ({"springs": {"normal_stiffness": 0.0}}, "scenario.springs.normal_stiffness", "out of range"),
+        ({"gravity": {"density": 1000.0}}, "scenario.gravity.density", "1000 kg/m^3 = 1 g/cm^3 = 1e-9 t/mm^3"),
+        ({"gravity": {"density": 1.0}}, "scenario.gravity.density", "outside the range of tissues"),
+        ({"gravity": {"acceleration": 9.81}}, "scenario.gravity.acceleration", "looks like m/s^2"),
+        ({"gravity": {"cone_angle": 120.0}}, "scenario.gravity.cone_angle", "out of range"),
+        ({"gravity": {"surgery_direction": [0, 1]}}, "scenario.gravity.surgery_direction", "3 numbers"),
+        ({"gravity": {"densty": 1e-9}}, "scenario.gravity.densty", "unknown config key"),
+        ({"indentation": {"radius": 0.004}}, "scenario.indentation.radius", "look like metres"),
+        ({"indentation": {"depth": [0.002, 0.006]}}, "scenario.indentation.radius", "look like metres"),
+        ({"indentation": {"depth": [6.0, 2.0]}}, "scenario.indentation.depth", "min <= max"),
+        ({"indentation": {"slide": [1.0]}}, "scenario.indentation.slide", "[min, max]"),
+        ({"indentation": {"depth": [0.0, 0.0]}}, "scenario.indentation.depth", "never pushes"),
+        ({"materials": {"regions": [{"name": "t"}]}}, "scenario.materials.cell_data", "must name"),
+        ({"materials": {"cell_data": "r", "regions": [{"name": "t"}, {"name": "t"}]}}, "scenario.materials.regions",
+         "repeat a name"),
+        ({"materials": {"cell_data": "r", "regions": [{"name": "t", "modulus": 1.0}]}},
+         "scenario.materials.regions[0].modulus", "unknown config key"),
+        ({"materials": {"cell_data": "r", "regions": [{"youngs_modulus_range": [0.08, 0.05]}]}},
+         "scenario.materials.regions[0].youngs_modulus_range", "min <= max"),
+        ({"materials": {"cell_data": "r", "regions": [{"poisson_ratio_range": [0.4, 0.5]}]}},
+         "scenario.materials.regions[0].poisson_ratio_range[1]", "out of range"),
+        ({"materials": {"regions": {"name": "t"}}}, "scenario.materials.regions", "must be a list"),
+        ({"pins": False}, "scenario", "has no support"),
+        ({"lbo_forces": False}, "scenario", "has no load"),
+    ],
+)
+def test_bad_scenario_values_raise_config_error_naming_the_key(scenario, key, text):
+    with pytest.raises(ConfigError) as err:
+        config_from_dict({"scenario": scenario})
+    msg = str(err.value)
+    assert key in msg and text in msg
+
+
+def test_spring_stiffness_is_judged_against_the_tissue_modulus():
+    """k = E / L: the same k is plausible for a stiff tissue and implausible for a soft one."""
+    stiff = {"material": {"youngs_modulus": 10.0}, "scenario": {"springs": {"rule": "surface", "normal_stiffness": 1.0,
+                                                                             "tangential_stiffness": 1.0}}}
+    assert config_from_dict(stiff).scenario.springs.normal_stiffness == 1.0  # 10 MPa over 10 mm
+    stiff["material"]["youngs_modulus"] = 0.001
+    with pytest.raises(ConfigError, match=r"over 0\.001 mm"):
+        config_from_dict(stiff)
+
+
+@pytest.mark.parametrize("section", ["forces", "scenario"])
+def test_forces_and_scenario_key_descriptions_are_one_short_line(section):
+    import dataclasses
+
+    from tissuecast.config import Config, MaterialRegionConfig
+
+    def check(obj, name):
+        for f in dataclasses.fields(obj):
+            doc = f.metadata.get("doc", "")
+            assert doc, f"{name}.{f.name} has no description"
+            assert len(doc) <= 150 and "\n" not in doc, f"{name}.{f.name}: {len(doc)} characters"
+            value = getattr(obj, f.name)
+            if dataclasses.is_dataclass(value):
+                check(value, f"{name}.{f.name}")
+
+    check(getattr(Config(), section), section)
+    if section == "scenario":
+        check(MaterialRegionConfig(), "scenario.materials.regions")

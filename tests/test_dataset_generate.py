@@ -11,12 +11,11 @@ import time
 
 import numpy as np
 import pytest
-import zarr
 
 from tissuecast.config import with_overrides
 from tissuecast.dataset import InitialGuess, SampleStatus, open_dataset, simulate
 
-from test_dataset_helpers import small_config, store_arrays, store_attrs, write_config
+from test_dataset_helpers import assert_same_store, done_count, small_config, write_config
 
 N_LBO, N_TEST2, N_BASIS = 120, 9, 16
 
@@ -28,13 +27,6 @@ def _config(folder):
     return with_overrides(cfg, dataset={"predictor_samples": N_BASIS})
 
 
-def _same_store(a, b):
-    arrays_a, arrays_b = store_arrays(a), store_arrays(b)
-    assert arrays_a.keys() == arrays_b.keys()
-    differ = [k for k in arrays_a if arrays_a[k] != arrays_b[k]]
-    assert not differ, f"arrays differ: {differ}"
-    attrs_a, attrs_b = store_attrs(a), store_attrs(b)
-    assert attrs_a == attrs_b
 
 
 @pytest.fixture(scope="module")
@@ -64,11 +56,6 @@ def test_reference_run_is_complete_and_calibrated(reference):
     assert ds.increments[ds.status == SampleStatus.DONE].min() >= 1
 
 
-def _done_count(path) -> int:
-    try:
-        return int((zarr.open_array(str(path / "samples" / "status"), mode="r")[:] > 0).sum())
-    except Exception:  # not created yet
-        return 0
 
 
 @pytest.mark.parametrize("kill_at", [8, 60], ids=["while-building-the-predictor", "after-it"])
@@ -80,18 +67,18 @@ def test_resume_after_kill_is_bit_identical(reference, tmp_path, kill_at):
            "--no-progress"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.monotonic() + 120
-    while _done_count(store) < kill_at and proc.poll() is None and time.monotonic() < deadline:
+    while done_count(store) < kill_at and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)
     assert proc.poll() is None, f"the run ended before it could be killed: {proc.stderr.read().decode()[-500:]}"
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    done = _done_count(store)
+    done = done_count(store)
     assert kill_at <= done < N_LBO + N_TEST2, done
     assert open_dataset(store).summary()["totals"]["pending"] > 0  # readable after kill -9
     # workers notice that their parent is gone and exit by themselves
     rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr
-    _same_store(store, ref_path)
+    assert_same_store(store, ref_path)
 
 
 def test_predictor_starts_later_samples_near_their_solution(reference):
@@ -155,7 +142,7 @@ def test_interrupted_before_the_calibration_record_calibrates_again_identically(
     assert ds.calibration is None and (ds.status[:2] == 1).all() and (ds.status[2:] == 0).all()
     monkeypatch.setattr(StoreWriter, "set_calibration", real)
     simulate(cfg, store, progress=False)
-    _same_store(store, ref_path)
+    assert_same_store(store, ref_path)
 
 
 def test_no_predictor_solves_every_sample_from_zero(tmp_path):
@@ -167,13 +154,13 @@ def test_no_predictor_solves_every_sample_from_zero(tmp_path):
     assert ds.summary()["predictor"]["model"] is None
 
 
-def test_dask_cluster_gives_the_same_store(reference, tmp_path):
+def test_dask_cluster_gives_theassert_same_store(reference, tmp_path):
     distributed = pytest.importorskip("distributed")
     cfg, ref_path, _ = reference
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         summary = simulate(cfg, tmp_path / "dask.zarr", progress=False, scheduler=cluster.scheduler_address)
     assert "Dask cluster" in summary["run"]["executor"]
-    _same_store(tmp_path / "dask.zarr", ref_path)
+    assert_same_store(tmp_path / "dask.zarr", ref_path)
 
 
 def test_non_converging_samples_are_recorded_failed(tmp_path):

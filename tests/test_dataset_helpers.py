@@ -102,3 +102,23 @@ def store_attrs(path) -> dict:
     attrs = dict(zarr.open_group(str(path), mode="r").attrs)
     attrs.pop("created")
     return attrs
+
+
+def assert_same_store(a, b) -> None:
+    """Two stores hold the same arrays bit for bit (``samples/seconds`` aside) and the same
+    attributes (``created`` aside)."""
+    arrays_a, arrays_b = store_arrays(a), store_arrays(b)
+    assert arrays_a.keys() == arrays_b.keys()
+    differ = [k for k in arrays_a if arrays_a[k] != arrays_b[k]]
+    assert not differ, f"arrays differ: {differ}"
+    assert store_attrs(a) == store_attrs(b)
+
+
+def done_count(path) -> int:
+    """Samples of a store (possibly being written) that are no longer pending; 0 before it exists."""
+    import zarr
+
+    try:
+        return int((zarr.open_array(str(Path(path) / "samples" / "status"), mode="r")[:] > 0).sum())
+    except Exception:  # not created yet
+        return 0

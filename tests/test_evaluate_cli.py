@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from tissuecast.cli.main import main
+from tissuecast.errors import ConfigError
 
 from _surrogate_synthetic import simulate_box_store
 
@@ -99,6 +100,21 @@ def test_packaged_presets_match_repository_configs():
 
     repo = Path(__file__).resolve().parents[1] / "configs"
     pkg = Path(tissuecast.__file__).parent / "configs"
-    for name in ("paper", "quick"):
+    names = sorted(p.stem for p in repo.glob("*.toml"))
+    assert names == sorted(p.stem for p in pkg.glob("*.toml")) and {"paper", "quick", "embedded"} <= set(names)
+    for name in names:
         assert (repo / f"{name}.toml").read_text() == (pkg / f"{name}.toml").read_text()
         assert preset_config(name).name == name
+    with pytest.raises(ConfigError, match="use one of embedded, paper, quick"):
+        preset_config("nope")
+
+
+def test_run_takes_a_config_file_or_a_preset_name(tmp_path, monkeypatch):
+    from tissuecast.cli.run_cmd import config_or_preset
+
+    monkeypatch.chdir(tmp_path)
+    assert config_or_preset("embedded").scenario.name == "embedded"
+    (tmp_path / "embedded").write_text('name = "mine"\n')  # a file of that name wins
+    assert config_or_preset("embedded").name == "mine"
+    with pytest.raises(ConfigError, match="does not exist"):
+        config_or_preset("no-such-preset")

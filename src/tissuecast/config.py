@@ -31,6 +31,13 @@ __all__ = [
     "SurrogateConfig",
     "EvaluateConfig",
     "ServeConfig",
+    "ScenarioConfig",
+    "RegionConfig",
+    "SpringConfig",
+    "GravityConfig",
+    "IndentationConfig",
+    "MaterialRegionConfig",
+    "MaterialRegionsConfig",
     "load_config",
     "config_from_dict",
     "config_to_dict",
@@ -132,6 +139,7 @@ class ForceConfig:
     lsc_iterations: int = _f(20, lo=0, hi=10000, doc="local Laplacian smoothing iterations")
     lsc_rate: float = _f(0.1, lo=0.0, lo_open=True, hi=1.0, doc="smoothing rate gamma")
     betas: tuple[float, ...] = _f((0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0), doc="LBO share beta of test-2 fields")
+    loading: str = _f("nodal", choices=("nodal", "traction"), doc="nodal = forces on the vertices (the paper); traction = field / vertex area as a surface traction, no point loads (docs/scenarios.md)")
 
 
 @dataclass(frozen=True)
@@ -217,6 +225,118 @@ class ServeConfig:
     method: str = _f("mlp", choices=SERVE_METHODS, doc="prediction: the learned model (mlp) or the rigid registration of the markers (rigid, the fallback baseline)")
 
 
+# ------------------------------------------------------------------- scenario
+#: Rules selecting a region of the outer surface (see :mod:`tissuecast.scenario.regions`).
+REGION_RULES = ("none", "surface", "ids", "tag", "normal", "distance")
+
+#: Surroundings' stiffness per unit area (N/mm^3 = MPa/mm) of the default elastic support:
+#: tissue of modulus E = 0.021 MPa over a length of about L = 10 mm, k = E / L.
+DEFAULT_SUPPORT_STIFFNESS = 0.0021
+
+#: Accepted span of the length E / k (mm) that a spring stiffness k per unit area implies for
+#: the tissue's modulus E; outside it the value is almost surely in other units.
+SUPPORT_LENGTH_SPAN = (0.01, 1.0e4)
+
+#: Accepted densities (t/mm^3): soft tissues and bone lie in 0.9e-9 .. 2.1e-9.
+DENSITY_SPAN = (1.0e-10, 1.0e-8)
+
+
+@dataclass(frozen=True)
+class RegionConfig:
+    """A set of outer-surface vertices chosen by one rule (e.g. where the tissue is attached)."""
+
+    rule: str = _f("none", choices=REGION_RULES, doc="outer-surface vertices: surface = all; ids = in `ids`; tag = a mesh-file region; normal = within `angle` of `direction`; distance = near `point`")
+    ids: tuple[int, ...] = _f((), lo=0, doc="rule 'ids': 0-based vertex ids")
+    tag: str = _f("", doc="rule 'tag': name of a point-data array, point set, cell set or cell-data array of the mesh file")
+    tag_value: int = _f(-1, doc="rule 'tag' on a point-data or cell-data array: the value marking the region; -1 = any non-zero value")
+    direction: tuple[float, ...] = _f((0.0, 0.0, -1.0), doc="rule 'normal': direction (mesh coordinates) the region's outward normals point to")
+    angle: float = _f(45.0, lo=0.0, hi=180.0, doc="rule 'normal': largest angle in degrees between a vertex's outward normal and `direction`")
+    point: tuple[float, ...] = _f((0.0, 0.0, 0.0), doc="rule 'distance': centre, mm (mesh coordinates)")
+    distance: float = _f(10.0, lo=0.0, lo_open=True, doc="rule 'distance': radius, mm")
+
+
+@dataclass(frozen=True)
+class SpringConfig(RegionConfig):
+    """Elastic support: distributed linear springs tying a surface region to fixed surroundings.
+
+    The stiffness per unit area k (N/mm^3 = MPa/mm) is lumped to the surface nodes by area;
+    a layer of surrounding tissue of modulus E and thickness L resists about k = E / L
+    (the default 0.0021 N/mm^3 is 0.021 MPa over 10 mm): a uniform pressure p then moves the
+    surface by p / k.
+    """
+
+    normal_stiffness: float = _f(DEFAULT_SUPPORT_STIFFNESS, lo=0.0, lo_open=True, doc="stiffness per unit area normal to the surface, N/mm^3 (MPa/mm): surroundings of modulus E over a length L give about E / L (default 0.021 MPa / 10 mm)")
+    tangential_stiffness: float = _f(DEFAULT_SUPPORT_STIFFNESS, lo=0.0, doc="stiffness per unit area along the surface, N/mm^3; equal to normal_stiffness = isotropic; 0 = the surface slides freely")
+
+
+@dataclass(frozen=True)
+class GravityConfig:
+    """Change of gravity between imaging and surgery: body force rho |g| (d_surgery - d_imaging)."""
+
+    enabled: bool = _f(False, doc="add the change of gravity to every sample's loads")
+    density: float = _f(1.0e-9, lo=0.0, lo_open=True, doc="tissue density in t/mm^3 (1000 kg/m^3 = 1 g/cm^3 = 1e-9 t/mm^3)")
+    acceleration: float = _f(9810.0, lo=0.0, lo_open=True, doc="|g| in mm/s^2 (9.81 m/s^2 = 9810 mm/s^2)")
+    imaging_direction: tuple[float, ...] = _f((0.0, 0.0, -1.0), doc="direction of gravity (mesh coordinates) when the reference image was taken")
+    surgery_direction: tuple[float, ...] = _f((0.0, 0.0, -1.0), doc="nominal direction of gravity during surgery")
+    cone_angle: float = _f(30.0, lo=0.0, hi=90.0, doc="each sample's surgery direction is drawn uniformly within this angle (degrees) of surgery_direction")
+
+
+@dataclass(frozen=True)
+class IndentationConfig:
+    """An instrument pushing a small surface patch: prescribed displacement at a random site per sample."""
+
+    enabled: bool = _f(False, doc="one indentation per sample")
+    radius: float = _f(4.0, lo=0.0, lo_open=True, doc="patch radius, mm: the surface vertices within it (on the centre's side) move together")
+    depth: tuple[float, ...] = _f((2.0, 6.0), lo=0.0, doc="[min, max] depth along the inward normal at the centre, mm, drawn uniformly")
+    slide: tuple[float, ...] = _f((0.0, 2.0), lo=0.0, doc="[min, max] tangential slide, mm, drawn uniformly, in a uniformly drawn tangent direction")
+    clearance: float = _f(8.0, lo=0.0, doc="patch centres lie at least this far (mm) from supported vertices (pins, attached region)")
+
+
+MATERIAL_REGION_RULES = ("cell_data", "distance")
+
+
+@dataclass(frozen=True)
+class MaterialRegionConfig:
+    """One material region: neo-Hookean constants for a set of elements."""
+
+    name: str = _f("region", doc="label")
+    rule: str = _f("cell_data", choices=MATERIAL_REGION_RULES, doc="cell_data = the elements whose materials.cell_data value equals `value`; distance = the elements whose centroid lies within `distance` of `point`")
+    value: int = _f(1, doc="rule 'cell_data': the region's value")
+    point: tuple[float, ...] = _f((0.0, 0.0, 0.0), doc="rule 'distance': centre, mm")
+    distance: float = _f(10.0, lo=0.0, lo_open=True, doc="rule 'distance': radius, mm")
+    youngs_modulus: float = _f(0.021, lo=0.0, lo_open=True, doc="E in MPa")
+    poisson_ratio: float = _f(0.45, lo=-1.0, hi=0.5, lo_open=True, hi_open=True, doc="nu")
+    youngs_modulus_range: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] MPa: E is drawn uniformly once per data set; empty = youngs_modulus")
+    poisson_ratio_range: tuple[float, ...] = _f((), lo=-1.0, hi=0.5, lo_open=True, hi_open=True, doc="[min, max]: nu drawn uniformly once per data set; empty = poisson_ratio")
+
+
+@dataclass(frozen=True)
+class MaterialRegionsConfig:
+    """Per-element materials; elements in no region have the [material] section's constants."""
+
+    cell_data: str = _f("", doc="name of the mesh file's integer cell-data array of region values (rule 'cell_data')")
+    regions: tuple[MaterialRegionConfig, ...] = _f((), doc="the regions ([[scenario.materials.regions]] tables); a later region wins where two overlap")
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    """The clinical scenario: how the tissue is held and what loads it per sample.
+
+    The defaults are the paper's: pinned vertices (``[markers]`` fixed_*) and LBO surface
+    forces. Supports combine freely (pins, an attached region, an elastic support); loads are
+    summed per sample (LBO forces, a change of gravity, one indentation).
+    """
+
+    name: str = _f("paper", doc="label shown in reports")
+    pins: bool = _f(True, doc="hold the body by the pinned vertices of [markers] (fixed_count, fixed_rule, fixed_ids)")
+    lbo_forces: bool = _f(True, doc="random LBO surface forces per sample (magnitude calibrated to forces.target_max_displacement)")
+    attached: RegionConfig = field(default_factory=RegionConfig, metadata={"doc": "surface region fixed in all components (tissue attached to bone or muscle)"})
+    springs: SpringConfig = field(default_factory=SpringConfig, metadata={"doc": "elastic support: springs tying a surface region to the surroundings"})
+    gravity: GravityConfig = field(default_factory=GravityConfig, metadata={"doc": "change of gravity between imaging and surgery"})
+    indentation: IndentationConfig = field(default_factory=IndentationConfig, metadata={"doc": "one instrument indentation per sample"})
+    materials: MaterialRegionsConfig = field(default_factory=MaterialRegionsConfig, metadata={"doc": "per-element materials (e.g. a stiffer tumour)"})
+
+
 @dataclass(frozen=True)
 class Config:
     """The whole run configuration. ``Config()`` reproduces the paper's set-up."""
@@ -232,6 +352,7 @@ class Config:
     surrogate: SurrogateConfig = field(default_factory=SurrogateConfig)
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
     serve: ServeConfig = field(default_factory=ServeConfig)
+    scenario: ScenarioConfig = field(default_factory=ScenarioConfig)
 
 
 # ----------------------------------------------------------------- validation
@@ -295,7 +416,10 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
             item = typing.get_args(typ)[0]
             if not isinstance(value, (list, tuple)):
                 raise ConfigError(f"{key} must be a list, got {value!r}")
-            kwargs[name] = tuple(_check_scalar(f"{key}[{i}]", v, item, meta) for i, v in enumerate(value))
+            if dataclasses.is_dataclass(item):  # an array of tables, [[key]]
+                kwargs[name] = tuple(_build(item, v, f"{key}[{i}].") for i, v in enumerate(value))
+            else:
+                kwargs[name] = tuple(_check_scalar(f"{key}[{i}]", v, item, meta) for i, v in enumerate(value))
         else:
             kwargs[name] = _check_scalar(key, value, typ, meta)
     obj = cls(**kwargs)
@@ -337,6 +461,78 @@ def _cross_checks(obj: Any, prefix: str) -> None:
             raise ConfigError(f"{exc} (empty = no registration)") from exc
     if isinstance(obj, SolverConfig) and obj.min_increment > obj.initial_increment:
         raise ConfigError(f"{prefix}min_increment ({obj.min_increment}) must not exceed initial_increment ({obj.initial_increment})")
+    if isinstance(obj, RegionConfig):
+        _check_vector(f"{prefix}direction", obj.direction)
+        _check_vector(f"{prefix}point", obj.point, nonzero=False)
+        if obj.rule == "ids" and not obj.ids:
+            raise ConfigError(f"{prefix}rule = 'ids' needs {prefix}ids, a list of 0-based vertex ids")
+        if obj.rule == "tag" and not obj.tag:
+            raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
+                              "(`tissuecast mesh info FILE` lists them)")
+    if isinstance(obj, GravityConfig):
+        _check_vector(f"{prefix}imaging_direction", obj.imaging_direction)
+        _check_vector(f"{prefix}surgery_direction", obj.surgery_direction)
+        lo, hi = DENSITY_SPAN
+        if not lo <= obj.density <= hi:
+            raise ConfigError(
+                f"{prefix}density = {obj.density!r} t/mm^3 is outside the range of tissues ({lo:g}..{hi:g}); density "
+                "is in tonne per mm^3 (consistent with mm, N, s): 1000 kg/m^3 = 1 g/cm^3 = 1e-9 t/mm^3")
+        if obj.acceleration < 100.0:
+            raise ConfigError(f"{prefix}acceleration = {obj.acceleration!r} looks like m/s^2; it is in mm/s^2 "
+                              "(9.81 m/s^2 = 9810 mm/s^2)")
+    if isinstance(obj, IndentationConfig):
+        for name in ("depth", "slide"):
+            _check_range(f"{prefix}{name}", getattr(obj, name), required=True)
+        if obj.radius < 0.1 or 0.0 < obj.depth[1] < 0.01:
+            raise ConfigError(f"{prefix}radius = {obj.radius!r} mm and depth = {list(obj.depth)} mm look like metres; "
+                              "lengths are in mm (e.g. radius 4, depth [2, 6])")
+        if obj.depth[1] <= 0.0:
+            raise ConfigError(f"{prefix}depth = {list(obj.depth)} never pushes; give [min, max] mm with max > 0")
+    if isinstance(obj, MaterialRegionConfig):
+        _check_vector(f"{prefix}point", obj.point, nonzero=False)
+        _check_range(f"{prefix}youngs_modulus_range", obj.youngs_modulus_range)
+        _check_range(f"{prefix}poisson_ratio_range", obj.poisson_ratio_range)
+    if isinstance(obj, MaterialRegionsConfig):
+        if any(r.rule == "cell_data" for r in obj.regions) and not obj.cell_data:
+            raise ConfigError(f"{prefix}cell_data must name the mesh file's cell-data array of region values when a "
+                              "region has rule = 'cell_data'")
+        names = [r.name for r in obj.regions]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"{prefix}regions repeat a name ({names}); give each region its own name")
+    if isinstance(obj, Config):
+        _check_scenario(obj)
+
+
+def _check_vector(key: str, v: tuple, nonzero: bool = True) -> None:
+    if len(v) != 3 or (nonzero and not any(x != 0.0 for x in v)):
+        raise ConfigError(f"{key} must be 3 numbers (x, y, z){' not all zero' if nonzero else ''}, got {list(v)}")
+
+
+def _check_range(key: str, v: tuple, required: bool = False) -> None:
+    if (v or required) and (len(v) != 2 or v[0] > v[1]):
+        raise ConfigError(f"{key} must be [min, max] with min <= max{'' if required else ' (or empty)'}, got {list(v)}")
+
+
+def _check_scenario(cfg: "Config") -> None:
+    """Checks of the scenario that need other sections (the material's modulus)."""
+    sc = cfg.scenario
+    if not (sc.pins or sc.attached.rule != "none" or sc.springs.rule != "none"):
+        raise ConfigError("scenario has no support: the body could move freely; keep scenario.pins = true, or "
+                          "set scenario.attached.rule or scenario.springs.rule")
+    if not (sc.lbo_forces or sc.gravity.enabled or sc.indentation.enabled):
+        raise ConfigError("scenario has no load: set scenario.lbo_forces = true, scenario.gravity.enabled or "
+                          "scenario.indentation.enabled")
+    if sc.springs.rule != "none":
+        e = cfg.material.youngs_modulus
+        lo, hi = SUPPORT_LENGTH_SPAN
+        for name in ("normal_stiffness", "tangential_stiffness"):
+            k = getattr(sc.springs, name)
+            if k > 0.0 and not lo <= e / k <= hi:
+                raise ConfigError(
+                    f"scenario.springs.{name} = {k!r} N/mm^3 would be tissue of E = {e} MPa over {e / k:.3g} mm; "
+                    "the stiffness is per unit area, in N/mm^3 (= MPa/mm): surroundings of modulus E over a "
+                    f"length L give E / L, e.g. {DEFAULT_SUPPORT_STIFFNESS} for 0.021 MPa over 10 mm (a value in "
+                    "N/m^3 is 1e9 times too large)")
 
 
 def config_from_dict(data: dict) -> Config:
@@ -370,7 +566,7 @@ def config_to_dict(cfg: Any) -> dict:
         if dataclasses.is_dataclass(v):
             out[f.name] = config_to_dict(v)
         elif isinstance(v, tuple):
-            out[f.name] = list(v)
+            out[f.name] = [config_to_dict(x) if dataclasses.is_dataclass(x) else x for x in v]
         else:
             out[f.name] = v
     return out
@@ -389,37 +585,57 @@ def _toml_value(v: Any) -> str:
 
 
 def config_to_toml(cfg: Config, comments: bool = True) -> str:
-    """TOML text that :func:`load_config` reads back to an equal config."""
+    """TOML text that :func:`load_config` reads back to an equal config.
+
+    Nested sections become sub-tables (``[scenario.gravity]``), tuples of sections arrays of
+    tables (``[[scenario.materials.regions]]``).
+    """
     lines: list[str] = []
-    sections = []
-    for f in dataclasses.fields(cfg):
-        v = getattr(cfg, f.name)
+    _toml_table(cfg, "", lines, comments)
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def _toml_table(obj: Any, name: str, lines: list, comments: bool, array: bool = False) -> None:
+    if name:
+        lines += ["", f"[[{name}]]" if array else f"[{name}]"]
+    later = []
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        key = f"{name}.{f.name}" if name else f.name
         if dataclasses.is_dataclass(v):
-            sections.append((f.name, v))
+            later.append((key, [v], False))
+        elif isinstance(v, tuple) and v and dataclasses.is_dataclass(v[0]):
+            later.append((key, v, True))
         else:
             doc = f.metadata.get("doc", "")
             lines.append(f"{f.name} = {_toml_value(v)}" + (f"  # {doc}" if comments and doc else ""))
-    for name, sec in sections:
-        lines.append("")
-        lines.append(f"[{name}]")
-        for f in dataclasses.fields(sec):
-            doc = f.metadata.get("doc", "")
-            lines.append(f"{f.name} = {_toml_value(getattr(sec, f.name))}" + (f"  # {doc}" if comments and doc else ""))
-    return "\n".join(lines) + "\n"
+    for key, items, is_array in later:
+        for item in items:
+            _toml_table(item, key, lines, comments, is_array)
 
 
 def with_overrides(cfg: Config, **sections: dict) -> Config:
     """A copy of ``cfg`` with some section values replaced, validated like a file.
 
-    Example: ``with_overrides(cfg, dataset={"n_samples": 100})``.
+    Example: ``with_overrides(cfg, dataset={"n_samples": 100})``; nested sub-tables merge key
+    by key (``scenario={"gravity": {"enabled": True}}`` keeps the other gravity keys).
     """
     data = config_to_dict(cfg)
     for sec, values in sections.items():
         if isinstance(values, dict):
             if sec not in data or not isinstance(data[sec], dict):
                 raise ConfigError(f"unknown config section {sec!r}")
-            data[sec].update(values)
+            _merge(data[sec], values)
         else:
             data[sec] = values
     return config_from_dict(data)
+
+
+def _merge(into: dict, values: dict) -> None:
+    """Update nested dicts key by key (a sub-table given in part keeps its other keys)."""
+    for k, v in values.items():
+        if isinstance(v, dict) and isinstance(into.get(k), dict):
+            _merge(into[k], v)
+        else:
+            into[k] = v
 

@@ -39,7 +39,11 @@ def _stats_line(st: dict) -> str:
 
 def print_summary(s: dict) -> None:
     """Print a data-set summary (from ``Dataset.summary()``) as text."""
+    from ..scenario.describe import scenario_lines
+
     print(f"data set {s['path']}: {s['n_samples']} samples, {s['n_vertices']} vertices")
+    for what, text in scenario_lines(s.get("scenario")):
+        print(f"  {what}: {text}")
     print(f"  {'split':<7} {'done':>6} {'failed':>7} {'pending':>8}")
     for name, c in s["counts"].items():
         print(f"  {name:<7} {c['done']:>6} {c['failed']:>7} {c['pending']:>8}")

@@ -9,10 +9,18 @@ def register(sub) -> None:
     p = sub.add_parser("demo", help="run the quick preset on the phantom: simulate, train, evaluate, report",
                        description="Uses the packaged configs/quick.toml; everything goes into --output.")
     p.add_argument("--output", default="tissuecast-demo", help="output folder (default ./tissuecast-demo)")
-    p.add_argument("--preset", default="quick", help="packaged preset name (quick or paper; default quick)")
+    p.add_argument("--preset", default="quick", help="packaged preset name (quick, paper or embedded; default quick)")
     p.add_argument("--workers", type=int, help="local FEM worker processes")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
+
+
+def preset_names() -> list[str]:
+    """Names of the packaged presets (``tissuecast/configs/*.toml``), sorted."""
+    from importlib import resources
+
+    folder = resources.files("tissuecast") / "configs"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
 def preset_config(name: str):
@@ -25,7 +33,7 @@ def preset_config(name: str):
 
     res = resources.files("tissuecast") / "configs" / f"{name}.toml"
     if not res.is_file():
-        raise ConfigError(f"no packaged preset {name!r}; use quick or paper")
+        raise ConfigError(f"no packaged preset {name!r}; use one of {', '.join(preset_names())}")
     return config_from_dict(tomllib.loads(res.read_text(encoding="utf-8")))
 
 

@@ -30,6 +30,7 @@ COMMANDS: dict[str, str] = {
     "simulate": "simulate_cmd",
     "dataset": "dataset_cmd",
     "export-inp": "export_inp_cmd",
+    "scenario": "scenario_cmd",
     "serve": "serve_cmd",
     "train": "train_cmd",
     "evaluate": "evaluate_cmd",

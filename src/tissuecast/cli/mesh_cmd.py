@@ -99,8 +99,12 @@ def mesh_summary(mesh: TetMesh) -> dict:
 
 
 def run_info(args) -> int:
+    from ..mesh.tags import MeshTags, read_mesh_tags
+
     mesh = load_mesh_argument(args.file, args.units, args.mesh_size)
     s = mesh_summary(mesh)
+    tags = MeshTags() if args.file == PHANTOM_WORD else read_mesh_tags(args.file)
+    s["regions"] = tags.names()  # named regions scenario rules can use (tag = ..., materials.cell_data = ...)
     if args.json:
         print(json.dumps({"file": args.file, **s}, indent=2))
         return 0
@@ -122,6 +126,7 @@ def run_info(args) -> int:
     print(f"edge length (mm)   min {q['edge_length_min']:.3f}  mean {q['edge_length_mean']:.3f}  max {q['edge_length_max']:.3f}")
     print(f"tet volume (mm^3)  min {q['volume_min']:.4g}  max {q['volume_max']:.4g}")
     print(f"fingerprint        {s['fingerprint']}")
+    print(f"named regions      {', '.join(s['regions']) or 'none'}  (point data, point/cell sets, cell data)")
     return 0
 
 

@@ -7,7 +7,8 @@ def register(sub) -> None:
     p = sub.add_parser("run", help="run the whole pipeline as a config describes",
                        description="Simulate the data set (resumable), train the surrogate, evaluate it and write the "
                                    "report. Paths: dataset.store, OUTPUT/model, OUTPUT/<evaluate.output>.")
-    p.add_argument("config", help="TOML config file (e.g. configs/paper.toml or configs/quick.toml)")
+    p.add_argument("config", help="TOML config file (e.g. configs/paper.toml), or the name of a packaged preset "
+                                  "(quick, paper, embedded)")
     p.add_argument("--skip-simulate", action="store_true", help="use the existing store as it is")
     p.add_argument("--workers", type=int, help="local FEM worker processes (default: dataset.workers)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -30,11 +31,22 @@ def report_run(result) -> None:
     print(f"report: {result['report']}")
 
 
-def run(args) -> int:
+def config_or_preset(source: str):
+    """The config file ``source``, or the packaged preset of that name when no such file exists."""
+    from pathlib import Path
+
     from ..config import load_config
+    from .demo_cmd import preset_config, preset_names
+
+    if not Path(source).is_file() and source in preset_names():
+        return preset_config(source)
+    return load_config(source)
+
+
+def run(args) -> int:
     from ..evaluate.pipeline import run_pipeline
 
-    cfg = load_config(args.config)
+    cfg = config_or_preset(args.config)
     result = run_pipeline(cfg, simulate=not args.skip_simulate, progress=not args.no_progress, workers=args.workers)
     report_run(result)
     return 0

@@ -18,6 +18,14 @@ Rule (documented in the store's ``calibration`` attribute):
   If pilots fail before the target is reached, the bracket closes (within ``RTOL``) on the
   largest alpha at which the quantile is still finite: the record says
   ``limited_by_failures`` and the data set stays below the target rather than failing.
+* With a scenario (supports other than pins alone, other loads, material regions), the LBO
+  magnitude is calibrated with the other loads present: each pilot is the whole sample (its
+  LBO field at alpha, its gravity change, its indentation). The first trial alpha then comes
+  from the linear response instead (:func:`linear_alpha`): the pilots' LBO fields alone,
+  solved with the stiffness at zero displacement, aimed at ``FIRST_AIM`` of the target. (The
+  dimensional estimate assumes a body hanging on pins, and with the other loads present a
+  first round at 1 % of the target would measure only them.) Without LBO forces nothing is
+  calibrated (alpha = 0).
 * If ``dataset.alpha`` > 0 in the config, it is used as is and no pilots are solved.
 * From the second round on, each pilot's solve starts from its own solution of the previous
   round (see ``generate._calibrate``); the answers are the same within the solver
@@ -38,7 +46,7 @@ import numpy as np
 
 from ..errors import DatasetError
 
-__all__ = ["calibrate_alpha", "initial_alpha", "RTOL", "MAX_ROUNDS", "FIRST_AIM"]
+__all__ = ["calibrate_alpha", "initial_alpha", "linear_alpha", "RTOL", "MAX_ROUNDS", "FIRST_AIM"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +56,8 @@ FIRST_AIM = 0.5  # a first extrapolation from far below the target aims at this 
 #: The response exponent ``s`` of q ~ alpha^s is clipped to this range (a body held by a few
 #: pins softens, but not without bound).
 EXPONENT_MIN, EXPONENT_MAX = 0.5, 3.0
+#: Significant digits of the first alpha of a scenario's calibration (:func:`linear_alpha`).
+LINEAR_ALPHA_DIGITS = 6
 FAILURE_DIVISOR = 4.0  # after a round with failures and no lower bound, alpha is divided by this
 
 
@@ -67,6 +77,51 @@ def initial_alpha(basis, mesh, fixed, youngs_modulus: float, target: float, frac
     if net <= 0.0:  # a basis without net force (should not happen: the constant mode has one)
         net = float(np.linalg.norm(basis.vectors)) / np.sqrt(basis.vectors.shape[0])
     return fraction * target * youngs_modulus * h / net
+
+
+def linear_alpha(recipe, tasks, target: float, quantile: float = 0.9, aim: float = FIRST_AIM) -> float:
+    """First trial alpha (N) of a scenario's calibration, from the linear response.
+
+    The pilots' LBO fields at unit alpha, applied as the scenario applies them
+    (``forces.loading``) but without its other loads, are solved with the stiffness at zero
+    displacement (supports, springs, material regions); alpha is set so that the ``quantile``
+    of their peak vertex displacements is ``aim * target``, rounded to
+    :data:`LINEAR_ALPHA_DIGITS` significant digits: these solves run in the parent process,
+    whose BLAS may use any number of threads, and the last bits of a multi-threaded
+    factorisation depend on that number; rounded, the first alpha (and so every later bit of
+    the data set) is the same in any process.
+
+    Args:
+        recipe: the data set's :class:`~.worker.Recipe` (with its scenario).
+        tasks: the pilots as :class:`~.worker.Task` with ``alpha = 1``.
+        target: mm.
+
+    Raises:
+        DatasetError: the stiffness at zero displacement is singular (supports that leave a
+            rigid-body motion free) or the fields do not move the body.
+    """
+    from ..scenario import ScenarioDraw
+    from .worker import SampleContext
+
+    ctx = SampleContext(recipe)
+    solver = ctx.solver(0)
+    reference = solver.reference_factor()
+    if reference is None:
+        raise DatasetError("the stiffness at zero displacement is not positive definite: the supports leave the "
+                           "body free to move; check the scenario's supports")
+    free = solver.free_dofs
+    n = ctx.mesh.n_vertices
+    peaks = []
+    for task in tasks:
+        f, _ = ctx.forces(task)
+        loads = ctx.scenario.loads(ScenarioDraw(), f, ctx.config.forces.loading)
+        u = np.zeros(3 * len(loads))
+        u[free] = reference.solve(loads.ravel()[free])
+        peaks.append(float(np.linalg.norm(u.reshape(-1, 3)[:n], axis=1).max()))
+    q = _quantile(np.array(peaks), quantile)
+    if not q > 0.0:
+        raise DatasetError("the pilots' LBO fields do not move the body (zero linear response); check the scenario")
+    return float(f"{aim * target / q:.{LINEAR_ALPHA_DIGITS}g}")
 
 
 def _quantile(values: np.ndarray, q: float) -> float:

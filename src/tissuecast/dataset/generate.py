@@ -25,7 +25,7 @@ import numpy as np
 
 from ..config import Config, config_from_dict, config_to_dict, config_to_toml, load_config
 from ..errors import DatasetError
-from .calibrate import calibrate_alpha, initial_alpha
+from .calibrate import calibrate_alpha, initial_alpha, linear_alpha
 from .codes import SampleStatus
 from .executors import make_executor
 from .plan import generation_order, make_plan
@@ -34,14 +34,14 @@ from .reader import open_dataset
 from .store import StoreWriter, read_lbo_basis
 from .worker import Recipe, Task
 
-__all__ = ["simulate", "setup_from_config", "data_config", "SimulationRun", "Phase"]
+__all__ = ["simulate", "setup_from_config", "scenario_setup", "uses_scenario", "data_config", "SimulationRun", "Phase"]
 
 log = logging.getLogger(__name__)
 
 # config keys that do not change a data set's numbers (may differ when resuming); the mesh
 # file may move: its content is checked by fingerprint instead
 _RUNTIME_KEYS = {"dataset": ("store", "workers", "scheduler"), "mesh": ("path",)}
-_DATA_SECTIONS = ("mesh", "markers", "material", "solver", "forces", "dataset")
+_DATA_SECTIONS = ("mesh", "markers", "material", "solver", "forces", "dataset", "scenario")
 
 
 def data_config(cfg: Config) -> dict:
@@ -58,14 +58,24 @@ def setup_from_config(cfg: Config):
     """The mesh, fiducial markers and fixed vertices a config describes.
 
     Returns:
-        ``(mesh TetMesh, markers (n_d,) int64, fixed (k,) int64)``.
+        ``(mesh TetMesh, markers (n_d,) int64, fixed (k,) int64)``: the fixed vertices are
+        those held in all components by the scenario (pins and attached region; the paper's
+        set-up: the pins).
     """
-    from ..markers import markers_and_fixed
-    from ..mesh.source import mesh_from_config
+    mesh, markers, _, scenario = scenario_setup(cfg)
+    return mesh, markers, scenario.supported
 
-    mesh = mesh_from_config(cfg.mesh)
-    markers, fixed = markers_and_fixed(mesh, cfg.markers)
-    return mesh, np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
+
+def scenario_setup(cfg: Config):
+    """The mesh, fiducial markers, pins and resolved scenario a config describes
+    (:func:`tissuecast.scenario.scenario_from_config`).
+
+    Returns:
+        ``(mesh, markers (n_d,) int64, pins (k,) int64, scenario)``.
+    """
+    from ..scenario import scenario_from_config
+
+    return scenario_from_config(cfg)
 
 
 def _check_same(writer: StoreWriter, cfg: Config, mesh, markers: np.ndarray, fixed: np.ndarray) -> None:
@@ -139,7 +149,8 @@ class _Progress:
 
 
 def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
-    mesh, markers, fixed = setup_from_config(cfg)
+    mesh, markers, _, scenario = scenario_setup(cfg)
+    fixed = scenario.supported
     if path.exists():
         writer = StoreWriter.open(path)
         _check_same(writer, cfg, mesh, markers, fixed)
@@ -148,7 +159,16 @@ def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
 
     basis = lbo_basis(mesh, cfg.forces.n_basis)
     return StoreWriter.create(path, config_toml=config_to_toml(cfg, comments=False), mesh=mesh, markers=markers,
-                              fixed=fixed, basis=basis, plan=make_plan(cfg))
+                              fixed=fixed, basis=basis, plan=make_plan(cfg), scenario=scenario)
+
+
+def uses_scenario(cfg: Config) -> bool:
+    """Whether a data set's samples go through the scenario path (loads on every element node,
+    per-sample draws): every set-up but the paper's (pins, LBO forces as nodal forces)."""
+    sc = cfg.scenario
+    plain = (sc.pins and sc.lbo_forces and sc.attached.rule == "none" and sc.springs.rule == "none"
+             and not sc.gravity.enabled and not sc.indentation.enabled and not sc.materials.regions)
+    return not plain or cfg.forces.loading != "nodal"
 
 
 def _recipe(writer: StoreWriter, solver_factory: str | None) -> Recipe:
@@ -156,6 +176,9 @@ def _recipe(writer: StoreWriter, solver_factory: str | None) -> Recipe:
     if writer.reduced is not None:
         kw.update(reduced_basis=writer.read("reduced/basis"), reduced_elements=writer.read("reduced/elements"),
                   reduced_weights=writer.read("reduced/weights"))
+    cfg = config_from_dict(tomllib.loads(writer.config_toml))
+    if uses_scenario(cfg):
+        kw["scenario"] = {name: writer.read(f"scenario/{name}") for name in writer.root["scenario"].array_keys()}
     return Recipe(writer.config_toml, writer.read("mesh/points"), writer.read("mesh/tets"), writer.read("fixed"),
                   read_lbo_basis(writer.root), **kw)
 
@@ -165,6 +188,9 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
     ds = cfg.dataset
     if ds.alpha > 0:
         return {"rule": "given (dataset.alpha)", "alpha": ds.alpha, "converged": True, "rounds": []}, []
+    if not cfg.scenario.lbo_forces:
+        return {"rule": "none: the scenario has no LBO forces (scenario.lbo_forces = false)", "alpha": 0.0,
+                "converged": True, "rounds": []}, []
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     n_lbo = int(writer.root.attrs["n_lbo"])
     pilots = list(range(min(ds.calibration_samples, n_lbo)))
@@ -180,7 +206,10 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
         return np.array([r.max_displacement for r in last])
 
     target = cfg.forces.target_max_displacement
-    alpha0 = initial_alpha(recipe.basis, recipe.mesh, recipe.fixed, cfg.material.youngs_modulus, target)
+    if recipe.scenario is None:
+        alpha0 = initial_alpha(recipe.basis, recipe.mesh, recipe.fixed, cfg.material.youngs_modulus, target)
+    else:
+        alpha0 = linear_alpha(recipe, [Task(i, int(seeds[i]), float(betas[i]), 1.0) for i in pilots], target)
     record = calibrate_alpha(pilot_max, alpha0, target, quantile=ds.calibration_quantile)
     record["pilots"] = pilots
     reusable = [r for r in last if r.alpha == record["alpha"]]

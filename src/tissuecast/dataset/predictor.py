@@ -58,10 +58,9 @@ def build_reduced(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple
         ``(samples, built)``: the samples solved and written here, and whether the model was
         built (False, with a log line saying why, when it cannot be).
     """
-    from ..fem import build_problem
     from ..fem.reduced import ReducedModel
 
-    problem = build_problem(recipe.mesh, cfg, recipe.fixed)
+    problem = recipe.problem()
     solved, complete = _solve_basis_samples(writer, ex, cfg, len(problem.nodes))
     if not complete:
         log.warning("the solver returns no nodal displacements; data set solved without a predictor")

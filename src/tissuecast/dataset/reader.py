@@ -12,7 +12,7 @@ from ..config import Config, config_from_dict
 from ..errors import DatasetError
 from .plan import SPLIT_CODES, SPLIT_NAMES
 from .codes import STATUS_NAMES, InitialGuess, SampleStatus
-from .store import _open_root, check_schema, read_lbo_basis
+from .store import DRAWS, _open_root, check_schema, read_lbo_basis
 
 __all__ = ["Dataset", "open_dataset", "max_displacement_stats"]
 
@@ -118,6 +118,15 @@ class Dataset:
         return self._array("samples/predicted")
 
     @cached_property
+    def draws(self) -> dict[str, np.ndarray]:
+        """Each sample's scenario draws, by name (:data:`~.store.DRAWS`): ``gravity_direction``
+        (N, 3) unit vectors, ``indent_centre`` (N,) int64 vertex ids (-1: none),
+        ``indent_depth`` / ``indent_slide`` (N,) mm and ``indent_displacement`` (N, 3) mm (NaN:
+        not drawn). Only the draws the scenario makes; empty for the paper's set-up."""
+        samples = self._root["samples"]
+        return {name: self._array(f"samples/{name}") for name in DRAWS if name in samples}
+
+    @cached_property
     def split_codes(self) -> np.ndarray:
         """(N,) int8 split codes (0 train, 1 valid, 2 test1, 3 test2)."""
         return self._array("samples/split")
@@ -170,6 +179,18 @@ class Dataset:
     def attrs(self) -> dict:
         """All root attributes (schema, versions, calibration, ...)."""
         return dict(self._root.attrs)
+
+    @property
+    def scenario(self) -> dict:
+        """The clinical scenario's summary (:meth:`tissuecast.scenario.Scenario.summary`:
+        supports, springs, gravity, indentation, material draws); for a store made before
+        scenarios were recorded, the paper's set-up (its pins and LBO forces)."""
+        stored = self._root.attrs.get("scenario")
+        if stored:
+            return dict(stored)
+        from ..scenario.describe import paper_summary
+
+        return paper_summary(len(self.fixed))
 
     @property
     def calibration(self) -> dict | None:
@@ -233,7 +254,8 @@ class Dataset:
         return out
 
     def summary(self, *, deformation: bool = False) -> dict:
-        """Counts by split and status, per-sample maximum displacement and timing statistics.
+        """The scenario (:attr:`scenario`), counts by split and status, per-sample maximum displacement
+        and timing statistics.
 
         Args:
             deformation: also the distribution of the non-rigid part of the done samples
@@ -256,6 +278,7 @@ class Dataset:
         incs = self.increments[done]
         return {
             "path": str(self.path), "n_samples": self.n_samples, "n_vertices": self.n_vertices,
+            "scenario": self.scenario,
             "counts": counts,
             "totals": {st: int(np.sum(self.status == c)) for c, st in STATUS_NAMES.items()},
             "max_displacement": max_displacement_stats(self.max_displacement[done]),

@@ -14,9 +14,13 @@ vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
         status_labels               {"0": "pending", "1": "done", "2": "failed"}
         calibration                 force-magnitude calibration (see calibrate.py), null until done
         failures                    {"<sample index>": "reason"} of failed samples
+        scenario                    the clinical scenario (Scenario.summary(): supports, springs,
+                                    gravity, indentation, material draws); absent in stores made
+                                    before scenarios existed (they are the paper's: pins + LBO)
       mesh/points     (n_v, 3) float64 mm        mesh/tets (m, 4) int64 (0-based, positive volume)
       markers         (n_d,)  int64 fiducial-marker vertex ids (pick order)
-      fixed           (k,)    int64 fixed (pinned) vertex ids
+      fixed           (k,)    int64 vertex ids fixed in all components: the pins and the attached
+                              region of the scenario (the paper's set-up: the pins)
       lbo/vertices    (s,)    int64 surface vertex ids     lbo/vectors (s, n_b) float64 1/mm
       lbo/eigenvalues (n_b,)  float64 1/mm^2               lbo/mass    (s,)     float64 mm^2
       samples/displacements (N, n_v, 3) float32 mm; one chunk per sample; NaN unless done
@@ -36,6 +40,22 @@ vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
       samples/predicted     (N,) int8 initial guess (codes.InitialGuess): 0 zero (no reduced
                             model yet), 1 the reduced model's prediction, 2 the guess did not
                             work (then zero), 3 a calibration pilot's solution of the previous round
+      scenario/pinned, scenario/attached, scenario/spring_region   (k,) int64 vertex ids of the
+                            pins, the attached region and the elastic support's region
+      scenario/spring_nodes (s,) int64 element nodes with a spring (P2: vertices, then mid-edge
+                            nodes as in reduced/snapshots); scenario/spring_stiffness (s, 3, 3)
+                            float64 N/mm, each node's spring K_a (present with an elastic support)
+      scenario/youngs_modulus (m,) float64 MPa, scenario/poisson_ratio (m,) float64,
+      scenario/material_region (m,) int64 (-1 = [material])   per element (with material regions)
+      samples/gravity_direction   (N, 3) float64 unit direction of gravity during surgery drawn
+                            for the sample (NaN: not drawn yet, or no gravity change)
+      samples/indent_centre (N,) int64 vertex id of the indentation patch's centre (-1: none)
+      samples/indent_depth, samples/indent_slide (N,) float64 mm, the indentation's depth along
+                            the inward normal and its slide along the surface (NaN: none)
+      samples/indent_displacement (N, 3) float64 mm, the displacement given to every patch vertex
+      (the scenario/ group and the samples' draw arrays exist in stores whose scenario has them;
+      a sample's draws are a function of its seed: scenario.scenario_rng; the patch vertices
+      follow from the centre, the mesh and the config)
       reduced/samples       (s,) int64 ids of the samples whose full solutions built the reduced
                             model (dataset.predictor = "reduced"; absent otherwise)
       reduced/snapshots     (s, n_nodes, 3) float64 mm their displacements at every element node
@@ -94,6 +114,15 @@ SCALARS = {
     "predicted": ("int8", InitialGuess.ZERO.value),
 }
 _ADDED_LATER = ("predicted",)  # per-sample arrays that stores of earlier releases lack (created on open)
+#: Per-sample scenario draws: name -> (trailing shape, dtype, fill value), in stores whose
+#: scenario draws a gravity direction or an indentation.
+DRAWS = {
+    "gravity_direction": ((3,), "float64", np.nan),
+    "indent_centre": ((), "int64", -1),
+    "indent_depth": ((), "float64", np.nan),
+    "indent_slide": ((), "float64", np.nan),
+    "indent_displacement": ((3,), "float64", np.nan),
+}
 
 
 def package_versions() -> dict[str, str]:
@@ -157,8 +186,10 @@ class StoreWriter:
                 n = self.samples["status"].shape[0]
                 self.samples.create_array(name, shape=(n,), dtype=dtype, chunks=(min(_BLOCK, n),), fill_value=fill,
                                           compressors=_compressor(), dimension_names=("sample",))
-        self._arrays = {name: self.samples[name] for name in (*SCALARS, "displacements", "forces", "weights")}
-        self._mem = {name: np.array(self._arrays[name][...]) for name in (*SCALARS, "weights")}
+        self._draws = tuple(name for name in DRAWS if name in self.samples)
+        self._arrays = {name: self.samples[name] for name in (*SCALARS, "displacements", "forces", "weights",
+                                                              *self._draws)}
+        self._mem = {name: np.array(self._arrays[name][...]) for name in (*SCALARS, "weights", *self._draws)}
         self.status = self._mem["status"]
         self._failures = dict(root.attrs.get("failures") or {})
         self._dirty: set[int] = set()  # blocks of the 1-D arrays changed since the last flush
@@ -166,8 +197,12 @@ class StoreWriter:
 
     # ------------------------------------------------------------ creation / opening
     @classmethod
-    def create(cls, path, *, config_toml: str, mesh, markers, fixed, basis, plan: SamplePlan) -> "StoreWriter":
-        """Create a new store at ``path`` (which must not exist) and return its writer."""
+    def create(cls, path, *, config_toml: str, mesh, markers, fixed, basis, plan: SamplePlan,
+               scenario=None) -> "StoreWriter":
+        """Create a new store at ``path`` (which must not exist) and return its writer.
+
+        ``scenario``: the resolved :class:`~tissuecast.scenario.Scenario` (its summary, arrays
+        and, if it draws per sample, the draw arrays are stored), or None."""
         zarr = _zarr()
         path = Path(path)
         tmp = path.with_name(path.name + ".partial")
@@ -183,12 +218,14 @@ class StoreWriter:
             "status_labels": {str(k): v for k, v in STATUS_NAMES.items()},
             "units": {"length": "mm", "force": "N", "stress": "MPa"},
             "calibration": None, "failures": {},
+            **({} if scenario is None else {"scenario": json.loads(json.dumps(scenario.summary(), default=float))}),
         })  # attributes go into the very first zarr.json: a .partial dir is always recognisable
         comp = _compressor()
 
         def put(name, data):
             data = np.ascontiguousarray(data)
-            a = root.create_array(name, shape=data.shape, dtype=data.dtype, chunks=data.shape or None, compressors=comp)
+            chunks = tuple(max(1, d) for d in data.shape) or None  # an empty array still needs a chunk
+            a = root.create_array(name, shape=data.shape, dtype=data.dtype, chunks=chunks, compressors=comp)
             a[...] = data
 
         put("mesh/points", np.asarray(mesh.points, dtype=np.float64))
@@ -210,6 +247,14 @@ class StoreWriter:
         for name, (dtype, fill) in SCALARS.items():
             s.create_array(name, shape=(n,), dtype=dtype, chunks=(min(_BLOCK, n),), fill_value=fill,
                            compressors=comp, dimension_names=("sample",))
+        if scenario is not None:
+            for name, data in scenario.arrays().items():
+                put(f"scenario/{name}", data)
+            if scenario.draws_per_sample:
+                for name, (shape, dtype, fill) in DRAWS.items():
+                    s.create_array(name, shape=(n, *shape), dtype=dtype, chunks=(min(_BLOCK, n), *shape),
+                                   fill_value=fill, compressors=comp,
+                                   dimension_names=("sample",) + (("axis",) if shape else ()))
         s["beta"][:] = plan.beta
         s["seed"][:] = plan.seed
         s["split"][:] = plan.split
@@ -305,6 +350,9 @@ class StoreWriter:
         a["forces"][i] = r.forces
         m = self._mem
         m["weights"][i] = r.weights
+        if self._draws and r.draw is not None:
+            for name, value in _draw_values(r.draw).items():
+                m[name][i] = value
         values = {"alpha": r.alpha, "increments": r.increments, "iterations": r.iterations,
                   "factorizations": r.factorizations, "attempts": r.attempts, "load_fraction": r.load_fraction,
                   "max_displacement": r.max_displacement if r.status == SampleStatus.DONE else np.nan, "seconds": r.seconds,
@@ -322,7 +370,7 @@ class StoreWriter:
             return
         blocks = sorted(self._dirty)
         n = len(self.status)
-        names = [k for k in (*SCALARS, "weights") if k not in ("status", "beta", "seed", "split")]
+        names = [k for k in (*SCALARS, "weights", *self._draws) if k not in ("status", "beta", "seed", "split")]
         for name in names + ["failures", "status"]:
             if name == "failures":
                 stored = self.root.attrs.get("failures") or {}
@@ -333,6 +381,18 @@ class StoreWriter:
                 lo, hi = blk * _BLOCK, min((blk + 1) * _BLOCK, n)
                 self._arrays[name][lo:hi] = self._mem[name][lo:hi]
         self._dirty.clear()
+
+def _draw_values(draw) -> dict:
+    """A :class:`~tissuecast.scenario.ScenarioDraw` as the values of the :data:`DRAWS` arrays."""
+    out = {}
+    if draw.gravity_direction is not None:
+        out["gravity_direction"] = draw.gravity_direction
+    ind = draw.indentation
+    if ind is not None:
+        out.update(indent_centre=ind.centre, indent_depth=ind.depth, indent_slide=ind.slide,
+                   indent_displacement=ind.displacement)
+    return out
+
 
 def _open_root(path: Path, mode: str):
     zarr = _zarr()

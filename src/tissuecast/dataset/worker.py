@@ -5,11 +5,11 @@ back from the store plus the config TOML). Each worker process builds the mesh, 
 problem and its :class:`~tissuecast.fem.Solver` once (:func:`context_for`) and reuses them
 for every sample it is given, so per-sample cost is the solve alone.
 
-A sample's result is a pure function of (recipe, task): the force field comes from the
-sample's own seed, the solve starts from zero, the task's guess or the recipe's reduced-model
-prediction, and worker processes run their BLAS single-threaded (see :mod:`.executors`).
-Hence the same sample gives the same bits on any worker, in any order, in a first run or
-after a resume.
+A sample's result is a pure function of (recipe, task): the force field and the scenario's
+draws (gravity direction, indentation) come from the sample's own seed, the solve starts
+from zero, the task's guess or the recipe's reduced-model prediction, and worker processes
+run their BLAS single-threaded (see :mod:`.executors`). Hence the same sample gives the same
+bits on any worker, in any order, in a first run or after a resume.
 """
 
 from __future__ import annotations
@@ -51,6 +51,9 @@ class Recipe:
         solver_factory: ``"module:function"`` building the solver (see :func:`fem_solver_factory`).
         reduced_basis, reduced_elements, reduced_weights: the data set's reduced-order
             predictor (:class:`~tissuecast.fem.reduced.ReducedModel`), or None (solve from zero).
+        scenario: the resolved scenario's :meth:`~tissuecast.scenario.Scenario.arrays` (as the
+            store holds them), or None for the paper's set-up (pins and LBO forces on the
+            vertices): then ``fixed`` are the pins and the solver is the factory's plain one.
     """
 
     config_toml: str
@@ -62,13 +65,15 @@ class Recipe:
     reduced_basis: np.ndarray | None = None
     reduced_elements: np.ndarray | None = None
     reduced_weights: np.ndarray | None = None
+    scenario: dict | None = None
 
     @property
     def key(self) -> str:
         """Content hash identifying this recipe (worker processes cache contexts by it)."""
         h = hashlib.sha256(self.config_toml.encode() + self.solver_factory.encode())
+        extra = [] if self.scenario is None else [a for _, a in sorted(self.scenario.items())]
         for a in (self.points, self.tets, self.fixed, self.basis.vertices, self.basis.vectors, self.reduced_basis,
-                  self.reduced_elements, self.reduced_weights):
+                  self.reduced_elements, self.reduced_weights, *extra):
             h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
         return h.hexdigest()
 
@@ -83,6 +88,17 @@ class Recipe:
         from ..mesh import TetMesh
 
         return TetMesh(self.points, self.tets)
+
+    def problem(self):
+        """The data set's :class:`~tissuecast.fem.Problem` (the scenario's, or the pins')."""
+        from ..fem import build_problem
+
+        mesh, cfg = self.mesh, self.config
+        if self.scenario is None:
+            return build_problem(mesh, cfg, self.fixed)
+        from ..scenario import restore_scenario
+
+        return restore_scenario(mesh, cfg, self.scenario).problem(cfg)
 
 
 @dataclass(frozen=True)
@@ -110,6 +126,8 @@ class SampleResult:
         status: :class:`~.codes.SampleStatus` DONE or FAILED.  reason: failure message ('' when done).
         load_fraction: share of the load reached (1.0 when done).
         attempts: solver attempts used (1 + retries used).
+        draw: the sample's scenario draws (:class:`~tissuecast.scenario.ScenarioDraw`), or
+            None (the paper's set-up).
         predicted: :class:`~.codes.InitialGuess`: ZERO solved from zero (no reduced model),
             REDUCED_MODEL converged from the reduced model's prediction, GUESS_FAILED the
             initial guess did not work (the reduced problem or the solve from the guess did
@@ -137,6 +155,7 @@ class SampleResult:
     reason: str = ""
     predicted: InitialGuess = InitialGuess.ZERO
     nodal: np.ndarray | None = None
+    draw: object = None
 
     @property
     def max_displacement(self) -> float:
@@ -168,20 +187,27 @@ def retry_solver_config(base: SolverConfig, attempt: int) -> SolverConfig:
     )
 
 
-def fem_solver_factory(mesh, fixed: np.ndarray, cfg: Config) -> Callable[[SolverConfig], object]:
+def fem_solver_factory(mesh, fixed: np.ndarray, cfg: Config, scenario=None) -> Callable[[SolverConfig], object]:
     """The default solver factory: tissuecast's nonlinear neo-Hookean FEM.
 
+    Args:
+        mesh, fixed, cfg: the mesh, the fixed vertices (0-based) and the data set's config.
+        scenario: the resolved :class:`~tissuecast.scenario.Scenario` (springs, material
+            regions, its supports), or None for the paper's pins (``fixed``). Factories of
+            other solvers are called without it (paper set-ups only).
+
     Returns a function mapping solver settings to a reusable ``Solver`` with
-    ``.solve(forces (n,3) N) -> SolveResult`` (raising ConvergenceError on failure).
+    ``.solve(forces, initial_guess=None, prescribed=None) -> SolveResult`` (raising
+    ConvergenceError on failure).
     """
     from ..fem import Solver, build_problem
 
-    problem = build_problem(mesh, cfg, fixed)
+    problem = build_problem(mesh, cfg, fixed) if scenario is None else scenario.problem(cfg)
     return lambda solver_cfg: Solver(problem, solver_cfg)
 
 
 class SampleContext:
-    """Per-process state: mesh, basis, config and the solvers (one per retry level)."""
+    """Per-process state: mesh, basis, config, scenario and the solvers (one per retry level)."""
 
     def __init__(self, recipe: Recipe):
         from ..forces import surface_graph_laplacian
@@ -191,8 +217,16 @@ class SampleContext:
         self.fixed = np.asarray(recipe.fixed, dtype=np.int64)
         self.basis = recipe.basis
         self.laplacian = surface_graph_laplacian(self.mesh)
+        self.scenario = None
         module, _, name = recipe.solver_factory.partition(":")
-        self._make_solver = getattr(importlib.import_module(module), name)(self.mesh, self.fixed, self.config)
+        factory = getattr(importlib.import_module(module), name)
+        if recipe.scenario is not None:
+            from ..scenario import restore_scenario
+
+            self.scenario = restore_scenario(self.mesh, self.config, recipe.scenario)
+            self._make_solver = factory(self.mesh, self.fixed, self.config, scenario=self.scenario)
+        else:
+            self._make_solver = factory(self.mesh, self.fixed, self.config)
         self._solvers: dict[int, object] = {}
         self.reduced = None
         if recipe.reduced_basis is not None:
@@ -213,18 +247,41 @@ class SampleContext:
         Random draws from ``default_rng(seed)``, in order: the LBO weights W
         (``random_lbo_weights``); for test-2 samples then the LSC field (``lsc_field``,
         scaled to the LBO field's nodal L2 norm), blended as ``beta f_LBO + (1-beta) f_LSC``.
+        A scenario without LBO forces (``scenario.lbo_forces = false``) still draws W (the
+        store records it) but applies no surface field: zero forces.
         """
         from ..forces import blend, lbo_field, lsc_field, random_lbo_weights
 
         rng = np.random.default_rng(np.uint64(task.seed))
         w = random_lbo_weights(rng, self.basis.n_vectors)
         f = lbo_field(self.basis, w, task.alpha, self.mesh.n_vertices)
+        if not self.config.scenario.lbo_forces:
+            return np.zeros_like(f), w
         if not np.isnan(task.beta):
             fc = self.config.forces
             f_lsc = lsc_field(self.mesh, rng, n_forces=fc.lsc_points, iterations=fc.lsc_iterations, rate=fc.lsc_rate,
                               exclude=self.fixed, reference=f, laplacian=self.laplacian)
             f = blend(f, f_lsc, task.beta)
         return f, w
+
+    def loads(self, task: Task, forces: np.ndarray):
+        """What the solver gets: ``(loads, solve keywords, draw)``. For the paper's set-up the
+        vertex forces themselves, no keywords and no draw; with a scenario its surface loads on
+        every element node (the field as ``forces.loading`` says), ``body_loads`` (the gravity
+        change) and ``prescribed`` (the indentation patch) as keywords
+        (:meth:`~tissuecast.scenario.Scenario.sample_loads`), and the sample's
+        :class:`~tissuecast.scenario.ScenarioDraw` (from ``scenario_rng(seed)``)."""
+        if self.scenario is None:
+            return forces, {}, None
+        from ..scenario import scenario_rng
+
+        draw = self.scenario.draw(scenario_rng(task.seed))
+        surface, body = self.scenario.sample_loads(draw, forces, self.config.forces.loading)
+        ids, values = self.scenario.prescribed(draw)
+        extra = {"body_loads": body} if draw.body_force is not None else {}
+        if len(ids):
+            extra["prescribed"] = (ids, values)
+        return surface, extra, draw
 
 
 _CONTEXTS: dict[str, SampleContext] = {}
@@ -245,7 +302,7 @@ def _counts(res) -> tuple[int, int, int]:
     return int(getattr(res, "increments", 0)), int(getattr(res, "iterations", 0)), int(getattr(res, "factorizations", 0))
 
 
-def _tries(ctx: SampleContext, task: Task, forces: np.ndarray) -> tuple[list, InitialGuess]:
+def _tries(ctx: SampleContext, task: Task, loads: np.ndarray) -> tuple[list, InitialGuess]:
     """The solver attempts of a sample, in order, as ``(retry level, initial guess or None)``,
     and the initial-guess code they start with: the task's guess or else the reduced model's
     prediction first (if any), then the usual attempts from zero."""
@@ -254,7 +311,7 @@ def _tries(ctx: SampleContext, task: Task, forces: np.ndarray) -> tuple[list, In
         return [(0, np.asarray(task.guess, dtype=np.float64))] + tries, InitialGuess.PREVIOUS_ROUND
     if ctx.reduced is None:
         return tries, InitialGuess.ZERO
-    guess = ctx.reduced.predict(forces)
+    guess = ctx.reduced.predict(loads)
     if guess is None:
         return tries, InitialGuess.GUESS_FAILED
     return [(0, guess)] + tries, InitialGuess.REDUCED_MODEL
@@ -272,15 +329,16 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     """
     ctx = context_for(recipe)
     forces, weights = ctx.forces(task)
+    loads, extra, draw = ctx.loads(task, forces)
     t0 = time.perf_counter()
     totals = np.zeros(3, dtype=np.int64)
     reasons = []
     load_fraction = 0.0
-    tries, predicted = _tries(ctx, task, forces)
+    tries, predicted = _tries(ctx, task, loads + extra.get("body_loads", 0.0))
     for attempt, guess in tries:
         try:
             solver = ctx.solver(attempt)
-            res = solver.solve(forces) if guess is None else solver.solve(forces, initial_guess=guess)
+            res = solver.solve(loads, **extra) if guess is None else solver.solve(loads, initial_guess=guess, **extra)
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
@@ -300,8 +358,8 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
         return SampleResult(task.index, SampleStatus.DONE, np.asarray(res.displacement, dtype=np.float32),
                             forces.astype(np.float32), weights, task.alpha, task.beta, task.seed, *map(int, totals),
                             time.perf_counter() - t0, 1.0, attempt + 1, predicted=predicted,
-                            nodal=None if nodal is None else np.asarray(nodal, dtype=np.float64))
+                            nodal=None if nodal is None else np.asarray(nodal, dtype=np.float64), draw=draw)
     log.debug("sample %d failed: %s", task.index, reasons[-1])
     return SampleResult(task.index, SampleStatus.FAILED, None, forces.astype(np.float32), weights, task.alpha,
                         task.beta, task.seed, *map(int, totals), time.perf_counter() - t0, load_fraction,
-                        ctx.config.solver.retries + 1, "; ".join(reasons), predicted=predicted)
+                        ctx.config.solver.retries + 1, "; ".join(reasons), predicted=predicted, draw=draw)

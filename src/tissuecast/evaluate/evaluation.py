@@ -236,6 +236,12 @@ def _timing(model, U, idx, repeats: int = TIMING_REPEATS) -> dict:
     return {"p50": float(np.percentile(t, 50)), "p99": float(np.percentile(t, 99)), "repeats": repeats}
 
 
+def _scenario(model, dataset) -> dict | None:
+    """The scenario the model was trained on (its record), else the data set's, else None."""
+    recorded = getattr(model, "scenario", None)
+    return dict(recorded) if recorded else getattr(dataset, "scenario", None)
+
+
 def evaluate_model(model, dataset, splits=("valid", "test1", "test2")) -> Evaluation:
     """Offsets of the MLP, its baselines and the PCA floor on the converged samples of each split.
 
@@ -263,5 +269,6 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2")) -> Evalua
     choice = dict(getattr(model, "pca_choice_", None) or {})
     choice.pop("validation_curve", None)
     summary = {"n_components": model.n_components, "markers": model.markers.tolist(), "ensemble": model.ensemble_size,
-               "hidden": list(model.members_[0].hidden), "pca": choice, "training": getattr(model, "training_", None)}
+               "hidden": list(model.members_[0].hidden), "pca": choice, "training": getattr(model, "training_", None),
+               "scenario": _scenario(model, dataset)}
     return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=_timing(model, U, timing_idx), model_summary=summary)

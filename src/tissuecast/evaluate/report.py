@@ -25,6 +25,7 @@ from ..config import EvaluateConfig
 from . import figures
 from .evaluation import METHOD_LABELS
 from .render import render_comparison, write_vtu
+from ..scenario.describe import scenario_lines
 
 __all__ = ["write_report", "paper_table", "format_evaluation"]
 
@@ -181,6 +182,10 @@ def _table_sections(title: str, model, dataset, evaluation) -> list[str]:
     parts = [f"<h1>{html.escape(title)}</h1>"]
     parts.append(f"<p>Model: {html.escape(repr(model))}<br>Data set: {html.escape(repr(dataset))}<br>"
                  f"Units: mm. Vertex ids 0-based; markers {ms['markers']}.</p>")
+    parts.append("<h2>Scenario</h2>")
+    parts.append("<p>How the training data's tissue is held and loaded (the model predicts within this "
+                 "scenario only).</p>")
+    parts.append(_table(["", "what"], [[html.escape(c) for c in row] for row in scenario_lines(ms.get("scenario"))]))
     parts.append("<h2>Measured versus the baselines and the paper</h2>")
     parts.append(_table(["quantity", *(METHOD_LABELS[m] for m in COLUMNS), "paper"], paper_table(evaluation)))
     parts.append("<p><small>Rigid registration: the best rotation and translation of the markers' reference "
@@ -274,7 +279,8 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = EvaluateC
 def format_evaluation(evaluation) -> str:
     """Plain-text table of the headline figures (for terminals and logs)."""
     heads = ("MLP", "rigid", "ridge", "PCA floor")
-    lines = [f"{'quantity':62s} " + " ".join(f"{h:>15s}" for h in heads) + "   paper"]
+    lines = [f"{what}: {text}" for what, text in scenario_lines(evaluation.model_summary.get("scenario"))]
+    lines.append(f"{'quantity':62s} " + " ".join(f"{h:>15s}" for h in heads) + "   paper")
     for q, *cells, p in paper_table(evaluation):
         text = [c if isinstance(c, str) else _fmt(c) for c in cells]
         if all(t == "–" for t in text[1:]):  # a figure of the model alone: one wide cell

@@ -11,6 +11,11 @@ variable ``TISSUECAST_KERNELS=numpy|numba``) chooses.
 
 Degrees of freedom: node ``a`` (a vertex, or for P2 a mid-edge node numbered after the
 vertices), component ``i`` (x, y, z) is dof ``3 a + i``.
+
+The material may differ per element (:class:`~.material.NeoHookeanField`), and linear springs
+to ground (:class:`~.springs.NodalSprings`, an elastic support) may hold some nodes: their
+energy, forces and constant stiffness are added to every evaluation (both backends), at
+positions the element pattern already has (:class:`~.springs.SpringAssembly`).
 """
 
 from __future__ import annotations
@@ -23,9 +28,14 @@ import scipy.sparse as sp
 from ..errors import DependencyError, SolverSetupError
 from . import kernels
 from .elements import ElementGeometry, reference_gradients
-from .material import NeoHookean
+from .material import NeoHookean, NeoHookeanField
+from .springs import NodalSprings, SpringAssembly
 
 __all__ = ["Assembler"]
+
+#: The projected stiffness clamps the material tangent's eigenvalues to at least this share of
+#: the (smallest) shear modulus.
+PROJECTED_FLOOR = 1e-6
 
 
 class Assembler:
@@ -35,11 +45,14 @@ class Assembler:
         nodes: (n_nodes, 3) float, mm, reference coordinates.
         connectivity: (m, nn) int, node ids of each element (nn = 4 for P1, 10 for P2).
         order: 1 or 2.
-        material: the constitutive law.
+        material: the constitutive law: one :class:`~.material.NeoHookean` for every element, or
+            a :class:`~.material.NeoHookeanField` with the constants of each of the m elements.
         free: (3 n_nodes,) bool, True for the unknown dofs (False: fixed or prescribed).
         rule: quadrature rule (``"default"`` or ``"high"``, see :func:`~.elements.quadrature`).
         backend: ``"numba"`` (compiled loops, :mod:`.kernels`), ``"numpy"`` (batched products)
             or ``"auto"``: ``$TISSUECAST_KERNELS`` if set, else numba when installed.
+        springs: optional linear springs to ground at some nodes (N/mm); their energy, forces
+            and stiffness are part of every evaluation below except :meth:`element_forces`.
 
     Attributes:
         backend: the kernels in use, ``"numba"`` or ``"numpy"``.
@@ -49,6 +62,9 @@ class Assembler:
         element_dofs: (m, 3 nn) int, global dof ids of each element (node a, component i
             -> column 3 a + i).
         indptr, indices: CSR structure of the (n_free, n_free) stiffness (full, symmetric).
+        element_constants: ``(mu, kappa, c10, d1)``, each (m,) float: the material constants of
+            every element (MPa, MPa, MPa, 1/MPa).
+        springs: the :class:`~.springs.SpringAssembly` of the springs, or None.
     """
 
     def __init__(
@@ -60,6 +76,7 @@ class Assembler:
         free: np.ndarray,
         rule: str = "default",
         backend: str = "auto",
+        springs: NodalSprings | None = None,
     ) -> None:
         self.nodes = np.asarray(nodes, dtype=np.float64)
         self.connectivity = np.asarray(connectivity, dtype=np.int64)
@@ -98,6 +115,8 @@ class Assembler:
         self.upper_indptr = np.searchsorted(r[upper], np.arange(self.n_free + 1)).astype(np.int64)
         self.upper_indices = c[upper].astype(np.int64)
         self.backend = _backend(backend, material)
+        self.element_constants = _element_constants(material, m)
+        self.springs = SpringAssembly(springs, self) if springs is not None and len(springs) else None
 
     # ----------------------------------------------------------------- kinematics
     def deformation_gradient(self, u: np.ndarray) -> np.ndarray:
@@ -120,9 +139,10 @@ class Assembler:
     def energy(self, u: np.ndarray) -> float:
         """Total strain energy in mJ (N mm); ``inf`` if any quadrature point has J <= 0."""
         if self.backend == "numba":
-            return kernels.energy(self, u)
-        w = self.material.energy(self.deformation_gradient(u))
-        return float(np.sum(w * self.geometry.weight))
+            e = kernels.energy(self, u)
+        else:
+            e = float(np.sum(self.material.energy(self.deformation_gradient(u)) * self.geometry.weight))
+        return e if self.springs is None else e + self.springs.energy(u)
 
     def energy_and_force(self, u: np.ndarray) -> tuple[float, np.ndarray, float]:
         """Strain energy and internal forces in one pass.
@@ -134,12 +154,17 @@ class Assembler:
             ``(energy mJ (inf if any J <= 0), f_int (3 n_nodes,) N, min J)``.
         """
         if self.backend == "numba":
-            return kernels.energy_and_force(self, u)
-        f = self.deformation_gradient(u)
-        p, _, j = self.material.stress_and_tangent(f, tangent=False)
-        jmin = float(j.min())
-        energy = float(np.sum(self.material.energy(f) * self.geometry.weight)) if jmin > 0.0 else float("inf")
-        return energy, self._scatter_force(p), jmin
+            energy, fint, jmin = kernels.energy_and_force(self, u)
+        else:
+            f = self.deformation_gradient(u)
+            p, _, j = self.material.stress_and_tangent(f, tangent=False)
+            jmin = float(j.min())
+            energy = float(np.sum(self.material.energy(f) * self.geometry.weight)) if jmin > 0.0 else float("inf")
+            fint = self._scatter_force(p)
+        if self.springs is not None:
+            energy += self.springs.energy(u)
+            fint += self.springs.forces(u)
+        return energy, fint, jmin
 
     def internal_force(self, u: np.ndarray) -> tuple[np.ndarray, float]:
         """Internal nodal forces.
@@ -152,13 +177,17 @@ class Assembler:
         """
         if self.backend == "numba":
             _, fint, jmin = kernels.energy_and_force(self, u)
-            return fint, jmin
-        f = self.deformation_gradient(u)
-        p, _, j = self.material.stress_and_tangent(f, tangent=False)
-        return self._scatter_force(p), float(j.min())
+        else:
+            f = self.deformation_gradient(u)
+            p, _, j = self.material.stress_and_tangent(f, tangent=False)
+            fint, jmin = self._scatter_force(p), float(j.min())
+        if self.springs is not None:
+            fint += self.springs.forces(u)
+        return fint, jmin
 
     def element_forces(self, u: np.ndarray) -> np.ndarray:
-        """Internal forces of every element before assembly, (m, nn, 3) N (u: (n_nodes, 3) mm)."""
+        """Internal forces of every element before assembly, (m, nn, 3) N (u: (n_nodes, 3) mm);
+        springs not included."""
         p, _, _ = self.material.stress_and_tangent(self.deformation_gradient(u), tangent=False)
         return self._element_force(p)
 
@@ -184,18 +213,18 @@ class Assembler:
             ``indptr``/``indices``, min J)``.
         """
         if not project and self.backend == "numba":
-            return kernels.tangent(self, u)
+            return self._with_springs(u, *kernels.tangent(self, u))
         g = self.geometry
         f = self.deformation_gradient(u)
         if not project:
             p, factors, j = self.material.stress_and_tangent(f, tangent="factors")
             ke = self._stiffness_from_factors(f, factors)
             data = np.bincount(self._scatter, weights=ke.ravel(), minlength=self.nnz + 1)[: self.nnz]
-            return self._scatter_force(p), data, float(j.min())
+            return self._with_springs(u, self._scatter_force(p), data, float(j.min()))
         p, a, j = self.material.stress_and_tangent(f, tangent=True)
         if project:
             lam, vec = np.linalg.eigh(a)
-            lam = np.maximum(lam, 1e-6 * self.material.mu)
+            lam = np.maximum(lam, PROJECTED_FLOOR * float(np.min(self.material.mu)))
             a = np.matmul(vec * lam[..., None, :], np.swapaxes(vec, -1, -2))
         fint = self._scatter_force(p)
         m, q, nn, _ = g.grad.shape
@@ -205,7 +234,14 @@ class Assembler:
         c = c.reshape(m * q, 3, 3, 3, nn).transpose(0, 2, 1, 4, 3).reshape(m * q, 3, 9 * nn)  # [J, (i b k)]
         ke = np.matmul(grad, c).reshape(m, q, nn, 3, nn, 3).sum(axis=1)  # (m, a, i, b, k)
         data = np.bincount(self._scatter, weights=ke.ravel(), minlength=self.nnz + 1)[: self.nnz]
-        return fint, data, float(j.min())
+        return self._with_springs(u, fint, data, float(j.min()))
+
+    def _with_springs(self, u: np.ndarray, fint: np.ndarray, data: np.ndarray, jmin: float):
+        """``(f_int, K data, min J)`` with the springs' forces and stiffness added."""
+        if self.springs is not None:
+            fint += self.springs.forces(u)
+            self.springs.add_tangent(data)
+        return fint, data, jmin
 
     def _stiffness_from_factors(self, f: np.ndarray, factors) -> np.ndarray:
         """Element stiffnesses (m, nn, 3, nn, 3) from the structured neo-Hookean tangent.
@@ -235,6 +271,16 @@ class Assembler:
         return k
 
     # ------------------------------------------------------------------- matrices
+    def coupling_entries(self, local: np.ndarray) -> np.ndarray:
+        """Positions (k,) int in the CSR data of the entries that couple the free-vector
+        positions ``local`` ((p,) int) with other dofs (row or column in ``local``, not on
+        the diagonal): zeroing them, and the residual there, holds those dofs where they are
+        while keeping the pattern (and its symbolic factorisation)."""
+        mark = np.zeros(self.n_free, dtype=bool)
+        mark[np.asarray(local, dtype=np.int64)] = True
+        rows = np.repeat(np.arange(self.n_free, dtype=np.int64), np.diff(self.indptr))
+        return np.flatnonzero((mark[rows] | mark[self.indices]) & (rows != self.indices))
+
     def matrix(self, data: np.ndarray) -> sp.csr_matrix:
         """The full symmetric (n_free, n_free) CSR matrix for assembled ``data``."""
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n_free, self.n_free))
@@ -246,6 +292,14 @@ class Assembler:
         )
 
 
+def _element_constants(material, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(mu, kappa, c10, d1)``, each (m,) float64 contiguous, of a material or material field."""
+    if isinstance(material, NeoHookeanField) and len(material) != m:
+        raise SolverSetupError(f"the material field has {len(material)} elements, the mesh {m}")
+    return tuple(np.ascontiguousarray(np.broadcast_to(np.ravel(getattr(material, k)), (m,)), dtype=np.float64)
+                 for k in ("mu", "kappa", "c10", "d1"))
+
+
 def _backend(choice: str, material) -> str:
     """Resolve ``Assembler(backend=...)``: "numba" or "numpy"."""
     if choice == "auto":
@@ -253,7 +307,7 @@ def _backend(choice: str, material) -> str:
     if choice not in ("auto", "numba", "numpy"):
         raise SolverSetupError(f"kernel backend must be 'auto', 'numba' or 'numpy', got {choice!r} "
                                "(argument backend or $TISSUECAST_KERNELS)")
-    compiled_ok = kernels.available() and type(material) is NeoHookean
+    compiled_ok = kernels.available() and type(material) in (NeoHookean, NeoHookeanField)
     if choice == "numba" and not compiled_ok:
         raise DependencyError("kernel backend 'numba' needs numba (pip install \"tissuecast[fast]\") "
                               "and the NeoHookean material")

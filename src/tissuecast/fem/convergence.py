@@ -55,14 +55,23 @@ def converged(rmax: float, q: float, cmax: float, estimate: float, dmax: float, 
                                             or cmax <= CORRECTION_ROUNDOFF * umax)
 
 
-def reference_force(fint: np.ndarray, fext: np.ndarray, cnodes: np.ndarray) -> float:
+def reference_force(fint: np.ndarray, fext: np.ndarray, cnodes: np.ndarray, springs: np.ndarray | None = None,
+                    counted: np.ndarray | None = None) -> float:
     """Mean magnitude (N) of the applied nodal forces and the support reactions.
 
     Args:
         fint, fext: (3 n_nodes,) internal and external nodal forces, N.
         cnodes: (c,) constrained node ids.
+        springs: optional (3 s,) forces of the springs of an elastic support on their nodes, N
+            (the reactions of that support).
+        counted: optional (3 n_nodes,) the applied forces to count (default ``fext``; body
+            loads are left out: they show in the reactions).
     """
-    mags = np.linalg.norm(fext.reshape(-1, 3), axis=1)
+    mags = np.linalg.norm((fext if counted is None else counted).reshape(-1, 3), axis=1)
     reac = np.linalg.norm((fint - fext).reshape(-1, 3)[cnodes], axis=1)
-    vals = np.concatenate([mags[mags > 0.0], reac])
+    parts = [mags[mags > 0.0], reac]
+    if springs is not None:
+        mags = np.linalg.norm(springs.reshape(-1, 3), axis=1)
+        parts.append(mags[mags > 0.0])
+    vals = np.concatenate(parts)
     return float(vals.mean()) if len(vals) else 0.0

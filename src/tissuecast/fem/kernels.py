@@ -99,7 +99,7 @@ if numba is not None:
             ue[a, 2] = u[n, 2]
 
     @_jit
-    def _tangent(u, conn, grad, weight, mu, kappa, scatter, nnz, ndof):
+    def _tangent(u, conn, grad, weight, mu_e, kappa_e, scatter, nnz, ndof):
         m, nq, nn, _ = grad.shape
         nd = 3 * nn
         data = np.zeros(nnz + 1)
@@ -114,6 +114,8 @@ if numba is not None:
         p = np.zeros((3, 3))
         jmin = np.inf
         for e in range(m):
+            mu = mu_e[e]
+            kappa = kappa_e[e]
             _gather(u, conn, e, ue)
             ke[:, :] = 0.0
             fe[:] = 0.0
@@ -170,7 +172,7 @@ if numba is not None:
         return fint, data[:nnz], jmin
 
     @_jit
-    def _energy_and_force(u, conn, grad, weight, mu, kappa, c10, d1, ndof, want_force):
+    def _energy_and_force(u, conn, grad, weight, mu_e, kappa_e, c10_e, d1_e, ndof, want_force):
         m, nq, nn, _ = grad.shape
         fint = np.zeros(ndof if want_force else 0)
         ue = np.zeros((nn, 3))
@@ -180,6 +182,10 @@ if numba is not None:
         energy = 0.0
         jmin = np.inf
         for e in range(m):
+            mu = mu_e[e]
+            kappa = kappa_e[e]
+            c10 = c10_e[e]
+            d1 = d1_e[e]
             _gather(u, conn, e, ue)
             for q in range(nq):
                 g = grad[e, q]
@@ -204,26 +210,22 @@ def _args(assembler, u):
 
 def tangent(assembler, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
     """``(f_int (3 n_nodes,), K data (nnz,) in the assembler's CSR order, min J)`` at ``u`` (n_nodes, 3)."""
-    mat = assembler.material
+    mu, kappa, _, _ = assembler.element_constants
     uu, conn, grad, weight = _args(assembler, u)
-    fint, data, jmin = _tangent(uu, conn, grad, weight, mat.mu, mat.kappa, assembler._scatter, assembler.nnz,
+    fint, data, jmin = _tangent(uu, conn, grad, weight, mu, kappa, assembler._scatter, assembler.nnz,
                                 assembler.n_dofs)
     return fint, data, float(jmin)
 
 
 def energy_and_force(assembler, u: np.ndarray) -> tuple[float, np.ndarray, float]:
     """``(strain energy mJ (inf if any J <= 0), f_int (3 n_nodes,) N, min J)`` at ``u``."""
-    mat = assembler.material
     uu, conn, grad, weight = _args(assembler, u)
-    e, fint, jmin = _energy_and_force(uu, conn, grad, weight, mat.mu, mat.kappa, mat.c10, mat.d1,
-                                      assembler.n_dofs, True)
+    e, fint, jmin = _energy_and_force(uu, conn, grad, weight, *assembler.element_constants, assembler.n_dofs, True)
     return float(e), fint, float(jmin)
 
 
 def energy(assembler, u: np.ndarray) -> float:
     """Strain energy in mJ, ``inf`` if any quadrature point has J <= 0."""
-    mat = assembler.material
     uu, conn, grad, weight = _args(assembler, u)
-    e, _, _ = _energy_and_force(uu, conn, grad, weight, mat.mu, mat.kappa, mat.c10, mat.d1, assembler.n_dofs,
-                                False)
+    e, _, _ = _energy_and_force(uu, conn, grad, weight, *assembler.element_constants, assembler.n_dofs, False)
     return float(e)

@@ -7,7 +7,8 @@ factorised (:func:`corotated_solve`). The iterations are deflated (Saad, Yeung, 
 Guyomarc'h 2000) by a subspace ``W``: the three infinitesimal rigid rotations about the
 constrained nodes' centroid (:func:`rigid_rotations`; the swing of a body held by a few pins
 is its softest motion) and the search directions of the solve's earlier Newton iterations
-(:func:`recycle`). Each system is first solved exactly in ``W`` with the *new* tangent
+(:func:`recycle`); the rotations only where the body can swing about its supports (a few pins:
+``Problem.can_swing``). Each system is first solved exactly in ``W`` with the *new* tangent
 (Galerkin; ``K W`` is one sparse product), and the search directions then stay K-conjugate to
 ``W`` (:func:`deflated_cg`), so the modes the reused factorisation resolves badly are solved
 once per solve instead of once per Newton iteration.
@@ -52,7 +53,7 @@ def corotated_solve(factor, rotation: np.ndarray, v: np.ndarray):
     return (z.reshape(-1, 3) @ rotation.T).ravel()
 
 
-def rigid_rotations(x: np.ndarray, cnodes: np.ndarray, free: np.ndarray) -> np.ndarray:
+def rigid_rotations(x: np.ndarray, cnodes: np.ndarray, free: np.ndarray, held: np.ndarray | None = None) -> np.ndarray:
     """Orthonormal basis (n_free, 3) of the infinitesimal rigid rotations about the centroid
     of the constrained nodes.
 
@@ -60,9 +61,12 @@ def rigid_rotations(x: np.ndarray, cnodes: np.ndarray, free: np.ndarray) -> np.n
         x: (n_nodes, 3) float, mm, current node positions.
         cnodes: (c,) int, constrained node ids.
         free: (n_free,) int, free dof ids.
+        held: optional (p,) int positions in the free vector held by the solve (their rows are zero).
     """
     x = x - x[cnodes].mean(axis=0)
     spin = np.stack([np.cross(axis, x).ravel()[free] for axis in np.eye(3)], axis=1)
+    if held is not None and len(held):
+        spin[held] = 0.0
     return np.linalg.qr(spin)[0]
 
 
@@ -76,11 +80,11 @@ def deflation_space(k, spin: np.ndarray, recycled: np.ndarray | None):
 
     Args:
         k: (n_free, n_free) sparse tangent.
-        spin: (n_free, 3) from :func:`rigid_rotations`.
+        spin: (n_free, 3) from :func:`rigid_rotations`, or (n_free, 0) where the body cannot swing.
         recycled: (n_free, j) directions kept from earlier iterations, or None.
     """
     for w in ((spin,) if recycled is None else (np.column_stack([spin, recycled]), spin)):
-        if w.shape[1] >= w.shape[0]:
+        if w.shape[1] >= w.shape[0] or w.shape[1] == 0:
             continue
         aw = k @ w
         e = w.T @ aw
@@ -145,11 +149,12 @@ def deflated_cg(k, b: np.ndarray, space, precondition: Precondition, tolerance: 
     return None, max_steps, found
 
 
-def recycle(found: list, space, cap: int, previous: np.ndarray | None) -> np.ndarray | None:
+def recycle(found: list, space, cap: int, previous: np.ndarray | None, rotations: int = N_ROTATIONS) -> np.ndarray | None:
     """The directions to deflate the next system with: the newest ``cap`` of this system's
     search directions (K-orthonormal, and K-orthogonal to ``W``) and, to fill up, those of
-    ``W`` beyond the rotations made K-orthonormal and K-orthogonal to the rotations
-    (``W L^-T``, ``W^T K W = L L^T``, lower ``L``). ``previous`` when there is nothing new.
+    ``W`` beyond its first ``rotations`` columns (the rigid rotations) made K-orthonormal and
+    K-orthogonal to the rotations (``W L^-T``, ``W^T K W = L L^T``, lower ``L``). ``previous``
+    when there is nothing new.
 
     Returns:
         (n, j) float with ``j <= cap``, or ``previous``.
@@ -157,6 +162,6 @@ def recycle(found: list, space, cap: int, previous: np.ndarray | None) -> np.nda
     cols = found[::-1][:cap]
     if space is not None and len(cols) < cap:
         w, _, (lower, _) = space
-        old = solve_triangular(lower, w.T, lower=True).T[:, N_ROTATIONS:]
+        old = solve_triangular(lower, w.T, lower=True).T[:, rotations:]
         cols += list(old.T[: cap - len(cols)])
     return np.column_stack(cols) if cols else previous

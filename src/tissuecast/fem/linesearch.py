@@ -15,7 +15,7 @@ import numpy as np
 
 from .assembly import Assembler
 
-__all__ = ["step_path", "line_search", "rotation_matrix"]
+__all__ = ["step_path", "line_search", "rotation_matrix", "residual"]
 
 #: A rotation by less than this angle (radians) is the identity (Rodrigues' formula would
 #: divide by it).
@@ -101,7 +101,7 @@ def step_path(nodes, u, d, free, cnodes, cdofs, rotation_aware: bool):
     return curved
 
 
-def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray, fext: np.ndarray):
+def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray, fext: np.ndarray, held=None):
     """Backtracking search on the potential energy along ``path``.
 
     Accepts the first trial (``s = 1, ...``) with every ``J > 0`` that satisfies Armijo's
@@ -117,6 +117,8 @@ def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray,
         d: (n_free,) float, the correction (mm).
         pi0: potential energy at s = 0 (mJ); r0: (n_free,) residual there (N).
         fext: (3 n_nodes,) float, external forces (N).
+        held: optional (p,) int positions in the free vector that the solve holds at prescribed
+            values: the residual is zero there (the reaction is not a residual).
 
     Returns:
         ``(s, u (3 n_nodes,), Pi, f_int (3 n_nodes,), r (n_free,), rotation (3, 3))`` or None
@@ -133,10 +135,10 @@ def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray,
         if jmin > 0.0:
             work = float(fext @ trial)
             pi = energy - work
-            r = fint[free] - fext[free]
+            r = residual(fint, fext, free, held)
             if pi <= pi0 + ARMIJO * s * g0:
                 if s == 1.0:
-                    return _extrapolate(assembler, path, free, d, g0, fext, (s, trial, pi, fint, r, path.rotation))
+                    return _extrapolate(assembler, path, free, d, g0, fext, (s, trial, pi, fint, r, path.rotation), held)
                 return s, trial, pi, fint, r, path.rotation
             if -g0 * s <= ENERGY_ROUNDOFF * (abs(energy) + abs(work)) and np.linalg.norm(r) < r0_norm:
                 return s, trial, pi, fint, r, path.rotation
@@ -148,7 +150,15 @@ def line_search(assembler: Assembler, path, free, d, pi0: float, r0: np.ndarray,
     return None
 
 
-def _extrapolate(assembler: Assembler, path, free, d, g0: float, fext: np.ndarray, accepted):
+def residual(fint: np.ndarray, fext: np.ndarray, free, held) -> np.ndarray:
+    """(n_free,) N: internal minus external forces on the free dofs, zero at ``held`` positions."""
+    r = fint[free] - fext[free]
+    if held is not None and len(held):
+        r[held] = 0.0
+    return r
+
+
+def _extrapolate(assembler: Assembler, path, free, d, g0: float, fext: np.ndarray, accepted, held=None):
     """A full step that still runs downhill may be lengthened (softening responses).
 
     When the slope of the energy along ``d`` at ``s = 1`` is still below half the one at
@@ -166,5 +176,5 @@ def _extrapolate(assembler: Assembler, path, free, d, g0: float, fext: np.ndarra
         return accepted
     pi = energy - float(fext @ trial)
     if pi < accepted[2]:
-        return s, trial, pi, fint, fint[free] - fext[free], path.rotation
+        return s, trial, pi, fint, residual(fint, fext, free, held), path.rotation
     return accepted

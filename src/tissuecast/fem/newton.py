@@ -1,8 +1,8 @@
 """One nonlinear solve: its state and its load-stepped Newton iterations.
 
 A :class:`SolveRun` is made by :class:`~tissuecast.fem.solver.Solver` for every solve and
-holds everything that lives for that solve only: the external loads and prescribed values,
-the initial guess, the counters, the shift of the last indefinite tangent, the rigid rotation
+holds everything that lives for that solve only: the external loads and prescribed values
+(also those of dofs that only this solve holds, e.g. an indenting patch), the initial guess, the counters, the shift of the last indefinite tangent, the rigid rotation
 applied since the active factorisation was made, the recycled Krylov directions, the active
 factorisation and whether it is still valid, and its own numeric factor (borrowed from the
 Solver on the first factorisation and given back when the run ends). The Solver keeps only
@@ -13,6 +13,14 @@ one Solver serves any number of runs, one by one or in lockstep.
 :func:`.krylov.corotated_solve`) that returns the :class:`~tissuecast.fem.result.SolveResult`;
 the Solver drives it. The convergence test is :func:`.convergence.converged`. The algorithm is
 described in :mod:`tissuecast.fem.solver` and, with its history, in ``docs/solver.md``.
+
+Dofs held by this solve only (``held``: free in the Solver's pattern) are eliminated inside the
+solve, so the sparsity pattern and its symbolic factorisation stay shared: their rows and
+columns of every tangent are zeroed but for the diagonal, their residual is zero, and their
+values follow the load fraction. Each increment first moves them to their new values with
+the linear response of the rest of the body (the "lift": ``K_ff d_f = -K_fh delta_h``, one
+linear solve with the tangent), so that the nodes next to them follow instead of being
+overrun; then the Newton iterations run with them held.
 """
 
 from __future__ import annotations
@@ -26,9 +34,9 @@ import numpy as np
 
 from ..errors import ConvergenceError
 from .convergence import RESIDUAL_ALONE, converged, correction_estimate, reference_force
-from .krylov import corotated_solve, deflated_cg, deflation_space, recycle, rigid_rotations
+from .krylov import N_ROTATIONS, corotated_solve, deflated_cg, deflation_space, recycle, rigid_rotations
 from .linear import NotPositiveDefinite
-from .linesearch import line_search, step_path
+from .linesearch import line_search, residual, step_path
 from .result import SolveResult
 
 if TYPE_CHECKING:
@@ -54,6 +62,8 @@ SHIFT_GROWTH = 4.0
 SHIFT_LAST = 10.0
 #: Guards divisions by norms that may be exactly zero.
 _TINY = 1e-300
+#: Held dofs within this share of their largest target value are where they should be: no lift.
+LIFT_ROUNDOFF = 1e-12
 
 
 class IncrementFailed(Exception):
@@ -108,6 +118,12 @@ class SolveRun:
         guess: optional (3 n_nodes,) float, mm: initial guess at full load (None: from zero).
         prescribed: optional (3 c,) float, mm: values of the constrained dofs at full load
             (default the problem's).
+        held: optional ``(node ids (p,), displacements at full load (p, 3) mm)`` of nodes free
+            in the Solver's pattern that this solve holds (see the module notes), from
+            :meth:`~tissuecast.fem.Problem.solve_constraints`.
+        counted: optional (3 n_nodes,) float, N: the part of ``fext`` that counts as applied
+            forces in the convergence test's reference force (default all of it; body loads
+            are left out, see :meth:`~.solver.Solver.solve`).
 
     Attributes:
         counts: :class:`SolveCounts`.
@@ -120,12 +136,14 @@ class SolveRun:
     """
 
     def __init__(self, solver: "Solver", fext: np.ndarray, guess: np.ndarray | None = None,
-                 prescribed: np.ndarray | None = None) -> None:
+                 prescribed: np.ndarray | None = None, held: tuple | None = None,
+                 counted: np.ndarray | None = None) -> None:
         self.t0 = time.perf_counter()
         self.solver = solver
         self.config = solver.config
         self.assembler = solver.assembler
         self.fext = fext
+        self.counted = counted
         self.guess = guess
         self.prescribed = solver.prescribed_values if prescribed is None else prescribed
         self.counts = SolveCounts()
@@ -135,12 +153,45 @@ class SolveRun:
         self.active = None
         self.factor_valid = False
         self.linear = None
+        self._held_setup(held)
         cfg = self.config
         if guess is not None and cfg.strategy == "krylov" and cfg.reference_preconditioner:
             reference = solver.reference_factor()
             if reference is not None:
                 self.active, self.factor_valid = reference, True
-                self.rotation = best_rotation(solver.problem.nodes, guess)
+                if solver.problem.can_swing:
+                    self.rotation = best_rotation(solver.problem.nodes, guess)
+
+    def _held_setup(self, held) -> None:
+        """The solve's own held dofs: global ids, values, positions in the free vector, the CSR
+        entries that couple them, and the constrained nodes / dofs with them."""
+        sv = self.solver
+        nodes = np.zeros(0, dtype=np.int64) if held is None else np.asarray(held[0], dtype=np.int64)
+        values = np.zeros((0, 3)) if held is None else np.asarray(held[1], dtype=np.float64).reshape(-1, 3)
+        self.held_dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
+        self.held_values = values.ravel()
+        position = np.full(self.assembler.n_dofs, -1, dtype=np.int64)
+        position[sv.free_dofs] = np.arange(len(sv.free_dofs))
+        self.held = position[self.held_dofs]
+        if np.any(self.held < 0):
+            raise ValueError("held nodes must be free in the Solver's problem")  # Problem.solve_constraints checks
+        self._coupling = self.assembler.coupling_entries(self.held) if len(self.held) else None
+        self.cnodes = np.concatenate([sv.constrained_nodes, nodes])
+        self.cdofs = np.concatenate([sv.constrained_dofs, self.held_dofs])
+
+    def _tangent(self, u: np.ndarray, project: bool = False) -> np.ndarray:
+        """CSR data (nnz,) of the tangent at ``u`` (3 n_nodes,) with the held dofs eliminated."""
+        _, data, _ = self.assembler.tangent(u.reshape(-1, 3), project=project)
+        return self._eliminate(data)
+
+    def _eliminate(self, data: np.ndarray) -> np.ndarray:
+        """Zero (in place) the entries coupling the held dofs; their diagonal stays."""
+        if self._coupling is not None:
+            data[self._coupling] = 0.0
+        return data
+
+    def _residual(self, fint: np.ndarray, fext: np.ndarray) -> np.ndarray:
+        return residual(fint, fext, self.solver.free_dofs, self.held)
 
     # ------------------------------------------------------------------ load stepping
     def steps(self):
@@ -201,13 +252,13 @@ class SolveRun:
             candidates.append(u_conv + (lam_new - lam) / prev[1] * prev[0])
         candidates.append(u_conv.copy())
         for u in candidates:
-            u[self.solver.constrained_dofs] = lam_new * self.prescribed
+            u[self.solver.constrained_dofs] = lam_new * self.prescribed  # held dofs: lifted by _increment
             if len(candidates) == 1 or self.assembler.internal_force(u.reshape(-1, 3))[1] > 0.0:
                 return u
         return u
 
     def _result(self, u, lam, converged, increments, cutbacks) -> SolveResult:
-        cdofs = self.solver.constrained_dofs
+        cdofs = self.cdofs
         nodal = u.reshape(-1, 3).copy()
         fint, _ = self.assembler.internal_force(nodal)
         reaction = np.zeros_like(nodal)
@@ -235,16 +286,17 @@ class SolveRun:
         cfg = self.config
         free = self.solver.free_dofs
         fext = lam * self.fext
+        track = _Iterations(need_factor=cfg.strategy == "newton" or not self.factor_valid, start=u_start[free])
+        u = yield from self._lift(u, lam, track)
         energy, fint, jmin = self.assembler.energy_and_force(u.reshape(-1, 3))
         if not jmin > 0.0:
             raise IncrementFailed("the predictor inverts an element")
         pi = energy - float(fext @ u)
-        r = fint[free] - fext[free]
-        q0 = reference_force(fint, fext, self.solver.constrained_nodes)
+        r = self._residual(fint, fext)
+        q0 = self._reference_force(u, fint, fext, lam)
         if len(r) == 0 or float(np.abs(r).max()) <= RESIDUAL_ALONE * cfg.force_tolerance * q0:
             qhist.append(q0)
             return u  # already in equilibrium (e.g. no load at all)
-        track = _Iterations(need_factor=cfg.strategy == "newton" or not self.factor_valid, start=u_start[free])
         for _ in range(cfg.max_iterations):
             d = yield from self._direction(u, r, track)
             step = self._line_search(u, d, pi, r, fext)
@@ -259,38 +311,77 @@ class SolveRun:
             rnorm_old = np.linalg.norm(r)
             r = r_new
             if self._converged(u, r, s * d, fint, fext, qhist, track, lam):
-                qhist.append(reference_force(fint, fext, self.solver.constrained_nodes))
+                qhist.append(self._reference_force(u, fint, fext, lam))
                 return u
             self._next_iteration(track, np.linalg.norm(r) / max(rnorm_old, _TINY))
         raise IncrementFailed(f"no convergence in {cfg.max_iterations} iterations")
 
+    def _lift(self, u: np.ndarray, lam: float, track: _Iterations):
+        """Move the held dofs to ``lam`` times their values, the rest of the body by the linear
+        response ``K_ff d_f = -K_fh delta_h`` of the tangent at ``u`` (a generator); returns
+        the new displacements (``u`` itself when the held dofs are already there)."""
+        if not len(self.held):
+            return u
+        target = lam * self.held_values
+        delta = target - u[self.held_dofs]
+        if float(np.abs(delta).max()) <= LIFT_ROUNDOFF * max(float(np.abs(target).max()), _TINY):
+            u[self.held_dofs] = target
+            return u
+        _, data, jmin = self.assembler.tangent(u.reshape(-1, 3))
+        if not jmin > 0.0:
+            raise IncrementFailed("the state before moving the held dofs inverts an element")
+        step = np.zeros(len(self.solver.free_dofs))
+        step[self.held] = delta
+        b = -(self.assembler.matrix(data) @ step)
+        b[self.held] = 0.0
+        d = yield from self._solve_tangent(u, b, track, self._eliminate(data))
+        d[self.held] = delta
+        self.counts.iterations += 1
+        u = u.copy()
+        u[self.solver.free_dofs] += d
+        return u
+
     def _direction(self, u: np.ndarray, r: np.ndarray, track: _Iterations):
         """The Newton direction ``-K^-1 r`` by the configured strategy (a generator)."""
-        d = data = None
+        d = yield from self._solve_tangent(u, -r, track)
+        return d
+
+    def _solve_tangent(self, u: np.ndarray, b: np.ndarray, track: _Iterations, data: np.ndarray | None = None):
+        """``K^-1 b`` with the tangent K at ``u`` (CSR ``data`` with the held dofs eliminated, if
+        already assembled), by the configured strategy (a generator)."""
+        x = None
         if self.config.strategy == "krylov" and not track.need_factor:
-            d, data = yield from self.krylov_direction(u, r)
-            track.need_factor = d is None
+            x, data = yield from self.krylov_solve(u, b, data)
+            track.need_factor = x is None
         if track.need_factor:
             self.factorize(u, data)
             self.factor_valid = True
             self.rotation = np.eye(3)
             track.fresh, track.reuses = True, 0
-        if d is None:
-            d = -(yield from self._precondition(r))
-        return d
+        if x is None:
+            x = yield from self._precondition(b)
+        return x
 
     def _line_search(self, u, d, pi0, r0, fext):
         sv = self.solver
-        path = step_path(sv.problem.nodes, u, d, sv.free_dofs, sv.constrained_nodes, sv.constrained_dofs,
-                         self.config.rotation_aware)
-        return line_search(self.assembler, path, sv.free_dofs, d, pi0, r0, fext)
+        path = step_path(sv.problem.nodes, u, d, sv.free_dofs, self.cnodes, self.cdofs,
+                         self.config.rotation_aware and sv.problem.can_swing)
+        return line_search(self.assembler, path, sv.free_dofs, d, pi0, r0, fext, self.held)
+
+    def _reference_force(self, u: np.ndarray, fint: np.ndarray, fext: np.ndarray, lam: float) -> float:
+        """:func:`reference_force` at load fraction ``lam`` (``fext = lam * self.fext``), with
+        the reactions of the held nodes and of the springs, body loads left out."""
+        springs = self.assembler.springs
+        support = None if springs is None else springs.forces(u.reshape(-1, 3))[springs.dofs]
+        counted = None if self.counted is None else lam * self.counted
+        return reference_force(fint, fext, self.cnodes, support, counted)
 
     def _converged(self, u, r, c, fint, fext, qhist, track: _Iterations, lam: float) -> bool:
         """Record the iteration's residual and apply :func:`converged` to it."""
         cfg = self.config
         rmax = float(np.abs(r).max()) if len(r) else 0.0
         self.counts.residual_history.append(rmax)
-        q = max(np.mean(qhist + [reference_force(fint, fext, self.solver.constrained_nodes)]), _TINY)
+        q = max(np.mean(qhist + [self._reference_force(u, fint, fext, lam)]), _TINY)
         cmax = float(np.abs(c).max())
         est = correction_estimate(cmax, track.last_correction)
         dmax = float(np.abs(u[self.solver.free_dofs] - track.start).max()) if len(r) else 0.0
@@ -311,37 +402,56 @@ class SolveRun:
     # ------------------------------------------------------------------ linear algebra
     def _precondition(self, v: np.ndarray):
         """``R K^-1 R^T v`` with the active factorisation (a generator, see
-        :func:`.krylov.corotated_solve`)."""
+        :func:`.krylov.corotated_solve`), zero at the held dofs (the factorisation may be the
+        shared reference one, which does not eliminate them)."""
+        if len(self.held):
+            v = v.copy()
+            v[self.held] = 0.0
         z = yield from corotated_solve(self.active, self.rotation, v)
+        if len(self.held):
+            z[self.held] = 0.0
         self.counts.solves += 1
         return z
 
     def krylov_direction(self, u: np.ndarray, r: np.ndarray):
-        """-K^-1 r for the tangent K at u by deflated preconditioned conjugate gradients
+        """-K^-1 r for the tangent K at u (a generator): :meth:`krylov_solve` with ``b = -r``."""
+        d, data = yield from self.krylov_solve(u, -r)
+        return d, data
+
+    def krylov_solve(self, u: np.ndarray, b: np.ndarray, data: np.ndarray | None = None):
+        """K^-1 b for the tangent K at u by deflated preconditioned conjugate gradients
         (a generator, :mod:`.krylov`).
 
         Args:
-            u: (3 n_nodes,) mm, current displacements.  r: (n_free,) N, residual.
+            u: (3 n_nodes,) mm, current displacements.  b: (n_free,) N, right-hand side
+                (zero at the held dofs).
+            data: the tangent's CSR data with the held dofs eliminated, if already assembled.
 
         Returns:
-            ``(d, None)`` when the relative residual fell below ``krylov_tolerance`` within
+            ``(x, None)`` when the relative residual fell below ``krylov_tolerance`` within
             ``krylov_iterations`` steps (or negative curvature was met after some progress:
             the iterate so far is still a descent direction), else ``(None, K data)`` so that
             the caller factorises the tangent already assembled.
         """
         cfg = self.config
         sv = self.solver
-        _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
+        if data is None:
+            data = self._tangent(u)
         k = self.assembler.matrix(data)
         space = None
         if cfg.krylov_recycle:
-            spin = rigid_rotations(sv.problem.nodes + u.reshape(-1, 3), sv.constrained_nodes, sv.free_dofs)
+            if sv.problem.can_swing:
+                spin = rigid_rotations(sv.problem.nodes + u.reshape(-1, 3), sv.constrained_nodes, sv.free_dofs,
+                                       self.held)
+            else:
+                spin = np.zeros((len(sv.free_dofs), 0))
             space, self.recycled = deflation_space(k, spin, self.recycled)
-        d, steps, found = yield from deflated_cg(k, -r, space, self._precondition, cfg.krylov_tolerance,
+        x, steps, found = yield from deflated_cg(k, b, space, self._precondition, cfg.krylov_tolerance,
                                                  cfg.krylov_iterations)
         self.counts.krylov_steps += steps
-        self.recycled = recycle(found, space, cfg.krylov_recycle, self.recycled)
-        return (d, None) if d is not None else (None, data)
+        self.recycled = recycle(found, space, cfg.krylov_recycle, self.recycled,
+                                N_ROTATIONS if sv.problem.can_swing else 0)
+        return (x, None) if x is not None else (None, data)
 
     def factorize(self, u: np.ndarray, data: np.ndarray | None = None) -> None:
         """Factorise the tangent K at u (CSR values ``data`` if already assembled) into this
@@ -354,7 +464,7 @@ class SolveRun:
             IncrementFailed: not even the projected stiffness factorises.
         """
         if data is None:
-            _, data, _ = self.assembler.tangent(u.reshape(-1, 3))
+            data = self._tangent(u)
         if self.linear is None:
             self.linear = self.solver.borrow_factor()
         self.active = self.linear
@@ -367,7 +477,7 @@ class SolveRun:
             log.debug("tangent not positive definite")
         if self._factorize_shifted(data):
             return
-        _, data, _ = self.assembler.tangent(u.reshape(-1, 3), project=True)
+        data = self._tangent(u, project=True)
         self.counts.factorizations += 1
         try:
             self.linear.factorize(data)

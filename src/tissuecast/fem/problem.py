@@ -10,6 +10,12 @@ fraction). For quadratic elements a mid-edge node whose two end vertices are bot
 constrained is constrained too, to the mean of their displacements (the edge stays
 straight, as linear interpolation of the vertex values); a mid-edge node with at most one
 constrained end is free, as in a CalculiX deck that constrains corner nodes only.
+
+A problem may also hold nodes by linear springs to ground (an elastic support,
+:class:`~.springs.NodalSprings`) and give every element its own material
+(:class:`~.material.NeoHookeanField`). Prescribed displacements that change from solve to
+solve (an instrument's indentation) are not part of the problem: they are given to each solve
+(:meth:`Problem.solve_constraints` turns them into constrained nodes the same way).
 """
 
 from __future__ import annotations
@@ -21,7 +27,9 @@ import numpy as np
 
 from ..errors import SolverSetupError
 from ..mesh.tetmesh import TetMesh
-from .material import NeoHookean
+from .material import NeoHookean, NeoHookeanField
+from .springs import NodalSprings
+from .supports import free_rigid_motions
 
 __all__ = ["Problem", "check_forces", "build_problem"]
 
@@ -81,11 +89,19 @@ class Problem:
         order: element order, 2 (10-node tets, C3D10; default) or 1 (4-node tets).
         prescribed: optional prescribed vertex displacements (mm): a dict
             ``{vertex: (3,)}`` or a pair ``(ids (k,), displacements (k, 3))``.
+        springs: optional linear springs to ground at element nodes (an elastic support),
+            N/mm; springs at constrained nodes only reach the reactions.
+        materials: optional per-element constants (m elements); ``material`` is then only the
+            nominal material (e.g. of reports and decks without regions).
+        can_swing: whether the body may swing about its supports as a near-rigid body (a few
+            pins), so that the solver's rotation-aware line search and rotation deflation
+            apply; None = True exactly when there are no springs. Set False for a body held
+            by an attached surface region.
 
     Raises:
         SolverSetupError: ids out of range or repeated, a vertex both fixed and prescribed,
-            or constraints that leave rigid-body motion free (fewer than 3 constrained
-            vertices, or all of them on one line).
+            or supports that leave rigid-body motion free (without springs: fewer than 3
+            constrained vertices, or all of them on one line).
     """
 
     mesh: TetMesh
@@ -93,6 +109,9 @@ class Problem:
     fixed: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     order: int = 2
     prescribed: object = None
+    springs: NodalSprings | None = None
+    materials: NeoHookeanField | None = None
+    can_swing: bool | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.mesh, TetMesh):
@@ -108,7 +127,13 @@ class Problem:
         if both.size:
             raise SolverSetupError(f"vertices {both.tolist()} are both fixed and prescribed; give each one constraint")
         constrained = np.concatenate([fixed, pids])
-        if len(constrained) < 3:
+        self._check_extras()
+        object.__setattr__(self, "can_swing", bool(self.springs is None if self.can_swing is None else self.can_swing))
+        if self.springs is not None:
+            if len(free_rigid_motions(self.nodes, _with_mid_edges(self.mesh, self.order, constrained), self.springs)):
+                raise SolverSetupError("the fixed vertices and springs leave a rigid-body motion free; fix more "
+                                       "vertices or give the springs tangential stiffness / a wider region")
+        elif len(constrained) < 3:
             raise SolverSetupError(
                 f"{len(constrained)} constrained vertices cannot stop rigid-body motion; "
                 "fix at least 3 vertices that are not on one line"
@@ -125,6 +150,61 @@ class Problem:
         object.__setattr__(self, "prescribed", (pids, pvals) if len(pids) else None)
         object.__setattr__(self, "_pids", pids)
         object.__setattr__(self, "_pvals", pvals)
+
+    def _check_extras(self) -> None:
+        if self.springs is not None and not isinstance(self.springs, NodalSprings):
+            raise SolverSetupError(f"springs must be NodalSprings, got {type(self.springs).__name__}")
+        if self.springs is not None and len(self.springs) and self.springs.nodes.max() >= len(self.nodes):
+            raise SolverSetupError(f"spring node {int(self.springs.nodes.max())} is outside the {len(self.nodes)} "
+                                   f"element nodes of order {self.order}")
+        if self.materials is not None:
+            if not isinstance(self.materials, NeoHookeanField):
+                raise SolverSetupError(f"materials must be a NeoHookeanField, got {type(self.materials).__name__}")
+            if len(self.materials) != self.mesh.n_tets:
+                raise SolverSetupError(f"materials give {len(self.materials)} elements constants, the mesh has "
+                                       f"{self.mesh.n_tets}")
+
+    @property
+    def element_material(self):
+        """What the assembler evaluates: ``materials`` if given, else ``material``."""
+        return self.materials if self.materials is not None else self.material
+
+    def solve_constraints(self, prescribed) -> tuple[np.ndarray, np.ndarray]:
+        """The element nodes a solve's own prescribed vertex displacements constrain.
+
+        Args:
+            prescribed: ``{vertex: (3,)}`` or ``(ids (k,), displacements (k, 3) mm)`` of vertices
+                that are free in the problem, or None.
+
+        Returns:
+            ``(node ids (p,), displacement at full load (p, 3) mm)``: the vertices and, for P2,
+            the mid-edge nodes whose two ends are constrained (by the problem or by this solve)
+            and at least one of them by this solve, at the mean of their ends' values.
+
+        Raises:
+            SolverSetupError: bad ids or values, or a vertex the problem already constrains.
+        """
+        n = self.mesh.n_vertices
+        ids, vals = _parse_prescribed(prescribed, n)
+        if not len(ids):
+            return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
+        clash = np.intersect1d(ids, np.concatenate([self.fixed, self._pids]))
+        if clash.size:
+            raise SolverSetupError(f"vertices {clash[:5].tolist()} are already fixed or prescribed by the problem; a "
+                                   "solve may prescribe free vertices only")
+        node_ids, values = [ids], [vals]
+        if self.order == 2:
+            value = np.full((n, 3), np.nan)
+            value[self.fixed] = 0.0
+            value[self._pids] = self._pvals
+            value[ids] = vals
+            mine = np.zeros(n, dtype=bool)
+            mine[ids] = True
+            e = self.mesh.edges
+            k = np.flatnonzero(~np.isnan(value[e[:, 0], 0]) & ~np.isnan(value[e[:, 1], 0]) & mine[e].any(axis=1))
+            node_ids.append(n + k)
+            values.append(0.5 * (value[e[k, 0]] + value[e[k, 1]]))
+        return np.concatenate(node_ids), np.vstack(values)
 
     @property
     def n_vertices(self) -> int:
@@ -167,32 +247,43 @@ class Problem:
         return free.ravel()
 
 
+def _with_mid_edges(mesh: TetMesh, order: int, vertices: np.ndarray) -> np.ndarray:
+    """The vertices and, for P2, the mid-edge nodes between two of them."""
+    vertices = np.asarray(vertices, dtype=np.int64)
+    if order == 1 or not vertices.size:
+        return vertices
+    return np.concatenate([vertices, mesh.n_vertices + np.flatnonzero(np.isin(mesh.edges, vertices).all(axis=1))])
+
+
 def check_forces(problem: Problem, forces) -> np.ndarray:
     """Validate nodal forces for a problem.
 
     Args:
         problem: the problem.
-        forces: (n, 3) float, N, dead loads on the mesh vertices.
+        forces: (n, 3) float, N, dead loads on the mesh vertices (for P2 the corner nodes), or
+            (n_nodes, 3) on every element node (e.g. consistent loads of a traction or of
+            gravity).
 
     Returns:
-        (n, 3) float64 copy of the forces.
+        float64 copy of the forces, shaped as given.
 
     Raises:
         SolverSetupError: wrong shape, non-finite values, or a non-zero force on a fixed or
-            prescribed vertex.
+            prescribed vertex (or, for forces on every node, on any constrained node).
     """
     f = np.asarray(forces, dtype=np.float64) if forces is not None else None
-    n = problem.n_vertices
-    if f is None or f.shape != (n, 3):
+    n, n_nodes = problem.n_vertices, len(problem.nodes)
+    if f is None or f.shape not in ((n, 3), (n_nodes, 3)):
         shape = None if f is None else f.shape
-        raise SolverSetupError(f"forces must have shape ({n}, 3) (N per mesh vertex), got {shape}")
+        raise SolverSetupError(f"forces must have shape ({n}, 3) (N per mesh vertex) or ({n_nodes}, 3) (N per "
+                               f"element node), got {shape}")
     bad = ~np.isfinite(f).all(axis=1)
     if bad.any():
         raise SolverSetupError(
             f"{int(bad.sum())} force rows are not finite (first: vertex {int(np.flatnonzero(bad)[0])}); "
             "replace NaN/inf by numbers of N"
         )
-    constrained = np.concatenate([problem.fixed, problem._pids])
+    constrained = np.concatenate([problem.fixed, problem._pids]) if len(f) == n else problem.constrained_nodes[0]
     loaded = constrained[np.any(f[constrained] != 0.0, axis=1)]
     if loaded.size:
         raise SolverSetupError(
@@ -202,19 +293,24 @@ def check_forces(problem: Problem, forces) -> np.ndarray:
     return f.copy()
 
 
-def build_problem(mesh: TetMesh, config, fixed, *, order: int | None = None) -> Problem:
+def build_problem(mesh: TetMesh, config, fixed, *, order: int | None = None, springs: NodalSprings | None = None,
+                  materials: NeoHookeanField | None = None, can_swing: bool | None = None) -> Problem:
     """The finite-element problem a run configuration describes on ``mesh``.
 
     Args:
         mesh: the tetrahedral mesh (mm).
         config: a :class:`~tissuecast.config.Config`: ``material`` gives the neo-Hookean
             constants (MPa), ``solver.order`` the element order.
-        fixed: (k,) int, 0-based ids of the fixed vertices (e.g. from
-            :func:`tissuecast.markers.markers_and_fixed`).
+        fixed: (k,) int, 0-based ids of the vertices fixed in all components (e.g. from
+            :func:`tissuecast.markers.markers_and_fixed`, or a scenario's pins and attached
+            region).
         order: element order overriding ``config.solver.order`` (1 or 2).
+        springs, materials, can_swing: as :class:`Problem` (a scenario's elastic support and
+            material regions: :meth:`tissuecast.scenario.Scenario.problem`).
 
     Raises:
         SolverSetupError: as :class:`Problem`.
     """
     material = NeoHookean(youngs_modulus=config.material.youngs_modulus, poisson_ratio=config.material.poisson_ratio)
-    return Problem(mesh, material, fixed, order=config.solver.order if order is None else order)
+    return Problem(mesh, material, fixed, order=config.solver.order if order is None else order, springs=springs,
+                   materials=materials, can_swing=can_swing)

@@ -28,6 +28,13 @@ reduced tangent, an Armijo line search and load increments with cut-backs. Retur
 field, or None when the reduced problem does not converge (the caller then solves from zero,
 as without a predictor).
 
+Linear springs to ground (an elastic support) are exact in the reduced model: their reduced
+stiffness ``V^T K_s V`` is a constant (r, r) matrix added to the sampled elements' energy,
+forces and tangent. Per-element materials are those of the sampled elements. Per-solve
+prescribed displacements (an indentation) are not part of the prediction: the reduced model
+predicts the response to the loads, and the full solver moves the prescribed nodes from
+there (its lift, :mod:`.newton`).
+
 Galerkin solutions are only roughly right (a linear subspace represents the swing of the body
 about its pins only roughly) but well inside Newton's quadratic basin. Measurements and the
 history of the predictor: ``docs/solver.md``.
@@ -152,6 +159,7 @@ class _Sub:
 
     assembler: Assembler
     basis: np.ndarray  # (n_sub_free, r) rows of V at the sub-mesh's free dofs
+    springs: np.ndarray  # (r, r) reduced stiffness V^T K_s V of the springs, N/mm (zero without)
 
 
 def _free_position(free_mask: np.ndarray) -> np.ndarray:
@@ -165,7 +173,8 @@ class ReducedModel:
     """Galerkin reduced-order model with ECSW hyper-reduction (a predictor for :class:`Solver`).
 
     Args:
-        problem: the full problem (no prescribed non-zero displacements).
+        problem: the full problem (no prescribed non-zero displacements; springs and
+            per-element materials are taken into account).
         basis: (n_free, r) float, orthonormal columns over the problem's free dofs (the order
             of ``Assembler(...).free_dofs``: node-major, x/y/z).
         elements: (k,) int, 0-based ids of the sampled elements.
@@ -189,10 +198,14 @@ class ReducedModel:
         sub_nodes, local = np.unique(conn, return_inverse=True)
         local = local.reshape(conn.shape)
         sub_free = free_mask.reshape(-1, 3)[sub_nodes].ravel()
-        asm = Assembler(problem.nodes[sub_nodes], local, problem.order, problem.material, sub_free)
+        material = problem.materials.subset(self.elements) if problem.materials is not None else problem.material
+        asm = Assembler(problem.nodes[sub_nodes], local, problem.order, material, sub_free)
         asm.geometry = dataclasses.replace(asm.geometry, weight=asm.geometry.weight * self.weights[:, None])
         full_dofs = (3 * sub_nodes[:, None] + np.arange(3)).ravel()[sub_free]
-        self._sub = _Sub(asm, self.basis[_free_position(free_mask)[full_dofs]])
+        ks = np.zeros((self.n_modes, self.n_modes))
+        if problem.springs is not None and len(problem.springs):
+            ks = self.basis.T @ (problem.springs.matrix(free_mask) @ self.basis)
+        self._sub = _Sub(asm, self.basis[_free_position(free_mask)[full_dofs]], 0.5 * (ks + ks.T))
         self._n = problem.n_vertices
         self.fit_error: float | None = None  # ECSW force error of fit(), if fitted here
         self.last_iterations, self.last_seconds = 0, 0.0  # of the last predict()
@@ -229,7 +242,8 @@ class ReducedModel:
         if keep == 0:
             raise SolverSetupError("the snapshots are all zero: no basis to build")
         basis = u[:, :keep]
-        asm = Assembler(problem.nodes, problem.connectivity, problem.order, problem.material, problem.free_mask)
+        asm = Assembler(problem.nodes, problem.connectivity, problem.order, problem.element_material,
+                        problem.free_mask)
         m, nn = problem.connectivity.shape
         erows = _free_position(problem.free_mask)[asm.element_dofs]  # (m, 3nn), -1 at constrained dofs
         vfull = np.vstack([basis, np.zeros((1, keep))])  # row -1 -> zeros
@@ -264,7 +278,7 @@ class ReducedModel:
         return u.reshape(-1, 3)
 
     def _energy(self, q: np.ndarray, fr: np.ndarray) -> float:
-        return self._sub.assembler.energy(self._state(q)) - float(fr @ q)
+        return self._sub.assembler.energy(self._state(q)) + 0.5 * float(q @ self._sub.springs @ q) - float(fr @ q)
 
     def predict(self, forces: np.ndarray, max_iterations: int = 40, tolerance: float = 1e-2,
                 first_increment: float = 1.0, method: str = "bfgs",
@@ -272,7 +286,8 @@ class ReducedModel:
         """Reduced equilibrium under ``forces``: (n_nodes, 3) nodal displacements, mm, or None.
 
         Args:
-            forces: (n, 3) float, N, dead loads on the vertices (as for :meth:`Solver.solve`).
+            forces: (n, 3) float, N, dead loads on the vertices, or (n_nodes, 3) on every
+                element node (as for :meth:`Solver.solve`).
             max_iterations: reduced Newton iterations per load increment (``5 x`` that for
                 the quasi-Newton iterations of ``method="bfgs"``).
             tolerance: Newton: stop when the reduced residual is below ``tolerance`` times the
@@ -303,10 +318,11 @@ class ReducedModel:
         return None if found is None else self._done(*found, t0)
 
     def _reduced_forces(self, forces: np.ndarray) -> np.ndarray:
-        """(r,) reduced external forces ``V^T f`` of checked vertex forces (n, 3), N."""
+        """(r,) reduced external forces ``V^T f`` of checked vertex (n, 3) or element-node
+        (n_nodes, 3) forces, N."""
         f = check_forces(self.problem, forces)
         fext = np.zeros(3 * len(self.problem.nodes))
-        fext[: 3 * self._n] = f.ravel()
+        fext[: f.size] = f.ravel()
         return self.basis.T @ fext[self.free_dofs]
 
     def _linear_answer(self, fr: np.ndarray) -> np.ndarray:
@@ -316,7 +332,7 @@ class ReducedModel:
         if self._h0 is None:
             asm = sub.assembler
             _, data, _ = asm.tangent(self._state(np.zeros(self.n_modes)))
-            self._h0 = sub.basis.T @ (asm.matrix(data) @ sub.basis)
+            self._h0 = sub.basis.T @ (asm.matrix(data) @ sub.basis) + sub.springs
         try:
             return np.linalg.solve(self._h0, fr)
         except np.linalg.LinAlgError:
@@ -379,8 +395,8 @@ class ReducedModel:
         where the reduced tangent is indefinite (its |eigenvalues| are used then)."""
         asm, basis = self._sub.assembler, self._sub.basis
         fint, data, _ = asm.tangent(self._state(q))
-        grad = basis.T @ fint[asm.free_dofs] - fr
-        h = basis.T @ (asm.matrix(data) @ basis)
+        grad = basis.T @ fint[asm.free_dofs] + self._sub.springs @ q - fr
+        h = basis.T @ (asm.matrix(data) @ basis) + self._sub.springs
         try:
             return -cho_solve(cho_factor(h), grad), grad
         except np.linalg.LinAlgError:
@@ -407,7 +423,8 @@ class ReducedModel:
             e, fint, jmin = asm.energy_and_force(self._state(q))
             if not jmin > 0.0:
                 return np.inf, None
-            return e - float(fr @ q), sub.basis.T @ fint[free] - fr
+            ks_q = sub.springs @ q
+            return e + 0.5 * float(q @ ks_q) - float(fr @ q), sub.basis.T @ fint[free] + ks_q - fr
 
         e, g = energy_gradient(q)
         if not np.isfinite(e):  # the linear answer inverts a sampled element: start from zero

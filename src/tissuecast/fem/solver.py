@@ -90,7 +90,8 @@ class Solver:
             raise SolverSetupError(f"problem must be a tissuecast.fem.Problem, got {type(problem).__name__}")
         self.problem = problem
         self.config = config if config is not None else SolverConfig()
-        self.assembler = Assembler(problem.nodes, problem.connectivity, problem.order, problem.material, problem.free_mask)
+        self.assembler = Assembler(problem.nodes, problem.connectivity, problem.order, problem.element_material,
+                                   problem.free_mask, springs=problem.springs)
         self.linear = make_linear_solver(self.config.linear_solver, self.assembler)
         nodes, values = problem.constrained_nodes
         self.constrained_nodes = nodes
@@ -101,31 +102,46 @@ class Solver:
         self._idle_factors: list[LinearSolver] = []  # numeric factors no run holds now
 
     # ------------------------------------------------------------------ solves
-    def solve(self, forces: np.ndarray, initial_guess: np.ndarray | None = None) -> SolveResult:
+    def solve(self, forces: np.ndarray, initial_guess: np.ndarray | None = None, *, prescribed=None,
+              body_loads=None) -> SolveResult:
         """Solve for the equilibrium under dead nodal forces.
 
         Args:
             forces: (n, 3) float, N, on the mesh vertices (zero on constrained vertices).
-                For P2 they act on the corner nodes, like CalculiX ``*CLOAD`` on them.
+                For P2 they act on the corner nodes, like CalculiX ``*CLOAD`` on them. Or
+                (n_nodes, 3) on every element node (consistent loads of tractions or gravity).
             initial_guess: optional guess of the displacements at full load, mm: (n, 3) at
                 the vertices (mid-edge nodes are then interpolated linearly) or (n_nodes, 3)
                 at every element node (e.g. ``nodal_displacement`` of earlier samples, which
                 is better for P2). A good guess cuts the work several-fold. With a guess
                 the first increment is the full load (``initial_increment`` applies to
                 cold starts only).
+            prescribed: optional displacements (mm) of vertices that the problem leaves free,
+                for this solve only (e.g. an indenting patch), ``{vertex: (3,)}`` or
+                ``(ids (k,), values (k, 3))``; reached in proportion to the load fraction, like
+                the loads. They are eliminated inside the solve: the sparsity pattern and its
+                symbolic factorisation are the Solver's (see :mod:`.newton`). Forces on these
+                vertices go into their reactions.
+            body_loads: optional (n_nodes, 3) float, N: distributed loads on every element node
+                (the consistent loads of a body force such as a change of gravity), added to
+                ``forces``. They are left out of the reference force of the convergence test
+                (:func:`.convergence.reference_force`: thousands of small nodal shares would make
+                the "typical force" tiny); they reach it through the reactions they cause.
 
         Returns:
-            The converged :class:`SolveResult`.
+            The converged :class:`SolveResult` (``nodal_reaction`` also at the solve's
+            prescribed nodes).
 
         Raises:
             SolverSetupError: invalid forces or initial guess.
             ConvergenceError: the minimum increment or the increment budget was reached;
                 ``load_fraction`` and ``result`` (partial) are attached.
         """
-        fext = self._external_forces(forces)
-        return _drive(SolveRun(self, fext, self._nodal_guess(initial_guess)).steps())
+        fext, counted = self._external_forces(forces, body_loads)
+        held = self.problem.solve_constraints(prescribed)
+        return _drive(SolveRun(self, fext, self._nodal_guess(initial_guess), held=held, counted=counted).steps())
 
-    def solve_batch(self, forces, initial_guesses=None) -> list:
+    def solve_batch(self, forces, initial_guesses=None, prescribed=None, body_loads=None) -> list:
         """Solve several force fields together, their triangular solves gathered.
 
         The samples are solved in lockstep: each round advances every unfinished sample to
@@ -147,6 +163,8 @@ class Solver:
             forces: sequence of (n, 3) float arrays, N, as for :meth:`solve`.
             initial_guesses: None, or a sequence of the same length whose entries are None or
                 guesses as for :meth:`solve`.
+            prescribed, body_loads: None, or sequences of the same length of per-solve
+                prescribed displacements and body loads as for :meth:`solve` (entries may be None).
 
         Returns:
             One entry per force field, in order: its :class:`SolveResult`, or the
@@ -165,10 +183,17 @@ class Solver:
                 f"initial_guesses has {len(guesses)} entries for {len(forces)} force fields; "
                 "give one per field (None for none)"
             )
-        fexts = [self._external_forces(f) for f in forces]
+        held = [None] * len(forces) if prescribed is None else list(prescribed)
+        body = [None] * len(forces) if body_loads is None else list(body_loads)
+        if len(held) != len(forces) or len(body) != len(forces):
+            raise SolverSetupError(f"prescribed / body_loads have {len(held)} / {len(body)} entries for {len(forces)} "
+                                   "force fields; give one per field (None for none)")
+        loads = [self._external_forces(f, b) for f, b in zip(forces, body)]
         guesses = [self._nodal_guess(g) for g in guesses]
+        held = [self.problem.solve_constraints(p) for p in held]
         t0 = time.perf_counter()
-        out = _drive_lockstep([SolveRun(self, fext, g).steps() for fext, g in zip(fexts, guesses)])
+        out = _drive_lockstep([SolveRun(self, fext, g, held=h, counted=c).steps()
+                               for (fext, c), g, h in zip(loads, guesses, held)])
         share = (time.perf_counter() - t0) / max(len(forces), 1)
         return [dataclasses.replace(r, seconds=share) if isinstance(r, SolveResult) else r for r in out]
 
@@ -181,12 +206,21 @@ class Solver:
         e = self.problem.mesh.edges
         return np.vstack([v, 0.5 * (v[e[:, 0]] + v[e[:, 1]])])
 
-    def _external_forces(self, forces) -> np.ndarray:
-        """The checked vertex forces as a (3 n_nodes,) vector over every element node, N."""
+    def _external_forces(self, forces, body_loads=None) -> tuple[np.ndarray, np.ndarray | None]:
+        """The checked vertex (or element-node) forces plus the body loads, as a (3 n_nodes,)
+        vector over every element node, N, and the forces alone when there are body loads
+        (the loads the convergence test counts; None = all)."""
         f = check_forces(self.problem, forces)
         fext = np.zeros(self.assembler.n_dofs)
-        fext[: 3 * self.problem.n_vertices] = f.ravel()
-        return fext
+        fext[: f.size] = f.ravel()
+        if body_loads is None:
+            return fext, None
+        b = np.asarray(body_loads, dtype=np.float64)
+        if b.shape != (len(self.problem.nodes), 3):
+            raise SolverSetupError(f"body_loads must have shape ({len(self.problem.nodes)}, 3) (N per element node), "
+                                   f"got {b.shape}")
+        b = check_forces(self.problem, b)
+        return fext + b.ravel(), fext
 
     def _nodal_guess(self, initial_guess) -> np.ndarray | None:
         """The checked initial guess at every element node, flattened (None stays None)."""
@@ -269,13 +303,17 @@ def _drive_lockstep(steps: list) -> list:
     return out
 
 
-def solve(problem: Problem, forces: np.ndarray, config: SolverConfig | None = None, initial_guess=None) -> SolveResult:
-    """One-off solve: ``Solver(problem, config).solve(forces, initial_guess)``.
+def solve(problem: Problem, forces: np.ndarray, config: SolverConfig | None = None, initial_guess=None, *,
+          prescribed=None, body_loads=None) -> SolveResult:
+    """One-off solve: ``Solver(problem, config).solve(forces, initial_guess, prescribed=..., body_loads=...)``.
 
     Args:
         problem: the finite-element problem.
-        forces: (n, 3) float, N, dead loads on the mesh vertices.
+        forces: (n, 3) float, N, dead loads on the mesh vertices (or (n_nodes, 3) on every node).
         config: solver settings (defaults if None).
         initial_guess: optional (n, 3) float, mm.
+        prescribed, body_loads: optional per-solve prescribed vertex displacements and body
+            loads (see :meth:`Solver.solve`).
     """
-    return Solver(problem, config).solve(forces, initial_guess=initial_guess)
+    return Solver(problem, config).solve(forces, initial_guess=initial_guess, prescribed=prescribed,
+                                         body_loads=body_loads)

@@ -6,6 +6,7 @@ All forces are dead nodal loads in N, arrays of shape (n_vertices, 3), zero off 
 from .fields import field_scale, lbo_field, random_lbo_weights
 from .lbo import LBOBasis, lbo_basis, surface_operator
 from .lsc import blend, lsc_field, smooth, surface_graph_laplacian
+from .traction import traction_loads
 
 __all__ = [
     "LBOBasis",
@@ -18,4 +19,5 @@ __all__ = [
     "smooth",
     "lsc_field",
     "blend",
+    "traction_loads",
 ]

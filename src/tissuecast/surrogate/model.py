@@ -86,6 +86,9 @@ class DeformationModel:
         self.config = _surrogate_config(config, overrides)
         self.run_config: dict | None = config_to_dict(config) if isinstance(config, Config) else None
         self.dataset_path: str | None = None
+        #: the clinical scenario of the training data (``Dataset.scenario``: supports, loads,
+        #: materials; see :mod:`tissuecast.scenario.describe`), or None when not recorded
+        self.scenario: dict | None = None
 
     # ------------------------------------------------------------------ fitted state
     def _fitted(self) -> None:
@@ -257,6 +260,7 @@ class DeformationModel:
         model = cls(config, **overrides)
         path = getattr(dataset, "path", None)
         model.dataset_path = str(Path(path).resolve()) if path is not None else None
+        model.scenario = getattr(dataset, "scenario", None)
         return model.fit(
             arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed,
             train_idx=arrays.train_idx, valid_idx=arrays.valid_idx,

@@ -3,7 +3,7 @@
 A model folder holds::
 
     model.json          format, schema, versions, units, markers, fixed vertices,
-                        reference marker positions, mesh fingerprint, config, training summary
+                        reference marker positions, mesh fingerprint, config, scenario (supports, loads), training summary
     weights.safetensors member{k}.layer{i}.weight/bias and standardisation, float32
     pca.npz             mean (p,), components (n_w, p), singular_values (n_w,), float64
     mesh.npz            points (n, 3) mm, tets (m, 4) 0-based
@@ -84,6 +84,7 @@ def save_model(model, folder, *, onnx: bool = False) -> None:
         "surrogate_config": config_to_dict(model.config),
         "config": model.run_config,
         "dataset_path": model.dataset_path,
+        "scenario": model.scenario,
         "pca_curve": None if model.pca_curve_ is None else model.pca_curve_.as_dict(),
         "pca_choice": getattr(model, "pca_choice_", None),
         "training": getattr(model, "training_", None),
@@ -156,6 +157,7 @@ def load_model(cls, folder):
     model = cls(sc)
     model.run_config = meta.get("config")
     model.dataset_path = meta.get("dataset_path")
+    model.scenario = meta.get("scenario")
     curve = PCACurve.from_dict(meta["pca_curve"]) if meta.get("pca_curve") else None
     model.pca_choice_ = meta.get("pca_choice") or {"rule": "paper" if curve else "unrecorded",
                                                    "n_components": basis.n_components}

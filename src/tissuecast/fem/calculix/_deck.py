@@ -21,10 +21,11 @@ DEFAULT_FORCE_TOLERANCE = 0.005
 DEFAULT_DISPLACEMENT_TOLERANCE = 0.01
 
 
-def _as_forces(forces, n: int) -> np.ndarray:
+def _as_forces(forces, n: int, n_nodes: int | None = None) -> np.ndarray:
     f = np.asarray(forces, dtype=np.float64)
-    if f.shape != (n, 3):
-        raise SolverSetupError(f"forces must have shape ({n}, 3) (N per mesh vertex), got {f.shape}")
+    if f.shape != (n, 3) and f.shape != (n_nodes, 3):
+        raise SolverSetupError(f"forces must have shape ({n}, 3) (N per mesh vertex)"
+                               f"{'' if n_nodes is None else f' or ({n_nodes}, 3) (per element node)'}, got {f.shape}")
     if not np.isfinite(f).all():
         raise SolverSetupError(f"forces hold {int((~np.isfinite(f)).sum())} non-finite values; fix the force field")
     return f
@@ -126,6 +127,7 @@ def write_inp(
     force_tolerance: float | None = None,
     displacement_tolerance: float | None = None,
     title: str = "tissuecast neo-Hookean problem",
+    scenario=None,
 ) -> Path:
     """Write the problem as a CalculiX/Abaqus input deck.
 
@@ -135,8 +137,8 @@ def write_inp(
         material: neo-Hookean material with ``c10`` and ``d1`` (MPa, 1/MPa), e.g.
             :class:`tissuecast.fem.NeoHookean`.
         fixed: (k,) int, 0-based ids of vertices held in all three directions.
-        forces: (n, 3) float, N: dead nodal loads on the vertices (corner nodes); zero
-            components are not written.
+        forces: (n, 3) float, N: dead nodal loads on the vertices (corner nodes), or
+            (n_nodes, 3) on every element node; zero components are not written.
         order: 2 for quadratic C3D10 elements, 1 for linear C3D4.
         prescribed: optional prescribed vertex displacements (mm), ramped over the step,
             as ``{vertex: (3,)}`` or ``(ids (p,), values (p, 3))``; a NaN component is free.
@@ -152,6 +154,8 @@ def write_inp(
             of displacement); None keeps the defaults 0.005 and 0.01 (both programs'; a
             missing one of the two is written with its default).
         title: ``*HEADING`` text.
+        scenario: optional :class:`~._scenario.DeckScenario`: springs to ground, a gravity
+            load, per-element materials.
 
     Returns:
         The path written.
@@ -164,23 +168,25 @@ def write_inp(
         raise SolverSetupError(f"order must be 1 (C3D4) or 2 (C3D10), got {order!r}")
     n = mesh.n_vertices
     c10, d1 = _material_constants(material)
-    f, fixed, pre_ids, pre_val = _checked_setup(mesh, fixed, forces, prescribed)
+    n_nodes = len(mesh.points10) if order == 2 else None
+    f, fixed, pre_ids, pre_val = _checked_setup(mesh, fixed, forces, prescribed, n_nodes)
     _check_increments(initial_increment, min_increment, max_increment)
     fixed_nodes, pre_nodes, pre_nodal = _constrained_nodes(mesh, order, fixed, pre_ids, pre_val)
     out = _mesh_lines(mesh, order, title)
     out += _set_lines(n, fixed_nodes, node_sets)
-    out += _step_lines(c10, d1, nlgeom, max_increments, (initial_increment, min_increment, max_increment),
+    out += _material_lines(material, c10, d1, scenario, mesh.n_tets)
+    out += _step_lines(nlgeom, max_increments, (initial_increment, min_increment, max_increment),
                        force_tolerance, displacement_tolerance)
-    out += _load_lines(fixed_nodes, pre_nodes, pre_nodal, f)
+    out += _load_lines(fixed_nodes, pre_nodes, pre_nodal, f, scenario)
     path = Path(path)
     path.write_text("\n".join(out))
     return path
 
 
-def _checked_setup(mesh, fixed, forces, prescribed):
-    """``(forces (n, 3), fixed (k,) sorted, prescribed ids (p,), values (p, 3))``, checked."""
+def _checked_setup(mesh, fixed, forces, prescribed, n_nodes: int | None = None):
+    """``(forces (n, 3) or (n_nodes, 3), fixed (k,) sorted, prescribed ids (p,), values (p, 3))``, checked."""
     n = mesh.n_vertices
-    f = _as_forces(forces, n)
+    f = _as_forces(forces, n, n_nodes)
     fixed = np.unique(_as_ids(fixed, n, "fixed vertices"))
     pre_ids, pre_val = _as_prescribed(prescribed, n)
     both = np.intersect1d(fixed, pre_ids)
@@ -237,15 +243,19 @@ def _set_lines(n: int, fixed_nodes: np.ndarray, node_sets: dict | None) -> list[
     return out
 
 
-def _step_lines(c10: float, d1: float, nlgeom: bool, max_increments: int, increments: tuple,
+def _material_lines(material, c10: float, d1: float, scenario, n_elements: int) -> list[str]:
+    """Material(s) and section(s); with a scenario also its per-region materials and springs."""
+    if scenario is None:
+        return ["*MATERIAL, NAME=TISSUE", "*HYPERELASTIC, NEO HOOKE", f"{_num(c10)}, {_num(d1)}",
+                "*SOLID SECTION, ELSET=TISSUE, MATERIAL=TISSUE"]
+    return scenario.material_lines(material, n_elements, _num) + scenario.spring_lines(n_elements + 1, _num)
+
+
+def _step_lines(nlgeom: bool, max_increments: int, increments: tuple,
                 force_tolerance: float | None, displacement_tolerance: float | None) -> list[str]:
-    """Material, section, the static step with its incrementation and convergence controls."""
+    """The static step with its incrementation and convergence controls."""
     initial_increment, min_increment, max_increment = increments
     out = [
-        "*MATERIAL, NAME=TISSUE",
-        "*HYPERELASTIC, NEO HOOKE",
-        f"{_num(c10)}, {_num(d1)}",
-        "*SOLID SECTION, ELSET=TISSUE, MATERIAL=TISSUE",
         f"*STEP, NLGEOM={'YES' if nlgeom else 'NO'}, INC={int(max_increments)}",
         "*STATIC",
         f"{_num(initial_increment)}, 1.0, {_num(min_increment)}, {_num(max_increment)}",
@@ -259,7 +269,8 @@ def _step_lines(c10: float, d1: float, nlgeom: bool, max_increments: int, increm
     return out
 
 
-def _load_lines(fixed_nodes: np.ndarray, pre_nodes: np.ndarray, pre_nodal: np.ndarray, f: np.ndarray) -> list[str]:
+def _load_lines(fixed_nodes: np.ndarray, pre_nodes: np.ndarray, pre_nodal: np.ndarray, f: np.ndarray,
+                scenario=None) -> list[str]:
     """Boundary conditions, nodal loads (non-zero components) and the output requests."""
     out = []
     bc = ["NFIXED, 1, 3"] if fixed_nodes.size else []
@@ -270,5 +281,7 @@ def _load_lines(fixed_nodes: np.ndarray, pre_nodes: np.ndarray, pre_nodal: np.nd
     nz = np.argwhere(f != 0)
     if nz.size:
         out += ["*CLOAD"] + [f"{i + 1}, {d + 1}, {_num(f[i, d])}" for i, d in nz.tolist()]
+    if scenario is not None:
+        out += scenario.step_lines(_num)
     out += ["*NODE PRINT, NSET=NVERT", "U", "*NODE FILE", "U", "*END STEP", ""]
     return out

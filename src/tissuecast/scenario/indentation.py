@@ -1,0 +1,135 @@
+"""Indentation: an instrument pushing a small surface patch by a prescribed displacement.
+
+Per sample a patch centre is drawn on the outer surface (uniformly by area, among the
+surface vertices at least ``clearance`` mm from every supported vertex); the patch is the
+surface vertices within ``radius`` mm of the centre whose outward normals face the same side
+(within 60 degrees of the centre's), supported vertices left out. Every patch vertex moves by
+the same displacement
+
+    d = depth (-n_c) + slide (cos phi t_1 + sin phi t_2),
+
+``n_c`` the centre's outward normal and ``t_1, t_2`` a tangent frame there: a rigid,
+non-slipping tool face pressed in and dragged along. The solver reaches it in proportion to
+the load fraction, like every load.
+
+Draws (from the sample's scenario generator, in this order): the centre (``rng.choice`` with
+area weights), the depth (``rng.uniform(*depth)``), the slide (``rng.uniform(*slide)``) and its
+angle ``phi`` (``2 pi rng.random()``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import IndentationConfig
+from ..errors import ConfigError
+from ..mesh.tetmesh import TetMesh
+from ..mesh.surface import lumped_areas
+
+__all__ = ["Indentation", "IndentationSites", "indentation_sites", "draw_indentation", "PATCH_MIN_VERTICES",
+           "PATCH_FACING_COS"]
+
+#: A patch holds at least this many vertices (fewer would be a point load, singular in 3-D).
+PATCH_MIN_VERTICES = 3
+#: Patch vertices' normals lie within 60 degrees of the centre's (cos 60 = 0.5), so a patch
+#: never reaches round a sharp edge or through a thin part to the far side.
+PATCH_FACING_COS = 0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Indentation:
+    """One sample's indentation.
+
+    Attributes:
+        centre: vertex id of the patch centre.
+        vertices: (p,) int64 sorted ids of the patch vertices.
+        displacement: (3,) float, mm, the displacement every patch vertex is given.
+        depth: mm along the inward normal.  slide: mm along the surface.
+        normal: (3,) unit outward normal at the centre.
+    """
+
+    centre: int
+    vertices: np.ndarray
+    displacement: np.ndarray
+    depth: float
+    slide: float
+    normal: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class IndentationSites:
+    """Where patch centres may be drawn, and the patch of each.
+
+    Attributes:
+        centres: (c,) int64 eligible centre vertices.
+        weights: (c,) float, probabilities (lumped vertex areas, normalised).
+        patches: list of (p,) int64 patch vertices, one per centre.
+        normals: (c, 3) outward unit normals at the centres.
+    """
+
+    centres: np.ndarray
+    weights: np.ndarray
+    patches: list
+    normals: np.ndarray
+
+
+def indentation_sites(mesh: TetMesh, config: IndentationConfig, normals: np.ndarray, supported: np.ndarray,
+                      key: str = "scenario.indentation") -> IndentationSites:
+    """The eligible patch centres and their patches (module notes).
+
+    Args:
+        mesh: the mesh (mm).
+        config: the indentation settings.
+        normals: (n, 3) outward vertex normals.
+        supported: (k,) int vertices held by the supports (pins, attached region).
+        key: config key for messages.
+
+    Raises:
+        ConfigError: no surface vertex is far enough from the supports, or no patch holds
+            :data:`PATCH_MIN_VERTICES` vertices (radius too small: in metres?).
+    """
+    surface = np.asarray(mesh.surface_vertices, dtype=np.int64)
+    supported = np.asarray(supported, dtype=np.int64)
+    pts = mesh.points
+    if supported.size:
+        far = np.array([np.linalg.norm(pts[supported] - pts[v], axis=1).min() >= config.clearance for v in surface])
+    else:
+        far = np.ones(len(surface), dtype=bool)
+    if not far.any():
+        raise ConfigError(f"{key}: no surface vertex is {config.clearance:g} mm away from the supported vertices; "
+                          f"reduce {key}.clearance or the supported region")
+    nodes, area, _ = lumped_areas(mesh, mesh.surface_triangles, 1)
+    vertex_area = np.zeros(mesh.n_vertices)
+    vertex_area[nodes] = area
+    centres, patches = [], []
+    free_surface = surface[~np.isin(surface, supported)]
+    for c in surface[far]:
+        near = free_surface[np.linalg.norm(pts[free_surface] - pts[c], axis=1) <= config.radius]
+        patch = near[normals[near] @ normals[c] >= PATCH_FACING_COS]
+        if len(patch) >= PATCH_MIN_VERTICES:
+            centres.append(int(c))
+            patches.append(np.sort(patch))
+    if not centres:
+        raise ConfigError(f"{key}.radius = {config.radius:g} mm holds fewer than {PATCH_MIN_VERTICES} surface vertices "
+                          "around every eligible centre; lengths are in mm: use a radius of a few mean edge lengths "
+                          f"({mesh.quality.edge_length_mean:.3g} mm on this mesh)")
+    centres = np.asarray(centres, dtype=np.int64)
+    w = vertex_area[centres]
+    return IndentationSites(centres, w / w.sum(), patches, normals[centres])
+
+
+def draw_indentation(rng: np.random.Generator, sites: IndentationSites, config: IndentationConfig) -> Indentation:
+    """One indentation, drawn as the module notes say."""
+    k = int(rng.choice(len(sites.centres), p=sites.weights))
+    depth = float(rng.uniform(*config.depth))
+    slide = float(rng.uniform(*config.slide))
+    phi = 2.0 * np.pi * float(rng.random())
+    n = sites.normals[k]
+    helper = np.eye(3)[int(np.argmin(np.abs(n)))]
+    t1 = np.cross(n, helper)
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(n, t1)
+    d = -depth * n + slide * (np.cos(phi) * t1 + np.sin(phi) * t2)
+    return Indentation(int(sites.centres[k]), sites.patches[k], d, depth, slide, n.copy())
