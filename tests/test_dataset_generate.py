@@ -167,12 +167,60 @@ def test_no_predictor_solves_every_sample_from_zero(tmp_path):
     assert ds.summary()["predictor"]["model"] is None
 
 
+def _start_dask_cluster(folder, workers: int = 2):
+    """``dask scheduler`` and ``workers`` x ``dask worker`` started from the command line, bound to
+    127.0.0.1 on free ports; returns (scheduler address, the processes)."""
+    import json
+
+    dask = os.path.join(os.path.dirname(sys.executable), "dask")
+    address_file = folder / "scheduler.json"
+    common = ["--no-dashboard"]
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--scheduler-file",
+                               str(address_file), *common], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    deadline = time.monotonic() + 60
+    while not address_file.exists() and time.monotonic() < deadline and procs[0].poll() is None:
+        time.sleep(0.05)
+    assert address_file.exists(), "dask scheduler did not start"
+    time.sleep(0.1)  # the file is written whole, but give it a moment
+    address = json.loads(address_file.read_text())["address"]
+    for _ in range(workers):
+        procs.append(subprocess.Popen([dask, "worker", address, "--host", "127.0.0.1", "--nworkers", "1",
+                                       "--nthreads", "1", *common], stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL))
+    return address, procs
+
+
+def _wait_for_workers(address: str, count: int) -> None:
+    import distributed
+
+    with distributed.Client(address, timeout="30s") as client:
+        client.wait_for_workers(count, timeout=60)
+
+
 def test_dask_cluster_gives_the_same_store(reference, tmp_path):
-    distributed = pytest.importorskip("distributed")
+    """A real cluster: scheduler and two workers from the command line, `tissuecast simulate
+    --scheduler` as a user runs it; the store equals the local run's bit for bit."""
+    pytest.importorskip("distributed")
     cfg, ref_path, _ = reference
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        summary = simulate(cfg, tmp_path / "dask.zarr", progress=False, scheduler=cluster.scheduler_address)
-    assert "Dask cluster" in summary["run"]["executor"]
+    address, procs = _start_dask_cluster(tmp_path)
+    try:
+        assert address.startswith("tcp://127.0.0.1:")
+        _wait_for_workers(address, 2)
+        cfg_file = write_config(cfg, tmp_path / "cfg.toml")
+        run = subprocess.run([sys.executable, "-m", "tissuecast.cli.main", "simulate", str(cfg_file), "--store",
+                              str(tmp_path / "dask.zarr"), "--scheduler", address, "--no-progress"],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-2000:]
+        assert f"Dask cluster {address} (2 workers)" in run.stdout
+    finally:
+        for proc in reversed(procs):
+            proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
     _same_store(tmp_path / "dask.zarr", ref_path)
 
 

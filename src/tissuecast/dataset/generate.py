@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config, config_from_dict, config_to_dict, config_to_toml, load_config
+from ..config import Config, DatasetConfig, config_from_dict, config_to_dict, config_to_toml, load_config
 from ..errors import DatasetError
 from .calibrate import calibrate_alpha, initial_alpha
 from .codes import SampleStatus
@@ -147,7 +147,12 @@ def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
     from ..forces import lbo_basis
 
     basis = lbo_basis(mesh, cfg.forces.n_basis)
-    return StoreWriter.create(path, config_toml=config_to_toml(cfg, comments=False), mesh=mesh, markers=markers,
+    # where the samples are solved (local workers, a Dask scheduler's address) is not part of the
+    # data set: the store records the defaults, so a cluster run and a local run give one store
+    default = DatasetConfig()
+    recorded = dataclasses.replace(cfg, dataset=dataclasses.replace(cfg.dataset, workers=default.workers,
+                                                                     scheduler=default.scheduler))
+    return StoreWriter.create(path, config_toml=config_to_toml(recorded, comments=False), mesh=mesh, markers=markers,
                               fixed=fixed, basis=basis, plan=make_plan(cfg))
 
 

@@ -275,6 +275,8 @@ class SolveRun:
             self.factor_valid = True
             self.rotation = np.eye(3)
             track.fresh, track.reuses = True, 0
+        if d is None and not self.active.exact:  # an approximate inverse: CG with the fresh one
+            d, _ = yield from self.krylov_direction(u, r)
         if d is None:
             d = -(yield from self._precondition(r))
         return d

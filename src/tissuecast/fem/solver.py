@@ -91,7 +91,7 @@ class Solver:
         self.problem = problem
         self.config = config if config is not None else SolverConfig()
         self.assembler = Assembler(problem.nodes, problem.connectivity, problem.order, problem.material, problem.free_mask)
-        self.linear = make_linear_solver(self.config.linear_solver, self.assembler)
+        self.linear = make_linear_solver(self.config.linear_solver, self.assembler, self.config)
         nodes, values = problem.constrained_nodes
         self.constrained_nodes = nodes
         self.constrained_dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
