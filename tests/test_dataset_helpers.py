@@ -51,7 +51,7 @@ def fake_solver_factory(mesh, fixed, cfg):
     """A deterministic stand-in solver: u = forces * 0.5 mm/N, failing when |f| > 1 N anywhere."""
 
     def make(solver_cfg):
-        def solve(forces, initial_guess=None):
+        def solve(forces, initial_guess=None, time_limit=None):
             if np.abs(forces).max() > 1.0:
                 raise ConvergenceError("increment too small at load fraction 0.4", 0.4)
             return SimpleNamespace(displacement=np.asarray(forces) * 0.5, increments=1, iterations=2, factorizations=2)
@@ -71,11 +71,42 @@ def dying_solver_factory(mesh, fixed, cfg):
     def make(solver_cfg):
         inner = fake(solver_cfg)
 
-        def solve(forces, initial_guess=None):
+        def solve(forces, initial_guess=None, time_limit=None):
             flag = os.environ.get("TISSUECAST_TEST_DIE")
             if flag and os.path.exists(flag):
                 os.remove(flag)
                 os._exit(1)
+            return inner.solve(forces, initial_guess)
+
+        return SimpleNamespace(solve=solve)
+
+    return make
+
+
+#: The stalling solver's samples whose largest nodal force lies in this band (N) stall.
+STALL_BAND = (0.6, 0.7)
+
+
+def stalling_solver_factory(mesh, fixed, cfg):
+    """The fake solver, except that samples whose largest force lies in ``STALL_BAND`` stall
+    at every retry level: without a time limit they take 1.5 s and converge, with one they
+    run to it and raise SolveTimeout (as the FEM solver does)."""
+    import time
+
+    from tissuecast.errors import SolveTimeout
+
+    fake = fake_solver_factory(mesh, fixed, cfg)
+
+    def make(solver_cfg):
+        inner = fake(solver_cfg)
+
+        def solve(forces, initial_guess=None, time_limit=None):
+            if STALL_BAND[0] < np.abs(forces).max() <= STALL_BAND[1]:
+                if time_limit is None:
+                    time.sleep(1.5)
+                else:
+                    time.sleep(time_limit + 0.01)
+                    raise SolveTimeout(f"stopped after {time_limit + 0.01:.1f} s, past its time limit", time_limit, time_limit)
             return inner.solve(forces, initial_guess)
 
         return SimpleNamespace(solve=solve)

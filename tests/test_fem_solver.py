@@ -383,3 +383,16 @@ def test_convergence_test_by_hand():
     fext = np.array([0.0, 3.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # 5 N on node 0
     fint = np.array([0.0, 3.0, 4.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0])  # 1 N reaction on node 2
     assert reference_force(fint, fext, np.array([2])) == pytest.approx(3.0)  # mean of 5 and 1
+
+
+def test_time_limit_stops_a_solve_and_returns_its_factor(beam):
+    from tissuecast.errors import SolveTimeout
+
+    mesh, fixed, f = beam
+    solver = Solver(Problem(mesh, MAT, fixed, order=2), SolverConfig(strategy="newton"))
+    with pytest.raises(SolveTimeout, match="past its time limit of 0.0 s") as err:
+        solver.solve(f, time_limit=0.0)
+    assert isinstance(err.value, ConvergenceError) and err.value.limit == 0.0 and err.value.seconds >= 0.0
+    assert len(solver._idle_factors) == 1  # the stopped run gave its numeric factor back
+    res = solver.solve(f, time_limit=600.0)  # a generous limit changes nothing
+    np.testing.assert_array_equal(res.displacement, solver.solve(f).displacement)

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from ..config import Config, SolverConfig, config_from_dict
-from ..errors import ConvergenceError
+from ..errors import ConvergenceError, SolveTimeout
 from .codes import InitialGuess, SampleStatus
 
 if TYPE_CHECKING:
@@ -90,6 +90,8 @@ class Task:
 
     ``guess``: optional (n_nodes, 3) mm nodal displacements to start from (a calibration
     pilot's solution of the previous round); without it the reduced model predicts, if any.
+    ``budget``: wall-clock seconds each solver attempt may run (0 = no limit); an attempt
+    stopped by it is followed by the cautious retries only (see :func:`solve_task`).
     """
 
     index: int
@@ -97,6 +99,7 @@ class Task:
     beta: float  # NaN for LBO samples, the LBO share for test-2 samples
     alpha: float
     guess: np.ndarray | None = field(default=None, compare=False, repr=False)
+    budget: float = field(default=0.0, compare=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -171,7 +174,9 @@ def fem_solver_factory(mesh, fixed: np.ndarray, cfg: Config) -> Callable[[Solver
     """The default solver factory: tissuecast's nonlinear neo-Hookean FEM.
 
     Returns a function mapping solver settings to a reusable ``Solver`` with
-    ``.solve(forces (n,3) N) -> SolveResult`` (raising ConvergenceError on failure).
+    ``.solve(forces (n,3) N, initial_guess=None, time_limit=None) -> SolveResult`` (raising
+    ConvergenceError on failure, SolveTimeout past ``time_limit`` seconds); a replacement
+    factory must give solvers with the same call.
     """
     from ..fem import Solver, build_problem
 
@@ -262,6 +267,11 @@ def _tries(ctx: SampleContext, task: Task, forces: np.ndarray) -> tuple[list, In
 def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     """Solve one sample, retrying with more cautious increments ``solver.retries`` times.
 
+    An attempt that runs past ``task.budget`` seconds is stopped
+    (:class:`~tissuecast.errors.SolveTimeout`, its reason recorded) and the sample goes on
+    with the retries of a higher level only (the cautious path), not with the others of the
+    same level.
+
     With a guess in the task (``predicted`` PREVIOUS_ROUND), or else a reduced model in the
     recipe, a first try starts from it (``predicted`` REDUCED_MODEL; GUESS_FAILED when the
     reduced problem did not converge and there is no prediction); should that try fail, the
@@ -276,11 +286,17 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     reasons = []
     load_fraction = 0.0
     tries, predicted = _tries(ctx, task, forces)
+    limit = {"time_limit": task.budget} if task.budget > 0 else {}
+    stopped_at = -1  # retry level of the last attempt stopped by the time budget
     for attempt, guess in tries:
+        if attempt <= stopped_at:
+            continue  # a stalled sample goes on with its cautious retries only
         try:
             solver = ctx.solver(attempt)
-            res = solver.solve(forces) if guess is None else solver.solve(forces, initial_guess=guess)
+            res = solver.solve(forces, **limit) if guess is None else solver.solve(forces, initial_guess=guess, **limit)
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            if isinstance(exc, SolveTimeout):
+                stopped_at = attempt
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
             start = (" from the previous round's solution" if predicted == InitialGuess.PREVIOUS_ROUND

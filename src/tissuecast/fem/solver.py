@@ -52,7 +52,7 @@ import time
 import numpy as np
 
 from ..config import SolverConfig
-from ..errors import ConvergenceError, SolverSetupError
+from ..errors import ConvergenceError, SolverSetupError, SolveTimeout
 from .assembly import Assembler
 from .linear import LinearSolver, NotPositiveDefinite, make_linear_solver
 from .newton import SolveRun
@@ -101,7 +101,8 @@ class Solver:
         self._idle_factors: list[LinearSolver] = []  # numeric factors no run holds now
 
     # ------------------------------------------------------------------ solves
-    def solve(self, forces: np.ndarray, initial_guess: np.ndarray | None = None) -> SolveResult:
+    def solve(self, forces: np.ndarray, initial_guess: np.ndarray | None = None,
+              time_limit: float | None = None) -> SolveResult:
         """Solve for the equilibrium under dead nodal forces.
 
         Args:
@@ -113,6 +114,8 @@ class Solver:
                 is better for P2). A good guess cuts the work several-fold. With a guess
                 the first increment is the full load (``initial_increment`` applies to
                 cold starts only).
+            time_limit: optional wall-clock limit, s: the solve is stopped (at its next
+                preconditioner application) once it has run longer.
 
         Returns:
             The converged :class:`SolveResult`.
@@ -121,9 +124,10 @@ class Solver:
             SolverSetupError: invalid forces or initial guess.
             ConvergenceError: the minimum increment or the increment budget was reached;
                 ``load_fraction`` and ``result`` (partial) are attached.
+            SolveTimeout: (a ConvergenceError) the solve ran past ``time_limit``.
         """
         fext = self._external_forces(forces)
-        return _drive(SolveRun(self, fext, self._nodal_guess(initial_guess)).steps())
+        return _drive(SolveRun(self, fext, self._nodal_guess(initial_guess)).steps(), time_limit)
 
     def solve_batch(self, forces, initial_guesses=None) -> list:
         """Solve several force fields together, their triangular solves gathered.
@@ -224,13 +228,21 @@ class Solver:
         self._idle_factors.append(factor)
 
 
-def _drive(steps):
+def _drive(steps, time_limit: float | None = None):
     """Run a generator of preconditioner applications (:meth:`SolveRun.steps`) with one
-    solve each; returns the generator's return value."""
+    solve each; returns the generator's return value. With ``time_limit`` (s), the generator
+    is closed and :class:`~tissuecast.errors.SolveTimeout` raised at the first application
+    after that much wall-clock time."""
+    t0 = time.perf_counter()
     reply = None
     try:
         while True:
             factor, v = steps.send(reply)
+            if time_limit is not None and time.perf_counter() - t0 > time_limit:
+                steps.close()  # the run gives back its factor
+                seconds = time.perf_counter() - t0
+                raise SolveTimeout(f"stopped after {seconds:.1f} s, past its time limit of {time_limit:.1f} s",
+                                   seconds, time_limit)
             reply = factor.solve(v)
     except StopIteration as stop:
         return stop.value
