@@ -129,3 +129,18 @@ def write_box_config(folder, n_samples=120, n_test2=12):
     path = folder / "box.toml"
     path.write_text(config_to_toml(cfg))
     return path
+
+
+def simulate_box_store(folder, **kwargs):
+    """Write the box config into ``folder`` and simulate its store with the stand-in solver.
+
+    Returns:
+        ``(config path, Config)``; the store is ``Config.dataset.store``.
+    """
+    from tissuecast.config import load_config
+    from tissuecast.dataset import simulate
+
+    cfg_path = write_box_config(folder, **kwargs)
+    cfg = load_config(cfg_path)
+    simulate(cfg, progress=False, solver_factory="_surrogate_synthetic:smooth_solver_factory")
+    return cfg_path, cfg

@@ -269,3 +269,23 @@ def test_retries_take_a_different_more_cautious_path():
     assert r1.initial_increment == base.initial_increment / 4 and r2.min_increment == base.min_increment / 16
     assert (r1.max_iterations, r2.max_iterations) == (2 * base.max_iterations, 4 * base.max_iterations)
     assert (r1.max_increments, r2.max_increments) == (2 * base.max_increments, 4 * base.max_increments)
+
+
+def test_workers_limit_every_blas_to_one_thread():
+    """Whatever the environment says (OPENBLAS_NUM_THREADS=2 made a Dask run's store differ
+    from a local one), a worker runs every BLAS it loaded on one thread."""
+    import subprocess
+    import sys
+
+    code = (
+        "import threadpoolctl\n"
+        "from tissuecast.dataset.executors import single_threaded_blas\n"
+        "single_threaded_blas()\n"
+        "info = threadpoolctl.threadpool_info()\n"
+        "assert info, 'no BLAS found'\n"
+        "print(sorted({i['num_threads'] for i in info if i['user_api'] == 'blas'}))\n"
+    )
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="2", OMP_NUM_THREADS="2")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0, out.stderr[-500:]
+    assert out.stdout.strip() == "[1]"

@@ -11,20 +11,13 @@ import pytest
 
 from tissuecast.cli.main import main
 
-from _surrogate_synthetic import write_box_config
-
-FACTORY = "_surrogate_synthetic:smooth_solver_factory"
+from _surrogate_synthetic import simulate_box_store
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
-    from tissuecast.config import load_config
-    from tissuecast.dataset import simulate
-
     folder = tmp_path_factory.mktemp("cli")
-    cfg_path = write_box_config(folder)
-    cfg = load_config(cfg_path)
-    simulate(cfg, progress=False, solver_factory=FACTORY)
+    cfg_path, cfg = simulate_box_store(folder)
     return folder, cfg_path, cfg
 
 

@@ -201,6 +201,29 @@ def test_tetrahedralize_surface_rejects_bad_size():
         tetrahedralize_surface(pts, tri, 0.0)
 
 
+def test_meshing_runs_in_a_child_process_with_a_time_limit():
+    """gmsh can hang on bad surfaces; meshing runs in a child process that is stopped with a
+    clear error past the time limit, and gives the same mesh as meshing in-process."""
+    gmsh = pytest.importorskip("gmsh")
+    from tissuecast.mesh.phantom import icosphere, phantom_surface
+    from tissuecast.mesh.mesher import start_gmsh
+
+    p, t = icosphere(2)
+    child = tetrahedralize_surface(10.0 * p, t, mesh_size=4.0)
+    start_gmsh(gmsh)  # a caller that runs gmsh itself: meshed in-process
+    try:
+        same = tetrahedralize_surface(10.0 * p, t, mesh_size=4.0)
+    finally:
+        gmsh.finalize()
+    np.testing.assert_array_equal(child.points, same.points)
+    np.testing.assert_array_equal(child.tets, same.tets)
+    fine_p, fine_t = phantom_surface()
+    with pytest.raises(MeshError, match="did not finish meshing within 0 s"):
+        tetrahedralize_surface(fine_p, fine_t, mesh_size=1.0, timeout=0.01)
+    with pytest.raises(MeshError, match="timeout must be a positive"):
+        tetrahedralize_surface(fine_p, fine_t, mesh_size=1.0, timeout=0)
+
+
 def test_read_errors_name_the_file(tmp_path):
     with pytest.raises(MeshFormatError, match="does not exist"):
         read_mesh(tmp_path / "missing.vtu")

@@ -31,6 +31,7 @@ _LAZY = {
     "simulate": "tissuecast.dataset",
     "open_dataset": "tissuecast.dataset",
     "DeformationModel": "tissuecast.surrogate",
+    "plan_markers": "tissuecast.planning",
 }
 
 __all__ = sorted(_LAZY) + ["__version__", "errors"]

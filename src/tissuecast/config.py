@@ -183,6 +183,9 @@ class SurrogateConfig:
     weight_decay: float = _f(0.0, lo=0.0, doc="Adam weight decay")
     marker_dropout: float = _f(0.0, lo=0.0, hi=1.0, doc="share of training samples with one marker hidden; > 0 enables missing-marker input")
     ensemble: int = _f(1, lo=1, hi=64, doc="networks trained with different seeds (>= 2 gives uncertainty)")
+    calibration_share: float = _f(0.125, lo=0.0, hi=0.5, hi_open=True, doc="share of the training split held out (seeded) to calibrate the per-vertex error bounds and the out-of-distribution alarm; 0 = no bounds or alarms (the network then trains on the whole split)")
+    coverage: float = _f(0.9, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="nominal coverage of the per-vertex error bounds: each vertex's error is below its bound with at least this probability")
+    false_alarm_rate: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="share of in-distribution inputs allowed to raise the out-of-distribution alarm")
 
 
 @dataclass(frozen=True)

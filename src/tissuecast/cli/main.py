@@ -33,9 +33,13 @@ COMMANDS: dict[str, str] = {
     "run": "run_cmd",
     "demo": "demo_cmd",
 }
+#: Two-word commands (command, action) -> module; e.g. `tissuecast markers plan STORE`.
+ACTIONS: dict[tuple[str, str], str] = {("markers", "plan"): "markers_plan_cmd"}
 
 
-def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+def build_parser(only: str | None = None, action_module: str | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``only``, just that command's module is imported (``action_module``
+    instead of it for a two-word command of :data:`ACTIONS`)."""
     parser = argparse.ArgumentParser(
         prog="tissuecast",
         description="Real-time soft-tissue deformation from fiducial markers (units: mm, N, MPa; vertex ids 0-based).",
@@ -48,7 +52,7 @@ def build_parser(only: str | None = None) -> argparse.ArgumentParser:
         if only is not None and name != only:
             sub.add_parser(name, help=f"(run `tissuecast {name} --help`)", add_help=False)
             continue
-        importlib.import_module(f"{__package__}.{module}").register(sub)
+        importlib.import_module(f"{__package__}.{action_module or module}").register(sub)
     return parser
 
 
@@ -56,8 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     """Run the CLI; returns the exit status (0 ok, 2 user error, 1 unexpected failure)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     # import only the chosen subcommand's module when it is clear which one it is
-    first = next((a for a in argv if not a.startswith("-")), None)
-    parser = build_parser(first if first in COMMANDS else None)
+    words = [a for a in argv if not a.startswith("-")][:2]
+    first = words[0] if words else None
+    parser = build_parser(first if first in COMMANDS else None, ACTIONS.get(tuple(words)))
     args = parser.parse_args(argv)
     _configure_logging(logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO)
     if not getattr(args, "func", None):

@@ -33,7 +33,8 @@ def register(sub) -> None:
         "markers",
         help="choose fiducial markers (revised k-center) and fixed vertices",
         description="Vertex ids are 0-based (the paper's 1-based vertex 97 is 96 here). Lengths in mm. "
-        "Options override the [markers] section of --config (defaults: the paper's values).",
+        "Options override the [markers] section of --config (defaults: the paper's values). "
+        "To plan markers from a simulated data set instead: tissuecast markers plan STORE --count N.",
     )
     p.add_argument("mesh", nargs="?", help=f"mesh file, or '{PHANTOM_WORD}' (default: mesh.path of the config, else the phantom)")
     p.add_argument("--config", metavar="TOML", help="config file (its [mesh] and [markers] sections are used)")

@@ -9,8 +9,11 @@ untracked marker). Empty cells, ``nan`` or ``null`` for all three coordinates of
 mark it as not tracked (models trained with marker_dropout > 0).
 Output: .vtu (undeformed mesh + displacement point data; one file per sample for batches),
 .vtk (deformed mesh) or .vtp (deformed outer surface) as 3D Slicer models in LPS with
-``displacement_mm`` point data, .csv (sample, vertex, ux, uy, uz[, sigma]) or .json.
-Vertex ids are 0-based.
+``displacement_mm`` point data, .csv (sample, vertex, ux, uy, uz[, sigma][, error_bound])
+or .json. Vertex ids are 0-based. With a calibrated model (trained with
+surrogate.calibration_share > 0) every vertex gets its conformal error bound
+(``error_bound_mm`` point data / column: the error is below it with probability
+--coverage) and each sample's out-of-distribution alarm is printed.
 """
 
 from __future__ import annotations
@@ -37,6 +40,10 @@ def register(sub) -> None:
                    help="mlp: the learned model (default); rigid: rigid registration from the markers (the baseline "
                         "navigation systems use; a fallback); ridge: the paper's ridge baseline")
     p.add_argument("--ridge", action="store_const", const="ridge", dest="method", help="same as --method ridge")
+    p.add_argument("--coverage", type=float, metavar="C",
+                   help="nominal coverage of the per-vertex error bounds, in (0, 1) (default: the model's, 0.9)")
+    p.add_argument("--false-alarm", type=float, metavar="RATE",
+                   help="false-alarm rate of the out-of-distribution alarm, in (0, 1) (default: the model's, 0.01)")
     p.set_defaults(func=run)
 
 
@@ -111,7 +118,7 @@ def read_marker_file(path: Path, n_d: int) -> tuple[np.ndarray, bool | None]:
     return arr.reshape(-1, n_d, 3), flag
 
 
-def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None) -> list[Path]:
+def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.ndarray | None = None) -> list[Path]:
     from ..errors import ModelError
 
     suf = out.suffix.lower()
@@ -125,6 +132,8 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None) -> list[Pa
             data = {"displacement": u[b]}
             if sigma is not None:
                 data["uncertainty"] = sigma[b]
+            if bound is not None:
+                data["error_bound_mm"] = bound[b]
             files.append(write_vtu(p, model.mesh, data))
         return files
     if suf in (".vtk", ".vtp"):
@@ -133,21 +142,27 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None) -> list[Pa
         files = []
         for b in range(B):
             p = out if B == 1 else out.with_name(f"{out.stem}_{b:03d}{out.suffix}")
-            extra = {"uncertainty_mm": sigma[b]} if sigma is not None else None
-            files.append(write_model(p, model.mesh, displacement=u[b], point_data=extra))
+            extra = {"uncertainty_mm": sigma[b]} if sigma is not None else {}
+            if bound is not None:
+                extra["error_bound_mm"] = bound[b]
+            files.append(write_model(p, model.mesh, displacement=u[b], point_data=extra or None))
         return files
     if suf == ".csv":
         with out.open("w", newline="") as fh:
             w = csv.writer(fh)
-            w.writerow(["sample", "vertex", "ux_mm", "uy_mm", "uz_mm"] + (["sigma_mm"] if sigma is not None else []))
+            w.writerow(["sample", "vertex", "ux_mm", "uy_mm", "uz_mm"] + (["sigma_mm"] if sigma is not None else [])
+                       + (["error_bound_mm"] if bound is not None else []))
             for b in range(B):
                 for i in range(u.shape[1]):
-                    w.writerow([b, i, *(f"{x:.6g}" for x in u[b, i])] + ([f"{sigma[b, i]:.6g}"] if sigma is not None else []))
+                    w.writerow([b, i, *(f"{x:.6g}" for x in u[b, i])] + ([f"{sigma[b, i]:.6g}"] if sigma is not None else [])
+                               + ([f"{bound[b, i]:.6g}"] if bound is not None else []))
         return [out]
     if suf == ".json":
         doc = {"units": "mm", "vertex_ids": "0-based", "displacement": u.tolist()}
         if sigma is not None:
             doc["uncertainty"] = sigma.tolist()
+        if bound is not None:
+            doc["error_bound_mm"] = bound.tolist()
         out.write_text(json.dumps(doc), encoding="utf-8")
         return [out]
     raise ModelError(f"unknown output format {out.suffix!r}; use .vtu, .vtk, .vtp, .csv or .json")
@@ -179,13 +194,32 @@ def run(args) -> int:
     else:
         u = model.predict(d, missing=miss, method=args.method)
     sec = time.perf_counter() - t
+    bound, alarms = None, None
+    if model.has_trust and args.method == "mlp" and miss is None:
+        trusted = model.predict_trusted(d, coverage=args.coverage, false_alarm=args.false_alarm)
+        bound, alarms, coverage = trusted.error_bound, trusted.alarms, trusted.coverage
+    elif args.coverage is not None or args.false_alarm is not None:
+        from ..errors import ModelError
+
+        raise ModelError("--coverage and --false-alarm need a calibrated model (trained with "
+                         "surrogate.calibration_share > 0), --method mlp and every marker tracked")
     for b in range(u.shape[0]):
         mag = np.linalg.norm(u[b], axis=1)
         extra = f", max uncertainty {sigma[b].max():.3f} mm" if sigma is not None else ""
         miss = f", missing markers {np.flatnonzero(missing[b]).tolist()}" if missing[b].any() else ""
+        if bound is not None:
+            extra += f", error bound ({100 * coverage:g} %) median {np.median(bound[b]):.3f} / max {bound[b].max():.3f} mm"
         print(f"sample {b}: max displacement {mag.max():.3f} mm at vertex {int(mag.argmax())}{extra}{miss}")
+        if alarms is not None and alarms[b].raised:
+            print(f"sample {b}: ALARM: {alarms[b].text}")
+    if bound is not None and not np.isfinite(bound).all():
+        print(f"note: the bounds are infinite: {model.trust_.conformal.n_calibration} calibration samples are too few "
+              f"for {100 * coverage:g} % coverage; use a lower --coverage or re-train with a larger calibration_share")
+    if alarms is not None and not np.isfinite(alarms[0].distance_threshold):
+        print("note: the alarm is off: too few calibration samples for this false-alarm rate; use a larger "
+              "--false-alarm or re-train with a larger calibration_share")
     print(f"predicted {u.shape[0]} sample(s) of {u.shape[1]} vertices in {sec * 1e3:.2f} ms")
     if args.out:
-        for f in _write(Path(args.out), model, u, sigma):
+        for f in _write(Path(args.out), model, u, sigma, bound):
             print(f"wrote {f}")
     return 0

@@ -52,7 +52,8 @@ def run(args) -> int:
         return 0
     print(f"model saved to {out}")
     print(f"  {model!r}")
-    print(f"  training samples {tr['n_train']}, validation {tr['n_valid']}, PCA components n_w = {tr['n_components']} "
+    print(f"  training samples {tr['n_train']}, validation {tr['n_valid']}, calibration {tr.get('n_calibration', 0)} "
+          f"(error bounds and alarm{'' if model.has_trust else ': none'}), PCA components n_w = {tr['n_components']} "
           f"(rule: {tr.get('pca_rule', '?')})")
     vc = (model.pca_choice_ or {}).get("validation_curve")
     if vc:

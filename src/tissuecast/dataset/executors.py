@@ -4,8 +4,10 @@ An executor takes a :class:`~.worker.Recipe` once and then solves :class:`~.work
 yielding :class:`~.worker.SampleResult`\\ s in completion order. Workers only compute; the
 parent process alone writes the store, so no two processes ever write the same chunk.
 
-Determinism: every worker runs its BLAS single-threaded (``OMP/OPENBLAS/MKL_NUM_THREADS=1``;
-Dask's nanny does the same by default), so a sample's bits do not depend on where it ran.
+Determinism: every worker runs its BLAS single-threaded, so a sample's bits do not depend on
+where it ran: local workers are spawned with ``OMP/OPENBLAS/MKL_NUM_THREADS=1``, and every
+worker (Dask's too, whatever its environment says) also limits the BLAS libraries it has
+loaded to one thread at run time (threadpoolctl) before its first solve.
 A local worker also exits by itself when its parent process dies (``kill -9``).
 """
 
@@ -22,7 +24,7 @@ from typing import Iterable, Iterator
 from ..errors import DatasetError, require
 from .worker import Recipe, SampleResult, Task, context_for, solve_task
 
-__all__ = ["LocalExecutor", "DaskExecutor", "make_executor", "default_workers"]
+__all__ = ["LocalExecutor", "DaskExecutor", "make_executor", "default_workers", "single_threaded_blas"]
 
 log = logging.getLogger(__name__)
 
@@ -43,10 +45,33 @@ def _watch_parent(parent: int) -> None:
             os._exit(0)  # the parent is gone (e.g. kill -9): stop solving for nobody
 
 
+_BLAS_LIMIT = None  # this process's threadpoolctl limiter, kept alive
+
+
+def single_threaded_blas() -> None:
+    """Limit every BLAS/OpenMP library loaded in this process to one thread (once per process).
+
+    A multi-threaded BLAS sums in another order, so CHOLMOD factors and the solutions built
+    on them would differ in their last bits with the thread count; a Dask worker started with
+    ``OPENBLAS_NUM_THREADS=2`` gave a different store than local workers without this.
+    """
+    global _BLAS_LIMIT
+    if _BLAS_LIMIT is None:
+        threadpoolctl = require("threadpoolctl", "data", "single-threaded BLAS in data-set workers")
+        import scipy.linalg  # noqa: F401  (load every BLAS the solver uses before limiting them)
+
+        try:
+            import sksparse.cholmod  # noqa: F401  (CHOLMOD links the system's BLAS; extra "fast")
+        except ImportError:
+            pass
+        _BLAS_LIMIT = threadpoolctl.threadpool_limits(limits=1)
+
+
 def _init_worker(recipe: Recipe, parent: int) -> None:
     global _RECIPE
     _RECIPE = recipe
     threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
+    single_threaded_blas()
     context_for(recipe)  # build mesh, problem and solver once per process
 
 
@@ -117,6 +142,7 @@ class LocalExecutor:
 
 
 def _dask_run(recipe: Recipe, task: Task) -> SampleResult:
+    single_threaded_blas()
     return solve_task(recipe, task)
 
 

@@ -4,6 +4,7 @@
 
     index.html            tables next to the paper's figures, plots, renders (opens offline)
     evaluation.json       every number of the page
+    trust.json            error-bound coverage and alarm rates (calibrated models)
     samples.csv           per-sample Offset_mean / Offset_max of the MLP, rigid registration,
                           ridge and the PCA floor; peak displacement and non-rigid part
     *.png                 figures and 3D renders
@@ -227,6 +228,10 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studie
         figs.append(("Study: hidden layers", figures.architecture_grid(_read_csv(sf / "study_architecture.csv"), folder / "architecture.png")))
     for cap, p in figs:
         parts.append(f"<h2>{html.escape(cap)}</h2><img src='{p.name}' alt='{html.escape(cap)}'>")
+    if getattr(model, "has_trust", False):
+        from .trust_report import trust_section
+
+        parts.append(trust_section(model, dataset, folder))
     if renders:
         parts.append("<h2>3D renders</h2><p>Undeformed, benchmark (FEM) and predicted surfaces; the prediction is coloured by "
                      "vertex error; red dots are the fiducial markers. VTU files open in ParaView or 3D Slicer.</p>")

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import logging
 import math
+import multiprocessing
+import os
 import signal
 import threading
 
@@ -154,45 +156,13 @@ def orient_surface(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return tri
 
 
-def tetrahedralize_surface(
-    points: np.ndarray,
-    triangles: np.ndarray,
-    mesh_size: float,
-    *,
-    interior_size: float | None = None,
-    optimize: bool = True,
-    feature_angle: float = 40.0,
-    curvature_points: int = 0,
-) -> TetMesh:
-    """Fill a closed triangulated surface with tetrahedra using gmsh.
+# gmsh can hang on bad input (seen for > 10 minutes, deaf to SIGTERM, on a raw lung surface):
+# meshing runs in a child process that is killed past this many seconds.
+MESH_TIMEOUT_S = 900.0
 
-    The surface is re-meshed with target edge length ``mesh_size`` (smooth patches are
-    re-parametrised; edges sharper than 40 degrees are kept), then the volume is meshed.
 
-    Args:
-        points: (n, 3) float, mm.
-        triangles: (k, 3) int, 0-based, a closed manifold surface.
-        mesh_size: target edge length in mm (> 0) on the surface (and inside, by default).
-        interior_size: target edge length in mm inside the volume, if different.
-        optimize: run gmsh's and Netgen's quality optimisers (recommended).
-        feature_angle: edges whose faces meet at a sharper angle (degrees) are kept as
-            sharp edges; 180 keeps none (smooth organic surfaces).
-        curvature_points: > 0 shrinks the edge length where the surface is curved, to at
-            most 2 pi R / curvature_points (R the local radius of curvature); 0 = off.
-
-    Returns:
-        The tetrahedral mesh (coordinates in mm).
-
-    Raises:
-        MeshError: the surface is not closed and manifold, or gmsh fails to mesh it.
-        DependencyError: gmsh is not installed (extra ``mesh``).
-    """
-    if not (isinstance(mesh_size, (int, float)) and math.isfinite(mesh_size) and mesh_size > 0):
-        raise MeshError(f"mesh_size must be a positive length in mm, got {mesh_size!r}")
-    points, triangles = merge_duplicate_points(points, triangles)
-    check_closed_surface(points, triangles)
-    triangles = orient_surface(points, triangles)
-    gmsh = require("gmsh", "mesh", "Tetrahedralising a surface")
+def _run_gmsh(gmsh, points, triangles, *, mesh_size, interior_size, optimize, feature_angle, curvature_points):
+    """gmsh's surface re-meshing and volume meshing -> (node tags, coordinates, tet node tags)."""
     started = gmsh.isInitialized()
     if not started:
         start_gmsh(gmsh)
@@ -238,6 +208,104 @@ def tetrahedralize_surface(
             gmsh.finalize()
         else:  # the caller runs gmsh: leave its other models alone
             gmsh.model.remove()
+    return np.asarray(tags), np.asarray(coords), np.asarray(tet_nodes)
+
+
+def _gmsh_child(conn, points, triangles, options) -> None:
+    """Child process body: mesh and send ("ok", arrays) or ("error", message) back."""
+    try:
+        conn.send(("ok", _run_gmsh(__import__("gmsh"), points, triangles, **options)))
+    except MeshError as exc:
+        conn.send(("error", str(exc)))
+    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises
+        conn.send(("error", f"gmsh failed: {type(exc).__name__}: {exc}"))
+    finally:
+        conn.close()
+
+
+def _gmsh_in_child(points, triangles, options: dict, timeout: float):
+    """:func:`_run_gmsh` in a forked child process, killed after ``timeout`` seconds."""
+    ctx = multiprocessing.get_context("fork")
+    receive, send = ctx.Pipe(duplex=False)
+    child = ctx.Process(target=_gmsh_child, args=(send, points, triangles, options), daemon=True)
+    child.start()
+    send.close()
+    try:
+        if not receive.poll(timeout):
+            raise MeshError(
+                f"gmsh did not finish meshing within {timeout:.0f} s and was stopped; the surface is probably "
+                "too complex or self-touching for its re-meshing: try a larger mesh size, a smoother or cleaner "
+                "surface, or a longer timeout")
+        try:
+            status, payload = receive.recv()
+        except EOFError:
+            child.join(5)
+            raise MeshError(f"gmsh crashed while meshing (exit code {child.exitcode}); check that the surface is a "
+                            "clean closed manifold, or try another mesh size") from None
+    finally:
+        if child.is_alive():
+            child.kill()
+        child.join()
+        receive.close()
+    if status != "ok":
+        raise MeshError(payload)
+    return payload
+
+
+def tetrahedralize_surface(
+    points: np.ndarray,
+    triangles: np.ndarray,
+    mesh_size: float,
+    *,
+    interior_size: float | None = None,
+    optimize: bool = True,
+    feature_angle: float = 40.0,
+    curvature_points: int = 0,
+    timeout: float = MESH_TIMEOUT_S,
+) -> TetMesh:
+    """Fill a closed triangulated surface with tetrahedra using gmsh.
+
+    The surface is re-meshed with target edge length ``mesh_size`` (smooth patches are
+    re-parametrised; edges sharper than 40 degrees are kept), then the volume is meshed.
+
+    Args:
+        points: (n, 3) float, mm.
+        triangles: (k, 3) int, 0-based, a closed manifold surface.
+        mesh_size: target edge length in mm (> 0) on the surface (and inside, by default).
+        interior_size: target edge length in mm inside the volume, if different.
+        optimize: run gmsh's and Netgen's quality optimisers (recommended).
+        feature_angle: edges whose faces meet at a sharper angle (degrees) are kept as
+            sharp edges; 180 keeps none (smooth organic surfaces).
+        curvature_points: > 0 shrinks the edge length where the surface is curved, to at
+            most 2 pi R / curvature_points (R the local radius of curvature); 0 = off.
+        timeout: seconds after which meshing is stopped with a :class:`MeshError` (gmsh runs
+            in a child process; in-process, without a limit, when the caller has already
+            initialised gmsh).
+
+    Returns:
+        The tetrahedral mesh (coordinates in mm).
+
+    Raises:
+        MeshError: the surface is not closed and manifold, or gmsh fails to mesh it or
+            takes longer than ``timeout``.
+        DependencyError: gmsh is not installed (extra ``mesh``).
+    """
+    if not (isinstance(mesh_size, (int, float)) and math.isfinite(mesh_size) and mesh_size > 0):
+        raise MeshError(f"mesh_size must be a positive length in mm, got {mesh_size!r}")
+    if not (isinstance(timeout, (int, float)) and timeout > 0):
+        raise MeshError(f"timeout must be a positive number of seconds, got {timeout!r}")
+    points, triangles = merge_duplicate_points(points, triangles)
+    check_closed_surface(points, triangles)
+    triangles = orient_surface(points, triangles)
+    gmsh = require("gmsh", "mesh", "Tetrahedralising a surface")
+    options = dict(mesh_size=float(mesh_size), interior_size=interior_size, optimize=optimize,
+                   feature_angle=feature_angle, curvature_points=curvature_points)
+    log.info("meshing a %d-triangle surface with gmsh at %.3g mm (stopped after %.0f s)", len(triangles), mesh_size,
+             timeout)
+    if gmsh.isInitialized() or not hasattr(os, "fork"):
+        tags, coords, tet_nodes = _run_gmsh(gmsh, points, triangles, **options)  # the caller runs gmsh
+    else:
+        tags, coords, tet_nodes = _gmsh_in_child(points, triangles, options, timeout)
     if len(tet_nodes) == 0:
         raise MeshError("gmsh produced no tetrahedra; check that the surface is closed and encloses a volume")
     index = np.full(int(tags.max()) + 1, -1, dtype=np.int64)

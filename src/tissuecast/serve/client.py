@@ -28,12 +28,14 @@ class Reply:
     Attributes:
         header: its parsed header (``message_type``, ``device_name``, ``timestamp``...).
         polydata: the decoded POLYDATA, or None.
-        text: the text of a STRING message (e.g. an ``ERROR`` reply), or None.
+        text: the text of a STRING message (e.g. an ``ERROR`` reply) or of a STATUS message, or None.
+        status: a STATUS message's fields (:class:`~tissuecast.serve.status.StatusMessage`), or None.
     """
 
     header: Header
     polydata: PolyData | None = None
     text: str | None = None
+    status: object | None = None
 
     @property
     def is_error(self) -> bool:
@@ -115,6 +117,11 @@ class IGTLClient:
             return Reply(header, polydata=decode_polydata(content))
         if header.message_type == "STRING":
             return Reply(header, text=decode_string(header, content))
+        if header.message_type == "STATUS":
+            from .status import decode_status
+
+            status = decode_status(content)
+            return Reply(header, text=status.status_message, status=status)
         return Reply(header)
 
     def predict(self, positions: np.ndarray) -> Reply:

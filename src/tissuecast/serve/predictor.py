@@ -14,7 +14,8 @@ model's LPS frame by default).
   vertices in ascending id order (``mesh.surface_vertices``), moved by the predicted
   displacement (mm); polygons are ``mesh.surface_triangles`` re-indexed into those points
   (outward normals). With an ensemble model a point-data scalar ``"uncertainty_mm"`` holds the
-  per-vertex uncertainty.
+  per-vertex uncertainty; with a calibrated model (``has_trust``) a scalar ``"error_bound_mm"``
+  holds each vertex's conformal error bound (NaN when a marker is untracked).
 - ``POLYDATA "TissueField"``: the full field. Points are *all* mesh vertices in id order,
   deformed; polygons are the surface triangles with global vertex ids (interior vertices
   carry no cell); point data ``"displacement_mm"`` (vectors) and, for ensembles,
@@ -40,6 +41,7 @@ log = logging.getLogger(__name__)
 SURFACE_DEVICE = "TissueSurface"
 FIELD_DEVICE = "TissueField"
 UNCERTAINTY_NAME = "uncertainty_mm"
+BOUND_NAME = "error_bound_mm"
 DISPLACEMENT_NAME = "displacement_mm"
 
 
@@ -77,11 +79,15 @@ class Prediction:
         timestamp: seconds since 1970, copied from the marker message.
         displacement: (n, 3) float, mm, every mesh vertex.
         uncertainty: (n,) float, mm, or None when the model is not an ensemble.
+        error_bound: (n,) float, mm, conformal error bound per vertex, or None.
+        alarm: the model's :class:`~tissuecast.surrogate.trust.Alarm`, or None.
     """
 
     timestamp: float
     displacement: np.ndarray
     uncertainty: np.ndarray | None = None
+    error_bound: np.ndarray | None = None
+    alarm: object | None = None
 
 
 class SurfacePredictor:
@@ -114,7 +120,9 @@ class SurfacePredictor:
         self.surface_ids = np.asarray(mesh.surface_vertices, dtype=np.int64)
         triangles = np.asarray(mesh.surface_triangles, dtype=np.int64)
         local = np.searchsorted(self.surface_ids, triangles)
+        self.has_bounds = bool(getattr(model, "has_trust", False) and callable(getattr(model, "predict_trusted", None)))
         extra = [(UNCERTAINTY_NAME, "scalars")] if self.has_uncertainty else []
+        extra += [(BOUND_NAME, "scalars")] if self.has_bounds else []
         self.surface = PolyDataTemplate(len(self.surface_ids), local, extra)
         self.field = PolyDataTemplate(self.n_points, triangles, [(DISPLACEMENT_NAME, "vectors"), *extra])
         self.surface_reference = self.points[self.surface_ids]
@@ -164,11 +172,18 @@ class SurfacePredictor:
         positions, missing = self.check_positions(positions)
         extra = {} if missing is None else {"missing": missing}
         try:
+            bound, alarm, mean = None, None, None
+            if self.has_bounds and missing is None:  # bounds and alarm need every marker
+                trusted = self.model.predict_trusted(positions - self.reference)
+                bound, alarm, mean = np.asarray(trusted.error_bound, dtype=np.float64).reshape(self.n_points), \
+                    trusted.alarms, trusted.displacement
             if self.has_uncertainty:
                 mean, spread = self.model.predict_with_uncertainty(positions - self.reference, **extra)
                 uncertainty = np.asarray(spread, dtype=np.float64).reshape(self.n_points)
             else:
-                mean, uncertainty = self.model.predict_from_positions(positions, **extra), None
+                uncertainty = None
+                if mean is None:
+                    mean = self.model.predict_from_positions(positions, **extra)
             displacement = np.asarray(mean, dtype=np.float64).reshape(self.n_points, 3)
         except ModelError as exc:  # the model refused this input (e.g. too many untracked markers)
             log.warning("model refused the marker input: %s", exc)
@@ -178,7 +193,7 @@ class SurfacePredictor:
             raise PredictionError(f"model evaluation failed: {type(exc).__name__}: {exc}") from exc
         if not np.isfinite(displacement).all():
             raise PredictionError("the model returned non-finite displacements for these marker positions")
-        return Prediction(float(timestamp), displacement, uncertainty)
+        return Prediction(float(timestamp), displacement, uncertainty, bound, alarm)
 
     def surface_message(self, prediction: Prediction, frames: ClientFrames | None = None) -> memoryview:
         """The packed ``TissueSurface`` POLYDATA message (valid until the next call).
@@ -194,6 +209,8 @@ class SurfacePredictor:
             template.points[:] = frames.points_to_client(self.surface_reference + prediction.displacement[self.surface_ids])
         if prediction.uncertainty is not None and self.has_uncertainty:
             template.values[UNCERTAINTY_NAME][:] = prediction.uncertainty[self.surface_ids]
+        if self.has_bounds:
+            template.values[BOUND_NAME][:] = np.nan if prediction.error_bound is None else prediction.error_bound[self.surface_ids]
         return template.finish(SURFACE_DEVICE, prediction.timestamp)
 
     def field_message(self, prediction: Prediction, frames: ClientFrames | None = None) -> memoryview:
@@ -208,4 +225,6 @@ class SurfacePredictor:
             template.values[DISPLACEMENT_NAME][:] = frames.vectors_to_client(prediction.displacement)
         if prediction.uncertainty is not None and self.has_uncertainty:
             template.values[UNCERTAINTY_NAME][:] = prediction.uncertainty
+        if self.has_bounds:
+            template.values[BOUND_NAME][:] = np.nan if prediction.error_bound is None else prediction.error_bound
         return template.finish(FIELD_DEVICE, prediction.timestamp)

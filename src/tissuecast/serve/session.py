@@ -24,6 +24,9 @@ Requests a client may send (any header version 1 or 2; device names are case-sen
   repeats the latest surface.
 
 With ``full_field=True`` every prediction is answered by both messages, surface first.
+With a calibrated model, a prediction that raises the out-of-distribution alarm is followed
+by a ``STATUS "TissueStatus"`` message (:mod:`tissuecast.serve.status`); the first clean
+prediction after an alarm is followed by a STATUS ``OK``.
 Anything else gets a ``STRING "ERROR"`` reply whose text says what was wrong; the
 connection stays open unless the byte stream can no longer be trusted (oversized body,
 unknown header version, garbage header), in which case the error is sent and the session
@@ -109,6 +112,7 @@ class ClientSession:
         self._seen = np.zeros(n, dtype=bool)
         self._fresh = np.zeros(n, dtype=bool)
         self._stamps = np.zeros(n)
+        self._alarmed = False
         self._marker_re = re.compile(rf"{MARKER_PREFIX}(0|[1-9][0-9]*)(To[A-Za-z0-9_]+)?")
 
     @property
@@ -219,10 +223,25 @@ class ClientSession:
         self._send(self.predictor.surface_message(prediction, self.frames))
         if self.full_field:
             self._send(self.predictor.field_message(prediction, self.frames))
+        if prediction.alarm is not None and (prediction.alarm.raised or self._alarmed):
+            self._send_alarm_status(prediction)
 
     def send(self, data) -> None:
         """Send an extra packed message on this connection (e.g. a STATUS); counted as a reply."""
         self._send(data)
+
+    def _send_alarm_status(self, prediction: Prediction) -> None:
+        from .status import ALARM_NAME, AlarmBits, StatusCode, pack_status
+
+        alarm = prediction.alarm
+        self._alarmed = bool(alarm.raised)
+        self.counts["alarms" if alarm.raised else "alarms_cleared"] += 1
+        if alarm.raised:
+            bits = (AlarmBits.FAR_FROM_TRAINING if alarm.far_from_training else 0) | (
+                AlarmBits.INCONSISTENT_MARKERS if alarm.inconsistent_markers else 0)
+            self.send(pack_status(StatusCode.UNKNOWN_ERROR, int(bits), ALARM_NAME, alarm.text, prediction.timestamp))
+        else:
+            self.send(pack_status(StatusCode.OK, 0, "", alarm.text, prediction.timestamp))
 
     # ------------------------------------------------------------------ replies
     def _send(self, data) -> None:

@@ -23,6 +23,7 @@ from .inputs import marker_batch
 from .mlp import MLPWeights, TrainOptions, train_mlp
 from .pca import PCABasis, PCACurve, choose_n_components, fit_pca
 from .ridge import RidgeBaseline, fit_ridge, marker_columns
+from .trust import TrustedPrediction, fit_trust, split_calibration
 
 __all__ = ["DeformationModel"]
 
@@ -182,8 +183,11 @@ class DeformationModel:
         return bool(self.members_[0].masked)
 
     # ------------------------------------------------------------------ fitting
-    def fit(self, displacements, markers, *, mesh, fixed=(), train_idx=None, valid_idx=None) -> "DeformationModel":
-        """Fit PCA (training fields only), the ridge baseline and the MLP (ensemble).
+    def fit(self, displacements, markers, *, mesh, fixed=(), train_idx=None, valid_idx=None,
+            calibration_idx=None) -> "DeformationModel":
+        """Fit PCA (training fields only), the ridge baseline and the MLP (ensemble), then the
+        trust layer (error bounds and alarm, :mod:`tissuecast.surrogate.trust`) on the
+        calibration samples.
 
         Args:
             displacements: (N, n, 3) float displacement fields, mm (finite for the used samples).
@@ -193,6 +197,9 @@ class DeformationModel:
             train_idx: sample indices for training; default: every sample not in valid_idx.
             valid_idx: sample indices for validation (checkpoint/early stopping); default: a
                 seeded 10 % of the training indices.
+            calibration_idx: sample indices for calibrating the trust layer, never trained
+                on; default: a seeded ``surrogate.calibration_share`` of the training indices
+                (none when that is 0 or leaves fewer than 8 samples: then no trust layer).
 
         Returns:
             self.
@@ -218,6 +225,9 @@ class DeformationModel:
             n_valid = max(1, len(perm) // 10)
             valid_idx, train_idx = np.sort(perm[:n_valid]), np.sort(perm[n_valid:])
         valid_idx = np.asarray(valid_idx, dtype=np.int64)
+        if calibration_idx is None:
+            train_idx, calibration_idx = split_calibration(train_idx, self.config.calibration_share, self.config.seed)
+        calibration_idx = np.asarray(calibration_idx, dtype=np.int64)
         if len(train_idx) < 2 or len(valid_idx) < 1:
             raise ModelError(f"need at least 2 training and 1 validation samples, got {len(train_idx)} and {len(valid_idx)}")
         for name, idx in (("train_idx", train_idx), ("valid_idx", valid_idx)):
@@ -258,9 +268,14 @@ class DeformationModel:
         self.pca_choice_ = choice
         self._set_state(mesh=mesh, markers=mk, fixed=fx, basis=basis, members=members, curve=curve)
         self.summaries_ = summaries
+        self.trust_ = None
+        if len(calibration_idx):
+            self.trust_ = fit_trust(self, U, train_idx=train_idx, valid_idx=valid_idx, calibration_idx=calibration_idx,
+                                    coverage=c.coverage, false_alarm=c.false_alarm_rate)
         self.training_ = {
             "n_train": int(len(train_idx)),
             "n_valid": int(len(valid_idx)),
+            "n_calibration": int(len(calibration_idx)),
             "n_components": int(n_w),
             "pca_rule": rule,
             "pca_seconds": t_pca - t0,
@@ -295,18 +310,26 @@ class DeformationModel:
 
         Args:
             dataset: a :class:`tissuecast.dataset.Dataset` (from ``open_dataset``).
-            config: settings; default: the data set's own config.
+            config: settings; default: the data set's own config. Its ``markers.ids``, when
+                given, replace the store's markers (the store holds every vertex's
+                displacement, e.g. for markers planned by ``tissuecast markers plan``).
         """
         from .data import dataset_arrays
 
         if config is None:
             config = getattr(dataset, "config", None)
         arrays = dataset_arrays(dataset)
+        markers = arrays.markers
+        if isinstance(config, Config) and config.markers.ids:
+            from ..markers import validate_vertex_ids
+
+            markers = validate_vertex_ids(arrays.mesh, config.markers.ids, "markers.ids", other=arrays.fixed,
+                                          other_what="the store's fixed vertices")
         model = cls(config, **overrides)
         path = getattr(dataset, "path", None)
         model.dataset_path = str(Path(path).resolve()) if path is not None else None
         return model.fit(
-            arrays.displacements, arrays.markers, mesh=arrays.mesh, fixed=arrays.fixed,
+            arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed,
             train_idx=arrays.train_idx, valid_idx=arrays.valid_idx,
         )
 
@@ -342,6 +365,37 @@ class DeformationModel:
         d, miss, single = self._marker_batch(marker_displacements, missing)
         u = self.compiled_.fields(d, miss).reshape(d.shape[0], -1, 3)
         return u[0] if single else u
+
+    @property
+    def has_trust(self) -> bool:
+        """Whether error bounds and the alarm are calibrated (``surrogate.calibration_share > 0``)."""
+        return getattr(self, "trust_", None) is not None
+
+    def predict_trusted(self, marker_displacements, *, coverage: float | None = None,
+                        false_alarm: float | None = None) -> TrustedPrediction:
+        """The MLP's field with per-vertex error bounds and the out-of-distribution alarm.
+
+        Args:
+            marker_displacements: as for :meth:`predict` (every marker tracked), mm.
+            coverage: nominal coverage of the bounds (default ``surrogate.coverage``).
+            false_alarm: false-alarm rate of the alarm (default ``surrogate.false_alarm_rate``).
+
+        Returns:
+            A :class:`~tissuecast.surrogate.trust.TrustedPrediction`: displacement (n, 3) or
+            (B, n, 3) mm, error_bound (n,) or (B, n) mm, and one Alarm or a list of B.
+
+        Raises:
+            ModelError: the model has no trust layer (trained with calibration_share = 0).
+        """
+        if not self.has_trust:
+            raise ModelError("this model has no calibrated error bounds or alarm; re-train it with "
+                             "surrogate.calibration_share > 0 (e.g. 0.125)")
+        d, _, single = self._marker_batch(marker_displacements)
+        u = self.compiled_.fields(d).reshape(d.shape[0], -1, 3)
+        bounds, alarms = self.trust_.assess(d, u, coverage=coverage, false_alarm=false_alarm)
+        if single:
+            return TrustedPrediction(u[0], bounds[0], coverage or self.trust_.coverage, alarms[0])
+        return TrustedPrediction(u, bounds, coverage or self.trust_.coverage, alarms)
 
     def predict_from_positions(self, positions, *, missing=None, method: str = "mlp") -> np.ndarray:
         """Displacement field from tracked marker positions (n_d, 3) or (B, n_d, 3) mm.

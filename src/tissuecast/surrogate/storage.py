@@ -7,6 +7,7 @@ A model folder holds::
     weights.safetensors member{k}.layer{i}.weight/bias and standardisation, float32
     pca.npz             mean (p,), components (n_w, p), singular_values (n_w,), float64
     mesh.npz            points (n, 3) mm, tets (m, 4) 0-based
+    trust.npz           optional: error bounds and alarm (tissuecast.surrogate.trust), float64
     model.onnx          optional, from export_onnx
 
 Arrays are read with ``allow_pickle=False``; torch.load is never used.
@@ -87,6 +88,9 @@ def save_model(model, folder, *, onnx: bool = False) -> None:
         "training": getattr(model, "training_", None),
         "files": {"weights": "weights.safetensors", "pca": "pca.npz", "mesh": "mesh.npz"},
     }
+    if getattr(model, "trust_", None) is not None:
+        meta["files"]["trust"] = model.trust_.save(out)
+        meta["trust"] = model.trust_.summary()
     if onnx:
         export_onnx(model, out / "model.onnx")
         meta["files"]["onnx"] = "model.onnx"
@@ -157,6 +161,14 @@ def load_model(cls, folder):
         model.training_ = meta["training"]
         model.summaries_ = [TrainingSummary(**{k: (tuple(map(tuple, v)) if k == "valid_history" else v) for k, v in s.items()})
                             for s in meta["training"].get("members", [])]
+    model.trust_ = None
+    if meta["files"].get("trust"):
+        from .trust import TrustLayer
+
+        tpath = folder / meta["files"]["trust"]
+        if not tpath.is_file():
+            raise ModelError(f"model file {str(tpath)!r} is missing; the model folder is incomplete")
+        model.trust_ = TrustLayer.load(tpath)
     model.metadata_ = meta
     return model
 

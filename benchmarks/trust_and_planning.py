@@ -1,0 +1,319 @@
+"""Marker planning, per-vertex error bounds and the out-of-distribution alarm (issue 17).
+
+Prints, for the data-set store given (paper preset now; re-run on the clinical-scenario
+store when it exists):
+
+1. ``--part planning``: test-1 mean Offset_max (mm) versus the number of markers n_d for
+   k-center markers (the paper's rule) and planned markers (``tissuecast.planning``:
+   QR-shortlisted greedy selection on a quadratic proxy's validation error), each with the
+   rigid-registration baseline of the same markers, and the MLP confirmed by training one
+   network per set. Target: planned reaches the k-center set's error with at most half as
+   many markers, or beats it by >= 30 % at the same count.
+2. ``--part bounds``: split-conformal bounds on test-1 and per test-2 beta: coverage and
+   median bound at 90 % and 95 % nominal, the per-sample Spearman of the largest bound with
+   Offset_max (target >= 0.6), the mean per-vertex Spearman, and a reliability table.
+3. ``--part alarm``: false alarms on clean test-1 and detection of (a) two swapped
+   markers, (b) one marker displaced 3 mm, (c) loads 1.5x beyond the largest trained load:
+   test-1 force fields rescaled to 1, 1.25, 1.5 x the largest training load (Frobenius norm
+   of the nodal forces) and, for comparison, 1.5 x their own load (FEM solves with
+   tissuecast's solver from the store's config; cached in ``--cache``), at the calibrated
+   1 % false-alarm rate; detection versus glitch size and load scale.
+
+All lengths in mm. Not run in CI (minutes; part 3's FEM solves take longer the first time).
+
+Usage::
+
+    python benchmarks/trust_and_planning.py --dataset /work/data/paper.zarr [--part all] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import spearmanr
+
+from tissuecast.dataset import open_dataset
+from tissuecast.evaluate.evaluation import spearman_rows
+from tissuecast.evaluate.trust_report import bound_figures
+from tissuecast.surrogate import DeformationModel
+from tissuecast.surrogate.conformal import reliability_curve
+from tissuecast.surrogate.data import dataset_arrays, split_indices
+
+
+def offsets_max(pred, bench) -> np.ndarray:
+    return np.linalg.norm(pred - bench, axis=2).max(axis=1)
+
+
+def rigid_offset_max(model, d, bench) -> float:
+    from tissuecast.errors import RegistrationError
+
+    try:
+        return float(offsets_max(model.predict_rigid(d), bench).mean())
+    except RegistrationError:
+        return float("nan")
+
+
+# ---------------------------------------------------------------------------------- planning
+def part_planning(ds, args, out: dict) -> None:
+    from tissuecast.evaluate.studies import study_markers
+    from tissuecast.planning import plan_markers
+
+    a = dataset_arrays(ds)
+    U = np.asarray(a.displacements, dtype=np.float64)
+    t1 = split_indices(ds, "test1")
+    bench = U[t1]
+    counts = [int(c) for c in args.counts]
+    kc, d_min = study_markers(a.mesh, max(counts), ds.config)
+    t0 = time.perf_counter()
+    plan = plan_markers(ds, count=max(counts), region=args.region, min_distance=args.min_distance)
+    t_plan = time.perf_counter() - t0
+    print(f"\n== 1. marker planning ({args.region} candidates, min spacing {args.min_distance:g} mm; "
+          f"planned {max(counts)} markers in {t_plan:.0f} s) ==")
+    print(f"k-center (d_min {d_min:g} mm): {kc.tolist()}")
+    print(f"planned: {plan.markers.tolist()}")
+    rows = []
+    print(f"{'n_d':>3} | {'k-center MLP':>12} {'rigid':>7} {'proxy':>7} | {'planned MLP':>11} {'rigid':>7} {'proxy':>7} | change")
+    for k in counts:
+        row = {"n_markers": k}
+        for name, mk in (("kcenter", kc[:k]), ("planned", plan.markers[:k])):
+            m = DeformationModel(ds.config, ensemble=1, calibration_share=0.0).fit(
+                U, mk, mesh=a.mesh, fixed=a.fixed, train_idx=a.train_idx, valid_idx=a.valid_idx)
+            d = bench[:, mk, :]
+            row[f"{name}_mlp"] = float(offsets_max(m.predict(d), bench).mean())
+            row[f"{name}_rigid"] = rigid_offset_max(m, d, bench) if k >= 3 else float("nan")
+            row[f"{name}_proxy_valid"] = float(plan.proxy(mk))
+            row[f"{name}_n_w"] = m.n_components
+        row["change"] = row["planned_mlp"] / row["kcenter_mlp"] - 1.0
+        rows.append(row)
+        print(f"{k:3d} | {row['kcenter_mlp']:12.3f} {row['kcenter_rigid']:7.3f} {row['kcenter_proxy_valid']:7.3f} | "
+              f"{row['planned_mlp']:11.3f} {row['planned_rigid']:7.3f} {row['planned_proxy_valid']:7.3f} | "
+              f"{100 * row['change']:+.0f} %", flush=True)
+    print("(MLP and rigid: test-1 mean Offset_max; proxy: validation mean Offset_max of the planner's quadratic proxy)")
+    by = {r["n_markers"]: r for r in rows}
+    verdicts = []
+    for k in counts:
+        half = [j for j in counts if 2 * j <= k]
+        reach = [j for j in half if by[j]["planned_mlp"] <= by[k]["kcenter_mlp"]]
+        beat = by[k]["planned_mlp"] <= 0.7 * by[k]["kcenter_mlp"]
+        verdicts.append({"n_markers": k, "planned_half_reaches": min(reach) if reach else None, "beats_by_30pct": bool(beat)})
+        print(f"k-center n_d={k}: planned with <= {k // 2} markers reaches it: "
+              f"{('yes, with ' + str(min(reach))) if reach else 'no'}; planned beats it by >= 30 % at n_d={k}: "
+              f"{'yes' if beat else 'no'}")
+    out["planning"] = {"kcenter": kc.tolist(), "planned": plan.markers.tolist(), "rows": rows, "verdicts": verdicts,
+                       "plan_seconds": t_plan, "region": args.region}
+
+
+# ---------------------------------------------------------------------------------- bounds
+def trust_model(ds, args):
+    a = dataset_arrays(ds)
+    U = np.asarray(a.displacements, dtype=np.float64)
+    t0 = time.perf_counter()
+    model = DeformationModel(ds.config, ensemble=args.ensemble).fit(
+        U, a.markers, mesh=a.mesh, fixed=a.fixed, train_idx=a.train_idx, valid_idx=a.valid_idx)
+    tr = model.training_
+    print(f"\nmodel: markers {model.markers.tolist()}, n_w {model.n_components}, ensemble {model.ensemble_size}, "
+          f"{tr['n_train']} training / {tr['n_valid']} validation / {tr['n_calibration']} calibration samples "
+          f"({time.perf_counter() - t0:.0f} s)")
+    return model, U
+
+
+def part_bounds(ds, model, U, args, out: dict) -> None:
+    print("\n== 2. split-conformal per-vertex error bounds ==")
+    t1 = split_indices(ds, "test1")
+    t2 = split_indices(ds, "test2")
+    beta = np.asarray(ds.beta)
+    rows = {"test1": bound_figures(model, U[t1])}
+    for b in np.unique(beta[t2]):
+        rows[f"test2 beta={b:g}"] = bound_figures(model, U[t2[beta[t2] == b]])
+    print(f"{'set':14s} {'n':>4s} {'OffMax':>7s} | {'cov 90%':>7s} {'med b90':>7s} | {'cov 95%':>7s} {'med b95':>7s} | "
+          f"{'rho sample':>10s} {'rho vertex':>10s}")
+    for name, r in rows.items():
+        print(f"{name:14s} {r['count']:4d} {r['offset_max']:7.3f} | {100 * r['coverage_0.9']:6.1f}% {r['median_bound_0.9']:7.3f} | "
+              f"{100 * r['coverage_0.95']:6.1f}% {r['median_bound_0.95']:7.3f} | {r['sample_spearman']:10.3f} "
+              f"{r['vertex_spearman']:10.3f}")
+    if model.ensemble_size > 1:
+        bench = U[t1]
+        u, sigma = model.predict_with_uncertainty(bench[:, model.markers, :])
+        e = np.linalg.norm(u - bench, axis=2)
+        rows["ensemble_sigma_test1"] = {"sample_spearman": float(spearmanr(sigma.max(axis=1), e.max(axis=1))[0]),
+                                        "vertex_spearman": float(spearman_rows(sigma, e).mean())}
+        print(f"ensemble sigma on test-1 for comparison: rho sample {rows['ensemble_sigma_test1']['sample_spearman']:.3f}, "
+              f"rho vertex {rows['ensemble_sigma_test1']['vertex_spearman']:.3f}")
+    bench = U[t1]
+    d = bench[:, model.markers, :]
+    u = model.predict(d)
+    sigma = model.trust_.normaliser(d.reshape(len(d), -1), u)
+    lv, emp = reliability_curve(model.trust_.conformal, np.linalg.norm(u - bench, axis=2), sigma)
+    print("reliability on test-1 (nominal -> empirical coverage): "
+          + ", ".join(f"{100 * a:.0f}->{100 * b:.1f}" for a, b in zip(lv, emp)))
+    out["bounds"] = {"rows": rows, "reliability": {"nominal": lv.tolist(), "empirical": emp.tolist()}}
+
+
+# ---------------------------------------------------------------------------------- alarm
+def swap_markers(d, ref, rng) -> np.ndarray:
+    """Two random markers' tracked positions exchanged: d (B, n_d, 3) displacements, ref (n_d, 3)."""
+    out = d.copy()
+    for b in range(len(d)):
+        i, j = rng.choice(len(ref), 2, replace=False)
+        pi, pj = ref[i] + d[b, i], ref[j] + d[b, j]
+        out[b, i], out[b, j] = pj - ref[i], pi - ref[j]
+    return out
+
+
+def displace_marker(d, size, rng) -> np.ndarray:
+    """One random marker moved by ``size`` mm in a random direction."""
+    out = d.copy()
+    v = rng.normal(size=(len(d), 3))
+    v *= size / np.linalg.norm(v, axis=1, keepdims=True)
+    out[np.arange(len(d)), rng.integers(0, d.shape[1], len(d))] += v
+    return out
+
+
+def scaled_load_fields(ds, args) -> dict:
+    """FEM fields of test-1 force fields scaled to ``--load-scales`` x the largest training load
+    (Frobenius norm of the nodal forces) and ``--own-scales`` x their own load, solved with
+    tissuecast's solver from the store's config; each solve is cached in ``--cache`` (resumable)."""
+    from tissuecast.errors import ConvergenceError
+    from tissuecast.fem import NeoHookean, Problem, Solver
+
+    cache = Path(args.cache) / f"scaled_loads_{ds.path.name}"
+    cache.mkdir(parents=True, exist_ok=True)
+    cfg = ds.config
+    F = np.asarray(ds.forces)
+    train = split_indices(ds, "train")
+    t1 = split_indices(ds, "test1")[: args.load_samples]
+    largest = float(np.sqrt((F[train].astype(np.float64) ** 2).sum(axis=(1, 2))).max())
+    solver = None
+    fields, scale_of, sample_of, ok, seconds = [], [], [], [], []
+    # positive scale s: the load rescaled to s x the largest training load; negative -s: s x its own load
+    for s in [*args.load_scales, *(-x for x in args.own_scales)]:
+        for i in t1:
+            path = cache / f"scale{s:+g}_sample{i}.npz"
+            if not path.is_file():
+                if solver is None:
+                    material = NeoHookean(youngs_modulus=cfg.material.youngs_modulus, poisson_ratio=cfg.material.poisson_ratio)
+                    solver = Solver(Problem(ds.mesh, material, np.asarray(ds.fixed), order=cfg.solver.order), cfg.solver)
+                f = F[i].astype(np.float64)
+                f *= s * largest / np.sqrt((f**2).sum()) if s > 0 else -s
+                t = time.perf_counter()
+                try:
+                    u, good = solver.solve(f).displacement, True
+                except ConvergenceError:
+                    u, good = np.full(F.shape[1:], np.nan), False
+                np.savez(path, u=u, converged=good, seconds=time.perf_counter() - t)
+                label = f"x{s:g} of the largest" if s > 0 else f"x{-s:g} of its own"
+                what = f"peak {np.linalg.norm(u, axis=1).max():.1f} mm" if good else "did not converge"
+                print(f"  load {label}, sample {i}: {what} ({time.perf_counter() - t:.1f} s)", flush=True)
+            with np.load(path, allow_pickle=False) as z:
+                fields.append(z["u"])
+                ok.append(bool(z["converged"]))
+                seconds.append(float(z["seconds"]))
+            scale_of.append(s)
+            sample_of.append(i)
+    return {"fields": np.asarray(fields), "scale": np.asarray(scale_of), "sample": np.asarray(sample_of),
+            "converged": np.asarray(ok), "seconds": np.asarray(seconds), "largest_train_load": largest}
+
+
+def part_alarm(ds, model, U, args, out: dict) -> None:
+    rng = np.random.default_rng(17)
+    fa = model.config.false_alarm_rate
+    print(f"\n== 3. out-of-distribution alarm (threshold for {100 * fa:g} % false alarms, from "
+          f"{len(model.trust_.ood.calibration)} calibration samples) ==")
+    ref = model.reference_marker_positions
+    t1 = split_indices(ds, "test1")
+    d = U[t1][:, model.markers, :]
+
+    def rate(dd) -> float:
+        return float(np.mean([a.raised for a in model.predict_trusted(dd).alarms]))
+
+    res = {"false_alarms_test1": rate(d)}
+    swaps = [rate(swap_markers(d, ref, rng)) for _ in range(5)]
+    res["swap"] = float(np.mean(swaps))
+    res["displaced"] = {f"{s:g}": float(np.mean([rate(displace_marker(d, s, rng)) for _ in range(5)]))
+                        for s in (0.25, 0.5, 1.0, 2.0, 3.0, 5.0)}
+    print(f"clean test-1: false alarms {100 * res['false_alarms_test1']:.1f} % (n = {len(t1)})")
+    print(f"(a) two markers swapped: detected {100 * res['swap']:.1f} % (5 random swaps per test-1 sample)")
+    print("(b) one marker displaced, detection by size: "
+          + ", ".join(f"{k} mm: {100 * v:.1f} %" for k, v in res["displaced"].items()))
+    t2 = split_indices(ds, "test2")
+    beta = np.asarray(ds.beta)
+    res["test2_alarm_by_beta"] = {f"{b:g}": rate(U[t2[beta[t2] == b]][:, model.markers, :]) for b in np.unique(beta[t2])}
+    print("test-2 alarm rate by beta: " + ", ".join(f"{k}: {100 * v:.0f} %" for k, v in res["test2_alarm_by_beta"].items()))
+    if not args.skip_fem:
+        loads = scaled_load_fields(ds, args)
+        ok = loads["converged"]
+        train_peak = np.asarray(ds.max_displacement, dtype=np.float64)[split_indices(ds, "train")]
+        p95, pmax = np.percentile(train_peak, 95), train_peak.max()
+        print(f"training peak displacement: p95 {p95:.1f} mm, max {pmax:.1f} mm")
+        res["loads"] = {}
+        for s in np.unique(loads["scale"]):
+            label = f"{s:g}x the largest training load" if s > 0 else f"{-s:g}x its own load"
+            pick = (loads["scale"] == s) & ok
+            n_all = int((loads["scale"] == s).sum())
+            row = {"solved": n_all, "converged": int(pick.sum())}
+            if pick.any():
+                fields = loads["fields"][pick]
+                d = fields[:, model.markers, :]
+                trusted = model.predict_trusted(d)
+                raised = np.array([a.raised for a in trusted.alarms])
+                cover = float(np.mean(np.linalg.norm(trusted.displacement - fields, axis=2) <= trusted.error_bound))
+                peak = np.linalg.norm(fields, axis=2).max(axis=1)
+                err = offsets_max(model.predict(d), fields)
+                beyond = peak > pmax
+                row.update(detected=float(raised.mean()), peak_median=float(np.median(peak)),
+                           beyond_training_max=int(beyond.sum()),
+                           detected_beyond_max=float(raised[beyond].mean()) if beyond.any() else float("nan"),
+                           detected_beyond_p95=float(raised[peak > p95].mean()) if (peak > p95).any() else float("nan"),
+                           mlp_offset_max_detected=float(err[raised].mean()) if raised.any() else float("nan"),
+                           mlp_offset_max_missed=float(err[~raised].mean()) if (~raised).any() else float("nan"),
+                           bound_coverage_90=cover)
+                print(f"(c) loads {label}: detected {100 * row['detected']:.1f} % of {row['converged']} converged "
+                      f"({n_all - row['converged']} of {n_all} did not converge); median peak {row['peak_median']:.1f} mm; "
+                      f"{row['beyond_training_max']} beyond the training max, detected {100 * row['detected_beyond_max']:.0f} %; "
+                      f"beyond training p95 detected {100 * row['detected_beyond_p95']:.0f} %; MLP mean Offset_max "
+                      f"{row['mlp_offset_max_detected']:.2f} mm where detected, {row['mlp_offset_max_missed']:.2f} where not; "
+                      f"90 % bounds cover {100 * cover:.1f} % of vertices")
+            else:
+                print(f"(c) loads {label}: none of {n_all} converged")
+            res["loads"][label] = row
+    out["alarm"] = res
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--dataset", required=True, help="data-set store (tissuecast simulate)")
+    p.add_argument("--part", choices=("planning", "bounds", "alarm", "all"), default="all")
+    p.add_argument("--counts", type=int, nargs="+", default=[2, 3, 4, 5, 6, 8, 10, 12, 15, 20])
+    p.add_argument("--region", default="surface", help="planning candidates: surface, any, interior")
+    p.add_argument("--min-distance", type=float, default=0.0, help="planning: minimum marker spacing (mm)")
+    p.add_argument("--ensemble", type=int, default=1, help="ensemble size of the model whose bounds are measured")
+    p.add_argument("--load-scales", type=float, nargs="+", default=[1.0, 1.25, 1.5])
+    p.add_argument("--own-scales", type=float, nargs="*", default=[1.5],
+                   help="also solve the test-1 force fields times these factors of their own magnitude")
+    p.add_argument("--load-samples", type=int, default=24, help="test-1 force fields solved per load scale")
+    p.add_argument("--cache", default="benchmark-cache", help="folder caching the scaled-load FEM solves")
+    p.add_argument("--skip-fem", action="store_true", help="skip the scaled-load FEM solves of part 3")
+    p.add_argument("--json", help="write every figure to this JSON file")
+    args = p.parse_args(argv)
+    ds = open_dataset(args.dataset)
+    print(repr(ds))
+    out: dict = {"dataset": str(args.dataset)}
+    if args.part in ("planning", "all"):
+        part_planning(ds, args, out)
+    if args.part in ("bounds", "alarm", "all"):
+        model, U = trust_model(ds, args)
+        if args.part in ("bounds", "all"):
+            part_bounds(ds, model, U, args, out)
+        if args.part in ("alarm", "all"):
+            part_alarm(ds, model, U, args, out)
+    if args.json:
+        Path(args.json).write_text(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,167 @@
+"""Plan fiducial markers from a simulated data set: which vertices, and how many.
+
+The store holds every vertex's displacement, so markers can be chosen after simulation from
+how the tissue actually moves, without simulating again. Selection uses the 'train' split
+only (PCA modes, the proxy's regression); choosing how many and assessing use 'valid'
+(the proxy's score, and optionally the MLP trained with those markers). Test splits are
+never read.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import MarkerError
+from ..surrogate.data import dataset_arrays
+from ..surrogate.pca import fit_pca
+from .candidates import candidate_vertices
+from .proxy import QuadraticProxy
+from .selection import greedy_markers
+
+__all__ = ["MarkerPlan", "plan_markers", "validation_error"]
+
+log = logging.getLogger(__name__)
+
+#: PCA components of the training fields the planner works with.
+PLAN_COMPONENTS = 64
+
+
+@dataclass(eq=False)
+class MarkerPlan:
+    """Planned markers.
+
+    Attributes:
+        markers: (k,) int64 0-based vertex ids, in pick order (the first j are the plan for j markers).
+        proxy_errors: (K,) validation mean Offset_max (mm) of the proxy with the first
+            j + 1 markers of the greedy path (K >= k when a target was searched).
+        path: (K,) int64 the whole greedy path.
+        candidates: (c,) int64 candidate ids.
+        region: candidate region; min_distance: spacing in mm.
+        target_mm: the requested validation error, or None.
+        target_reached: whether the chosen count reaches ``target_mm`` (None without target).
+        mlp_errors: {n_markers: validation mean Offset_max of the MLP, mm} for counts
+            confirmed by training.
+        proxy: the :class:`QuadraticProxy` used (scores any marker set).
+    """
+
+    markers: np.ndarray
+    proxy_errors: np.ndarray
+    path: np.ndarray
+    candidates: np.ndarray
+    region: str
+    min_distance: float
+    target_mm: float | None = None
+    target_reached: bool | None = None
+    mlp_errors: dict = field(default_factory=dict)
+    proxy: QuadraticProxy | None = None
+
+    @property
+    def count(self) -> int:
+        return int(self.markers.size)
+
+    def as_dict(self) -> dict:
+        return {"markers": self.markers.tolist(), "count": self.count, "path": self.path.tolist(),
+                "proxy_valid_offset_max_mm": [float(x) for x in self.proxy_errors],
+                "mlp_valid_offset_max_mm": {str(k): float(v) for k, v in sorted(self.mlp_errors.items())},
+                "region": self.region, "min_distance_mm": self.min_distance, "n_candidates": int(self.candidates.size),
+                "target_mm": self.target_mm, "target_reached": self.target_reached}
+
+
+def validation_error(arrays, markers, config=None) -> float:
+    """Validation mean Offset_max (mm) of an MLP trained on the 'train' split with ``markers``
+    (no calibration hold-out, one network)."""
+    from ..surrogate import DeformationModel
+
+    m = DeformationModel(config, ensemble=1, calibration_share=0.0).fit(
+        arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed,
+        train_idx=arrays.train_idx, valid_idx=arrays.valid_idx)
+    bench = np.asarray(arrays.displacements[arrays.valid_idx], dtype=np.float64)
+    pred = m.predict(bench[:, np.asarray(markers), :])
+    return float(np.linalg.norm(pred - bench, axis=2).max(axis=1).mean())
+
+
+def plan_markers(dataset, count: int | None = None, *, target_mm: float | None = None, max_count: int = 20,
+                 region: str = "surface", min_distance: float = 0.0, allowed=None, shortlist: int = 24,
+                 confirm: bool = False, config=None,
+                 on_step: Callable[[int, np.ndarray, float], None] | None = None) -> MarkerPlan:
+    """Choose markers from a data set's simulated fields.
+
+    Args:
+        dataset: a :class:`tissuecast.dataset.Dataset` with converged 'train' and 'valid' samples.
+        count: number of markers; or give ``target_mm`` instead.
+        target_mm: choose the smallest count whose planned markers reach this validation
+            mean Offset_max (mm), searching up to ``max_count``.
+        max_count: the largest count searched for ``target_mm``.
+        region: candidate vertices, see :data:`tissuecast.planning.candidates.REGIONS`.
+        min_distance: markers are farther apart than this (mm).
+        allowed: optional user mask (bool (n,) or 0-based ids) of allowed vertices.
+        shortlist: candidates scored by the proxy per greedy step.
+        confirm: train the MLP (validation error) for the chosen count; with ``target_mm``
+            the count is then adjusted until the MLP, not only the proxy, decides it.
+        config: surrogate settings for ``confirm`` (default: the data set's).
+        on_step: progress callback (number of markers, markers so far, proxy score).
+
+    Returns:
+        A :class:`MarkerPlan`.
+
+    Raises:
+        MarkerError: neither or both of count and target_mm, bad candidates, too few of them.
+    """
+    if (count is None) == (target_mm is None):
+        raise MarkerError("give either a marker count or a target error (target_mm), not both or neither")
+    if count is not None and count < 1:
+        raise MarkerError(f"the number of markers must be >= 1, got {count}")
+    if target_mm is not None and not target_mm > 0:
+        raise MarkerError(f"the target error must be a positive number of mm, got {target_mm}")
+    if config is None:
+        config = getattr(dataset, "config", None)
+    arrays = dataset_arrays(dataset)
+    U = arrays.displacements
+    train = np.asarray(U[arrays.train_idx], dtype=np.float64).reshape(len(arrays.train_idx), -1)
+    valid = np.asarray(U[arrays.valid_idx], dtype=np.float64)
+    basis = fit_pca(train, min(PLAN_COMPONENTS, len(train) - 1, train.shape[1]))
+    proxy = QuadraticProxy(basis, train, valid)
+    modes = basis.components * basis.singular_values[:, None]
+    cand = candidate_vertices(arrays.mesh, region=region, allowed=allowed, exclude=arrays.fixed)
+    points = arrays.mesh.points
+    n_path = count if count is not None else min(max_count, cand.size)
+
+    if target_mm is None:
+        path, scores = greedy_markers(proxy, modes, cand, n_path, shortlist=shortlist, points=points,
+                                      min_distance=min_distance, on_step=on_step)
+        plan = MarkerPlan(path, scores, path, cand, region, float(min_distance), proxy=proxy)
+        if confirm:
+            plan.mlp_errors[count] = validation_error(arrays, path, config)
+        return plan
+
+    path, scores = greedy_markers(proxy, modes, cand, n_path, shortlist=shortlist, points=points,
+                                  min_distance=min_distance, stop_at=target_mm, on_step=on_step)
+    n = len(path)
+    reached = bool(scores[-1] <= target_mm)
+    mlp: dict = {}
+
+    def extend(k: int) -> None:
+        nonlocal path, scores
+        if k > len(path):
+            path, more = greedy_markers(proxy, modes, cand, k, shortlist=shortlist, points=points,
+                                        min_distance=min_distance, start=path, on_step=on_step)
+            scores = np.r_[scores, more[len(scores):]]
+
+    if confirm:
+        mlp[n] = validation_error(arrays, path[:n], config)
+        while mlp[n] > target_mm and n < n_path:  # the MLP needs more markers than the proxy
+            n += 1
+            extend(n)
+            mlp[n] = validation_error(arrays, path[:n], config)
+        while n > 1 and mlp[n] <= target_mm:  # ... or fewer
+            if n - 1 not in mlp:
+                mlp[n - 1] = validation_error(arrays, path[:n - 1], config)
+            if mlp[n - 1] > target_mm:
+                break
+            n -= 1
+        reached = bool(mlp[n] <= target_mm)
+    return MarkerPlan(path[:n], scores, path, cand, region, float(min_distance), float(target_mm), reached, mlp, proxy)

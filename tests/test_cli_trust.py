@@ -1,0 +1,89 @@
+"""`tissuecast markers plan`, training with planned markers, and `predict` with error bounds
+and alarms, in-process on a small real store (fast stand-in solver)."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from tissuecast.cli.main import main
+
+from _surrogate_synthetic import simulate_box_store
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    from tissuecast.dataset import open_dataset
+
+    folder = tmp_path_factory.mktemp("plan")
+    cfg_path, cfg = simulate_box_store(folder)
+    return folder, cfg_path, open_dataset(cfg.dataset.store)
+
+
+def test_plan_count_writes_files_and_respects_spacing(store, capsys):
+    folder, _, ds = store
+    prefix = folder / "pm"
+    assert main(["markers", "plan", str(ds.path), "--count", "3", "--region", "any", "--min-distance", "6",
+                 "--out", str(prefix)]) == 0
+    out = capsys.readouterr().out
+    doc = json.loads((folder / "pm.json").read_text())
+    ids = doc["plan"]["markers"]
+    assert len(ids) == 3 and doc["ids_are_0_based"] and f"ids = {ids}" in out
+    assert len(doc["plan"]["proxy_valid_offset_max_mm"]) == 3 and not set(ids) & set(ds.fixed.tolist())
+    p = ds.mesh.points[ids]
+    assert np.linalg.norm(p[:, None] - p[None], axis=2)[np.triu_indices(3, 1)].min() > 6.0
+    rows = list(csv.DictReader((folder / "pm.csv").open()))
+    assert [int(r["vertex_id_0based"]) for r in rows] == ids
+    assert (folder / "pm.vtu").is_file()
+
+
+def test_plan_target_allowed_mask_and_errors(store, capsys, tmp_path):
+    _, _, ds = store
+    assert main(["markers", "plan", str(ds.path), "--target-mm", "1000", "--out", str(tmp_path / "t")]) == 0
+    assert "target 1000 mm reached with 1 markers" in capsys.readouterr().out
+    allowed = sorted(int(i) for i in ds.mesh.surface_vertices[::7])
+    (tmp_path / "allowed.txt").write_text(", ".join(map(str, allowed)))
+    assert main(["markers", "plan", str(ds.path), "--count", "2", "--allowed", str(tmp_path / "allowed.txt"),
+                 "--out", str(tmp_path / "a")]) == 0
+    capsys.readouterr()
+    assert set(json.loads((tmp_path / "a.json").read_text())["plan"]["markers"]) <= set(allowed)
+    (tmp_path / "bad.txt").write_text("3 x 5")
+    assert main(["markers", "plan", str(ds.path), "--count", "2", "--allowed", str(tmp_path / "bad.txt")]) == 2
+    assert "must hold 0-based vertex ids" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["markers", "plan", str(ds.path)])  # neither --count nor --target-mm
+
+
+def test_train_with_planned_markers_then_predict_with_bounds_and_alarm(store, capsys, tmp_path):
+    from tissuecast.config import load_config, with_overrides, config_to_toml
+
+    folder, cfg_path, ds = store
+    assert main(["markers", "plan", str(ds.path), "--count", "4", "--region", "any", "--out", str(tmp_path / "p")]) == 0
+    ids = json.loads((tmp_path / "p.json").read_text())["plan"]["markers"]
+    cfg = with_overrides(load_config(cfg_path), markers={"ids": ids}, surrogate={"ensemble": 1})
+    (tmp_path / "planned.toml").write_text(config_to_toml(cfg))
+    assert main(["train", str(tmp_path / "planned.toml"), "--out", str(tmp_path / "model"), "--no-onnx"]) == 0
+    meta = json.loads((tmp_path / "model" / "model.json").read_text())
+    assert meta["markers"] == ids and meta["files"]["trust"] == "trust.npz"
+    capsys.readouterr()
+    test = ds.select("test1")[:2]
+    d = np.asarray(ds.displacements[test], dtype=np.float64)[:, ids, :]
+    swapped = d[1].copy()
+    ref = ds.mesh.points[ids]
+    swapped[[0, 2]] = (ref[[2, 0]] + d[1][[2, 0]]) - ref[[0, 2]]
+    (tmp_path / "in.json").write_text(json.dumps({"displacements": [d[0].tolist(), swapped.tolist()]}))
+    assert main(["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json"), "--out",
+                 str(tmp_path / "out.csv"), "--coverage", "0.9", "--false-alarm", "0.2"]) == 0
+    out = capsys.readouterr().out  # 12 calibration samples: enough for 90 % bounds and a 20 % false-alarm rate
+    assert "error bound (90 %)" in out and "sample 1: ALARM: markers disagree" in out and "note:" not in out
+    assert "sample 0: ALARM" not in out
+    rows = list(csv.DictReader((tmp_path / "out.csv").open()))
+    assert "error_bound_mm" in rows[0] and float(rows[0]["error_bound_mm"]) > 0
+    assert main(["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json")]) == 0
+    out = capsys.readouterr().out  # defaults 0.01 / 0.9: 12 samples cannot set a 1 % alarm threshold
+    assert "note: the alarm is off" in out and "ALARM" not in out
+    assert main(["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json"), "--coverage", "0.99"]) == 0
+    assert "note: the bounds are infinite" in capsys.readouterr().out
+    assert main(["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json"), "--coverage", "1.5"]) == 2
+    assert "coverage" in capsys.readouterr().err

@@ -1,0 +1,95 @@
+"""Marker planning: QR pivoting and greedy selection pick the informative vertices of hand-made fields."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from tissuecast.errors import MarkerError
+from tissuecast.planning import QuadraticProxy, candidate_vertices, greedy_markers, plan_markers, qr_markers
+from tissuecast.surrogate.pca import fit_pca
+
+from _surrogate_synthetic import FakeDataset, box_mesh
+
+
+def _fields(mesh, latents, informative, rng, noise=0.1):
+    """Each latent moves one 'informative' vertex by up to 5 mm and every vertex a little along
+    random directions (0.05 mm) below the independent noise (0.1 mm): only the informative vertices see it."""
+    n = mesh.n_points
+    N = len(latents)
+    U = noise * rng.normal(size=(N, n, 3))
+    for j, v in enumerate(informative):
+        shape = 0.05 * rng.normal(size=(n, 3))
+        shape[v] = [5.0, -3.0, 2.0]
+        U += latents[:, j, None, None] * shape
+    return U
+
+
+def test_candidates_follow_region_mask_and_exclusions():
+    mesh = box_mesh()
+    surf = np.asarray(mesh.surface_vertices)
+    np.testing.assert_array_equal(candidate_vertices(mesh, region="surface"), np.sort(surf))
+    inner = candidate_vertices(mesh, region="interior")
+    assert len(inner) + len(surf) == mesh.n_points and not np.isin(inner, surf).any()
+    c = candidate_vertices(mesh, region="any", allowed=[5, 7, 9, 11], exclude=[7])
+    np.testing.assert_array_equal(c, [5, 9, 11])
+    with pytest.raises(MarkerError, match="unknown candidate region"):
+        candidate_vertices(mesh, region="skin")
+    with pytest.raises(MarkerError, match="outside|0-based"):
+        candidate_vertices(mesh, allowed=[mesh.n_points])
+    with pytest.raises(MarkerError, match="no candidate"):
+        candidate_vertices(mesh, region="interior", allowed=surf)
+
+
+def test_qr_picks_the_informative_vertex_and_matches_scalar_pivoted_qr():
+    mesh = box_mesh()
+    rng = np.random.default_rng(0)
+    U = _fields(mesh, rng.uniform(-1, 1, (400, 1)), [137], rng)
+    basis = fit_pca(U.reshape(len(U), -1), 5)
+    modes = basis.components * basis.singular_values[:, None]
+    cand = np.arange(mesh.n_points)
+    assert qr_markers(modes, cand, 1)[0] == 137
+    # with one column per vertex (x only) the block pivoting is ordinary pivoted QR (PySensors' QR optimizer)
+    x_only = modes.reshape(5, -1, 3)[:, :, 0]
+    _, _, piv = scipy.linalg.qr(x_only, pivoting=True)
+    ours = qr_markers(np.repeat(x_only[:, :, None], 3, axis=2).reshape(5, -1) / np.sqrt(3), cand, 5)
+    np.testing.assert_array_equal(ours, piv[:5])
+
+
+def test_greedy_on_the_proxy_finds_both_informative_vertices_and_respects_spacing():
+    mesh = box_mesh()
+    rng = np.random.default_rng(1)
+    inf = [40, 230]
+    lat = rng.uniform(-1, 1, (500, 2))
+    U = _fields(mesh, lat, inf, rng)
+    train, valid = U[:400], U[400:]
+    basis = fit_pca(train.reshape(400, -1), 12)
+    proxy = QuadraticProxy(basis, train, valid)
+    modes = basis.components * basis.singular_values[:, None]
+    cand = np.arange(mesh.n_points)
+    picked, scores = greedy_markers(proxy, modes, cand, 2, shortlist=10)
+    assert sorted(picked.tolist()) == inf
+    assert scores[1] < scores[0] and scores[1] < proxy(np.array([0, 1]))  # better than two arbitrary vertices
+    # forbid vertex 230's neighbourhood: a 200 mm spacing leaves only one marker possible
+    with pytest.raises(MarkerError, match="fit 200 mm apart"):
+        greedy_markers(proxy, modes, cand, 2, points=mesh.points, min_distance=200.0)
+    far, _ = greedy_markers(proxy, modes, cand, 3, points=mesh.points, min_distance=15.0)
+    d = np.linalg.norm(mesh.points[far][:, None] - mesh.points[far][None], axis=2)
+    assert d[np.triu_indices(3, 1)].min() > 15.0
+    with pytest.raises(MarkerError, match="only 2 candidate"):
+        qr_markers(modes, np.array([1, 2]), 3)
+
+
+def test_plan_markers_on_a_data_set_count_and_target():
+    ds = FakeDataset(n=200, n_test2=0)
+    plan = plan_markers(ds, 4, region="any", shortlist=8)
+    assert plan.count == 4 and len(set(plan.markers.tolist())) == 4
+    assert not np.isin(plan.markers, ds.fixed).any()
+    assert np.all(np.diff(plan.proxy_errors) < 0)  # each greedy step lowers the validation error here
+    target = float(plan.proxy_errors[2]) * 1.0001  # reached with 3 markers, not with 2
+    tplan = plan_markers(ds, target_mm=target, region="any", shortlist=8)
+    assert tplan.count == 3 and tplan.target_reached
+    np.testing.assert_array_equal(tplan.markers, plan.markers[:3])
+    unreachable = plan_markers(ds, target_mm=1e-9, max_count=3, region="any", shortlist=8)
+    assert unreachable.count == 3 and unreachable.target_reached is False
+    with pytest.raises(MarkerError, match="either"):
+        plan_markers(ds, 3, target_mm=1.0)
