@@ -52,6 +52,9 @@ SHIFT_RESTART = 0.5
 SHIFT_GROWTH = 4.0
 #: Beyond this shift the tangent has little left of K: the projected stiffness is used.
 SHIFT_LAST = 10.0
+#: With an approximate preconditioner just made from the current tangent, conjugate gradients
+#: may take this many times ``krylov_iterations`` steps before settling for their iterate.
+FRESH_STEPS_FACTOR = 4
 #: Guards divisions by norms that may be exactly zero.
 _TINY = 1e-300
 
@@ -276,7 +279,7 @@ class SolveRun:
             self.rotation = np.eye(3)
             track.fresh, track.reuses = True, 0
         if d is None and not self.active.exact:  # an approximate inverse: CG with the fresh one
-            d, _ = yield from self.krylov_direction(u, r)
+            d, _ = yield from self.krylov_direction(u, r, fresh=True)
         if d is None:
             d = -(yield from self._precondition(r))
         return d
@@ -318,12 +321,16 @@ class SolveRun:
         self.counts.solves += 1
         return z
 
-    def krylov_direction(self, u: np.ndarray, r: np.ndarray):
+    def krylov_direction(self, u: np.ndarray, r: np.ndarray, fresh: bool = False):
         """-K^-1 r for the tangent K at u by deflated preconditioned conjugate gradients
         (a generator, :mod:`.krylov`).
 
         Args:
             u: (3 n_nodes,) mm, current displacements.  r: (n_free,) N, residual.
+            fresh: the preconditioner was just made from this tangent but is an approximate
+                inverse (:attr:`.linear.LinearSolver.exact` False): up to
+                ``FRESH_STEPS_FACTOR`` times more steps, and the iterate so far if the
+                tolerance is still not met.
 
         Returns:
             ``(d, None)`` when the relative residual fell below ``krylov_tolerance`` within
@@ -339,8 +346,9 @@ class SolveRun:
         if cfg.krylov_recycle:
             spin = rigid_rotations(sv.problem.nodes + u.reshape(-1, 3), sv.constrained_nodes, sv.free_dofs)
             space, self.recycled = deflation_space(k, spin, self.recycled)
-        d, steps, found = yield from deflated_cg(k, -r, space, self._precondition, cfg.krylov_tolerance,
-                                                 cfg.krylov_iterations)
+        steps_cap = cfg.krylov_iterations * (FRESH_STEPS_FACTOR if fresh else 1)
+        d, steps, found = yield from deflated_cg(k, -r, space, self._precondition, cfg.krylov_tolerance, steps_cap,
+                                                 best_effort=fresh)
         self.counts.krylov_steps += steps
         self.recycled = recycle(found, space, cfg.krylov_recycle, self.recycled)
         return (d, None) if d is not None else (None, data)
