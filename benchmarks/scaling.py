@@ -27,7 +27,7 @@ with other jobs are inflated; the CPU-time columns are the ones to compare.
 Usage::
 
     python benchmarks/scaling.py [--meshes phantom:1.0,phantom:0.75,phantom:0.55,phantom:0.46,dome:3.0]
-        [--backends cholmod,p-multigrid] [--pilots 4] [--basis 10] [--extra 6] [--resolve 3] [--workers 2]
+        [--backends p-multigrid,cholmod] [--pilots 4] [--basis 10] [--extra 6] [--resolve 3] [--workers 2]
 
 ``phantom:S`` is the phantom meshed at S times its element sizes (1.0 ~ 1170 vertices, 0.46
 ~ 10 000); ``dome:H`` the dome at H mm (3.0 ~ 3500 vertices, 2.1 ~ 10 000). ``--quick`` runs
@@ -131,7 +131,7 @@ def child(spec: str, backend: str, args) -> dict:
     fixed = run["calibration_seconds"] + run.get("reduced_seconds", 0.0)
     projected = fixed + (PAPER_SAMPLES - before) * sample_wall / args.workers
     return {
-        "mesh": spec, "backend": solver.linear.name, "vertices": mesh.n_points, "tets": mesh.n_tets,
+        "mesh": spec, "requested": backend, "backend": solver.linear.name, "vertices": mesh.n_points, "tets": mesh.n_tets,
         "dofs": solver.assembler.n_free, "mesh_seconds": mesh_seconds, "fill": what, "nnz": nnz, "setup_cpu": setup,
         "warm": np.mean(warm, axis=0).tolist() if warm else None, "cold": np.mean(cold, axis=0).tolist() if cold else None,
         "calibration_rounds": len(summary["calibration"]["rounds"]), "calibration_seconds": run["calibration_seconds"],
@@ -151,7 +151,8 @@ def _exponent(dofs, seconds) -> float:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--meshes", default=None, help=f"comma-separated shape:size list (default {DEFAULT_MESHES})")
-    ap.add_argument("--backends", default="cholmod,p-multigrid", help="linear solvers side by side (solver.linear_solver)")
+    ap.add_argument("--backends", default="p-multigrid,cholmod",
+                    help="linear solvers side by side (solver.linear_solver; 'auto' = the default choice by size)")
     ap.add_argument("--pilots", type=int, default=4, help="calibration pilots (dataset.calibration_samples)")
     ap.add_argument("--basis", type=int, default=10, help="reduced-model basis samples (dataset.predictor_samples)")
     ap.add_argument("--extra", type=int, default=6, help="samples solved from the prediction")
@@ -185,15 +186,15 @@ def main(argv=None) -> int:
             r = json.loads(line[0][7:])
             rows.append(r)
             w, c = r["warm"] or [np.nan] * 4, r["cold"] or [np.nan] * 4
-            print(f"{spec:<13} {r['backend']:<11} {r['vertices']:>6} v {r['dofs']:>7} dofs  {r['fill']} {r['nnz'] / 1e6:6.1f}M  "
+            print(f"{spec:<13} {r['requested'] + (' (' + r['backend'] + ')' if r['requested'] == 'auto' else ''):<11} {r['vertices']:>6} v {r['dofs']:>7} dofs  {r['fill']} {r['nnz'] / 1e6:6.1f}M  "
                   f"setup {r['setup_cpu']:6.2f} s  predicted {w[0]:6.2f} s CPU ({w[1]:.1f} it, {w[2]:.0f} solves, {w[3]:.1f} fac)  "
                   f"from zero {c[0]:7.2f} s CPU ({c[1]:.0f} it, {c[2]:.0f} solves, {c[3]:.1f} fac)  "
                   f"calibration {r['calibration_seconds']:.0f} s ({r['calibration_rounds']} rounds)  basis {r['reduced_seconds']:.0f} s  "
                   f"worker RSS {r['worker_rss_mb']:.0f} MB  paper-size set {r['projected_minutes']:.1f} min  "
                   f"[{r['failed']} failed, {r['slow']} slow, peak {r['peak_mm']:.1f} mm, run {r['wall']:.0f} s]", flush=True)
     print("\nfitted exponent b of seconds ~ dofs^b (least squares, log-log), per backend:")
-    for backend in sorted({r["backend"] for r in rows}):
-        sel = [r for r in rows if r["backend"] == backend]
+    for backend in dict.fromkeys(r["requested"] for r in rows):
+        sel = [r for r in rows if r["requested"] == backend]
         dofs = [r["dofs"] for r in sel]
         fits = {
             "predicted sample (CPU)": _exponent(dofs, [(r["warm"] or [np.nan])[0] for r in sel]),

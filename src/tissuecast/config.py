@@ -94,7 +94,7 @@ class SolverConfig:
 
     order: int = _f(2, choices=(1, 2), doc="element order: 2 = quadratic 10-node tets (C3D10)")
     linear_solver: str = _f("auto", choices=("auto", "cholmod", "pardiso", "superlu", "p-multigrid"), doc="linear solves: a sparse direct backend, or 'p-multigrid' (a two-level multigrid cycle preconditioning conjugate gradients, cost growing like the mesh); auto = p-multigrid for P2 meshes of at least multigrid_dofs free dofs, else the fastest direct backend")
-    multigrid_dofs: int = _f(100000, lo=0, doc="linear_solver auto: use p-multigrid from this many free dofs on (P2 only); 0 = never")
+    multigrid_dofs: int = _f(40000, lo=0, doc="linear_solver auto: use p-multigrid from this many free dofs on (P2 only); 0 = never")
     multigrid_smoothing: int = _f(2, lo=1, hi=8, doc="p-multigrid: Chebyshev-Jacobi smoothing steps before and after the coarse (P1) correction")
     force_tolerance: float = _f(5e-3, lo=0.0, lo_open=True, hi=1.0, doc="residual norm / reference force norm")
     displacement_tolerance: float = _f(1e-2, lo=0.0, lo_open=True, hi=1.0, doc="correction / increment norm")
