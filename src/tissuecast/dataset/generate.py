@@ -32,7 +32,8 @@ from .predictor import build_reduced, keep_snapshots
 from .reader import open_dataset
 from .store import StoreWriter, read_lbo_basis
 from .supervise import Supervisor
-from .worker import Recipe, Task
+from .supports import MECHANISM_RATIO, check_supports
+from .worker import Recipe, SampleContext, Task
 
 __all__ = ["simulate", "setup_from_config", "data_config", "SimulationRun", "Phase"]
 
@@ -157,10 +158,28 @@ def _calibrate(writer: StoreWriter, ex: Supervisor, cfg: Config, recipe: Recipe)
 
     target = cfg.forces.target_max_displacement
     alpha0 = initial_alpha(recipe.basis, recipe.mesh, recipe.fixed, cfg.material.youngs_modulus, target)
+    _check_supports(cfg, recipe, [(int(seeds[i]), float(betas[i])) for i in pilots[:SUPPORT_PILOTS]], alpha0)
     record = calibrate_alpha(pilot_max, alpha0, target, quantile=ds.calibration_quantile)
     record["pilots"] = pilots
     reusable = [r for r in last if r.alpha == record["alpha"]]
     return record, reusable
+
+
+#: Pilots whose linear answers check the supports before the calibration (:mod:`.supports`).
+SUPPORT_PILOTS = 4
+
+
+def _check_supports(cfg: Config, recipe: Recipe, pilots: list, alpha0: float) -> None:
+    """Refuse supports that leave a near-mechanism (:func:`.supports.check_supports`), from
+    the linear answers of the ``pilots`` ((seed, beta) pairs) at ``alpha0`` on linear elements."""
+    from ..fem import build_problem
+
+    ctx = SampleContext(recipe)
+    forces = [ctx.forces(Task(-1, seed, beta, alpha0))[0] for seed, beta in pilots]
+    peak = check_supports(build_problem(ctx.mesh, cfg, ctx.fixed, order=1), forces, alpha0,
+                          cfg.forces.target_max_displacement)
+    log.info("supports: the first pilots' linear answers at alpha %.3g N peak at %.3g mm (refused above %.3g mm)",
+             alpha0, peak, MECHANISM_RATIO * cfg.forces.target_max_displacement)
 
 
 @dataclass(frozen=True)
