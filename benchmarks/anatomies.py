@@ -8,16 +8,20 @@ failure reasons, the calibration (rounds, alpha, whether it converged), the phas
 times, the median and largest worker seconds per sample and their ratio (the time budget
 stops attempts at ``dataset.time_budget`` x the running median), and the slow samples.
 
-Shapes (``--shapes``):
+Shapes (``--shapes``; ``NAME@spread`` pins by the spread rule instead of the compact default):
   tube2   bent tube, radius 4 mm, wall 0.8 mm in 2 layers of tetrahedra (interior vertices only
           in the wall's middle), 90-degree bend over 60 mm, some sliver elements
   tube1   the same with a 1-element wall: no interior vertex, so no pins can be chosen; the run
           stops at once with the error that names the supports to use instead
   rod     120 x 8 x 8 mm bar bowed by 10 mm, 2 cells across (one line of interior vertices)
 
+With compact pins the tube and the bar are held at one spot and swing and bend about it like
+a hinge: the supports check refuses them at once (``tissuecast.dataset.supports``), naming the
+options; with spread pins they are held against rotation and the data sets complete.
+
 Usage::
 
-    python benchmarks/anatomies.py [--shapes tube2,tube1,rod] [--samples 60] [--workers 2]
+    python benchmarks/anatomies.py [--shapes tube1,tube2,rod,tube2@spread,rod@spread] [--samples 60] [--workers 2]
 
 Wall-clock figures on a machine shared with other jobs are inflated; the ratio of the
 slowest sample to the median is the figure to read.
@@ -50,15 +54,16 @@ def run_shape(name: str, args) -> None:
     from tissuecast.errors import TissuecastError
     from tissuecast.mesh import write_mesh
 
+    name, _, rule = name.partition("@")
     folder = Path(tempfile.mkdtemp(prefix=f"tc-{name}-"))
     mesh = make_shape(name)
     write_mesh(folder / "mesh.vtu", mesh)
     q = mesh.quality
-    print(f"\n{name}: {mesh.n_points} vertices ({len(mesh.interior_vertices)} interior), {mesh.n_tets} tetrahedra, "
+    print(f"\n{name}, {rule or 'compact'} pins: {mesh.n_points} vertices ({len(mesh.interior_vertices)} interior), {mesh.n_tets} tetrahedra, "
           f"radius ratio min {q.radius_ratio_min:.3f} mean {q.radius_ratio_mean:.3f}, extent "
           f"{np.round(mesh.extent, 1).tolist()} mm", flush=True)
     n2 = max(args.samples // 10, 1)
-    cfg = with_overrides(Config(), mesh={"path": str(folder / "mesh.vtu")},
+    cfg = with_overrides(Config(), mesh={"path": str(folder / "mesh.vtu")}, markers={"fixed_rule": rule or "compact"},
                          dataset={"n_samples": args.samples, "n_test2": n2, "workers": args.workers,
                                   "calibration_samples": args.pilots, "predictor_samples": args.basis})
     t = time.perf_counter()
@@ -87,7 +92,7 @@ def run_shape(name: str, args) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--shapes", default="tube2,tube1,rod")
+    ap.add_argument("--shapes", default="tube1,tube2,rod,tube2@spread,rod@spread")
     ap.add_argument("--samples", type=int, default=60, help="LBO samples (test-2: a tenth of it)")
     ap.add_argument("--pilots", type=int, default=12, help="calibration pilots")
     ap.add_argument("--basis", type=int, default=20, help="reduced-model basis samples")
