@@ -23,7 +23,7 @@ import numpy as np
 def paper_size_model(ensemble: int = 1):
     """An untrained-but-valid model of the paper's size (random weights, random PCA basis)."""
     from tissuecast.surrogate import DeformationModel
-    from tissuecast.surrogate.mlp import MLPWeights
+    from tissuecast.surrogate.weights import MLPWeights
     from tissuecast.surrogate.pca import PCABasis
 
     from tissuecast.mesh.phantom import phantom

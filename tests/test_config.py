@@ -107,6 +107,24 @@ def test_out_of_range_message_gives_the_allowed_range():
         config_from_dict({"markers": {"cout": 5}})
 
 
+#: Sections whose key descriptions are held to one short line (``tissuecast config show`` prints
+#: each after its key); add the others here once theirs are short.
+SHORT_DOC_SECTIONS = ("mesh", "markers", "material", "surrogate", "evaluate", "serve")
+
+
+@pytest.mark.parametrize("section", SHORT_DOC_SECTIONS)
+def test_key_descriptions_are_one_short_line(section):
+    import dataclasses
+
+    from tissuecast.config import Config
+
+    cls = type(getattr(Config(), section))
+    for f in dataclasses.fields(cls):
+        doc = f.metadata.get("doc", "")
+        assert doc, f"{section}.{f.name} has no description"
+        assert len(doc) <= 150 and "\n" not in doc, f"{section}.{f.name}: {len(doc)} characters"
+
+
 def test_file_errors(tmp_path):
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(tmp_path / "none.toml")

@@ -103,6 +103,26 @@ def test_full_field_flag_sends_both_messages(model):
         assert names == ["TissueSurface", "TissueField"]
 
 
+def test_server_from_a_serve_config_section(model):
+    from tissuecast.config import ServeConfig
+    from tissuecast.frames import LPS_TO_RAS
+
+    shift = np.eye(4)
+    shift[:3, 3] = [5.0, -2.0, 1.0]
+    cfg = ServeConfig(full_field=True, client_frame="RAS", tracker_to_client=tuple(shift.ravel()), client_timeout=0.25,
+                      max_marker_offset=40.0)
+    with IGTLServer.from_config(model, cfg, host="127.0.0.1", port=0) as srv, IGTLClient(*srv.address) as client:
+        assert srv.client_timeout == 0.25 and srv.predictor.max_marker_offset == 40.0
+        assert srv.frames.client_frame == "RAS" and srv.frames.source == "config"
+        positions = motion(model, 4)  # model (LPS) frame -> tracker coordinates of the registration
+        ras = positions @ LPS_TO_RAS[:3, :3].T
+        client.send_positions(ras - shift[:3, 3], timestamp=5.0)
+        surface, field = client.receive(), client.receive()  # full_field: both messages
+        assert surface.header.device_name == "TissueSurface" and field.header.device_name == "TissueField"
+        expected, _ = expected_surface(model, positions)
+        np.testing.assert_allclose(surface.polydata.points, expected @ LPS_TO_RAS[:3, :3].T, atol=1e-4)
+
+
 def test_ensemble_uncertainty_is_sent_as_point_data():
     ens = small_model("ensemble")
     with IGTLServer(ens, "127.0.0.1", 0) as srv, IGTLClient(*srv.address) as client:

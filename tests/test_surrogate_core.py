@@ -119,3 +119,35 @@ def test_pca_leading_components_path_matches_full_svd():
     np.testing.assert_allclose(few.singular_values, full.singular_values[:6], rtol=1e-10)
     np.testing.assert_allclose(np.abs((few.components * full.components[:6]).sum(axis=1)), 1.0, atol=1e-10)
     np.testing.assert_allclose(few.components @ few.components.T, np.eye(6), atol=1e-12)
+
+
+# ------------------------------------------------------------------ masked network input
+def test_masked_input_layout_in_numpy_and_torch():
+    from tissuecast.surrogate.encoding import input_width, masked_input
+
+    z = np.arange(1.0, 13.0).reshape(2, 6)  # 2 samples, 2 markers
+    present = np.array([[1.0, 0.0], [0.0, 1.0]])
+    expected = np.array([[1, 2, 3, 0, 0, 0, 1, 0], [0, 0, 0, 10, 11, 12, 0, 1]], float)
+    np.testing.assert_array_equal(masked_input(z, present), expected)
+    torch = pytest.importorskip("torch")
+    out = masked_input(torch.as_tensor(z), torch.as_tensor(present), torch)
+    np.testing.assert_array_equal(out.numpy(), expected)
+    assert input_width(2, True) == 8 and input_width(2, False) == 6
+
+
+def test_first_layer_folded_over_raw_displacements_equals_the_masked_input():
+    from tissuecast.surrogate.encoding import fold_first_layer, masked_input, untracked_at_mean
+
+    rng = np.random.default_rng(4)
+    n_d, h, B = 3, 5, 4
+    weight, bias = rng.normal(size=(h, 4 * n_d)), rng.normal(size=h)
+    x_mean, x_std = rng.normal(size=3 * n_d), rng.uniform(0.5, 2.0, 3 * n_d)
+    d = rng.normal(size=(B, 3 * n_d)) * 5
+    missing = np.array([[False, True, False], [True, False, False], [False] * 3, [False, False, True]])
+    layer = masked_input((d - x_mean) / x_std, (~missing).astype(float)) @ weight.T + bias
+    W, b, present_columns = fold_first_layer(weight, bias, x_mean, x_std, masked=True)
+    folded = untracked_at_mean(d, missing, x_mean) @ W.T + b - missing.astype(float) @ present_columns.T
+    np.testing.assert_allclose(folded, layer, rtol=1e-12, atol=1e-12)
+    W, b, none = fold_first_layer(weight[:, :3 * n_d], bias, x_mean, x_std, masked=False)
+    np.testing.assert_allclose(d @ W.T + b, (d - x_mean) / x_std @ weight[:, :3 * n_d].T + bias, rtol=1e-12, atol=1e-12)
+    assert none is None

@@ -215,6 +215,27 @@ def test_training_is_deterministic(data):
     assert not np.array_equal(a.members_[0].weights[0], c.members_[0].weights[0])
 
 
+def test_train_mlp_reads_its_settings_from_the_surrogate_config(data):
+    from tissuecast.config import SurrogateConfig
+    from tissuecast.surrogate.mlp import train_mlp
+
+    mesh, U = data
+    X = U[:60][:, MARKERS].reshape(60, -1)
+    Y = U[:60, :4, 0]
+    cfg = SurrogateConfig(hidden=(8,), epochs=5, patience=0, seed=7, batch_size=16)
+    w, s = train_mlp(X[:50], Y[:50], X[50:], Y[50:], cfg)
+    w7, _ = train_mlp(X[:50], Y[:50], X[50:], Y[50:], cfg, seed=7)
+    w8, _ = train_mlp(X[:50], Y[:50], X[50:], Y[50:], cfg, seed=8)
+    assert s.seed == 7 and s.epochs_run == 5 and w.hidden == (8,)
+    np.testing.assert_array_equal(w.weights[0], w7.weights[0])
+    assert not np.array_equal(w.weights[0], w8.weights[0])
+    for bad, match in ((dict(schedule="linear"), "schedule 'linear'"), (dict(output_scaling="each"), "output_scaling 'each'")):
+        with pytest.raises(ModelError, match=match):
+            train_mlp(X[:50], Y[:50], X[50:], Y[50:], SurrogateConfig(**bad))
+    with pytest.raises(ModelError, match="do not match"):
+        train_mlp(X[:50], Y[:50], X[50:, :6], Y[50:], cfg)
+
+
 def test_bad_inputs_raise_model_error(model, data, tmp_path):
     mesh, U = data
     with pytest.raises(ModelError, match="not fitted"):

@@ -159,6 +159,9 @@ class DatasetConfig:
 
 #: Rules choosing the number of PCA components (see :class:`SurrogateConfig`).
 PCA_RULES = ("validation", "paper")
+#: Learning-rate schedules and PCA-weight scalings of the MLP's training (see :mod:`tissuecast.surrogate.mlp`).
+SCHEDULES = ("onecycle", "cosine", "constant")
+OUTPUT_SCALINGS = ("global", "component")
 
 
 @dataclass(frozen=True)
@@ -166,7 +169,7 @@ class SurrogateConfig:
     """PCA + MLP surrogate and the ridge baseline."""
 
     n_components: int = _f(0, lo=0, doc="PCA components n_w; 0 = chosen by pca_rule")
-    pca_rule: str = _f("validation", choices=PCA_RULES, doc="n_w when n_components = 0: 'validation' = lowest validation mean Offset_max of the trained model; 'paper' = the 1 mm rule")
+    pca_rule: str = _f("validation", choices=PCA_RULES, doc="n_w when n_components = 0: 'validation' = lowest validation mean Offset_max of the trained model; 'paper' = the pca_max_error rule")
     pca_max_components: int = _f(64, lo=1, hi=1000, doc="validation rule: the network is trained on this many components, then truncated")
     pca_max_error: float = _f(1.0, lo=0.0, lo_open=True, doc="paper rule: max cross-validated vertex reconstruction error (mm)")
     pca_folds: int = _f(5, lo=2, hi=50, doc="paper rule: folds of the n_w cross-validation")
@@ -178,12 +181,12 @@ class SurrogateConfig:
     noise_sigma: float = _f(0.0, lo=0.0, doc="marker noise augmentation (mm)")
     ridge_ratio: float = _f(1e-3, lo=0.0, doc="ridge a2/a1")
     seed: int = _f(0, lo=0, doc="training seed")
-    schedule: str = _f("onecycle", choices=("onecycle", "cosine", "constant"), doc="learning-rate schedule")
-    output_scaling: str = _f("global", choices=("global", "component"), doc="PCA-weight scaling of the loss")
+    schedule: str = _f("onecycle", choices=SCHEDULES, doc="learning-rate schedule")
+    output_scaling: str = _f("global", choices=OUTPUT_SCALINGS, doc="PCA-weight scaling of the loss")
     weight_decay: float = _f(0.0, lo=0.0, doc="Adam weight decay")
     marker_dropout: float = _f(0.0, lo=0.0, hi=1.0, doc="share of training samples with one marker hidden; > 0 enables missing-marker input")
     ensemble: int = _f(1, lo=1, hi=64, doc="networks trained with different seeds (>= 2 gives uncertainty)")
-    calibration_share: float = _f(0.125, lo=0.0, hi=0.5, hi_open=True, doc="share of the training split held out (seeded) to calibrate the per-vertex error bounds and the out-of-distribution alarm; 0 = no bounds or alarms (the network then trains on the whole split)")
+    calibration_share: float = _f(0.125, lo=0.0, hi=0.5, hi_open=True, doc="share of the training split held out (seeded) to calibrate error bounds and the out-of-distribution alarm; 0 = neither")
     coverage: float = _f(0.9, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="nominal coverage of the per-vertex error bounds: each vertex's error is below its bound with at least this probability")
     false_alarm_rate: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="share of in-distribution inputs allowed to raise the out-of-distribution alarm")
 
@@ -196,6 +199,12 @@ class EvaluateConfig:
     renders: int = _f(3, lo=0, hi=100, doc="number of samples rendered in 3D")
 
 
+#: How TRANSFORM marker input triggers predictions, and the frames a client may work in
+#: (see :mod:`tissuecast.serve.session`, :mod:`tissuecast.serve.frames`).
+TRANSFORM_MODES = ("frame", "each")
+CLIENT_FRAMES = ("LPS", "RAS")
+
+
 @dataclass(frozen=True)
 class ServeConfig:
     """OpenIGTLink server."""
@@ -203,11 +212,11 @@ class ServeConfig:
     host: str = _f("127.0.0.1", doc="bind address (localhost unless asked otherwise)")
     port: int = _f(18944, lo=1, hi=65535, doc="TCP port (OpenIGTLink default 18944)")
     full_field: bool = _f(False, doc="send the full vertex field (POLYDATA TissueField) after every surface")
-    transform_mode: str = _f("frame", choices=("frame", "each"), doc="TRANSFORM input: predict once all markers are fresh (frame) or on every update (each)")
+    transform_mode: str = _f("frame", choices=TRANSFORM_MODES, doc="TRANSFORM input: predict once all markers are fresh (frame) or on every update (each)")
     max_marker_offset: float = _f(100.0, lo=0.0, lo_open=True, doc="reject markers farther than this (mm) from their reference position")
     client_timeout: float = _f(5.0, lo=0.0, lo_open=True, doc="seconds an incomplete message may wait for its remaining bytes")
-    client_frame: str = _f("LPS", choices=("LPS", "RAS"), doc="frame of the replies, and of the markers when no registration is set: LPS = the model's (scan's) frame, RAS = 3D Slicer's world (what OpenIGTLinkIF sends and expects)")
-    tracker_to_client: tuple[float, ...] = _f((), doc="registration from the tracker frame (where markers are measured) to the client frame: 16 numbers, a 4x4 matrix row by row (mm); empty = markers arrive in the client frame. A TRANSFORM TrackerToRas / ReferenceToRas / TrackerToImage replaces it at run time")
+    client_frame: str = _f("LPS", choices=CLIENT_FRAMES, doc="frame of replies, and of markers without registration: LPS = the model's (scan's), RAS = 3D Slicer's world (OpenIGTLinkIF)")
+    tracker_to_client: tuple[float, ...] = _f((), doc="tracker -> client frame registration: a 4x4 matrix row by row (16 numbers, mm); empty = none; a TRANSFORM TrackerToRas replaces it")
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,11 @@ import numpy as np
 
 from ..errors import DatasetError, MeshError
 
+#: Failed samples listed by ``dataset info`` (all of them are in the store), and the characters
+#: of each reason shown (one terminal line).
+FAILURES_SHOWN = 10
+REASON_CHARS = 160
+
 
 def register(sub) -> None:
     p = sub.add_parser("dataset", help="inspect a data set or export one sample")
@@ -83,8 +88,8 @@ def print_summary(s: dict) -> None:
                   f"{st['iterations_mean']:.1f} iterations, {st['factorizations_mean']:.1f} factorisations each")
     if s["failures"]:
         print(f"failed samples ({len(s['failures'])}, excluded from select(status='done')):")
-        for i, reason in list(s["failures"].items())[:10]:
-            print(f"  {i}: {reason[:160]}")
+        for i, reason in list(s["failures"].items())[:FAILURES_SHOWN]:
+            print(f"  {i}: {reason[:REASON_CHARS]}")
 
 
 def run_info(args) -> int:

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ..config import EvaluateConfig
+
 
 def register(sub) -> None:
     p = sub.add_parser("evaluate", help="evaluate a model on its data set and write the report",
@@ -16,7 +18,8 @@ def register(sub) -> None:
     p.add_argument("model", help="model folder (from `tissuecast train`)")
     p.add_argument("--store", help="data-set store (default: the store the model was trained on)")
     p.add_argument("--out", help="report folder (default: the model folder's sibling 'report')")
-    p.add_argument("--renders", type=int, default=3, help="samples rendered in 3D (default 3; 0 = none)")
+    p.add_argument("--renders", type=int, default=EvaluateConfig.renders,
+                   help=f"samples rendered in 3D (default {EvaluateConfig.renders}; 0 = none)")
     p.add_argument("--studies", help="folder with study_*.csv to include (default: the report folder)")
     p.add_argument("--json", action="store_true", help="print the evaluation as JSON")
     p.set_defaults(func=run)

@@ -17,6 +17,11 @@ import sys
 from .. import __version__
 from ..errors import TissuecastError
 
+#: Exit status of a run stopped by a clear error (argparse uses the same for bad arguments),
+#: and of one interrupted by Ctrl+C (128 + SIGINT, the shells' convention).
+EXIT_ERROR = 2
+EXIT_INTERRUPTED = 130
+
 # subcommand name -> module in tissuecast.cli (imported lazily so `tissuecast --help` is fast)
 COMMANDS: dict[str, str] = {
     "config": "config_cmd",
@@ -67,17 +72,17 @@ def main(argv: list[str] | None = None) -> int:
     _configure_logging(logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO)
     if not getattr(args, "func", None):
         parser.print_help()
-        return 0 if args.command is None else 2
+        return 0 if args.command is None else EXIT_ERROR
     try:
         return int(args.func(args) or 0)
     except (TissuecastError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
         if args.debug:
             raise
         print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return EXIT_ERROR
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        return 130
+        return EXIT_INTERRUPTED
     except BrokenPipeError:  # e.g. `tissuecast markers ... | head`
         sys.stderr.close()
         return 0

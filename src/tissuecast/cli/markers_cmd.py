@@ -4,7 +4,8 @@ Writes ``PREFIX.csv`` and ``PREFIX.json`` (0-based ids, coordinates in mm, role,
 parameters), ``PREFIX.vtu`` (the points as VTK vertices with ``role`` 1 = marker,
 2 = fixed, ``vertex_id`` and ``order`` arrays; open it in ParaView/Slicer next to the mesh),
 ``PREFIX.mrk.json`` (3D Slicer markups: point lists ``FiducialMarkers`` and
-``FixedVertices``, LPS mm in the mesh's frame; drag it into Slicer next to the scan) and, with ``--png``, ``PREFIX.png`` (the surface, markers red, fixed vertices blue).
+``FixedVertices``, LPS mm in the mesh's frame; drag it into Slicer next to the scan) and, with
+``--png``, ``PREFIX.png`` (the surface, markers red, fixed vertices blue).
 """
 
 from __future__ import annotations
@@ -176,7 +177,7 @@ def render_markers_png(path: Path, mesh: TetMesh, markers: np.ndarray, fixed: np
     plotter.set_background("white")
     plotter.add_mesh(surf, color="tan", opacity=0.3, show_edges=True, edge_color="gray", line_width=0.5)
     for ids, color, tag in ((markers, "red", "M"), (fixed, "royalblue", "F")):
-        for k, i in enumerate(ids):
+        for i in ids:
             plotter.add_mesh(pv.Sphere(radius=radius, center=mesh.points[i]), color=color)
         if len(ids):
             labels = [f"{tag}{k + 1} ({int(i)})" for k, i in enumerate(ids)]

@@ -18,6 +18,9 @@ import numpy as np
 
 from .. import __version__
 from ..errors import MarkerError
+from ..planning.candidates import REGIONS
+from ..planning.plan import MAX_COUNT
+from ..planning.selection import SHORTLIST
 
 
 def register(sub) -> None:
@@ -30,14 +33,15 @@ def register(sub) -> None:
     how.add_argument("--count", type=int, help="number of markers")
     how.add_argument("--target-mm", type=float, metavar="MM",
                      help="the fewest markers whose validation mean Offset_max reaches this (mm)")
-    q.add_argument("--max-count", type=int, default=20, help="largest count searched with --target-mm (default 20)")
-    q.add_argument("--region", choices=("surface", "any", "interior"), default="surface",
+    q.add_argument("--max-count", type=int, default=MAX_COUNT,
+                   help=f"largest count searched with --target-mm (default {MAX_COUNT})")
+    q.add_argument("--region", choices=REGIONS, default="surface",
                    help="candidate vertices: surface (optical tracking, default), any (interior fiducials seen by "
                         "ultrasound allowed), interior")
     q.add_argument("--min-distance", type=float, default=0.0, metavar="MM", help="minimum spacing of the markers (mm)")
     q.add_argument("--allowed", metavar="FILE",
                    help="user mask: a file of allowed 0-based vertex ids (JSON list, or numbers separated by commas/whitespace)")
-    q.add_argument("--shortlist", type=int, default=24, help="candidates scored per greedy step (default 24)")
+    q.add_argument("--shortlist", type=int, default=SHORTLIST, help=f"candidates scored per greedy step (default {SHORTLIST})")
     q.add_argument("--confirm", action="store_true",
                    help="train the network with the planned markers and report its validation error (with --target-mm "
                         "the network, not only the proxy, decides the count; ~1 training per count tried)")

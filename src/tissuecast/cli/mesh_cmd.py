@@ -35,7 +35,8 @@ def _add_mesh_options(p, surface: bool = True) -> None:
     p.add_argument("--units", choices=sorted(UNITS), default="mm", help="length unit of the input file (converted to mm)")
     if surface:
         p.add_argument("--mesh-size", type=float, default=None, metavar="MM",
-                       help="target edge length (mm) when the input is a closed surface (default 3)")
+                       help="target edge length (mm) when the input is a closed surface "
+                            f"(default {MeshConfig.surface_mesh_size:g})")
 
 
 def register(sub) -> None:
@@ -106,7 +107,8 @@ def run_info(args) -> int:
     q = s["quality"]
     f3 = lambda v: " ".join(f"{x:9.3f}" for x in v)  # noqa: E731
     print(f"mesh               {args.file}" + (" (built-in)" if args.file == PHANTOM_WORD else ""))
-    print(f"vertices           {s['vertices']}  ({s['surface_vertices']} on the surface, {s['interior_vertices']} interior; ids 0-based)")
+    print(f"vertices           {s['vertices']}  ({s['surface_vertices']} on the surface, "
+          f"{s['interior_vertices']} interior; ids 0-based)")
     print(f"tetrahedra         {s['tetrahedra']}  ({s['reoriented_tetrahedra']} re-oriented on load)")
     print(f"surface triangles  {s['surface_triangles']}")
     print(f"edges              {s['edges']}")
@@ -169,7 +171,8 @@ def run_from_image(args) -> int:
                           "spacing_mm": spacing.tolist(), "fidelity": fidelity.as_dict(), **mesh_summary(mesh)}, indent=2))
     else:
         print(f"label              {labelmap.source}: {int(labelmap.mask.sum())} voxels of "
-              f"{' x '.join(f'{v:.3g}' for v in spacing)} mm" + (f" ({int(mask.sum())} meshed)" if mask.sum() != labelmap.mask.sum() else ""))
+              f"{' x '.join(f'{v:.3g}' for v in spacing)} mm"
+              + (f" ({int(mask.sum())} meshed)" if mask.sum() != labelmap.mask.sum() else ""))
         print(f"mesh               {mesh.n_points} vertices, {mesh.n_tets} tetrahedra at size {args.size:g} mm, "
               f"LPS coordinates (the scan's frame)")
         print(f"volume             mesh {fidelity.mesh_volume:.1f} mm^3, voxels {fidelity.label_volume:.1f} mm^3 "

@@ -31,7 +31,8 @@ def register(sub) -> None:
                        description=__doc__.split("\n\n", 1)[1])
     p.add_argument("model", help="model folder")
     p.add_argument("--markers", required=True,
-                   help="CSV or JSON file of marker displacements (or positions), mm; or Slicer markups .mrk.json/.fcsv (positions)")
+                   help="CSV or JSON file of marker displacements (or positions), mm; "
+                        "or Slicer markups .mrk.json/.fcsv (positions)")
     p.add_argument("--positions", action="store_true",
                    help="the file holds tracked marker positions (mm, model frame); reference positions are subtracted")
     p.add_argument("--out", help="output file .vtu, .vtk, .vtp, .csv or .json (default: print a summary only)")
@@ -41,9 +42,10 @@ def register(sub) -> None:
                         "navigation systems use; a fallback); ridge: the paper's ridge baseline")
     p.add_argument("--ridge", action="store_const", const="ridge", dest="method", help="same as --method ridge")
     p.add_argument("--coverage", type=float, metavar="C",
-                   help="nominal coverage of the per-vertex error bounds, in (0, 1) (default: the model's, 0.9)")
+                   help="nominal coverage of the per-vertex error bounds, in (0, 1) (default: the model's surrogate.coverage)")
     p.add_argument("--false-alarm", type=float, metavar="RATE",
-                   help="false-alarm rate of the out-of-distribution alarm, in (0, 1) (default: the model's, 0.01)")
+                   help="false-alarm rate of the out-of-distribution alarm, in (0, 1) "
+                        "(default: the model's surrogate.false_alarm_rate)")
     p.set_defaults(func=run)
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import sys
 
-from ..config import load_config, with_overrides
+from ..config import CLIENT_FRAMES, TRANSFORM_MODES, ServeConfig, load_config, with_overrides
 from ..errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -28,22 +28,26 @@ def register(sub) -> None:
     p.add_argument("model", help="model folder written by `tissuecast train` / DeformationModel.save "
                                  "(or a SubModelSet folder: serves with one marker untracked)")
     p.add_argument("--config", help="TOML config; its [serve] section gives the defaults")
-    p.add_argument("--host", help="bind address (default 127.0.0.1: this machine only)")
-    p.add_argument("--port", type=int, help="TCP port (default 18944; 0 = any free port)")
+    d = ServeConfig()
+    p.add_argument("--host", help=f"bind address (default {d.host}: this machine only)")
+    p.add_argument("--port", type=int, help=f"TCP port (default {d.port}; 0 = any free port)")
     p.add_argument("--full-field", action="store_true", default=None,
                    help="also send the full vertex field (POLYDATA TissueField) after every surface")
-    p.add_argument("--transform-mode", choices=("frame", "each"),
-                   help="TRANSFORM input: predict when every marker is fresh (frame, default) or on each update")
+    p.add_argument("--transform-mode", choices=TRANSFORM_MODES,
+                   help="TRANSFORM input: predict when every marker is fresh (frame) or on each update "
+                        f"(default {d.transform_mode})")
     p.add_argument("--max-offset", type=float, dest="max_marker_offset",
-                   help="reject markers farther than this many mm from their reference position (default 100)")
-    p.add_argument("--client-frame", choices=("LPS", "RAS"),
-                   help="frame of replies and of markers without registration (default LPS = the model's; RAS for 3D Slicer)")
+                   help="reject markers farther than this many mm from their reference position "
+                        f"(default {d.max_marker_offset:g})")
+    p.add_argument("--client-frame", choices=CLIENT_FRAMES,
+                   help=f"frame of replies and of markers without registration (default {d.client_frame}; LPS = the model's, "
+                        "RAS for 3D Slicer)")
     p.add_argument("--no-uncertainty", action="store_true", help="do not send ensemble uncertainty")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from ..serve import ClientFrames, IGTLServer, SurfacePredictor
+    from ..serve import IGTLServer, SurfacePredictor
     from ..surrogate.robust import load_model_folder
 
     cfg = load_config(args.config)
@@ -57,9 +61,7 @@ def run(args) -> int:
     predictor = SurfacePredictor(model, max_marker_offset=serve.max_marker_offset,
                                  use_uncertainty=not args.no_uncertainty)
     try:
-        frames = ClientFrames(serve.client_frame, serve.tracker_to_client or None)
-        server = IGTLServer(predictor, serve.host, port, full_field=serve.full_field,
-                            transform_mode=serve.transform_mode, client_timeout=serve.client_timeout, frames=frames)
+        server = IGTLServer.from_config(predictor, serve, port=port)
     except OSError as exc:  # address in use, unknown host, no permission for ports < 1024
         raise ConfigError(f"cannot listen on {serve.host}:{port}: {exc}; choose another --port or --host") from exc
     host, port = server.address
@@ -68,7 +70,7 @@ def run(args) -> int:
     print(f"  input : POINT (any device name, {n_d} points, mm, model marker order) or "
           f"TRANSFORM Marker0..Marker{n_d - 1} ({serve.transform_mode} mode); registration: TRANSFORM "
           "TrackerToRas / ReferenceToRas / TrackerToImage", flush=True)
-    print(f"  frames: {frames.describe()}", flush=True)
+    print(f"  frames: {server.frames.describe()}", flush=True)
     print(f"  output: POLYDATA TissueSurface ({len(predictor.surface_ids)} points, "
           f"{len(model.mesh.surface_triangles)} triangles"
           f"{', uncertainty_mm' if predictor.has_uncertainty else ''}); GET_POLYDATA TissueField -> "

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..evaluate.studies import ARCHITECTURE_REPEATS, ARCHITECTURE_WIDTHS, MARKER_COUNTS, PCA_MAX_COMPONENTS
+
+_WIDTHS = ",".join(str(w) for w in ARCHITECTURE_WIDTHS)
+_COUNTS = f"{MARKER_COUNTS[0]}-{MARKER_COUNTS[-1]}"
+
 
 def _ints(text: str) -> list[int]:
     """'3-20' or '32,64,128' -> list of ints."""
@@ -26,10 +31,12 @@ def register(sub) -> None:
     p.add_argument("source", nargs="?", help="TOML config file or data-set store directory")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
     p.add_argument("--out", help="output folder (default: the report folder of the config)")
-    p.add_argument("--widths", default="32,64,128,256", help="architecture: layer widths (default 32,64,128,256)")
-    p.add_argument("--repeats", type=int, default=3, help="architecture: trainings per architecture (default 3)")
-    p.add_argument("--counts", default="3-20", help="markers: numbers of markers (default 3-20)")
-    p.add_argument("--max-components", type=int, default=100, help="pca: largest n_w (default 100)")
+    p.add_argument("--widths", default=_WIDTHS, help=f"architecture: layer widths (default {_WIDTHS})")
+    p.add_argument("--repeats", type=int, default=ARCHITECTURE_REPEATS,
+                   help=f"architecture: trainings per architecture (default {ARCHITECTURE_REPEATS})")
+    p.add_argument("--counts", default=_COUNTS, help=f"markers: numbers of markers (default {_COUNTS})")
+    p.add_argument("--max-components", type=int, default=PCA_MAX_COMPONENTS,
+                   help=f"pca: largest n_w (default {PCA_MAX_COMPONENTS})")
     p.set_defaults(func=run)
 
 

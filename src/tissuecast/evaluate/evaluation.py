@@ -22,6 +22,13 @@ from .metrics import SetSummary, summarize_offsets
 
 __all__ = ["SetResult", "Evaluation", "evaluate_model", "spearman_rows", "SPLITS", "METHODS", "METHOD_LABELS"]
 
+#: Samples predicted at once (bounds the memory to chunk x n x 3 floats per method).
+CHUNK = 256
+#: Single-sample timing: calls timed, distinct inputs cycled through, untimed warm-up calls.
+TIMING_REPEATS = 2000
+TIMING_INPUTS = 64
+TIMING_WARMUP = 10
+
 SPLITS = ("train", "valid", "test1", "test2")
 
 
@@ -187,7 +194,7 @@ def _rigid_offsets(model, d: np.ndarray, bench: np.ndarray) -> np.ndarray:
         return np.full((len(bench), 2), np.nan)
 
 
-def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: str, chunk: int = 256) -> SetResult:
+def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: str, chunk: int = CHUNK) -> SetResult:
     from ..registration import nonrigid_part
 
     parts = {k: [] for k in (*METHODS, "md", "nr", "ss", "sm")}
@@ -213,12 +220,12 @@ def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: s
     return SetResult(name, idx, beta, {m: cat(m) for m in METHODS}, cat("md"), cat("nr"), cat("ss"), cat("sm"))
 
 
-def _timing(model, U, idx, repeats: int = 2000) -> dict:
+def _timing(model, U, idx, repeats: int = TIMING_REPEATS) -> dict:
     """Single-sample prediction time (s): p50 and p99 over repeated calls."""
     if idx.size == 0:
         return {}
-    d = model.marker_displacements(np.asarray(U[idx[: min(64, idx.size)]], dtype=np.float64))
-    for x in d[:10]:
+    d = model.marker_displacements(np.asarray(U[idx[: min(TIMING_INPUTS, idx.size)]], dtype=np.float64))
+    for x in d[:TIMING_WARMUP]:
         model.predict(x)
     t = np.empty(repeats)
     for i in range(repeats):

@@ -8,9 +8,11 @@ import numpy as np
 
 from ..errors import require
 
-__all__ = ["boxplots", "beta_curve", "pca_curve", "pca_validation_curve", "training_curves", "marker_count_curve", "architecture_grid"]
+__all__ = ["boxplots", "beta_curve", "pca_curve", "pca_validation_curve", "training_curves", "marker_count_curve",
+           "architecture_grid"]
 
 PAPER_BETA = {0.0: 1.181, 0.5: 0.889}  # test-2 mean Offset_max (mm) quoted in the paper
+PAPER_MARKER_COUNTS = {3: 2.205, 5: 0.837, 10: 0.485, 20: 0.302}  # test-1 mean Offset_max (mm) per n_d, the paper
 
 
 def _plt():
@@ -135,7 +137,7 @@ def marker_count_curve(rows: list[dict], path: Path) -> Path:
         if key in rows[0]:
             ax.semilogy(n, [r[key] for r in rows], style, ms=4, color=_STYLE[key.rsplit("_offset", 1)[0]][1],
                         label=f"{label} mean Offset_max")
-    ax.semilogy([3, 5, 10, 20], [2.205, 0.837, 0.485, 0.302], "k*", ms=10, label="paper (MLP)")
+    ax.semilogy(list(PAPER_MARKER_COUNTS), list(PAPER_MARKER_COUNTS.values()), "k*", ms=10, label="paper (MLP)")
     ax.set_xlabel("number of fiducial markers n_d")
     ax.set_ylabel("test-1 mean Offset_max (mm)")
     ax.grid(alpha=0.3, which="both")
@@ -157,7 +159,8 @@ def architecture_grid(rows: list[dict], path: Path) -> Path:
                 err[i, j] = np.mean([r["mlp_offset_max"] for r in sel])
                 sec[i, j] = np.mean([r["seconds"] for r in sel])
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    for ax, data, title, fmt in ((axes[0], err, "test-1 mean Offset_max (mm)", "{:.3f}"), (axes[1], sec, "training time (s)", "{:.1f}")):
+    panels = ((axes[0], err, "test-1 mean Offset_max (mm)", "{:.3f}"), (axes[1], sec, "training time (s)", "{:.1f}"))
+    for ax, data, title, fmt in panels:
         im = ax.imshow(data, cmap="viridis")
         ax.set_xticks(range(len(n2)), n2)
         ax.set_yticks(range(len(n1)), n1)

@@ -11,7 +11,7 @@ import logging
 import time
 from pathlib import Path
 
-from ..config import Config
+from ..config import Config, EvaluateConfig
 
 __all__ = ["RunPaths", "run_paths", "train_from_store", "evaluate_and_report", "run_pipeline", "resolve_source"]
 
@@ -53,7 +53,8 @@ def train_from_store(config: Config, store, *, model_folder=None, onnx: bool = T
     return model, ds
 
 
-def evaluate_and_report(model, dataset, folder, *, renders: int = 3, studies_folder=None, title="tissuecast report"):
+def evaluate_and_report(model, dataset, folder, *, renders: int = EvaluateConfig.renders, studies_folder=None,
+                        title="tissuecast report"):
     """Evaluate on valid/test-1/test-2 and write the report; returns ``(evaluation, index.html path)``."""
     from .evaluation import evaluate_model
     from .report import write_report
@@ -84,7 +85,8 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
     model, ds = train_from_store(config, paths.store, model_folder=paths.model)
     seconds["train"] = time.perf_counter() - t
     t = time.perf_counter()
-    evaluation, index = evaluate_and_report(model, ds, paths.report, renders=config.evaluate.renders, title=f"tissuecast: {config.name}")
+    evaluation, index = evaluate_and_report(model, ds, paths.report, renders=config.evaluate.renders,
+                                            title=f"tissuecast: {config.name}")
     seconds["evaluate"] = time.perf_counter() - t
     return {"paths": paths, "dataset": summary, "model": model, "evaluation": evaluation, "report": index, "seconds": seconds}
 

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..config import EvaluateConfig
 from . import figures
 from .evaluation import METHOD_LABELS
 from .render import render_comparison, write_vtu
@@ -163,20 +164,8 @@ def _read_csv(path: Path) -> list[dict]:
         return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(fh)]
 
 
-def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studies_folder=None, title="tissuecast report") -> Path:
-    """Write the report folder and return the path of ``index.html``.
-
-    Args:
-        folder: output folder (created).
-        model: the fitted DeformationModel.
-        dataset: the data set it was evaluated on.
-        evaluation: from :func:`tissuecast.evaluate.evaluation.evaluate_model`.
-        renders: number of samples rendered in 3D (and exported as VTU).
-        studies_folder: folder holding ``study_markers.csv`` / ``study_architecture.csv``
-            (default: ``folder``); found studies are plotted.
-    """
-    folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
+def _write_tables(folder: Path, evaluation) -> None:
+    """``evaluation.json`` (every number of the page) and ``samples.csv`` (per-sample figures)."""
     (folder / "evaluation.json").write_text(json.dumps(evaluation.as_dict(), indent=2, default=float), encoding="utf-8")
     rows = evaluation.samples_table()
     if rows:
@@ -184,8 +173,12 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studie
             w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
             w.writeheader()
             w.writerows(rows)
-    parts = [f"<h1>{html.escape(title)}</h1>"]
+
+
+def _table_sections(title: str, model, dataset, evaluation) -> list[str]:
+    """The page's title and tables: the paper's figures, the non-rigid part, per set, uncertainty."""
     ms = evaluation.model_summary
+    parts = [f"<h1>{html.escape(title)}</h1>"]
     parts.append(f"<p>Model: {html.escape(repr(model))}<br>Data set: {html.escape(repr(dataset))}<br>"
                  f"Units: mm. Vertex ids 0-based; markers {ms['markers']}.</p>")
     parts.append("<h2>Measured versus the baselines and the paper</h2>")
@@ -207,7 +200,13 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studie
     if any(unc.values()):
         parts.append("<h2>Uncertainty (ensemble spread)</h2>")
         parts.append(_table(["set", "mean per-sample Spearman(σ, vertex error)", "Spearman(max σ, Offset_max) over samples"],
-                            [[k, u["vertex_spearman_mean"], u["sample_spearman_sigma_max_vs_offset_max"]] for k, u in unc.items() if u]))
+                            [[k, u["vertex_spearman_mean"], u["sample_spearman_sigma_max_vs_offset_max"]]
+                             for k, u in unc.items() if u]))
+    return parts
+
+
+def _figures(folder: Path, model, evaluation, studies_folder) -> list[tuple[str, Path]]:
+    """Plot the figures the evaluation, the model and any studies have data for: ``[(caption, png)]``."""
     figs = [("Offsets per set (boxplots)", figures.boxplots(evaluation, folder / "boxplots.png"))]
     if evaluation.by_beta:
         figs.append(("Test-2 error versus β", figures.beta_curve(evaluation, folder / "beta.png")))
@@ -218,27 +217,55 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = 3, studie
     if getattr(model, "pca_curve_", None) is not None:
         figs.append(("PCA reconstruction error versus n_w (cross-validated on the training set)",
                      figures.pca_curve(model.pca_curve_, folder / "pca.png")))
-    members = (ms.get("training") or {}).get("members") or []
+    members = (evaluation.model_summary.get("training") or {}).get("members") or []
     if members and members[0].get("valid_history"):
         figs.append(("Training: validation loss", figures.training_curves(members, folder / "training.png")))
     sf = Path(studies_folder) if studies_folder else folder
     if (sf / "study_markers.csv").is_file():
-        figs.append(("Study: number of markers", figures.marker_count_curve(_read_csv(sf / "study_markers.csv"), folder / "markers.png")))
+        figs.append(("Study: number of markers",
+                     figures.marker_count_curve(_read_csv(sf / "study_markers.csv"), folder / "markers.png")))
     if (sf / "study_architecture.csv").is_file():
-        figs.append(("Study: hidden layers", figures.architecture_grid(_read_csv(sf / "study_architecture.csv"), folder / "architecture.png")))
-    for cap, p in figs:
+        figs.append(("Study: hidden layers",
+                     figures.architecture_grid(_read_csv(sf / "study_architecture.csv"), folder / "architecture.png")))
+    return figs
+
+
+def _render_section(folder: Path, model, dataset, evaluation, renders: int) -> list[str]:
+    parts = ["<h2>3D renders</h2><p>Undeformed, benchmark (FEM) and predicted surfaces; the prediction is coloured by "
+             "vertex error; red dots are the fiducial markers. VTU files open in ParaView or 3D Slicer.</p>"]
+    for label, png, vtu in _render_samples(folder, model, dataset, evaluation, renders):
+        img = f"<img src='{png}' alt='{html.escape(label)}'>" if png else "<p>(render unavailable: no OpenGL)</p>"
+        parts.append(f"<h3>{html.escape(label)}</h3>{img}<p><a href='{vtu}'>{vtu}</a></p>")
+    return parts
+
+
+def write_report(folder, model, dataset, evaluation, *, renders: int = EvaluateConfig.renders, studies_folder=None,
+                 title="tissuecast report") -> Path:
+    """Write the report folder and return the path of ``index.html``.
+
+    Args:
+        folder: output folder (created).
+        model: the fitted DeformationModel.
+        dataset: the data set it was evaluated on.
+        evaluation: from :func:`tissuecast.evaluate.evaluation.evaluate_model`.
+        renders: number of samples rendered in 3D (and exported as VTU).
+        studies_folder: folder holding ``study_markers.csv`` / ``study_architecture.csv``
+            (default: ``folder``); found studies are plotted.
+    """
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    _write_tables(folder, evaluation)
+    parts = _table_sections(title, model, dataset, evaluation)
+    for cap, p in _figures(folder, model, evaluation, studies_folder):
         parts.append(f"<h2>{html.escape(cap)}</h2><img src='{p.name}' alt='{html.escape(cap)}'>")
     if getattr(model, "has_trust", False):
         from .trust_report import trust_section
 
         parts.append(trust_section(model, dataset, folder))
     if renders:
-        parts.append("<h2>3D renders</h2><p>Undeformed, benchmark (FEM) and predicted surfaces; the prediction is coloured by "
-                     "vertex error; red dots are the fiducial markers. VTU files open in ParaView or 3D Slicer.</p>")
-        for label, png, vtu in _render_samples(folder, model, dataset, evaluation, renders):
-            img = f"<img src='{png}' alt='{html.escape(label)}'>" if png else "<p>(render unavailable: no OpenGL)</p>"
-            parts.append(f"<h3>{html.escape(label)}</h3>{img}<p><a href='{vtu}'>{vtu}</a></p>")
-    page = f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title><style>{CSS}</style></head><body>{''.join(parts)}</body></html>"
+        parts += _render_section(folder, model, dataset, evaluation, renders)
+    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>")
     index = folder / "index.html"
     index.write_text(page, encoding="utf-8")
     return index

@@ -21,6 +21,17 @@ from ..surrogate.data import dataset_arrays, split_indices
 
 __all__ = ["architecture_study", "marker_count_study", "pca_study", "write_rows", "study_markers"]
 
+#: When a marker count does not fit at the configured spacing, the spacing shrinks by this
+#: factor per try, at most this many times (0.75^30 ~ 2e-4 of it: any mesh then holds them).
+SPACING_SHRINK = 0.75
+SPACING_TRIES = 30
+#: The studies' default grids: the paper's layer widths (every pair [n1, n2], trained this many
+#: times each), its marker counts, and the largest n_w of the PCA study.
+ARCHITECTURE_WIDTHS = (32, 64, 128, 256)
+ARCHITECTURE_REPEATS = 3
+MARKER_COUNTS = range(3, 21)
+PCA_MAX_COMPONENTS = 100
+
 log = logging.getLogger(__name__)
 
 
@@ -72,7 +83,8 @@ def _n_components(arrays, config: Config) -> int:
     return choose_n_components(U, sc.pca_max_error, sc.pca_folds, seed=sc.seed)[0]
 
 
-def architecture_study(dataset, config: Config, *, widths=(32, 64, 128, 256), repeats: int = 3, on_row=None) -> list[dict]:
+def architecture_study(dataset, config: Config, *, widths=ARCHITECTURE_WIDTHS, repeats: int = ARCHITECTURE_REPEATS,
+                       on_row=None) -> list[dict]:
     """Two hidden layers [n1, n2] over ``widths``^2, ``repeats`` seeds each.
 
     Args:
@@ -109,7 +121,7 @@ def architecture_study(dataset, config: Config, *, widths=(32, 64, 128, 256), re
 
 def study_markers(mesh, count: int, config: Config) -> tuple[np.ndarray, float]:
     """``count`` markers by revised k-center from the config's start vertex; d_min is reduced
-    (x 0.75 steps) when the mesh cannot hold that many at the configured spacing.
+    (by :data:`SPACING_SHRINK` per try) when the mesh cannot hold that many at the configured spacing.
 
     Returns:
         ``(markers (count,) int64, d_min used in mm)``.
@@ -118,15 +130,15 @@ def study_markers(mesh, count: int, config: Config) -> tuple[np.ndarray, float]:
 
     mc = config.markers
     d_min = mc.min_distance
-    for _ in range(30):
+    for _ in range(SPACING_TRIES):
         try:
             return select_markers(mesh, count=count, start=mc.start, min_distance=d_min), d_min
         except MarkerError:
-            d_min *= 0.75
+            d_min *= SPACING_SHRINK
     raise ModelError(f"cannot place {count} markers on this mesh even with d_min = {d_min:.3g} mm")
 
 
-def marker_count_study(dataset, config: Config, *, counts=range(3, 21), on_row=None) -> list[dict]:
+def marker_count_study(dataset, config: Config, *, counts=MARKER_COUNTS, on_row=None) -> list[dict]:
     """Test-1 accuracy versus the number of markers n_d (markers re-chosen by revised k-center).
 
     The data set's fields hold every vertex, so no new simulation is needed. The markers for
@@ -152,7 +164,7 @@ def marker_count_study(dataset, config: Config, *, counts=range(3, 21), on_row=N
     return rows
 
 
-def pca_study(dataset, config: Config, *, max_components: int = 100) -> list[dict]:
+def pca_study(dataset, config: Config, *, max_components: int = PCA_MAX_COMPONENTS) -> list[dict]:
     """Cross-validated PCA reconstruction error versus n_w on the training split."""
     arrays = dataset_arrays(dataset)
     sc = config.surrogate

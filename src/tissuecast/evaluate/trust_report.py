@@ -39,7 +39,8 @@ def bound_figures(model, bench: np.ndarray, levels=LEVELS) -> dict:
         row[f"median_bound_{c:g}"] = float(np.median(tp.error_bound))
         if c == levels[0]:
             row["offset_max"] = float(e.max(axis=1).mean())
-            row["sample_spearman"] = float(spearmanr(tp.error_bound.max(axis=1), e.max(axis=1))[0]) if len(e) > 2 else float("nan")
+            row["sample_spearman"] = (float(spearmanr(tp.error_bound.max(axis=1), e.max(axis=1))[0]) if len(e) > 2
+                                      else float("nan"))
             row["vertex_spearman"] = float(spearman_rows(tp.error_bound, e).mean())
             row["alarm_rate"] = float(np.mean([a.raised for a in tp.alarms]))
     return row

@@ -6,8 +6,9 @@ Steps (:func:`mesh_label_map`):
    unless ``keep_largest``. Internal cavities (background enclosed by the label) are
    refused unless ``fill_cavities`` (tissuecast meshes solid bodies).
 2. **Surface**: marching cubes (scikit-image, Lewiner) at the 0.501 level of the padded
-   binary mask (just above 0.5: diagonal-only contacts stay apart, no non-manifold ties), in voxel indices, then mapped to LPS mm by the map's voxel-to-LPS matrix
-   (spacing, direction/oblique axes and origin).
+   binary mask (just above 0.5: diagonal-only contacts stay apart, no non-manifold ties), in
+   voxel indices, then mapped to LPS mm by the map's voxel-to-LPS matrix (spacing,
+   direction/oblique axes and origin).
 3. **Smoothing that does not shrink**: Taubin's lambda/mu filter (uniform Laplacian,
    lambda = 0.5, mu = -0.53) removes the voxel staircase while keeping the enclosed volume.
 4. **Remeshing and tetrahedra**: :func:`tissuecast.mesh.mesher.tetrahedralize_surface`
@@ -58,7 +59,8 @@ _MC_LEVEL = 0.501
 _FIDELITY_SAMPLING = 0.25
 
 
-def label_pieces(mask: np.ndarray, *, keep_largest: bool = False, fill_cavities: bool = False, source: str = "the label") -> np.ndarray:
+def label_pieces(mask: np.ndarray, *, keep_largest: bool = False, fill_cavities: bool = False,
+                 source: str = "the label") -> np.ndarray:
     """The one solid piece of a binary mask that is meshed.
 
     Args:

@@ -203,7 +203,8 @@ def _read_nrrd(path: Path) -> tuple[np.ndarray, np.ndarray]:
         raise LabelMapError(f"'{path}' has no voxel spacing (neither 'space directions' nor 'spacings' in its header); {hint}")
     units = [u for u in header.get("space units", []) if u]
     if any(u != "mm" for u in units):
-        raise LabelMapError(f"'{path}' has space units {units}; tissuecast reads NRRD label maps in mm (as 3D Slicer writes them)")
+        raise LabelMapError(f"'{path}' has space units {units}; tissuecast reads NRRD label maps in mm "
+                            "(as 3D Slicer writes them)")
     try:
         volume = slicerio.read_volume(str(path))
     except Exception as exc:

@@ -27,6 +27,18 @@ __all__ = ["merge_duplicate_points", "check_closed_surface", "orient_surface", "
 
 log = logging.getLogger(__name__)
 
+_REPAIR = ("it must be a closed manifold surface (watertight, every edge shared by exactly two triangles); "
+           "repair it (e.g. MeshLab, PyMeshFix) first")
+#: A triangle smaller than this share of the largest one's area counts as zero-area (degenerate).
+_ZERO_AREA_SHARE = 1e-12
+#: gmsh may shrink elements down to this share of the target size where the surface needs it.
+MIN_SIZE_SHARE = 0.5
+#: gmsh algorithms: 2D Frontal-Delaunay (6) for the re-meshed surface, 3D Delaunay (1) inside.
+GMSH_ALGORITHM_2D = 6
+GMSH_ALGORITHM_3D = 1
+#: Seconds to wait for a crashed meshing child to exit before its exit code is read.
+CHILD_EXIT_WAIT_S = 5.0
+
 
 def start_gmsh(gmsh) -> None:
     """``gmsh.initialize()``, then give SIGPIPE back to Python.
@@ -77,27 +89,36 @@ def check_closed_surface(points: np.ndarray, triangles: np.ndarray) -> None:
             :func:`merge_duplicate_points`).
     """
     tri = np.asarray(triangles, dtype=np.int64)
-    fix = "it must be a closed manifold surface (watertight, every edge shared by exactly two triangles); repair it (e.g. MeshLab, PyMeshFix) first"
     if tri.ndim != 2 or tri.shape[1] != 3 or len(tri) < 4:
-        raise MeshError(f"a surface needs at least 4 triangles, got {len(tri)}; {fix}")
+        raise MeshError(f"a surface needs at least 4 triangles, got {len(tri)}; {_REPAIR}")
     if ((tri[:, 0] == tri[:, 1]) | (tri[:, 1] == tri[:, 2]) | (tri[:, 0] == tri[:, 2])).any():
-        raise MeshError(f"the surface has triangles with a repeated vertex; {fix}")
+        raise MeshError(f"the surface has triangles with a repeated vertex; {_REPAIR}")
     p = np.asarray(points, dtype=np.float64)[tri]
     area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
-    if (area <= 1e-12 * area.max()).any():
-        raise MeshError(f"the surface has {int((area <= 1e-12 * area.max()).sum())} zero-area triangles; {fix}")
+    if (area <= _ZERO_AREA_SHARE * area.max()).any():
+        raise MeshError(f"the surface has {int((area <= _ZERO_AREA_SHARE * area.max()).sum())} zero-area triangles; {_REPAIR}")
+    _check_edges(tri)
+    _check_vertex_fans(tri)
+
+
+def _check_edges(tri: np.ndarray) -> None:
+    """Every edge shared by exactly two triangles (closed, edge-manifold)."""
     edges = np.sort(tri[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
     if (counts == 1).any():
         raise MeshError(
-            f"the surface is open: {int((counts == 1).sum())} edges belong to only one triangle (holes); {fix}"
+            f"the surface is open: {int((counts == 1).sum())} edges belong to only one triangle (holes); {_REPAIR}"
         )
     if (counts > 2).any():
         raise MeshError(
-            f"the surface is non-manifold: {int((counts > 2).sum())} edges are shared by more than two triangles; {fix}"
+            f"the surface is non-manifold: {int((counts > 2).sum())} edges are shared by more than two triangles; {_REPAIR}"
         )
-    # vertex manifoldness: corners (triangle, vertex) joined across shared edges form one fan
-    # per vertex on a manifold surface; two fans touching at a vertex give two groups.
+
+
+def _check_vertex_fans(tri: np.ndarray) -> None:
+    """The triangles around every vertex form one fan (no two sheets touching at a vertex)."""
+    # corners (triangle, vertex) joined across shared edges form one fan per vertex on a
+    # manifold surface; two fans touching at a vertex give two groups.
     loc = np.array([[0, 1], [1, 2], [2, 0]])
     ends = tri[:, loc]  # (k, 3, 2) vertex ids of the half-edges
     corners = (3 * np.arange(len(tri))[:, None, None] + loc[None]).reshape(-1, 2)
@@ -118,7 +139,7 @@ def check_closed_surface(points: np.ndarray, triangles: np.ndarray) -> None:
         bad = np.flatnonzero(fans > 1)
         raise MeshError(
             f"the surface is non-manifold at {len(bad)} vertices where separate sheets touch "
-            f"(first: vertex {int(bad[0])}); {fix}"
+            f"(first: vertex {int(bad[0])}); {_REPAIR}"
         )
 
 
@@ -180,12 +201,12 @@ def _run_gmsh(gmsh, points, triangles, *, mesh_size, interior_size, optimize, fe
         gmsh.model.geo.addVolume([loop])
         gmsh.model.geo.synchronize()
         for name, value in [
-            ("Mesh.MeshSizeMin", 0.5 * mesh_size),
+            ("Mesh.MeshSizeMin", MIN_SIZE_SHARE * mesh_size),
             ("Mesh.MeshSizeMax", mesh_size),
             ("Mesh.MeshSizeFromCurvature", int(curvature_points)),
             ("Mesh.MeshSizeExtendFromBoundary", 1),
-            ("Mesh.Algorithm", 6),
-            ("Mesh.Algorithm3D", 1),
+            ("Mesh.Algorithm", GMSH_ALGORITHM_2D),
+            ("Mesh.Algorithm3D", GMSH_ALGORITHM_3D),
             ("Mesh.Optimize", int(optimize)),
             ("Mesh.OptimizeNetgen", int(optimize)),
             ("Mesh.RandomSeed", 1),
@@ -197,7 +218,7 @@ def _run_gmsh(gmsh, points, triangles, *, mesh_size, interior_size, optimize, fe
             gmsh.model.mesh.field.setNumbers(const, "VolumesList", [e[1] for e in gmsh.model.getEntities(3)])
             gmsh.model.mesh.field.setNumber(const, "IncludeBoundary", 0)
             gmsh.model.mesh.field.setAsBackgroundMesh(const)
-            gmsh.option.setNumber("Mesh.MeshSizeMin", 0.5 * min(mesh_size, interior_size))
+            gmsh.option.setNumber("Mesh.MeshSizeMin", MIN_SIZE_SHARE * min(mesh_size, interior_size))
         gmsh.model.mesh.generate(3)
         tags, coords, _ = gmsh.model.mesh.getNodes()
         _, tet_nodes = gmsh.model.mesh.getElementsByType(4)
@@ -239,7 +260,7 @@ def _gmsh_in_child(points, triangles, options: dict, timeout: float):
         try:
             status, payload = receive.recv()
         except EOFError:
-            child.join(5)
+            child.join(CHILD_EXIT_WAIT_S)
             raise MeshError(f"gmsh crashed while meshing (exit code {child.exitcode}); check that the surface is a "
                             "clean closed manifold, or try another mesh size") from None
     finally:
@@ -250,6 +271,28 @@ def _gmsh_in_child(points, triangles, options: dict, timeout: float):
     if status != "ok":
         raise MeshError(payload)
     return payload
+
+
+def _check_options(mesh_size, timeout) -> None:
+    if not (isinstance(mesh_size, (int, float)) and math.isfinite(mesh_size) and mesh_size > 0):
+        raise MeshError(f"mesh_size must be a positive length in mm, got {mesh_size!r}")
+    if not (isinstance(timeout, (int, float)) and timeout > 0):
+        raise MeshError(f"timeout must be a positive number of seconds, got {timeout!r}")
+
+
+def _tet_mesh(tags: np.ndarray, coords: np.ndarray, tet_nodes: np.ndarray) -> TetMesh:
+    """The TetMesh of gmsh's nodes (tags, flat coordinates, mm) and tetrahedra (node tags), with
+    the nodes no tetrahedron uses (the old surface's) dropped."""
+    if len(tet_nodes) == 0:
+        raise MeshError("gmsh produced no tetrahedra; check that the surface is closed and encloses a volume")
+    index = np.full(int(tags.max()) + 1, -1, dtype=np.int64)
+    index[tags.astype(np.int64)] = np.arange(len(tags))
+    tets = index[np.asarray(tet_nodes, dtype=np.int64).reshape(-1, 4)]
+    pts = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
+    used = np.unique(tets)
+    renum = np.full(len(pts), -1, dtype=np.int64)
+    renum[used] = np.arange(len(used))
+    return TetMesh(pts[used], renum[tets])
 
 
 def tetrahedralize_surface(
@@ -266,7 +309,7 @@ def tetrahedralize_surface(
     """Fill a closed triangulated surface with tetrahedra using gmsh.
 
     The surface is re-meshed with target edge length ``mesh_size`` (smooth patches are
-    re-parametrised; edges sharper than 40 degrees are kept), then the volume is meshed.
+    re-parametrised; edges sharper than ``feature_angle`` are kept), then the volume is meshed.
 
     Args:
         points: (n, 3) float, mm.
@@ -290,10 +333,7 @@ def tetrahedralize_surface(
             takes longer than ``timeout``.
         DependencyError: gmsh is not installed (extra ``mesh``).
     """
-    if not (isinstance(mesh_size, (int, float)) and math.isfinite(mesh_size) and mesh_size > 0):
-        raise MeshError(f"mesh_size must be a positive length in mm, got {mesh_size!r}")
-    if not (isinstance(timeout, (int, float)) and timeout > 0):
-        raise MeshError(f"timeout must be a positive number of seconds, got {timeout!r}")
+    _check_options(mesh_size, timeout)
     points, triangles = merge_duplicate_points(points, triangles)
     check_closed_surface(points, triangles)
     triangles = orient_surface(points, triangles)
@@ -306,15 +346,6 @@ def tetrahedralize_surface(
         tags, coords, tet_nodes = _run_gmsh(gmsh, points, triangles, **options)  # the caller runs gmsh
     else:
         tags, coords, tet_nodes = _gmsh_in_child(points, triangles, options, timeout)
-    if len(tet_nodes) == 0:
-        raise MeshError("gmsh produced no tetrahedra; check that the surface is closed and encloses a volume")
-    index = np.full(int(tags.max()) + 1, -1, dtype=np.int64)
-    index[tags.astype(np.int64)] = np.arange(len(tags))
-    tets = index[np.asarray(tet_nodes, dtype=np.int64).reshape(-1, 4)]
-    pts = np.asarray(coords, dtype=np.float64).reshape(-1, 3)
-    used = np.unique(tets)
-    renum = np.full(len(pts), -1, dtype=np.int64)
-    renum[used] = np.arange(len(used))
-    mesh = TetMesh(pts[used], renum[tets])
+    mesh = _tet_mesh(tags, coords, tet_nodes)
     log.info("gmsh: %d vertices, %d tetrahedra at mesh size %.3g mm", mesh.n_points, mesh.n_tets, mesh_size)
     return mesh

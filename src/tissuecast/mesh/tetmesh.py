@@ -63,6 +63,83 @@ def _signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) / 6.0
 
 
+def _checked_arrays(points, tets) -> tuple[np.ndarray, np.ndarray]:
+    """Copies ``(points (n, 3) float64, tets (m, 4) int64)`` with shapes, finite coordinates,
+    integer ids in range and no repeated vertex per tetrahedron checked."""
+    points = np.array(points, dtype=np.float64, copy=True)
+    tets = np.array(tets, copy=True)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
+        raise MeshError(f"points must be an (n, 3) array with n >= 4, got shape {points.shape}")
+    if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) < 1:
+        raise MeshError(
+            f"tets must be an (m, 4) array of vertex ids with m >= 1, got shape {tets.shape}; "
+            "quadratic (10-node) connectivity must be reduced to its 4 corner nodes first"
+        )
+    if not np.issubdtype(tets.dtype, np.integer):
+        if not np.all(np.isfinite(tets)) or np.any(tets != np.round(tets)):
+            raise MeshError("tets must hold integer vertex ids")
+    tets = tets.astype(np.int64)
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise MeshError(
+            f"{int(bad.sum())} vertices have non-finite coordinates (first: vertex {i} = "
+            f"{points[i].tolist()}); fix or remove them in the mesh file"
+        )
+    n = len(points)
+    if tets.min() < 0 or tets.max() >= n:
+        j = int(np.flatnonzero((tets < 0).any(1) | (tets >= n).any(1))[0])
+        raise MeshError(
+            f"tetrahedron {j} = {tets[j].tolist()} has a vertex id outside 0..{n - 1}; "
+            "ids are 0-based (subtract 1 from 1-based Abaqus/TetGen ids)"
+        )
+    srt = np.sort(tets, axis=1)
+    rep = (srt[:, 1:] == srt[:, :-1]).any(axis=1)
+    if rep.any():
+        j = int(np.flatnonzero(rep)[0])
+        raise MeshError(f"tetrahedron {j} = {tets[j].tolist()} repeats a vertex; remove it from the mesh")
+    return points, tets
+
+
+def _checked_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(m,) signed tetrahedron volumes, mm^3; none of them (almost) zero."""
+    vol = _signed_volumes(points, tets)
+    p = points[tets]
+    lmax = np.max(np.linalg.norm(p[:, TET_EDGES[:, 0]] - p[:, TET_EDGES[:, 1]], axis=2), axis=1)
+    flat = np.abs(vol) <= _DEGENERATE_RELATIVE_VOLUME * lmax**3
+    if flat.any():
+        j = int(np.flatnonzero(flat)[0])
+        raise MeshError(
+            f"{int(flat.sum())} tetrahedra have zero volume (first: tetrahedron {j} = "
+            f"{tets[j].tolist()}, volume {vol[j]:.3g} mm^3); remesh or remove slivers"
+        )
+    return vol
+
+
+def _check_every_vertex_used(n: int, tets: np.ndarray) -> None:
+    used = np.zeros(n, dtype=bool)
+    used[tets.ravel()] = True
+    if not used.all():
+        raise MeshError(
+            f"{int((~used).sum())} vertices belong to no tetrahedron (first: vertex "
+            f"{int(np.flatnonzero(~used)[0])}); read the file with tc.read_mesh (which drops them) "
+            "or remove them"
+        )
+
+
+def _check_connected(n: int, tets: np.ndarray) -> None:
+    rows = np.repeat(tets, 4, axis=1).ravel()
+    cols = np.tile(tets, (1, 4)).ravel()
+    graph = sp.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
+    ncomp, labels = connected_components(graph, directed=False)
+    if ncomp > 1:
+        sizes = np.bincount(labels)
+        raise MeshError(
+            f"the mesh is made of {ncomp} disconnected pieces (vertex counts "
+            f"{sorted(sizes.tolist(), reverse=True)[:5]}); keep one region of interest per mesh"
+        )
+
+
 @dataclass(frozen=True, eq=False)
 class TetMesh:
     """An immutable linear tetrahedral mesh.
@@ -84,70 +161,14 @@ class TetMesh:
     n_flipped: int = field(default=0, init=False)
 
     def __post_init__(self) -> None:
-        points = np.array(self.points, dtype=np.float64, copy=True)
-        tets = np.array(self.tets, copy=True)
-        if points.ndim != 2 or points.shape[1] != 3 or len(points) < 4:
-            raise MeshError(f"points must be an (n, 3) array with n >= 4, got shape {points.shape}")
-        if tets.ndim != 2 or tets.shape[1] != 4 or len(tets) < 1:
-            raise MeshError(
-                f"tets must be an (m, 4) array of vertex ids with m >= 1, got shape {tets.shape}; "
-                "quadratic (10-node) connectivity must be reduced to its 4 corner nodes first"
-            )
-        if not np.issubdtype(tets.dtype, np.integer):
-            if not np.all(np.isfinite(tets)) or np.any(tets != np.round(tets)):
-                raise MeshError("tets must hold integer vertex ids")
-        tets = tets.astype(np.int64)
-        bad = ~np.isfinite(points).all(axis=1)
-        if bad.any():
-            i = int(np.flatnonzero(bad)[0])
-            raise MeshError(
-                f"{int(bad.sum())} vertices have non-finite coordinates (first: vertex {i} = "
-                f"{points[i].tolist()}); fix or remove them in the mesh file"
-            )
-        n = len(points)
-        if tets.min() < 0 or tets.max() >= n:
-            j = int(np.flatnonzero((tets < 0).any(1) | (tets >= n).any(1))[0])
-            raise MeshError(
-                f"tetrahedron {j} = {tets[j].tolist()} has a vertex id outside 0..{n - 1}; "
-                "ids are 0-based (subtract 1 from 1-based Abaqus/TetGen ids)"
-            )
-        srt = np.sort(tets, axis=1)
-        rep = (srt[:, 1:] == srt[:, :-1]).any(axis=1)
-        if rep.any():
-            j = int(np.flatnonzero(rep)[0])
-            raise MeshError(f"tetrahedron {j} = {tets[j].tolist()} repeats a vertex; remove it from the mesh")
-        vol = _signed_volumes(points, tets)
-        p = points[tets]
-        lmax = np.max(np.linalg.norm(p[:, TET_EDGES[:, 0]] - p[:, TET_EDGES[:, 1]], axis=2), axis=1)
-        flat = np.abs(vol) <= _DEGENERATE_RELATIVE_VOLUME * lmax**3
-        if flat.any():
-            j = int(np.flatnonzero(flat)[0])
-            raise MeshError(
-                f"{int(flat.sum())} tetrahedra have zero volume (first: tetrahedron {j} = "
-                f"{tets[j].tolist()}, volume {vol[j]:.3g} mm^3); remesh or remove slivers"
-            )
-        used = np.zeros(n, dtype=bool)
-        used[tets.ravel()] = True
-        if not used.all():
-            raise MeshError(
-                f"{int((~used).sum())} vertices belong to no tetrahedron (first: vertex "
-                f"{int(np.flatnonzero(~used)[0])}); read the file with tc.read_mesh (which drops them) "
-                "or remove them"
-            )
+        points, tets = _checked_arrays(self.points, self.tets)
+        vol = _checked_volumes(points, tets)
+        _check_every_vertex_used(len(points), tets)
         neg = vol < 0
         if neg.any():
             tets[neg] = tets[neg][:, [0, 2, 1, 3]]
             log.info("re-oriented %d inverted tetrahedra", int(neg.sum()))
-        rows = np.repeat(tets, 4, axis=1).ravel()
-        cols = np.tile(tets, (1, 4)).ravel()
-        graph = sp.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(n, n))
-        ncomp, labels = connected_components(graph, directed=False)
-        if ncomp > 1:
-            sizes = np.bincount(labels)
-            raise MeshError(
-                f"the mesh is made of {ncomp} disconnected pieces (vertex counts "
-                f"{sorted(sizes.tolist(), reverse=True)[:5]}); keep one region of interest per mesh"
-            )
+        _check_connected(len(points), tets)
         points.setflags(write=False)
         tets.setflags(write=False)
         object.__setattr__(self, "points", points)

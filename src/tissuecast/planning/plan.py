@@ -20,14 +20,16 @@ from ..surrogate.data import dataset_arrays
 from ..surrogate.pca import fit_pca
 from .candidates import candidate_vertices
 from .proxy import QuadraticProxy
-from .selection import greedy_markers
+from .selection import SHORTLIST, greedy_markers
 
-__all__ = ["MarkerPlan", "plan_markers", "validation_error"]
+__all__ = ["MarkerPlan", "plan_markers", "validation_error", "MAX_COUNT"]
 
 log = logging.getLogger(__name__)
 
 #: PCA components of the training fields the planner works with.
 PLAN_COMPONENTS = 64
+#: The largest marker count searched for a target error (as many as the marker-count study's).
+MAX_COUNT = 20
 
 
 @dataclass(eq=False)
@@ -84,8 +86,8 @@ def validation_error(arrays, markers, config=None) -> float:
     return float(np.linalg.norm(pred - bench, axis=2).max(axis=1).mean())
 
 
-def plan_markers(dataset, count: int | None = None, *, target_mm: float | None = None, max_count: int = 20,
-                 region: str = "surface", min_distance: float = 0.0, allowed=None, shortlist: int = 24,
+def plan_markers(dataset, count: int | None = None, *, target_mm: float | None = None, max_count: int = MAX_COUNT,
+                 region: str = "surface", min_distance: float = 0.0, allowed=None, shortlist: int = SHORTLIST,
                  confirm: bool = False, config=None,
                  on_step: Callable[[int, np.ndarray, float], None] | None = None) -> MarkerPlan:
     """Choose markers from a data set's simulated fields.
@@ -111,15 +113,58 @@ def plan_markers(dataset, count: int | None = None, *, target_mm: float | None =
     Raises:
         MarkerError: neither or both of count and target_mm, bad candidates, too few of them.
     """
+    _check_request(count, target_mm)
+    if config is None:
+        config = getattr(dataset, "config", None)
+    arrays = dataset_arrays(dataset)
+    planner = _planner(arrays, region, allowed, shortlist, min_distance, on_step)
+    n_path = count if count is not None else min(max_count, planner.candidates.size)
+    if target_mm is None:
+        path, scores = planner.path(n_path)
+        plan = MarkerPlan(path, scores, path, planner.candidates, region, float(min_distance), proxy=planner.proxy)
+        if confirm:
+            plan.mlp_errors[count] = validation_error(arrays, path, config)
+        return plan
+    path, scores = planner.path(n_path, stop_at=target_mm)
+    n = len(path)
+    reached = bool(scores[-1] <= target_mm)
+    mlp: dict = {}
+    if confirm:
+        path, scores, n, mlp = _confirmed_count(planner, arrays, config, path, scores, n_path, target_mm)
+        reached = bool(mlp[n] <= target_mm)
+    return MarkerPlan(path[:n], scores, path, planner.candidates, region, float(min_distance), float(target_mm), reached,
+                      mlp, planner.proxy)
+
+
+def _check_request(count: int | None, target_mm: float | None) -> None:
     if (count is None) == (target_mm is None):
         raise MarkerError("give either a marker count or a target error (target_mm), not both or neither")
     if count is not None and count < 1:
         raise MarkerError(f"the number of markers must be >= 1, got {count}")
     if target_mm is not None and not target_mm > 0:
         raise MarkerError(f"the target error must be a positive number of mm, got {target_mm}")
-    if config is None:
-        config = getattr(dataset, "config", None)
-    arrays = dataset_arrays(dataset)
+
+
+@dataclass(eq=False)
+class _Planner:
+    """What every greedy path of one plan shares: the proxy, the PCA modes, the candidates."""
+
+    proxy: QuadraticProxy
+    modes: np.ndarray
+    candidates: np.ndarray
+    points: np.ndarray
+    shortlist: int
+    min_distance: float
+    on_step: Callable | None
+
+    def path(self, count: int, **options) -> tuple[np.ndarray, np.ndarray]:
+        """The greedy path to ``count`` markers and its proxy scores (see :func:`greedy_markers`)."""
+        return greedy_markers(self.proxy, self.modes, self.candidates, count, shortlist=self.shortlist, points=self.points,
+                              min_distance=self.min_distance, on_step=self.on_step, **options)
+
+
+def _planner(arrays, region: str, allowed, shortlist: int, min_distance: float, on_step) -> _Planner:
+    """PCA of the training fields (:data:`PLAN_COMPONENTS`), the proxy scored on 'valid', the candidates."""
     U = arrays.displacements
     train = np.asarray(U[arrays.train_idx], dtype=np.float64).reshape(len(arrays.train_idx), -1)
     valid = np.asarray(U[arrays.valid_idx], dtype=np.float64)
@@ -127,41 +172,28 @@ def plan_markers(dataset, count: int | None = None, *, target_mm: float | None =
     proxy = QuadraticProxy(basis, train, valid)
     modes = basis.components * basis.singular_values[:, None]
     cand = candidate_vertices(arrays.mesh, region=region, allowed=allowed, exclude=arrays.fixed)
-    points = arrays.mesh.points
-    n_path = count if count is not None else min(max_count, cand.size)
+    return _Planner(proxy, modes, cand, arrays.mesh.points, shortlist, min_distance, on_step)
 
-    if target_mm is None:
-        path, scores = greedy_markers(proxy, modes, cand, n_path, shortlist=shortlist, points=points,
-                                      min_distance=min_distance, on_step=on_step)
-        plan = MarkerPlan(path, scores, path, cand, region, float(min_distance), proxy=proxy)
-        if confirm:
-            plan.mlp_errors[count] = validation_error(arrays, path, config)
-        return plan
 
-    path, scores = greedy_markers(proxy, modes, cand, n_path, shortlist=shortlist, points=points,
-                                  min_distance=min_distance, stop_at=target_mm, on_step=on_step)
+def _confirmed_count(planner: _Planner, arrays, config, path, scores, n_path: int, target_mm: float):
+    """The count the trained MLP (not only the proxy) needs to reach ``target_mm``, from the proxy's.
+
+    Returns:
+        ``(path, scores, count, {count: MLP validation mean Offset_max, mm})``; the path grows
+        (up to ``n_path``) when the MLP needs more markers than the proxy.
+    """
     n = len(path)
-    reached = bool(scores[-1] <= target_mm)
-    mlp: dict = {}
-
-    def extend(k: int) -> None:
-        nonlocal path, scores
-        if k > len(path):
-            path, more = greedy_markers(proxy, modes, cand, k, shortlist=shortlist, points=points,
-                                        min_distance=min_distance, start=path, on_step=on_step)
+    mlp = {n: validation_error(arrays, path[:n], config)}
+    while mlp[n] > target_mm and n < n_path:  # the MLP needs more markers than the proxy
+        n += 1
+        if n > len(path):
+            path, more = planner.path(n, start=path)
             scores = np.r_[scores, more[len(scores):]]
-
-    if confirm:
         mlp[n] = validation_error(arrays, path[:n], config)
-        while mlp[n] > target_mm and n < n_path:  # the MLP needs more markers than the proxy
-            n += 1
-            extend(n)
-            mlp[n] = validation_error(arrays, path[:n], config)
-        while n > 1 and mlp[n] <= target_mm:  # ... or fewer
-            if n - 1 not in mlp:
-                mlp[n - 1] = validation_error(arrays, path[:n - 1], config)
-            if mlp[n - 1] > target_mm:
-                break
-            n -= 1
-        reached = bool(mlp[n] <= target_mm)
-    return MarkerPlan(path[:n], scores, path, cand, region, float(min_distance), float(target_mm), reached, mlp, proxy)
+    while n > 1 and mlp[n] <= target_mm:  # ... or fewer
+        if n - 1 not in mlp:
+            mlp[n - 1] = validation_error(arrays, path[:n - 1], config)
+        if mlp[n - 1] > target_mm:
+            break
+        n -= 1
+    return path, scores, n, mlp

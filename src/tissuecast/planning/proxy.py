@@ -13,7 +13,7 @@ import numpy as np
 
 from ..errors import MarkerError
 from ..surrogate.pca import PCABasis
-from ..surrogate.quadratic import fit_quadratic
+from ..surrogate.quadratic import QUADRATIC_DIMS, fit_quadratic
 from ..surrogate.ridge import marker_columns
 
 __all__ = ["QuadraticProxy"]
@@ -30,7 +30,7 @@ class QuadraticProxy:
         quadratic_dims: principal directions of the marker input whose products are features.
     """
 
-    def __init__(self, basis: PCABasis, train, valid, *, quadratic_dims: int = 12):
+    def __init__(self, basis: PCABasis, train, valid, *, quadratic_dims: int = QUADRATIC_DIMS):
         self.basis = basis
         self.train = np.asarray(train, dtype=np.float64).reshape(len(train), -1)
         self.valid = np.asarray(valid, dtype=np.float64).reshape(len(valid), -1)

@@ -23,10 +23,13 @@ import numpy as np
 
 from ..errors import MarkerError
 
-__all__ = ["qr_markers", "qr_residuals", "greedy_markers"]
+__all__ = ["qr_markers", "qr_residuals", "greedy_markers", "SHORTLIST"]
 
 # Residual columns shorter than this share of the largest mode norm add no new direction.
 _RANK_RTOL = 1e-10
+#: Candidates (best by the block QR) the proxy scores per greedy step: each costs one proxy
+#: fit, and the QR's order already puts good markers near the top.
+SHORTLIST = 24
 
 
 class _BlockQR:
@@ -133,7 +136,7 @@ def greedy_markers(
     candidates,
     count: int,
     *,
-    shortlist: int = 24,
+    shortlist: int = SHORTLIST,
     points=None,
     min_distance: float = 0.0,
     start=(),

@@ -13,12 +13,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import ServeConfig
 from .polydata import PolyData, decode_polydata
 from .predictor import FIELD_DEVICE
 from .protocol import HEADER_SIZE, Header, ProtocolError, decode_string, message_content, parse_header, pyigtl
 from .session import MARKER_PREFIX
 
 __all__ = ["IGTLClient", "Reply"]
+
+#: Seconds a blocking read waits for the server (a reply takes milliseconds; a silent server
+#: is a failure, not a delay).
+REPLY_TIMEOUT_S = 5.0
+#: Largest reply body read (the server is trusted; the check only stops a corrupt header).
+MAX_REPLY_BYTES = 1 << 31
+#: Starting size of the reusable body buffer (grows to the largest reply).
+BODY_BUFFER_BYTES = 1 << 16
 
 
 @dataclass(frozen=True)
@@ -50,11 +59,11 @@ class IGTLClient:
         timeout: seconds to wait for a reply before ``socket.timeout`` (TimeoutError).
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 18944, timeout: float = 5.0):
+    def __init__(self, host: str = ServeConfig.host, port: int = ServeConfig.port, timeout: float = REPLY_TIMEOUT_S):
         self.sock = socket.create_connection((host, port), timeout=timeout)
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._header = bytearray(HEADER_SIZE)
-        self._body = bytearray(1 << 16)
+        self._body = bytearray(BODY_BUFFER_BYTES)
 
     # ------------------------------------------------------------------ sending
     def send(self, message: pyigtl.MessageBase | bytes) -> None:
@@ -104,7 +113,7 @@ class IGTLClient:
             ProtocolError: the reply is malformed (or its CRC is wrong).
         """
         self._read_into(memoryview(self._header))
-        header = parse_header(bytes(self._header), max_body_bytes=1 << 31)
+        header = parse_header(bytes(self._header), max_body_bytes=MAX_REPLY_BYTES)
         if header.body_size > len(self._body):
             self._body = bytearray(header.body_size)
         body = memoryview(self._body)[: header.body_size]

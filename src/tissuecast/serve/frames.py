@@ -25,12 +25,11 @@ import re
 
 import numpy as np
 
+from ..config import CLIENT_FRAMES, ServeConfig
 from ..frames import LPS_TO_RAS, FrameError, apply_rotation, apply_transform, check_transform
 
 __all__ = ["ClientFrames", "REGISTRATION_PATTERN", "CLIENT_FRAMES"]
 
-#: frames a client may work in
-CLIENT_FRAMES = ("LPS", "RAS")
 #: device names of registration TRANSFORMs: <From>To<Target>, From not a marker name
 REGISTRATION_PATTERN = re.compile(r"(?!Marker[0-9])([A-Za-z][A-Za-z0-9_]*?)To(Ras|RAS|Lps|LPS|Image)")
 _TARGETS = {"Ras": "RAS", "RAS": "RAS", "Lps": "LPS", "LPS": "LPS", "Image": "LPS"}
@@ -51,7 +50,7 @@ class ClientFrames:
         source: where the registration came from (``"config"``, a device name, or ``"none"``).
     """
 
-    def __init__(self, client_frame: str = "LPS", tracker_to_client=None):
+    def __init__(self, client_frame: str = ServeConfig.client_frame, tracker_to_client=None):
         self.set(client_frame, tracker_to_client, "config" if tracker_to_client is not None else "none")
 
     def set(self, client_frame: str, tracker_to_client, source: str) -> None:

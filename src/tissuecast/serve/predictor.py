@@ -30,6 +30,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from ..config import ServeConfig
 from ..errors import MarkerError, ModelError
 from .frames import ClientFrames
 from .polydata import PolyDataTemplate
@@ -100,7 +101,8 @@ class SurfacePredictor:
         use_uncertainty: send per-vertex uncertainty when the model provides it.
     """
 
-    def __init__(self, model: ServableModel, *, max_marker_offset: float = 100.0, use_uncertainty: bool = True):
+    def __init__(self, model: ServableModel, *, max_marker_offset: float = ServeConfig.max_marker_offset,
+                 use_uncertainty: bool = True):
         mesh = model.mesh
         reference = np.asarray(model.reference_marker_positions, dtype=np.float64)
         if reference.ndim != 2 or reference.shape[1] != 3 or not np.isfinite(reference).all():
@@ -210,7 +212,8 @@ class SurfacePredictor:
         if prediction.uncertainty is not None and self.has_uncertainty:
             template.values[UNCERTAINTY_NAME][:] = prediction.uncertainty[self.surface_ids]
         if self.has_bounds:
-            template.values[BOUND_NAME][:] = np.nan if prediction.error_bound is None else prediction.error_bound[self.surface_ids]
+            bound = prediction.error_bound
+            template.values[BOUND_NAME][:] = np.nan if bound is None else bound[self.surface_ids]
         return template.finish(SURFACE_DEVICE, prediction.timestamp)
 
     def field_message(self, prediction: Prediction, frames: ClientFrames | None = None) -> memoryview:

@@ -132,7 +132,7 @@ def parse_header(raw: bytes, max_body_bytes: int = DEFAULT_MAX_BODY_BYTES) -> He
             "closing the connection",
             fatal=True,
         )
-    # same fields as pyigtl.MessageBase.parse_header, whose bit-by-bit fraction loop costs ~10 us
+    # same fields as pyigtl.MessageBase.parse_header, without its bit-by-bit fraction loop (docs/serving.md)
     return Header(
         version,
         mtype.rstrip(b"\0").decode("ascii").rstrip(),

@@ -2,8 +2,8 @@
 
 The loop never waits on one client: it reads whatever bytes have arrived, lets the client's
 :class:`~tissuecast.serve.session.ClientSession` answer every complete message at once
-(a prediction takes well under a millisecond) and sends replies without blocking; what a
-slow reader does not take is queued for that client only. Per-client limits keep one bad
+(predictions are short next to a network round trip, see docs/serving.md) and sends replies
+without blocking; what a slow reader does not take is queued for that client only. Per-client limits keep one bad
 peer from hurting the others:
 
 - a body announced larger than ``max_body_bytes`` closes the connection unread;
@@ -11,8 +11,8 @@ peer from hurting the others:
 - more than ``max_output_bytes`` of unsent replies (a client that stops reading) closes it;
 - any unexpected exception while serving a client is logged and closes that client only.
 
-The server binds to 127.0.0.1 unless another host is given. Connections and disconnections
-are logged (logger ``tissuecast.serve.server``, level INFO).
+The server binds to ``serve.host`` (127.0.0.1, this machine only) unless another host is
+given. Connections and disconnections are logged (logger ``tissuecast.serve.server``, level INFO).
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ import threading
 import time
 from collections import Counter
 
+from ..config import ServeConfig
 from .frames import ClientFrames
 from .predictor import ServableModel, SurfacePredictor
 from .protocol import DEFAULT_MAX_BODY_BYTES, pack_string
@@ -32,6 +33,24 @@ from .session import ERROR_DEVICE, ClientSession
 __all__ = ["IGTLServer"]
 
 log = logging.getLogger(__name__)
+
+#: Unsent reply bytes tolerated per client before it is dropped as not reading: ~100 full
+#: fields of a 10k-vertex mesh, far more than a live reader ever leaves queued.
+MAX_OUTPUT_BYTES = 32 << 20
+#: Simultaneous connections (an operating room has a handful: Slicer, PLUS, a recorder).
+MAX_CLIENTS = 64
+#: Complete messages answered per client before the others get a turn.
+MESSAGES_PER_TURN = 16
+#: Connections the kernel queues before they are accepted (as many as the clients served).
+LISTEN_BACKLOG = MAX_CLIENTS
+#: Bytes read per receive: a few thousand POINT messages, so a pipelining client is drained
+#: in a few calls while one read stays small next to the replies' buffers.
+RECV_BYTES = 1 << 18
+#: Longest wait (s) of the event loop when no client has an incomplete message (stop() and
+#: new data wake it at once; this only bounds how late an idle loop looks again).
+IDLE_POLL_S = 1.0
+#: Bytes read per call while draining the wake-up socket (each stop() writes one).
+WAKE_DRAIN_BYTES = 512
 
 
 class _Client:
@@ -73,17 +92,17 @@ class IGTLServer:
     def __init__(
         self,
         model: ServableModel | SurfacePredictor,
-        host: str = "127.0.0.1",
-        port: int = 18944,
+        host: str = ServeConfig.host,
+        port: int = ServeConfig.port,
         *,
-        full_field: bool = False,
-        transform_mode: str = "frame",
+        full_field: bool = ServeConfig.full_field,
+        transform_mode: str = ServeConfig.transform_mode,
         max_body_bytes: int = DEFAULT_MAX_BODY_BYTES,
-        client_timeout: float = 5.0,
-        max_output_bytes: int = 32 << 20,
-        max_clients: int = 64,
-        max_marker_offset: float = 100.0,
-        messages_per_turn: int = 16,
+        client_timeout: float = ServeConfig.client_timeout,
+        max_output_bytes: int = MAX_OUTPUT_BYTES,
+        max_clients: int = MAX_CLIENTS,
+        max_marker_offset: float = ServeConfig.max_marker_offset,
+        messages_per_turn: int = MESSAGES_PER_TURN,
         frames: ClientFrames | None = None,
     ):
         if isinstance(model, SurfacePredictor):
@@ -99,7 +118,7 @@ class IGTLServer:
         self.max_clients = int(max_clients)
         self.messages_per_turn = max(1, int(messages_per_turn))
         self.stats: Counter = Counter()
-        self._listener = socket.create_server((host, port), backlog=64)
+        self._listener = socket.create_server((host, port), backlog=LISTEN_BACKLOG)
         self._listener.setblocking(False)
         self.address: tuple[str, int] = self._listener.getsockname()[:2]
         self._selector = selectors.DefaultSelector()
@@ -112,6 +131,19 @@ class IGTLServer:
         self._thread: threading.Thread | None = None
         self._closed = False
         log.info("OpenIGTLink server listening on %s:%d", *self.address)
+
+    @classmethod
+    def from_config(cls, model: ServableModel | SurfacePredictor, config: ServeConfig, **options) -> "IGTLServer":
+        """A server set up as a ``[serve]`` config section says (host, port, full_field,
+        transform_mode, client_timeout, max_marker_offset, client_frame, tracker_to_client);
+        ``options`` (any argument of the constructor) take precedence."""
+        settings = dict(full_field=config.full_field, transform_mode=config.transform_mode,
+                        client_timeout=config.client_timeout, max_marker_offset=config.max_marker_offset)
+        settings.update(options)
+        if "frames" not in settings:
+            settings["frames"] = ClientFrames(config.client_frame, config.tracker_to_client or None)
+        host, port = settings.pop("host", config.host), settings.pop("port", config.port)
+        return cls(model, host, port, **settings)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> "IGTLServer":
@@ -166,12 +198,12 @@ class IGTLServer:
     def _poll_timeout(self) -> float:
         pending = [c.partial_since for c in self._clients.values() if c.partial_since is not None]
         if not pending:
-            return 1.0
-        return max(0.0, min(1.0, min(pending) + self.client_timeout - time.monotonic()))
+            return IDLE_POLL_S
+        return max(0.0, min(IDLE_POLL_S, min(pending) + self.client_timeout - time.monotonic()))
 
     def _drain_wake(self) -> None:
         try:
-            while self._wake_r.recv(512):
+            while self._wake_r.recv(WAKE_DRAIN_BYTES):
                 pass
         except BlockingIOError:
             pass
@@ -222,7 +254,7 @@ class IGTLServer:
 
     def _read(self, client: _Client) -> None:
         try:
-            data = client.sock.recv(1 << 18)
+            data = client.sock.recv(RECV_BYTES)
         except (BlockingIOError, InterruptedError):
             return
         except OSError as exc:

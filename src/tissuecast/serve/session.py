@@ -42,6 +42,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..config import TRANSFORM_MODES, ServeConfig
 from ..frames import FrameError
 from .frames import REGISTRATION_PATTERN, ClientFrames
 from .predictor import FIELD_DEVICE, SURFACE_DEVICE, Prediction, PredictionError, SurfacePredictor
@@ -63,7 +64,6 @@ log = logging.getLogger(__name__)
 
 ERROR_DEVICE = "ERROR"
 MARKER_PREFIX = "Marker"
-TRANSFORM_MODES = ("frame", "each")
 
 
 class ClientSession:
@@ -89,8 +89,8 @@ class ClientSession:
         predictor: SurfacePredictor,
         emit: Callable[[bytes | memoryview], None],
         *,
-        full_field: bool = False,
-        transform_mode: str = "frame",
+        full_field: bool = ServeConfig.full_field,
+        transform_mode: str = ServeConfig.transform_mode,
         max_body_bytes: int = DEFAULT_MAX_BODY_BYTES,
         frames: ClientFrames | None = None,
     ):

@@ -72,7 +72,8 @@ class MarkupList:
         labels = tuple(self.labels) or tuple(f"{self.name}-{i + 1}" for i in range(n))
         descriptions = tuple(self.descriptions) or ("",) * n
         if len(labels) != n or len(descriptions) != n:
-            raise MarkupsError(f"markup list {self.name!r}: {n} points but {len(labels)} labels and {len(descriptions)} descriptions")
+            raise MarkupsError(f"markup list {self.name!r}: {n} points but {len(labels)} labels and "
+                               f"{len(descriptions)} descriptions")
         object.__setattr__(self, "positions", positions)
         object.__setattr__(self, "labels", labels)
         object.__setattr__(self, "descriptions", descriptions)
@@ -195,7 +196,8 @@ def _read_json(path: Path) -> list[MarkupList]:
             labels.append(str(point.get("label", "")))
             descriptions.append(str(point.get("description", "")))
         lps = convert_points(np.array(positions, dtype=np.float64).reshape(-1, 3), system, "LPS")
-        lists.append(MarkupList(str(markup.get("name", f"{path.name.split('.')[0]}-{index}")), lps, tuple(labels), tuple(descriptions)))
+        name = str(markup.get("name", f"{path.name.split('.')[0]}-{index}"))
+        lists.append(MarkupList(name, lps, tuple(labels), tuple(descriptions)))
     return lists
 
 

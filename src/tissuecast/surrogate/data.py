@@ -7,8 +7,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ModelError
+from .trust import split_calibration
 
-__all__ = ["TrainingArrays", "dataset_arrays", "split_indices"]
+__all__ = ["TrainingArrays", "dataset_arrays", "split_indices", "FitSplits", "fit_splits"]
+
+#: Without given validation samples, one training sample in this many validates (at least one).
+VALIDATION_EVERY = 10
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,3 +58,50 @@ def dataset_arrays(dataset) -> TrainingArrays:
         fixed=np.asarray(dataset.fixed, dtype=np.int64),
         mesh=dataset.mesh,
     )
+
+
+@dataclass(frozen=True, eq=False)
+class FitSplits:
+    """Disjoint sample indices of one fit: train (>= 2), valid (>= 1) and calibration (may be empty), int64."""
+
+    train: np.ndarray
+    valid: np.ndarray
+    calibration: np.ndarray
+
+
+def fit_splits(n_samples: int, train_idx=None, valid_idx=None, calibration_idx=None, *, seed: int,
+               calibration_share: float) -> FitSplits:
+    """The samples :meth:`DeformationModel.fit` trains, validates and calibrates on.
+
+    Args:
+        n_samples: N, number of samples given to the fit.
+        train_idx: training indices; default: every sample not in ``valid_idx``.
+        valid_idx: validation indices; default: a seeded 1 in :data:`VALIDATION_EVERY` of the
+            training indices.
+        calibration_idx: calibration indices; default: a seeded ``calibration_share`` of the
+            training indices (:func:`tissuecast.surrogate.trust.split_calibration`).
+        seed: seed of the default draws.
+        calibration_share: share held out for calibration when ``calibration_idx`` is None.
+
+    Raises:
+        ModelError: fewer than 2 training or 1 validation samples, or indices outside [0, N).
+    """
+    rng = np.random.default_rng(seed)
+    if train_idx is None:
+        exclude = set() if valid_idx is None else set(np.asarray(valid_idx).tolist())
+        train_idx = np.array([i for i in range(n_samples) if i not in exclude], dtype=np.int64)
+    train_idx = np.asarray(train_idx, dtype=np.int64)
+    if valid_idx is None:
+        perm = rng.permutation(train_idx)
+        n_valid = max(1, len(perm) // VALIDATION_EVERY)
+        valid_idx, train_idx = np.sort(perm[:n_valid]), np.sort(perm[n_valid:])
+    valid_idx = np.asarray(valid_idx, dtype=np.int64)
+    if calibration_idx is None:
+        train_idx, calibration_idx = split_calibration(train_idx, calibration_share, seed)
+    calibration_idx = np.asarray(calibration_idx, dtype=np.int64)
+    if len(train_idx) < 2 or len(valid_idx) < 1:
+        raise ModelError(f"need at least 2 training and 1 validation samples, got {len(train_idx)} and {len(valid_idx)}")
+    for name, idx in (("train_idx", train_idx), ("valid_idx", valid_idx)):
+        if idx.min() < 0 or idx.max() >= n_samples:
+            raise ModelError(f"{name} holds indices outside [0, {n_samples})")
+    return FitSplits(train_idx, valid_idx, calibration_idx)

@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import block_diag
 
-from .mlp import MLPWeights
+from .weights import MLPWeights
+from .encoding import fold_first_layer, untracked_at_mean
 from .pca import PCABasis
 
 __all__ = ["CompiledSurrogate"]
@@ -31,18 +32,14 @@ class CompiledSurrogate:
         self.n_members = len(members)
         self.n_markers = m0.n_markers
         self.masked = m0.masked
-        nd3 = 3 * self.n_markers
         xm, xs = m0.x_mean.astype(f8), m0.x_std.astype(f8)
         ys, ym = m0.y_std.astype(f8), m0.y_mean.astype(f8)
         C = basis.components
         firsts, biases0, mask_cols = [], [], []
-        for m in members:
-            W0 = m.weights[0].astype(f8)
-            Wd = W0[:, :nd3] / xs
-            b0 = m.biases[0].astype(f8) - Wd @ xm
+        for m in members:  # input standardisation (and present channels) folded into the first layer
+            Wd, b0, present_columns = fold_first_layer(m.weights[0].astype(f8), m.biases[0].astype(f8), xm, xs, self.masked)
             if self.masked:
-                b0 = b0 + W0[:, nd3:].sum(axis=1)  # all markers present
-                mask_cols.append(W0[:, nd3:])
+                mask_cols.append(present_columns)
             firsts.append(Wd)
             biases0.append(b0)
         # hidden layers as (in, out) matrices applied as h @ W + b
@@ -71,7 +68,7 @@ class CompiledSurrogate:
         """Last hidden activations (B, M h_last) for displacements (B, 3 n_d) mm."""
         W, b = self.hidden[0]
         if missing is not None:  # missing marker -> its mean displacement and present = 0
-            d = np.where(np.repeat(missing, 3, axis=1), self.x_mean, d)
+            d = untracked_at_mean(d, missing, self.x_mean)
             b = b - missing.astype(np.float64) @ self.mask_cols
         h = d @ W
         h += b

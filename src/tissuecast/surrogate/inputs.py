@@ -9,7 +9,8 @@ from ..errors import ModelError
 __all__ = ["marker_batch", "missing_mask"]
 
 
-def marker_batch(marker_displacements, n_d: int, missing=None, masked: bool = False) -> tuple[np.ndarray, np.ndarray | None, bool]:
+def marker_batch(marker_displacements, n_d: int, missing=None,
+                 masked: bool = False) -> tuple[np.ndarray, np.ndarray | None, bool]:
     """Check and reshape marker displacements.
 
     Args:

@@ -18,12 +18,15 @@ import numpy as np
 
 from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
 from ..errors import ModelError
+from .component_choice import choose_by_validation, components_to_train, ridge_components
+from .data import FitSplits, dataset_arrays, fit_splits
 from .fastpath import CompiledSurrogate
 from .inputs import marker_batch
-from .mlp import MLPWeights, TrainOptions, train_mlp
-from .pca import PCABasis, PCACurve, choose_n_components, fit_pca
+from .mlp import train_mlp
+from .pca import PCABasis, PCACurve, fit_pca
 from .ridge import RidgeBaseline, fit_ridge, marker_columns
-from .trust import TrustedPrediction, fit_trust, split_calibration
+from .trust import TrustedPrediction, fit_trust
+from .weights import MLPWeights
 
 __all__ = ["DeformationModel"]
 
@@ -42,72 +45,31 @@ def _surrogate_config(config, overrides: dict) -> SurrogateConfig:
     return config
 
 
-# The validation rule keeps the smallest n_w whose validation mean Offset_max is within this
-# share of the best one (components past it change the error by less than its noise) ...
-_VALIDATION_TOLERANCE = 0.01
-# ... and whose PCA floor is at most this share of that error, so that truncation is not what
-# limits accuracy (errors add about in quadrature: a floor of 0.4 e adds < 9 % to e).
-_FLOOR_SHARE = 0.4
+def _check_fit_inputs(displacements, markers, mesh) -> tuple[np.ndarray, np.ndarray]:
+    """``(U (N, n, 3), markers (n_d,) int64)`` checked against the mesh's n vertices."""
+    U = np.asarray(displacements)
+    if U.ndim != 3 or U.shape[2] != 3:
+        raise ModelError(f"displacements must be (N, n, 3) mm, got shape {U.shape}")
+    if U.shape[1] != mesh.n_points:
+        raise ModelError(f"displacements have {U.shape[1]} vertices but the mesh has {mesh.n_points}")
+    mk = np.asarray(markers, dtype=np.int64).ravel()
+    if mk.size == 0 or mk.min() < 0 or mk.max() >= mesh.n_points or np.unique(mk).size != mk.size:
+        raise ModelError(f"markers must be distinct 0-based vertex ids in [0, {mesh.n_points}), got {mk.tolist()}")
+    return U, mk
 
 
-def _train_options(c: SurrogateConfig, seed: int) -> TrainOptions:
-    return TrainOptions(
-        hidden=tuple(c.hidden), epochs=c.epochs, batch_size=c.batch_size, learning_rate=c.learning_rate,
-        patience=c.patience, schedule=c.schedule, output_scaling=c.output_scaling,
-        weight_decay=c.weight_decay, noise_sigma=c.noise_sigma, marker_dropout=c.marker_dropout, seed=seed,
-    )
+def _flat_fields(U: np.ndarray, splits: FitSplits) -> tuple[np.ndarray, np.ndarray]:
+    """Training and validation fields as float64 rows (N_t, 3 n), (N_v, 3 n) mm, checked finite."""
+    Ut = U[splits.train].reshape(len(splits.train), -1).astype(np.float64)
+    Uv = U[splits.valid].reshape(len(splits.valid), -1).astype(np.float64)
+    if not (np.isfinite(Ut).all() and np.isfinite(Uv).all()):
+        raise ModelError("training/validation displacements contain NaN or inf; select samples with status 'done'")
+    return Ut, Uv
 
 
-def _choose_by_validation(members: list[MLPWeights], basis: PCABasis, Xv: np.ndarray, Uv: np.ndarray) -> tuple[int, dict]:
-    """The n_w at which the networks' predicted weights are cut, and the curves behind it.
-
-    For every n_w the validation mean Offset_max of the truncated networks (ensemble mean)
-    and of the fields' own projection (the PCA floor) are measured; the smallest n_w within
-    ``_VALIDATION_TOLERANCE`` of the best model error whose floor is at most ``_FLOOR_SHARE``
-    of the model's error is kept (the best n_w if no floor is that small).
-
-    Args:
-        members: networks predicting all ``basis.n_components`` weights.
-        basis: the PCA basis they were trained on (K components).
-        Xv: (M, 3 n_d) validation marker displacements, mm.
-        Uv: (M, 3 n) validation fields, mm.
-
-    Returns:
-        ``(n_w, {"n_components": 1..K, "model_offset_max": (K,), "floor_offset_max": (K,)})``
-        with the validation mean Offset_max (mm) of the truncated model and of the fields'
-        own projection (the PCA floor) for every n_w.
-    """
-    W = np.mean([m.predict_weights(Xv) for m in members], axis=0)  # (M, K) ensemble-mean weights
-    true_w = basis.transform(Uv)
-    K = basis.n_components
-    model, floor = np.empty(K), np.empty(K)
-    res_model = Uv - basis.mean  # residual fields with 0 components
-    res_floor = res_model.copy()
-    for k in range(K):
-        ck = basis.components[k]
-        res_model -= np.outer(W[:, k], ck)
-        res_floor -= np.outer(true_w[:, k], ck)
-        model[k] = np.linalg.norm(res_model.reshape(len(Uv), -1, 3), axis=2).max(axis=1).mean()
-        floor[k] = np.linalg.norm(res_floor.reshape(len(Uv), -1, 3), axis=2).max(axis=1).mean()
-    good = model <= model.min() * (1.0 + _VALIDATION_TOLERANCE)
-    small_floor = good & (floor <= _FLOOR_SHARE * model)
-    n_w = int(np.flatnonzero(small_floor if small_floor.any() else model == model.min())[0]) + 1
-    return n_w, {"n_components": list(range(1, K + 1)), "model_offset_max": model.tolist(),
-                 "floor_offset_max": floor.tolist()}
-
-
-def _ridge_components(basis: PCABasis, markers: np.ndarray, ratio: float, Xv: np.ndarray, Uv: np.ndarray) -> int:
-    """The n_w (<= the basis's) at which the ridge baseline has its lowest validation mean
-    Offset_max: with few markers, ridge on many components is under-determined and much worse
-    than on a few, so the baseline is reported at its best rather than at the MLP's n_w."""
-    best, best_k = np.inf, basis.n_components
-    for k in range(1, basis.n_components + 1):
-        r = fit_ridge(basis.truncated(k), markers, ratio)
-        pred = basis.truncated(k).inverse_transform(r.weights(Xv))
-        e = np.linalg.norm((pred - Uv).reshape(len(Uv), -1, 3), axis=2).max(axis=1).mean()
-        if e < best:
-            best, best_k = e, k
-    return int(best_k)
+#: Member k of an ensemble trains with seed ``surrogate.seed + ENSEMBLE_SEED_STRIDE * k``: far
+#: enough apart that runs with neighbouring seeds share no member.
+ENSEMBLE_SEED_STRIDE = 1000
 
 
 class DeformationModel:
@@ -205,77 +167,36 @@ class DeformationModel:
             self.
         """
         t0 = time.perf_counter()
-        U = np.asarray(displacements)
-        if U.ndim != 3 or U.shape[2] != 3:
-            raise ModelError(f"displacements must be (N, n, 3) mm, got shape {U.shape}")
-        if U.shape[1] != mesh.n_points:
-            raise ModelError(f"displacements have {U.shape[1]} vertices but the mesh has {mesh.n_points}")
-        mk = np.asarray(markers, dtype=np.int64).ravel()
-        if mk.size == 0 or mk.min() < 0 or mk.max() >= mesh.n_points or np.unique(mk).size != mk.size:
-            raise ModelError(f"markers must be distinct 0-based vertex ids in [0, {mesh.n_points}), got {mk.tolist()}")
-        fx = np.asarray(fixed, dtype=np.int64).ravel()
-        N = U.shape[0]
-        rng = np.random.default_rng(self.config.seed)
-        if train_idx is None:
-            exclude = set() if valid_idx is None else set(np.asarray(valid_idx).tolist())
-            train_idx = np.array([i for i in range(N) if i not in exclude], dtype=np.int64)
-        train_idx = np.asarray(train_idx, dtype=np.int64)
-        if valid_idx is None:
-            perm = rng.permutation(train_idx)
-            n_valid = max(1, len(perm) // 10)
-            valid_idx, train_idx = np.sort(perm[:n_valid]), np.sort(perm[n_valid:])
-        valid_idx = np.asarray(valid_idx, dtype=np.int64)
-        if calibration_idx is None:
-            train_idx, calibration_idx = split_calibration(train_idx, self.config.calibration_share, self.config.seed)
-        calibration_idx = np.asarray(calibration_idx, dtype=np.int64)
-        if len(train_idx) < 2 or len(valid_idx) < 1:
-            raise ModelError(f"need at least 2 training and 1 validation samples, got {len(train_idx)} and {len(valid_idx)}")
-        for name, idx in (("train_idx", train_idx), ("valid_idx", valid_idx)):
-            if idx.min() < 0 or idx.max() >= N:
-                raise ModelError(f"{name} holds indices outside [0, {N})")
-        Ut = U[train_idx].reshape(len(train_idx), -1).astype(np.float64)
-        Uv = U[valid_idx].reshape(len(valid_idx), -1).astype(np.float64)
-        if not (np.isfinite(Ut).all() and np.isfinite(Uv).all()):
-            raise ModelError("training/validation displacements contain NaN or inf; select samples with status 'done'")
         c = self.config
-        curve = None
-        if c.n_components:
-            n_w, rule = min(c.n_components, min(Ut.shape)), "fixed (surrogate.n_components)"
-        elif c.pca_rule == "paper":
-            n_w, curve = choose_n_components(Ut, c.pca_max_error, min(c.pca_folds, len(Ut)), seed=c.seed)
-            rule = f"paper ({c.pca_folds}-fold reconstruction error < {c.pca_max_error:g} mm)"
-        else:
-            n_w = min(c.pca_max_components, len(Ut) - 1, Ut.shape[1])  # trained on all, truncated below
-            rule = "validation (lowest validation mean Offset_max)"
-        n_w = max(int(n_w), 1)
+        U, mk = _check_fit_inputs(displacements, markers, mesh)
+        splits = fit_splits(U.shape[0], train_idx, valid_idx, calibration_idx, seed=c.seed,
+                            calibration_share=c.calibration_share)
+        Ut, Uv = _flat_fields(U, splits)
+        n_w, rule, curve = components_to_train(c, Ut)
         t_pca = time.perf_counter()
         basis = fit_pca(Ut, n_w)
         cols = marker_columns(mk)
         Xt, Xv = Ut[:, cols], Uv[:, cols]
-        Yt, Yv = basis.transform(Ut), basis.transform(Uv)
-        members, summaries = [], []
-        for k in range(c.ensemble):
-            w, s = train_mlp(Xt, Yt, Xv, Yv, _train_options(c, seed=c.seed + 1000 * k))
-            members.append(w)
-            summaries.append(s)
+        members, summaries = self._train_members(Xt, basis.transform(Ut), Xv, basis.transform(Uv))
         choice = {"rule": rule, "n_components": n_w}
         if not c.n_components and c.pca_rule == "validation":
-            n_w, curve_v = _choose_by_validation(members, basis, Xv, Uv)
+            n_w, curve_v = choose_by_validation(members, basis, Xv, Uv)
             basis, members = basis.truncated(n_w), [m.truncated(n_w) for m in members]
-            choice = {"rule": rule, "n_components": n_w, "trained_components": int(curve_v["n_components"][-1]),
-                      "validation_curve": curve_v}
-        choice["ridge_components"] = _ridge_components(basis, mk, c.ridge_ratio, Xv, Uv)
+            choice.update(n_components=n_w, trained_components=int(curve_v["n_components"][-1]), validation_curve=curve_v)
+        choice["ridge_components"] = ridge_components(basis, mk, c.ridge_ratio, Xv, Uv)
         self.pca_choice_ = choice
-        self._set_state(mesh=mesh, markers=mk, fixed=fx, basis=basis, members=members, curve=curve)
+        self._set_state(mesh=mesh, markers=mk, fixed=np.asarray(fixed, dtype=np.int64).ravel(), basis=basis,
+                        members=members, curve=curve)
         self.summaries_ = summaries
         self.trust_ = None
-        if len(calibration_idx):
-            self.trust_ = fit_trust(self, U, train_idx=train_idx, valid_idx=valid_idx, calibration_idx=calibration_idx,
-                                    coverage=c.coverage, false_alarm=c.false_alarm_rate)
+        if len(splits.calibration):
+            self.trust_ = fit_trust(self, U, train_idx=splits.train, valid_idx=splits.valid,
+                                    calibration_idx=splits.calibration, coverage=c.coverage,
+                                    false_alarm=c.false_alarm_rate)
         self.training_ = {
-            "n_train": int(len(train_idx)),
-            "n_valid": int(len(valid_idx)),
-            "n_calibration": int(len(calibration_idx)),
+            "n_train": int(len(splits.train)),
+            "n_valid": int(len(splits.valid)),
+            "n_calibration": int(len(splits.calibration)),
             "n_components": int(n_w),
             "pca_rule": rule,
             "pca_seconds": t_pca - t0,
@@ -284,6 +205,16 @@ class DeformationModel:
             "members": [s.as_dict() for s in summaries],
         }
         return self
+
+    def _train_members(self, Xt, Yt, Xv, Yv) -> tuple[list[MLPWeights], list]:
+        """The ensemble's networks (member k seeded ``seed + ENSEMBLE_SEED_STRIDE k``) and their training summaries."""
+        c = self.config
+        members, summaries = [], []
+        for k in range(c.ensemble):
+            w, s = train_mlp(Xt, Yt, Xv, Yv, c, seed=c.seed + ENSEMBLE_SEED_STRIDE * k)
+            members.append(w)
+            summaries.append(s)
+        return members, summaries
 
     def _set_state(self, *, mesh, markers, fixed, basis: PCABasis, members: list[MLPWeights], curve: PCACurve | None):
         if members[0].weights[-1].shape[0] != basis.n_components or members[0].n_markers != len(markers):
@@ -314,8 +245,6 @@ class DeformationModel:
                 given, replace the store's markers (the store holds every vertex's
                 displacement, e.g. for markers planned by ``tissuecast markers plan``).
         """
-        from .data import dataset_arrays
-
         if config is None:
             config = getattr(dataset, "config", None)
         arrays = dataset_arrays(dataset)
@@ -389,7 +318,7 @@ class DeformationModel:
         """
         if not self.has_trust:
             raise ModelError("this model has no calibrated error bounds or alarm; re-train it with "
-                             "surrogate.calibration_share > 0 (e.g. 0.125)")
+                             f"surrogate.calibration_share > 0 (e.g. {SurrogateConfig.calibration_share:g})")
         d, _, single = self._marker_batch(marker_displacements)
         u = self.compiled_.fields(d).reshape(d.shape[0], -1, 3)
         bounds, alarms = self.trust_.assess(d, u, coverage=coverage, false_alarm=false_alarm)
@@ -501,7 +430,7 @@ class DeformationModel:
         export_onnx(self, path)
 
     def torch_module(self):
-        """The equivalent torch module (float32), see :func:`tissuecast.surrogate.mlp.torch_network`."""
+        """The equivalent torch module (float32), see :func:`tissuecast.surrogate.network.torch_network`."""
         from .network import torch_network
 
         self._fitted()

@@ -2,14 +2,11 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ..errors import require
-
-if TYPE_CHECKING:
-    from .mlp import MLPWeights
+from .encoding import masked_input
+from .weights import MLPWeights
 
 __all__ = ["build_network", "torch_network"]
 
@@ -59,7 +56,7 @@ def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.nd
             if self.masked:
                 if present is None:
                     present = torch.ones(markers.shape[0], markers.shape[1], dtype=markers.dtype)
-                x = torch.cat([x * present.repeat_interleave(3, dim=1), present], dim=1)
+                x = masked_input(x, present, torch)
             z = self.nets[0](x)
             for net in self.nets[1:]:
                 z = z + net(x)

@@ -41,6 +41,12 @@ SCORE_NAMES = ("distance", "consistency")
 _VARIANCE_FLOOR = 1e-4
 #: Neighbours averaged by the distance score.
 NEIGHBOURS = 5
+# Round-off floors: the residuals' mean variance (mm^2; all-zero residuals of a rigid set-up),
+# a marker's residual scale as a share of the largest, and a score's median (a dimensionless
+# score that is 0 on every validation input), so that nothing is divided by 0.
+_TINY_VARIANCE = 1e-18
+_SCALE_FLOOR_REL = 1e-9
+_TINY_SCORE = 1e-12
 
 
 @dataclass(frozen=True, eq=False)
@@ -150,12 +156,12 @@ def fit_marker_consistency(X_train, X_valid) -> MarkerConsistency | None:
     R = draft.residual_vectors(X_valid)
     mean = R.mean(axis=0)
     cov = np.cov(R, rowvar=False).reshape(p, p) if len(R) > 1 else np.zeros((p, p))
-    avg = max(float(np.trace(cov)) / p, 1e-18)
+    avg = max(float(np.trace(cov)) / p, _TINY_VARIANCE)
     shrink = p / (p + len(R))
     cov = (1.0 - shrink) * cov + shrink * avg * np.eye(p)
     dist = np.linalg.norm(R.reshape(len(R), -1, 3), axis=2)
     scale = np.sqrt((dist**2).mean(axis=0))
-    return MarkerConsistency(tuple(regs), np.maximum(scale, 1e-9 * max(float(scale.max()), 1e-300)), mean,
+    return MarkerConsistency(tuple(regs), np.maximum(scale, _SCALE_FLOOR_REL * max(float(scale.max()), 1e-300)), mean,
                              np.linalg.inv(cov))
 
 
@@ -214,6 +220,6 @@ def calibrate_ood(distance: InputDistance, consistency: MarkerConsistency | None
     draft = OODScores(distance, consistency, np.ones(2), np.zeros(0))
     sv = draft.scores(X_valid)
     scale = np.array([np.median(sv[:, 0]), np.median(sv[:, 1]) if consistency is not None else 1.0])
-    scale = np.maximum(scale, 1e-12)
+    scale = np.maximum(scale, _TINY_SCORE)
     ood = OODScores(distance, consistency, scale, np.zeros(0))
     return OODScores(distance, consistency, scale, np.sort(ood.combined(ood.scores(X_calibration))))

@@ -17,6 +17,12 @@ from ..errors import ModelError
 
 __all__ = ["PCABasis", "PCACurve", "fit_pca", "choose_n_components"]
 
+#: When fewer than rank / GRAM_RANK_RATIO components of a wide matrix are wanted, the leading
+#: eigenvectors of its (N, N) Gram matrix are computed instead of a full thin SVD.
+GRAM_RANK_RATIO = 4
+# Singular values below this share of the largest are round-off (a fold's Gram matrix is rank-deficient).
+_RANK_RTOL = 1e-12
+
 log = logging.getLogger(__name__)
 
 
@@ -98,7 +104,7 @@ def fit_pca(X, n_components: int | None = None) -> PCABasis:
     k = r if n_components is None else int(n_components)
     if not 1 <= k <= r:
         raise ModelError(f"n_components must be in [1, {r}] for {A.shape[0]} samples, got {n_components}")
-    if 4 * k < r and A.shape[0] <= A.shape[1]:
+    if GRAM_RANK_RATIO * k < r and A.shape[0] <= A.shape[1]:
         # a few leading components of a wide matrix: eigen-decomposition of the (N, N) Gram
         # matrix, leading part only, is several times faster than a full thin SVD
         lam, U = eigh(Ac @ Ac.T, subset_by_index=[A.shape[0] - k, A.shape[0] - 1])
@@ -231,7 +237,7 @@ def _curve(A, G, order, parts, K, max_error, full_curve):
         lam, U = eigh(Gc, subset_by_index=[len(train) - k_fold, len(train) - 1])
         lam, U = lam[::-1], U[:, ::-1]
         sv = np.sqrt(np.maximum(lam, 0.0))
-        keep = sv > 1e-12 * max(sv[0], 1e-300)
+        keep = sv > _RANK_RTOL * max(sv[0], 1e-300)
         comps = (U[:, keep].T @ (A[train] - mean)) / sv[keep][:, None]
         comps /= np.linalg.norm(comps, axis=1, keepdims=True)
         resid = A[held] - mean  # (m, p): reconstruction error with 0 components

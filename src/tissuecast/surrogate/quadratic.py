@@ -24,6 +24,9 @@ __all__ = ["QuadraticRegression", "fit_quadratic"]
 # Ridge penalty relative to the mean diagonal of the feature Gram matrix: enough to keep the
 # normal equations well conditioned, small against the signal of standardised features.
 RIDGE_REL = 1e-6
+#: Input directions whose pairwise products are features: 12 give 78 quadratic terms and
+#: cover nearly all of a 5-marker input's 15 directions.
+QUADRATIC_DIMS = 12
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,7 +69,7 @@ class QuadraticRegression:
         return cls(*(np.asarray(arrays[f"{prefix}{k}"], dtype=np.float64) for k in ("mean", "scale", "directions", "coef")))
 
 
-def fit_quadratic(X, Y, *, quadratic_dims: int = 12, ridge: float = RIDGE_REL) -> QuadraticRegression:
+def fit_quadratic(X, Y, *, quadratic_dims: int = QUADRATIC_DIMS, ridge: float = RIDGE_REL) -> QuadraticRegression:
     """Fit :class:`QuadraticRegression` by ridge least squares.
 
     Args:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import SurrogateConfig
 from ..errors import ModelError
 from .pca import PCABasis
 
@@ -50,7 +51,7 @@ class RidgeBaseline:
         return (d - self.marker_mean) @ self.matrix.T
 
 
-def fit_ridge(basis: PCABasis, markers, ratio: float = 1e-3) -> RidgeBaseline:
+def fit_ridge(basis: PCABasis, markers, ratio: float = SurrogateConfig.ridge_ratio) -> RidgeBaseline:
     """Closed-form ridge baseline on a PCA basis.
 
     Args:

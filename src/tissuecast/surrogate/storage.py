@@ -25,8 +25,9 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ModelError, require
-from .mlp import MLPWeights, TrainingSummary
+from .mlp import TrainingSummary
 from .pca import PCABasis, PCACurve
+from .weights import MLPWeights
 
 __all__ = ["FORMAT", "SCHEMA", "save_model", "load_model", "export_onnx", "read_metadata"]
 
@@ -107,7 +108,8 @@ def read_metadata(folder) -> dict:
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ModelError(f"{str(p)!r} is not valid JSON: {exc}") from exc
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise ModelError(f"{str(p)!r} is not a tissuecast model (format {meta.get('format') if isinstance(meta, dict) else None!r})")
+        found = meta.get("format") if isinstance(meta, dict) else None
+        raise ModelError(f"{str(p)!r} is not a tissuecast model (format {found!r})")
     if meta.get("schema") != SCHEMA:
         raise ModelError(
             f"model schema {meta.get('schema')!r} (written by tissuecast {meta.get('versions', {}).get('tissuecast')}) "
@@ -144,7 +146,8 @@ def load_model(cls, folder):
         raise ModelError(f"model weights {str(wpath)!r} are unreadable: {exc}") from exc
     members = [MLPWeights.from_tensors(tensors, f"member{k}.", net["n_layers"], net["masked"]) for k in range(net["ensemble"])]
     p = _npz(folder / meta["files"]["pca"], ["mean", "components", "singular_values", "n_samples"])
-    basis = PCABasis(mean=p["mean"], components=p["components"], singular_values=p["singular_values"], n_samples=int(p["n_samples"]))
+    basis = PCABasis(mean=p["mean"], components=p["components"], singular_values=p["singular_values"],
+                     n_samples=int(p["n_samples"]))
     m = _npz(folder / meta["files"]["mesh"], ["points", "tets"])
     mesh = TetMesh(m["points"], m["tets"])
     if mesh.fingerprint() != meta["mesh_fingerprint"] or basis.n_features != 3 * mesh.n_points:

@@ -50,6 +50,11 @@ _LOG_FLOOR = 1e-6
 _ERROR_MODEL_RIDGE = 1e-3
 #: PCA components of the second predictor (its truncation error must stay below the network's).
 SECOND_COMPONENTS = 64
+#: Samples predicted at once while fitting (bounds the memory to chunk x n x 3 floats).
+PREDICT_CHUNK = 256
+#: The calibration hold-out is drawn with ``surrogate.seed`` plus this (a prime), so that it does
+#: not repeat the draw of the validation split made with the same seed.
+CALIBRATION_SEED_OFFSET = 7919
 
 
 @dataclass(frozen=True)
@@ -142,8 +147,8 @@ class TrustLayer:
     error_model: np.ndarray
     conformal: VertexConformal
     ood: OODScores
-    coverage: float = 0.9
-    false_alarm: float = 0.01
+    coverage: float
+    false_alarm: float
 
     # ---------------------------------------------------------------- normaliser
     def _parts(self, d: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -272,8 +277,51 @@ class TrustLayer:
                 "consistency": self.ood.consistency is not None}
 
 
-def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, coverage: float = 0.9,
-              false_alarm: float = 0.01, chunk: int = 256) -> TrustLayer:
+def _check_splits(sets: list[np.ndarray]) -> None:
+    if len(np.unique(np.concatenate(sets))) != sum(len(s) for s in sets):
+        raise ModelError("training, validation and calibration samples must be disjoint")
+    if len(sets[1]) < MIN_SAMPLES or len(sets[2]) < MIN_SAMPLES:
+        raise ModelError(f"the trust layer needs >= {MIN_SAMPLES} validation and calibration samples each, got "
+                         f"{len(sets[1])} and {len(sets[2])}; raise surrogate.calibration_share or use a larger data set")
+
+
+def _assessed_samples(model, draft: TrustLayer, U, idx: np.ndarray, chunk: int) -> tuple[np.ndarray, ...]:
+    """The model's predictions of samples ``idx`` assessed by ``draft``, ``chunk`` samples at a time.
+
+    Returns:
+        ``(features (B, F), disagreement h (B, n) mm, vertex errors (B, n) mm, inputs (B, 3 n_d) mm)``.
+    """
+    mk = model.markers
+    feats, hs, errs, inputs = [], [], [], []
+    for s in range(0, len(idx), chunk):
+        bench = np.asarray(U[idx[s:s + chunk]], dtype=np.float64)
+        d = bench[:, mk, :].reshape(len(bench), -1)
+        u = model.predict(d.reshape(len(bench), -1, 3))
+        f, h, _ = draft._parts(d, u)
+        feats.append(f)
+        hs.append(h)
+        errs.append(np.linalg.norm(u - bench, axis=2))
+        inputs.append(d)
+    return np.vstack(feats), np.vstack(hs), np.vstack(errs), np.vstack(inputs)
+
+
+def _error_model(features: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """Ridge regression of log Offset_max on [1, features]: (1 + F,) coefficients (intercept not penalised)."""
+    F = np.hstack([np.ones((len(features), 1)), features])
+    G = F.T @ F + _ERROR_MODEL_RIDGE * len(F) * np.diag(np.r_[0.0, np.ones(features.shape[1])])
+    return np.linalg.solve(G, F.T @ _log(errors.max(axis=1)))
+
+
+def _warn_if_too_few(m: int, coverage: float, false_alarm: float) -> None:
+    for what, level in (("error bounds at coverage", coverage), ("alarm at false-alarm rate", 1.0 - false_alarm)):
+        if m < min_calibration_samples(level):
+            log.warning("%d calibration samples are too few for finite %s %g (needs %d): raise "
+                        "surrogate.calibration_share or use a larger data set", m, what,
+                        coverage if "bounds" in what else false_alarm, min_calibration_samples(level))
+
+
+def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, coverage: float, false_alarm: float,
+              chunk: int = PREDICT_CHUNK) -> TrustLayer:
     """Fit the trust layer of a fitted :class:`~tissuecast.surrogate.DeformationModel`.
 
     Args:
@@ -281,24 +329,20 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
             ``calibration_idx`` samples in training).
         displacements: (N, n, 3) fields, mm.
         train_idx, valid_idx, calibration_idx: disjoint sample indices.
-        coverage: default nominal coverage of the bounds.
-        false_alarm: default false-alarm rate.
+        coverage: default nominal coverage of the bounds (``surrogate.coverage``).
+        false_alarm: default false-alarm rate (``surrogate.false_alarm_rate``).
+        chunk: samples predicted at once.
 
     Raises:
         ModelError: overlapping splits or too few validation/calibration samples.
     """
     sets = [np.asarray(i, dtype=np.int64) for i in (train_idx, valid_idx, calibration_idx)]
-    if len(np.unique(np.concatenate(sets))) != sum(len(s) for s in sets):
-        raise ModelError("training, validation and calibration samples must be disjoint")
-    if len(sets[1]) < MIN_SAMPLES or len(sets[2]) < MIN_SAMPLES:
-        raise ModelError(f"the trust layer needs >= {MIN_SAMPLES} validation and calibration samples each, got "
-                         f"{len(sets[1])} and {len(sets[2])}; raise surrogate.calibration_share or use a larger data set")
+    _check_splits(sets)
     U = displacements
     mk = model.markers
     cols = marker_columns(mk)
     Ut = np.asarray(U[sets[0]], dtype=np.float64).reshape(len(sets[0]), -1)
-    K = min(SECOND_COMPONENTS, len(Ut) - 1, Ut.shape[1])
-    basis = fit_pca(Ut, K)
+    basis = fit_pca(Ut, min(SECOND_COMPONENTS, len(Ut) - 1, Ut.shape[1]))
     second = fit_quadratic(Ut[:, cols], basis.transform(Ut))
     Xt = Ut[:, cols]
     distance = fit_input_distance(Xt)
@@ -307,34 +351,13 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
     ood0 = OODScores(distance, consistency, np.ones(2), np.zeros(0))
     draft = TrustLayer(mk, basis, second, np.zeros(1 + len(FEATURE_NAMES)), VertexConformal(np.ones((1, 1))), ood0,
                        coverage, false_alarm)
-
-    def pieces(idx):
-        feats, hs, errs, inputs = [], [], [], []
-        for s in range(0, len(idx), chunk):
-            bench = np.asarray(U[idx[s:s + chunk]], dtype=np.float64)
-            d = bench[:, mk, :].reshape(len(bench), -1)
-            u = model.predict(d.reshape(len(bench), -1, 3))
-            f, h, _ = draft._parts(d, u)
-            feats.append(f)
-            hs.append(h)
-            errs.append(np.linalg.norm(u - bench, axis=2))
-            inputs.append(d)
-        return np.vstack(feats), np.vstack(hs), np.vstack(errs), np.vstack(inputs)
-
-    fv, _, ev, dv = pieces(sets[1])
-    F = np.hstack([np.ones((len(fv), 1)), fv])
-    G = F.T @ F + _ERROR_MODEL_RIDGE * len(F) * np.diag(np.r_[0.0, np.ones(fv.shape[1])])
-    beta = np.linalg.solve(G, F.T @ _log(ev.max(axis=1)))
+    fv, _, ev, dv = _assessed_samples(model, draft, U, sets[1], chunk)
+    beta = _error_model(fv, ev)
     draft = TrustLayer(mk, basis, second, beta, draft.conformal, ood0, coverage, false_alarm)
-    fc, hc, ec, dc = pieces(sets[2])
+    fc, hc, ec, dc = _assessed_samples(model, draft, U, sets[2], chunk)
     conformal = fit_vertex_conformal(ec, draft._sigma(fc, hc))
     ood = calibrate_ood(distance, consistency, dv, dc)
-    m = len(sets[2])
-    for what, level in (("error bounds at coverage", coverage), ("alarm at false-alarm rate", 1.0 - false_alarm)):
-        if m < min_calibration_samples(level):
-            log.warning("%d calibration samples are too few for finite %s %g (needs %d): raise "
-                        "surrogate.calibration_share or use a larger data set", m, what,
-                        coverage if "bounds" in what else false_alarm, min_calibration_samples(level))
+    _warn_if_too_few(len(sets[2]), coverage, false_alarm)
     return TrustLayer(mk, basis, second, beta, conformal, ood, coverage, false_alarm)
 
 
@@ -353,5 +376,5 @@ def split_calibration(train_idx, share: float, seed: int) -> tuple[np.ndarray, n
     m = int(round(share * len(idx)))
     if share <= 0 or m < MIN_SAMPLES or len(idx) - m < 2:
         return np.sort(idx), np.zeros(0, dtype=np.int64)
-    perm = np.random.default_rng(seed + 7919).permutation(idx)
+    perm = np.random.default_rng(seed + CALIBRATION_SEED_OFFSET).permutation(idx)
     return np.sort(perm[m:]), np.sort(perm[:m])
