@@ -91,6 +91,8 @@ def test_partial_file_keeps_other_defaults(tmp_path):
         ({"solver": {"multigrid_smoothing": 9}}, "solver.multigrid_smoothing", "out of range"),
         ({"dataset": {"time_budget": -1.0}}, "dataset.time_budget", "out of range"),
         ({"dataset": {"time_budget_min": -0.5}}, "dataset.time_budget_min", "out of range"),
+        ({"dataset": {"batch_size": 0}}, "dataset.batch_size", "out of range"),
+        ({"dataset": {"batch_size": 257}}, "dataset.batch_size", "out of range"),
     ],
 )
 def test_bad_values_raise_config_error_naming_the_key(data, key, text):

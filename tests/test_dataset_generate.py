@@ -158,6 +158,73 @@ def test_interrupted_before_the_calibration_record_calibrates_again_identically(
     _same_store(store, ref_path)
 
 
+def test_batches_are_chunks_of_the_generation_order_fixed_in_the_store(reference):
+    cfg, path, _ = reference
+    import zarr
+
+    from tissuecast.dataset.plan import generation_order
+
+    ds = open_dataset(path)
+    root = zarr.open_group(str(path), mode="r")
+    size = cfg.dataset.batch_size
+    assert size > 1 and root.attrs["batches"]["size"] == size
+    batch_of = root["samples/batch"][...]
+    basis = np.arange(N_LBO + N_TEST2) < N_BASIS
+    assert (batch_of[basis] == -1).all()  # solved before the reduced model: alone
+    order = generation_order(ds.split, np.flatnonzero(~basis))
+    np.testing.assert_array_equal(batch_of[order], np.arange(len(order)) // size)
+    assert root.attrs["batches"]["count"] == -(-len(order) // size)
+
+
+def test_batch_size_one_gives_the_same_samples_to_round_off(reference, tmp_path):
+    """One sample at a time instead of batches: the same samples, iterations and failures;
+    the displacements differ by the round-off of the gathered solves only."""
+    cfg, ref_path, _ = reference
+    single = tmp_path / "single.zarr"
+    simulate(with_overrides(cfg, dataset={"batch_size": 1}), single, progress=False)
+    a, b = open_dataset(ref_path), open_dataset(single)
+    assert "batches" not in zarr.open_group(str(single), mode="r").attrs
+    np.testing.assert_array_equal(a.status, b.status)
+    np.testing.assert_array_equal(a.predicted, b.predicted)
+    done = a.status == SampleStatus.DONE
+    assert (a.iterations[done] == b.iterations[done]).mean() >= 0.95
+    peak = np.abs(a.displacements[done]).max()
+    assert np.abs(a.displacements[done] - b.displacements[done]).max() <= 1e-5 * peak
+    np.testing.assert_array_equal(a.forces, b.forces)
+
+
+def test_samples_failing_in_a_batch_go_on_alone_and_are_recorded(reference, tmp_path):
+    """A sample whose try from the prediction fails in its batch is solved alone from zero
+    (GUESS_FAILED, the batch's reason kept) and, failing that too, recorded failed after its
+    cautious retries with every reason; the other samples of the batch are unaffected."""
+    from test_dataset_helpers import _fingerprint
+
+    cfg, ref_path, _ = reference
+    store = tmp_path / "flaky.zarr"
+    simulate(cfg, store, progress=False, solver_factory="test_dataset_helpers:batch_failing_solver_factory")
+    ref, ds = open_dataset(ref_path), open_dataset(store)
+    batched = np.flatnonzero(zarr.open_group(str(store), mode="r")["samples/batch"][...] >= 0)
+    fp = np.array([_fingerprint(ds.forces[i].astype(np.float64)) for i in batched])
+    flaky, doomed = batched[fp % 4 == 0], batched[(fp % 4 == 0) & (fp % 3 == 0)]
+    rescued = np.setdiff1d(flaky, doomed)
+    assert len(rescued) and len(doomed), "the test needs samples of both kinds"
+    for i in rescued:
+        assert ds.status[i] == SampleStatus.DONE and ds.predicted[i] == InitialGuess.GUESS_FAILED
+        cold = ref.displacements[i]
+        assert np.abs(ds.displacements[i] - cold).max() <= 2e-3 * np.abs(cold).max()
+    for i in doomed:
+        assert ds.status[i] == SampleStatus.FAILED and ds.attempts[i] == cfg.solver.retries + 1
+        reason = ds.failures[int(i)]
+        assert reason.startswith("attempt 1 from the prediction, in a batch of")
+        assert reason.count("made to fail alone too") == cfg.solver.retries + 1, reason
+    others = np.setdiff1d(batched, flaky)
+    others = others[ref.status[others] == SampleStatus.DONE]
+    assert (ds.status[others] == SampleStatus.DONE).all()
+    assert (ds.predicted[others] == InitialGuess.REDUCED_MODEL).all()
+    peak = np.abs(ref.displacements[others]).max()
+    assert np.abs(ds.displacements[others] - ref.displacements[others]).max() <= 1e-5 * peak
+
+
 def test_no_predictor_solves_every_sample_from_zero(tmp_path):
     cfg = with_overrides(small_config(tmp_path, n_samples=6, n_test2=0, alpha=0.04, workers=1),
                          dataset={"predictor": "none", "predictor_samples": 2})

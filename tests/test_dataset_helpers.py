@@ -114,6 +114,46 @@ def stalling_solver_factory(mesh, fixed, cfg):
     return make
 
 
+def _fingerprint(forces) -> int:
+    """A pseudo-random but deterministic number of a force field (picks the flaky samples)."""
+    return int(np.abs(np.asarray(forces, dtype=np.float64)).sum() * 1e6)
+
+
+def batch_failing_solver_factory(mesh, fixed, cfg):
+    """The real FEM solver, except that in ``solve_batch`` every sample whose force field's
+    fingerprint is a multiple of 4 fails (ConvergenceError at load fraction 0.5, the others
+    solved by the real batch), and of those, the multiples of 3 fail every solve alone too
+    (once they have failed in a batch of this process)."""
+    from tissuecast.fem import Solver, build_problem
+
+    failed_in_batch: set = set()
+
+    class FlakyBatches(Solver):
+        def solve_batch(self, forces, initial_guesses=None, *, time_limit=None):
+            forces = list(forces)
+            guesses = [None] * len(forces) if initial_guesses is None else list(initial_guesses)
+            flaky = [_fingerprint(f) % 4 == 0 for f in forces]
+            kept = super().solve_batch([f for f, x in zip(forces, flaky) if not x],
+                                       [g for g, x in zip(guesses, flaky) if not x], time_limit=time_limit)
+            out = []
+            for f, x in zip(forces, flaky):
+                if x:
+                    failed_in_batch.add(_fingerprint(f))
+                    out.append(ConvergenceError("made to fail in a batch", 0.5))
+                else:
+                    out.append(kept.pop(0))
+            return out
+
+        def solve(self, forces, initial_guess=None, time_limit=None):
+            fp = _fingerprint(forces)
+            if fp in failed_in_batch and fp % 3 == 0:
+                raise ConvergenceError("made to fail alone too", 0.25)
+            return super().solve(forces, initial_guess=initial_guess, time_limit=time_limit)
+
+    problem = build_problem(mesh, cfg, fixed)
+    return lambda solver_cfg: FlakyBatches(problem, solver_cfg)
+
+
 def store_arrays(path) -> dict:
     """Every array of a store as raw bytes, by path (``samples/seconds`` excluded: wall-clock)."""
     import zarr

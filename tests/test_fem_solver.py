@@ -396,3 +396,22 @@ def test_time_limit_stops_a_solve_and_returns_its_factor(beam):
     assert len(solver._idle_factors) == 1  # the stopped run gave its numeric factor back
     res = solver.solve(f, time_limit=600.0)  # a generous limit changes nothing
     np.testing.assert_array_equal(res.displacement, solver.solve(f).displacement)
+
+
+def test_batch_time_limit_stops_each_sample_by_its_share(beam):
+    """solve_batch(time_limit=): a sample is stopped once its share of the batch's rounds
+    passes the limit (SolveTimeout, the others unaffected by a generous limit)."""
+    from tissuecast.errors import SolveTimeout
+
+    mesh, fixed, f = beam
+    solver = Solver(Problem(mesh, MAT, fixed, order=2), SolverConfig())
+    first = solver.solve(f)
+    fields, guesses = [f, 0.8 * f], [first.nodal_displacement * 1.05, first.displacement * 0.7]
+    out = solver.solve_batch(fields, guesses, time_limit=0.0)
+    for exc in out:
+        assert isinstance(exc, SolveTimeout) and exc.limit == 0.0 and exc.seconds > 0.0
+        assert "its share of a batch's time" in str(exc)
+    free = solver.solve_batch(fields, guesses)
+    limited = solver.solve_batch(fields, guesses, time_limit=600.0)
+    for a, b in zip(free, limited):
+        np.testing.assert_array_equal(a.nodal_displacement, b.nodal_displacement)

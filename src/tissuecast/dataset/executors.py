@@ -1,7 +1,8 @@
 """Where samples are solved: local worker processes (default) or a Dask distributed cluster.
 
-An executor takes a :class:`~.worker.Recipe` once and then solves :class:`~.worker.Task`\\ s,
-yielding :class:`~.worker.SampleResult`\\ s in completion order. Workers only compute; the
+An executor takes a :class:`~.worker.Recipe` once and then solves work items (a
+:class:`~.worker.Task` or a :class:`~.batch.Batch` of them), yielding each item's list of
+:class:`~.worker.SampleResult`\\ s in completion order. Workers only compute; the
 parent process alone writes the store, so no two processes ever write the same chunk.
 
 Determinism: every worker runs its BLAS single-threaded, so a sample's bits do not depend on
@@ -22,7 +23,8 @@ import time
 from typing import Iterable, Iterator
 
 from ..errors import DatasetError, require
-from .worker import Recipe, SampleResult, Task, context_for, solve_task
+from .batch import Batch, solve_item
+from .worker import Recipe, SampleResult, Task, context_for
 
 __all__ = ["LocalExecutor", "DaskExecutor", "make_executor", "default_workers", "single_threaded_blas"]
 
@@ -75,8 +77,8 @@ def _init_worker(recipe: Recipe, parent: int) -> None:
     context_for(recipe)  # build mesh, problem and solver once per process
 
 
-def _run(task: Task) -> SampleResult:
-    return solve_task(_RECIPE, task)
+def _run(item: Task | Batch) -> list[SampleResult]:
+    return solve_item(_RECIPE, item)
 
 
 def _noop() -> int:
@@ -113,9 +115,10 @@ class LocalExecutor:
             self._pool.shutdown(wait=exc_type is None, cancel_futures=True)
             self._pool = None
 
-    def imap_unordered(self, tasks: Iterable[Task]) -> Iterator[SampleResult]:
-        """Solve ``tasks``; yield results as they complete. Tasks are taken from the iterable
-        only as workers become free (at most ``WINDOW_PER_WORKER`` per worker in flight)."""
+    def imap_unordered(self, tasks: Iterable[Task | Batch]) -> Iterator[list[SampleResult]]:
+        """Solve work items; yield each one's results as it completes. Items are taken from
+        the iterable only as workers become free (at most ``WINDOW_PER_WORKER`` per worker in
+        flight)."""
         source = iter(tasks)
         futures: set = set()
         try:
@@ -141,9 +144,9 @@ class LocalExecutor:
         return f"{self.workers} local worker process{'es' if self.workers != 1 else ''}"
 
 
-def _dask_run(recipe: Recipe, task: Task) -> SampleResult:
+def _dask_run(recipe: Recipe, item: Task | Batch) -> list[SampleResult]:
     single_threaded_blas()
-    return solve_task(recipe, task)
+    return solve_item(recipe, item)
 
 
 class DaskExecutor:
@@ -169,10 +172,10 @@ class DaskExecutor:
             self._client.close()
             self._client = None
 
-    def imap_unordered(self, tasks: Iterable[Task]) -> Iterator[SampleResult]:
-        """Solve ``tasks`` on the cluster; yield results as they complete. Tasks are taken
-        from the iterable only as results come back (``WINDOW_PER_WORKER`` per worker thread
-        in flight)."""
+    def imap_unordered(self, tasks: Iterable[Task | Batch]) -> Iterator[list[SampleResult]]:
+        """Solve work items on the cluster; yield each one's results as it completes. Items
+        are taken from the iterable only as results come back (``WINDOW_PER_WORKER`` per
+        worker thread in flight)."""
         distributed = require("distributed", "data", "running simulations on a Dask cluster")
         source = iter(tasks)
         window = WINDOW_PER_WORKER * max(1, sum(self._client.nthreads().values()))

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..config import Config, DatasetConfig, config_from_dict, config_to_dict, config_to_toml, load_config
 from ..errors import DatasetError
+from .batch import Batch, chunk_batches, pending_batches
 from .calibrate import MAX_ROUNDS, calibrate_alpha, initial_alpha
 from .codes import SampleStatus
 from .executors import make_executor
@@ -282,7 +283,8 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
                 executors.close()  # new workers, with the recipe holding the reduced model
                 ex.executor = executors.enter_context(make_executor(_recipe(writer, solver_factory),
                                                                     scheduler=scheduler, workers=workers))
-        samples = _solve_pending(writer, ex)
+        batched = ds.batch_size > 1 and writer.reduced is not None
+        samples = _solve_pending(writer, ex, ds.batch_size if batched else 1)
     return SimulationRun(executor, calibration, predictor, samples, slow=tuple(ex.slow), stopped=tuple(ex.stopped))
 
 
@@ -315,11 +317,28 @@ def _predictor_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Ph
     return Phase(samples=solved, seconds=seconds, built=built)
 
 
-def _solve_pending(writer: StoreWriter, ex: Supervisor) -> Phase:
+def _work_items(writer: StoreWriter, order: np.ndarray, batch_size: int, task) -> list:
+    """The work items of the pending samples ``order`` (generation order): one
+    :class:`~.worker.Task` each (``batch_size`` 1), else the stored batches holding them
+    (:mod:`.batch`; fixed in the store on first use)."""
+    if batch_size <= 1:
+        return [task(i) for i in order]
+    if writer.batches is None:
+        writer.set_batches(chunk_batches(order, batch_size, len(writer.status)), batch_size)
+    items = []
+    for members in pending_batches(writer.read("samples/batch"), order):
+        tasks = tuple(task(i) for i in members)
+        items.append(Batch(tasks) if len(tasks) > 1 else tasks[0])
+    return items
+
+
+def _solve_pending(writer: StoreWriter, ex: Supervisor, batch_size: int = 1) -> Phase:
     """Solve every pending sample at the calibrated alpha, writing results as they come.
 
     The splits are interleaved (:func:`~.plan.generation_order`), so a run stopped part-way
-    leaves a store whose done samples already cover every split in proportion.
+    leaves a store whose done samples already cover every split in proportion. With
+    ``batch_size`` > 1 workers solve the stored batches (:mod:`.batch`); the done samples of
+    a partly written batch are solved again with it and not written again.
     """
     alpha = float(writer.calibration["alpha"])
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
@@ -327,9 +346,14 @@ def _solve_pending(writer: StoreWriter, ex: Supervisor) -> Phase:
     t_start = last_flush = time.monotonic()
     unflushed = solved = 0
     io_seconds = 0.0
-    tasks = [Task(int(i), int(seeds[i]), float(betas[i]), alpha) for i in pending]
+    items = _work_items(writer, pending, batch_size,
+                        lambda i: Task(int(i), int(seeds[i]), float(betas[i]), alpha))
+    n = sum(len(t.tasks) if isinstance(t, Batch) else 1 for t in items)
     try:
-        for r in ex.run(tasks, "simulate", total=len(writer.status), done=len(writer.status) - len(pending)):
+        for r in ex.run(items, "simulate", total=len(writer.status) - len(pending) + n,
+                        done=len(writer.status) - len(pending)):
+            if writer.status[r.index] != SampleStatus.PENDING:
+                continue  # solved again with its batch; written before
             tw = time.monotonic()
             writer.write_sample(r)
             solved += 1

@@ -28,6 +28,7 @@ import sys
 import time
 from typing import Iterable, Iterator
 
+from .batch import Batch
 from .codes import SampleStatus
 from .worker import SampleResult, Task
 
@@ -90,7 +91,7 @@ class Supervisor:
     """Runs tasks on an executor with budgets and progress (see the module notes).
 
     Args:
-        executor: has ``imap_unordered(tasks) -> results`` pulling tasks lazily.
+        executor: has ``imap_unordered(items) -> lists of results`` pulling work items lazily.
         factor, floor: ``dataset.time_budget`` and ``dataset.time_budget_min``.
         progress: show a bar on a terminal / log progress lines.
     """
@@ -100,22 +101,24 @@ class Supervisor:
         self.slow: list[tuple[str, int, float, float]] = []  # (phase, sample, seconds, x median)
         self.stopped: list[tuple[str, int]] = []  # (phase, sample) of samples stopped by a budget
 
-    def run(self, tasks: Iterable[Task], phase: str, total: int | None = None, done: int = 0,
+    def run(self, tasks: Iterable[Task | Batch], phase: str, total: int | None = None, done: int = 0,
             unit: str = "sample") -> Iterator[SampleResult]:
         """Solve ``tasks`` (each given the budget of the moment it is handed out); yield the
         results as they complete.
 
         Args:
-            tasks: the phase's tasks.  phase: what the phase is, for the messages.
+            tasks: the phase's tasks, or :class:`~.batch.Batch`\\ es of them (their results
+                come one by one all the same).  phase: what the phase is, for the messages.
             total, done: the bar's total and starting count (default: the tasks, 0).
             unit: what a task is, for the messages ("sample", "pilot").
         """
         tasks = list(tasks)
         clock = SampleClock(self.factor, self.floor)
-        bar = _Bar(phase, len(tasks) + done if total is None else total, done, unit, self.progress)
-        stamped = (dataclasses.replace(t, budget=clock.budget()) for t in tasks)
+        n = sum(len(t.tasks) if isinstance(t, Batch) else 1 for t in tasks)
+        bar = _Bar(phase, n + done if total is None else total, done, unit, self.progress)
+        stamped = (_with_budget(t, clock.budget()) for t in tasks)
         try:
-            for r in self.executor.imap_unordered(stamped):
+            for r in (r for results in self.executor.imap_unordered(stamped) for r in results):
                 ratio = clock.add(r.index, r.seconds)
                 if ratio is not None:
                     self.slow.append((phase, r.index, r.seconds, ratio))
@@ -127,6 +130,12 @@ class Supervisor:
                 yield r
         finally:
             bar.close(clock)
+
+
+def _with_budget(item: Task | Batch, budget: float) -> Task | Batch:
+    if isinstance(item, Batch):
+        return Batch(tuple(dataclasses.replace(t, budget=budget) for t in item.tasks))
+    return dataclasses.replace(item, budget=budget)
 
 
 def _outcome(r: SampleResult) -> str:

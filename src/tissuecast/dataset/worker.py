@@ -92,6 +92,9 @@ class Task:
     pilot's solution of the previous round); without it the reduced model predicts, if any.
     ``budget``: wall-clock seconds each solver attempt may run (0 = no limit); an attempt
     stopped by it is followed by the cautious retries only (see :func:`solve_task`).
+    ``batch_failure``: why the sample's try from the reduced model's prediction failed in a
+    batch (:mod:`.batch`); non-empty, :func:`solve_task` records it as attempt 1 and goes on
+    with the attempts from zero (only the cautious ones if it was a SolveTimeout).
     """
 
     index: int
@@ -100,6 +103,7 @@ class Task:
     alpha: float
     guess: np.ndarray | None = field(default=None, compare=False, repr=False)
     budget: float = field(default=0.0, compare=False)
+    batch_failure: str = field(default="", compare=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -254,6 +258,8 @@ def _tries(ctx: SampleContext, task: Task, forces: np.ndarray) -> tuple[list, In
     and the initial-guess code they start with: the task's guess or else the reduced model's
     prediction first (if any), then the usual attempts from zero."""
     tries = [(attempt, None) for attempt in range(ctx.config.solver.retries + 1)]
+    if task.batch_failure:  # its try from the prediction was made in a batch
+        return tries, InitialGuess.GUESS_FAILED
     if task.guess is not None:
         return [(0, np.asarray(task.guess, dtype=np.float64))] + tries, InitialGuess.PREVIOUS_ROUND
     if ctx.reduced is None:
@@ -283,11 +289,11 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     forces, weights = ctx.forces(task)
     t0 = time.perf_counter()
     totals = np.zeros(3, dtype=np.int64)
-    reasons = []
+    reasons = [task.batch_failure] if task.batch_failure else []
     load_fraction = 0.0
     tries, predicted = _tries(ctx, task, forces)
     limit = {"time_limit": task.budget} if task.budget > 0 else {}
-    stopped_at = -1  # retry level of the last attempt stopped by the time budget
+    stopped_at = 0 if "SolveTimeout" in task.batch_failure else -1  # retry level of the last attempt stopped by the time budget
     for attempt, guess in tries:
         if attempt <= stopped_at:
             continue  # a stalled sample goes on with its cautious retries only

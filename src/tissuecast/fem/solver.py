@@ -129,7 +129,7 @@ class Solver:
         fext = self._external_forces(forces)
         return _drive(SolveRun(self, fext, self._nodal_guess(initial_guess)).steps(), time_limit)
 
-    def solve_batch(self, forces, initial_guesses=None) -> list:
+    def solve_batch(self, forces, initial_guesses=None, *, time_limit: float | None = None) -> list:
         """Solve several force fields together, their triangular solves gathered.
 
         The samples are solved in lockstep: each round advances every unfinished sample to
@@ -151,6 +151,11 @@ class Solver:
             forces: sequence of (n, 3) float arrays, N, as for :meth:`solve`.
             initial_guesses: None, or a sequence of the same length whose entries are None or
                 guesses as for :meth:`solve`.
+            time_limit: optional wall-clock limit per sample, s. Each round's wall time is
+                shared out among the samples active in it; a sample whose share passes the
+                limit is stopped at its next preconditioner application and gets a
+                :class:`~tissuecast.errors.SolveTimeout` (the others go on; their columns in
+                later rounds change, so their last bits may too).
 
         Returns:
             One entry per force field, in order: its :class:`SolveResult`, or the
@@ -172,7 +177,7 @@ class Solver:
         fexts = [self._external_forces(f) for f in forces]
         guesses = [self._nodal_guess(g) for g in guesses]
         t0 = time.perf_counter()
-        out = _drive_lockstep([SolveRun(self, fext, g).steps() for fext, g in zip(fexts, guesses)])
+        out = _drive_lockstep([SolveRun(self, fext, g).steps() for fext, g in zip(fexts, guesses)], time_limit)
         share = (time.perf_counter() - t0) / max(len(forces), 1)
         return [dataclasses.replace(r, seconds=share) if isinstance(r, SolveResult) else r for r in out]
 
@@ -248,15 +253,20 @@ def _drive(steps, time_limit: float | None = None):
         return stop.value
 
 
-def _drive_lockstep(steps: list) -> list:
+def _drive_lockstep(steps: list, time_limit: float | None = None) -> list:
     """Run several generators of preconditioner applications in lockstep: each round
     advances every unfinished one to its next application, and the applications with the
     same factorisation are done as one multi-right-hand-side solve (columns in generator
-    order). Returns each generator's return value, or the ConvergenceError it raised."""
+    order). Returns each generator's return value, or the ConvergenceError it raised. With
+    ``time_limit`` (s), each round's wall time is charged in equal shares to the generators
+    active in it, and one whose charge passes the limit is closed and given a
+    :class:`~tissuecast.errors.SolveTimeout`."""
     out: list = [None] * len(steps)
     reply: list = [None] * len(steps)
+    charged = [0.0] * len(steps)
     active = list(range(len(steps)))
     while active:
+        t_round = time.perf_counter()
         groups: dict = {}  # factorisation -> [(generator, vector)], generators in order
         for i in active:
             try:
@@ -266,6 +276,11 @@ def _drive_lockstep(steps: list) -> list:
                 continue
             except ConvergenceError as exc:
                 out[i] = exc
+                continue
+            if time_limit is not None and charged[i] > time_limit:
+                steps[i].close()  # the run gives back its factor
+                out[i] = SolveTimeout(f"stopped after {charged[i]:.1f} s (its share of a batch's time), past its "
+                                      f"time limit of {time_limit:.1f} s", charged[i], time_limit)
                 continue
             groups.setdefault(id(factor), (factor, []))[1].append((i, v))
         active = []
@@ -278,6 +293,9 @@ def _drive_lockstep(steps: list) -> list:
                     reply[i] = np.ascontiguousarray(z[:, k])
             active += [i for i, _ in items]
         active.sort()
+        share = (time.perf_counter() - t_round) / max(len(active), 1)
+        for i in active:
+            charged[i] += share
     return out
 
 
