@@ -176,6 +176,30 @@ def test_batches_are_chunks_of_the_generation_order_fixed_in_the_store(reference
     assert root.attrs["batches"]["count"] == -(-len(order) // size)
 
 
+def test_a_partly_written_batch_is_solved_again_in_full(reference, tmp_path):
+    """A run stopped between two flushes can leave a batch partly written: the next run
+    solves the whole batch again (its done samples too, not written again), so the missing
+    samples get the bits of the uninterrupted run."""
+    import shutil
+
+    cfg, ref_path, _ = reference
+    store = tmp_path / "partial.zarr"
+    shutil.copytree(ref_path, store)
+    root = zarr.open_group(str(store), mode="r+")
+    batch_of = root["samples/batch"][...]
+    gone = np.concatenate([np.flatnonzero(batch_of == 2)[1::2], np.flatnonzero(batch_of == batch_of.max())[:1]])
+    status = root["samples/status"][...]
+    status[gone] = SampleStatus.PENDING
+    root["samples/status"][...] = status
+    for i in gone:
+        root["samples/displacements"][i] = np.nan
+    failures = dict(root.attrs["failures"])
+    root.attrs["failures"] = {k: v for k, v in failures.items() if int(k) not in set(gone.tolist())}
+    summary = simulate(cfg, store, progress=False)
+    assert summary["run"]["solved"] == len(gone) and summary["totals"]["pending"] == 0
+    _same_store(store, ref_path)
+
+
 def test_batch_size_one_gives_the_same_samples_to_round_off(reference, tmp_path):
     """One sample at a time instead of batches: the same samples, iterations and failures;
     the displacements differ by the round-off of the gathered solves only."""
