@@ -33,7 +33,7 @@ import scipy.sparse.linalg as spl
 
 from ..errors import SolverSetupError
 from ..mesh.tetmesh import TET_EDGES
-from .linear import LinearSolver, NotPositiveDefinite
+from .linear_base import LinearSolver, NotPositiveDefinite
 
 __all__ = ["PMultigrid", "vertex_interpolation", "CHEBYSHEV_RATIO", "SPECTRAL_MARGIN", "POWER_ITERATIONS"]
 
