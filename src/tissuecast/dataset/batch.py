@@ -56,8 +56,9 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
     Samples with a prediction are solved by one ``solver.solve_batch`` at the configured
     retry level, each stopped at ``task.budget`` seconds of its share of the batch's time;
     the others, and those whose try in the batch failed, continue one by one with
-    :func:`~.worker.solve_task`. Results (one per task, in order) count the batch's work
-    and time too.
+    :func:`~.worker.solve_task` (all of them, as without batches, should a numerical
+    breakdown stop the batch). Results (one per task, in order) count the batch's work and
+    time too.
     """
     ctx = context_for(recipe)
     solver = ctx.solver(0)
@@ -68,8 +69,11 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
     guesses = [ctx.reduced.predict(f) for f, _ in fields]
     together = [k for k, g in enumerate(guesses) if g is not None]
     budget = min((tasks[k].budget for k in together), default=0.0)
-    outcomes = solver.solve_batch([fields[k][0] for k in together], [guesses[k] for k in together],
-                                  time_limit=budget if budget > 0 else None)
+    try:
+        outcomes = solver.solve_batch([fields[k][0] for k in together], [guesses[k] for k in together],
+                                      time_limit=budget if budget > 0 else None)
+    except (ArithmeticError, np.linalg.LinAlgError):  # a numerical breakdown stops the whole lockstep
+        return [solve_task(recipe, t) for t in tasks]
     prep = (time.perf_counter() - t0) / max(len(tasks), 1)  # forces, predictions and the batch, per sample
     out: dict[int, SampleResult] = {}
     for k, res in zip(together, outcomes):
