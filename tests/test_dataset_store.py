@@ -308,6 +308,9 @@ def test_sample_clock_median_budget_and_slow_samples():
     assert clock.add(3, SLOW_FACTOR * 2.0 + 1.0) == pytest.approx(10.5)  # slow: 21 s against the median 2 s
     assert clock.slow == [(3, 21.0, 10.5)] and clock.median == 2.5
     assert SampleClock(factor=0.0, floor=5.0).budget() == 0.0
+    # before its own median, a phase's budget comes from the previous phase's median
+    assert SampleClock(factor=10.0, floor=5.0, fallback=3.0).budget() == 30.0
+    assert SampleClock(factor=10.0, floor=5.0, fallback=0.1).budget() == 5.0
     fast = SampleClock(factor=10.0, floor=5.0)
     for i in range(3):
         fast.add(i, 0.01)

@@ -5,7 +5,8 @@ samples, the pending samples) runs its tasks through a :class:`Supervisor`:
 
 * **Budget**: each task pulled by the executor carries ``budget`` = ``dataset.time_budget``
   times the running median of the worker seconds of the phase's finished samples (at least
-  ``dataset.time_budget_min`` seconds; none before ``MEDIAN_MIN_SAMPLES`` have finished).
+  ``dataset.time_budget_min`` seconds; until ``MEDIAN_MIN_SAMPLES`` have finished, the previous
+  phase's median stands in, so the first tasks of a calibration round are limited too).
   A solver attempt that runs past it is stopped; the sample goes on with its cautious retries
   and, if those stall or fail too, is recorded failed with the reason (:mod:`.worker`).
   Samples within their budget are not affected, so stores stay bit-identical; a sample that
@@ -52,10 +53,12 @@ class SampleClock:
     Args:
         factor: budget = ``factor`` x median (0: no budget).
         floor: the budget is at least this many seconds.
+        fallback: median seconds to use until ``MEDIAN_MIN_SAMPLES`` have finished (the
+            previous phase's; None: no budget until then).
     """
 
-    def __init__(self, factor: float, floor: float) -> None:
-        self.factor, self.floor = float(factor), float(floor)
+    def __init__(self, factor: float, floor: float, fallback: float | None = None) -> None:
+        self.factor, self.floor, self.fallback = float(factor), float(floor), fallback
         self._seconds: list[float] = []
         self.slow: list[tuple[int, float, float]] = []  # (sample, seconds, x median)
 
@@ -70,7 +73,7 @@ class SampleClock:
 
     def budget(self) -> float:
         """Seconds a solver attempt of the next task may run (0 = no limit)."""
-        median = self.median
+        median = self.median if self.median is not None else self.fallback
         if not self.factor or median is None:
             return 0.0
         return max(self.factor * median, self.floor)
@@ -100,6 +103,7 @@ class Supervisor:
         self.executor, self.factor, self.floor, self.progress = executor, factor, floor, progress
         self.slow: list[tuple[str, int, float, float]] = []  # (phase, sample, seconds, x median)
         self.stopped: list[tuple[str, int]] = []  # (phase, sample) of samples stopped by a budget
+        self.last_median: float | None = None  # of the last phase: the next one's budget until it has its own
 
     def run(self, tasks: Iterable[Task | Batch], phase: str, total: int | None = None, done: int = 0,
             unit: str = "sample") -> Iterator[SampleResult]:
@@ -113,7 +117,7 @@ class Supervisor:
             unit: what a task is, for the messages ("sample", "pilot").
         """
         tasks = list(tasks)
-        clock = SampleClock(self.factor, self.floor)
+        clock = SampleClock(self.factor, self.floor, self.last_median)
         n = sum(len(t.tasks) if isinstance(t, Batch) else 1 for t in tasks)
         bar = _Bar(phase, n + done if total is None else total, done, unit, self.progress)
         stamped = (_with_budget(t, clock.budget()) for t in tasks)
@@ -130,6 +134,7 @@ class Supervisor:
                 yield r
         finally:
             bar.close(clock)
+            self.last_median = clock.median if clock.median is not None else self.last_median
 
 
 def _with_budget(item: Task | Batch, budget: float) -> Task | Batch:
