@@ -17,7 +17,8 @@ Shapes (``--shapes``; ``NAME@spread`` pins by the spread rule instead of the com
 
 With compact pins the tube and the bar are held at one spot and swing and bend about it like
 a hinge: the supports check refuses them at once (``tissuecast.dataset.supports``), naming the
-options; with spread pins they are held against rotation and the data sets complete.
+options; with spread pins they are held against rotation (whether the data sets then
+complete, and how slow their worst sample is, is what this benchmark shows).
 
 Usage::
 
