@@ -90,7 +90,7 @@ def smooth_solver_factory(mesh, fixed, cfg):
     P = sp.diags(1.0 / (deg + 1.0)) @ (A + sp.eye(mesh.n_vertices))
 
     def make(solver_cfg):
-        def solve(forces, initial_guess=None):
+        def solve(forces, initial_guess=None, time_limit=None):
             s = np.asarray(forces, dtype=float) * 20.0
             for _ in range(15):
                 s = P @ s

@@ -85,6 +85,14 @@ def test_partial_file_keeps_other_defaults(tmp_path):
         ({"dataset": {"predictor_samples": 1}}, "dataset.predictor_samples", "out of range"),
         ({"dataset": {"predictor_tolerance": 0.0}}, "dataset.predictor_tolerance", "out of range"),
         ({"solver": {"reference_preconditioner": "yes"}}, "solver.reference_preconditioner", "must be"),
+        ({"solver": {"linear_solver": "amg"}}, "solver.linear_solver", "is not allowed"),
+        ({"solver": {"multigrid_dofs": -1}}, "solver.multigrid_dofs", "out of range"),
+        ({"solver": {"multigrid_smoothing": 0}}, "solver.multigrid_smoothing", "out of range"),
+        ({"solver": {"multigrid_smoothing": 9}}, "solver.multigrid_smoothing", "out of range"),
+        ({"dataset": {"time_budget": -1.0}}, "dataset.time_budget", "out of range"),
+        ({"dataset": {"time_budget_min": -0.5}}, "dataset.time_budget_min", "out of range"),
+        ({"dataset": {"batch_size": 0}}, "dataset.batch_size", "out of range"),
+        ({"dataset": {"batch_size": 257}}, "dataset.batch_size", "out of range"),
     ],
 )
 def test_bad_values_raise_config_error_naming_the_key(data, key, text):

@@ -11,6 +11,7 @@ import time
 
 import numpy as np
 import pytest
+import zarr
 
 from tissuecast.config import with_overrides
 from tissuecast.dataset import InitialGuess, SampleStatus, open_dataset, simulate
@@ -145,6 +146,96 @@ def test_interrupted_before_the_calibration_record_calibrates_again_identically(
     assert_same_store(store, ref_path)
 
 
+def test_batches_are_chunks_of_the_generation_order_fixed_in_the_store(reference):
+    cfg, path, _ = reference
+
+    from tissuecast.dataset.plan import generation_order
+
+    ds = open_dataset(path)
+    root = zarr.open_group(str(path), mode="r")
+    size = cfg.dataset.batch_size
+    assert size > 1 and root.attrs["batches"]["size"] == size
+    batch_of = root["samples/batch"][...]
+    basis = np.arange(N_LBO + N_TEST2) < N_BASIS
+    assert (batch_of[basis] == -1).all()  # solved before the reduced model: alone
+    order = generation_order(ds.split, np.flatnonzero(~basis))
+    np.testing.assert_array_equal(batch_of[order], np.arange(len(order)) // size)
+    assert root.attrs["batches"]["count"] == -(-len(order) // size)
+
+
+def test_a_partly_written_batch_is_solved_again_in_full(reference, tmp_path):
+    """A run stopped between two flushes can leave a batch partly written: the next run
+    solves the whole batch again (its done samples too, not written again), so the missing
+    samples get the bits of the uninterrupted run."""
+    import shutil
+
+    cfg, ref_path, _ = reference
+    store = tmp_path / "partial.zarr"
+    shutil.copytree(ref_path, store)
+    root = zarr.open_group(str(store), mode="r+")
+    batch_of = root["samples/batch"][...]
+    gone = np.concatenate([np.flatnonzero(batch_of == 2)[1::2], np.flatnonzero(batch_of == batch_of.max())[:1]])
+    status = root["samples/status"][...]
+    status[gone] = SampleStatus.PENDING
+    root["samples/status"][...] = status
+    for i in gone:
+        root["samples/displacements"][i] = np.nan
+    failures = dict(root.attrs["failures"])
+    root.attrs["failures"] = {k: v for k, v in failures.items() if int(k) not in set(gone.tolist())}
+    summary = simulate(cfg, store, progress=False)
+    assert summary["run"]["solved"] == len(gone) and summary["totals"]["pending"] == 0
+    assert_same_store(store, ref_path)
+
+
+def test_batch_size_one_gives_the_same_samples_to_round_off(reference, tmp_path):
+    """One sample at a time instead of batches: the same samples, iterations and failures;
+    the displacements differ by the round-off of the gathered solves only."""
+    cfg, ref_path, _ = reference
+    single = tmp_path / "single.zarr"
+    simulate(with_overrides(cfg, dataset={"batch_size": 1}), single, progress=False)
+    a, b = open_dataset(ref_path), open_dataset(single)
+    assert "batches" not in zarr.open_group(str(single), mode="r").attrs
+    np.testing.assert_array_equal(a.status, b.status)
+    np.testing.assert_array_equal(a.predicted, b.predicted)
+    done = a.status == SampleStatus.DONE
+    assert (a.iterations[done] == b.iterations[done]).mean() >= 0.95
+    peak = np.abs(a.displacements[done]).max()
+    assert np.abs(a.displacements[done] - b.displacements[done]).max() <= 1e-5 * peak
+    np.testing.assert_array_equal(a.forces, b.forces)
+
+
+def test_samples_failing_in_a_batch_go_on_alone_and_are_recorded(reference, tmp_path):
+    """A sample whose try from the prediction fails in its batch is solved alone from zero
+    (GUESS_FAILED, the batch's reason kept) and, failing that too, recorded failed after its
+    cautious retries with every reason; the other samples of the batch are unaffected."""
+    from test_dataset_helpers import _fingerprint
+
+    cfg, ref_path, _ = reference
+    store = tmp_path / "flaky.zarr"
+    simulate(cfg, store, progress=False, solver_factory="test_dataset_helpers:batch_failing_solver_factory")
+    ref, ds = open_dataset(ref_path), open_dataset(store)
+    batched = np.flatnonzero(zarr.open_group(str(store), mode="r")["samples/batch"][...] >= 0)
+    fp = np.array([_fingerprint(ds.forces[i].astype(np.float64)) for i in batched])
+    flaky, doomed = batched[fp % 4 == 0], batched[(fp % 4 == 0) & (fp % 3 == 0)]
+    rescued = np.setdiff1d(flaky, doomed)
+    assert len(rescued) and len(doomed), "the test needs samples of both kinds"
+    for i in rescued:
+        assert ds.status[i] == SampleStatus.DONE and ds.predicted[i] == InitialGuess.GUESS_FAILED
+        cold = ref.displacements[i]
+        assert np.abs(ds.displacements[i] - cold).max() <= 2e-3 * np.abs(cold).max()
+    for i in doomed:
+        assert ds.status[i] == SampleStatus.FAILED and ds.attempts[i] == cfg.solver.retries + 1
+        reason = ds.failures[int(i)]
+        assert reason.startswith("attempt 1 from the prediction, in a batch of")
+        assert reason.count("made to fail alone too") == cfg.solver.retries + 1, reason
+    others = np.setdiff1d(batched, flaky)
+    others = others[ref.status[others] == SampleStatus.DONE]
+    assert (ds.status[others] == SampleStatus.DONE).all()
+    assert (ds.predicted[others] == InitialGuess.REDUCED_MODEL).all()
+    peak = np.abs(ref.displacements[others]).max()
+    assert np.abs(ds.displacements[others] - ref.displacements[others]).max() <= 1e-5 * peak
+
+
 def test_no_predictor_solves_every_sample_from_zero(tmp_path):
     cfg = with_overrides(small_config(tmp_path, n_samples=6, n_test2=0, alpha=0.04, workers=1),
                          dataset={"predictor": "none", "predictor_samples": 2})
@@ -154,12 +245,60 @@ def test_no_predictor_solves_every_sample_from_zero(tmp_path):
     assert ds.summary()["predictor"]["model"] is None
 
 
-def test_dask_cluster_gives_theassert_same_store(reference, tmp_path):
-    distributed = pytest.importorskip("distributed")
+def _start_dask_cluster(folder, workers: int = 2):
+    """``dask scheduler`` and ``workers`` x ``dask worker`` started from the command line, bound to
+    127.0.0.1 on free ports; returns (scheduler address, the processes)."""
+    import json
+
+    dask = os.path.join(os.path.dirname(sys.executable), "dask")
+    address_file = folder / "scheduler.json"
+    common = ["--no-dashboard"]
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", "0", "--scheduler-file",
+                               str(address_file), *common], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    deadline = time.monotonic() + 60
+    while not address_file.exists() and time.monotonic() < deadline and procs[0].poll() is None:
+        time.sleep(0.05)
+    assert address_file.exists(), "dask scheduler did not start"
+    time.sleep(0.1)  # the file is written whole, but give it a moment
+    address = json.loads(address_file.read_text())["address"]
+    for _ in range(workers):
+        procs.append(subprocess.Popen([dask, "worker", address, "--host", "127.0.0.1", "--nworkers", "1",
+                                       "--nthreads", "1", *common], stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL))
+    return address, procs
+
+
+def _wait_for_workers(address: str, count: int) -> None:
+    import distributed
+
+    with distributed.Client(address, timeout="30s") as client:
+        client.wait_for_workers(count, timeout=60)
+
+
+def test_dask_cluster_gives_the_same_store(reference, tmp_path):
+    """A real cluster: scheduler and two workers from the command line, `tissuecast simulate
+    --scheduler` as a user runs it; the store equals the local run's bit for bit."""
+    pytest.importorskip("distributed")
     cfg, ref_path, _ = reference
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
-        summary = simulate(cfg, tmp_path / "dask.zarr", progress=False, scheduler=cluster.scheduler_address)
-    assert "Dask cluster" in summary["run"]["executor"]
+    address, procs = _start_dask_cluster(tmp_path)
+    try:
+        assert address.startswith("tcp://127.0.0.1:")
+        _wait_for_workers(address, 2)
+        cfg_file = write_config(cfg, tmp_path / "cfg.toml")
+        run = subprocess.run([sys.executable, "-m", "tissuecast.cli.main", "simulate", str(cfg_file), "--store",
+                              str(tmp_path / "dask.zarr"), "--scheduler", address, "--no-progress"],
+                             capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-2000:]
+        assert f"Dask cluster {address} (2 workers)" in run.stdout
+    finally:
+        for proc in reversed(procs):
+            proc.terminate()
+        for proc in procs:
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
     assert_same_store(tmp_path / "dask.zarr", ref_path)
 
 

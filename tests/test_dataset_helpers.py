@@ -51,7 +51,7 @@ def fake_solver_factory(mesh, fixed, cfg):
     """A deterministic stand-in solver: u = forces * 0.5 mm/N, failing when |f| > 1 N anywhere."""
 
     def make(solver_cfg):
-        def solve(forces, initial_guess=None):
+        def solve(forces, initial_guess=None, time_limit=None):
             if np.abs(forces).max() > 1.0:
                 raise ConvergenceError("increment too small at load fraction 0.4", 0.4)
             return SimpleNamespace(displacement=np.asarray(forces) * 0.5, increments=1, iterations=2, factorizations=2)
@@ -71,7 +71,7 @@ def dying_solver_factory(mesh, fixed, cfg):
     def make(solver_cfg):
         inner = fake(solver_cfg)
 
-        def solve(forces, initial_guess=None):
+        def solve(forces, initial_guess=None, time_limit=None):
             flag = os.environ.get("TISSUECAST_TEST_DIE")
             if flag and os.path.exists(flag):
                 os.remove(flag)
@@ -81,6 +81,77 @@ def dying_solver_factory(mesh, fixed, cfg):
         return SimpleNamespace(solve=solve)
 
     return make
+
+
+#: The stalling solver's samples whose largest nodal force lies in this band (N) stall.
+STALL_BAND = (0.6, 0.7)
+
+
+def stalling_solver_factory(mesh, fixed, cfg):
+    """The fake solver, except that samples whose largest force lies in ``STALL_BAND`` stall
+    at every retry level: without a time limit they take 1.5 s and converge, with one they
+    run to it and raise SolveTimeout (as the FEM solver does)."""
+    import time
+
+    from tissuecast.errors import SolveTimeout
+
+    fake = fake_solver_factory(mesh, fixed, cfg)
+
+    def make(solver_cfg):
+        inner = fake(solver_cfg)
+
+        def solve(forces, initial_guess=None, time_limit=None):
+            if STALL_BAND[0] < np.abs(forces).max() <= STALL_BAND[1]:
+                if time_limit is None:
+                    time.sleep(1.5)
+                else:
+                    time.sleep(time_limit + 0.01)
+                    raise SolveTimeout(f"stopped after {time_limit + 0.01:.1f} s, past its time limit", time_limit, time_limit)
+            return inner.solve(forces, initial_guess)
+
+        return SimpleNamespace(solve=solve)
+
+    return make
+
+
+def _fingerprint(forces) -> int:
+    """A pseudo-random but deterministic number of a force field (picks the flaky samples)."""
+    return int(np.abs(np.asarray(forces, dtype=np.float64)).sum() * 1e6)
+
+
+def batch_failing_solver_factory(mesh, fixed, cfg):
+    """The real FEM solver, except that in ``solve_batch`` every sample whose force field's
+    fingerprint is a multiple of 4 fails (ConvergenceError at load fraction 0.5, the others
+    solved by the real batch), and of those, the multiples of 3 fail every solve alone too
+    (once they have failed in a batch of this process)."""
+    from tissuecast.fem import Solver, build_problem
+
+    failed_in_batch: set = set()
+
+    class FlakyBatches(Solver):
+        def solve_batch(self, forces, initial_guesses=None, *, time_limit=None):
+            forces = list(forces)
+            guesses = [None] * len(forces) if initial_guesses is None else list(initial_guesses)
+            flaky = [_fingerprint(f) % 4 == 0 for f in forces]
+            kept = super().solve_batch([f for f, x in zip(forces, flaky) if not x],
+                                       [g for g, x in zip(guesses, flaky) if not x], time_limit=time_limit)
+            out = []
+            for f, x in zip(forces, flaky):
+                if x:
+                    failed_in_batch.add(_fingerprint(f))
+                    out.append(ConvergenceError("made to fail in a batch", 0.5))
+                else:
+                    out.append(kept.pop(0))
+            return out
+
+        def solve(self, forces, initial_guess=None, time_limit=None):
+            fp = _fingerprint(forces)
+            if fp in failed_in_batch and fp % 3 == 0:
+                raise ConvergenceError("made to fail alone too", 0.25)
+            return super().solve(forces, initial_guess=initial_guess, time_limit=time_limit)
+
+    problem = build_problem(mesh, cfg, fixed)
+    return lambda solver_cfg: FlakyBatches(problem, solver_cfg)
 
 
 def store_arrays(path) -> dict:

@@ -72,7 +72,8 @@ def test_the_store_records_the_scenario_and_each_samples_draws(reference):
         np.testing.assert_array_equal(draws["indent_displacement"][i], d.indentation.displacement)
         # the patch moved as prescribed
         u = ds.displacements[i].astype(np.float64)
-        np.testing.assert_allclose(u[d.indentation.vertices], np.tile(d.indentation.displacement, (len(d.indentation.vertices), 1)),
+        patch = d.indentation.vertices
+        np.testing.assert_allclose(u[patch], np.tile(d.indentation.displacement, (len(patch), 1)),
                                    atol=1e-5)
         assert not u[ds.fixed].any()  # the attached face does not move
     depth = draws["indent_depth"]

@@ -11,7 +11,7 @@ import zarr
 
 from tissuecast.cli.main import main
 from tissuecast.config import with_overrides
-from tissuecast.dataset import open_dataset, simulate
+from tissuecast.dataset import SampleStatus, open_dataset, simulate
 from tissuecast.errors import DatasetError
 
 from test_dataset_helpers import small_config, store_arrays, store_attrs
@@ -118,13 +118,18 @@ def test_run_figures_of_a_first_call(made):
     _, _, summary = made
     run = summary["run"]
     assert list(run) == ["solved", "executor", "calibration_seconds", "sample_phase_seconds", "sample_phase_samples",
-                         "parent_io_seconds", "seconds", "samples_per_minute", "sample_phase_samples_per_minute"]
+                         "parent_io_seconds", "seconds", "samples_per_minute", "sample_phase_samples_per_minute",
+                         "slow_samples", "stopped_by_budget"]
+    assert run["slow_samples"] == [] and run["stopped_by_budget"] == []  # the fake solver takes microseconds
     assert run["solved"] == summary["n_samples"] == 13  # a new store: every sample solved in this call
     assert 0 < run["sample_phase_samples"] <= run["solved"]
     assert run["samples_per_minute"] == pytest.approx(60.0 * 13 / run["seconds"])
     built = SimulationRun("x", Phase(2, 1.0), Phase(3, 4.0, built=True), Phase(5, 10.0, 0.5), seconds=20.0).as_dict()
     assert built["solved"] == 10 and built["reduced_seconds"] == 4.0 and built["parent_io_seconds"] == 0.5
     assert built["samples_per_minute"] == 30.0 and built["sample_phase_samples_per_minute"] == 30.0
+    slow = SimulationRun("x", slow=(("simulate", 7, 30.0, 12.0),), stopped=(("simulate", 9),)).as_dict()
+    assert slow["slow_samples"] == [{"phase": "simulate", "sample": 7, "seconds": 30.0, "times_median": 12.0}]
+    assert slow["stopped_by_budget"] == [{"phase": "simulate", "sample": 9}]
 
 
 def test_rerun_is_a_no_op_and_other_config_is_refused(made, tmp_path):
@@ -261,3 +266,52 @@ def test_cli_info_and_export(made, tmp_path, capsys):
     assert "failed" in capsys.readouterr().err
     assert main(["dataset", "export", str(path), "--sample", "99", str(out_file)]) == 2
     assert "0..12" in capsys.readouterr().err
+
+
+def test_stalled_samples_are_stopped_retried_cautiously_and_recorded(tmp_path):
+    """Samples whose solver stalls (the stalling fake solver: largest force in STALL_BAND) are
+    stopped by the time budget, go on with the cautious retry only, and are recorded failed
+    with both reasons; a stalled sample handed out before a median existed runs to its end
+    and is reported slow. Every other sample is done as usual."""
+    from test_dataset_helpers import STALL_BAND
+
+    cfg = with_overrides(small_config(tmp_path, n_samples=24, n_test2=0, alpha=10.0, workers=2),
+                         dataset={"time_budget_min": 0.3})
+    summary = simulate(cfg, tmp_path / "stall.zarr", progress=False,
+                       solver_factory="test_dataset_helpers:stalling_solver_factory")
+    ds = open_dataset(tmp_path / "stall.zarr")
+    peak = np.abs(ds.forces.astype(np.float64)).max(axis=(1, 2))
+    stalling = set(np.flatnonzero((peak > STALL_BAND[0]) & (peak <= STALL_BAND[1])).tolist())
+    assert stalling, "the test needs samples in the stalling band"
+    stopped = {s["sample"] for s in summary["run"]["stopped_by_budget"]}
+    slow = {s["sample"] for s in summary["run"]["slow_samples"]}
+    assert stopped and stopped | slow == stalling and not stopped & slow
+    for i in stopped:
+        assert ds.status[i] == SampleStatus.FAILED and ds.attempts[i] == 2
+        reason = ds.failures[i]
+        # attempt 1 at the configured level, attempt 2 the cautious retry: both stopped
+        assert reason.count("SolveTimeout: stopped after") == 2 and "attempt 2:" in reason, reason
+    for i in slow:
+        assert ds.status[i] == SampleStatus.DONE
+    others = np.setdiff1d(np.arange(len(ds)), sorted(stalling))
+    assert (ds.status[others] == SampleStatus.DONE).all()
+
+
+def test_sample_clock_median_budget_and_slow_samples():
+    from tissuecast.dataset.supervise import MEDIAN_MIN_SAMPLES, SLOW_FACTOR, SampleClock
+
+    clock = SampleClock(factor=10.0, floor=5.0)
+    assert clock.median is None and clock.budget() == 0.0
+    for i, s in enumerate([1.0, 3.0, 2.0][:MEDIAN_MIN_SAMPLES]):
+        assert clock.add(i, s) is None
+    assert clock.median == 2.0 and clock.budget() == 20.0
+    assert clock.add(3, SLOW_FACTOR * 2.0 + 1.0) == pytest.approx(10.5)  # slow: 21 s against the median 2 s
+    assert clock.slow == [(3, 21.0, 10.5)] and clock.median == 2.5
+    assert SampleClock(factor=0.0, floor=5.0).budget() == 0.0
+    # before its own median, a phase's budget comes from the previous phase's median
+    assert SampleClock(factor=10.0, floor=5.0, fallback=3.0).budget() == 30.0
+    assert SampleClock(factor=10.0, floor=5.0, fallback=0.1).budget() == 5.0
+    fast = SampleClock(factor=10.0, floor=5.0)
+    for i in range(3):
+        fast.add(i, 0.01)
+    assert fast.budget() == 5.0 and fast.add(3, 0.5) is None  # under a second: never "slow"

@@ -96,7 +96,7 @@ def test_packaged_presets_match_repository_configs():
     from pathlib import Path
 
     import tissuecast
-    from tissuecast.cli.demo_cmd import preset_config
+    from tissuecast.cli.presets import preset_config
 
     repo = Path(__file__).resolve().parents[1] / "configs"
     pkg = Path(tissuecast.__file__).parent / "configs"

@@ -383,3 +383,35 @@ def test_convergence_test_by_hand():
     fext = np.array([0.0, 3.0, 4.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0])  # 5 N on node 0
     fint = np.array([0.0, 3.0, 4.0, 0.0, 0.0, 0.0, 0.0, -1.0, 0.0])  # 1 N reaction on node 2
     assert reference_force(fint, fext, np.array([2])) == pytest.approx(3.0)  # mean of 5 and 1
+
+
+def test_time_limit_stops_a_solve_and_returns_its_factor(beam):
+    from tissuecast.errors import SolveTimeout
+
+    mesh, fixed, f = beam
+    solver = Solver(Problem(mesh, MAT, fixed, order=2), SolverConfig(strategy="newton"))
+    with pytest.raises(SolveTimeout, match="past its time limit of 0.0 s") as err:
+        solver.solve(f, time_limit=0.0)
+    assert isinstance(err.value, ConvergenceError) and err.value.limit == 0.0 and err.value.seconds >= 0.0
+    assert len(solver._idle_factors) == 1  # the stopped run gave its numeric factor back
+    res = solver.solve(f, time_limit=600.0)  # a generous limit changes nothing
+    np.testing.assert_array_equal(res.displacement, solver.solve(f).displacement)
+
+
+def test_batch_time_limit_stops_each_sample_by_its_share(beam):
+    """solve_batch(time_limit=): a sample is stopped once its share of the batch's rounds
+    passes the limit (SolveTimeout, the others unaffected by a generous limit)."""
+    from tissuecast.errors import SolveTimeout
+
+    mesh, fixed, f = beam
+    solver = Solver(Problem(mesh, MAT, fixed, order=2), SolverConfig())
+    first = solver.solve(f)
+    fields, guesses = [f, 0.8 * f], [first.nodal_displacement * 1.05, first.displacement * 0.7]
+    out = solver.solve_batch(fields, guesses, time_limit=0.0)
+    for exc in out:
+        assert isinstance(exc, SolveTimeout) and exc.limit == 0.0 and exc.seconds > 0.0
+        assert "its share of a batch's time" in str(exc)
+    free = solver.solve_batch(fields, guesses)
+    limited = solver.solve_batch(fields, guesses, time_limit=600.0)
+    for a, b in zip(free, limited):
+        np.testing.assert_array_equal(a.nodal_displacement, b.nodal_displacement)

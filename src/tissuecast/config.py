@@ -100,7 +100,9 @@ class SolverConfig:
     """Nonlinear FEM solver settings."""
 
     order: int = _f(2, choices=(1, 2), doc="element order: 2 = quadratic 10-node tets (C3D10)")
-    linear_solver: str = _f("auto", choices=("auto", "cholmod", "pardiso", "superlu"), doc="sparse direct backend")
+    linear_solver: str = _f("auto", choices=("auto", "cholmod", "pardiso", "superlu", "p-multigrid"), doc="linear solves: a sparse direct backend, or 'p-multigrid' (a two-level multigrid cycle preconditioning conjugate gradients, cost growing like the mesh); auto = p-multigrid for P2 meshes of at least multigrid_dofs free dofs, else the fastest direct backend")
+    multigrid_dofs: int = _f(40000, lo=0, doc="linear_solver auto: use p-multigrid from this many free dofs on (P2 only); 0 = never")
+    multigrid_smoothing: int = _f(2, lo=1, hi=8, doc="p-multigrid: Chebyshev-Jacobi smoothing steps before and after the coarse (P1) correction")
     force_tolerance: float = _f(5e-3, lo=0.0, lo_open=True, hi=1.0, doc="residual norm / reference force norm")
     displacement_tolerance: float = _f(1e-2, lo=0.0, lo_open=True, hi=1.0, doc="correction / increment norm")
     initial_increment: float = _f(
@@ -159,6 +161,9 @@ class DatasetConfig:
     predictor: str = _f("reduced", choices=("reduced", "none"), doc="initial guess of each solve: reduced = a reduced-order model of the first predictor_samples solutions; none = zero")
     predictor_samples: int = _f(40, lo=2, hi=100000, doc="the first LBO samples (ids 0..n-1), solved from zero, whose solutions build the reduced model")
     predictor_tolerance: float = _f(0.01, lo=0.0, lo_open=True, hi=0.5, doc="ECSW hyper-reduction: relative error of the reduced internal forces")
+    batch_size: int = _f(8, lo=1, hi=256, doc="samples a worker solves together once the reduced model exists (their solves with the shared reference factorisation gathered: Solver.solve_batch); 1 = one at a time; the last bits of a sample depend on its batch")
+    time_budget: float = _f(10.0, lo=0.0, doc="a solver attempt running longer than this many times the running median of its phase's samples is stopped (the sample goes on with its cautious retries, else is recorded failed); 0 = no budget")
+    time_budget_min: float = _f(60.0, lo=0.0, doc="the time budget is at least this many seconds (machine hiccups never stop a sample)")
 
 
 #: Rules choosing the number of PCA components (see :class:`SurrogateConfig`).

@@ -17,6 +17,7 @@ __all__ = [
     "FrameError",
     "ConfigError",
     "ConvergenceError",
+    "SolveTimeout",
     "SolverSetupError",
     "DatasetError",
     "ModelError",
@@ -73,6 +74,19 @@ class ConvergenceError(TissuecastError, RuntimeError):
         super().__init__(message)
         self.load_fraction = float(load_fraction)
         self.result = result
+
+
+class SolveTimeout(ConvergenceError):
+    """A solve was stopped because it ran past its time limit (``Solver.solve(time_limit=...)``).
+
+    Attributes:
+        seconds: how long it had run, s.  limit: the limit, s.
+    """
+
+    def __init__(self, message: str, seconds: float, limit: float):
+        super().__init__(message)
+        self.seconds = float(seconds)
+        self.limit = float(limit)
 
 
 class DatasetError(TissuecastError, ValueError):

@@ -15,31 +15,10 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def preset_names() -> list[str]:
-    """Names of the packaged presets (``tissuecast/configs/*.toml``), sorted."""
-    from importlib import resources
-
-    folder = resources.files("tissuecast") / "configs"
-    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
-
-
-def preset_config(name: str):
-    """The packaged preset ``tissuecast/configs/NAME.toml`` as a Config."""
-    from importlib import resources
-
-    from ..config import ConfigError, config_from_dict
-
-    import tomllib
-
-    res = resources.files("tissuecast") / "configs" / f"{name}.toml"
-    if not res.is_file():
-        raise ConfigError(f"no packaged preset {name!r}; use one of {', '.join(preset_names())}")
-    return config_from_dict(tomllib.loads(res.read_text(encoding="utf-8")))
-
-
 def run(args) -> int:
     from ..config import with_overrides
     from ..evaluate.pipeline import run_pipeline
+    from .presets import preset_config
     from .run_cmd import report_run
 
     out = Path(args.output)

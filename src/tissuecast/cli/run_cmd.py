@@ -36,7 +36,7 @@ def config_or_preset(source: str):
     from pathlib import Path
 
     from ..config import load_config
-    from .demo_cmd import preset_config, preset_names
+    from .presets import preset_config, preset_names
 
     if not Path(source).is_file() and source in preset_names():
         return preset_config(source)

@@ -67,9 +67,9 @@ def run_preview(args) -> int:
     for i, d in enumerate(draws):
         parts = []
         if d.gravity_direction is not None:
+            cosine = np.clip(d.gravity_direction @ _unit(cfg.scenario.gravity.imaging_direction), -1, 1)
             parts.append(f"gravity {np.round(d.gravity_direction, 3).tolist()} "
-                         f"({np.degrees(np.arccos(np.clip(d.gravity_direction @ _unit(cfg.scenario.gravity.imaging_direction), -1, 1))):.1f} "
-                         "deg from imaging)")
+                         f"({np.degrees(np.arccos(cosine)):.1f} deg from imaging)")
         if d.indentation is not None:
             ind = d.indentation
             parts.append(f"indentation at vertex {ind.centre} ({len(ind.vertices)} vertices), depth {ind.depth:.2f} mm, "

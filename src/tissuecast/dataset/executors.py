@@ -1,7 +1,8 @@
 """Where samples are solved: local worker processes (default) or a Dask distributed cluster.
 
-An executor takes a :class:`~.worker.Recipe` once and then solves :class:`~.worker.Task`\\ s,
-yielding :class:`~.worker.SampleResult`\\ s in completion order. Workers only compute; the
+An executor takes a :class:`~.worker.Recipe` once and then solves work items (a
+:class:`~.worker.Task` or a :class:`~.batch.Batch` of them), yielding each item's list of
+:class:`~.worker.SampleResult`\\ s in completion order. Workers only compute; the
 parent process alone writes the store, so no two processes ever write the same chunk.
 
 Determinism: every worker runs its BLAS single-threaded, so a sample's bits do not depend on
@@ -22,7 +23,8 @@ import time
 from typing import Iterable, Iterator
 
 from ..errors import DatasetError, require
-from .worker import Recipe, SampleResult, Task, context_for, solve_task
+from .batch import Batch, solve_item
+from .worker import Recipe, SampleResult, Task, context_for
 
 __all__ = ["LocalExecutor", "DaskExecutor", "make_executor", "default_workers", "single_threaded_blas"]
 
@@ -75,8 +77,8 @@ def _init_worker(recipe: Recipe, parent: int) -> None:
     context_for(recipe)  # build mesh, problem and solver once per process
 
 
-def _run(task: Task) -> SampleResult:
-    return solve_task(_RECIPE, task)
+def _run(item: Task | Batch) -> list[SampleResult]:
+    return solve_item(_RECIPE, item)
 
 
 def _noop() -> int:
@@ -113,18 +115,27 @@ class LocalExecutor:
             self._pool.shutdown(wait=exc_type is None, cancel_futures=True)
             self._pool = None
 
-    def imap_unordered(self, tasks: Iterable[Task]) -> Iterator[SampleResult]:
-        """Solve ``tasks``; yield results as they complete."""
-        futures = [self._pool.submit(_run, t) for t in tasks]
+    def imap_unordered(self, tasks: Iterable[Task | Batch]) -> Iterator[list[SampleResult]]:
+        """Solve work items; yield each one's results as it completes. Items are taken from
+        the iterable only as workers become free (at most ``WINDOW_PER_WORKER`` per worker in
+        flight)."""
+        source = iter(tasks)
+        futures: set = set()
         try:
-            for f in cf.as_completed(futures):
-                try:
-                    result = f.result()
-                except cf.process.BrokenProcessPool as exc:
-                    raise DatasetError(
-                        "a worker process stopped abruptly (killed, or out of memory: try fewer --workers); the "
-                        "samples finished so far are saved: run the same command again to continue") from exc
-                yield result
+            while True:
+                _fill(futures, source, lambda t: self._pool.submit(_run, t), WINDOW_PER_WORKER * self.workers)
+                if not futures:
+                    return
+                finished, _ = cf.wait(futures, return_when=cf.FIRST_COMPLETED)
+                for f in sorted(finished, key=id):
+                    futures.discard(f)
+                    try:
+                        result = f.result()
+                    except cf.process.BrokenProcessPool as exc:
+                        raise DatasetError(
+                            "a worker process stopped abruptly (killed, or out of memory: try fewer --workers); the "
+                            "samples finished so far are saved: run the same command again to continue") from exc
+                    yield result
         finally:
             for f in futures:
                 f.cancel()
@@ -133,9 +144,9 @@ class LocalExecutor:
         return f"{self.workers} local worker process{'es' if self.workers != 1 else ''}"
 
 
-def _dask_run(recipe: Recipe, task: Task) -> SampleResult:
+def _dask_run(recipe: Recipe, item: Task | Batch) -> list[SampleResult]:
     single_threaded_blas()
-    return solve_task(recipe, task)
+    return solve_item(recipe, item)
 
 
 class DaskExecutor:
@@ -161,21 +172,51 @@ class DaskExecutor:
             self._client.close()
             self._client = None
 
-    def imap_unordered(self, tasks: Iterable[Task]) -> Iterator[SampleResult]:
-        """Solve ``tasks`` on the cluster; yield results as they complete."""
+    def imap_unordered(self, tasks: Iterable[Task | Batch]) -> Iterator[list[SampleResult]]:
+        """Solve work items on the cluster; yield each one's results as it completes. Items
+        are taken from the iterable only as results come back (``WINDOW_PER_WORKER`` per
+        worker thread in flight)."""
         distributed = require("distributed", "data", "running simulations on a Dask cluster")
-        tasks = list(tasks)
-        futures = [self._client.submit(_dask_run, self._recipe_future, t, pure=False)
-                   for t in tasks]
+        source = iter(tasks)
+        window = WINDOW_PER_WORKER * max(1, sum(self._client.nthreads().values()))
+        futures: set = set()
+
+        def submit(t):
+            return self._client.submit(_dask_run, self._recipe_future, t, pure=False)
+
+        _fill(futures, source, submit, window)
+        queue = distributed.as_completed(list(futures), loop=self._client.loop)
         try:
-            for f in distributed.as_completed(futures, loop=self._client.loop):
-                yield f.result()
+            for f in queue:
+                futures.discard(f)
+                result = f.result()
+                for new in _fill(futures, source, submit, window):
+                    queue.add(new)
+                yield result
         finally:
-            self._client.cancel(futures)
+            self._client.cancel(list(futures))
 
     def describe(self) -> str:
         n = len(self._client.nthreads()) if self._client else 0
         return f"Dask cluster {self.address} ({n} workers)"
+
+
+#: Tasks in flight per worker: enough to keep it busy, few enough that the tasks handed out
+#: later carry up-to-date budgets (:mod:`.supervise`).
+WINDOW_PER_WORKER = 2
+
+
+def _fill(futures: set, source, submit, window: int) -> list:
+    """Submit tasks from ``source`` until ``window`` are in flight; returns the new futures."""
+    new = []
+    while len(futures) < window:
+        task = next(source, None)
+        if task is None:
+            break
+        f = submit(task)
+        futures.add(f)
+        new.append(f)
+    return new
 
 
 def make_executor(recipe: Recipe, *, scheduler: str = "", workers: int = 0):

@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import sys
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -23,16 +22,19 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config, config_from_dict, config_to_dict, config_to_toml, load_config
+from ..config import Config, DatasetConfig, config_from_dict, config_to_dict, config_to_toml, load_config
 from ..errors import DatasetError
-from .calibrate import calibrate_alpha, initial_alpha, linear_alpha
+from .batch import Batch, chunk_batches, pending_batches
+from .calibrate import MAX_ROUNDS, calibrate_alpha, initial_alpha, linear_alpha
 from .codes import SampleStatus
 from .executors import make_executor
 from .plan import generation_order, make_plan
 from .predictor import build_reduced, keep_snapshots
 from .reader import open_dataset
 from .store import StoreWriter, read_lbo_basis
-from .worker import Recipe, Task
+from .supervise import Supervisor
+from .supports import MECHANISM_RATIO, check_supports
+from .worker import Recipe, SampleContext, Task
 
 __all__ = ["simulate", "setup_from_config", "scenario_setup", "uses_scenario", "data_config", "SimulationRun", "Phase"]
 
@@ -40,7 +42,7 @@ log = logging.getLogger(__name__)
 
 # config keys that do not change a data set's numbers (may differ when resuming); the mesh
 # file may move: its content is checked by fingerprint instead
-_RUNTIME_KEYS = {"dataset": ("store", "workers", "scheduler"), "mesh": ("path",)}
+_RUNTIME_KEYS = {"dataset": ("store", "workers", "scheduler", "time_budget", "time_budget_min"), "mesh": ("path",)}
 _DATA_SECTIONS = ("mesh", "markers", "material", "solver", "forces", "dataset", "scenario")
 
 
@@ -116,38 +118,6 @@ def _flush_quietly(writer: StoreWriter) -> None:
         log.warning("could not save the last finished samples (%s); they will be solved again on resume", exc)
 
 
-class _Progress:
-    """tqdm bar (samples/s, ETA) on a terminal, plain log lines otherwise."""
-
-    def __init__(self, total: int, done: int, enabled: bool):
-        self.total, self.count, self.t0, self.last = total, done, time.monotonic(), 0.0
-        self.start_count = done
-        self.bar = None
-        if enabled and total and sys.stderr.isatty():
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=total, initial=done, unit="sample", desc="simulate", dynamic_ncols=True)
-        self.enabled = enabled
-
-    def update(self, failed: int) -> None:
-        self.count += 1
-        if self.bar is not None:
-            self.bar.update(1)
-            self.bar.set_postfix(failed=failed, refresh=False)
-            return
-        now = time.monotonic()
-        if self.enabled and (now - self.last > 30.0 or self.count == self.total):
-            self.last = now
-            rate = (self.count - self.start_count) / max(now - self.t0, 1e-9)
-            eta = (self.total - self.count) / rate if rate > 0 else float("inf")
-            log.info("simulated %d/%d samples (%d failed), %.2f samples/s, ETA %.0f s",
-                     self.count, self.total, failed, rate, eta)
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.close()
-
-
 def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
     mesh, markers, _, scenario = scenario_setup(cfg)
     fixed = scenario.supported
@@ -158,7 +128,12 @@ def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
     from ..forces import lbo_basis
 
     basis = lbo_basis(mesh, cfg.forces.n_basis)
-    return StoreWriter.create(path, config_toml=config_to_toml(cfg, comments=False), mesh=mesh, markers=markers,
+    # where the samples are solved (local workers, a Dask scheduler's address) is not part of the
+    # data set: the store records the defaults, so a cluster run and a local run give one store
+    default = DatasetConfig()
+    recorded = dataclasses.replace(cfg, dataset=dataclasses.replace(cfg.dataset, workers=default.workers,
+                                                                     scheduler=default.scheduler))
+    return StoreWriter.create(path, config_toml=config_to_toml(recorded, comments=False), mesh=mesh, markers=markers,
                               fixed=fixed, basis=basis, plan=make_plan(cfg), scenario=scenario)
 
 
@@ -183,7 +158,7 @@ def _recipe(writer: StoreWriter, solver_factory: str | None) -> Recipe:
                   read_lbo_basis(writer.root), **kw)
 
 
-def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[dict, list]:
+def _calibrate(writer: StoreWriter, ex: Supervisor, cfg: Config, recipe: Recipe) -> tuple[dict, list]:
     """Calibrate alpha on the pilot samples; returns the record and the last round's results."""
     ds = cfg.dataset
     if ds.alpha > 0:
@@ -197,23 +172,46 @@ def _calibrate(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[di
     if not pilots:
         raise DatasetError("force calibration needs at least one LBO sample; set dataset.n_samples >= 1 or dataset.alpha")
     last: list = []
+    rounds: list = []
 
     def pilot_max(alpha: float) -> np.ndarray:
         # each pilot starts from its solution of the previous round (if it converged)
         prev = {r.index: r.nodal for r in last if r.status == SampleStatus.DONE and r.nodal is not None}
-        last[:] = sorted(ex.imap_unordered([Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i))
-                                            for i in pilots]), key=lambda r: r.index)
+        phase = f"calibration round {len(rounds) + 1} (at most {MAX_ROUNDS}), alpha {alpha:.4g} N"
+        rounds.append(alpha)
+        last[:] = sorted(ex.run([Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i)) for i in pilots],
+                                phase, unit="pilot"), key=lambda r: r.index)
         return np.array([r.max_displacement for r in last])
 
     target = cfg.forces.target_max_displacement
     if recipe.scenario is None:
         alpha0 = initial_alpha(recipe.basis, recipe.mesh, recipe.fixed, cfg.material.youngs_modulus, target)
+        # pins that leave a near-mechanism are refused (a scenario's supports are checked for
+        # rigid motions when it is built)
+        _check_supports(cfg, recipe, [(int(seeds[i]), float(betas[i])) for i in pilots[:SUPPORT_PILOTS]], alpha0)
     else:
         alpha0 = linear_alpha(recipe, [Task(i, int(seeds[i]), float(betas[i]), 1.0) for i in pilots], target)
     record = calibrate_alpha(pilot_max, alpha0, target, quantile=ds.calibration_quantile)
     record["pilots"] = pilots
     reusable = [r for r in last if r.alpha == record["alpha"]]
     return record, reusable
+
+
+#: Pilots whose linear answers check the supports before the calibration (:mod:`.supports`).
+SUPPORT_PILOTS = 4
+
+
+def _check_supports(cfg: Config, recipe: Recipe, pilots: list, alpha0: float) -> None:
+    """Refuse supports that leave a near-mechanism (:func:`.supports.check_supports`), from
+    the linear answers of the ``pilots`` ((seed, beta) pairs) at ``alpha0`` on linear elements."""
+    from ..fem import build_problem
+
+    ctx = SampleContext(recipe)
+    forces = [ctx.forces(Task(-1, seed, beta, alpha0))[0] for seed, beta in pilots]
+    peak = check_supports(build_problem(ctx.mesh, cfg, ctx.fixed, order=1), forces, alpha0,
+                          cfg.forces.target_max_displacement)
+    log.info("supports: the first pilots' linear answers at alpha %.3g N peak at %.3g mm (refused above %.3g mm)",
+             alpha0, peak, MECHANISM_RATIO * cfg.forces.target_max_displacement)
 
 
 @dataclass(frozen=True)
@@ -235,6 +233,8 @@ class SimulationRun:
     predictor: Phase = field(default_factory=Phase)  # basis samples from zero and the reduced-model fit
     samples: Phase = field(default_factory=Phase)  # every other pending sample
     seconds: float = 0.0  # wall-clock time of the call
+    slow: tuple = ()  # (phase, sample, seconds, x median) of samples slower than SLOW_FACTOR x the median
+    stopped: tuple = ()  # (phase, sample) of samples whose solver attempts were stopped by the time budget
 
     @property
     def solved(self) -> int:
@@ -243,7 +243,9 @@ class SimulationRun:
 
     def as_dict(self) -> dict:
         """The ``run`` figures of :func:`simulate`'s summary (``reduced_seconds`` only when a
-        reduced model was built)."""
+        reduced model was built; ``slow_samples`` and ``stopped_by_budget`` list the samples
+        that took more than ``SLOW_FACTOR`` x their phase's median and those whose attempts
+        the time budget stopped)."""
         run = {"solved": self.solved, "executor": self.executor, "calibration_seconds": self.calibration.seconds,
                "sample_phase_seconds": self.samples.seconds, "sample_phase_samples": self.samples.samples,
                "parent_io_seconds": self.samples.io_seconds}
@@ -253,6 +255,8 @@ class SimulationRun:
         run["samples_per_minute"] = 60.0 * self.solved / self.seconds if self.solved and self.seconds > 0 else 0.0
         phase = self.samples.seconds
         run["sample_phase_samples_per_minute"] = 60.0 * self.samples.samples / phase if phase > 0 else 0.0
+        run["slow_samples"] = [{"phase": p, "sample": i, "seconds": s, "times_median": x} for p, i, s, x in self.slow]
+        run["stopped_by_budget"] = [{"phase": p, "sample": i} for p, i in self.stopped]
         return run
 
 
@@ -296,20 +300,23 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
     """Calibrate (if not done), build the predictor (if configured and not built), then solve
     every pending sample; the executor is restarted once the reduced model exists."""
     recipe = _recipe(writer, solver_factory)
+    ds = cfg.dataset
     with contextlib.ExitStack() as executors:
-        ex = executors.enter_context(make_executor(recipe, scheduler=scheduler, workers=workers))
-        executor = ex.describe()
+        ex = Supervisor(executors.enter_context(make_executor(recipe, scheduler=scheduler, workers=workers)),
+                        ds.time_budget, ds.time_budget_min, progress)
+        executor = ex.executor.describe()
         log.info("simulating %d pending of %d samples on %s", len(writer.pending()), len(writer.status), executor)
         calibration = _calibration_phase(writer, ex, cfg, recipe) if writer.calibration is None else Phase()
         predictor = Phase()
-        if cfg.dataset.predictor == "reduced" and writer.reduced is None and len(writer.pending()):
+        if ds.predictor == "reduced" and writer.reduced is None and len(writer.pending()):
             predictor = _predictor_phase(writer, ex, cfg, recipe)
             if predictor.built:
                 executors.close()  # new workers, with the recipe holding the reduced model
-                ex = executors.enter_context(make_executor(_recipe(writer, solver_factory), scheduler=scheduler,
-                                                           workers=workers))
-        samples = _solve_pending(writer, ex, progress)
-    return SimulationRun(executor, calibration, predictor, samples)
+                ex.executor = executors.enter_context(make_executor(_recipe(writer, solver_factory),
+                                                                    scheduler=scheduler, workers=workers))
+        batched = ds.batch_size > 1 and writer.reduced is not None
+        samples = _solve_pending(writer, ex, ds.batch_size if batched else 1)
+    return SimulationRun(executor, calibration, predictor, samples, slow=tuple(ex.slow), stopped=tuple(ex.stopped))
 
 
 def _calibration_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Phase:
@@ -341,11 +348,28 @@ def _predictor_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Ph
     return Phase(samples=solved, seconds=seconds, built=built)
 
 
-def _solve_pending(writer: StoreWriter, ex, progress: bool) -> Phase:
+def _work_items(writer: StoreWriter, order: np.ndarray, batch_size: int, task) -> list:
+    """The work items of the pending samples ``order`` (generation order): one
+    :class:`~.worker.Task` each (``batch_size`` 1), else the stored batches holding them
+    (:mod:`.batch`; fixed in the store on first use)."""
+    if batch_size <= 1:
+        return [task(i) for i in order]
+    if writer.batches is None:
+        writer.set_batches(chunk_batches(order, batch_size, len(writer.status)), batch_size)
+    items = []
+    for members in pending_batches(writer.read("samples/batch"), order):
+        tasks = tuple(task(i) for i in members)
+        items.append(Batch(tasks) if len(tasks) > 1 else tasks[0])
+    return items
+
+
+def _solve_pending(writer: StoreWriter, ex: Supervisor, batch_size: int = 1) -> Phase:
     """Solve every pending sample at the calibrated alpha, writing results as they come.
 
     The splits are interleaved (:func:`~.plan.generation_order`), so a run stopped part-way
-    leaves a store whose done samples already cover every split in proportion.
+    leaves a store whose done samples already cover every split in proportion. With
+    ``batch_size`` > 1 workers solve the stored batches (:mod:`.batch`); the done samples of
+    a partly written batch are solved again with it and not written again.
     """
     alpha = float(writer.calibration["alpha"])
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
@@ -353,9 +377,14 @@ def _solve_pending(writer: StoreWriter, ex, progress: bool) -> Phase:
     t_start = last_flush = time.monotonic()
     unflushed = solved = 0
     io_seconds = 0.0
-    bar = _Progress(len(writer.status), len(writer.status) - len(pending), progress)
+    items = _work_items(writer, pending, batch_size,
+                        lambda i: Task(int(i), int(seeds[i]), float(betas[i]), alpha))
+    n = sum(len(t.tasks) if isinstance(t, Batch) else 1 for t in items)
     try:
-        for r in ex.imap_unordered(Task(int(i), int(seeds[i]), float(betas[i]), alpha) for i in pending):
+        for r in ex.run(items, "simulate", total=len(writer.status) - len(pending) + n,
+                        done=len(writer.status) - len(pending)):
+            if writer.status[r.index] != SampleStatus.PENDING:
+                continue  # solved again with its batch; written before
             tw = time.monotonic()
             writer.write_sample(r)
             solved += 1
@@ -364,9 +393,7 @@ def _solve_pending(writer: StoreWriter, ex, progress: bool) -> Phase:
                 writer.flush()
                 last_flush, unflushed = time.monotonic(), 0
             io_seconds += time.monotonic() - tw
-            bar.update(int(np.sum(writer.status == SampleStatus.FAILED)))
         writer.flush()
     finally:
-        bar.close()
         _flush_quietly(writer)
     return Phase(samples=solved, seconds=time.monotonic() - t_start, io_seconds=io_seconds)

@@ -52,7 +52,8 @@ def build_reduced(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple
     the reduced model.
 
     Args:
-        writer: the store.  ex: an executor holding ``recipe``.  cfg: the data set's config.
+        writer: the store.  ex: a :class:`~.supervise.Supervisor` of an executor holding ``recipe``.
+            cfg: the data set's config.
 
     Returns:
         ``(samples, built)``: the samples solved and written here, and whether the model was
@@ -90,7 +91,7 @@ def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, n_nodes: int) -> 
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     log.info("solving %d samples from zero for the reduced model", len(todo))
     written = 0
-    for r in ex.imap_unordered([Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo]):
+    for r in ex.run([Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo], "reduced-model basis samples"):
         if r.nodal is None and r.status == SampleStatus.DONE:
             return written, False
         if writer.status[r.index] == SampleStatus.PENDING:

@@ -56,6 +56,10 @@ vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
       (the scenario/ group and the samples' draw arrays exist in stores whose scenario has them;
       a sample's draws are a function of its seed: scenario.scenario_rng; the patch vertices
       follow from the centre, the mesh and the config)
+      samples/batch         (N,) int32 the batch each sample of the sample phase is solved in
+                            (dataset.batch_size > 1 with a reduced model; -1: solved alone);
+                            absent until that phase first starts; the root attribute
+                            ``batches`` ({size, count}) is written after it and marks it complete
       reduced/samples       (s,) int64 ids of the samples whose full solutions built the reduced
                             model (dataset.predictor = "reduced"; absent otherwise)
       reduced/snapshots     (s, n_nodes, 3) float64 mm their displacements at every element node
@@ -331,6 +335,23 @@ class StoreWriter:
             a = self.root.create_array(key, shape=data.shape, dtype=data.dtype, chunks=data.shape, compressors=comp)
             a[...] = data
         self.root.attrs["reduced"] = json.loads(json.dumps(record))
+
+    # ------------------------------------------------------------ batches
+    @property
+    def batches(self) -> dict | None:
+        """The batch plan's record ``{size, count}`` (None until it is set)."""
+        return self.root.attrs.get("batches")
+
+    def set_batches(self, batch_of: np.ndarray, size: int) -> None:
+        """Store the batch of every sample ((N,) int32, -1 = none); the ``batches`` attribute last."""
+        batch_of = np.ascontiguousarray(batch_of, dtype=np.int32)
+        if "samples/batch" in self.root:
+            del self.root["samples/batch"]
+        n = len(batch_of)
+        a = self.root.create_array("samples/batch", shape=(n,), dtype="int32", chunks=(n,), fill_value=-1,
+                                   compressors=_compressor(), dimension_names=("sample",))
+        a[...] = batch_of
+        self.root.attrs["batches"] = {"size": int(size), "count": int(batch_of.max(initial=-1)) + 1}
 
     def pending(self) -> np.ndarray:
         """Indices of samples not solved yet, ascending."""

@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from ..config import Config, SolverConfig, config_from_dict
-from ..errors import ConvergenceError
+from ..errors import ConvergenceError, SolveTimeout
 from .codes import InitialGuess, SampleStatus
 
 if TYPE_CHECKING:
@@ -107,6 +107,11 @@ class Task:
 
     ``guess``: optional (n_nodes, 3) mm nodal displacements to start from (a calibration
     pilot's solution of the previous round); without it the reduced model predicts, if any.
+    ``budget``: wall-clock seconds each solver attempt may run (0 = no limit); an attempt
+    stopped by it is followed by the cautious retries only (see :func:`solve_task`).
+    ``batch_failure``: why the sample's try from the reduced model's prediction failed in a
+    batch (:mod:`.batch`); non-empty, :func:`solve_task` records it as attempt 1 and goes on
+    with the attempts from zero (only the cautious ones if it was a SolveTimeout).
     """
 
     index: int
@@ -114,6 +119,8 @@ class Task:
     beta: float  # NaN for LBO samples, the LBO share for test-2 samples
     alpha: float
     guess: np.ndarray | None = field(default=None, compare=False, repr=False)
+    budget: float = field(default=0.0, compare=False)
+    batch_failure: str = field(default="", compare=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -197,8 +204,9 @@ def fem_solver_factory(mesh, fixed: np.ndarray, cfg: Config, scenario=None) -> C
             other solvers are called without it (paper set-ups only).
 
     Returns a function mapping solver settings to a reusable ``Solver`` with
-    ``.solve(forces, initial_guess=None, prescribed=None) -> SolveResult`` (raising
-    ConvergenceError on failure).
+    ``.solve(forces (n,3) N, initial_guess=None, prescribed=None, body_loads=None, time_limit=None)
+    -> SolveResult`` (raising ConvergenceError on failure, SolveTimeout past ``time_limit``
+    seconds); a replacement factory must give solvers with the same call.
     """
     from ..fem import Solver, build_problem
 
@@ -307,6 +315,8 @@ def _tries(ctx: SampleContext, task: Task, loads: np.ndarray) -> tuple[list, Ini
     and the initial-guess code they start with: the task's guess or else the reduced model's
     prediction first (if any), then the usual attempts from zero."""
     tries = [(attempt, None) for attempt in range(ctx.config.solver.retries + 1)]
+    if task.batch_failure:  # its try from the prediction was made in a batch
+        return tries, InitialGuess.GUESS_FAILED
     if task.guess is not None:
         return [(0, np.asarray(task.guess, dtype=np.float64))] + tries, InitialGuess.PREVIOUS_ROUND
     if ctx.reduced is None:
@@ -320,6 +330,11 @@ def _tries(ctx: SampleContext, task: Task, loads: np.ndarray) -> tuple[list, Ini
 def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     """Solve one sample, retrying with more cautious increments ``solver.retries`` times.
 
+    An attempt that runs past ``task.budget`` seconds is stopped
+    (:class:`~tissuecast.errors.SolveTimeout`, its reason recorded) and the sample goes on
+    with the retries of a higher level only (the cautious path), not with the others of the
+    same level.
+
     With a guess in the task (``predicted`` PREVIOUS_ROUND), or else a reduced model in the
     recipe, a first try starts from it (``predicted`` REDUCED_MODEL; GUESS_FAILED when the
     reduced problem did not converge and there is no prediction); should that try fail, the
@@ -332,14 +347,21 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     loads, extra, draw = ctx.loads(task, forces)
     t0 = time.perf_counter()
     totals = np.zeros(3, dtype=np.int64)
-    reasons = []
+    reasons = [task.batch_failure] if task.batch_failure else []
     load_fraction = 0.0
     tries, predicted = _tries(ctx, task, loads + extra.get("body_loads", 0.0))
+    limit = {"time_limit": task.budget} if task.budget > 0 else {}
+    stopped_at = 0 if "SolveTimeout" in task.batch_failure else -1  # retry level of the last attempt stopped by the time budget
     for attempt, guess in tries:
+        if attempt <= stopped_at:
+            continue  # a stalled sample goes on with its cautious retries only
         try:
             solver = ctx.solver(attempt)
-            res = solver.solve(loads, **extra) if guess is None else solver.solve(loads, initial_guess=guess, **extra)
+            kw = {**extra, **limit}
+            res = solver.solve(loads, **kw) if guess is None else solver.solve(loads, initial_guess=guess, **kw)
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            if isinstance(exc, SolveTimeout):
+                stopped_at = attempt
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
             start = (" from the previous round's solution" if predicted == InitialGuess.PREVIOUS_ROUND

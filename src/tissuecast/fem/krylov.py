@@ -95,7 +95,8 @@ def deflation_space(k, spin: np.ndarray, recycled: np.ndarray | None):
     return None, recycled
 
 
-def deflated_cg(k, b: np.ndarray, space, precondition: Precondition, tolerance: float, max_steps: int):
+def deflated_cg(k, b: np.ndarray, space, precondition: Precondition, tolerance: float, max_steps: int,
+                best_effort: bool = False):
     """Solve ``K x = b`` by preconditioned conjugate gradients deflated by ``space``.
 
     A generator (``yield from``) of the preconditioner's applications. The iteration starts
@@ -107,12 +108,16 @@ def deflated_cg(k, b: np.ndarray, space, precondition: Precondition, tolerance: 
         precondition: ``v -> generator`` applying the preconditioner (see the module notes).
         tolerance: relative residual ``||b - K x|| / ||b||`` that ends the iteration.
         max_steps: most conjugate-gradient steps.
+        best_effort: after ``max_steps`` steps without meeting the tolerance, return the
+            iterate so far instead of None (it still lowers the quadratic model; what an
+            approximate preconditioner's last resort needs).
 
     Returns:
         ``(x, steps, found)``: ``x`` (n,) when the tolerance was met within ``max_steps``
         steps, or when ``K`` showed a non-positive curvature after some progress (the iterate
-        so far; with ``space`` the Galerkin start counts as progress), else None; ``steps``
-        taken; ``found`` the search directions scaled to unit K-norm, oldest first.
+        so far; with ``space`` the Galerkin start counts as progress), or with
+        ``best_effort``, else None; ``steps`` taken; ``found`` the search directions scaled
+        to unit K-norm, oldest first.
     """
     target = tolerance * np.linalg.norm(b)
     if space is None:
@@ -146,7 +151,7 @@ def deflated_cg(k, b: np.ndarray, space, precondition: Precondition, tolerance: 
         rz_new = float(res @ z)
         p = (z if project is None else project(z)) + (rz_new / rz) * p
         rz = rz_new
-    return None, max_steps, found
+    return (x if best_effort else None), max_steps, found
 
 
 def recycle(found: list, space, cap: int, previous: np.ndarray | None, rotations: int = N_ROTATIONS) -> np.ndarray | None:

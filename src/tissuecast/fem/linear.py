@@ -14,6 +14,10 @@ Backends:
 * ``"pardiso"`` -- Intel MKL PARDISO through ``pypardiso`` when it is installed
   (symmetric indefinite mode, so it never needs a fallback).
 * ``"superlu"`` -- SciPy's SuperLU, always available, the slowest.
+* ``"p-multigrid"`` -- not a factorisation but a two-level multigrid cycle
+  (:mod:`.preconditioners`), an approximate inverse (``exact = False``) whose cost grows
+  like the mesh; ``"auto"`` picks it for quadratic meshes of at least
+  ``solver.multigrid_dofs`` free dofs.
 
 A stiffness that is not positive definite (possible far from equilibrium, under
 compression) raises :class:`NotPositiveDefinite` from the Cholesky backend; the Newton
@@ -32,41 +36,11 @@ import scipy.sparse.linalg as spl
 
 from ..errors import SolverSetupError
 from .assembly import Assembler
+from .linear_base import LinearSolver, NotPositiveDefinite
 
 __all__ = ["NotPositiveDefinite", "LinearSolver", "make_linear_solver", "available_backends"]
 
 log = logging.getLogger(__name__)
-
-
-class NotPositiveDefinite(ArithmeticError):
-    """The matrix handed to a Cholesky backend is not positive definite."""
-
-
-class LinearSolver:
-    """Base class: factorise a matrix with a fixed pattern, then solve with it.
-
-    Args:
-        assembler: supplies the pattern (``indptr``, ``indices``) and matrix builders.
-    """
-
-    name = "base"
-
-    def __init__(self, assembler: Assembler) -> None:
-        self.assembler = assembler
-        self.n = assembler.n_free
-
-    def factorize(self, data: np.ndarray) -> None:
-        """Numeric factorisation of the matrix with CSR values ``data`` ((nnz,) float)."""
-        raise NotImplementedError
-
-    def solve(self, b: np.ndarray) -> np.ndarray:
-        """Solve with the last factorisation: ``b`` (n_free,) or (n_free, k) -> same shape."""
-        raise NotImplementedError
-
-    def spawn(self) -> "LinearSolver":
-        """A new solver of this backend and pattern, not factorised yet, whose numeric
-        factorisations are its own (this base version redoes the symbolic analysis)."""
-        return type(self)(self.assembler)
 
 
 class CholmodSolver(LinearSolver):
@@ -160,16 +134,37 @@ def available_backends() -> list[str]:
     return [name for name, (module, _) in _BACKENDS.items() if importlib.util.find_spec(module) is not None]
 
 
-def make_linear_solver(name: str, assembler: Assembler) -> LinearSolver:
-    """Build a backend by name (``"auto"`` picks the fastest available).
+def make_linear_solver(name: str, assembler: Assembler, config=None) -> LinearSolver:
+    """Build a backend by name.
+
+    ``"auto"`` picks the two-level multigrid cycle (:class:`.preconditioners.PMultigrid`) for
+    quadratic elements with at least ``config.multigrid_dofs`` free dofs (0: never), else the
+    fastest direct backend available.
+
+    Args:
+        name: ``"auto"``, a direct backend (:func:`available_backends`) or ``"p-multigrid"``.
+        assembler: supplies the pattern.
+        config: a :class:`~tissuecast.config.SolverConfig` (defaults if None) for the
+            multigrid settings.
 
     Raises:
         SolverSetupError: unknown name, or the named backend's package is not installed.
     """
+    if config is None:
+        from ..config import SolverConfig
+
+        config = SolverConfig()
     if name == "auto":
-        name = available_backends()[0]
+        big = config.multigrid_dofs and assembler.n_free >= config.multigrid_dofs
+        name = "p-multigrid" if assembler.order == 2 and big else available_backends()[0]
+    if name == "p-multigrid":
+        from .preconditioners import PMultigrid
+
+        log.debug("linear solver: p-multigrid (%d free dofs)", assembler.n_free)
+        return PMultigrid(assembler, degree=config.multigrid_smoothing)
     if name not in _BACKENDS:
-        raise SolverSetupError(f"unknown linear solver {name!r}; choose one of 'auto', {', '.join(map(repr, _BACKENDS))}")
+        raise SolverSetupError(f"unknown linear solver {name!r}; choose one of 'auto', 'p-multigrid', "
+                               f"{', '.join(map(repr, _BACKENDS))}")
     module, cls = _BACKENDS[name]
     if importlib.util.find_spec(module) is None:
         raise SolverSetupError(

@@ -2,7 +2,8 @@
 
 A :class:`SolveRun` is made by :class:`~tissuecast.fem.solver.Solver` for every solve and
 holds everything that lives for that solve only: the external loads and prescribed values
-(also those of dofs that only this solve holds, e.g. an indenting patch), the initial guess, the counters, the shift of the last indefinite tangent, the rigid rotation
+(also those of dofs that only this solve holds, e.g. an indenting patch), the initial guess,
+the counters, the shift of the last indefinite tangent, the rigid rotation
 applied since the active factorisation was made, the recycled Krylov directions, the active
 factorisation and whether it is still valid, and its own numeric factor (borrowed from the
 Solver on the first factorisation and given back when the run ends). The Solver keeps only
@@ -60,6 +61,9 @@ SHIFT_RESTART = 0.5
 SHIFT_GROWTH = 4.0
 #: Beyond this shift the tangent has little left of K: the projected stiffness is used.
 SHIFT_LAST = 10.0
+#: With an approximate preconditioner just made from the current tangent, conjugate gradients
+#: may take this many times ``krylov_iterations`` steps before settling for their iterate.
+FRESH_STEPS_FACTOR = 4
 #: Guards divisions by norms that may be exactly zero.
 _TINY = 1e-300
 #: Held dofs within this share of their largest target value are where they should be: no lift.
@@ -358,6 +362,8 @@ class SolveRun:
             self.factor_valid = True
             self.rotation = np.eye(3)
             track.fresh, track.reuses = True, 0
+        if x is None and not self.active.exact:  # an approximate inverse: CG with the fresh one
+            x, _ = yield from self.krylov_solve(u, b, fresh=True)
         if x is None:
             x = yield from self._precondition(b)
         return x
@@ -418,7 +424,7 @@ class SolveRun:
         d, data = yield from self.krylov_solve(u, -r)
         return d, data
 
-    def krylov_solve(self, u: np.ndarray, b: np.ndarray, data: np.ndarray | None = None):
+    def krylov_solve(self, u: np.ndarray, b: np.ndarray, data: np.ndarray | None = None, fresh: bool = False):
         """K^-1 b for the tangent K at u by deflated preconditioned conjugate gradients
         (a generator, :mod:`.krylov`).
 
@@ -426,6 +432,10 @@ class SolveRun:
             u: (3 n_nodes,) mm, current displacements.  b: (n_free,) N, right-hand side
                 (zero at the held dofs).
             data: the tangent's CSR data with the held dofs eliminated, if already assembled.
+            fresh: the preconditioner was just made from this tangent but is an approximate
+                inverse (:attr:`.linear.LinearSolver.exact` False): up to
+                ``FRESH_STEPS_FACTOR`` times more steps, and the iterate so far if the
+                tolerance is still not met.
 
         Returns:
             ``(x, None)`` when the relative residual fell below ``krylov_tolerance`` within
@@ -446,8 +456,9 @@ class SolveRun:
             else:
                 spin = np.zeros((len(sv.free_dofs), 0))
             space, self.recycled = deflation_space(k, spin, self.recycled)
-        x, steps, found = yield from deflated_cg(k, b, space, self._precondition, cfg.krylov_tolerance,
-                                                 cfg.krylov_iterations)
+        steps_cap = cfg.krylov_iterations * (FRESH_STEPS_FACTOR if fresh else 1)
+        x, steps, found = yield from deflated_cg(k, b, space, self._precondition, cfg.krylov_tolerance, steps_cap,
+                                                 best_effort=fresh)
         self.counts.krylov_steps += steps
         self.recycled = recycle(found, space, cfg.krylov_recycle, self.recycled,
                                 N_ROTATIONS if sv.problem.can_swing else 0)

@@ -52,7 +52,7 @@ import time
 import numpy as np
 
 from ..config import SolverConfig
-from ..errors import ConvergenceError, SolverSetupError
+from ..errors import ConvergenceError, SolverSetupError, SolveTimeout
 from .assembly import Assembler
 from .linear import LinearSolver, NotPositiveDefinite, make_linear_solver
 from .newton import SolveRun
@@ -92,7 +92,7 @@ class Solver:
         self.config = config if config is not None else SolverConfig()
         self.assembler = Assembler(problem.nodes, problem.connectivity, problem.order, problem.element_material,
                                    problem.free_mask, springs=problem.springs)
-        self.linear = make_linear_solver(self.config.linear_solver, self.assembler)
+        self.linear = make_linear_solver(self.config.linear_solver, self.assembler, self.config)
         nodes, values = problem.constrained_nodes
         self.constrained_nodes = nodes
         self.constrained_dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
@@ -103,7 +103,7 @@ class Solver:
 
     # ------------------------------------------------------------------ solves
     def solve(self, forces: np.ndarray, initial_guess: np.ndarray | None = None, *, prescribed=None,
-              body_loads=None) -> SolveResult:
+              body_loads=None, time_limit: float | None = None) -> SolveResult:
         """Solve for the equilibrium under dead nodal forces.
 
         Args:
@@ -127,6 +127,8 @@ class Solver:
                 ``forces``. They are left out of the reference force of the convergence test
                 (:func:`.convergence.reference_force`: thousands of small nodal shares would make
                 the "typical force" tiny); they reach it through the reactions they cause.
+            time_limit: optional wall-clock limit, s: the solve is stopped (at its next
+                preconditioner application) once it has run longer.
 
         Returns:
             The converged :class:`SolveResult` (``nodal_reaction`` also at the solve's
@@ -136,12 +138,15 @@ class Solver:
             SolverSetupError: invalid forces or initial guess.
             ConvergenceError: the minimum increment or the increment budget was reached;
                 ``load_fraction`` and ``result`` (partial) are attached.
+            SolveTimeout: (a ConvergenceError) the solve ran past ``time_limit``.
         """
         fext, counted = self._external_forces(forces, body_loads)
         held = self.problem.solve_constraints(prescribed)
-        return _drive(SolveRun(self, fext, self._nodal_guess(initial_guess), held=held, counted=counted).steps())
+        return _drive(SolveRun(self, fext, self._nodal_guess(initial_guess), held=held, counted=counted).steps(),
+                      time_limit)
 
-    def solve_batch(self, forces, initial_guesses=None, prescribed=None, body_loads=None) -> list:
+    def solve_batch(self, forces, initial_guesses=None, prescribed=None, body_loads=None, *,
+                    time_limit: float | None = None) -> list:
         """Solve several force fields together, their triangular solves gathered.
 
         The samples are solved in lockstep: each round advances every unfinished sample to
@@ -165,6 +170,11 @@ class Solver:
                 guesses as for :meth:`solve`.
             prescribed, body_loads: None, or sequences of the same length of per-solve
                 prescribed displacements and body loads as for :meth:`solve` (entries may be None).
+            time_limit: optional wall-clock limit per sample, s. Each round's wall time is
+                shared out among the samples active in it; a sample whose share passes the
+                limit is stopped at its next preconditioner application and gets a
+                :class:`~tissuecast.errors.SolveTimeout` (the others go on; their columns in
+                later rounds change, so their last bits may too).
 
         Returns:
             One entry per force field, in order: its :class:`SolveResult`, or the
@@ -193,7 +203,7 @@ class Solver:
         held = [self.problem.solve_constraints(p) for p in held]
         t0 = time.perf_counter()
         out = _drive_lockstep([SolveRun(self, fext, g, held=h, counted=c).steps()
-                               for (fext, c), g, h in zip(loads, guesses, held)])
+                               for (fext, c), g, h in zip(loads, guesses, held)], time_limit)
         share = (time.perf_counter() - t0) / max(len(forces), 1)
         return [dataclasses.replace(r, seconds=share) if isinstance(r, SolveResult) else r for r in out]
 
@@ -258,27 +268,40 @@ class Solver:
         self._idle_factors.append(factor)
 
 
-def _drive(steps):
+def _drive(steps, time_limit: float | None = None):
     """Run a generator of preconditioner applications (:meth:`SolveRun.steps`) with one
-    solve each; returns the generator's return value."""
+    solve each; returns the generator's return value. With ``time_limit`` (s), the generator
+    is closed and :class:`~tissuecast.errors.SolveTimeout` raised at the first application
+    after that much wall-clock time."""
+    t0 = time.perf_counter()
     reply = None
     try:
         while True:
             factor, v = steps.send(reply)
+            if time_limit is not None and time.perf_counter() - t0 > time_limit:
+                steps.close()  # the run gives back its factor
+                seconds = time.perf_counter() - t0
+                raise SolveTimeout(f"stopped after {seconds:.1f} s, past its time limit of {time_limit:.1f} s",
+                                   seconds, time_limit)
             reply = factor.solve(v)
     except StopIteration as stop:
         return stop.value
 
 
-def _drive_lockstep(steps: list) -> list:
+def _drive_lockstep(steps: list, time_limit: float | None = None) -> list:
     """Run several generators of preconditioner applications in lockstep: each round
     advances every unfinished one to its next application, and the applications with the
     same factorisation are done as one multi-right-hand-side solve (columns in generator
-    order). Returns each generator's return value, or the ConvergenceError it raised."""
+    order). Returns each generator's return value, or the ConvergenceError it raised. With
+    ``time_limit`` (s), each round's wall time is charged in equal shares to the generators
+    active in it, and one whose charge passes the limit is closed and given a
+    :class:`~tissuecast.errors.SolveTimeout`."""
     out: list = [None] * len(steps)
     reply: list = [None] * len(steps)
+    charged = [0.0] * len(steps)
     active = list(range(len(steps)))
     while active:
+        t_round = time.perf_counter()
         groups: dict = {}  # factorisation -> [(generator, vector)], generators in order
         for i in active:
             try:
@@ -288,6 +311,11 @@ def _drive_lockstep(steps: list) -> list:
                 continue
             except ConvergenceError as exc:
                 out[i] = exc
+                continue
+            if time_limit is not None and charged[i] > time_limit:
+                steps[i].close()  # the run gives back its factor
+                out[i] = SolveTimeout(f"stopped after {charged[i]:.1f} s (its share of a batch's time), past its "
+                                      f"time limit of {time_limit:.1f} s", charged[i], time_limit)
                 continue
             groups.setdefault(id(factor), (factor, []))[1].append((i, v))
         active = []
@@ -300,6 +328,9 @@ def _drive_lockstep(steps: list) -> list:
                     reply[i] = np.ascontiguousarray(z[:, k])
             active += [i for i, _ in items]
         active.sort()
+        share = (time.perf_counter() - t_round) / max(len(active), 1)
+        for i in active:
+            charged[i] += share
     return out
 
 

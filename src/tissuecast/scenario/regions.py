@@ -56,7 +56,8 @@ def surface_region(mesh: TetMesh, rule: RegionConfig, key: str, tags: MeshTags |
             chosen = np.intersect1d((tags or MeshTags()).vertices(rule.tag, rule.tag_value), surface)
         except MeshError as exc:
             raise ConfigError(f"{key}.tag: {exc}; set mesh.path to the file that holds it") from None
-        what = f"tag {rule.tag!r}{'' if rule.tag_value == -1 else f' = {rule.tag_value}'} (no vertex of it is on the outer surface)"
+        value = "" if rule.tag_value == -1 else f" = {rule.tag_value}"
+        what = f"tag {rule.tag!r}{value} (no vertex of it is on the outer surface)"
     elif rule.rule == "normal":
         n = vertex_normals(mesh) if normals is None else normals
         d = np.asarray(rule.direction, dtype=np.float64)
