@@ -108,3 +108,69 @@ def test_ccx_backend_reports_a_stop_with_the_state_it_reached(tmp_path):
     with pytest.raises(ConvergenceError) as info:
         solve_calculix(problem, 40.0 * surface, workdir=tmp_path, **extra)
     assert 0.0 < info.value.load_fraction < 1.0
+
+
+EMBEDDED_TOML = """
+name = "embedded-box"
+[solver]
+force_tolerance = 1e-4
+displacement_tolerance = 1e-4
+[forces]
+loading = "traction"
+[scenario]
+name = "embedded"
+pins = false
+[scenario.attached]
+rule = "normal"
+direction = [0.0, 0.0, -1.0]
+angle = 10.0
+[scenario.springs]
+rule = "surface"
+tangential_stiffness = 0.0005
+[scenario.gravity]
+enabled = true
+density = 1e-8
+[scenario.indentation]
+enabled = true
+radius = 7.0
+clearance = 4.0
+[[scenario.materials.regions]]
+name = "inclusion"
+rule = "distance"
+point = [10.0, 10.0, 25.0]
+distance = 8.0
+youngs_modulus = 0.063
+"""
+
+
+@pytest.mark.calculix
+@needs_ccx
+def test_export_inp_deck_of_a_scenario_sample_is_what_our_solver_solves(tmp_path, capsys):
+    """``export-inp`` of the embedded box (attached base, springs, traction LBO forces, gravity
+    change as *DLOAD GRAV, indentation as *BOUNDARY values, two materials): ccx run on the deck
+    gives our solution of the same sample (seed 7) to 0.5 % of the peak."""
+    from tissuecast.cli.export_inp_cmd import _example_forces
+    from tissuecast.cli.main import main
+    from tissuecast.config import load_config
+    from tissuecast.fem import calculix as cx
+    from tissuecast.mesh import write_mesh
+
+    write_mesh(tmp_path / "box.vtu", MESH)
+    (tmp_path / "embedded.toml").write_text(EMBEDDED_TOML)
+    deck = tmp_path / "box.inp"
+    assert main(["export-inp", str(tmp_path / "box.vtu"), str(deck), "--config", str(tmp_path / "embedded.toml"),
+                 "--seed", "7", "--force-rms", "0.05"]) == 0
+    out = capsys.readouterr().out
+    assert "SPRING1" in out and "*DLOAD, GRAV" in out and "node set INDENT" in out
+    text = deck.read_text()
+    assert "TISSUE, GRAV, " in text and text.count("*SOLID SECTION") == 2 and "*NSET, NSET=INDENT" in text
+
+    cfg = load_config(tmp_path / "embedded.toml")
+    sc = build_scenario(MESH, cfg, np.zeros(0, dtype=np.int64))
+    draw = sc.draw(scenario_rng(7))
+    surface, body = sc.sample_loads(draw, _example_forces(MESH, cfg, 7, 0.05), "traction")
+    ours = Solver(sc.problem(cfg), cfg.solver).solve(surface, prescribed=sc.prescribed(draw), body_loads=body)
+    u = cx.read_displacements(cx.run_ccx(deck).dat, MESH.n_points)
+    peak = np.linalg.norm(u, axis=1).max()
+    assert peak > 3.0
+    assert np.linalg.norm(ours.displacement - u, axis=1).max() < 0.005 * peak
