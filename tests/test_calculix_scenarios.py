@@ -174,3 +174,17 @@ def test_export_inp_deck_of_a_scenario_sample_is_what_our_solver_solves(tmp_path
     peak = np.linalg.norm(u, axis=1).max()
     assert peak > 3.0
     assert np.linalg.norm(ours.displacement - u, axis=1).max() < 0.005 * peak
+
+
+def test_preview_example_deformations_are_scaled_by_the_linear_response():
+    """Small target: the examples' peaks are the linear response's, so their median is
+    LINEAR_AIM of forces.target_max_displacement (to 2 %); the loads are the samples' own."""
+    from tissuecast.scenario.preview import LINEAR_AIM, example_deformations
+
+    cfg = with_overrides(Config(), scenario=CASES["attached"][0], forces={"n_basis": 10, "target_max_displacement": 0.2})
+    sc = build_scenario(MESH, cfg, np.zeros(0, dtype=np.int64))
+    out = example_deformations(sc, cfg, [11, 12, 13])
+    peaks = [np.linalg.norm(u, axis=1).max() for _, u in out]
+    assert len(out) == 3 and all(title.startswith(f"example {k + 1}: peak") for k, (title, _) in enumerate(out))
+    assert np.median(peaks) == pytest.approx(LINEAR_AIM * 0.2, rel=0.02)
+    assert len(set(np.round(peaks, 6))) == 3  # three different samples
