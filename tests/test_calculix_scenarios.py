@@ -62,13 +62,9 @@ def _case(name: str, seed: int = 5):
         basis = lbo_basis(MESH, 10)
         w = random_lbo_weights(np.random.default_rng(seed), basis.n_vectors)
         field = lbo_field(basis, w, scale * rms / field_scale(basis), MESH.n_points)
-    body_force = None if draw.body_force is None else scale * gravity * draw.body_force
-    surface, body = sc.sample_loads(ScenarioDraw(draw.gravity_direction, body_force, None), field, loading)
-    extra = {"body_loads": body} if body_force is not None else {}
-    ids, values = sc.prescribed(draw)
-    if len(ids):
-        extra["prescribed"] = (ids, scale * values)
-    return sc.problem(cfg), surface, extra
+    if draw.body_force is not None:
+        draw = ScenarioDraw(draw.gravity_direction, scale * gravity * draw.body_force, draw.indentation)
+    return (sc.problem(cfg), *sc.solve_inputs(draw, field, loading))
 
 
 @pytest.mark.calculix
@@ -168,8 +164,8 @@ def test_export_inp_deck_of_a_scenario_sample_is_what_our_solver_solves(tmp_path
     cfg = load_config(tmp_path / "embedded.toml")
     sc = build_scenario(MESH, cfg, np.zeros(0, dtype=np.int64))
     draw = sc.draw(scenario_rng(7))
-    surface, body = sc.sample_loads(draw, _example_forces(MESH, cfg, 7, 0.05), "traction")
-    ours = Solver(sc.problem(cfg), cfg.solver).solve(surface, prescribed=sc.prescribed(draw), body_loads=body)
+    surface, extra = sc.solve_inputs(draw, _example_forces(MESH, cfg, 7, 0.05), "traction")
+    ours = Solver(sc.problem(cfg), cfg.solver).solve(surface, **extra)
     u = cx.read_displacements(cx.run_ccx(deck).dat, MESH.n_points)
     peak = np.linalg.norm(u, axis=1).max()
     assert peak > 3.0

@@ -114,11 +114,7 @@ def example_deformations(sc: Scenario, config, seeds) -> list[tuple[str, np.ndar
     out = []
     for k, (seed, field) in enumerate(zip(seeds, fields)):
         draw = sc.draw(scenario_rng(seed))
-        surface, body = sc.sample_loads(draw, field, config.forces.loading)
-        ids, values = sc.prescribed(draw)
-        extra = {"body_loads": body} if draw.body_force is not None else {}
-        if len(ids):
-            extra["prescribed"] = (ids, values)
+        surface, extra = sc.solve_inputs(draw, field, config.forces.loading)
         try:
             res = solver.solve(surface, **extra)
             u, note = res.displacement, ""
