@@ -63,7 +63,6 @@ def _face_loads(mesh, order, axis, at, traction):
 
 # ---------------------------------------------------------------------------- deck text
 def test_deck_scenario_lines():
-    mesh = box_mesh(1, 1, 1)
     iso = NodalSprings([0, 3], np.stack([0.5 * np.eye(3), 0.5 * np.eye(3)]))
     deck = cx.DeckScenario(springs=iso, density=1e-9, acceleration=[0.0, 0.0, -2.0],
                            materials=[(0.03, 0.4, np.arange(3)), (0.02, 0.45, np.arange(3, 6))])

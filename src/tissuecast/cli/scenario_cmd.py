@@ -27,13 +27,16 @@ def register(sub) -> None:
     pv.add_argument("--examples", type=int, default=3, metavar="N",
                     help="example draws shown: those of the data set's first N samples (default 3)")
     pv.add_argument("--no-png", action="store_true", help="skip the picture (needs pyvista, extra 'viz')")
+    pv.add_argument("--no-deformations", dest="deformations", action="store_false",
+                    help="skip solving the examples (by default each is solved with the built-in solver and drawn "
+                    "deformed, coloured by |u|, next to the supports; VTU point data displacement_example_K, mm)")
     pv.set_defaults(func=run_preview)
 
 
 def run_preview(args) -> int:
     from ..dataset.plan import sample_seed
     from ..scenario import scenario_from_config, scenario_rng
-    from ..scenario.preview import render_preview, write_preview_vtu
+    from ..scenario.preview import example_deformations, render_preview, write_preview_vtu
 
     cfg = load_config(args.config)
     mesh, markers, fixed, sc = scenario_from_config(cfg)
@@ -48,12 +51,15 @@ def run_preview(args) -> int:
            "attached": sc.attached.tolist(),
            "examples": [{"sample": i, **d.record(), "indent_vertices": [] if d.indentation is None
                          else d.indentation.vertices.tolist()} for i, d in enumerate(draws)]}
-    written = [write_preview_vtu(prefix.with_name(prefix.name + ".vtu"), sc, draws)]
+    deformations = example_deformations(sc, cfg, seeds) if args.deformations else []
+    doc["example_peak_displacement_mm"] = [float(np.linalg.norm(u, axis=1).max()) for _, u in deformations]
+    extra = {f"displacement_example_{k + 1}": u for k, (_, u) in enumerate(deformations)}
+    written = [write_preview_vtu(prefix.with_name(prefix.name + ".vtu"), sc, draws, extra)]
     path = prefix.with_name(prefix.name + ".json")
     path.write_text(json.dumps(doc, indent=2, default=float) + "\n", encoding="utf-8")
     written.append(path)
     if not args.no_png:
-        written.append(render_preview(prefix.with_name(prefix.name + ".png"), sc, draws))
+        written.append(render_preview(prefix.with_name(prefix.name + ".png"), sc, draws, deformations))
     print(f"scenario '{summary['name']}' on {mesh.n_vertices} vertices ({cfg.mesh.path or 'built-in phantom'}); "
           "ids 0-based")
     print(f"  pinned vertices   {len(sc.pinned)}")

@@ -138,10 +138,10 @@ class Problem:
                 f"{len(constrained)} constrained vertices cannot stop rigid-body motion; "
                 "fix at least 3 vertices that are not on one line"
             )
-        p = self.mesh.points[constrained]
-        d = p - p.mean(axis=0)
-        sv = np.linalg.svd(d, compute_uv=False)
-        if sv[1] <= 1e-6 * max(sv[0], 1e-300):
+        if self.springs is None:
+            p = self.mesh.points[constrained]
+            sv = np.linalg.svd(p - p.mean(axis=0), compute_uv=False)
+        if self.springs is None and sv[1] <= 1e-6 * max(sv[0], 1e-300):
             raise SolverSetupError(
                 f"the constrained vertices {constrained.tolist()} lie on one line, so the body can still "
                 "rotate about it; fix at least 3 vertices that are not collinear"

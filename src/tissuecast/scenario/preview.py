@@ -19,7 +19,13 @@ import numpy as np
 from ..errors import require
 from .scenario import Scenario, ScenarioDraw
 
-__all__ = ["SUPPORT_CODES", "preview_arrays", "write_preview_vtu", "render_preview"]
+__all__ = ["SUPPORT_CODES", "preview_arrays", "write_preview_vtu", "render_preview", "example_deformations"]
+
+#: Without a fixed ``dataset.alpha``, the example LBO fields are scaled so that their median
+#: linear (small-strain) peak is this share of ``forces.target_max_displacement``: the
+#: nonlinear response of a body on pins grows faster than linearly, so a full-size linear
+#: guess would overshoot.
+LINEAR_AIM = 0.3
 
 SUPPORT_CODES = {"free": 0, "springs": 1, "attached": 2, "pinned": 3}
 
@@ -62,6 +68,61 @@ def preview_arrays(sc: Scenario, draws: list[ScenarioDraw]) -> tuple[dict, dict]
     else:
         cell = {"material_region": np.full(mesh.n_tets, -1, dtype=np.int32)}
     return point, cell
+
+
+def example_deformations(sc: Scenario, config, seeds) -> list[tuple[str, np.ndarray]]:
+    """Solve the samples ``seeds`` of the scenario with the built-in solver (one Newton solve each).
+
+    Each sample's loads are a data set's: its LBO field (weights from ``default_rng(seed)``;
+    magnitude ``dataset.alpha``, or if 0 :data:`LINEAR_AIM` of ``forces.target_max_displacement``
+    by the median linear response of the examples' fields), applied as ``forces.loading`` says,
+    and its scenario draws (gravity change, indentation; ``scenario_rng(seed)``).
+
+    Args:
+        sc: the scenario.
+        config: the whole configuration (material, solver, forces).
+        seeds: (k,) sample seeds.
+
+    Returns:
+        ``[(title, displacement (n, 3) mm)]``, one per seed; a sample the solver could not
+        finish gives its last converged state, and its title says so.
+    """
+    from ..errors import ConvergenceError
+    from ..fem import Solver
+    from ..forces import lbo_basis, lbo_field, random_lbo_weights
+    from .scenario import scenario_rng
+
+    problem = sc.problem(config)
+    solver = Solver(problem, config.solver)
+    n = sc.mesh.n_vertices
+    fields = [None] * len(seeds)
+    if config.scenario.lbo_forces:
+        basis = lbo_basis(sc.mesh, n=config.forces.n_basis)
+        fields = [lbo_field(basis, random_lbo_weights(np.random.default_rng(np.uint64(s)), basis.n_vectors), 1.0, n)
+                  for s in seeds]
+        alpha = config.dataset.alpha
+        if not alpha > 0:
+            reference, free = solver.reference_factor(), solver.free_dofs
+            peaks = []
+            for f in fields:
+                loads = sc.loads(ScenarioDraw(), f, config.forces.loading)
+                u = np.zeros(loads.size)
+                u[free] = reference.solve(loads.ravel()[free])
+                peaks.append(float(np.linalg.norm(u.reshape(-1, 3)[:n], axis=1).max()))
+            alpha = LINEAR_AIM * config.forces.target_max_displacement / max(float(np.median(peaks)), 1e-300)
+        fields = [alpha * f for f in fields]
+    out = []
+    for k, (seed, field) in enumerate(zip(seeds, fields)):
+        draw = sc.draw(scenario_rng(seed))
+        surface, extra = sc.solve_inputs(draw, field, config.forces.loading)
+        try:
+            res = solver.solve(surface, **extra)
+            u, note = res.displacement, ""
+        except ConvergenceError as exc:
+            u = exc.result.displacement if exc.result is not None else np.zeros((n, 3))
+            note = f" (stopped at {100 * exc.load_fraction:.0f} % of the load)"
+        out.append((f"example {k + 1}: peak {np.linalg.norm(u, axis=1).max():.1f} mm{note}", np.asarray(u)))
+    return out
 
 
 def write_preview_vtu(path, sc: Scenario, draws: list[ScenarioDraw], extra_point_data: dict | None = None) -> Path:
@@ -123,7 +184,9 @@ def render_preview(path, sc: Scenario, draws: list[ScenarioDraw], deformations: 
             v = np.asarray(vec, dtype=np.float64)
             p.add_mesh(pv.Arrow(start=centre, direction=v / np.linalg.norm(v), scale=arrow, shaft_radius=0.02), color=colour)
         for d in draws:
-            p.add_mesh(pv.Arrow(start=centre, direction=d.gravity_direction, scale=0.8 * arrow, shaft_radius=0.01, tip_radius=0.04),
+            arrow_mesh = pv.Arrow(start=centre, direction=d.gravity_direction, scale=0.8 * arrow, shaft_radius=0.01,
+                                  tip_radius=0.04)
+            p.add_mesh(arrow_mesh,
                        color="orange", opacity=0.6)
     legend = [("elastic support (springs)", "lightskyblue"), ("attached region", "crimson"),
               ("pinned vertices", "royalblue"), ("indentation examples I", "green")]

@@ -177,6 +177,19 @@ class Scenario:
         body[held] = 0.0
         return surface, body
 
+    def solve_inputs(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None,
+                     loading: str = "nodal") -> tuple[np.ndarray, dict]:
+        """What a solver takes for a sample: ``(surface loads (n_nodes, 3) N, keywords)`` with
+        ``body_loads`` (n_nodes, 3) N when the draw has a gravity change and ``prescribed``
+        ``(ids (k,), values (k, 3) mm)`` when it has an indentation, for
+        :meth:`tissuecast.fem.Solver.solve` or :func:`tissuecast.fem.calculix.solve_calculix`."""
+        surface, body = self.sample_loads(draw, vertex_forces, loading)
+        extra = {"body_loads": body} if draw.body_force is not None else {}
+        ids, values = self.prescribed(draw)
+        if len(ids):
+            extra["prescribed"] = (ids, values)
+        return surface, extra
+
     def loads(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None, loading: str = "nodal") -> np.ndarray:
         """A sample's external loads on every element node, (n_nodes, 3) N: the sum of
         :meth:`sample_loads`."""

@@ -59,6 +59,17 @@ class DeckScenario:
                                        "(3,) mm/s^2")
             object.__setattr__(self, "acceleration", a)
 
+    @classmethod
+    def from_problem(cls, problem, density: float | None = None, acceleration=None) -> "DeckScenario | None":
+        """What a :class:`~tissuecast.fem.Problem` adds to a deck: its springs and per-element
+        materials (one group per distinct (E, nu)), and a gravity load ``density * acceleration``
+        if given; None when it adds nothing."""
+        springs = problem.springs if problem.springs is not None and len(problem.springs) else None
+        materials = problem.materials.groups() if problem.materials is not None else None
+        if springs is None and materials is None and acceleration is None:
+            return None
+        return cls(springs=springs, density=density, acceleration=acceleration, materials=materials)
+
     def material_lines(self, material, n_elements: int, num) -> list[str]:
         """``*MATERIAL`` / ``*SOLID SECTION`` lines for all elements (ELSET ``TISSUE`` holds them all).
 

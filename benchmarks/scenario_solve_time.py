@@ -1,0 +1,87 @@
+"""Per-sample solve time of two configs' data sets, side by side in one run (issue 16's target:
+configs/embedded.toml no worse than 1.5x the paper preset's).
+
+Each config makes a small data set of ``--samples`` LBO samples (no test-2) through the data-
+generation path itself (:func:`tissuecast.dataset.simulate`: calibration, reduced-order
+predictor from ``--predictor-samples`` samples if the config uses one, retries), one worker
+process each, the two runs one after the other in this process's machine state. The figures
+are read back from the stores: median and mean seconds per sample (the solve alone, as
+recorded per sample), Newton iterations and factorisations per sample, how many samples
+started from the predictor, and the ratio B / A.
+
+    python benchmarks/scenario_solve_time.py configs/paper.toml configs/embedded.toml
+    python benchmarks/scenario_solve_time.py A.toml B.toml --samples 20 --keep runs/bench
+
+Timings of a shared machine are inflated by whatever else runs on it; take the figure on an
+idle machine and compare the ratio of one run only.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
+
+import argparse  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from tissuecast.config import load_config, with_overrides  # noqa: E402
+from tissuecast.dataset import open_dataset, simulate  # noqa: E402
+from tissuecast.dataset.codes import InitialGuess  # noqa: E402
+
+
+def time_config(path: str, samples: int, predictor_samples: int, folder: Path) -> dict:
+    """Make the small data set of config ``path`` in ``folder`` and read its per-sample figures."""
+    cfg = load_config(path)
+    dataset = {"n_samples": samples, "n_test2": 0, "calibration_samples": min(cfg.dataset.calibration_samples, 8),
+               "predictor_samples": min(predictor_samples, max(2, samples - 2)), "workers": 1}
+    cfg = with_overrides(cfg, dataset=dataset)
+    store = folder / (Path(path).stem + ".zarr")
+    t0 = time.perf_counter()
+    simulate(cfg, store, progress=False, workers=1)
+    wall = time.perf_counter() - t0
+    ds = open_dataset(store)
+    done = ds.select(status="done")
+    sec, its, fac = ds.seconds[done], ds.iterations[done], ds.factorizations[done]
+    return {"config": path, "scenario": cfg.scenario.name, "done": len(done), "of": len(ds), "median_s": float(np.median(sec)),
+            "mean_s": float(np.mean(sec)), "iterations": float(np.mean(its)), "factorizations": float(np.mean(fac)),
+            "predicted": int(np.sum(ds.predicted[done] == InitialGuess.REDUCED_MODEL)),
+            "peak": float(np.median(ds.max_displacement[done])),
+            "wall": wall}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("baseline", help="config A (e.g. configs/paper.toml)")
+    ap.add_argument("scenario", help="config B (e.g. configs/embedded.toml)")
+    ap.add_argument("--samples", type=int, default=20, help="LBO samples per data set (default 20)")
+    ap.add_argument("--predictor-samples", type=int, default=8,
+                    help="samples solved from zero that build the reduced-order predictor, if the config uses one "
+                    "(default 8; the rest start from its prediction, as in data generation)")
+    ap.add_argument("--keep", metavar="DIR", help="keep the two stores here (default: a temporary folder)")
+    args = ap.parse_args(argv)
+    folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="tissuecast-solve-time-"))
+    folder.mkdir(parents=True, exist_ok=True)
+    rows = [time_config(p, args.samples, args.predictor_samples, folder) for p in (args.baseline, args.scenario)]
+    head = (f"{'config':<28}{'scenario':<12}{'done':>8}{'median s':>10}{'mean s':>9}{'Newton':>8}{'factor':>8}"
+            f"{'predicted':>10}{'peak mm':>9}{'wall s':>8}")
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        print(f"{r['config']:<28}{r['scenario']:<12}{r['done']:>4}/{r['of']:<3}{r['median_s']:>10.3f}{r['mean_s']:>9.3f}"
+              f"{r['iterations']:>8.1f}{r['factorizations']:>8.1f}{r['predicted']:>10}{r['peak']:>9.2f}{r['wall']:>8.1f}")
+    a, b = rows
+    print(f"ratio {Path(b['config']).stem} / {Path(a['config']).stem} per sample: median {b['median_s'] / a['median_s']:.2f}x, "
+          f"mean {b['mean_s'] / a['mean_s']:.2f}x (target <= 1.5x); seconds are each sample's solve as the store "
+          "records it (calibration, predictor building and worker start-up are in 'wall')")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
