@@ -8,8 +8,9 @@ from pathlib import Path
 
 def register(sub) -> None:
     p = sub.add_parser("train", help="train the surrogate model on a data set",
-                       description="Fit PCA (n_w by the paper's rule unless surrogate.n_components is set), the ridge "
-                                   "baseline and the MLP on the store's train split (valid split for checkpointing), "
+                       description="Fit PCA (n_w by surrogate.pca_rule, the validation rule by default, unless "
+                                   "surrogate.n_components is set), the ridge baseline and the MLP on the store's "
+                                   "train split (valid split for checkpointing), "
                                    "and save the model folder (weights, PCA basis, mesh, metadata, ONNX).")
     p.add_argument("source", nargs="?", help="TOML config file or data-set store directory (default: defaults)")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
