@@ -208,7 +208,8 @@ def test_batch_gathers_the_solves_and_matches_single_solves(beam):
         # round-off of the gathered solves, carried through the Newton iterations: far below
         # the convergence tolerance (1e-2 of the displacement)
         assert np.abs(a.displacement - b.displacement).max() <= 1e-6 * b.max_displacement
-        assert a.iterations == b.iterations
+        # a residual within round-off of the tolerance may take one iteration more or less
+        assert abs(a.iterations - b.iterations) <= 1
     assert max(widths) == 3  # the three guessed samples' first solves, together
     assert len(widths) < sum(widths)  # fewer solves than right-hand sides
     again = solver.solve_batch(fields[:4], guesses[:4])
