@@ -4,7 +4,8 @@ A small client (tests/igtl_client/tissuecast_igtl_client.cxx) is compiled with g
 library, sends a registration TRANSFORM and a POINT message, and unpacks the POLYDATA reply
 with the library's own CRC check; the points and triangles must be the Python prediction.
 Malformed messages must be answered (STRING ERROR) or, for a stream that can no longer be
-trusted, answered and dropped.
+trusted, answered and dropped; the out-of-distribution alarm arrives as a STATUS message the
+library unpacks.
 
 CI must run this test: with CI set, a missing library or compiler fails instead of skipping.
 """
@@ -92,3 +93,22 @@ def test_cpp_client_point_and_transform_in_polydata_out_and_malformed_messages(c
     assert replies[2].startswith("STRING ERROR 1 TRANSFORM device 'Needle' is not a marker")
     assert replies[3].startswith("STRING ERROR 1 unsupported header version 99")
     assert replies[4] == "CLOSED"
+
+
+def test_cpp_client_reads_the_alarm_status(client_binary):
+    """Two swapped markers: the surface reply, then a STATUS alarm, both unpacked by the library."""
+    from _trust_synthetic import SPLITS, trust_data, trust_model
+
+    from tissuecast.serve.status import ALARM_NAME, STATUS_DEVICE, AlarmBits, StatusCode
+
+    model = trust_model()
+    positions = model.reference_marker_positions + trust_data()[1][SPLITS["test"][5]][model.markers]
+    positions[[0, 3]] = positions[[3, 0]]
+    with IGTLServer(model, "127.0.0.1", 0) as server:
+        lines = _run(client_binary, server.address, "TrackerToImage", np.eye(4), positions)
+    assert lines[0].startswith("POLYDATA TissueSurface 1 ")
+    status = [line.split(" ", 6) for line in lines if line.startswith("STATUS ")]
+    assert len(status) == 1, lines
+    _, device, crc_ok, code, subcode, name, text = status[0]
+    assert (device, crc_ok, int(code), name) == (STATUS_DEVICE, "1", int(StatusCode.UNKNOWN_ERROR), ALARM_NAME)
+    assert int(subcode) & AlarmBits.INCONSISTENT_MARKERS and "markers disagree" in text

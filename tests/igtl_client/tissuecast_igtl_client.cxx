@@ -12,6 +12,8 @@
 //      TRANSFORM for an unknown device;
 //   3. sends a header of an unknown version and prints the reply, then "CLOSED" when the
 //      server drops the connection.
+// Any STATUS message (the out-of-distribution alarm) is printed where it arrives:
+// "STATUS <device> <crc ok> <code> <subcode> <error name> <message>".
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -23,6 +25,7 @@
 #include "igtlMessageHeader.h"
 #include "igtlPointMessage.h"
 #include "igtlPolyDataMessage.h"
+#include "igtlStatusMessage.h"
 #include "igtlStringMessage.h"
 #include "igtlTransformMessage.h"
 
@@ -124,6 +127,16 @@ static int receiveAndPrint(igtl::ClientSocket::Pointer& socket)
     socket->Receive(text->GetPackBodyPointer(), text->GetPackBodySize());
     int crcOk = (text->Unpack(1) & igtl::MessageHeader::UNPACK_BODY) ? 1 : 0;
     std::printf("STRING %s %d %s\n", header->GetDeviceName(), crcOk, text->GetString());
+  }
+  else if (std::strcmp(header->GetDeviceType(), "STATUS") == 0)
+  {
+    igtl::StatusMessage::Pointer status = igtl::StatusMessage::New();
+    status->SetMessageHeader(header);
+    status->AllocatePack();
+    socket->Receive(status->GetPackBodyPointer(), status->GetPackBodySize());
+    int crcOk = (status->Unpack(1) & igtl::MessageHeader::UNPACK_BODY) ? 1 : 0;
+    std::printf("STATUS %s %d %u %lld %s %s\n", header->GetDeviceName(), crcOk, status->GetCode(),
+                static_cast<long long>(status->GetSubCode()), status->GetErrorName(), status->GetStatusString());
   }
   else
   {
