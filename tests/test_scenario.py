@@ -221,6 +221,38 @@ def test_indentation_sites_and_draws():
         indentation_sites(mesh, IndentationConfig(clearance=500.0), normals, supported)
 
 
+def test_indentation_centres_lie_in_the_access_region_and_survive_a_store_round_trip():
+    from tissuecast.scenario import restore_scenario
+
+    mesh = phantom()
+    access = {"rule": "normal", "direction": [0.0, -1.0, 0.0], "angle": 35.0}
+    scenario = {"pins": False, "attached": {"rule": "normal", "direction": [0.0, 1.0, 0.0], "angle": 45.0},
+                "springs": {"rule": "surface"}, "indentation": {"enabled": True, "access": access}}
+    cfg = with_overrides(Config(), scenario=scenario)
+    sc = build_scenario(mesh, cfg, np.zeros(0, dtype=int))
+    normals = vertex_normals(mesh)
+    region = surface_region(mesh, RegionConfig(**access), "k")
+    np.testing.assert_array_equal(sc.sites.access, region)
+    assert np.isin(sc.sites.centres, region).all() and 0 < len(sc.sites.centres) <= len(region)
+    assert (normals[sc.sites.centres] @ [0.0, -1.0, 0.0] >= np.cos(np.radians(35.0)) - 1e-12).all()
+    anywhere = build_scenario(mesh, with_overrides(cfg, scenario={"indentation": {"access": {"rule": "surface"}}}),
+                              np.zeros(0, dtype=int))
+    assert len(anywhere.sites.centres) > 2 * len(sc.sites.centres)
+    # a data set stores the access region; restoring gives the same sites and the same draws
+    again = restore_scenario(mesh, cfg, sc.arrays())
+    np.testing.assert_array_equal(again.sites.centres, sc.sites.centres)
+    d1, d2 = sc.draw(scenario_rng(11)), again.draw(scenario_rng(11))
+    assert d1.indentation.centre == d2.indentation.centre
+    summary = sc.summary()["indentation"]
+    assert summary["access_rule"] == "normal" and summary["access_vertices"] == len(region)
+    with pytest.raises(ConfigError, match=r"scenario.indentation.access: rule 'distance' selects no surface vertex"):
+        build_scenario(mesh, with_overrides(cfg, scenario={"indentation": {"access": {
+            "rule": "distance", "point": [500.0, 0.0, 0.0], "distance": 5.0}}}), np.zeros(0, dtype=int))
+    with pytest.raises(ConfigError, match=r"no vertex of the access region \(scenario.indentation.access\) is 8 mm away"):
+        build_scenario(mesh, with_overrides(cfg, scenario={"indentation": {"access": {
+            "rule": "normal", "direction": [0.0, 1.0, 0.0], "angle": 30.0}}}), np.zeros(0, dtype=int))
+
+
 # ------------------------------------------------------------------------------ materials
 def test_material_regions_by_cell_data_and_distance():
     from tissuecast.config import MaterialConfig, MaterialRegionConfig, MaterialRegionsConfig

@@ -287,6 +287,14 @@ class GravityConfig:
 
 
 @dataclass(frozen=True)
+class AccessConfig(RegionConfig):
+    """Where an instrument can reach the surface (the surgical access: a craniotomy, a port, the
+    exposed face): indentation patch centres are drawn among these surface vertices."""
+
+    rule: str = _f("surface", choices=REGION_RULES[1:], doc="outer-surface vertices an instrument can reach: surface = all; ids = in `ids`; tag = a mesh-file region; normal = within `angle` of `direction`; distance = within `distance` of `point`")
+
+
+@dataclass(frozen=True)
 class IndentationConfig:
     """An instrument pushing a small surface patch: prescribed displacement at a random site per sample."""
 
@@ -295,6 +303,7 @@ class IndentationConfig:
     depth: tuple[float, ...] = _f((2.0, 6.0), lo=0.0, doc="[min, max] depth along the inward normal at the centre, mm, drawn uniformly")
     slide: tuple[float, ...] = _f((0.0, 2.0), lo=0.0, doc="[min, max] tangential slide, mm, drawn uniformly, in a uniformly drawn tangent direction")
     clearance: float = _f(8.0, lo=0.0, doc="patch centres lie at least this far (mm) from supported vertices (pins, attached region)")
+    access: AccessConfig = field(default_factory=AccessConfig, metadata={"doc": "the surgical access: the surface region where patch centres may lie (default the whole outer surface)"})
 
 
 MATERIAL_REGION_RULES = ("cell_data", "distance")

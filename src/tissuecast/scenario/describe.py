@@ -44,7 +44,10 @@ def _loads(s: dict) -> str:
     i = s.get("indentation")
     if i:
         parts.append(f"one indentation (patch radius {i['radius_mm']:g} mm, depth {_range(i['depth_mm'])}, "
-                     f"slide {_range(i['slide_mm'])})")
+                     f"slide {_range(i['slide_mm'])}, centres in "
+                     + ("the whole outer surface" if i.get("access_rule", "surface") == "surface"
+                        else f"the access region: {i.get('access_vertices', '?')} surface vertices, rule {i['access_rule']}")
+                     + ")")
     return "; ".join(parts) or "none"
 
 

@@ -1,7 +1,8 @@
 """Indentation: an instrument pushing a small surface patch by a prescribed displacement.
 
 Per sample a patch centre is drawn on the outer surface (uniformly by area, among the
-surface vertices at least ``clearance`` mm from every supported vertex); the patch is the
+surface vertices of the access region, ``scenario.indentation.access``, that lie at least
+``clearance`` mm from every supported vertex); the patch is the
 surface vertices within ``radius`` mm of the centre whose outward normals face the same side
 (within 60 degrees of the centre's), supported vertices left out. Every patch vertex moves by
 the same displacement
@@ -64,6 +65,8 @@ class IndentationSites:
 
     Attributes:
         centres: (c,) int64 eligible centre vertices.
+        access: (a,) int64 sorted surface vertices of the access region (the centres are
+            those of them far enough from the supports with a large enough patch).
         weights: (c,) float, probabilities (lumped vertex areas, normalised).
         patches: list of (p,) int64 patch vertices, one per centre.
         normals: (c, 3) outward unit normals at the centres.
@@ -73,10 +76,11 @@ class IndentationSites:
     weights: np.ndarray
     patches: list
     normals: np.ndarray
+    access: np.ndarray
 
 
 def indentation_sites(mesh: TetMesh, config: IndentationConfig, normals: np.ndarray, supported: np.ndarray,
-                      key: str = "scenario.indentation") -> IndentationSites:
+                      key: str = "scenario.indentation", access: np.ndarray | None = None) -> IndentationSites:
     """The eligible patch centres and their patches (module notes).
 
     Args:
@@ -85,27 +89,32 @@ def indentation_sites(mesh: TetMesh, config: IndentationConfig, normals: np.ndar
         normals: (n, 3) outward vertex normals.
         supported: (k,) int vertices held by the supports (pins, attached region).
         key: config key for messages.
+        access: (a,) int surface vertices where centres may lie (the resolved
+            ``config.access`` region); None = the whole outer surface.
 
     Raises:
-        ConfigError: no surface vertex is far enough from the supports, or no patch holds
+        ConfigError: no access vertex is far enough from the supports, or no patch holds
             :data:`PATCH_MIN_VERTICES` vertices (radius too small: in metres?).
     """
     surface = np.asarray(mesh.surface_vertices, dtype=np.int64)
+    access = surface if access is None else np.intersect1d(np.asarray(access, dtype=np.int64), surface)
     supported = np.asarray(supported, dtype=np.int64)
     pts = mesh.points
     if supported.size:
-        far = np.array([np.linalg.norm(pts[supported] - pts[v], axis=1).min() >= config.clearance for v in surface])
+        far = np.array([np.linalg.norm(pts[supported] - pts[v], axis=1).min() >= config.clearance for v in access],
+                       dtype=bool)
     else:
-        far = np.ones(len(surface), dtype=bool)
+        far = np.ones(len(access), dtype=bool)
     if not far.any():
-        raise ConfigError(f"{key}: no surface vertex is {config.clearance:g} mm away from the supported vertices; "
-                          f"reduce {key}.clearance or the supported region")
+        where = "surface vertex" if len(access) == len(surface) else f"vertex of the access region ({key}.access)"
+        raise ConfigError(f"{key}: no {where} is {config.clearance:g} mm away from the supported vertices; "
+                          f"reduce {key}.clearance, widen {key}.access or shrink the supported region")
     nodes, area, _ = lumped_areas(mesh, mesh.surface_triangles, 1)
     vertex_area = np.zeros(mesh.n_vertices)
     vertex_area[nodes] = area
     centres, patches = [], []
     free_surface = surface[~np.isin(surface, supported)]
-    for c in surface[far]:
+    for c in access[far]:
         near = free_surface[np.linalg.norm(pts[free_surface] - pts[c], axis=1) <= config.radius]
         patch = near[normals[near] @ normals[c] >= PATCH_FACING_COS]
         if len(patch) >= PATCH_MIN_VERTICES:
@@ -117,7 +126,7 @@ def indentation_sites(mesh: TetMesh, config: IndentationConfig, normals: np.ndar
                           f"({mesh.quality.edge_length_mean:.3g} mm on this mesh)")
     centres = np.asarray(centres, dtype=np.int64)
     w = vertex_area[centres]
-    return IndentationSites(centres, w / w.sum(), patches, normals[centres])
+    return IndentationSites(centres, w / w.sum(), patches, normals[centres], access)
 
 
 def draw_indentation(rng: np.random.Generator, sites: IndentationSites, config: IndentationConfig) -> Indentation:

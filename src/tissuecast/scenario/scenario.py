@@ -200,13 +200,16 @@ class Scenario:
         """The resolved supports and materials as plain arrays (what a data set stores):
         ``pinned``, ``attached``, ``spring_region`` (int64 vertex ids), ``spring_nodes`` (s,)
         and ``spring_stiffness`` (s, 3, 3) N/mm (with springs), ``youngs_modulus`` (m,) MPa,
-        ``poisson_ratio`` (m,) and ``material_region`` (m,) int64 (with material regions)."""
+        ``poisson_ratio`` (m,) and ``material_region`` (m,) int64 (with material regions),
+        ``indent_access`` (a,) int64 surface vertex ids (with an indentation: its access region)."""
         out = {"pinned": self.pinned, "attached": self.attached, "spring_region": self.spring_region}
         if self.springs is not None:
             out.update(spring_nodes=self.springs.nodes, spring_stiffness=self.springs.stiffness)
         if self.materials is not None:
             out.update(youngs_modulus=self.materials.youngs_modulus, poisson_ratio=self.materials.poisson_ratio,
                        material_region=self.materials.region)
+        if self.sites is not None:
+            out["indent_access"] = self.sites.access
         return {k: np.asarray(v) for k, v in out.items()}
 
     def draw(self, rng: np.random.Generator) -> ScenarioDraw:
@@ -250,7 +253,8 @@ class Scenario:
         if self.sites is not None:
             i = cfg.indentation
             out["indentation"] = {"radius_mm": i.radius, "depth_mm": list(i.depth), "slide_mm": list(i.slide),
-                                  "sites": len(self.sites.centres)}
+                                  "sites": len(self.sites.centres), "access_rule": i.access.rule,
+                                  "access_vertices": len(self.sites.access)}
         if self.materials is not None:
             out["materials"] = self.materials.draws
         return out
@@ -309,7 +313,10 @@ def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshT
     if sc.materials.regions:
         rng = material_rng(material_seed) if material_seed is not None else None
         materials = element_materials(mesh, config.material, sc.materials, tags, rng)
-    sites = indentation_sites(mesh, sc.indentation, normals, supported) if sc.indentation.enabled else None
+    sites = None
+    if sc.indentation.enabled:
+        access = surface_region(mesh, sc.indentation.access, "scenario.indentation.access", tags, normals)
+        sites = indentation_sites(mesh, sc.indentation, normals, supported, access=access)
     gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
     return Scenario(sc, mesh, order, pinned, attached, region, springs, materials, normals, sites, gravity)
 
@@ -337,7 +344,13 @@ def restore_scenario(mesh: TetMesh, config: Config, arrays: dict) -> Scenario:
                 draws[name] = {"youngs_modulus": float(e[inside[0]]), "poisson_ratio": float(nu[inside[0]])}
         materials = ElementMaterials(e, nu, region, names, draws)
     supported = np.union1d(pinned, attached)
-    sites = indentation_sites(mesh, sc.indentation, normals, supported) if sc.indentation.enabled else None
+    sites = None
+    if sc.indentation.enabled:
+        if "indent_access" in arrays:
+            access = np.asarray(arrays["indent_access"], dtype=np.int64)
+        else:  # stores made before the access region: the whole outer surface
+            access = surface_region(mesh, sc.indentation.access, "scenario.indentation.access", None, normals)
+        sites = indentation_sites(mesh, sc.indentation, normals, supported, access=access)
     gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
     return Scenario(sc, mesh, order, pinned, attached, np.asarray(arrays["spring_region"], dtype=np.int64), springs,
                     materials, normals, sites, gravity)
