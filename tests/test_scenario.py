@@ -389,14 +389,19 @@ def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
         a.pop("calibration_share", None), b.pop("calibration_share", None)  # embedded keeps trust signals
         assert a == b, section
     assert emb.surrogate.calibration_share > 0.0
-    assert emb.solver.order == 2 and emb.forces.loading == "traction"
-    assert 15.0 <= emb.forces.target_max_displacement <= 30.0
+    # linear tetrahedra: P2 solves of this spring-held body meet non-unique equilibria (docs/scenarios.md)
+    assert emb.solver.order == 1 and emb.solver.strategy == "quasi-newton" and emb.forces.loading == "traction"
+    assert 15.0 <= emb.forces.target_max_displacement <= 30.0 and emb.forces.n_basis == 6
     sc = emb.scenario
     assert not sc.pins and sc.lbo_forces and sc.gravity.enabled and sc.indentation.enabled
     assert sc.springs.rule == "surface" and sc.attached.rule == "normal"
-    # the default support: surroundings of the tissue's modulus over 10 mm
-    assert sc.springs.normal_stiffness == sc.springs.tangential_stiffness == DEFAULT_SUPPORT_STIFFNESS
+    # loose surroundings: the tissue's modulus over 40 mm (the default support is over 10 mm)
+    assert sc.springs.normal_stiffness == sc.springs.tangential_stiffness == pytest.approx(DEFAULT_SUPPORT_STIFFNESS / 4)
     assert DEFAULT_SUPPORT_STIFFNESS == pytest.approx(emb.material.youngs_modulus / 10.0)
     mesh, _, fixed, built = scenario_from_config(emb)
     assert built.pinned.size == 0 and 0.05 * mesh.n_vertices < len(built.attached) < 0.25 * len(mesh.surface_vertices)
     assert built.springs is not None and built.sites is not None and built.gravity == (1.0e-9, 9810.0)
+    # the retractor's access point lies on the anterior face (opposite the attached one), clear of the supports
+    assert sc.indentation.access.rule == "distance" and len(built.sites.centres) >= 1
+    normals = built.normals[built.sites.centres]
+    assert (normals @ [0.0, -1.0, 0.0] > np.cos(np.radians(45.0))).all()
