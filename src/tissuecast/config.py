@@ -291,7 +291,7 @@ class AccessConfig(RegionConfig):
     """Where an instrument can reach the surface (the surgical access: a craniotomy, a port, the
     exposed face): indentation patch centres are drawn among these surface vertices."""
 
-    rule: str = _f("surface", choices=REGION_RULES[1:], doc="outer-surface vertices an instrument can reach: surface = all; ids = in `ids`; tag = a mesh-file region; normal = within `angle` of `direction`; distance = within `distance` of `point`")
+    rule: str = _f("surface", choices=REGION_RULES[1:], doc="surface vertices an instrument reaches: surface = all; ids; tag; normal = within `angle` of `direction`; distance = near `point`")
 
 
 @dataclass(frozen=True)
