@@ -245,6 +245,8 @@ def test_indentation_centres_lie_in_the_access_region_and_survive_a_store_round_
     assert d1.indentation.centre == d2.indentation.centre
     summary = sc.summary()["indentation"]
     assert summary["access_rule"] == "normal" and summary["access_vertices"] == len(region)
+    with pytest.raises(ConfigError, match=r"scenario.indentation.access.rule = 'none' is not allowed"):
+        with_overrides(cfg, scenario={"indentation": {"access": {"rule": "none"}}})
     with pytest.raises(ConfigError, match=r"scenario.indentation.access: rule 'distance' selects no surface vertex"):
         build_scenario(mesh, with_overrides(cfg, scenario={"indentation": {"access": {
             "rule": "distance", "point": [500.0, 0.0, 0.0], "distance": 5.0}}}), np.zeros(0, dtype=int))

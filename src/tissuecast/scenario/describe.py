@@ -43,11 +43,11 @@ def _loads(s: dict) -> str:
                      f"{[float(v) for v in g['surgery_direction']]}, imaged along {[float(v) for v in g['imaging_direction']]})")
     i = s.get("indentation")
     if i:
+        rule = i.get("access_rule", "surface")  # stores made before the access region have none
+        where = ("the whole outer surface" if rule == "surface"
+                 else f"the access region: {i['access_vertices']} surface vertices, rule {rule}")
         parts.append(f"one indentation (patch radius {i['radius_mm']:g} mm, depth {_range(i['depth_mm'])}, "
-                     f"slide {_range(i['slide_mm'])}, centres in "
-                     + ("the whole outer surface" if i.get("access_rule", "surface") == "surface"
-                        else f"the access region: {i.get('access_vertices', '?')} surface vertices, rule {i['access_rule']}")
-                     + ")")
+                     f"slide {_range(i['slide_mm'])}, centres in {where})")
     return "; ".join(parts) or "none"
 
 

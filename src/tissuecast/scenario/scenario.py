@@ -313,18 +313,27 @@ def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshT
     if sc.materials.regions:
         rng = material_rng(material_seed) if material_seed is not None else None
         materials = element_materials(mesh, config.material, sc.materials, tags, rng)
-    sites = None
-    if sc.indentation.enabled:
-        access = surface_region(mesh, sc.indentation.access, "scenario.indentation.access", tags, normals)
-        sites = indentation_sites(mesh, sc.indentation, normals, supported, access=access)
+    sites = _sites(mesh, sc, normals, supported, tags=tags)
     gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
     return Scenario(sc, mesh, order, pinned, attached, region, springs, materials, normals, sites, gravity)
 
 
+def _sites(mesh: TetMesh, sc: ScenarioConfig, normals: np.ndarray, supported: np.ndarray, tags: MeshTags | None = None,
+           access: np.ndarray | None = None) -> IndentationSites | None:
+    """The indentation's sites (None without one); ``access`` (a,) int the stored access region,
+    or None to resolve ``sc.indentation.access`` on the mesh (with ``tags`` for rule ``tag``)."""
+    if not sc.indentation.enabled:
+        return None
+    if access is None:
+        access = surface_region(mesh, sc.indentation.access, "scenario.indentation.access", tags, normals)
+    return indentation_sites(mesh, sc.indentation, normals, supported, access=np.asarray(access, dtype=np.int64))
+
+
 def restore_scenario(mesh: TetMesh, config: Config, arrays: dict) -> Scenario:
     """A scenario from its :meth:`Scenario.arrays` (e.g. read back from a data set), without
-    the mesh file's named regions: the supports and materials are the stored ones; normals and
-    indentation sites are recomputed from the mesh and ``config`` (they depend on nothing else)."""
+    the mesh file's named regions: the supports, materials and the indentation's access region
+    are the stored ones (a store without ``indent_access`` resolves ``config``'s); normals and
+    indentation sites are recomputed from them, the mesh and ``config``."""
     sc = config.scenario
     order = config.solver.order
     normals = vertex_normals(mesh)
@@ -344,13 +353,7 @@ def restore_scenario(mesh: TetMesh, config: Config, arrays: dict) -> Scenario:
                 draws[name] = {"youngs_modulus": float(e[inside[0]]), "poisson_ratio": float(nu[inside[0]])}
         materials = ElementMaterials(e, nu, region, names, draws)
     supported = np.union1d(pinned, attached)
-    sites = None
-    if sc.indentation.enabled:
-        if "indent_access" in arrays:
-            access = np.asarray(arrays["indent_access"], dtype=np.int64)
-        else:  # stores made before the access region: the whole outer surface
-            access = surface_region(mesh, sc.indentation.access, "scenario.indentation.access", None, normals)
-        sites = indentation_sites(mesh, sc.indentation, normals, supported, access=access)
+    sites = _sites(mesh, sc, normals, supported, access=arrays.get("indent_access"))
     gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
     return Scenario(sc, mesh, order, pinned, attached, np.asarray(arrays["spring_region"], dtype=np.int64), springs,
                     materials, normals, sites, gravity)
