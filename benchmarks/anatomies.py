@@ -49,6 +49,18 @@ def make_shape(name: str):
     raise SystemExit(f"unknown shape {name!r}: use tube1, tube2 or rod")
 
 
+def end_vertices(name: str, mesh) -> np.ndarray:
+    """0-based ids of the vertices on the two end faces of a tube or rod (its first and last
+    cross-sections: the shapes number their vertices section by section along the centre line)."""
+    from tissuecast.mesh.shapes import bent_tube, slender_rod  # noqa: F401 - the numbering documented there
+
+    per_section = {"tube1": 24 * 2, "tube2": 24 * 3, "rod": 3 * 3}[name]
+    n = mesh.n_vertices
+    if n % per_section:
+        raise SystemExit(f"{name}: {n} vertices is not a whole number of {per_section}-vertex sections")
+    return np.r_[np.arange(per_section), np.arange(n - per_section, n)]
+
+
 def run_shape(name: str, args) -> None:
     from tissuecast.config import Config, with_overrides
     from tissuecast.dataset import SampleStatus, open_dataset, simulate
@@ -60,14 +72,23 @@ def run_shape(name: str, args) -> None:
     mesh = make_shape(name)
     write_mesh(folder / "mesh.vtu", mesh)
     q = mesh.quality
-    print(f"\n{name}, {rule or 'compact'} pins: {mesh.n_vertices} vertices ({len(mesh.interior_vertices)} interior), "
+    print(f"\n{name}, {rule or 'compact'}{'' if rule == 'embedded' else ' pins'}: {mesh.n_vertices} vertices ({len(mesh.interior_vertices)} interior), "
           f"{mesh.n_tets} tetrahedra, "
           f"radius ratio min {q.radius_ratio_min:.3f} mean {q.radius_ratio_mean:.3f}, extent "
           f"{np.round(mesh.extent, 1).tolist()} mm", flush=True)
     n2 = max(args.samples // 10, 1)
-    cfg = with_overrides(Config(), mesh={"path": str(folder / "mesh.vtu")}, markers={"fixed_rule": rule or "compact"},
+    over = {}
+    if rule == "embedded":  # held as in the body: both open ends attached, springs on the whole surface
+        ends = end_vertices(name, mesh)
+        over = {"scenario": {"name": "embedded", "pins": False, "attached": {"rule": "ids", "ids": ends.tolist()},
+                             "springs": {"rule": "surface"}}}
+        print(f"  embedded: {len(ends)} vertices of the two ends attached, springs "
+              f"{Config().scenario.springs.normal_stiffness:g} N/mm^3 on the outer surface", flush=True)
+    cfg = with_overrides(Config(), mesh={"path": str(folder / "mesh.vtu")},
+                         markers={"fixed_rule": "compact" if rule in ("", "embedded") else rule},
+                         forces={"target_max_displacement": args.target},
                          dataset={"n_samples": args.samples, "n_test2": n2, "workers": args.workers,
-                                  "calibration_samples": args.pilots, "predictor_samples": args.basis})
+                                  "calibration_samples": args.pilots, "predictor_samples": args.basis}, **over)
     t = time.perf_counter()
     try:
         s = simulate(cfg, folder / "set.zarr", progress=True)
@@ -99,6 +120,7 @@ def main(argv=None) -> int:
     ap.add_argument("--pilots", type=int, default=12, help="calibration pilots")
     ap.add_argument("--basis", type=int, default=20, help="reduced-model basis samples")
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--target", type=float, default=30.0, help="q90 of the peak displacement the forces are calibrated to, mm")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     logging.getLogger("tissuecast.fem").setLevel(logging.WARNING)

@@ -63,7 +63,7 @@ def main(argv=None) -> int:
     from tissuecast.dataset import SampleStatus, simulate
     from tissuecast.dataset.batch import solve_batch_tasks
     from tissuecast.dataset.executors import single_threaded_blas
-    from tissuecast.dataset.generate import _recipe
+    from tissuecast.dataset import recipe_from_store
     from tissuecast.dataset.plan import sample_seed
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task, context_for, solve_task
@@ -81,7 +81,7 @@ def main(argv=None) -> int:
 
     single_threaded_blas()
     writer = StoreWriter.open(store)
-    recipe = _recipe(writer, None)
+    recipe = recipe_from_store(writer)
     alpha = float(writer.calibration["alpha"])
     ctx, setup_cpu, _ = _timed(lambda: context_for(recipe))
     ctx.solver(0).reference_factor()

@@ -63,12 +63,12 @@ def _profile(store: Path, indices) -> tuple[dict, float, list]:
     import numpy as np
 
     from tissuecast.dataset import SampleStatus
-    from tissuecast.dataset.generate import _recipe
+    from tissuecast.dataset import recipe_from_store
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task, context_for, solve_task
 
     writer = StoreWriter.open(store)
-    recipe = _recipe(writer, None)
+    recipe = recipe_from_store(writer)
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     alpha = float(writer.calibration["alpha"])
     t = time.perf_counter()

@@ -87,7 +87,7 @@ def child(spec: str, backend: str, args) -> dict:
     """Everything measured for one mesh and backend (run in its own process)."""
     from tissuecast.config import Config, with_overrides
     from tissuecast.dataset import InitialGuess, SampleStatus, open_dataset, simulate
-    from tissuecast.dataset.generate import _recipe
+    from tissuecast.dataset import recipe_from_store
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task, context_for
     from tissuecast.mesh import write_mesh
@@ -112,7 +112,7 @@ def child(spec: str, backend: str, args) -> dict:
     predicted = np.flatnonzero((ds.status == SampleStatus.DONE) & (ds.predicted == InitialGuess.REDUCED_MODEL))
     # in-process: solver set-up, fill, then the same samples from the prediction and from zero
     writer = StoreWriter.open(store)
-    recipe = _recipe(writer, None)
+    recipe = recipe_from_store(writer)
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     alpha = float(writer.calibration["alpha"])
     t = time.process_time()

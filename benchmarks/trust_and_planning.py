@@ -1,7 +1,7 @@
 """Marker planning, per-vertex error bounds and the out-of-distribution alarm (issue 17).
 
-Prints, for the data-set store given (paper preset now; re-run on the clinical-scenario
-store when it exists):
+Prints, for the data-set store given (any preset: the paper's, or a scenario such as
+``configs/embedded.toml``):
 
 1. ``--part planning``: test-1 mean Offset_max (mm) versus the number of markers n_d for
    k-center markers (the paper's rule) and planned markers (``tissuecast.planning``:
@@ -15,15 +15,16 @@ store when it exists):
 3. ``--part alarm``: false alarms on clean test-1 and detection of (a) two swapped
    markers, (b) one marker displaced 3 mm, (c) loads 1.5x beyond the largest trained load:
    test-1 force fields rescaled to 1, 1.25, 1.5 x the largest training load (Frobenius norm
-   of the nodal forces) and, for comparison, 1.5 x their own load (FEM solves with
-   tissuecast's solver from the store's config; cached in ``--cache``), at the calibrated
+   of the nodal forces) and, for comparison, 1.5 x their own load (solved as the data set
+   solves a sample, its scenario draws included, with only the force magnitude alpha scaled;
+   cached in ``--cache``), at the calibrated
    1 % false-alarm rate; detection versus glitch size and load scale.
 
 All lengths in mm. Not run in CI (minutes; part 3's FEM solves take longer the first time).
 
 Usage::
 
-    python benchmarks/trust_and_planning.py --dataset /work/data/paper.zarr [--part all] [--json out.json]
+    python benchmarks/trust_and_planning.py --dataset runs/paper/dataset.zarr [--part all | planning bounds alarm] [--json out.json]
 """
 
 from __future__ import annotations
@@ -111,9 +112,14 @@ def part_planning(ds, args, out: dict) -> None:
 def trust_model(ds, args):
     a = dataset_arrays(ds)
     U = np.asarray(a.displacements, dtype=np.float64)
+    markers = a.markers
+    if args.markers:  # the k-center rule's first N markers instead of the store's
+        from tissuecast.evaluate.studies import study_markers
+
+        markers = study_markers(a.mesh, args.markers, ds.config)[0]
     t0 = time.perf_counter()
     model = DeformationModel(ds.config, ensemble=args.ensemble).fit(
-        U, a.markers, mesh=a.mesh, fixed=a.fixed, train_idx=a.train_idx, valid_idx=a.valid_idx)
+        U, markers, mesh=a.mesh, fixed=a.fixed, train_idx=a.train_idx, valid_idx=a.valid_idx)
     tr = model.training_
     print(f"\nmodel: markers {model.markers.tolist()}, n_w {model.n_components}, ensemble {model.ensemble_size}, "
           f"{tr['n_train']} training / {tr['n_valid']} validation / {tr['n_calibration']} calibration samples "
@@ -175,36 +181,36 @@ def displace_marker(d, size, rng) -> np.ndarray:
 
 
 def scaled_load_fields(ds, args) -> dict:
-    """FEM fields of test-1 force fields scaled to ``--load-scales`` x the largest training load
-    (Frobenius norm of the nodal forces) and ``--own-scales`` x their own load, solved with
-    tissuecast's solver from the store's config; each solve is cached in ``--cache`` (resumable)."""
-    from tissuecast.errors import ConvergenceError
-    from tissuecast.fem import NeoHookean, Problem, Solver
+    """FEM fields of test-1 samples whose force field is scaled to ``--load-scales`` x the largest
+    training load (Frobenius norm of the nodal forces) and ``--own-scales`` x their own load,
+    solved as the data set solves its samples (:func:`tissuecast.dataset.recipe_from_store`:
+    the same supports, scenario draws (gravity change, indentation), solver and retries; only
+    the force magnitude alpha differs); each solve is cached in ``--cache`` (resumable)."""
+    from tissuecast.dataset import recipe_from_store
+    from tissuecast.dataset.worker import Task, solve_task
 
     cache = Path(args.cache) / f"scaled_loads_{ds.path.name}"
     cache.mkdir(parents=True, exist_ok=True)
-    cfg = ds.config
     F = np.asarray(ds.forces)
     train = split_indices(ds, "train")
     t1 = split_indices(ds, "test1")[: args.load_samples]
-    largest = float(np.sqrt((F[train].astype(np.float64) ** 2).sum(axis=(1, 2))).max())
-    solver = None
+    norms = np.sqrt((F.astype(np.float64) ** 2).sum(axis=(1, 2)))
+    largest = float(norms[train].max())
+    seeds, alphas = np.asarray(ds.seed), np.asarray(ds.alpha, dtype=np.float64)
+    recipe = None
     fields, scale_of, sample_of, ok, seconds = [], [], [], [], []
     # positive scale s: the load rescaled to s x the largest training load; negative -s: s x its own load
     for s in [*args.load_scales, *(-x for x in args.own_scales)]:
         for i in t1:
             path = cache / f"scale{s:+g}_sample{i}.npz"
             if not path.is_file():
-                if solver is None:
-                    material = NeoHookean(youngs_modulus=cfg.material.youngs_modulus, poisson_ratio=cfg.material.poisson_ratio)
-                    solver = Solver(Problem(ds.mesh, material, np.asarray(ds.fixed), order=cfg.solver.order), cfg.solver)
-                f = F[i].astype(np.float64)
-                f *= s * largest / np.sqrt((f**2).sum()) if s > 0 else -s
+                if recipe is None:
+                    recipe = recipe_from_store(ds.path)
+                k = s * largest / norms[i] if s > 0 else -s
                 t = time.perf_counter()
-                try:
-                    u, good = solver.solve(f).displacement, True
-                except ConvergenceError:
-                    u, good = np.full(F.shape[1:], np.nan), False
+                r = solve_task(recipe, Task(int(i), int(seeds[i]), float("nan"), float(alphas[i]) * k))
+                good = r.displacement is not None
+                u = np.asarray(r.displacement, dtype=np.float64) if good else np.full(F.shape[1:], np.nan)
                 np.savez(path, u=u, converged=good, seconds=time.perf_counter() - t)
                 label = f"x{s:g} of the largest" if s > 0 else f"x{-s:g} of its own"
                 what = f"peak {np.linalg.norm(u, axis=1).max():.1f} mm" if good else "did not converge"
@@ -287,10 +293,13 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", required=True, help="data-set store (tissuecast simulate)")
-    p.add_argument("--part", choices=("planning", "bounds", "alarm", "all"), default="all")
+    p.add_argument("--part", choices=("planning", "bounds", "alarm", "all"), nargs="+", default=["all"],
+                   help="one or more parts (all = every part)")
     p.add_argument("--counts", type=int, nargs="+", default=[2, 3, 4, 5, 6, 8, 10, 12, 15, 20])
     p.add_argument("--region", default="surface", help="planning candidates: surface, any, interior")
     p.add_argument("--min-distance", type=float, default=0.0, help="planning: minimum marker spacing (mm)")
+    p.add_argument("--markers", type=int, default=0,
+                   help="bounds and alarm: this many k-center markers (as the n_d study picks them) instead of the store's")
     p.add_argument("--ensemble", type=int, default=1, help="ensemble size of the model whose bounds are measured")
     p.add_argument("--load-scales", type=float, nargs="+", default=[1.0, 1.25, 1.5])
     p.add_argument("--own-scales", type=float, nargs="*", default=[1.5],
@@ -303,13 +312,14 @@ def main(argv=None) -> int:
     ds = open_dataset(args.dataset)
     print(repr(ds))
     out: dict = {"dataset": str(args.dataset)}
-    if args.part in ("planning", "all"):
+    parts = {"planning", "bounds", "alarm"} if "all" in args.part else set(args.part)
+    if "planning" in parts:
         part_planning(ds, args, out)
-    if args.part in ("bounds", "alarm", "all"):
+    if parts & {"bounds", "alarm"}:
         model, U = trust_model(ds, args)
-        if args.part in ("bounds", "all"):
+        if "bounds" in parts:
             part_bounds(ds, model, U, args, out)
-        if args.part in ("alarm", "all"):
+        if "alarm" in parts:
             part_alarm(ds, model, U, args, out)
     if args.json:
         Path(args.json).write_text(json.dumps(out, indent=2))

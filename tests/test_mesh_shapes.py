@@ -62,3 +62,23 @@ def test_wall_one_element_thick_names_the_supports_to_use():
     two = bent_tube(wall_layers=2)
     pins = select_fixed_vertices(two, 3)  # two layers: the compact rule finds pins in the wall's middle
     assert set(pins.tolist()) <= set(two.interior_vertices.tolist())
+
+
+def test_wall_one_element_thick_is_held_by_its_ends_without_pins(tmp_path):
+    """scenario.pins = false: no pins are chosen, so a mesh without interior vertices is held by
+    an attached region and springs instead of stopping at the pin rule."""
+    from tissuecast.config import Config, with_overrides
+    from tissuecast.mesh import write_mesh
+    from tissuecast.scenario import scenario_from_config
+
+    tube = bent_tube(wall_layers=1, around=12, along=10)
+    write_mesh(tmp_path / "tube.vtu", tube)
+    section = 12 * 2  # the shape numbers its vertices section by section: 12 around x 2 through the wall
+    ends = np.r_[np.arange(section), np.arange(tube.n_vertices - section, tube.n_vertices)]
+    over = {"mesh": {"path": str(tmp_path / "tube.vtu")}}
+    held = {"pins": False, "attached": {"rule": "ids", "ids": ends.tolist()}, "springs": {"rule": "surface"}}
+    mesh, markers, pins, scenario = scenario_from_config(with_overrides(Config(), scenario=held, **over))
+    assert len(pins) == 0 and len(markers) == 5
+    assert np.array_equal(np.sort(scenario.supported), ends)
+    with pytest.raises(MarkerError, match="no interior vertices"):
+        scenario_from_config(with_overrides(Config(), scenario={**held, "pins": True}, **over))

@@ -403,7 +403,7 @@ def validate_vertex_ids(mesh: TetMesh, ids, what: str = "vertex ids", *, other=N
     return arr
 
 
-def markers_and_fixed(mesh: TetMesh, config=None) -> tuple[np.ndarray, np.ndarray]:
+def markers_and_fixed(mesh: TetMesh, config=None, pins: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Markers and fixed vertices as a :class:`~tissuecast.config.MarkerConfig` asks.
 
     User-given ``ids`` / ``fixed_ids`` are validated (and win); otherwise the markers come
@@ -414,9 +414,12 @@ def markers_and_fixed(mesh: TetMesh, config=None) -> tuple[np.ndarray, np.ndarra
     Args:
         mesh: the tetrahedral mesh.
         config: a MarkerConfig; None = the paper's defaults.
+        pins: False when the body is not held by pins (``scenario.pins = false``): no fixed
+            vertices are chosen (so a mesh without interior vertices is fine), and
+            ``fixed_ids`` are not used.
 
     Returns:
-        ``(markers (n_d,) int64, fixed (k,) int64)``, 0-based ids.
+        ``(markers (n_d,) int64, fixed (k,) int64)``, 0-based ids (``fixed`` empty without pins).
     """
     if config is None:
         from .config import MarkerConfig
@@ -426,6 +429,8 @@ def markers_and_fixed(mesh: TetMesh, config=None) -> tuple[np.ndarray, np.ndarra
         markers = validate_vertex_ids(mesh, config.ids, "markers")
     else:
         markers = select_markers(mesh, count=config.count, start=config.start, min_distance=config.min_distance)
+    if not pins:
+        return markers, np.zeros(0, dtype=np.int64)
     if config.fixed_ids:
         fixed = validate_vertex_ids(mesh, config.fixed_ids, "fixed vertices", other=markers)
     else:

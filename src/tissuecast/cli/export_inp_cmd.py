@@ -105,7 +105,7 @@ def _from_config(args):
     tags = MeshTags()
     if args.mesh != PHANTOM_WORD and label_map_format(args.mesh) is None:
         tags = read_mesh_tags(args.mesh)
-    markers, fixed = markers_and_fixed(mesh, cfg.markers)
+    markers, fixed = markers_and_fixed(mesh, cfg.markers, pins=cfg.scenario.pins)
     scenario = build_scenario(mesh, cfg, fixed, tags, material_seed=cfg.dataset.seed)
     forces = _read_forces(args.forces) if args.forces else _example_forces(mesh, cfg, args.seed, args.force_rms)
     if forces.shape != (mesh.n_vertices, 3) or not np.all(np.isfinite(forces)):

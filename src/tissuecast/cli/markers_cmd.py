@@ -67,7 +67,7 @@ def run(args) -> int:
     mesh_name = args.mesh or cfg.mesh.path or PHANTOM_WORD
     units = args.units or cfg.mesh.units
     mesh = load_mesh_argument(mesh_name, units, args.mesh_size or cfg.mesh.surface_mesh_size, cfg.mesh)
-    markers, fixed = markers_and_fixed(mesh, mc)
+    markers, fixed = markers_and_fixed(mesh, mc, pins=cfg.scenario.pins)
     params = {
         "mesh": mesh_name,
         "units": units,

@@ -5,7 +5,7 @@ reads one. The store layout is documented in :mod:`tissuecast.dataset.store` and
 ``docs/dataset-schema.md``.
 """
 
-from .generate import data_config, setup_from_config, simulate
+from .generate import data_config, recipe_from_store, setup_from_config, simulate
 from .plan import SPLIT_CODES, SPLIT_NAMES, SamplePlan, make_plan, sample_seed
 from .reader import Dataset, max_displacement_stats, open_dataset
 from .codes import STATUS_NAMES, InitialGuess, SampleStatus
@@ -13,6 +13,7 @@ from .store import SCHEMA, SCHEMA_VERSION
 
 __all__ = [
     "simulate",
+    "recipe_from_store",
     "open_dataset",
     "Dataset",
     "make_plan",

@@ -36,7 +36,7 @@ from .supervise import Supervisor
 from .supports import MECHANISM_RATIO, check_supports
 from .worker import Recipe, SampleContext, Task
 
-__all__ = ["simulate", "setup_from_config", "scenario_setup", "uses_scenario", "data_config", "SimulationRun", "Phase"]
+__all__ = ["simulate", "recipe_from_store", "setup_from_config", "scenario_setup", "uses_scenario", "data_config", "SimulationRun", "Phase"]
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +146,20 @@ def uses_scenario(cfg: Config) -> bool:
     return not plain or cfg.forces.loading != "nodal"
 
 
-def _recipe(writer: StoreWriter, solver_factory: str | None) -> Recipe:
+def recipe_from_store(store, solver_factory: str | None = None) -> Recipe:
+    """Everything a worker needs to solve a stored data set's samples exactly as its run did.
+
+    Args:
+        store: the store's path, or an open :class:`~.store.StoreWriter`.
+        solver_factory: ``"module:function"`` replacing the FEM solver factory (for testing).
+
+    Returns:
+        The :class:`~.worker.Recipe` (config, mesh, fixed vertices, LBO basis, scenario
+        arrays and the reduced-order predictor, when the store has them); with
+        :class:`~.worker.Task` and :func:`~.worker.solve_task` a sample (or a variant of it,
+        e.g. another force magnitude) is solved in this process.
+    """
+    writer = store if isinstance(store, StoreWriter) else StoreWriter.open(Path(store))
     kw = {"solver_factory": solver_factory} if solver_factory else {}
     if writer.reduced is not None:
         kw.update(reduced_basis=writer.read("reduced/basis"), reduced_elements=writer.read("reduced/elements"),
@@ -299,7 +312,7 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
                 workers: int) -> SimulationRun:
     """Calibrate (if not done), build the predictor (if configured and not built), then solve
     every pending sample; the executor is restarted once the reduced model exists."""
-    recipe = _recipe(writer, solver_factory)
+    recipe = recipe_from_store(writer, solver_factory)
     ds = cfg.dataset
     with contextlib.ExitStack() as executors:
         ex = Supervisor(executors.enter_context(make_executor(recipe, scheduler=scheduler, workers=workers)),
@@ -312,7 +325,7 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
             predictor = _predictor_phase(writer, ex, cfg, recipe)
             if predictor.built:
                 executors.close()  # new workers, with the recipe holding the reduced model
-                ex.executor = executors.enter_context(make_executor(_recipe(writer, solver_factory),
+                ex.executor = executors.enter_context(make_executor(recipe_from_store(writer, solver_factory),
                                                                     scheduler=scheduler, workers=workers))
         batched = ds.batch_size > 1 and writer.reduced is not None
         samples = _solve_pending(writer, ex, ds.batch_size if batched else 1)

@@ -366,7 +366,8 @@ def scenario_from_config(config: Config):
     or the built-in phantom; material draws use ``dataset.seed``.
 
     Returns:
-        ``(mesh, markers (n_d,) int64, fixed (k,) int64, scenario)``.
+        ``(mesh, markers (n_d,) int64, fixed (k,) int64, scenario)``: ``fixed`` are the pins
+        (empty with ``scenario.pins = false``, when none are chosen).
     """
     from ..markers import markers_and_fixed
     from ..mesh.labelmap import label_map_format
@@ -376,6 +377,6 @@ def scenario_from_config(config: Config):
     mesh = mesh_from_config(config.mesh)
     path = config.mesh.path
     tags = read_mesh_tags(path) if path and label_map_format(path) is None else MeshTags()
-    markers, fixed = markers_and_fixed(mesh, config.markers)
+    markers, fixed = markers_and_fixed(mesh, config.markers, pins=config.scenario.pins)
     markers, fixed = np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
     return mesh, markers, fixed, build_scenario(mesh, config, fixed, tags, material_seed=config.dataset.seed)
