@@ -68,7 +68,7 @@ def part_planning(ds, args, out: dict) -> None:
     t1 = split_indices(ds, "test1")
     bench = U[t1]
     counts = [int(c) for c in args.counts]
-    kc, d_min = study_markers(a.mesh, max(counts), ds.config)
+    kc, d_min = study_markers(a.mesh, max(counts), ds.config, exclude=a.fixed)
     t0 = time.perf_counter()
     plan = plan_markers(ds, count=max(counts), region=args.region, min_distance=args.min_distance)
     t_plan = time.perf_counter() - t0
@@ -116,7 +116,7 @@ def trust_model(ds, args):
     if args.markers:  # the k-center rule's first N markers instead of the store's
         from tissuecast.evaluate.studies import study_markers
 
-        markers = study_markers(a.mesh, args.markers, ds.config)[0]
+        markers = study_markers(a.mesh, args.markers, ds.config, exclude=a.fixed)[0]
     t0 = time.perf_counter()
     model = DeformationModel(ds.config, ensemble=args.ensemble).fit(
         U, markers, mesh=a.mesh, fixed=a.fixed, train_idx=a.train_idx, valid_idx=a.valid_idx)

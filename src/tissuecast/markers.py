@@ -7,12 +7,16 @@ its start vertex 97 is our ``start=96`` and its markers [97, 753, 1145, 5, 432] 
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import FIXED_RULES
 from .errors import MarkerError
 from .mesh.tetmesh import TetMesh
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "select_markers",
@@ -44,7 +48,8 @@ def _pick(score: np.ndarray, eligible: np.ndarray, largest: bool) -> int:
     return int(np.flatnonzero(s >= best - tol)[0])
 
 
-def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_distance: float = 10.0) -> np.ndarray:
+def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_distance: float = 10.0,
+                     exclude=None) -> np.ndarray:
     """The paper's revised k-center clustering on raw points (see :func:`select_markers`).
 
     Args:
@@ -53,9 +58,12 @@ def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_di
         start: 0-based id of the first center v0.
         min_distance: d_min in mm; a candidate must be *farther* than this from every
             chosen center.
+        exclude: optional 0-based ids never chosen (e.g. vertices the supports hold: their
+            displacement is always zero). If ``start`` is among them, the nearest point not
+            excluded starts instead (logged).
 
     Returns:
-        (count,) int64 point ids in pick order, ``start`` first.
+        (count,) int64 point ids in pick order, ``start`` (or its replacement) first.
 
     Raises:
         MarkerError: bad ``count``/``start``/``min_distance``, or fewer than ``count``
@@ -73,6 +81,16 @@ def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_di
     if not np.isfinite(d_min) or d_min < 0:
         raise MarkerError(f"min_distance must be a finite distance >= 0 mm, got {min_distance!r}")
     count, start = int(count), int(start)
+    allowed = np.ones(n, dtype=bool)
+    if exclude is not None:
+        allowed[np.asarray(exclude, dtype=np.int64)] = False
+        if not allowed.any():
+            raise MarkerError("every vertex is excluded from the markers (all are held by the supports)")
+        if not allowed[start]:
+            moved = _pick(-np.linalg.norm(pts - pts[start], axis=1), allowed, largest=True)
+            log.info("marker start vertex %d is held by the supports (its displacement is always zero); starting "
+                     "from the nearest free vertex %d instead", start, moved)
+            start = moved
 
     centers = [start]
     d = np.linalg.norm(pts - pts[start], axis=1)
@@ -93,7 +111,7 @@ def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_di
     while len(centers) < count:
         # (a) largest average distance; (b) smallest variance of distances, alternating.
         step_a = len(centers) % 2 == 1
-        eligible = nearest > d_min
+        eligible = (nearest > d_min) & allowed
         if not eligible.any():
             raise MarkerError(
                 f"only {len(centers)} of {count} markers could be placed: no vertex is farther than "
@@ -108,7 +126,7 @@ def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_di
 
 
 def select_markers(
-    mesh: TetMesh | np.ndarray, count: int = 5, start: int = 96, min_distance: float = 10.0
+    mesh: TetMesh | np.ndarray, count: int = 5, start: int = 96, min_distance: float = 10.0, exclude=None
 ) -> np.ndarray:
     """Choose fiducial markers by the paper's revised k-center clustering (Appendix A1).
 
@@ -128,6 +146,9 @@ def select_markers(
         count: number of markers n_d (>= 1).
         start: 0-based id of v0.
         min_distance: d_min in mm.
+        exclude: optional 0-based vertex ids never chosen: the vertices the supports hold (an
+            attached region, pins), whose displacement is always zero; a ``start`` among them is
+            replaced by the nearest free vertex.
 
     Returns:
         (count,) int64, 0-based vertex ids in pick order.
@@ -136,7 +157,7 @@ def select_markers(
         MarkerError: invalid arguments or too few vertices satisfying the distance rule
             (the message says how many could be placed).
     """
-    return revised_k_center(_points_of(mesh), count=count, start=start, min_distance=min_distance)
+    return revised_k_center(_points_of(mesh), count=count, start=start, min_distance=min_distance, exclude=exclude)
 
 
 # ----------------------------------------------------------------- fixed vertices
@@ -403,7 +424,7 @@ def validate_vertex_ids(mesh: TetMesh, ids, what: str = "vertex ids", *, other=N
     return arr
 
 
-def markers_and_fixed(mesh: TetMesh, config=None, pins: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def markers_and_fixed(mesh: TetMesh, config=None, pins: bool = True, held=None) -> tuple[np.ndarray, np.ndarray]:
     """Markers and fixed vertices as a :class:`~tissuecast.config.MarkerConfig` asks.
 
     User-given ``ids`` / ``fixed_ids`` are validated (and win); otherwise the markers come
@@ -417,6 +438,8 @@ def markers_and_fixed(mesh: TetMesh, config=None, pins: bool = True) -> tuple[np
         pins: False when the body is not held by pins (``scenario.pins = false``): no fixed
             vertices are chosen (so a mesh without interior vertices is fine), and
             ``fixed_ids`` are not used.
+        held: optional 0-based ids of vertices other supports hold (an attached region):
+            chosen markers avoid them (user-given ``ids`` there are kept, with a warning).
 
     Returns:
         ``(markers (n_d,) int64, fixed (k,) int64)``, 0-based ids (``fixed`` empty without pins).
@@ -427,8 +450,12 @@ def markers_and_fixed(mesh: TetMesh, config=None, pins: bool = True) -> tuple[np
         config = MarkerConfig()
     if config.ids:
         markers = validate_vertex_ids(mesh, config.ids, "markers")
+        if held is not None and np.isin(markers, held).any():
+            log.warning("markers %s are held by the supports (attached region): their displacement is always zero, "
+                        "so they tell the model nothing", markers[np.isin(markers, held)].tolist())
     else:
-        markers = select_markers(mesh, count=config.count, start=config.start, min_distance=config.min_distance)
+        markers = select_markers(mesh, count=config.count, start=config.start, min_distance=config.min_distance,
+                                 exclude=held)
     if not pins:
         return markers, np.zeros(0, dtype=np.int64)
     if config.fixed_ids:

@@ -95,7 +95,7 @@ def _from_config(args):
     from ..markers import markers_and_fixed
     from ..mesh.labelmap import label_map_format
     from ..mesh.tags import MeshTags, read_mesh_tags
-    from ..scenario import build_scenario
+    from ..scenario import attached_vertices, build_scenario
     from .mesh_cmd import PHANTOM_WORD, load_mesh_argument
 
     cfg = load_config(args.config)
@@ -105,7 +105,8 @@ def _from_config(args):
     tags = MeshTags()
     if args.mesh != PHANTOM_WORD and label_map_format(args.mesh) is None:
         tags = read_mesh_tags(args.mesh)
-    markers, fixed = markers_and_fixed(mesh, cfg.markers, pins=cfg.scenario.pins)
+    markers, fixed = markers_and_fixed(mesh, cfg.markers, pins=cfg.scenario.pins,
+                                       held=attached_vertices(mesh, cfg, tags))
     scenario = build_scenario(mesh, cfg, fixed, tags, material_seed=cfg.dataset.seed)
     forces = _read_forces(args.forces) if args.forces else _example_forces(mesh, cfg, args.seed, args.force_rms)
     if forces.shape != (mesh.n_vertices, 3) or not np.all(np.isfinite(forces)):

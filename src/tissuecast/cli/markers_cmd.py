@@ -38,7 +38,7 @@ def register(sub) -> None:
         "To plan markers from a simulated data set instead: tissuecast markers plan STORE --count N.",
     )
     p.add_argument("mesh", nargs="?", help=f"mesh file, or '{PHANTOM_WORD}' (default: mesh.path of the config, else the phantom)")
-    p.add_argument("--config", metavar="TOML", help="config file (its [mesh] and [markers] sections are used)")
+    p.add_argument("--config", metavar="TOML", help="config file (its [mesh] and [markers] sections, and [scenario]'s pins and attached region, are used)")
     p.add_argument("--units", choices=sorted(UNITS), help="length unit of the mesh file (default mm)")
     p.add_argument("--mesh-size", type=float, default=None, metavar="MM", help="edge length when MESH is a surface")
     p.add_argument("--count", type=int, help=f"number of markers n_d (default {d.count})")
@@ -67,7 +67,12 @@ def run(args) -> int:
     mesh_name = args.mesh or cfg.mesh.path or PHANTOM_WORD
     units = args.units or cfg.mesh.units
     mesh = load_mesh_argument(mesh_name, units, args.mesh_size or cfg.mesh.surface_mesh_size, cfg.mesh)
-    markers, fixed = markers_and_fixed(mesh, mc, pins=cfg.scenario.pins)
+    from ..mesh.labelmap import label_map_format
+    from ..mesh.tags import MeshTags, read_mesh_tags
+    from ..scenario import attached_vertices
+
+    tags = read_mesh_tags(mesh_name) if mesh_name != PHANTOM_WORD and label_map_format(mesh_name) is None else MeshTags()
+    markers, fixed = markers_and_fixed(mesh, mc, pins=cfg.scenario.pins, held=attached_vertices(mesh, cfg, tags))
     params = {
         "mesh": mesh_name,
         "units": units,

@@ -119,9 +119,11 @@ def architecture_study(dataset, config: Config, *, widths=ARCHITECTURE_WIDTHS, r
     return rows
 
 
-def study_markers(mesh, count: int, config: Config) -> tuple[np.ndarray, float]:
-    """``count`` markers by revised k-center from the config's start vertex; d_min is reduced
-    (by :data:`SPACING_SHRINK` per try) when the mesh cannot hold that many at the configured spacing.
+def study_markers(mesh, count: int, config: Config, exclude=None) -> tuple[np.ndarray, float]:
+    """``count`` markers by revised k-center from the config's start vertex, never on the
+    vertices ``exclude`` (0-based; the data set's fixed vertices: what the supports hold moves
+    not at all); d_min is reduced (by :data:`SPACING_SHRINK` per try) when the mesh cannot hold
+    that many at the configured spacing.
 
     Returns:
         ``(markers (count,) int64, d_min used in mm)``.
@@ -132,7 +134,7 @@ def study_markers(mesh, count: int, config: Config) -> tuple[np.ndarray, float]:
     d_min = mc.min_distance
     for _ in range(SPACING_TRIES):
         try:
-            return select_markers(mesh, count=count, start=mc.start, min_distance=d_min), d_min
+            return select_markers(mesh, count=count, start=mc.start, min_distance=d_min, exclude=exclude), d_min
         except MarkerError:
             d_min *= SPACING_SHRINK
     raise ModelError(f"cannot place {count} markers on this mesh even with d_min = {d_min:.3g} mm")
@@ -149,7 +151,7 @@ def marker_count_study(dataset, config: Config, *, counts=MARKER_COUNTS, on_row=
     arrays = dataset_arrays(dataset)
     bench = _test1(dataset)
     n_w = _n_components(arrays, config)
-    all_markers, d_min = study_markers(arrays.mesh, max(counts), config)
+    all_markers, d_min = study_markers(arrays.mesh, max(counts), config, exclude=arrays.fixed)
     rows = []
     for k in counts:
         m = DeformationModel(config, n_components=n_w, ensemble=1, calibration_share=0.0)

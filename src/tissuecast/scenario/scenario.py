@@ -359,6 +359,12 @@ def restore_scenario(mesh: TetMesh, config: Config, arrays: dict) -> Scenario:
                     materials, normals, sites, gravity)
 
 
+def attached_vertices(mesh: TetMesh, config: Config, tags: MeshTags | None = None) -> np.ndarray:
+    """(k,) int64 the vertices ``scenario.attached`` holds (empty without an attached region):
+    the marker rule avoids them (their displacement is always zero)."""
+    return surface_region(mesh, config.scenario.attached, "scenario.attached", tags)
+
+
 def scenario_from_config(config: Config):
     """The mesh, fiducial markers, pinned vertices and resolved scenario a config describes.
 
@@ -377,6 +383,7 @@ def scenario_from_config(config: Config):
     mesh = mesh_from_config(config.mesh)
     path = config.mesh.path
     tags = read_mesh_tags(path) if path and label_map_format(path) is None else MeshTags()
-    markers, fixed = markers_and_fixed(mesh, config.markers, pins=config.scenario.pins)
+    markers, fixed = markers_and_fixed(mesh, config.markers, pins=config.scenario.pins,
+                                       held=attached_vertices(mesh, config, tags))
     markers, fixed = np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
     return mesh, markers, fixed, build_scenario(mesh, config, fixed, tags, material_seed=config.dataset.seed)
