@@ -313,3 +313,31 @@ def test_markers_and_fixed_from_config():
     # a deeper fixed-vertex rule
     _, fixed = markers_and_fixed(mesh, MarkerConfig(ids=(0,), fixed_depth_fraction=1.0, fixed_rule="spread"))
     np.testing.assert_allclose(surface_depth(mesh, fixed), 3.0)
+
+
+def test_k_center_avoids_excluded_points_and_moves_an_excluded_start():
+    pts = line_points(11)  # 0..10 mm on a line
+    # by hand: 0, 10, 5 without exclusions; excluding 10 and 0 the ends become 9 and 1
+    np.testing.assert_array_equal(revised_k_center(pts, 3, 1, 2.5, exclude=[0, 10]), [1, 9, 5])
+    # a start among the excluded moves to the nearest free point (the lower id on a tie)
+    np.testing.assert_array_equal(revised_k_center(pts, 3, 0, 2.5, exclude=[0, 10]), [1, 9, 5])
+    with pytest.raises(MarkerError, match="every vertex is excluded"):
+        revised_k_center(pts, 1, 0, 2.5, exclude=np.arange(11))
+    np.testing.assert_array_equal(revised_k_center(pts, 3, 5, 2.5, exclude=[0, 1, 9, 10]), [5, 2, 8])
+    with pytest.raises(MarkerError, match=r"only 1 of 2 markers"):
+        revised_k_center(pts, 2, 5, 2.5, exclude=[0, 1, 2, 8, 9, 10])  # the free 3, 4, 6, 7 are within 2 mm of 5
+
+
+def test_markers_and_fixed_avoid_held_vertices():
+    from tissuecast.config import MarkerConfig
+    from tissuecast.markers import markers_and_fixed
+
+    mesh = box_mesh(6, 8, 14)
+    held = np.flatnonzero(mesh.points[:, 2] < 1e-9)  # the z = 0 face, attached
+    cfg = MarkerConfig(count=4, start=0, min_distance=3.0)
+    assert 0 in held
+    markers, fixed = markers_and_fixed(mesh, cfg, held=held)
+    assert not np.isin(markers, held).any() and len(markers) == 4
+    np.testing.assert_array_equal(markers, select_markers(mesh, count=4, start=0, min_distance=3.0, exclude=held))
+    markers, fixed = markers_and_fixed(mesh, cfg, pins=False, held=held)
+    assert len(fixed) == 0

@@ -400,7 +400,8 @@ def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
     # loose surroundings: the tissue's modulus over 40 mm (the default support is over 10 mm)
     assert sc.springs.normal_stiffness == sc.springs.tangential_stiffness == pytest.approx(DEFAULT_SUPPORT_STIFFNESS / 4)
     assert DEFAULT_SUPPORT_STIFFNESS == pytest.approx(emb.material.youngs_modulus / 10.0)
-    mesh, _, fixed, built = scenario_from_config(emb)
+    mesh, markers, fixed, built = scenario_from_config(emb)
+    assert len(fixed) == 0 and not np.isin(markers, built.attached).any()  # no marker where nothing moves
     assert built.pinned.size == 0 and 0.05 * mesh.n_vertices < len(built.attached) < 0.25 * len(mesh.surface_vertices)
     assert built.springs is not None and built.sites is not None and built.gravity == (1.0e-9, 9810.0)
     # the retractor's access point lies on the anterior face (opposite the attached one), clear of the supports
