@@ -8,7 +8,10 @@ failure reasons, the calibration (rounds, alpha, whether it converged), the phas
 times, the median and largest worker seconds per sample and their ratio (the time budget
 stops attempts at ``dataset.time_budget`` x the running median), and the slow samples.
 
-Shapes (``--shapes``; ``NAME@spread`` pins by the spread rule instead of the compact default):
+Shapes (``--shapes``; ``NAME@spread`` pins by the spread rule instead of the compact default;
+``NAME@embedded`` holds the shape as the body would, without pins: both end faces attached and
+the default elastic support, 0.0021 N/mm^3, on the whole outer surface; ``--target`` sets the
+calibrated q90 peak displacement, mm):
   tube2   bent tube, radius 4 mm, wall 0.8 mm in 2 layers of tetrahedra (interior vertices only
           in the wall's middle), 90-degree bend over 60 mm, some sliver elements
   tube1   the same with a 1-element wall: no interior vertex, so no pins can be chosen; the run
@@ -22,7 +25,8 @@ complete, and how slow their worst sample is, is what this benchmark shows).
 
 Usage::
 
-    python benchmarks/anatomies.py [--shapes tube1,tube2,rod,tube2@spread,rod@spread] [--samples 60] [--workers 2]
+    python benchmarks/anatomies.py [--shapes tube1,tube2,rod,tube2@spread,rod@spread,tube1@embedded] [--samples 60]
+        [--workers 2] [--target 30]
 
 Wall-clock figures on a machine shared with other jobs are inflated; the ratio of the
 slowest sample to the median is the figure to read.

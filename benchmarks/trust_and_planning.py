@@ -243,6 +243,12 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
     res["displaced"] = {f"{s:g}": float(np.mean([rate(displace_marker(d, s, rng)) for _ in range(5)]))
                         for s in (0.25, 0.5, 1.0, 2.0, 3.0, 5.0)}
     print(f"clean test-1: false alarms {100 * res['false_alarms_test1']:.1f} % (n = {len(t1)})")
+    cons = model.trust_.ood.consistency
+    if cons is not None:  # how far each clean marker lies from where the others put it: the floor of (b)
+        miss = cons.residuals(d.reshape(len(d), -1))
+        res["clean_marker_miss_mm"] = {q: float(np.percentile(miss, v)) for q, v in (("median", 50), ("p90", 90), ("p99", 99))}
+        print("clean test-1, each marker predicted from the others misses by (mm): "
+              + ", ".join(f"{k} {v:.2f}" for k, v in res["clean_marker_miss_mm"].items()))
     print(f"(a) two markers swapped: detected {100 * res['swap']:.1f} % (5 random swaps per test-1 sample)")
     print("(b) one marker displaced, detection by size: "
           + ", ".join(f"{k} mm: {100 * v:.1f} %" for k, v in res["displaced"].items()))
