@@ -76,7 +76,8 @@ def run_shape(name: str, args) -> None:
     mesh = make_shape(name)
     write_mesh(folder / "mesh.vtu", mesh)
     q = mesh.quality
-    print(f"\n{name}, {rule or 'compact'}{'' if rule == 'embedded' else ' pins'}: {mesh.n_vertices} vertices ({len(mesh.interior_vertices)} interior), "
+    held = f"{rule or 'compact'}{'' if rule == 'embedded' else ' pins'}"
+    print(f"\n{name}, {held}: {mesh.n_vertices} vertices ({len(mesh.interior_vertices)} interior), "
           f"{mesh.n_tets} tetrahedra, "
           f"radius ratio min {q.radius_ratio_min:.3f} mean {q.radius_ratio_mean:.3f}, extent "
           f"{np.round(mesh.extent, 1).tolist()} mm", flush=True)

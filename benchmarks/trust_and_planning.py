@@ -24,7 +24,8 @@ All lengths in mm. Not run in CI (minutes; part 3's FEM solves take longer the f
 
 Usage::
 
-    python benchmarks/trust_and_planning.py --dataset runs/paper/dataset.zarr [--part all | planning bounds alarm] [--json out.json]
+    python benchmarks/trust_and_planning.py --dataset runs/paper/dataset.zarr [--part all | planning bounds alarm]
+        [--markers 10] [--json out.json]
 """
 
 from __future__ import annotations

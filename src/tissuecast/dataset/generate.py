@@ -36,7 +36,8 @@ from .supervise import Supervisor
 from .supports import MECHANISM_RATIO, check_supports
 from .worker import Recipe, SampleContext, Task
 
-__all__ = ["simulate", "recipe_from_store", "setup_from_config", "scenario_setup", "uses_scenario", "data_config", "SimulationRun", "Phase"]
+__all__ = ["simulate", "recipe_from_store", "setup_from_config", "scenario_setup", "uses_scenario", "data_config",
+           "SimulationRun", "Phase"]
 
 log = logging.getLogger(__name__)
 
