@@ -170,3 +170,21 @@ def test_a_model_knows_its_scenario_and_the_evaluation_states_it(reference, tmp_
     assert "loads: LBO surface forces; gravity change" in text and "one indentation (patch radius 11 mm" in text
     page = write_report(tmp_path / "report", again, ds, evaluation, renders=0).read_text()
     assert "<h2>Scenario</h2>" in page and "elastic support on 110 surface vertices" in page
+
+
+def test_a_store_with_markers_of_an_earlier_rule_resumes_with_its_own(reference, tmp_path, caplog):
+    """Without pins the markers do not enter the simulation: a store whose markers differ from
+    what the config chooses now (an earlier marker rule) is continued, keeping its markers."""
+    import logging
+    import shutil
+
+    cfg, ref_path, _ = reference
+    path = tmp_path / "older.zarr"
+    shutil.copytree(ref_path, path)
+    root = zarr.open_group(str(path), mode="r+")
+    now = np.asarray(root["markers"][...])
+    root["markers"][:] = now[::-1]  # as an earlier rule might have ordered them
+    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.generate"):
+        simulate(cfg, path, progress=False)
+    assert "keeps its own markers" in caplog.text
+    np.testing.assert_array_equal(open_dataset(path).markers, now[::-1])

@@ -166,7 +166,7 @@ def test_other_pins_under_the_same_config_are_refused(made, monkeypatch):
 
     real = tm.select_fixed_vertices
     monkeypatch.setattr(tm, "select_fixed_vertices", lambda *a, **k: real(*a, **k)[::-1].copy())
-    with pytest.raises(DatasetError, match=r"has fixed vertices \[.*\] but this config gives.*fixed_ids"):
+    with pytest.raises(DatasetError, match=r"has fixed vertices \[.*\] but this config gives.*version that made it"):
         simulate(cfg, path, progress=False, solver_factory=FAKE)
     assert store_arrays(path) == before
 

@@ -332,12 +332,17 @@ def test_markers_and_fixed_avoid_held_vertices():
     from tissuecast.config import MarkerConfig
     from tissuecast.markers import markers_and_fixed
 
-    mesh = box_mesh(6, 8, 14)
+    mesh = box_mesh(6, 8, 14)  # 1 mm grid
     held = np.flatnonzero(mesh.points[:, 2] < 1e-9)  # the z = 0 face, attached
-    cfg = MarkerConfig(count=4, start=0, min_distance=3.0)
-    assert 0 in held
-    markers, fixed = markers_and_fixed(mesh, cfg, held=held)
-    assert not np.isin(markers, held).any() and len(markers) == 4
-    np.testing.assert_array_equal(markers, select_markers(mesh, count=4, start=0, min_distance=3.0, exclude=held))
-    markers, fixed = markers_and_fixed(mesh, cfg, pins=False, held=held)
+    markers, fixed = markers_and_fixed(mesh, MarkerConfig(count=4, start=0, min_distance=3.0), held=held)
+    # the start vertex (0, 0, 0) is held: the nearest free surface vertex, (0, 0, 1), starts instead
+    np.testing.assert_allclose(mesh.points[markers[0]], [0.0, 0.0, 1.0])
+    assert not np.isin(markers, held).any() and len(markers) == 4 and not np.isin(fixed, markers).any()
+    # the next pick (largest mean distance) is the far corner, as without the attached face
+    np.testing.assert_allclose(mesh.points[markers[1]], [6.0, 8.0, 14.0])
+    markers, fixed = markers_and_fixed(mesh, MarkerConfig(count=4, start=0, min_distance=3.0), pins=False, held=held)
     assert len(fixed) == 0
+    with pytest.raises(MarkerError, match=r"markers \[0\] lie in the attached region"):
+        markers_and_fixed(mesh, MarkerConfig(ids=(0, 50)), held=held)
+    with pytest.raises(MarkerError, match=r"excluded vertex ids \[9999\] are outside"):
+        select_markers(mesh, count=2, start=5, exclude=[9999])

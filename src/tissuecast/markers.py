@@ -66,8 +66,8 @@ def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_di
         (count,) int64 point ids in pick order, ``start`` (or its replacement) first.
 
     Raises:
-        MarkerError: bad ``count``/``start``/``min_distance``, or fewer than ``count``
-            points satisfy the distance rule.
+        MarkerError: bad ``count``/``start``/``min_distance``/``exclude``, or fewer than
+            ``count`` points satisfy the distance rule.
     """
     pts = _points_of(points)
     n = len(pts)
@@ -83,7 +83,13 @@ def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_di
     count, start = int(count), int(start)
     allowed = np.ones(n, dtype=bool)
     if exclude is not None:
-        allowed[np.asarray(exclude, dtype=np.int64)] = False
+        ex = np.asarray(exclude).ravel()
+        if ex.size and not np.issubdtype(ex.dtype, np.integer):
+            raise MarkerError(f"excluded vertex ids must be integers, got {ex.dtype} values such as {ex[:3].tolist()}")
+        bad = ex[(ex < 0) | (ex >= n)]
+        if bad.size:
+            raise MarkerError(f"excluded vertex ids {bad[:5].tolist()} are outside 0..{n - 1} (ids are 0-based)")
+        allowed[ex] = False
         if not allowed.any():
             raise MarkerError("every vertex is excluded from the markers (all are held by the supports)")
         if not allowed[start]:
@@ -115,8 +121,9 @@ def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_di
         if not eligible.any():
             raise MarkerError(
                 f"only {len(centers)} of {count} markers could be placed: no vertex is farther than "
-                f"min_distance={d_min:g} mm from all chosen centers {centers}; use a smaller "
-                f"min_distance or count"
+                f"min_distance={d_min:g} mm from all chosen centers {centers}"
+                f"{'' if allowed.all() else f' among the {int(allowed.sum())} not held by the supports'}; "
+                "use a smaller min_distance or count"
             )
         if step_a:
             add(_pick(mean, eligible, largest=True))
@@ -148,7 +155,7 @@ def select_markers(
         min_distance: d_min in mm.
         exclude: optional 0-based vertex ids never chosen: the vertices the supports hold (an
             attached region, pins), whose displacement is always zero; a ``start`` among them is
-            replaced by the nearest free vertex.
+            replaced by the nearest free vertex (a surface vertex if ``start`` is on the surface).
 
     Returns:
         (count,) int64, 0-based vertex ids in pick order.
@@ -157,6 +164,17 @@ def select_markers(
         MarkerError: invalid arguments or too few vertices satisfying the distance rule
             (the message says how many could be placed).
     """
+    if exclude is not None and isinstance(mesh, TetMesh) and isinstance(start, (int, np.integer)) \
+            and 0 <= start < mesh.n_vertices and np.isin(start, exclude):
+        # a held start vertex: the nearest free vertex of its kind (a surface start stays on the surface)
+        surface = mesh.surface_vertices
+        kind = surface if np.isin(start, surface) else np.arange(mesh.n_vertices)
+        free = np.setdiff1d(kind, np.asarray(exclude, dtype=np.int64))
+        if len(free):
+            moved = int(free[np.argmin(np.linalg.norm(mesh.points[free] - mesh.points[start], axis=1))])
+            log.info("marker start vertex %d is held by the supports (its displacement is always zero); starting "
+                     "from the nearest free %svertex %d instead", start, "surface " if kind is surface else "", moved)
+            start = moved
     return revised_k_center(_points_of(mesh), count=count, start=start, min_distance=min_distance, exclude=exclude)
 
 
@@ -439,7 +457,7 @@ def markers_and_fixed(mesh: TetMesh, config=None, pins: bool = True, held=None) 
             vertices are chosen (so a mesh without interior vertices is fine), and
             ``fixed_ids`` are not used.
         held: optional 0-based ids of vertices other supports hold (an attached region):
-            chosen markers avoid them (user-given ``ids`` there are kept, with a warning).
+            chosen markers avoid them; user-given ``ids`` there are refused.
 
     Returns:
         ``(markers (n_d,) int64, fixed (k,) int64)``, 0-based ids (``fixed`` empty without pins).
@@ -451,8 +469,9 @@ def markers_and_fixed(mesh: TetMesh, config=None, pins: bool = True, held=None) 
     if config.ids:
         markers = validate_vertex_ids(mesh, config.ids, "markers")
         if held is not None and np.isin(markers, held).any():
-            log.warning("markers %s are held by the supports (attached region): their displacement is always zero, "
-                        "so they tell the model nothing", markers[np.isin(markers, held)].tolist())
+            raise MarkerError(f"markers {markers[np.isin(markers, held)].tolist()} lie in the attached region "
+                              "(scenario.attached): their displacement is always zero, so they tell the model nothing; "
+                              "choose other markers.ids or leave them out to let the k-center rule choose")
     else:
         markers = select_markers(mesh, count=config.count, start=config.start, min_distance=config.min_distance,
                                  exclude=held)

@@ -31,7 +31,7 @@ from .executors import make_executor
 from .plan import generation_order, make_plan
 from .predictor import build_reduced, keep_snapshots
 from .reader import open_dataset
-from .store import StoreWriter, read_lbo_basis
+from .store import StoreWriter, open_root, read_lbo_basis
 from .supervise import Supervisor
 from .supports import MECHANISM_RATIO, check_supports
 from .worker import Recipe, SampleContext, Task
@@ -99,12 +99,21 @@ def _check_same(writer: StoreWriter, cfg: Config, mesh, markers: np.ndarray, fix
             f"{mesh.fingerprint()[:12]}...); use the original mesh or another --store path; a store is never overwritten")
     for what, now in (("markers", markers), ("fixed", fixed)):
         stored_ids = np.asarray(writer.read(what), dtype=np.int64)
-        if not np.array_equal(stored_ids, now):
-            raise DatasetError(
-                f"data set {str(writer.path)!r} has {what} vertices {stored_ids.tolist()} but this config gives "
-                f"{np.asarray(now).tolist()} (e.g. a store from a version with another default rule); set "
-                f"markers.{'ids' if what == 'markers' else 'fixed_ids'} to the stored ids to continue it, or choose "
-                "another --store path; a store is never overwritten")
+        if np.array_equal(stored_ids, now):
+            continue
+        if what == "markers" and not cfg.scenario.pins:
+            # without pins the markers do not enter the simulation (pins are chosen around them):
+            # the store keeps the markers it was made with, and the model is trained on those
+            log.warning("data set %r was made with markers %s, this config chooses %s (e.g. a store from a version "
+                        "whose marker rule did not avoid the attached region); the store keeps its own markers",
+                        str(writer.path), stored_ids.tolist(), np.asarray(now).tolist())
+            continue
+        raise DatasetError(
+            f"data set {str(writer.path)!r} has {what} vertices {stored_ids.tolist()} but this config gives "
+            f"{np.asarray(now).tolist()} (e.g. a store from a version with another marker or pin rule), and "
+            f"{'the pins are chosen around the markers' if what == 'markers' else 'the fixed vertices'} change the "
+            "simulated fields: continue it with the tissuecast version that made it, or choose another --store path "
+            "(a store is never overwritten)")
 
 
 _FLUSH_SECONDS = 2.0  # per-sample values and statuses reach the disk at least this often ...
@@ -151,7 +160,7 @@ def recipe_from_store(store, solver_factory: str | None = None) -> Recipe:
     """Everything a worker needs to solve a stored data set's samples exactly as its run did.
 
     Args:
-        store: the store's path, or an open :class:`~.store.StoreWriter`.
+        store: the store's path (opened read-only), or an open :class:`~.store.StoreWriter`.
         solver_factory: ``"module:function"`` replacing the FEM solver factory (for testing).
 
     Returns:
@@ -160,16 +169,19 @@ def recipe_from_store(store, solver_factory: str | None = None) -> Recipe:
         :class:`~.worker.Task` and :func:`~.worker.solve_task` a sample (or a variant of it,
         e.g. another force magnitude) is solved in this process.
     """
-    writer = store if isinstance(store, StoreWriter) else StoreWriter.open(Path(store))
+    root = store.root if isinstance(store, StoreWriter) else open_root(Path(store))
+
+    def read(name: str) -> np.ndarray:
+        return np.asarray(root[name][...])
+
     kw = {"solver_factory": solver_factory} if solver_factory else {}
-    if writer.reduced is not None:
-        kw.update(reduced_basis=writer.read("reduced/basis"), reduced_elements=writer.read("reduced/elements"),
-                  reduced_weights=writer.read("reduced/weights"))
-    cfg = config_from_dict(tomllib.loads(writer.config_toml))
-    if uses_scenario(cfg):
-        kw["scenario"] = {name: writer.read(f"scenario/{name}") for name in writer.root["scenario"].array_keys()}
-    return Recipe(writer.config_toml, writer.read("mesh/points"), writer.read("mesh/tets"), writer.read("fixed"),
-                  read_lbo_basis(writer.root), **kw)
+    if root.attrs.get("reduced") is not None:
+        kw.update(reduced_basis=read("reduced/basis"), reduced_elements=read("reduced/elements"),
+                  reduced_weights=read("reduced/weights"))
+    config_toml = root.attrs["config_toml"]
+    if uses_scenario(config_from_dict(tomllib.loads(config_toml))):
+        kw["scenario"] = {name: read(f"scenario/{name}") for name in root["scenario"].array_keys()}
+    return Recipe(config_toml, read("mesh/points"), read("mesh/tets"), read("fixed"), read_lbo_basis(root), **kw)
 
 
 def _calibrate(writer: StoreWriter, ex: Supervisor, cfg: Config, recipe: Recipe) -> tuple[dict, list]:

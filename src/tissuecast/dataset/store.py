@@ -415,6 +415,17 @@ def _draw_values(draw) -> dict:
     return out
 
 
+def open_root(path: Path):
+    """The store's root Zarr group, read-only, its schema checked.
+
+    Raises:
+        DatasetError: as :func:`~.reader.open_dataset`.
+    """
+    root = _open_root(Path(path), mode="r")
+    check_schema(root, Path(path))
+    return root
+
+
 def _open_root(path: Path, mode: str):
     zarr = _zarr()
     if not path.exists():
