@@ -188,3 +188,20 @@ def test_a_store_with_markers_of_an_earlier_rule_resumes_with_its_own(reference,
         simulate(cfg, path, progress=False)
     assert "keeps its own markers" in caplog.text
     np.testing.assert_array_equal(open_dataset(path).markers, now[::-1])
+
+
+def test_export_inp_of_a_stored_scenario_sample(reference, tmp_path, capsys):
+    """``export-inp STORE --sample K`` writes the deck of that sample with the stored scenario:
+    springs, the gravity change and the indentation's prescribed displacements."""
+    from tissuecast.cli.main import main
+
+    _, ref_path, _ = reference
+    ds = open_dataset(ref_path)
+    arrays = ds.scenario_arrays
+    assert arrays is not None and len(arrays["attached"]) > 0 and len(arrays["spring_nodes"]) > 0
+    deck = tmp_path / "sample5.inp"
+    assert main(["export-inp", str(ref_path), str(deck), "--sample", "5"]) == 0
+    text = deck.read_text()
+    assert "SPRING1" in text and "*DLOAD" in text and "GRAV" in text and "*BOUNDARY" in text
+    assert main(["export-inp", str(ref_path), str(deck), "--sample", str(len(ds))]) == 2
+    assert f"--sample {len(ds)} is outside" in capsys.readouterr().err

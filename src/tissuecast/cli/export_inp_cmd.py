@@ -81,9 +81,8 @@ def _from_store(args):
     if not 0 <= args.sample < len(ds):
         raise ConfigError(f"--sample {args.sample} is outside 0..{len(ds) - 1} (0-based) of {args.mesh}")
     cfg, mesh = ds.config, ds.mesh
-    root = ds._root
-    if "scenario" in root:
-        scenario = restore_scenario(mesh, cfg, {k: root["scenario"][k][:] for k in root["scenario"].array_keys()})
+    if ds.scenario_arrays is not None:
+        scenario = restore_scenario(mesh, cfg, ds.scenario_arrays)
     else:
         scenario = build_scenario(mesh, cfg, ds.fixed)
     forces = np.asarray(ds.forces[args.sample], dtype=np.float64)

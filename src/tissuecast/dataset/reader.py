@@ -156,6 +156,16 @@ class Dataset:
         return self._array("markers")
 
     @cached_property
+    def scenario_arrays(self) -> dict[str, np.ndarray] | None:
+        """The resolved scenario's stored arrays (``scenario/*``: pins, attached region, springs,
+        indentation access; :func:`tissuecast.scenario.restore_scenario` rebuilds the scenario
+        from them), or None for a store without them (the paper's set-up)."""
+        if "scenario" not in self._root:
+            return None
+        group = self._root["scenario"]
+        return {name: np.asarray(group[name][...]) for name in group.array_keys()}
+
+    @cached_property
     def fixed(self) -> np.ndarray:
         """(k,) int64 fixed vertex ids (0-based)."""
         return self._array("fixed")
