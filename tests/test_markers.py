@@ -342,6 +342,12 @@ def test_markers_and_fixed_avoid_held_vertices():
     np.testing.assert_allclose(mesh.points[markers[1]], [6.0, 8.0, 14.0])
     markers, fixed = markers_and_fixed(mesh, MarkerConfig(count=4, start=0, min_distance=3.0), pins=False, held=held)
     assert len(fixed) == 0
+    # a surface start stays on the surface: with the surface held up to z = 1 the nearest free
+    # vertex is the interior (1, 1, 1), 1.73 mm away, but the start moves to (0, 0, 2), 2 mm away
+    surface = mesh.surface_vertices
+    deeper = surface[mesh.points[surface, 2] < 1.0 + 1e-9]
+    np.testing.assert_allclose(mesh.points[select_markers(mesh, count=1, start=0, exclude=deeper)[0]], [0.0, 0.0, 2.0])
+    np.testing.assert_allclose(mesh.points[revised_k_center(mesh.points, 1, 0, exclude=deeper)[0]], [1.0, 1.0, 1.0])
     with pytest.raises(MarkerError, match=r"markers \[0\] lie in the attached region"):
         markers_and_fixed(mesh, MarkerConfig(ids=(0, 50)), held=held)
     with pytest.raises(MarkerError, match=r"excluded vertex ids \[9999\] are outside"):

@@ -49,7 +49,7 @@ def _pick(score: np.ndarray, eligible: np.ndarray, largest: bool) -> int:
 
 
 def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_distance: float = 10.0,
-                     exclude=None) -> np.ndarray:
+                     exclude=None, start_pool=None) -> np.ndarray:
     """The paper's revised k-center clustering on raw points (see :func:`select_markers`).
 
     Args:
@@ -61,6 +61,8 @@ def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_di
         exclude: optional 0-based ids never chosen (e.g. vertices the supports hold: their
             displacement is always zero). If ``start`` is among them, the nearest point not
             excluded starts instead (logged).
+        start_pool: optional 0-based ids that replacement is taken from (e.g. the surface
+            vertices, when ``start`` is one); default (or none of them free) every point.
 
     Returns:
         (count,) int64 point ids in pick order, ``start`` (or its replacement) first.
@@ -93,7 +95,10 @@ def revised_k_center(points: np.ndarray, count: int = 5, start: int = 96, min_di
         if not allowed.any():
             raise MarkerError("every vertex is excluded from the markers (all are held by the supports)")
         if not allowed[start]:
-            moved = _pick(-np.linalg.norm(pts - pts[start], axis=1), allowed, largest=True)
+            pool = allowed.copy()
+            if start_pool is not None:
+                pool[np.setdiff1d(np.arange(n), np.asarray(start_pool, dtype=np.int64))] = False
+            moved = _pick(-np.linalg.norm(pts - pts[start], axis=1), pool if pool.any() else allowed, largest=True)
             log.info("marker start vertex %d is held by the supports (its displacement is always zero); starting "
                      "from the nearest free vertex %d instead", start, moved)
             start = moved
@@ -164,18 +169,10 @@ def select_markers(
         MarkerError: invalid arguments or too few vertices satisfying the distance rule
             (the message says how many could be placed).
     """
-    if exclude is not None and isinstance(mesh, TetMesh) and isinstance(start, (int, np.integer)) \
-            and 0 <= start < mesh.n_vertices and np.isin(start, exclude):
-        # a held start vertex: the nearest free vertex of its kind (a surface start stays on the surface)
-        surface = mesh.surface_vertices
-        kind = surface if np.isin(start, surface) else np.arange(mesh.n_vertices)
-        free = np.setdiff1d(kind, np.asarray(exclude, dtype=np.int64))
-        if len(free):
-            moved = int(free[np.argmin(np.linalg.norm(mesh.points[free] - mesh.points[start], axis=1))])
-            log.info("marker start vertex %d is held by the supports (its displacement is always zero); starting "
-                     "from the nearest free %svertex %d instead", start, "surface " if kind is surface else "", moved)
-            start = moved
-    return revised_k_center(_points_of(mesh), count=count, start=start, min_distance=min_distance, exclude=exclude)
+    # a held start vertex is replaced by the nearest free vertex of its kind (a surface start stays on the surface)
+    pool = mesh.surface_vertices if isinstance(mesh, TetMesh) and np.isin(start, mesh.surface_vertices) else None
+    return revised_k_center(_points_of(mesh), count=count, start=start, min_distance=min_distance, exclude=exclude,
+                            start_pool=pool)
 
 
 # ----------------------------------------------------------------- fixed vertices
