@@ -91,21 +91,16 @@ def _from_store(args):
 
 def _from_config(args):
     """``(config, mesh, markers, scenario, forces (n, 3) N, sample seed)`` from a mesh and a config."""
-    from ..markers import markers_and_fixed
-    from ..mesh.labelmap import label_map_format
-    from ..mesh.tags import MeshTags, read_mesh_tags
-    from ..scenario import attached_vertices, build_scenario
+    from ..mesh.tags import mesh_file_tags
+    from ..scenario import build_scenario, scenario_markers
     from .mesh_cmd import PHANTOM_WORD, load_mesh_argument
 
     cfg = load_config(args.config)
     if args.order is not None:
         cfg = with_overrides(cfg, solver={"order": args.order})
     mesh = load_mesh_argument(args.mesh, units=cfg.mesh.units, mesh_size=cfg.mesh.surface_mesh_size, mesh_config=cfg.mesh)
-    tags = MeshTags()
-    if args.mesh != PHANTOM_WORD and label_map_format(args.mesh) is None:
-        tags = read_mesh_tags(args.mesh)
-    markers, fixed = markers_and_fixed(mesh, cfg.markers, pins=cfg.scenario.pins,
-                                       held=attached_vertices(mesh, cfg, tags))
+    tags = mesh_file_tags(None if args.mesh == PHANTOM_WORD else args.mesh)
+    markers, fixed = scenario_markers(mesh, cfg, tags)
     scenario = build_scenario(mesh, cfg, fixed, tags, material_seed=cfg.dataset.seed)
     forces = _read_forces(args.forces) if args.forces else _example_forces(mesh, cfg, args.seed, args.force_rms)
     if forces.shape != (mesh.n_vertices, 3) or not np.all(np.isfinite(forces)):

@@ -20,7 +20,6 @@ import numpy as np
 from .. import __version__
 from ..config import FIXED_RULES, MarkerConfig, load_config, with_overrides
 from ..errors import require
-from ..markers import markers_and_fixed
 from ..mesh import TetMesh
 from ..mesh.io import UNITS, write_point_set
 from .mesh_cmd import PHANTOM_WORD, load_mesh_argument
@@ -68,12 +67,10 @@ def run(args) -> int:
     mesh_name = args.mesh or cfg.mesh.path or PHANTOM_WORD
     units = args.units or cfg.mesh.units
     mesh = load_mesh_argument(mesh_name, units, args.mesh_size or cfg.mesh.surface_mesh_size, cfg.mesh)
-    from ..mesh.labelmap import label_map_format
-    from ..mesh.tags import MeshTags, read_mesh_tags
-    from ..scenario import attached_vertices
+    from ..mesh.tags import mesh_file_tags
+    from ..scenario import scenario_markers
 
-    tags = read_mesh_tags(mesh_name) if mesh_name != PHANTOM_WORD and label_map_format(mesh_name) is None else MeshTags()
-    markers, fixed = markers_and_fixed(mesh, mc, pins=cfg.scenario.pins, held=attached_vertices(mesh, cfg, tags))
+    markers, fixed = scenario_markers(mesh, cfg, mesh_file_tags(None if mesh_name == PHANTOM_WORD else mesh_name))
     params = {
         "mesh": mesh_name,
         "units": units,

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..errors import MeshError, MeshFormatError
 
-__all__ = ["MeshTags", "read_mesh_tags"]
+__all__ = ["MeshTags", "read_mesh_tags", "mesh_file_tags"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -85,6 +85,17 @@ def _renumber(ids, new_id: np.ndarray) -> np.ndarray:
     ok = (a >= 0) & (a < len(new_id))
     out[ok] = new_id[a[ok]]
     return out
+
+
+def mesh_file_tags(path: str | Path | None) -> MeshTags:
+    """The named regions of the mesh a config or command names: :func:`read_mesh_tags` of a mesh
+    file; none (empty) without a file (``None`` or ``""``: the built-in phantom) or for a label
+    map (meshed from its labels, not read as a mesh file)."""
+    from .labelmap import label_map_format
+
+    if not path or label_map_format(path) is not None:
+        return MeshTags()
+    return read_mesh_tags(path)
 
 
 def read_mesh_tags(path: str | Path) -> MeshTags:

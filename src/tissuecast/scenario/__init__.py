@@ -19,8 +19,8 @@ from .gravity import body_loads, cone_direction, gravity_body_force
 from .indentation import Indentation, IndentationSites, draw_indentation, indentation_sites
 from .materials import ElementMaterials, element_materials, material_rng
 from .regions import surface_region
-from .scenario import (Scenario, ScenarioDraw, attached_vertices, build_scenario, free_rigid_motions, restore_scenario,
-                       scenario_from_config, scenario_rng)
+from .scenario import (Scenario, ScenarioDraw, build_scenario, free_rigid_motions, restore_scenario, scenario_from_config,
+                       scenario_markers, scenario_rng)
 from .springs import region_triangles, surface_springs
 from ..mesh.surface import lumped_areas, vertex_normals
 
@@ -28,7 +28,7 @@ __all__ = [
     "Scenario",
     "ScenarioDraw",
     "build_scenario",
-    "attached_vertices",
+    "scenario_markers",
     "restore_scenario",
     "scenario_from_config",
     "scenario_rng",

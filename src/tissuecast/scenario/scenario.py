@@ -359,10 +359,19 @@ def restore_scenario(mesh: TetMesh, config: Config, arrays: dict) -> Scenario:
                     materials, normals, sites, gravity)
 
 
-def attached_vertices(mesh: TetMesh, config: Config, tags: MeshTags | None = None) -> np.ndarray:
-    """(k,) int64 the vertices ``scenario.attached`` holds (empty without an attached region):
-    the marker rule avoids them (their displacement is always zero)."""
-    return surface_region(mesh, config.scenario.attached, "scenario.attached", tags)
+def scenario_markers(mesh: TetMesh, config: Config, tags: MeshTags | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The markers and pins ``[markers]`` gives with this scenario
+    (:func:`~tissuecast.markers.markers_and_fixed`): no pins with ``scenario.pins = false``,
+    and no marker on the vertices ``scenario.attached`` holds (they never move).
+
+    Returns:
+        ``(markers (n_d,) int64, pins (k,) int64)``, 0-based.
+    """
+    from ..markers import markers_and_fixed
+
+    held = surface_region(mesh, config.scenario.attached, "scenario.attached", tags)
+    markers, fixed = markers_and_fixed(mesh, config.markers, pins=config.scenario.pins, held=held)
+    return np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
 
 
 def scenario_from_config(config: Config):
@@ -375,15 +384,10 @@ def scenario_from_config(config: Config):
         ``(mesh, markers (n_d,) int64, fixed (k,) int64, scenario)``: ``fixed`` are the pins
         (empty with ``scenario.pins = false``, when none are chosen).
     """
-    from ..markers import markers_and_fixed
-    from ..mesh.labelmap import label_map_format
     from ..mesh.source import mesh_from_config
-    from ..mesh.tags import read_mesh_tags
+    from ..mesh.tags import mesh_file_tags
 
     mesh = mesh_from_config(config.mesh)
-    path = config.mesh.path
-    tags = read_mesh_tags(path) if path and label_map_format(path) is None else MeshTags()
-    markers, fixed = markers_and_fixed(mesh, config.markers, pins=config.scenario.pins,
-                                       held=attached_vertices(mesh, config, tags))
-    markers, fixed = np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
+    tags = mesh_file_tags(config.mesh.path)
+    markers, fixed = scenario_markers(mesh, config, tags)
     return mesh, markers, fixed, build_scenario(mesh, config, fixed, tags, material_seed=config.dataset.seed)
