@@ -56,8 +56,6 @@ def make_shape(name: str):
 def end_vertices(name: str, mesh) -> np.ndarray:
     """0-based ids of the vertices on the two end faces of a tube or rod (its first and last
     cross-sections: the shapes number their vertices section by section along the centre line)."""
-    from tissuecast.mesh.shapes import bent_tube, slender_rod  # noqa: F401 - the numbering documented there
-
     per_section = {"tube1": 24 * 2, "tube2": 24 * 3, "rod": 3 * 3}[name]
     n = mesh.n_vertices
     if n % per_section:

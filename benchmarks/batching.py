@@ -60,10 +60,9 @@ def main(argv=None) -> int:
     logging.getLogger("tissuecast.fem").setLevel(logging.WARNING)
 
     from tissuecast.config import Config, with_overrides
-    from tissuecast.dataset import SampleStatus, simulate
+    from tissuecast.dataset import SampleStatus, recipe_from_store, simulate
     from tissuecast.dataset.batch import solve_batch_tasks
     from tissuecast.dataset.executors import single_threaded_blas
-    from tissuecast.dataset import recipe_from_store
     from tissuecast.dataset.plan import sample_seed
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task, context_for, solve_task

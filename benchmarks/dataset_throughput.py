@@ -62,8 +62,7 @@ def _profile(store: Path, indices) -> tuple[dict, float, list]:
     """
     import numpy as np
 
-    from tissuecast.dataset import SampleStatus
-    from tissuecast.dataset import recipe_from_store
+    from tissuecast.dataset import SampleStatus, recipe_from_store
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task, context_for, solve_task
 

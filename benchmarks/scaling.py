@@ -86,8 +86,7 @@ def _fill(solver) -> tuple[str, int]:
 def child(spec: str, backend: str, args) -> dict:
     """Everything measured for one mesh and backend (run in its own process)."""
     from tissuecast.config import Config, with_overrides
-    from tissuecast.dataset import InitialGuess, SampleStatus, open_dataset, simulate
-    from tissuecast.dataset import recipe_from_store
+    from tissuecast.dataset import InitialGuess, SampleStatus, open_dataset, recipe_from_store, simulate
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task, context_for
     from tissuecast.mesh import write_mesh

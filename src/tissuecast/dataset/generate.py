@@ -31,7 +31,7 @@ from .executors import make_executor
 from .plan import generation_order, make_plan
 from .predictor import build_reduced, keep_snapshots
 from .reader import open_dataset
-from .store import StoreWriter, open_root, read_lbo_basis
+from .store import StoreWriter, open_root, read_lbo_basis, read_scenario_arrays
 from .supervise import Supervisor
 from .supports import MECHANISM_RATIO, check_supports
 from .worker import Recipe, SampleContext, Task
@@ -180,7 +180,7 @@ def recipe_from_store(store, solver_factory: str | None = None) -> Recipe:
                   reduced_weights=read("reduced/weights"))
     config_toml = root.attrs["config_toml"]
     if uses_scenario(config_from_dict(tomllib.loads(config_toml))):
-        kw["scenario"] = {name: read(f"scenario/{name}") for name in root["scenario"].array_keys()}
+        kw["scenario"] = read_scenario_arrays(root)
     return Recipe(config_toml, read("mesh/points"), read("mesh/tets"), read("fixed"), read_lbo_basis(root), **kw)
 
 

@@ -12,7 +12,7 @@ from ..config import Config, config_from_dict
 from ..errors import DatasetError
 from .plan import SPLIT_CODES, SPLIT_NAMES
 from .codes import STATUS_NAMES, InitialGuess, SampleStatus
-from .store import DRAWS, _open_root, check_schema, read_lbo_basis
+from .store import DRAWS, _open_root, check_schema, read_lbo_basis, read_scenario_arrays
 
 __all__ = ["Dataset", "open_dataset", "max_displacement_stats"]
 
@@ -157,13 +157,8 @@ class Dataset:
 
     @cached_property
     def scenario_arrays(self) -> dict[str, np.ndarray] | None:
-        """The resolved scenario's stored arrays (``scenario/*``: pins, attached region, springs,
-        indentation access; :func:`tissuecast.scenario.restore_scenario` rebuilds the scenario
-        from them), or None for a store without them (the paper's set-up)."""
-        if "scenario" not in self._root:
-            return None
-        group = self._root["scenario"]
-        return {name: np.asarray(group[name][...]) for name in group.array_keys()}
+        """The resolved scenario's stored arrays (:func:`~.store.read_scenario_arrays`), or None."""
+        return read_scenario_arrays(self._root)
 
     @cached_property
     def fixed(self) -> np.ndarray:

@@ -173,6 +173,16 @@ def read_lbo_basis(root):
     return LBOBasis(*arrays)
 
 
+def read_scenario_arrays(root) -> dict[str, np.ndarray] | None:
+    """The resolved scenario's stored arrays (``scenario/*``: pins, attached region, springs,
+    indentation access; :func:`tissuecast.scenario.restore_scenario` rebuilds the scenario
+    from them) of a store's root group, or None for a store without them (the paper's set-up)."""
+    if "scenario" not in root:
+        return None
+    group = root["scenario"]
+    return {name: np.asarray(group[name][...]) for name in group.array_keys()}
+
+
 class StoreWriter:
     """Writes samples into a store (the parent process is the only writer).
 
