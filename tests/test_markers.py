@@ -352,3 +352,5 @@ def test_markers_and_fixed_avoid_held_vertices():
         markers_and_fixed(mesh, MarkerConfig(ids=(0, 50)), held=held)
     with pytest.raises(MarkerError, match=r"excluded vertex ids \[9999\] are outside"):
         select_markers(mesh, count=2, start=5, exclude=[9999])
+    with pytest.raises(MarkerError, match=r"excluded vertex ids must be integers, got float64"):
+        select_markers(mesh, count=2, start=5, exclude=[1.5])
