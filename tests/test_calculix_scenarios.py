@@ -44,7 +44,7 @@ CASES = {
                      "indentation": {"enabled": True, "radius": 7.0, "depth": [5.0, 5.0], "slide": [2.0, 2.0],
                                      "clearance": 4.0}}, "nodal", 0.0, 0.0, 1.0),
     "materials": ({"pins": False, "attached": BASE, "materials": INCLUSION}, "nodal", 0.004, 0.0, 1.0),
-    "lbo+springs": ({"springs": SPRINGS}, "nodal", 0.08, 0.0, 1.0),
+    "lbo+springs": ({"springs": SPRINGS}, "nodal", 0.09, 0.0, 1.0),
     "combined": ({"pins": False, "attached": BASE, "springs": SPRINGS, "gravity": {"enabled": True},
                   "indentation": {"enabled": True, "radius": 7.0, "depth": [5.0, 5.0], "slide": [2.0, 2.0],
                                   "clearance": 4.0},

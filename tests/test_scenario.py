@@ -37,6 +37,30 @@ def _face(mesh, axis, value):
 
 
 # ------------------------------------------------------------------------ surface lumping
+def test_hrz_lumping_is_the_rescaled_diagonal_of_the_6_node_triangles_mass_matrix():
+    """HRZ: integral(N_a^2) dA of the 6-node triangle's shape functions (a degree-5 rule, exact
+    for these degree-4 integrands), rescaled to sum to the area: positive at the corners too."""
+    mesh = regular_tet(3.0)
+    tri = mesh.surface_triangles[:1]
+    area = 0.25 * np.sqrt(3.0) * 9.0
+    a, b, c1, c2 = 0.059715871789770, 0.470142064105115, 0.797426985353087, 0.101286507323456
+    pts = np.array([[1 / 3, 1 / 3, 1 / 3], [a, b, b], [b, a, b], [b, b, a], [c1, c2, c2], [c2, c1, c2], [c2, c2, c1]])
+    w = np.array([0.225] + [0.132394152788506] * 3 + [0.125939180544827] * 3)
+    lam = pts.T  # (3, q) barycentric coordinates
+    shape = np.vstack([lam * (2.0 * lam - 1.0), 4.0 * lam[0] * lam[1], 4.0 * lam[1] * lam[2], 4.0 * lam[2] * lam[0]])
+    diagonal = (shape**2 * w).sum(axis=1)  # per unit area
+    np.testing.assert_allclose(diagonal[:3], 1.0 / 30.0, rtol=1e-12)  # the textbook 6/180 and 32/180
+    np.testing.assert_allclose(diagonal[3:], 8.0 / 45.0, rtol=1e-12)
+    expected = area * diagonal / diagonal.sum()
+    nodes, lumped, _ = lumped_areas(mesh, tri, 2, "hrz")
+    corners_then_mids = surface_nodes(mesh, tri, 2)[0]
+    np.testing.assert_array_equal(nodes, np.sort(corners_then_mids))
+    np.testing.assert_allclose(lumped[np.searchsorted(nodes, corners_then_mids)], expected, rtol=1e-12)
+    np.testing.assert_allclose(lumped_areas(mesh, tri, 1, "hrz")[1], lumped_areas(mesh, tri, 1)[1], rtol=0)  # P1: same
+    with pytest.raises(ValueError, match="lumping rule"):
+        lumped_areas(mesh, tri, 2, "consistent")
+
+
 def test_lumped_areas_are_the_integrals_of_the_shape_functions_on_one_triangle():
     mesh = regular_tet(3.0)
     tri = mesh.surface_triangles[:1]
@@ -148,7 +172,11 @@ def test_springs_hold_a_face_with_its_area_times_the_stiffness(order):
     np.testing.assert_allclose(lam[:, 2] / lam[:, 0], 3.0, rtol=1e-12)
     iso = surface_springs(BOX, bottom, order, 0.002, 0.002).stiffness
     np.testing.assert_allclose(iso, iso[:, :1, :1] * np.eye(3)[None], atol=1e-15)
-    assert len(springs) == (20 if order == 1 else 43)  # 4x5 vertices; P2: the face's 15 + 16 + 12 mid-edge nodes
+    # 4x5 vertices; P2 (HRZ, the default): and the face's 15 + 16 + 12 mid-edge nodes
+    assert len(springs) == (20 if order == 1 else 63)
+    row_sum = surface_springs(BOX, bottom, order, 0.003, 0.001, lumping="row-sum")
+    assert len(row_sum) == (20 if order == 1 else 43)  # P2: the mid-edge nodes alone
+    np.testing.assert_allclose(row_sum.forces(u).sum(axis=0), total, rtol=1e-12)
 
 
 def test_nodal_springs_refuse_bad_stiffness():

@@ -272,6 +272,7 @@ class SpringConfig(RegionConfig):
 
     normal_stiffness: float = _f(DEFAULT_SUPPORT_STIFFNESS, lo=0.0, lo_open=True, doc="stiffness per unit area normal to the surface, N/mm^3 (MPa/mm): surroundings of modulus E over a length L give about E / L (default 0.021 MPa / 10 mm)")
     tangential_stiffness: float = _f(DEFAULT_SUPPORT_STIFFNESS, lo=0.0, doc="stiffness per unit area along the surface, N/mm^3; equal to normal_stiffness = isotropic; 0 = the surface slides freely")
+    lumping: str = _f("hrz", choices=("hrz", "row-sum"), doc="P2 nodal shares of the area: hrz = 1/19 per corner, 16/57 per mid-edge node; row-sum = none at corners (non-unique when compressed)")
 
 
 @dataclass(frozen=True)

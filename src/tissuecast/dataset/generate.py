@@ -116,6 +116,23 @@ def _check_same(writer: StoreWriter, cfg: Config, mesh, markers: np.ndarray, fix
             "(a store is never overwritten)")
 
 
+def _check_springs(writer: StoreWriter, scenario) -> None:
+    """Warn when a store's springs differ from those its config gives now (a store from a
+    version that lumped P2 springs by ``integral(N_a) dA`` only); its workers go on with the
+    stored springs (:func:`recipe_from_store`)."""
+    stored = read_scenario_arrays(writer.root) or {}
+    springs = None if scenario is None else scenario.springs
+    if "spring_nodes" not in stored or springs is None:
+        return
+    if np.array_equal(stored["spring_nodes"], springs.nodes) and np.allclose(stored["spring_stiffness"],
+                                                                            springs.stiffness, rtol=1e-12, atol=0.0):
+        return
+    log.warning("data set %r holds springs other than this config gives (%d nodes, now %d: e.g. made before P2 "
+                "springs were lumped HRZ-style by default); it goes on with its own springs, so its samples stay "
+                "one data set",
+                str(writer.path), len(stored["spring_nodes"]), len(springs.nodes))
+
+
 _FLUSH_SECONDS = 2.0  # per-sample values and statuses reach the disk at least this often ...
 _FLUSH_SAMPLES = 32  # ... and at least every this many samples
 
@@ -134,6 +151,7 @@ def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
     if path.exists():
         writer = StoreWriter.open(path)
         _check_same(writer, cfg, mesh, markers, fixed)
+        _check_springs(writer, scenario)
         return writer
     from ..forces import lbo_basis
 

@@ -5,16 +5,28 @@ Node numbering follows the element order: for P1 the nodes are the mesh vertices
 (``TetMesh.points10``) vertex ``i`` is node ``i`` and the midpoint of ``mesh.edges[e]`` is node
 ``n + e``. Ids are 0-based; lengths in mm, areas in mm^2.
 
-Lumping (:func:`lumped_areas`): the area of a surface triangle is shared by its nodes as
-``integral(N_a) dA``, the row sums of the surface mass matrix, which are also the nodal loads
-of a uniform traction: P1, a third to each vertex; P2 (the 6-node triangle), nothing to the
-corners and a third to each mid-edge node. Springs lumped so carry a uniform pressure with a
-uniform displacement, exactly as the distributed spring (``p / k`` everywhere). Measured on the
-phantom held by springs over its whole surface (P2, linear elasticity, 4 smooth loads), these
-springs' solutions differ from those of the consistent (non-diagonal) spring matrix by 0.5-1.2 %
-of the peak displacement; HRZ lumping (the consistent diagonal 1/30, 8/45 rescaled: 1/19 of the
-area to each corner and 16/57 to each mid-edge node, all positive) by 6-8 %, and by 11 % of
-``p / k`` at the supported face of a block under uniform traction.
+Lumping (:func:`lumped_areas`), two rules:
+
+* ``"row-sum"``: the area of a surface triangle is shared by its nodes as ``integral(N_a) dA``,
+  the row sums of the surface mass matrix, which are also the nodal loads of a uniform
+  traction: P1, a third to each vertex; P2 (the 6-node triangle), nothing to the corners and a
+  third to each mid-edge node. Springs lumped so carry a uniform pressure with a uniform
+  displacement, exactly as the distributed spring (``p / k`` everywhere).
+* ``"hrz"`` (Hinton, Rock and Zienkiewicz 1976): the diagonal of the surface mass matrix
+  rescaled to the triangle's area. P1: a third to each vertex, as above; P2: the consistent
+  diagonal ``A/30`` (corners) and ``8A/45`` (mid-edge nodes) rescaled, 1/19 of the area to each
+  corner and 16/57 to each mid-edge node, all positive.
+
+Measured on the phantom held by springs over its whole surface (P2, linear elasticity, 4
+smooth loads), row-sum springs' solutions differ from those of the consistent (non-diagonal)
+spring matrix by 0.5-1.2 % of the peak displacement, HRZ springs by 6-8 %, and by 11 % of
+``p / k`` at the supported face of a block under uniform traction (a dimple at the corners,
+which shrinks with the element size). But under large deformation the row-sum rule leaves the
+P2 corner nodes of a spring-held surface with no spring at all, held by their elements alone:
+pushed in, such a node can pop in or out, and the discrete problem stops having a unique
+solution (two Newton solvers, ours and CalculiX, end on different branches: 12-43 % of the
+peak apart). HRZ springs hold every surface node, and the two solvers agree again
+(``docs/scenarios.md``). For P1 the rules are the same.
 """
 
 from __future__ import annotations
@@ -23,11 +35,16 @@ import numpy as np
 
 from .tetmesh import TetMesh
 
-__all__ = ["triangle_areas", "vertex_normals", "edge_ids", "surface_nodes", "lumped_areas", "P2_MIDEDGE_SHARE"]
+__all__ = ["triangle_areas", "vertex_normals", "edge_ids", "surface_nodes", "lumped_areas", "P2_MIDEDGE_SHARE",
+           "P2_HRZ_SHARES", "LUMPING_RULES"]
 
 #: Share of a 6-node triangle's area at each mid-edge node, integral(N_mid) dA / A (the
 #: corners' integral(N_corner) dA is 0).
 P2_MIDEDGE_SHARE = 1.0 / 3.0
+#: HRZ shares of a 6-node triangle's area: (each corner, each mid-edge node); 3 (1/19 + 16/57) = 1.
+P2_HRZ_SHARES = (1.0 / 19.0, 16.0 / 57.0)
+#: The lumping rules of :func:`lumped_areas`.
+LUMPING_RULES = ("row-sum", "hrz")
 
 
 def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -83,26 +100,34 @@ def surface_nodes(mesh: TetMesh, triangles: np.ndarray, order: int) -> np.ndarra
     return np.column_stack([tri] + mids)
 
 
-def lumped_areas(mesh: TetMesh, triangles: np.ndarray, order: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def lumped_areas(mesh: TetMesh, triangles: np.ndarray, order: int,
+                 rule: str = "row-sum") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Surface area of triangles lumped onto their nodes (see the module notes).
 
     Args:
         mesh: the mesh.
         triangles: (t, 3) int, outer-surface triangles (outward order).
         order: element order, 1 or 2.
+        rule: ``"row-sum"`` (``integral(N_a) dA``; P2: nothing at the corners) or ``"hrz"``
+            (P2: 1/19 of each triangle at each corner, 16/57 at each mid-edge node); the same
+            for P1.
 
     Returns:
         ``(nodes (s,) int sorted, areas (s,) mm^2, normals (s, 3))`` of the nodes with a
-        positive share (P2: the mid-edge nodes): each node's lumped area and the unit mean of
-        its triangles' outward normals weighted by its shares; the areas sum to the
+        positive share (P2 row-sum: the mid-edge nodes): each node's lumped area and the unit
+        mean of its triangles' outward normals weighted by its shares; the areas sum to the
         triangles' total area.
     """
+    if rule not in LUMPING_RULES:
+        raise ValueError(f"lumping rule must be one of {LUMPING_RULES}, got {rule!r}")
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     area, normal = triangle_areas(mesh.points, tri)
     if order == 1:
         nodes, share = tri, np.full(3, 1.0 / 3.0)
-    else:
+    elif rule == "row-sum":
         nodes, share = surface_nodes(mesh, tri, order)[:, 3:], np.full(3, P2_MIDEDGE_SHARE)
+    else:
+        nodes, share = surface_nodes(mesh, tri, order), np.repeat(P2_HRZ_SHARES, 3)
     weight = area[:, None] * share[None, :]  # (t, k)
     ids, inverse = np.unique(nodes.ravel(), return_inverse=True)
     lumped = np.bincount(inverse, weights=weight.ravel(), minlength=len(ids))

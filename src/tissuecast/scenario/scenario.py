@@ -296,7 +296,7 @@ def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshT
     springs = None
     if region.size:
         springs = surface_springs(mesh, region, order, sc.springs.normal_stiffness,
-                                  sc.springs.tangential_stiffness).without(held)
+                                  sc.springs.tangential_stiffness, sc.springs.lumping).without(held)
         if len(springs) == 0:
             raise ConfigError("scenario.springs: the region holds no whole surface triangle outside the attached "
                               "region; widen it")

@@ -2,9 +2,11 @@
 
 A surface region with stiffness per unit area ``k_n`` normal to it and ``k_t`` along it
 (N/mm^3 = MPa/mm) becomes one linear spring per surface node: node ``a`` with lumped area
-``A_a = integral(N_a) dA`` (P1: a third of each triangle at each vertex; P2: a third at each
-mid-edge node, none at the corners; see :func:`~tissuecast.mesh.surface.lumped_areas` for
-why and how it compares with HRZ lumping) and unit normal ``n_a`` gets the 3x3 stiffness
+``A_a`` (P1: a third of each triangle at each vertex; P2 by default HRZ lumping, 1/19 of each
+triangle at each corner and 16/57 at each mid-edge node, or ``integral(N_a) dA``, none at the
+corners; :func:`~tissuecast.mesh.surface.lumped_areas` says why HRZ: with no spring at the
+corners a strongly compressed P2 surface has no unique solution) and unit normal ``n_a`` gets
+the 3x3 stiffness
 
     K_a = A_a (k_t I + (k_n - k_t) n_a n_a^T)   N/mm,
 
@@ -39,7 +41,7 @@ def region_triangles(mesh: TetMesh, vertices: np.ndarray) -> np.ndarray:
 
 
 def surface_springs(mesh: TetMesh, vertices: np.ndarray, order: int, normal_stiffness: float,
-                    tangential_stiffness: float) -> NodalSprings:
+                    tangential_stiffness: float, lumping: str = "hrz") -> NodalSprings:
     """Springs of a surface region, lumped to its nodes by area (module notes).
 
     Args:
@@ -49,11 +51,13 @@ def surface_springs(mesh: TetMesh, vertices: np.ndarray, order: int, normal_stif
         order: element order, 1 (vertices) or 2 (vertices and mid-edge nodes).
         normal_stiffness: k_n, N/mm^3.
         tangential_stiffness: k_t, N/mm^3.
+        lumping: ``"hrz"`` or ``"row-sum"`` (:func:`~tissuecast.mesh.surface.lumped_areas`;
+            the same for P1).
 
     Returns:
         The nodal springs (empty when the region holds no whole triangle).
     """
-    nodes, area, normal = lumped_areas(mesh, region_triangles(mesh, vertices), order)
+    nodes, area, normal = lumped_areas(mesh, region_triangles(mesh, vertices), order, lumping)
     kt = float(tangential_stiffness)
     kn = float(normal_stiffness)
     stiffness = area[:, None, None] * (kt * np.eye(3)[None] + (kn - kt) * normal[:, :, None] * normal[:, None, :])
