@@ -190,6 +190,32 @@ def test_a_store_with_markers_of_an_earlier_rule_resumes_with_its_own(reference,
     np.testing.assert_array_equal(open_dataset(path).markers, now[::-1])
 
 
+def test_a_store_with_springs_of_an_earlier_lumping_goes_on_with_its_own(reference, tmp_path, caplog):
+    """A store whose springs differ from what its config gives now (P2 springs lumped by
+    integral(N_a) dA before HRZ became the default) says so and keeps solving with its own."""
+    import logging
+    import shutil
+
+    from tissuecast.dataset import recipe_from_store
+
+    cfg, ref_path, _ = reference
+    path = tmp_path / "older.zarr"
+    shutil.copytree(ref_path, path)
+    root = zarr.open_group(str(path), mode="r+")
+    older = 0.5 * np.asarray(root["scenario/spring_stiffness"][...])
+    root["scenario/spring_stiffness"][:] = older
+    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.generate"):
+        simulate(cfg, path, progress=False)
+    assert "holds springs other than this config gives" in caplog.text
+    np.testing.assert_array_equal(recipe_from_store(path).scenario["spring_stiffness"], older)
+    caplog.clear()
+    same = tmp_path / "same.zarr"
+    shutil.copytree(ref_path, same)
+    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.generate"):
+        simulate(cfg, same, progress=False)  # its own springs: no warning
+    assert "holds springs" not in caplog.text
+
+
 def test_export_inp_of_a_stored_scenario_sample(reference, tmp_path, capsys):
     """``export-inp STORE --sample K`` writes the deck of that sample with the stored scenario:
     springs, the gravity change and the indentation's prescribed displacements."""
