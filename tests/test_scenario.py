@@ -419,7 +419,7 @@ def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
         a.pop("calibration_share", None), b.pop("calibration_share", None)  # embedded keeps trust signals
         assert a == b, section
     assert emb.surrogate.calibration_share > 0.0
-    # linear tetrahedra: P2 solves of this spring-held body meet non-unique equilibria (docs/scenarios.md)
+    # linear tetrahedra: P2 solves of this spring-held body stall near a local instability (docs/scenarios.md)
     assert emb.solver.order == 1 and emb.solver.strategy == "quasi-newton" and emb.forces.loading == "traction"
     assert 15.0 <= emb.forces.target_max_displacement <= 30.0 and emb.forces.n_basis == 6
     sc = emb.scenario
