@@ -109,6 +109,54 @@ def test_predictor_starts_later_samples_near_their_solution(reference):
         assert np.abs(ds.displacements[i] - cold).max() <= 2e-3 * peak
 
 
+def test_basis_samples_start_from_an_interim_model_of_the_pilots(tmp_path):
+    """With >= MIN_INTERIM calibration pilots, the other reduced-model basis samples start from
+    an interim model of the pilots' solutions: fewer iterations than from zero, the same
+    equilibrium, and guesses that depend on the pilots' snapshots alone (what a resumed run
+    has), so a resume solves them the same."""
+    import shutil
+
+    from tissuecast.dataset import recipe_from_store
+    from tissuecast.dataset.generate import setup_from_config
+    from tissuecast.dataset.predictor import MIN_INTERIM, _interim_guesses, basis_samples
+    from tissuecast.dataset.store import StoreWriter
+    from tissuecast.dataset.worker import Task
+    from tissuecast.fem import Solver, build_problem
+
+    cfg = small_config(tmp_path, n_samples=24, n_test2=0, alpha=0.0, calibration_samples=MIN_INTERIM)
+    cfg = with_overrides(cfg, dataset={"predictor_samples": 14}, forces={"target_max_displacement": 4.0})
+    path = tmp_path / "interim.zarr"
+    simulate(cfg, path, progress=False)
+    ds = open_dataset(path)
+    assert (ds.predicted[:MIN_INTERIM] == InitialGuess.PREVIOUS_ROUND).all()
+    interim = np.arange(MIN_INTERIM, 14)
+    assert (ds.predicted[interim] == InitialGuess.INTERIM_MODEL).all()
+    assert ds.summary()["predictor"]["from_interim_model"]["samples"] == len(interim)
+    mesh, _, fixed = setup_from_config(cfg)
+    solver = Solver(build_problem(mesh, cfg, fixed), cfg.solver)
+    cold = [solver.solve(ds.forces[i].astype(np.float64)) for i in interim]
+    assert ds.iterations[interim].sum() < 0.8 * sum(c.iterations for c in cold)
+    for i, c in zip(interim, cold):
+        assert np.abs(ds.displacements[i] - c.displacement).max() <= 2e-3 * np.abs(c.displacement).max()
+    # the guesses use the pilots' snapshots only: the same with the others' rows emptied
+    copy = tmp_path / "resumed.zarr"
+    shutil.copytree(path, copy)
+    root = zarr.open_group(str(copy), mode="r+")
+    rows = np.asarray(root["reduced/samples"][...])
+    for k in np.flatnonzero(rows >= MIN_INTERIM):
+        root["reduced/snapshots"][k] = np.nan
+    guesses = []
+    for store in (path, copy):
+        writer = StoreWriter.open(store)
+        recipe = recipe_from_store(writer)
+        tasks = [Task(int(i), int(ds.seed[i]), float("nan"), ds.calibration["alpha"]) for i in interim]
+        guesses.append(_interim_guesses(writer, cfg, recipe, recipe.problem(), tasks))
+    assert len(basis_samples(StoreWriter.open(copy), cfg)) == 14
+    for a, b in zip(*guesses):
+        assert a.guess_code == b.guess_code == InitialGuess.INTERIM_MODEL
+        np.testing.assert_array_equal(a.guess, b.guess)
+
+
 def test_calibration_pilots_start_from_their_previous_round(reference):
     cfg, path, _ = reference
     ds = open_dataset(path)

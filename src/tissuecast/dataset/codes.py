@@ -32,6 +32,7 @@ class InitialGuess(IntEnum):
     REDUCED_MODEL = 1  # the reduced-order model's prediction
     GUESS_FAILED = 2  # the guess did not work (no prediction, or no convergence from it): then zero
     PREVIOUS_ROUND = 3  # a calibration pilot's own solution of the previous calibration round
+    INTERIM_MODEL = 4  # a reduced-model basis sample: the prediction of a model of the pilots' solutions
 
 
 #: ``{code: label}`` of the sample status, as stored in the ``status_labels`` attribute.

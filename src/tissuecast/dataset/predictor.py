@@ -1,22 +1,28 @@
 """The data set's reduced-order predictor: which samples build it, their snapshots, the fit.
 
 With ``dataset.predictor = "reduced"`` the first ``predictor_samples`` LBO samples are solved
-from zero (the calibration pilots among them count), their nodal solutions are kept in the
+in full (the calibration pilots among them count), their nodal solutions are kept in the
 store (``reduced/snapshots``), and a :class:`~tissuecast.fem.reduced.ReducedModel` fitted to
-them is stored too; every later sample's solve starts from its prediction. The model depends
-only on the stored snapshots, so a resumed run builds the same one.
+them is stored too; every later sample's solve starts from its prediction. The basis samples
+that are not pilots start from the prediction of an *interim* model fitted to the pilots'
+solutions alone (``samples/predicted`` INTERIM_MODEL; from zero if it fails, or with fewer
+than ``MIN_INTERIM`` pilot solutions): a few Newton iterations instead of a cold solve. Both
+models depend only on stored snapshots (the interim one on the pilots', which the
+calibration writes before), so a resumed run builds the same ones and solves the same.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import time
 
 import numpy as np
 
 from ..config import Config
 from .codes import InitialGuess, SampleStatus
 from .store import StoreWriter
-from .worker import Recipe, Task
+from .worker import Recipe, SampleContext, Task
 
 __all__ = ["basis_samples", "keep_snapshots", "build_reduced"]
 
@@ -24,6 +30,9 @@ log = logging.getLogger(__name__)
 
 #: Fewest converged basis samples a reduced model is fitted to.
 MIN_SNAPSHOTS = 2
+#: Fewest pilot solutions an interim model (for the other basis samples' first guesses) is
+#: fitted to.
+MIN_INTERIM = 8
 
 
 def basis_samples(writer: StoreWriter, cfg: Config) -> np.ndarray:
@@ -62,7 +71,7 @@ def build_reduced(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple
     from ..fem.reduced import ReducedModel
 
     problem = recipe.problem()
-    solved, complete = _solve_basis_samples(writer, ex, cfg, len(problem.nodes))
+    solved, complete = _solve_basis_samples(writer, ex, cfg, recipe, problem)
     if not complete:
         log.warning("the solver returns no nodal displacements; data set solved without a predictor")
         return solved, False
@@ -78,20 +87,23 @@ def build_reduced(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple
     return solved, True
 
 
-def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, n_nodes: int) -> tuple[int, bool]:
+def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, recipe: Recipe, problem) -> tuple[int, bool]:
     """Solve the basis samples without a stored snapshot (failed ones are not retried) and
     store them. Returns the number written and False if the solver gives no nodal
     displacements (then it stops there)."""
-    rows = writer.snapshot_rows(basis_samples(writer, cfg), n_nodes)
+    rows = writer.snapshot_rows(basis_samples(writer, cfg), len(problem.nodes))
     have = writer.snapshot_done()
     todo = [int(i) for i, ok in zip(rows, have) if not ok and writer.status[i] != SampleStatus.FAILED]
     if not todo:
         return 0, True
     alpha = float(writer.calibration["alpha"])
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
-    log.info("solving %d samples from zero for the reduced model", len(todo))
+    tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo]
+    tasks = _interim_guesses(writer, cfg, recipe, problem, tasks)
+    log.info("solving %d samples for the reduced model (%d from an interim model's predictions, the rest from zero)",
+             len(tasks), sum(t.guess is not None for t in tasks))
     written = 0
-    for r in ex.run([Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo], "reduced-model basis samples"):
+    for r in ex.run(tasks, "reduced-model basis samples"):
         if r.nodal is None and r.status == SampleStatus.DONE:
             return written, False
         if writer.status[r.index] == SampleStatus.PENDING:
@@ -100,3 +112,41 @@ def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, n_nodes: int) -> 
         keep_snapshots(writer, cfg, [r])
     writer.flush()
     return written, True
+
+
+def _interim_guesses(writer: StoreWriter, cfg: Config, recipe: Recipe, problem, tasks: list) -> list:
+    """``tasks`` with first guesses from an interim reduced model of the calibration pilots'
+    stored solutions (``guess_code`` INTERIM_MODEL), or unchanged when there are fewer than
+    ``MIN_INTERIM`` of them (no calibration, ``dataset.alpha`` given) or the fit fails; a task
+    whose prediction fails keeps no guess (solved from zero)."""
+    from ..errors import SolverSetupError
+    from ..fem.reduced import ReducedModel
+
+    pilots = np.asarray((writer.calibration or {}).get("pilots", []), dtype=np.int64)
+    rows = writer.snapshot_rows(basis_samples(writer, cfg), len(problem.nodes))
+    have = writer.snapshot_done()
+    use = [k for k, (i, ok) in enumerate(zip(rows, have)) if ok and i in set(pilots.tolist())]
+    if len(use) < MIN_INTERIM or not tasks:
+        return tasks
+    t0 = time.perf_counter()
+    snaps = writer.read("reduced/snapshots")[np.asarray(use)]
+    snaps = snaps[np.isfinite(snaps[:, 0, 0])]
+    if len(snaps) < MIN_INTERIM:
+        return tasks
+    ctx = SampleContext(recipe)  # forces and scenario loads of each task, as a worker makes them
+    try:
+        model = ReducedModel.fit(problem, snaps, tolerance=cfg.dataset.predictor_tolerance)
+    except (SolverSetupError, ArithmeticError, np.linalg.LinAlgError) as exc:
+        log.info("no interim reduced model (%s): the basis samples start from zero", exc)
+        return tasks
+    out = []
+    for task in tasks:
+        forces, _ = ctx.forces(task)
+        loads, extra, _ = ctx.loads(task, forces)
+        guess = model.predict(loads + extra.get("body_loads", 0.0))
+        out.append(task if guess is None else dataclasses.replace(task, guess=guess,
+                                                                  guess_code=int(InitialGuess.INTERIM_MODEL)))
+    log.info("interim reduced model of %d pilot solutions (%d modes, %d elements): %d of %d basis samples predicted "
+             "in %.1f s", len(snaps), model.n_modes, len(model.elements), sum(t.guess is not None for t in out),
+             len(out), time.perf_counter() - t0)
+    return out

@@ -19,7 +19,8 @@ __all__ = ["Dataset", "open_dataset", "max_displacement_stats"]
 _STATUS_CODES = {v: k for k, v in STATUS_NAMES.items()}
 #: ``summary()["predictor"]`` key of each initial-guess code
 _PREDICTOR_KEYS = {InitialGuess.ZERO: "from_zero", InitialGuess.REDUCED_MODEL: "predicted",
-                   InitialGuess.GUESS_FAILED: "prediction_failed", InitialGuess.PREVIOUS_ROUND: "from_previous_round"}
+                   InitialGuess.GUESS_FAILED: "prediction_failed", InitialGuess.PREVIOUS_ROUND: "from_previous_round",
+                   InitialGuess.INTERIM_MODEL: "from_interim_model"}
 
 
 def open_dataset(path) -> "Dataset":

@@ -106,7 +106,8 @@ class Task:
     """One sample to solve: its index, seed, kind and force magnitude alpha (N).
 
     ``guess``: optional (n_nodes, 3) mm nodal displacements to start from (a calibration
-    pilot's solution of the previous round); without it the reduced model predicts, if any.
+    pilot's solution of the previous round, or a basis sample's interim prediction), recorded
+    as ``guess_code``; without it the reduced model predicts, if any.
     ``budget``: wall-clock seconds each solver attempt may run (0 = no limit); an attempt
     stopped by it is followed by the cautious retries only (see :func:`solve_task`).
     ``batch_failure``: why the sample's try from the reduced model's prediction failed in a
@@ -119,6 +120,7 @@ class Task:
     beta: float  # NaN for LBO samples, the LBO share for test-2 samples
     alpha: float
     guess: np.ndarray | None = field(default=None, compare=False, repr=False)
+    guess_code: int = field(default=int(InitialGuess.PREVIOUS_ROUND), compare=False)
     budget: float = field(default=0.0, compare=False)
     batch_failure: str = field(default="", compare=False)
 
@@ -140,7 +142,8 @@ class SampleResult:
             initial guess did not work (the reduced problem or the solve from the guess did
             not converge) and the sample was solved from zero, PREVIOUS_ROUND converged from
             the task's guess (a calibration pilot started from its solution of the previous
-            round).
+            round), INTERIM_MODEL from the task's guess too (a reduced-model basis sample
+            started from the prediction of an interim model of the calibration pilots).
         nodal: (n_nodes, 3) float64 mm at every element node (P2: mid-edge nodes too), or
             None; the reduced model is built from these.
     """
@@ -318,7 +321,7 @@ def _tries(ctx: SampleContext, task: Task, loads: np.ndarray) -> tuple[list, Ini
     if task.batch_failure:  # its try from the prediction was made in a batch
         return tries, InitialGuess.GUESS_FAILED
     if task.guess is not None:
-        return [(0, np.asarray(task.guess, dtype=np.float64))] + tries, InitialGuess.PREVIOUS_ROUND
+        return [(0, np.asarray(task.guess, dtype=np.float64))] + tries, InitialGuess(task.guess_code)
     if ctx.reduced is None:
         return tries, InitialGuess.ZERO
     guess = ctx.reduced.predict(loads)
@@ -335,7 +338,7 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     with the retries of a higher level only (the cautious path), not with the others of the
     same level.
 
-    With a guess in the task (``predicted`` PREVIOUS_ROUND), or else a reduced model in the
+    With a guess in the task (``predicted`` its ``guess_code``), or else a reduced model in the
     recipe, a first try starts from it (``predicted`` REDUCED_MODEL; GUESS_FAILED when the
     reduced problem did not converge and there is no prediction); should that try fail, the
     usual attempts from zero follow, so a guess never makes a sample fail. A
@@ -364,8 +367,8 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
                 stopped_at = attempt
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
-            start = (" from the previous round's solution" if predicted == InitialGuess.PREVIOUS_ROUND
-                     else " from the prediction")
+            start = {InitialGuess.PREVIOUS_ROUND: " from the previous round's solution",
+                     InitialGuess.INTERIM_MODEL: " from the interim model's prediction"}.get(predicted, " from the prediction")
             reasons.append(f"attempt {attempt + 1}{start if guess is not None else ''}: "
                            f"{type(exc).__name__}: {exc}")
             predicted = InitialGuess.GUESS_FAILED if guess is not None else predicted
