@@ -211,6 +211,27 @@ def test_batches_are_chunks_of_the_generation_order_fixed_in_the_store(reference
     assert root.attrs["batches"]["count"] == -(-len(order) // size)
 
 
+def test_batch_size_may_change_once_the_store_fixed_its_batches(reference, tmp_path):
+    """The stored batches decide once fixed: another batch_size continues the store (e.g. one
+    made when the default was 8); before that, batch_size is part of the data config."""
+    import shutil
+
+    from tissuecast.errors import DatasetError
+
+    cfg, ref_path, _ = reference
+    path = tmp_path / "fixed.zarr"
+    shutil.copytree(ref_path, path)
+    other = with_overrides(cfg, dataset={"batch_size": cfg.dataset.batch_size + 3})
+    simulate(other, path, progress=False)  # accepted: nothing pending, the store unchanged
+    assert zarr.open_group(str(path), mode="r").attrs["batches"]["size"] == cfg.dataset.batch_size
+    assert_same_store(path, ref_path)
+    unfixed = tmp_path / "unfixed.zarr"
+    shutil.copytree(ref_path, unfixed)
+    del zarr.open_group(str(unfixed), mode="r+").attrs["batches"]
+    with pytest.raises(DatasetError, match="dataset.batch_size"):
+        simulate(other, unfixed, progress=False)
+
+
 def test_a_partly_written_batch_is_solved_again_in_full(reference, tmp_path):
     """A run stopped between two flushes can leave a batch partly written: the next run
     solves the whole batch again (its done samples too, not written again), so the missing

@@ -84,6 +84,9 @@ def scenario_setup(cfg: Config):
 def _check_same(writer: StoreWriter, cfg: Config, mesh, markers: np.ndarray, fixed: np.ndarray) -> None:
     stored = data_config(config_from_dict(tomllib.loads(writer.config_toml)))
     now = data_config(cfg)
+    if writer.batches is not None:  # the store's own batches decide from here on (.batch)
+        stored["dataset"].pop("batch_size", None)
+        now["dataset"].pop("batch_size", None)
     diffs = [f"{sec}.{k}: {stored[sec].get(k)!r} in the store, {now[sec].get(k)!r} now"
              for sec in _DATA_SECTIONS for k in sorted(set(stored[sec]) | set(now[sec]))
              if stored[sec].get(k) != now[sec].get(k)]
