@@ -368,7 +368,8 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
             totals += _counts(getattr(exc, "result", None))
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
             start = {InitialGuess.PREVIOUS_ROUND: " from the previous round's solution",
-                     InitialGuess.INTERIM_MODEL: " from the interim model's prediction"}.get(predicted, " from the prediction")
+                     InitialGuess.INTERIM_MODEL: " from the interim model's prediction",
+                     InitialGuess.ZERO: " from zero in one increment"}.get(predicted, " from the prediction")
             reasons.append(f"attempt {attempt + 1}{start if guess is not None else ''}: "
                            f"{type(exc).__name__}: {exc}")
             predicted = InitialGuess.GUESS_FAILED if guess is not None else predicted
