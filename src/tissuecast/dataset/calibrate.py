@@ -31,6 +31,8 @@ Rule (documented in the store's ``calibration`` attribute):
   round (see ``generate._calibrate``); the answers are the same within the solver
   tolerances, and the rounds are deterministic, so a repeated calibration gives the same
   record bit for bit.
+  In the first round of the paper's set-up each pilot starts from a zero guess, the solver's
+  warm path (one increment with the shared reference preconditioner; ``generate._warm_zero``).
 
 So a softer material, a larger tumour or a different mesh resolution all land near the
 target: the rule measures the mesh at hand, not a fixed force.
