@@ -118,7 +118,7 @@ def test_basis_samples_start_from_an_interim_model_of_the_pilots(tmp_path):
 
     from tissuecast.dataset import recipe_from_store
     from tissuecast.dataset.generate import setup_from_config
-    from tissuecast.dataset.predictor import MIN_INTERIM, _interim_guesses, basis_samples
+    from tissuecast.dataset.predictor import MIN_INTERIM, _interim_guesses, _pilot_rows, basis_samples
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task
     from tissuecast.fem import Solver, build_problem
@@ -150,7 +150,11 @@ def test_basis_samples_start_from_an_interim_model_of_the_pilots(tmp_path):
         writer = StoreWriter.open(store)
         recipe = recipe_from_store(writer)
         tasks = [Task(int(i), int(ds.seed[i]), float("nan"), ds.calibration["alpha"]) for i in interim]
-        guesses.append(_interim_guesses(writer, cfg, recipe, recipe.problem(), tasks))
+        problem = recipe.problem()
+        pilot_rows = _pilot_rows(writer, writer.snapshot_rows(basis_samples(writer, cfg), len(problem.nodes)),
+                                 writer.snapshot_done())
+        assert len(pilot_rows) == MIN_INTERIM
+        guesses.append(_interim_guesses(writer, cfg, recipe, problem, tasks, pilot_rows))
     assert len(basis_samples(StoreWriter.open(copy), cfg)) == 14
     for a, b in zip(*guesses):
         assert a.guess_code == b.guess_code == InitialGuess.INTERIM_MODEL

@@ -124,7 +124,7 @@ def _check_springs(writer: StoreWriter, scenario) -> None:
     version that lumped P2 springs by ``integral(N_a) dA`` only); its workers go on with the
     stored springs (:func:`recipe_from_store`)."""
     stored = read_scenario_arrays(writer.root) or {}
-    springs = None if scenario is None else scenario.springs
+    springs = scenario.springs
     if "spring_nodes" not in stored or springs is None:
         return
     if np.array_equal(stored["spring_nodes"], springs.nodes) and np.allclose(stored["spring_stiffness"],
@@ -252,16 +252,14 @@ def _warm_zero(cfg: Config, recipe: Recipe) -> np.ndarray | None:
     """Zero displacements (n_nodes, 3) as a pilot's first guess where a guess changes the
     solver's path (``krylov`` with ``reference_preconditioner``: one full increment
     preconditioned by the shared stiffness at zero, no factorisation of its own), else None.
-
-    Measured on the paper preset's 24 first-round pilots: 10.0 s against 34.4 s solved cold
-    (5.8 against 12.5 Newton iterations, no factorisation); a pilot that fails from it goes
-    on with the usual attempts from zero (:func:`~.worker.solve_task`).
+    A pilot that fails from it goes on with the usual attempts from zero
+    (:func:`~.worker.solve_task`); timings in ``docs/scaling.md``.
     """
     sc = cfg.solver
     if recipe.scenario is not None or sc.strategy != "krylov" or not sc.reference_preconditioner:
         return None
-    n_nodes = len(recipe.points) if sc.order == 1 else len(recipe.problem().nodes)
-    return np.zeros((n_nodes, 3))
+    mesh = recipe.mesh
+    return np.zeros_like(mesh.points if sc.order == 1 else mesh.points10, dtype=np.float64)
 
 
 #: Pilots whose linear answers check the supports before the calibration (:mod:`.supports`).

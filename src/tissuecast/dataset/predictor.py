@@ -99,7 +99,7 @@ def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, recipe: Recipe, p
     alpha = float(writer.calibration["alpha"])
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo]
-    tasks = _interim_guesses(writer, cfg, recipe, problem, tasks)
+    tasks = _interim_guesses(writer, cfg, recipe, problem, tasks, _pilot_rows(writer, rows, have))
     log.info("solving %d samples for the reduced model (%d from an interim model's predictions, the rest from zero)",
              len(tasks), sum(t.guess is not None for t in tasks))
     written = 0
@@ -114,25 +114,27 @@ def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, recipe: Recipe, p
     return written, True
 
 
-def _interim_guesses(writer: StoreWriter, cfg: Config, recipe: Recipe, problem, tasks: list) -> list:
+def _pilot_rows(writer: StoreWriter, rows: np.ndarray, have: np.ndarray) -> list:
+    """The rows of ``reduced/snapshots`` (``rows``: their sample ids, ``have``: stored or not)
+    that hold a calibration pilot's solution."""
+    pilots = set((writer.calibration or {}).get("pilots", []))
+    return [k for k, (i, ok) in enumerate(zip(rows, have)) if ok and int(i) in pilots]
+
+
+def _interim_guesses(writer: StoreWriter, cfg: Config, recipe: Recipe, problem, tasks: list, rows: list) -> list:
     """``tasks`` with first guesses from an interim reduced model of the calibration pilots'
-    stored solutions (``guess_code`` INTERIM_MODEL), or unchanged when there are fewer than
-    ``MIN_INTERIM`` of them (no calibration, ``dataset.alpha`` given) or the fit fails; a task
-    whose prediction fails keeps no guess (solved from zero)."""
+    stored solutions (``rows``: their rows of ``reduced/snapshots``; ``guess_code``
+    INTERIM_MODEL), or unchanged when there are fewer than ``MIN_INTERIM`` of them (no
+    calibration, ``dataset.alpha`` given) or the fit fails; a task whose prediction fails
+    keeps no guess (solved from zero)."""
     from ..errors import SolverSetupError
     from ..fem.reduced import ReducedModel
 
-    pilots = np.asarray((writer.calibration or {}).get("pilots", []), dtype=np.int64)
-    rows = writer.snapshot_rows(basis_samples(writer, cfg), len(problem.nodes))
-    have = writer.snapshot_done()
-    use = [k for k, (i, ok) in enumerate(zip(rows, have)) if ok and i in set(pilots.tolist())]
-    if len(use) < MIN_INTERIM or not tasks:
+    if len(rows) < MIN_INTERIM or not tasks:
         return tasks
     t0 = time.perf_counter()
-    snaps = writer.read("reduced/snapshots")[np.asarray(use)]
-    snaps = snaps[np.isfinite(snaps[:, 0, 0])]
-    if len(snaps) < MIN_INTERIM:
-        return tasks
+    stored = writer.root["reduced/snapshots"]
+    snaps = np.stack([np.asarray(stored[k], dtype=np.float64) for k in rows])
     ctx = SampleContext(recipe)  # forces and scenario loads of each task, as a worker makes them
     try:
         model = ReducedModel.fit(problem, snaps, tolerance=cfg.dataset.predictor_tolerance)
