@@ -103,7 +103,7 @@ class Assembler:
         uniq, inverse = np.unique(key, return_inverse=True)
         self.nnz = len(uniq)
         # int32 where it fits: the compiled tangent streams this index once per assembly
-        # (m * 9 nn^2 entries), and half the bytes is ~10 % of its time on the phantom
+        # (m * 9 nn^2 entries); half the bytes is a little of its time (docs/scaling.md)
         itype = np.int32 if self.nnz < np.iinfo(np.int32).max else np.int64
         scatter = np.full(rows.size, self.nnz, dtype=itype)  # dropped entries -> dummy bin
         scatter[keep] = inverse.ravel()

@@ -17,16 +17,14 @@ Lumping (:func:`lumped_areas`), two rules:
   diagonal ``A/30`` (corners) and ``8A/45`` (mid-edge nodes) rescaled, 1/19 of the area to each
   corner and 16/57 to each mid-edge node, all positive.
 
-Measured on the phantom held by springs over its whole surface (P2, linear elasticity, 4
-smooth loads), row-sum springs' solutions differ from those of the consistent (non-diagonal)
-spring matrix by 0.5-1.2 % of the peak displacement, HRZ springs by 6-8 %, and by 11 % of
-``p / k`` at the supported face of a block under uniform traction (a dimple at the corners,
-which shrinks with the element size). But under large deformation the row-sum rule leaves the
-P2 corner nodes of a spring-held surface with no spring at all, held by their elements alone:
-pushed in, such a node can pop in or out, and the discrete problem stops having a unique
-solution (two Newton solvers, ours and CalculiX, end on different branches: 12-43 % of the
-peak apart). HRZ springs hold every surface node, and the two solvers agree again
-(``docs/scenarios.md``). For P1 the rules are the same.
+In small deformation row-sum springs are the closer to the consistent (non-diagonal) spring
+matrix, and HRZ springs dimple a face under uniform pressure at its corners (less as the
+elements shrink). But under large deformation the row-sum rule leaves the P2 corner nodes of
+a spring-held surface with no spring at all, held by their elements alone: pushed in, such a
+node can pop in or out, and the discrete problem stops having a unique solution (two Newton
+solvers, ours and CalculiX, end on different branches). HRZ springs hold every surface node,
+and the two solvers agree again. For P1 the rules are the same. Measurements of both:
+``docs/scenarios.md`` (the elastic support).
 """
 
 from __future__ import annotations
