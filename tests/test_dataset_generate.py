@@ -465,3 +465,38 @@ def test_workers_limit_every_blas_to_one_thread():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
     assert out.returncode == 0, out.stderr[-500:]
     assert out.stdout.strip() == "[1]"
+
+
+def test_workers_take_the_reduced_model_in_place_keeping_processes_and_solvers(reference):
+    """``LocalExecutor.update``: the same worker processes solve with the new recipe's reduced
+    model (each worker takes it exactly once), with the same bits as a fresh process; in a
+    process, a recipe differing only in its predictor keeps the cached solvers."""
+    import dataclasses
+
+    from tissuecast.dataset.executors import LocalExecutor
+    from tissuecast.dataset.generate import recipe_from_store
+    from tissuecast.dataset.worker import Task, context_for, solve_task
+
+    _, path, _ = reference
+    full = recipe_from_store(path)
+    bare = dataclasses.replace(full, reduced_basis=None, reduced_elements=None, reduced_weights=None)
+    assert bare.base_key == full.base_key and bare.key != full.key
+    ds = open_dataset(path)
+    alpha = float(ds.summary()["calibration"]["alpha"])
+    tasks = [Task(i, int(ds.seed[i]), float("nan"), alpha) for i in range(N_BASIS, N_BASIS + 6)]
+
+    ctx = context_for(bare)
+    solver = ctx.solver(0)
+    assert ctx.reduced is None
+    assert context_for(full) is ctx and ctx.solver(0) is solver and ctx.reduced is not None
+    here = [solve_task(full, t) for t in tasks]
+
+    with LocalExecutor(bare, 2) as ex:
+        before = [r for item in ex.imap_unordered(tasks[:2]) for r in item]
+        ex.update(full)
+        after = sorted((r for item in ex.imap_unordered(tasks) for r in item), key=lambda r: r.index)
+    assert {r.predicted for r in before} == {InitialGuess.ZERO}
+    assert {r.predicted for r in after} == {InitialGuess.REDUCED_MODEL}
+    for a, b in zip(after, here):
+        assert a.index == b.index and a.iterations == b.iterations
+        np.testing.assert_array_equal(a.displacement, b.displacement)

@@ -33,6 +33,9 @@ log = logging.getLogger(__name__)
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
                 "NUMEXPR_NUM_THREADS")
 _RECIPE: Recipe | None = None
+_BARRIER = None  # this local worker's pool-wide barrier (LocalExecutor.update)
+#: Seconds a local worker waits for the others while the pool takes a new recipe.
+UPDATE_TIMEOUT = 600.0
 
 
 def default_workers() -> int:
@@ -69,9 +72,9 @@ def single_threaded_blas() -> None:
         _BLAS_LIMIT = threadpoolctl.threadpool_limits(limits=1)
 
 
-def _init_worker(recipe: Recipe, parent: int) -> None:
-    global _RECIPE
-    _RECIPE = recipe
+def _init_worker(recipe: Recipe, parent: int, barrier) -> None:
+    global _RECIPE, _BARRIER
+    _RECIPE, _BARRIER = recipe, barrier
     threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     single_threaded_blas()
     context_for(recipe)  # build mesh, problem and solver once per process
@@ -85,20 +88,33 @@ def _noop() -> int:
     return os.getpid()
 
 
+def _take_recipe(recipe: Recipe) -> int:
+    """Make ``recipe`` this worker's (its context built or upgraded now), then wait until every
+    worker of the pool holds one of these calls, so that each takes exactly one."""
+    global _RECIPE
+    _RECIPE = recipe
+    context_for(recipe)
+    _BARRIER.wait(UPDATE_TIMEOUT)
+    return os.getpid()
+
+
 class LocalExecutor:
     """A pool of ``workers`` spawned processes, each holding one reusable solver."""
 
     def __init__(self, recipe: Recipe, workers: int):
         self.recipe, self.workers = recipe, int(workers)
         self._pool: cf.ProcessPoolExecutor | None = None
+        self._barrier = None
 
     def __enter__(self) -> "LocalExecutor":
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
         os.environ.update({k: "1" for k in _THREAD_VARS})  # inherited by the spawned workers only
         try:
+            mp = multiprocessing.get_context("spawn")
+            self._barrier = mp.Barrier(self.workers)
             self._pool = cf.ProcessPoolExecutor(
-                self.workers, mp_context=multiprocessing.get_context("spawn"),
-                initializer=_init_worker, initargs=(self.recipe, os.getpid()))
+                self.workers, mp_context=mp, initializer=_init_worker,
+                initargs=(self.recipe, os.getpid(), self._barrier))
             for f in [self._pool.submit(_noop) for _ in range(self.workers)]:
                 f.result()  # all workers are started (and their env fixed) before we restore ours
         finally:
@@ -114,6 +130,23 @@ class LocalExecutor:
             # on an error, do not wait for the solves in flight (their workers stop after them)
             self._pool.shutdown(wait=exc_type is None, cancel_futures=True)
             self._pool = None
+
+    def update(self, recipe: Recipe) -> None:
+        """Give every worker ``recipe`` instead of the current one (call with no work in flight).
+
+        The workers keep their processes, and their solvers when only the reduced-order
+        predictor changed (:func:`~.worker.context_for`): no new processes, imports or
+        factorisations, as a new pool would need.
+        """
+        futures = [self._pool.submit(_take_recipe, recipe) for _ in range(self.workers)]
+        try:
+            pids = {f.result() for f in futures}
+        except (cf.process.BrokenProcessPool, threading.BrokenBarrierError) as exc:
+            raise DatasetError("a worker process stopped or stalled while taking the reduced model; the samples "
+                               "finished so far are saved: run the same command again to continue") from exc
+        if len(pids) != self.workers:  # cannot happen with the barrier; a wrong pool would solve stale recipes
+            raise DatasetError(f"the new recipe reached {len(pids)} of {self.workers} workers")
+        self.recipe = recipe
 
     def imap_unordered(self, tasks: Iterable[Task | Batch]) -> Iterator[list[SampleResult]]:
         """Solve work items; yield each one's results as it completes. Items are taken from
@@ -171,6 +204,12 @@ class DaskExecutor:
         if self._client is not None:
             self._client.close()
             self._client = None
+
+    def update(self, recipe: Recipe) -> None:
+        """Scatter ``recipe`` to every worker in place of the current one; each worker upgrades
+        its context on its next task (keeping its solvers when only the predictor changed)."""
+        self._recipe_future = self._client.scatter(recipe, broadcast=True, hash=False)
+        self.recipe = recipe
 
     def imap_unordered(self, tasks: Iterable[Task | Batch]) -> Iterator[list[SampleResult]]:
         """Solve work items on the cluster; yield each one's results as it completes. Items

@@ -12,7 +12,6 @@ interrupted (``kill -9``) and resumed do not change a bit of the store (except
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import time
@@ -363,22 +362,19 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
 def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_factory: str | None, scheduler: str,
                 workers: int) -> SimulationRun:
     """Calibrate (if not done), build the predictor (if configured and not built), then solve
-    every pending sample; the executor is restarted once the reduced model exists."""
+    every pending sample; the workers take the reduced model once it exists."""
     recipe = recipe_from_store(writer, solver_factory)
     ds = cfg.dataset
-    with contextlib.ExitStack() as executors:
-        ex = Supervisor(executors.enter_context(make_executor(recipe, scheduler=scheduler, workers=workers)),
-                        ds.time_budget, ds.time_budget_min, progress)
+    with make_executor(recipe, scheduler=scheduler, workers=workers) as pool:
+        ex = Supervisor(pool, ds.time_budget, ds.time_budget_min, progress)
         executor = ex.executor.describe()
         log.info("simulating %d pending of %d samples on %s", len(writer.pending()), len(writer.status), executor)
         calibration = _calibration_phase(writer, ex, cfg, recipe) if writer.calibration is None else Phase()
         predictor = Phase()
         if ds.predictor == "reduced" and writer.reduced is None and len(writer.pending()):
             predictor = _predictor_phase(writer, ex, cfg, recipe)
-            if predictor.built:
-                executors.close()  # new workers, with the recipe holding the reduced model
-                ex.executor = executors.enter_context(make_executor(recipe_from_store(writer, solver_factory),
-                                                                    scheduler=scheduler, workers=workers))
+            if predictor.built:  # the same workers (and their solvers), now with the reduced model
+                ex.executor.update(recipe_from_store(writer, solver_factory))
         batched = ds.batch_size > 1 and writer.reduced is not None
         samples = _solve_pending(writer, ex, ds.batch_size if batched else 1)
     return SimulationRun(executor, calibration, predictor, samples, slow=tuple(ex.slow), stopped=tuple(ex.stopped))

@@ -70,11 +70,19 @@ class Recipe:
     @property
     def key(self) -> str:
         """Content hash identifying this recipe (worker processes cache contexts by it)."""
+        h = hashlib.sha256(self.base_key.encode())
+        for a in (self.reduced_basis, self.reduced_elements, self.reduced_weights):
+            h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
+
+    @property
+    def base_key(self) -> str:
+        """Content hash of everything but the reduced-order predictor: recipes with the same
+        base key have the same problem and solvers (:func:`context_for` keeps them)."""
         h = hashlib.sha256(self.config_toml.encode() + self.solver_factory.encode())
         extra = [] if self.scenario is None else [a for _, a in sorted(self.scenario.items())]
-        for a in (self.points, self.tets, self.fixed, self.basis.vertices, self.basis.vectors, self.reduced_basis,
-                  self.reduced_elements, self.reduced_weights, *extra):
-            h.update(b"-" if a is None else np.ascontiguousarray(a).tobytes())
+        for a in (self.points, self.tets, self.fixed, self.basis.vertices, self.basis.vectors, *extra):
+            h.update(np.ascontiguousarray(a).tobytes())
         return h.hexdigest()
 
     @property
@@ -239,6 +247,15 @@ class SampleContext:
         else:
             self._make_solver = factory(self.mesh, self.fixed, self.config)
         self._solvers: dict[int, object] = {}
+        self.base_key = recipe.base_key
+        self.reduced = None
+        self.use_predictor(recipe)
+
+    def use_predictor(self, recipe: Recipe) -> None:
+        """Take ``recipe``'s reduced-order predictor (None if it has none); ``recipe`` must have
+        this context's base key (the same problem), whose solvers are kept."""
+        if recipe.base_key != self.base_key:
+            raise ValueError("use_predictor: the recipe is for another problem")
         self.reduced = None
         if recipe.reduced_basis is not None:
             from ..fem.reduced import ReducedModel
@@ -299,11 +316,17 @@ _CONTEXTS: dict[str, SampleContext] = {}
 
 
 def context_for(recipe: Recipe) -> SampleContext:
-    """This process's context for ``recipe`` (built once, then cached)."""
+    """This process's context for ``recipe`` (built once, then cached; a recipe that differs
+    from the cached one only in its reduced-order predictor keeps the cached solvers)."""
     key = recipe.key
     if key not in _CONTEXTS:
+        old = next(iter(_CONTEXTS.values()), None)
         _CONTEXTS.clear()
-        _CONTEXTS[key] = SampleContext(recipe)
+        if old is not None and old.base_key == recipe.base_key:
+            old.use_predictor(recipe)  # only the predictor changed: keep mesh, problem and solvers
+            _CONTEXTS[key] = old
+        else:
+            _CONTEXTS[key] = SampleContext(recipe)
     return _CONTEXTS[key]
 
 

@@ -102,36 +102,42 @@ def ecsw_weights(g: np.ndarray, b: np.ndarray, tolerance: float, max_elements: i
     rows, n = g.shape
     max_elements = n if max_elements is None else int(max_elements)
     x = np.zeros(n)
-    gtb = g.T @ b
+    gt = np.ascontiguousarray(g.T)  # (n, rows): a column of g is a contiguous row here
+    gtb = gt @ b
     bnorm = float(np.linalg.norm(b))
     cols: list[int] = []  # active columns, in the order of the Gram matrix below
     gram = np.zeros((0, 0))
-    cross = np.zeros((n, 0))  # g^T g[:, cols]
+    cross = np.zeros((min(n, 64), n))  # rows: (g^T g[:, c])^T for c in cols, in order (grown by doubling)
     active = np.zeros(n, dtype=bool)
 
     def add(j):
         nonlocal gram, cross
-        cj = g.T @ g[:, j]
+        cj = gt @ gt[j]
         k = len(cols)
         new = np.empty((k + 1, k + 1))
         new[:k, :k] = gram
         new[:k, k] = new[k, :k] = cj[cols]
         new[k, k] = cj[j]
-        gram, cross = new, np.column_stack([cross, cj])
+        if k == cross.shape[0]:
+            cross = np.concatenate([cross, np.zeros((min(k, n - k), n))])
+        gram = new
+        cross[k] = cj
         cols.append(j)
         active[j] = True
 
     def drop(keep):
-        nonlocal gram, cross, cols
+        nonlocal gram, cols
         for j in np.asarray(cols)[~keep]:
             active[j] = False
             x[j] = 0.0
-        gram, cross = gram[np.ix_(keep, keep)], cross[:, keep]
+        k = len(cols)
+        gram = gram[np.ix_(keep, keep)]
+        cross[:int(keep.sum())] = cross[:k][keep]
         cols = [c for c, k in zip(cols, keep) if k]
 
     res_norm = bnorm
     while res_norm > tolerance * bnorm and len(cols) < max_elements:
-        w = gtb - cross @ x[cols]  # g^T (b - g x)
+        w = gtb - x[cols] @ cross[:len(cols)]  # g^T (b - g x)
         w[active] = -np.inf
         j = int(np.argmax(w))
         if not w[j] > 0.0:
@@ -435,7 +441,6 @@ class ReducedModel:
         except np.linalg.LinAlgError:
             return None
         h = h0.copy()
-        eye = np.eye(len(q))
         fnorm = np.linalg.norm(fr)
         for iteration in range(1, max_iterations + 1):
             d = -h @ g
@@ -456,8 +461,9 @@ class ReducedModel:
             q, e, g = q + s, e1, g1
             sy = float(s @ y)
             if sy > BFGS_CURVATURE * np.linalg.norm(s) * np.linalg.norm(y):
-                rho = 1.0 / sy
-                h = (eye - rho * np.outer(s, y)) @ h @ (eye - rho * np.outer(y, s)) + rho * np.outer(s, s)
+                # (I - rho s y^T) h (I - rho y s^T) + rho s s^T, expanded (h symmetric): O(r^2)
+                rho, hy = 1.0 / sy, h @ y
+                h = h - rho * (np.outer(s, hy) + np.outer(hy, s)) + (rho * rho * float(y @ hy) + rho) * np.outer(s, s)
             if np.linalg.norm(g) <= tolerance * fnorm or np.linalg.norm(s) <= tolerance * max(np.linalg.norm(q), _TINY):
                 return q, iteration
         return None
