@@ -500,3 +500,29 @@ def test_workers_take_the_reduced_model_in_place_keeping_processes_and_solvers(r
     for a, b in zip(after, here):
         assert a.index == b.index and a.iterations == b.iterations
         np.testing.assert_array_equal(a.displacement, b.displacement)
+
+
+def test_batches_are_cut_to_the_memory_their_tangents_need():
+    """A batch solves in lockstep and each sample holds its element matrices: on a large mesh
+    the requested batch is cut to ``dataset.batch_memory`` (the paper preset's 32 OOM-killed
+    a worker on a 58 k-tetrahedron P2 mesh), from the config and mesh alone."""
+    from tissuecast.dataset.generate import batch_size
+
+    assert batch_size(32, 4.0, 5066, 2) == 32  # the phantom: 36 MB a sample
+    assert batch_size(32, 4.0, 17128, 2) == 32  # ~3500 vertices: 123 MB
+    assert batch_size(32, 4.0, 58223, 2) == 10  # ~11 000 vertices: 419 MB a sample
+    assert batch_size(32, 4.0, 58223, 1) == 32  # linear tetrahedra: 12 x 12 element matrices
+    assert batch_size(32, 0.1, 58223, 2) == 1 and batch_size(1, 100.0, 10, 2) == 1
+
+
+def test_a_new_store_plans_batches_of_the_size_that_fits(reference, tmp_path):
+    cfg, _, _ = reference
+    from tissuecast.dataset.generate import setup_from_config
+
+    mesh, _, _ = setup_from_config(cfg)
+    order = 10 if cfg.solver.order == 2 else 4
+    per_sample = len(mesh.tets) * (3 * order) ** 2 * 8.0
+    assert cfg.dataset.batch_size > 2
+    small = with_overrides(cfg, dataset={"batch_memory": 2.5 * per_sample / 2.0**30, "n_samples": 30, "n_test2": 0})
+    simulate(small, tmp_path / "s.zarr", progress=False)
+    assert zarr.open_group(str(tmp_path / "s.zarr"), mode="r").attrs["batches"]["size"] == 2

@@ -162,6 +162,7 @@ class DatasetConfig:
     predictor_samples: int = _f(40, lo=2, hi=100000, doc="the first LBO samples (ids 0..n-1), solved from zero, whose solutions build the reduced model")
     predictor_tolerance: float = _f(0.01, lo=0.0, lo_open=True, hi=0.5, doc="ECSW hyper-reduction: relative error of the reduced internal forces")
     batch_size: int = _f(16, lo=1, hi=256, doc="samples a worker solves together once the reduced model exists (their solves with the shared reference factorisation gathered: Solver.solve_batch); 1 = one at a time; the last bits of a sample depend on its batch")
+    batch_memory: float = _f(4.0, lo=0.0, lo_open=True, doc="GiB a worker's batch may hold: batch_size is cut so that its samples' tangents fit (large meshes)")
     time_budget: float = _f(10.0, lo=0.0, doc="a solver attempt running longer than this many times the running median of its phase's samples is stopped (the sample goes on with its cautious retries, else is recorded failed); 0 = no budget")
     time_budget_min: float = _f(60.0, lo=0.0, doc="the time budget is at least this many seconds (machine hiccups never stop a sample)")
 

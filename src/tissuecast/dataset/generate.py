@@ -84,8 +84,9 @@ def _check_same(writer: StoreWriter, cfg: Config, mesh, markers: np.ndarray, fix
     stored = data_config(config_from_dict(tomllib.loads(writer.config_toml)))
     now = data_config(cfg)
     if writer.batches is not None:  # the store's own batches decide from here on (.batch)
-        stored["dataset"].pop("batch_size", None)
-        now["dataset"].pop("batch_size", None)
+        for key in ("batch_size", "batch_memory"):
+            stored["dataset"].pop(key, None)
+            now["dataset"].pop(key, None)
     diffs = [f"{sec}.{k}: {stored[sec].get(k)!r} in the store, {now[sec].get(k)!r} now"
              for sec in _DATA_SECTIONS for k in sorted(set(stored[sec]) | set(now[sec]))
              if stored[sec].get(k) != now[sec].get(k)]
@@ -375,8 +376,11 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
             predictor = _predictor_phase(writer, ex, cfg, recipe)
             if predictor.built:  # the same workers (and their solvers), now with the reduced model
                 ex.executor.update(recipe_from_store(writer, solver_factory))
-        batched = ds.batch_size > 1 and writer.reduced is not None
-        samples = _solve_pending(writer, ex, ds.batch_size if batched else 1)
+        size = batch_size(ds.batch_size, ds.batch_memory, writer.root["mesh/tets"].shape[0], cfg.solver.order)
+        if writer.batches is not None:  # fixed in the store: they decide, whatever the config says now
+            size = max(int(writer.batches["size"]), 2)
+        batched = size > 1 and writer.reduced is not None
+        samples = _solve_pending(writer, ex, size if batched else 1)
     return SimulationRun(executor, calibration, predictor, samples, slow=tuple(ex.slow), stopped=tuple(ex.stopped))
 
 
@@ -407,6 +411,17 @@ def _predictor_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Ph
         log.info("reduced model: %d modes, %d elements (ECSW error %.3g), built in %.1f s",
                  writer.reduced["modes"], writer.reduced["elements"], writer.reduced["fit_error"], seconds)
     return Phase(samples=solved, seconds=seconds, built=built)
+
+
+def batch_size(requested: int, memory_gib: float, n_tets: int, order: int) -> int:
+    """Samples a worker solves together: ``requested``, cut so that their tangents fit in
+    ``memory_gib`` GiB (a batch solves in lockstep, and each of its samples holds its own
+    element matrices, ``n_tets x (3 nodes per element)^2`` float64). A function of the config
+    and the mesh alone, so stores stay reproducible on any machine; at least 1."""
+    nodes = 10 if order == 2 else 4
+    per_sample = n_tets * (3 * nodes) ** 2 * 8.0
+    fits = int(memory_gib * 2.0**30 // max(per_sample, 1.0))
+    return max(1, min(int(requested), fits))
 
 
 def _work_items(writer: StoreWriter, order: np.ndarray, batch_size: int, task) -> list:
