@@ -93,6 +93,7 @@ def test_partial_file_keeps_other_defaults(tmp_path):
         ({"dataset": {"time_budget_min": -0.5}}, "dataset.time_budget_min", "out of range"),
         ({"dataset": {"batch_size": 0}}, "dataset.batch_size", "out of range"),
         ({"dataset": {"batch_size": 257}}, "dataset.batch_size", "out of range"),
+        ({"dataset": {"batch_memory": 0.0}}, "dataset.batch_memory", "out of range"),
         ({"scenario": {"springs": {"lumping": "consistent"}}}, "scenario.springs.lumping", "is not allowed"),
     ],
 )

@@ -485,11 +485,14 @@ def test_workers_take_the_reduced_model_in_place_keeping_processes_and_solvers(r
     alpha = float(ds.summary()["calibration"]["alpha"])
     tasks = [Task(i, int(ds.seed[i]), float("nan"), alpha) for i in range(N_BASIS, N_BASIS + 6)]
 
-    ctx = context_for(bare)
-    solver = ctx.solver(0)
-    assert ctx.reduced is None
-    assert context_for(full) is ctx and ctx.solver(0) is solver and ctx.reduced is not None
-    here = [solve_task(full, t) for t in tasks]
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1):  # as in a worker (executors.single_threaded_blas): the same bits
+        ctx = context_for(bare)
+        solver = ctx.solver(0)
+        assert ctx.reduced is None
+        assert context_for(full) is ctx and ctx.solver(0) is solver and ctx.reduced is not None
+        here = [solve_task(full, t) for t in tasks]
 
     with LocalExecutor(bare, 2) as ex:
         before = [r for item in ex.imap_unordered(tasks[:2]) for r in item]
@@ -506,7 +509,7 @@ def test_batches_are_cut_to_the_memory_their_tangents_need():
     """A batch solves in lockstep and each sample holds its element matrices: on a large mesh
     the requested batch is cut to ``dataset.batch_memory`` (the paper preset's 32 OOM-killed
     a worker on a 58 k-tetrahedron P2 mesh), from the config and mesh alone."""
-    from tissuecast.dataset.generate import batch_size
+    from tissuecast.dataset.generate import fitting_batch_size as batch_size
 
     assert batch_size(32, 4.0, 5066, 2) == 32  # the phantom: 36 MB a sample
     assert batch_size(32, 4.0, 17128, 2) == 32  # ~3500 vertices: 123 MB

@@ -88,14 +88,13 @@ def _noop() -> int:
     return os.getpid()
 
 
-def _take_recipe(recipe: Recipe) -> int:
+def _take_recipe(recipe: Recipe) -> None:
     """Make ``recipe`` this worker's (its context built or upgraded now), then wait until every
     worker of the pool holds one of these calls, so that each takes exactly one."""
     global _RECIPE
     _RECIPE = recipe
     context_for(recipe)
     _BARRIER.wait(UPDATE_TIMEOUT)
-    return os.getpid()
 
 
 class LocalExecutor:
@@ -104,17 +103,15 @@ class LocalExecutor:
     def __init__(self, recipe: Recipe, workers: int):
         self.recipe, self.workers = recipe, int(workers)
         self._pool: cf.ProcessPoolExecutor | None = None
-        self._barrier = None
 
     def __enter__(self) -> "LocalExecutor":
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
         os.environ.update({k: "1" for k in _THREAD_VARS})  # inherited by the spawned workers only
         try:
             mp = multiprocessing.get_context("spawn")
-            self._barrier = mp.Barrier(self.workers)
             self._pool = cf.ProcessPoolExecutor(
                 self.workers, mp_context=mp, initializer=_init_worker,
-                initargs=(self.recipe, os.getpid(), self._barrier))
+                initargs=(self.recipe, os.getpid(), mp.Barrier(self.workers)))
             for f in [self._pool.submit(_noop) for _ in range(self.workers)]:
                 f.result()  # all workers are started (and their env fixed) before we restore ours
         finally:
@@ -140,12 +137,11 @@ class LocalExecutor:
         """
         futures = [self._pool.submit(_take_recipe, recipe) for _ in range(self.workers)]
         try:
-            pids = {f.result() for f in futures}
+            for f in futures:
+                f.result()
         except (cf.process.BrokenProcessPool, threading.BrokenBarrierError) as exc:
             raise DatasetError("a worker process stopped or stalled while taking the reduced model; the samples "
                                "finished so far are saved: run the same command again to continue") from exc
-        if len(pids) != self.workers:  # cannot happen with the barrier; a wrong pool would solve stale recipes
-            raise DatasetError(f"the new recipe reached {len(pids)} of {self.workers} workers")
         self.recipe = recipe
 
     def imap_unordered(self, tasks: Iterable[Task | Batch]) -> Iterator[list[SampleResult]]:

@@ -376,9 +376,11 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
             predictor = _predictor_phase(writer, ex, cfg, recipe)
             if predictor.built:  # the same workers (and their solvers), now with the reduced model
                 ex.executor.update(recipe_from_store(writer, solver_factory))
-        size = batch_size(ds.batch_size, ds.batch_memory, writer.root["mesh/tets"].shape[0], cfg.solver.order)
         if writer.batches is not None:  # fixed in the store: they decide, whatever the config says now
-            size = max(int(writer.batches["size"]), 2)
+            size = int(writer.batches["size"])
+        else:
+            size = fitting_batch_size(ds.batch_size, ds.batch_memory, writer.root["mesh/tets"].shape[0],
+                                      cfg.solver.order)
         batched = size > 1 and writer.reduced is not None
         samples = _solve_pending(writer, ex, size if batched else 1)
     return SimulationRun(executor, calibration, predictor, samples, slow=tuple(ex.slow), stopped=tuple(ex.stopped))
@@ -413,7 +415,7 @@ def _predictor_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Ph
     return Phase(samples=solved, seconds=seconds, built=built)
 
 
-def batch_size(requested: int, memory_gib: float, n_tets: int, order: int) -> int:
+def fitting_batch_size(requested: int, memory_gib: float, n_tets: int, order: int) -> int:
     """Samples a worker solves together: ``requested``, cut so that their tangents fit in
     ``memory_gib`` GiB (a batch solves in lockstep, and each of its samples holds its own
     element matrices, ``n_tets x (3 nodes per element)^2`` float64). A function of the config

@@ -133,7 +133,7 @@ def ecsw_weights(g: np.ndarray, b: np.ndarray, tolerance: float, max_elements: i
         k = len(cols)
         gram = gram[np.ix_(keep, keep)]
         cross[:int(keep.sum())] = cross[:k][keep]
-        cols = [c for c, k in zip(cols, keep) if k]
+        cols = [c for c, kept in zip(cols, keep) if kept]
 
     res_norm = bnorm
     while res_norm > tolerance * bnorm and len(cols) < max_elements:
