@@ -268,7 +268,7 @@ class ReducedModel:
         vol = asm.geometry.weight.sum(axis=1)
         blocks.append((vol / vol.sum() * np.sqrt(keep))[None, :])
         # g (rows, m) stored column-major: ecsw_weights reads its columns as contiguous rows of
-        # g.T without a copy (g is rows x elements x 8 bytes: 1.5 GB on a 58 k-element mesh)
+        # g.T without a copy (g is rows x elements float64: one copy fewer counts on large meshes)
         g = np.empty((sum(len(b) for b in blocks), m), order="F")
         np.concatenate(blocks, out=g)
         del blocks
