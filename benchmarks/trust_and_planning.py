@@ -5,7 +5,8 @@ Prints, for the data-set store given (any preset: the paper's, or a scenario suc
 
 1. ``--part planning``: test-1 mean Offset_max (mm) versus the number of markers n_d for
    k-center markers (the paper's rule) and planned markers (``tissuecast.planning``:
-   QR-shortlisted greedy selection on a quadratic proxy's validation error), each with the
+   QR-shortlisted greedy selection on a quadratic proxy's validation error, then exchanges; one
+   plan per count), each with the
    rigid-registration baseline of the same markers, and the MLP confirmed by training one
    network per set. Target: planned reaches the k-center set's error with at most half as
    many markers, or beats it by >= 30 % at the same count.
@@ -41,9 +42,15 @@ from scipy.stats import spearmanr
 from tissuecast.dataset import open_dataset
 from tissuecast.evaluate.evaluation import spearman_rows
 from tissuecast.evaluate.trust_report import bound_figures
+from tissuecast.planning.selection import EXCHANGE_ROUNDS
 from tissuecast.surrogate import DeformationModel
 from tissuecast.surrogate.conformal import reliability_curve
 from tissuecast.surrogate.data import dataset_arrays, split_indices
+
+
+def head_override(args) -> dict:
+    """``{"head": ...}`` when ``--head`` was given, else nothing (the store's config decides)."""
+    return {"head": args.head} if getattr(args, "head", None) else {}
 
 
 def offsets_max(pred, bench) -> np.ndarray:
@@ -70,19 +77,24 @@ def part_planning(ds, args, out: dict) -> None:
     bench = U[t1]
     counts = [int(c) for c in args.counts]
     kc, d_min = study_markers(a.mesh, max(counts), ds.config, exclude=a.fixed)
-    t0 = time.perf_counter()
-    plan = plan_markers(ds, count=max(counts), region=args.region, min_distance=args.min_distance)
-    t_plan = time.perf_counter() - t0
-    print(f"\n== 1. marker planning ({args.region} candidates, min spacing {args.min_distance:g} mm; "
-          f"planned {max(counts)} markers in {t_plan:.0f} s) ==")
+    plans, t_plan = {}, {}
+    for k in counts:  # a plan per count: exchanges make plans of different counts un-nested
+        t0 = time.perf_counter()
+        plans[k] = plan_markers(ds, count=k, region=args.region, min_distance=args.min_distance,
+                                exchange_rounds=args.exchange_rounds)
+        t_plan[k] = time.perf_counter() - t0
+    print(f"\n== 1. marker planning ({args.region} candidates, min spacing {args.min_distance:g} mm, "
+          f"{args.exchange_rounds} exchange rounds; plans took {', '.join(f'{t_plan[k]:.0f}' for k in counts)} s) ==")
     print(f"k-center (d_min {d_min:g} mm): {kc.tolist()}")
-    print(f"planned: {plan.markers.tolist()}")
+    for k in counts:
+        print(f"planned {k}: {plans[k].markers.tolist()} ({plans[k].exchanged} exchanged)")
     rows = []
     print(f"{'n_d':>3} | {'k-center MLP':>12} {'rigid':>7} {'proxy':>7} | {'planned MLP':>11} {'rigid':>7} {'proxy':>7} | change")
     for k in counts:
         row = {"n_markers": k}
-        for name, mk in (("kcenter", kc[:k]), ("planned", plan.markers[:k])):
-            m = DeformationModel(ds.config, ensemble=1, calibration_share=0.0).fit(
+        plan = plans[k]
+        for name, mk in (("kcenter", kc[:k]), ("planned", plan.markers)):
+            m = DeformationModel(ds.config, ensemble=1, calibration_share=0.0, **head_override(args)).fit(
                 U, mk, mesh=a.mesh, fixed=a.fixed, train_idx=a.train_idx, valid_idx=a.valid_idx)
             d = bench[:, mk, :]
             row[f"{name}_mlp"] = float(offsets_max(m.predict(d), bench).mean())
@@ -105,8 +117,9 @@ def part_planning(ds, args, out: dict) -> None:
         print(f"k-center n_d={k}: planned with <= {k // 2} markers reaches it: "
               f"{('yes, with ' + str(min(reach))) if reach else 'no'}; planned beats it by >= 30 % at n_d={k}: "
               f"{'yes' if beat else 'no'}")
-    out["planning"] = {"kcenter": kc.tolist(), "planned": plan.markers.tolist(), "rows": rows, "verdicts": verdicts,
-                       "plan_seconds": t_plan, "region": args.region}
+    out["planning"] = {"kcenter": kc.tolist(), "planned": {str(k): plans[k].markers.tolist() for k in counts}, "rows": rows,
+                       "verdicts": verdicts, "plan_seconds": {str(k): t for k, t in t_plan.items()}, "region": args.region,
+                       "exchange_rounds": args.exchange_rounds}
 
 
 # ---------------------------------------------------------------------------------- bounds
@@ -119,7 +132,8 @@ def trust_model(ds, args):
 
         markers = study_markers(a.mesh, args.markers, ds.config, exclude=a.fixed)[0]
     t0 = time.perf_counter()
-    model = DeformationModel(ds.config, ensemble=args.ensemble).fit(
+    share = {"calibration_share": args.calibration_share} if args.calibration_share is not None else {}
+    model = DeformationModel(ds.config, ensemble=args.ensemble, **head_override(args), **share).fit(
         U, markers, mesh=a.mesh, fixed=a.fixed, train_idx=a.train_idx, valid_idx=a.valid_idx)
     tr = model.training_
     print(f"\nmodel: markers {model.markers.tolist()}, n_w {model.n_components}, ensemble {model.ensemble_size}, "
@@ -305,8 +319,12 @@ def main(argv=None) -> int:
     p.add_argument("--counts", type=int, nargs="+", default=[2, 3, 4, 5, 6, 8, 10, 12, 15, 20])
     p.add_argument("--region", default="surface", help="planning candidates: surface, any, interior")
     p.add_argument("--min-distance", type=float, default=0.0, help="planning: minimum marker spacing (mm)")
+    p.add_argument("--exchange-rounds", type=int, default=EXCHANGE_ROUNDS, help="planning: exchange passes (0 = greedy only)")
     p.add_argument("--markers", type=int, default=0,
                    help="bounds and alarm: this many k-center markers (as the n_d study picks them) instead of the store's")
+    p.add_argument("--head", choices=("quadratic", "none"), help="surrogate.head of the trained models (default: the store's config)")
+    p.add_argument("--calibration-share", type=float,
+                   help="surrogate.calibration_share of the bounds/alarm model (default: the store's config)")
     p.add_argument("--ensemble", type=int, default=1, help="ensemble size of the model whose bounds are measured")
     p.add_argument("--load-scales", type=float, nargs="+", default=[1.0, 1.25, 1.5])
     p.add_argument("--own-scales", type=float, nargs="*", default=[1.5],

@@ -65,6 +65,8 @@ def test_partial_file_keeps_other_defaults(tmp_path):
         ({"material": {"youngs_modulus": True}}, "material.youngs_modulus", "must be a number"),
         ({"mesh": {"path": 3}}, "mesh.path", "must be a string"),
         ({"surrogate": {"hidden": 128}}, "surrogate.hidden", "must be a list"),
+        ({"surrogate": {"head": "cubic"}}, "surrogate.head", "is not allowed"),
+        ({"surrogate": {"head_dims": 61}}, "surrogate.head_dims", "out of range"),
         ({"markers": "five"}, "markers", "must be a table"),
         ({"material": {"poisson_ratio": 0.5}}, "material.poisson_ratio", "out of range"),
         ({"material": {"youngs_modulus": 0.0}}, "material.youngs_modulus", "out of range"),

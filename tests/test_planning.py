@@ -5,7 +5,7 @@ import pytest
 import scipy.linalg
 
 from tissuecast.errors import MarkerError
-from tissuecast.planning import QuadraticProxy, candidate_vertices, greedy_markers, plan_markers, qr_markers
+from tissuecast.planning import QuadraticProxy, candidate_vertices, exchange_markers, greedy_markers, plan_markers, qr_markers
 from tissuecast.surrogate.pca import fit_pca
 
 from _surrogate_synthetic import FakeDataset, box_mesh
@@ -77,6 +77,12 @@ def test_greedy_on_the_proxy_finds_both_informative_vertices_and_respects_spacin
     assert d[np.triu_indices(3, 1)].min() > 15.0
     with pytest.raises(MarkerError, match="only 2 candidate"):
         qr_markers(modes, np.array([1, 2]), 3)
+    # exchange refinement from two uninformative vertices finds the two informative ones
+    swapped, best, n_scores = exchange_markers(proxy, modes, cand, [0, 1], shortlist=10)
+    assert sorted(swapped.tolist()) == inf and best == pytest.approx(proxy(swapped)) and best < proxy(np.array([0, 1]))
+    assert n_scores > 1
+    kept, same, _ = exchange_markers(proxy, modes, cand, inf, shortlist=10)  # nothing beats the informative pair
+    assert kept.tolist() == inf and same == pytest.approx(proxy(np.array(inf)))
 
 
 def test_plan_markers_on_a_data_set_count_and_target():
@@ -85,10 +91,12 @@ def test_plan_markers_on_a_data_set_count_and_target():
     assert plan.count == 4 and len(set(plan.markers.tolist())) == 4
     assert not np.isin(plan.markers, ds.fixed).any()
     assert np.all(np.diff(plan.proxy_errors) < 0)  # each greedy step lowers the validation error here
+    assert plan.proxy_error <= plan.proxy_errors[-1] and np.isin(plan.markers, ds.fixed).sum() == 0
+    assert plan.proxy_error == pytest.approx(plan.proxy(plan.markers))
     target = float(plan.proxy_errors[2]) * 1.0001  # reached with 3 markers, not with 2
-    tplan = plan_markers(ds, target_mm=target, region="any", shortlist=8)
-    assert tplan.count == 3 and tplan.target_reached
-    np.testing.assert_array_equal(tplan.markers, plan.markers[:3])
+    tplan = plan_markers(ds, target_mm=target, region="any", shortlist=8, exchange_rounds=0)
+    assert tplan.count == 3 and tplan.target_reached and tplan.exchanged == 0
+    np.testing.assert_array_equal(tplan.markers, plan.path[:3])  # without exchanges plans are the path's prefixes
     unreachable = plan_markers(ds, target_mm=1e-9, max_count=3, region="any", shortlist=8)
     assert unreachable.count == 3 and unreachable.target_reached is False
     with pytest.raises(MarkerError, match="either"):

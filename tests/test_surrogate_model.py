@@ -82,8 +82,11 @@ def test_fast_path_matches_plain_forward(model, data):
     _, U = data
     d = model.marker_displacements(U[400:410]).reshape(10, -1)
     w = np.mean([m.predict_weights(d) for m in model.members_], axis=0)
+    assert model.head_ is not None  # the default: the networks correct a quadratic head
+    w += model.head_.predict(d)  # the plain (unfolded) regression
     ref = model.pca_.inverse_transform(w).reshape(10, -1, 3)
     np.testing.assert_allclose(model.predict(d), ref, atol=1e-9)
+    np.testing.assert_allclose(model.predict(d[3]), ref[3], atol=1e-9)  # the single-sample path
 
 
 def test_torch_module_matches_numpy(model, data):

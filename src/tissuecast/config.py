@@ -174,16 +174,22 @@ SCHEDULES = ("onecycle", "cosine", "constant")
 OUTPUT_SCALINGS = ("global", "component")
 
 
+#: How the surrogate maps markers to PCA weights (see :mod:`tissuecast.surrogate.head`).
+HEADS = ("quadratic", "none")
+
+
 @dataclass(frozen=True)
 class SurrogateConfig:
     """PCA + MLP surrogate and the ridge baseline."""
 
     n_components: int = _f(0, lo=0, doc="PCA components n_w; 0 = chosen by pca_rule")
     pca_rule: str = _f("validation", choices=PCA_RULES, doc="n_w when n_components = 0: 'validation' = lowest validation mean Offset_max of the trained model; 'paper' = the pca_max_error rule")
-    pca_max_components: int = _f(64, lo=1, hi=1000, doc="validation rule: the network is trained on this many components, then truncated")
+    pca_max_components: int = _f(128, lo=1, hi=1000, doc="validation rule: the network is trained on this many components, then truncated")
     pca_max_error: float = _f(1.0, lo=0.0, lo_open=True, doc="paper rule: max cross-validated vertex reconstruction error (mm)")
     pca_folds: int = _f(5, lo=2, hi=50, doc="paper rule: folds of the n_w cross-validation")
     hidden: tuple[int, ...] = _f((128, 64), doc="hidden layer widths")
+    head: str = _f("quadratic", choices=HEADS, doc="'quadratic' = a regression on linear and quadratic marker features predicts, the networks learn its residual; 'none' = networks alone")
+    head_dims: int = _f(0, lo=0, hi=60, doc="quadratic head: input directions whose products are features; 0 = chosen on validation")
     epochs: int = _f(2500, lo=1, doc="maximum training epochs")
     batch_size: int = _f(128, lo=1, doc="mini-batch size")
     learning_rate: float = _f(3e-3, lo=0.0, lo_open=True, hi=1.0, doc="Adam (peak) learning rate")

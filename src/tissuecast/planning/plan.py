@@ -20,7 +20,7 @@ from ..surrogate.data import dataset_arrays
 from ..surrogate.pca import fit_pca
 from .candidates import candidate_vertices
 from .proxy import QuadraticProxy
-from .selection import SHORTLIST, greedy_markers
+from .selection import EXCHANGE_ROUNDS, SHORTLIST, exchange_markers, greedy_markers
 
 __all__ = ["MarkerPlan", "plan_markers", "validation_error", "MAX_COUNT"]
 
@@ -60,6 +60,8 @@ class MarkerPlan:
     target_reached: bool | None = None
     mlp_errors: dict = field(default_factory=dict)
     proxy: QuadraticProxy | None = None
+    proxy_error: float = float("nan")
+    exchanged: int = 0
 
     @property
     def count(self) -> int:
@@ -68,6 +70,7 @@ class MarkerPlan:
     def as_dict(self) -> dict:
         return {"markers": self.markers.tolist(), "count": self.count, "path": self.path.tolist(),
                 "proxy_valid_offset_max_mm": [float(x) for x in self.proxy_errors],
+                "proxy_valid_offset_max_mm_of_markers": float(self.proxy_error), "exchanged": int(self.exchanged),
                 "mlp_valid_offset_max_mm": {str(k): float(v) for k, v in sorted(self.mlp_errors.items())},
                 "region": self.region, "min_distance_mm": self.min_distance, "n_candidates": int(self.candidates.size),
                 "target_mm": self.target_mm, "target_reached": self.target_reached}
@@ -88,7 +91,7 @@ def validation_error(arrays, markers, config=None) -> float:
 
 def plan_markers(dataset, count: int | None = None, *, target_mm: float | None = None, max_count: int = MAX_COUNT,
                  region: str = "surface", min_distance: float = 0.0, allowed=None, shortlist: int = SHORTLIST,
-                 confirm: bool = False, config=None,
+                 confirm: bool = False, config=None, exchange_rounds: int = EXCHANGE_ROUNDS,
                  on_step: Callable[[int, np.ndarray, float], None] | None = None) -> MarkerPlan:
     """Choose markers from a data set's simulated fields.
 
@@ -101,7 +104,9 @@ def plan_markers(dataset, count: int | None = None, *, target_mm: float | None =
         region: candidate vertices, see :data:`tissuecast.planning.candidates.REGIONS`.
         min_distance: markers are farther apart than this (mm).
         allowed: optional user mask (bool (n,) or 0-based ids) of allowed vertices.
-        shortlist: candidates scored by the proxy per greedy step.
+        shortlist: candidates scored by the proxy per greedy step (and per position of the exchange).
+        exchange_rounds: passes of the exchange refinement over the chosen count's markers
+            (:func:`~tissuecast.planning.selection.exchange_markers`); 0 = the greedy path's prefix.
         confirm: train the MLP (validation error) for the chosen count; with ``target_mm``
             the count is then adjusted until the MLP, not only the proxy, decides it.
         config: surrogate settings for ``confirm`` (default: the data set's).
@@ -121,19 +126,27 @@ def plan_markers(dataset, count: int | None = None, *, target_mm: float | None =
     n_path = count if count is not None else min(max_count, planner.candidates.size)
     if target_mm is None:
         path, scores = planner.path(n_path)
-        plan = MarkerPlan(path, scores, path, planner.candidates, region, float(min_distance), proxy=planner.proxy)
+        markers, err, changed = planner.exchange(path, float(scores[-1]), exchange_rounds)
+        plan = MarkerPlan(markers, scores, path, planner.candidates, region, float(min_distance), proxy=planner.proxy,
+                          proxy_error=err, exchanged=changed)
         if confirm:
-            plan.mlp_errors[count] = validation_error(arrays, path, config)
+            plan.mlp_errors[count] = validation_error(arrays, markers, config)
         return plan
     path, scores = planner.path(n_path, stop_at=target_mm)
     n = len(path)
-    reached = bool(scores[-1] <= target_mm)
     mlp: dict = {}
     if confirm:
         path, scores, n, mlp = _confirmed_count(planner, arrays, config, path, scores, n_path, target_mm)
-        reached = bool(mlp[n] <= target_mm)
-    return MarkerPlan(path[:n], scores, path, planner.candidates, region, float(min_distance), float(target_mm), reached,
-                      mlp, planner.proxy)
+    markers, err, changed = planner.exchange(path[:n], float(scores[n - 1]), exchange_rounds)
+    if confirm and changed:  # the network decides between the greedy prefix and its exchange
+        refined = validation_error(arrays, markers, config)
+        if refined < mlp[n]:
+            mlp[n] = refined
+        else:
+            markers, err, changed = path[:n], float(scores[n - 1]), 0
+    reached = bool((mlp[n] if confirm else err) <= target_mm)
+    return MarkerPlan(markers, scores, path, planner.candidates, region, float(min_distance), float(target_mm), reached,
+                      mlp, planner.proxy, err, changed)
 
 
 def _check_request(count: int | None, target_mm: float | None) -> None:
@@ -161,6 +174,16 @@ class _Planner:
         """The greedy path to ``count`` markers and its proxy scores (see :func:`greedy_markers`)."""
         return greedy_markers(self.proxy, self.modes, self.candidates, count, shortlist=self.shortlist, points=self.points,
                               min_distance=self.min_distance, on_step=self.on_step, **options)
+
+    def exchange(self, markers: np.ndarray, score: float, rounds: int) -> tuple[np.ndarray, float, int]:
+        """``markers`` refined by exchanges (see :func:`exchange_markers`): (ids, proxy score, replaced count)."""
+        if rounds < 1 or not np.isfinite(score):
+            return markers, score, 0
+        out, best, _ = exchange_markers(self.proxy, self.modes, self.candidates, markers, shortlist=self.shortlist,
+                                        points=self.points, min_distance=self.min_distance, rounds=rounds)
+        if not best < score:
+            return markers, score, 0
+        return out, best, int(np.sum(out != np.asarray(markers)))
 
 
 def _planner(arrays, region: str, allowed, shortlist: int, min_distance: float, on_step) -> _Planner:

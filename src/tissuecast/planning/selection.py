@@ -10,7 +10,8 @@ model of the training fields, by the markers chosen so far: pivoted QR (Businger
 Manohar et al. 2018's sparse sensor placement, with vertex blocks instead of single entries).
 Greedy forward selection then refines: among the QR's shortlist at each step, it adds the
 vertex that most lowers a score (a cheap proxy of the validation error, see
-:mod:`tissuecast.planning.proxy`).
+:mod:`tissuecast.planning.proxy`); an exchange pass then revisits each chosen marker and
+replaces it when a shortlisted vertex scores lower with the others kept.
 
 Lengths in mm; vertex ids 0-based.
 """
@@ -23,13 +24,17 @@ import numpy as np
 
 from ..errors import MarkerError
 
-__all__ = ["qr_markers", "qr_residuals", "greedy_markers", "SHORTLIST"]
+__all__ = ["qr_markers", "qr_residuals", "greedy_markers", "exchange_markers", "SHORTLIST", "EXCHANGE_ROUNDS"]
 
 # Residual columns shorter than this share of the largest mode norm add no new direction.
 _RANK_RTOL = 1e-10
 #: Candidates (best by the block QR) the proxy scores per greedy step: each costs one proxy
 #: fit, and the QR's order already puts good markers near the top.
 SHORTLIST = 24
+#: Passes of the exchange refinement over a plan's markers (:func:`exchange_markers`).
+EXCHANGE_ROUNDS = 2
+# An exchange is taken when it lowers the score by more than this share.
+EXCHANGE_RTOL = 1e-4
 
 
 class _BlockQR:
@@ -191,3 +196,60 @@ def greedy_markers(
         if stop_at is not None and best <= stop_at:
             break
     return np.asarray(chosen, dtype=np.int64), np.asarray(scores, dtype=np.float64)
+
+
+def exchange_markers(
+    score: Callable[[np.ndarray], float],
+    modes: np.ndarray,
+    candidates,
+    markers,
+    *,
+    shortlist: int = SHORTLIST,
+    points=None,
+    min_distance: float = 0.0,
+    rounds: int = EXCHANGE_ROUNDS,
+) -> tuple[np.ndarray, float, int]:
+    """Exchange refinement of a marker set: each marker in turn is replaced by the shortlisted
+    candidate that most lowers the score, if any does (greedy forward selection cannot undo
+    an early pick that later ones made redundant).
+
+    Args:
+        score: marker ids (k,) -> error to minimise (mm).
+        modes: (K, 3 n) singular-value-scaled PCA modes; a position's shortlist is the
+            ``shortlist`` eligible candidates with the largest QR residual after projecting
+            out the other markers.
+        candidates: (c,) int 0-based allowed ids.
+        markers: (k,) int the set to refine (e.g. a greedy path's first k).
+        shortlist: candidates scored per position.
+        points: (n, 3) mm, needed when ``min_distance > 0``.
+        min_distance: markers stay farther apart than this (mm).
+        rounds: passes over all positions (stops early when a pass changes nothing).
+
+    Returns:
+        ``(markers (k,) int64, score, number of scores computed)``; a replacement keeps its
+        position in the list, and only a score lower by a relative 1e-4 is taken.
+    """
+    cand = np.asarray(candidates, dtype=np.int64)
+    pts = None if points is None else np.asarray(points, dtype=np.float64)
+    _check(len(markers), cand, min_distance, pts)
+    A = np.asarray(modes, dtype=np.float64).reshape(len(modes), -1, 3)
+    chosen = [int(v) for v in markers]
+    best, n_scores = float(score(np.asarray(chosen, dtype=np.int64))), 1
+    for _ in range(rounds):
+        changed = False
+        for pos in range(len(chosen)):
+            others = chosen[:pos] + chosen[pos + 1:]
+            qr = _BlockQR(A, cand)
+            for v in others:
+                qr.add(A[:, v, :])
+            ok = _eligible(pts, cand, others, min_distance) & ~np.isin(cand, chosen)
+            order = np.argsort(-np.where(ok, qr.score, -np.inf), kind="stable")[: min(shortlist, int(ok.sum()))]
+            for i in order:
+                trial = chosen[:pos] + [int(cand[i])] + chosen[pos + 1:]
+                s = float(score(np.asarray(trial, dtype=np.int64)))
+                n_scores += 1
+                if s < best * (1.0 - EXCHANGE_RTOL):
+                    best, chosen, changed = s, trial, True
+        if not changed:
+            break
+    return np.asarray(chosen, dtype=np.int64), best, n_scores

@@ -52,7 +52,8 @@ VALIDATION_TOLERANCE = 0.01
 FLOOR_SHARE = 0.4
 
 
-def choose_by_validation(members: list[MLPWeights], basis: PCABasis, Xv: np.ndarray, Uv: np.ndarray) -> tuple[int, dict]:
+def choose_by_validation(members: list[MLPWeights], basis: PCABasis, Xv: np.ndarray, Uv: np.ndarray,
+                         head_weights: np.ndarray | None = None) -> tuple[int, dict]:
     """The n_w at which the networks' predicted weights are cut, and the curves behind it.
 
     For every n_w the validation mean Offset_max of the truncated networks (ensemble mean)
@@ -65,6 +66,8 @@ def choose_by_validation(members: list[MLPWeights], basis: PCABasis, Xv: np.ndar
         basis: the PCA basis they were trained on (K components).
         Xv: (M, 3 n_d) validation marker displacements, mm.
         Uv: (M, 3 n) validation fields, mm.
+        head_weights: (M, K) weights of the quadratic head (:mod:`.head`) the networks
+            correct, mm; None without a head.
 
     Returns:
         ``(n_w, {"n_components": 1..K, "model_offset_max": (K,), "floor_offset_max": (K,)})``
@@ -72,6 +75,8 @@ def choose_by_validation(members: list[MLPWeights], basis: PCABasis, Xv: np.ndar
         own projection (the PCA floor) for every n_w.
     """
     W = np.mean([m.predict_weights(Xv) for m in members], axis=0)  # (M, K) ensemble-mean weights
+    if head_weights is not None:
+        W = W + head_weights
     true_w = basis.transform(Uv)
     K = basis.n_components
     model, floor = np.empty(K), np.empty(K)

@@ -3,7 +3,8 @@
 Input standardisation is folded into the first layer, output scaling into the last, the PCA
 reconstruction is one (n_w, 3 n) product, and the members of an ensemble are stacked (first layers
 concatenated, middle layers block-diagonal, last layers averaged), so one prediction is a
-handful of float64 matmuls.
+handful of float64 matmuls. A quadratic head (:mod:`.head`) adds its weights before the
+reconstruction: its standardisation is folded into an affine map and a (q, 3 n_d) projection.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from scipy.linalg import block_diag
 from .weights import MLPWeights
 from .encoding import fold_first_layer, untracked_at_mean
 from .pca import PCABasis
+from .quadratic import QuadraticRegression
 
 __all__ = ["CompiledSurrogate"]
 
@@ -24,9 +26,11 @@ class CompiledSurrogate:
     Args:
         members: M >= 1 trained networks sharing input/output standardisation.
         basis: the PCA basis with n_w components matching the networks' output.
+        head: optional quadratic head predicting (n_w,) weights that the networks correct
+            (models without missing-marker input only).
     """
 
-    def __init__(self, members: list[MLPWeights], basis: PCABasis):
+    def __init__(self, members: list[MLPWeights], basis: PCABasis, head: QuadraticRegression | None = None):
         f8 = np.float64
         m0 = members[0]
         self.n_members = len(members)
@@ -63,7 +67,23 @@ class CompiledSurrogate:
         self.mask_cols = np.vstack(mask_cols).T.copy() if self.masked else None  # (n_d, M h1)
         self.x_mean = xm
         self.h_last = m0.weights[-1].shape[1]
+        self.head = None
+        if head is not None:  # z = (d - mean) / scale; w += [1, z, p_a p_b] @ coef with p = z @ directions.T
+            if self.masked:
+                raise ValueError("a quadratic head needs every marker; masked models have none")
+            n_in = head.mean.size
+            lin = head.coef[1:1 + n_in] / head.scale[:, None]  # (3 n_d, n_w)
+            const = head.coef[0] - (head.mean / head.scale) @ head.coef[1:1 + n_in]
+            proj = (head.directions / head.scale).T.copy()  # (3 n_d, q)
+            a, b = np.triu_indices(len(head.directions))
+            self.head = (lin, const, head.mean.copy(), proj, a, b, head.coef[1 + n_in:].copy())
+            self.out_b = self.out_b + const
 
+    def _head(self, d: np.ndarray) -> np.ndarray:
+        """The head's weights without its constant, (..., n_w) mm, for displacements (..., 3 n_d)."""
+        lin, _, mean, proj, a, b, quad = self.head
+        p = (d - mean) @ proj
+        return d @ lin + (p[..., a] * p[..., b]) @ quad
     def _hidden(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
         """Last hidden activations (B, M h_last) for displacements (B, 3 n_d) mm."""
         W, b = self.hidden[0]
@@ -86,25 +106,30 @@ class CompiledSurrogate:
         """
         if d.shape[0] == 1 and missing is None:
             return self.field(d[0])[None]
-        return self._reconstruct(self._hidden(d, missing))
+        return self._reconstruct(self._hidden(d, missing), d)
 
     def field(self, d: np.ndarray) -> np.ndarray:
         """One field (3 n,) mm from one marker-displacement vector (3 n_d,) mm, all markers tracked.
 
         1-D products (BLAS gemv) keep the single-sample latency low and steady.
         """
-        return self._reconstruct(self._hidden(d, None))
+        return self._reconstruct(self._hidden(d, None), d)
 
-    def _reconstruct(self, h: np.ndarray) -> np.ndarray:
-        """Fields (..., 3 n) mm from last hidden activations (..., M h_last)."""
+    def _reconstruct(self, h: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Fields (..., 3 n) mm from last hidden activations (..., M h_last) and the input (..., 3 n_d)."""
         w = h @ self.out_W
         w += self.out_b
+        if self.head is not None:
+            w += self._head(d)
         u = w @ self.components
         u += self.mean
         return u
 
     def member_weights(self, d: np.ndarray, missing: np.ndarray | None = None) -> np.ndarray:
-        """PCA weights of every member, (M, B, n_w) mm."""
+        """PCA weights of every member, (M, B, n_w) mm (each with the head's weights added)."""
         h = self._hidden(d, missing)
         k = self.h_last
-        return np.stack([h[:, i * k:(i + 1) * k] @ W + b for i, (W, b) in enumerate(self.member_weight_maps)])
+        W = np.stack([h[:, i * k:(i + 1) * k] @ W + b for i, (W, b) in enumerate(self.member_weight_maps)])
+        if self.head is not None:
+            W += self._head(d) + self.head[1]
+        return W

@@ -21,9 +21,11 @@ from ..errors import ModelError
 from .component_choice import choose_by_validation, components_to_train, ridge_components
 from .data import FitSplits, dataset_arrays, fit_splits
 from .fastpath import CompiledSurrogate
+from .head import fit_head, truncated_head
 from .inputs import marker_batch
 from .mlp import train_mlp
 from .pca import PCABasis, PCACurve, fit_pca
+from .quadratic import QuadraticRegression
 from .ridge import RidgeBaseline, fit_ridge, marker_columns
 from .trust import TrustedPrediction, fit_trust
 from .weights import MLPWeights
@@ -74,6 +76,10 @@ ENSEMBLE_SEED_STRIDE = 1000
 
 class DeformationModel:
     """PCA + MLP surrogate of nonlinear FEM (Liu et al. 2020), with the ridge baseline.
+
+    By default (``surrogate.head = "quadratic"``) a quadratic regression of the PCA weights on
+    the marker displacements (:mod:`.head`) predicts first and the networks learn its residual;
+    ``head = "none"`` is the paper's network alone.
 
     Args:
         config: surrogate settings (a :class:`SurrogateConfig`, or a whole :class:`Config`);
@@ -180,16 +186,24 @@ class DeformationModel:
         basis = fit_pca(Ut, n_w)
         cols = marker_columns(mk)
         Xt, Xv = Ut[:, cols], Uv[:, cols]
-        members, summaries = self._train_members(Xt, basis.transform(Ut), Xv, basis.transform(Uv))
-        choice = {"rule": rule, "n_components": n_w}
+        Yt, Yv = basis.transform(Ut), basis.transform(Uv)
+        head, head_info = None, {"dims": None}
+        if c.head == "quadratic" and c.marker_dropout == 0:
+            head, head_info = fit_head(Xt, Yt, Xv, Uv, basis, c.head_dims)
+        head_t = None if head is None else head.predict(Xt)
+        head_v = None if head is None else head.predict(Xv)
+        members, summaries = self._train_members(Xt, Yt if head is None else Yt - head_t, Xv,
+                                                 Yv if head is None else Yv - head_v)
+        choice = {"rule": rule, "n_components": n_w, "head": head_info}
         if not c.n_components and c.pca_rule == "validation":
-            n_w, curve_v = choose_by_validation(members, basis, Xv, Uv)
+            n_w, curve_v = choose_by_validation(members, basis, Xv, Uv, head_v)
             basis, members = basis.truncated(n_w), [m.truncated(n_w) for m in members]
+            head = truncated_head(head, n_w)
             choice.update(n_components=n_w, trained_components=int(curve_v["n_components"][-1]), validation_curve=curve_v)
         choice["ridge_components"] = ridge_components(basis, mk, c.ridge_ratio, Xv, Uv)
         self.pca_choice_ = choice
         self._set_state(mesh=mesh, markers=mk, fixed=np.asarray(fixed, dtype=np.int64).ravel(), basis=basis,
-                        members=members, curve=curve)
+                        members=members, curve=curve, head=head)
         self.summaries_ = summaries
         self.trust_ = None
         if len(splits.calibration):
@@ -219,19 +233,25 @@ class DeformationModel:
             summaries.append(s)
         return members, summaries
 
-    def _set_state(self, *, mesh, markers, fixed, basis: PCABasis, members: list[MLPWeights], curve: PCACurve | None):
+    def _set_state(self, *, mesh, markers, fixed, basis: PCABasis, members: list[MLPWeights], curve: PCACurve | None,
+                   head: QuadraticRegression | None = None):
         if members[0].weights[-1].shape[0] != basis.n_components or members[0].n_markers != len(markers):
             raise ModelError("network and PCA basis/markers do not fit together; the model folder is inconsistent")
+        if head is not None and (head.coef.shape[1] != basis.n_components or head.mean.size != 3 * len(markers)
+                                 or members[0].masked):
+            raise ModelError("the quadratic head does not fit the network, PCA basis or markers; the model folder is inconsistent")
         self.mesh_ = mesh
         self.markers_ = np.asarray(markers, dtype=np.int64)
         self.fixed_ = np.asarray(fixed, dtype=np.int64)
         self.pca_ = basis
         self.pca_curve_ = curve
         self.members_ = list(members)
+        #: the quadratic head (:mod:`.head`) whose residual the networks learn, or None
+        self.head_ = head
         k_ridge = int((getattr(self, "pca_choice_", None) or {}).get("ridge_components") or basis.n_components)
         ridge_basis = basis.truncated(min(k_ridge, basis.n_components))
         self.ridge_: RidgeBaseline = fit_ridge(ridge_basis, self.markers_, self.config.ridge_ratio)
-        self.compiled_ = CompiledSurrogate(self.members_, basis)
+        self.compiled_ = CompiledSurrogate(self.members_, basis, head)
         cols = marker_columns(self.markers_)
         # ridge as one affine map of the marker displacements: u = d @ R + r0
         proj = self.ridge_.matrix.T @ ridge_basis.components
@@ -438,7 +458,7 @@ class DeformationModel:
         from .network import torch_network
 
         self._fitted()
-        return torch_network(self.members_, self.pca_.components, self.pca_.mean)
+        return torch_network(self.members_, self.pca_.components, self.pca_.mean, self.head_)
 
     def __repr__(self) -> str:
         if not self.is_fitted:

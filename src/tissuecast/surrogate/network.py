@@ -21,12 +21,13 @@ def build_network(torch, n_in: int, hidden, n_out: int):
     return torch.nn.Sequential(*layers)
 
 
-def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.ndarray):
+def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.ndarray, head=None):
     """A torch module mapping marker displacements to the full displacement field.
 
     Input ``markers`` (B, n_d, 3) float32 mm (and, for masked models, ``present`` (B, n_d)
     float32 1/0); output (B, n, 3) float32 mm: the ensemble average of the members' PCA
-    weights, reconstructed with ``components`` (n_w, 3 n) and ``mean`` (3 n,).
+    weights, plus the quadratic ``head``'s (:mod:`.head`) when given, reconstructed with
+    ``components`` (n_w, 3 n) and ``mean`` (3 n,).
     """
     torch = require("torch", "learn", "the torch/ONNX surrogate network")
     first = members[0]
@@ -50,6 +51,16 @@ def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.nd
             self.register_buffer("y_std", torch.as_tensor(first.y_std, dtype=f32))
             self.register_buffer("components", torch.as_tensor(components, dtype=f32))
             self.register_buffer("mean", torch.as_tensor(mean, dtype=f32))
+            self.has_head = head is not None
+            self.has_quad = self.has_head and len(head.directions) > 0
+            if self.has_head:
+                n_in = head.mean.size
+                a, b = np.triu_indices(len(head.directions))
+                for name, v in (("h_mean", head.mean), ("h_scale", head.scale), ("h_dirs", head.directions.T),
+                                ("h_const", head.coef[0]), ("h_lin", head.coef[1:1 + n_in]), ("h_quad", head.coef[1 + n_in:])):
+                    self.register_buffer(name, torch.as_tensor(np.ascontiguousarray(v), dtype=f32))
+                self.register_buffer("h_a", torch.as_tensor(a, dtype=torch.int64))
+                self.register_buffer("h_b", torch.as_tensor(b, dtype=torch.int64))
 
         def forward(self, markers, present=None):
             x = (markers.reshape(markers.shape[0], -1) - self.x_mean) / self.x_std
@@ -61,6 +72,12 @@ def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.nd
             for net in self.nets[1:]:
                 z = z + net(x)
             w = (z / len(self.nets)) * self.y_std + self.y_mean
+            if self.has_head:
+                zh = (markers.reshape(markers.shape[0], -1) - self.h_mean) / self.h_scale
+                w = w + self.h_const + zh @ self.h_lin
+                if self.has_quad:
+                    p = zh @ self.h_dirs
+                    w = w + (p[:, self.h_a] * p[:, self.h_b]) @ self.h_quad
             u = w @ self.components + self.mean
             return u.reshape(markers.shape[0], -1, 3)
 

@@ -7,6 +7,8 @@ A model folder holds::
     weights.safetensors member{k}.layer{i}.weight/bias and standardisation, float32
     pca.npz             mean (p,), components (n_w, p), singular_values (n_w,), float64
     mesh.npz            points (n, 3) mm, tets (m, 4) 0-based
+    head.npz            optional: the quadratic head (tissuecast.surrogate.head): mean, scale,
+                        directions, coef, float64
     trust.npz           optional: error bounds and alarm (tissuecast.surrogate.trust), float64
     model.onnx          optional, from export_onnx
 
@@ -64,6 +66,9 @@ def save_model(model, folder, *, onnx: bool = False) -> None:
     np.savez(out / "mesh.npz", points=np.asarray(model.mesh_.points, dtype=np.float64),
              tets=np.asarray(model.mesh_.tets, dtype=np.int64))
     m0 = model.members_[0]
+    head = getattr(model, "head_", None)
+    if head is not None:
+        np.savez(out / "head.npz", **head.arrays(""))
     meta = {
         "format": FORMAT,
         "schema": SCHEMA,
@@ -80,7 +85,8 @@ def save_model(model, folder, *, onnx: bool = False) -> None:
         "n_components": int(b.n_components),
         "network": {"hidden": list(m0.hidden), "n_layers": len(m0.weights), "masked": bool(m0.masked),
                     "ensemble": len(model.members_), "input": "marker displacements (n_d, 3) mm, vertex-major",
-                    "output": "PCA weights (n_w,) mm"},
+                    "output": "PCA weights (n_w,) mm",
+                    "head": None if head is None else {"kind": "quadratic", "dims": int(len(head.directions))}},
         "surrogate_config": config_to_dict(model.config),
         "config": model.run_config,
         "dataset_path": model.dataset_path,
@@ -88,7 +94,8 @@ def save_model(model, folder, *, onnx: bool = False) -> None:
         "pca_curve": None if model.pca_curve_ is None else model.pca_curve_.as_dict(),
         "pca_choice": getattr(model, "pca_choice_", None),
         "training": getattr(model, "training_", None),
-        "files": {"weights": "weights.safetensors", "pca": "pca.npz", "mesh": "mesh.npz"},
+        "files": {"weights": "weights.safetensors", "pca": "pca.npz", "mesh": "mesh.npz",
+                  **({"head": "head.npz"} if head is not None else {})},
     }
     if getattr(model, "trust_", None) is not None:
         meta["files"]["trust"] = model.trust_.save(out)
@@ -161,7 +168,13 @@ def load_model(cls, folder):
     curve = PCACurve.from_dict(meta["pca_curve"]) if meta.get("pca_curve") else None
     model.pca_choice_ = meta.get("pca_choice") or {"rule": "paper" if curve else "unrecorded",
                                                    "n_components": basis.n_components}
-    model._set_state(mesh=mesh, markers=meta["markers"], fixed=meta["fixed"], basis=basis, members=members, curve=curve)
+    head = None
+    if meta["files"].get("head"):
+        from .quadratic import QuadraticRegression
+
+        head = QuadraticRegression.from_arrays(_npz(folder / meta["files"]["head"], ["mean", "scale", "directions", "coef"]), "")
+    model._set_state(mesh=mesh, markers=meta["markers"], fixed=meta["fixed"], basis=basis, members=members, curve=curve,
+                     head=head)
     if meta.get("training"):
         model.training_ = meta["training"]
         model.summaries_ = [TrainingSummary(**{k: (tuple(map(tuple, v)) if k == "valid_history" else v) for k, v in s.items()})

@@ -3,9 +3,10 @@ out-of-distribution alarm, calibrated on samples held out from training.
 
 A :class:`TrustLayer` is fitted after the network, from three disjoint splits:
 
-- **train** (the network's own): a second, independent predictor (quadratic ridge
-  regression from the markers to 64 PCA weights, :mod:`.quadratic`), the input distance and
-  the leave-one-marker-out consistency regressions (:mod:`.ood`);
+- **train** (the network's own): a second predictor (quadratic ridge regression from the
+  markers to 64 PCA weights, :mod:`.quadratic`; for a model with a quadratic head,
+  :mod:`.head`, the head itself, so that the disagreement is the networks' correction of it),
+  the input distance and the leave-one-marker-out consistency regressions (:mod:`.ood`);
 - **valid**: the learned error model, a linear regression of the log of each sample's
   Offset_max on log features of the input alone (the largest and mean disagreement between
   the network and the second predictor, how far the network's field misses the markers it
@@ -342,8 +343,11 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
     mk = model.markers
     cols = marker_columns(mk)
     Ut = np.asarray(U[sets[0]], dtype=np.float64).reshape(len(sets[0]), -1)
-    basis = fit_pca(Ut, min(SECOND_COMPONENTS, len(Ut) - 1, Ut.shape[1]))
-    second = fit_quadratic(Ut[:, cols], basis.transform(Ut))
+    if getattr(model, "head_", None) is not None:  # the networks' correction of their head
+        basis, second = model.pca_, model.head_
+    else:
+        basis = fit_pca(Ut, min(SECOND_COMPONENTS, len(Ut) - 1, Ut.shape[1]))
+        second = fit_quadratic(Ut[:, cols], basis.transform(Ut))
     Xt = Ut[:, cols]
     distance = fit_input_distance(Xt)
     Xv = np.asarray(U[sets[1]], dtype=np.float64).reshape(len(sets[1]), -1)[:, cols]
