@@ -91,7 +91,8 @@ def main() -> None:
     print(f"{ds}\nPCA: {basis.n_components} components, test-1 floor {floor:.3f} mm; {len(tr)} training samples")
     fixed = np.asarray(ds.fixed, dtype=np.int64)
     root = open_root(args.dataset)
-    access = np.asarray(root["scenario/indent_access"][...]) if "scenario" in root and "indent_access" in root["scenario"] else None
+    has_access = "scenario" in root and "indent_access" in root["scenario"]
+    access = np.asarray(root["scenario/indent_access"][...]) if has_access else None
     cfg = ds.config.surrogate
     first_errors = None
     for text in args.variants:

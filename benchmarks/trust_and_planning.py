@@ -322,7 +322,8 @@ def main(argv=None) -> int:
     p.add_argument("--exchange-rounds", type=int, default=EXCHANGE_ROUNDS, help="planning: exchange passes (0 = greedy only)")
     p.add_argument("--markers", type=int, default=0,
                    help="bounds and alarm: this many k-center markers (as the n_d study picks them) instead of the store's")
-    p.add_argument("--head", choices=("quadratic", "none"), help="surrogate.head of the trained models (default: the store's config)")
+    p.add_argument("--head", choices=("quadratic", "none"),
+                   help="surrogate.head of the trained models (default: the store's config)")
     p.add_argument("--calibration-share", type=float,
                    help="surrogate.calibration_share of the bounds/alarm model (default: the store's config)")
     p.add_argument("--ensemble", type=int, default=1, help="ensemble size of the model whose bounds are measured")

@@ -239,7 +239,8 @@ class DeformationModel:
             raise ModelError("network and PCA basis/markers do not fit together; the model folder is inconsistent")
         if head is not None and (head.coef.shape[1] != basis.n_components or head.mean.size != 3 * len(markers)
                                  or members[0].masked):
-            raise ModelError("the quadratic head does not fit the network, PCA basis or markers; the model folder is inconsistent")
+            raise ModelError("the quadratic head does not fit the network, PCA basis or markers; "
+                             "the model folder is inconsistent")
         self.mesh_ = mesh
         self.markers_ = np.asarray(markers, dtype=np.int64)
         self.fixed_ = np.asarray(fixed, dtype=np.int64)
