@@ -1,7 +1,8 @@
 """Single-sample prediction latency and batch throughput of a DeformationModel.
 
-Compares, in one run, the in-process paths: the precompiled numpy path (``model.predict``),
-the equivalent torch module and an onnxruntime session, plus the ridge baseline.
+Compares, in one run, the in-process paths: the precompiled numpy path (``model.predict``;
+for a model with a quadratic head also without it, to show the head's cost), the equivalent
+torch module and an onnxruntime session, plus the ridge baseline.
 Prints p50/p99 per single prediction (us) and batch throughput (samples/s), with ratios.
 
     python benchmarks/predict_latency.py [MODEL_FOLDER] [--repeats 5000] [--batch 1000]
@@ -81,6 +82,14 @@ def main(argv=None) -> int:
         rows.append((name, np.percentile(t, 50), np.percentile(t, 99)))
 
     add("numpy  model.predict", model.predict, singles)
+    if getattr(model, "head_", None) is not None:  # the same networks without their quadratic head: its cost
+        import copy
+
+        from tissuecast.surrogate.fastpath import CompiledSurrogate
+
+        bare = copy.copy(model)
+        bare.compiled_ = CompiledSurrogate(model.members_, model.pca_)
+        add("numpy  model.predict, head left out", bare.predict, singles)
     add("numpy  model.predict_ridge", model.predict_ridge, singles)
     pos = [model.reference_marker_positions + s.reshape(n_d, 3) for s in singles]
     add("numpy  predict_from_positions", model.predict_from_positions, pos)
