@@ -9,15 +9,41 @@ reconstruction: its standardisation is folded into an affine map and a (q, 3 n_d
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.linalg import block_diag
 
+from ..errors import ModelError
 from .weights import MLPWeights
 from .encoding import fold_first_layer, untracked_at_mean
 from .pca import PCABasis
 from .quadratic import QuadraticRegression
 
 __all__ = ["CompiledSurrogate"]
+
+
+@dataclass(frozen=True, eq=False)
+class _FoldedHead:
+    """A quadratic head with its standardisation folded in: for displacements d (3 n_d,) mm the
+    weights are ``const + d @ lin + (p_a p_b) @ quad`` with ``p = (d - mean) @ proj``."""
+
+    lin: np.ndarray  # (3 n_d, n_w)
+    const: np.ndarray  # (n_w,)
+    mean: np.ndarray  # (3 n_d,)
+    proj: np.ndarray  # (3 n_d, q)
+    a: np.ndarray  # (q (q + 1) / 2,) the products' first and second directions
+    b: np.ndarray
+    quad: np.ndarray  # (q (q + 1) / 2, n_w)
+
+    @classmethod
+    def of(cls, head: QuadraticRegression) -> "_FoldedHead":
+        n_in = head.mean.size
+        coef_lin = head.coef[1:1 + n_in]
+        a, b = np.triu_indices(len(head.directions))
+        return cls(lin=coef_lin / head.scale[:, None], const=head.coef[0] - (head.mean / head.scale) @ coef_lin,
+                   mean=head.mean.copy(), proj=(head.directions / head.scale).T.copy(), a=a, b=b,
+                   quad=head.coef[1 + n_in:].copy())
 
 
 class CompiledSurrogate:
@@ -68,22 +94,17 @@ class CompiledSurrogate:
         self.x_mean = xm
         self.h_last = m0.weights[-1].shape[1]
         self.head = None
-        if head is not None:  # z = (d - mean) / scale; w += [1, z, p_a p_b] @ coef with p = z @ directions.T
+        if head is not None:
             if self.masked:
-                raise ValueError("a quadratic head needs every marker; masked models have none")
-            n_in = head.mean.size
-            lin = head.coef[1:1 + n_in] / head.scale[:, None]  # (3 n_d, n_w)
-            const = head.coef[0] - (head.mean / head.scale) @ head.coef[1:1 + n_in]
-            proj = (head.directions / head.scale).T.copy()  # (3 n_d, q)
-            a, b = np.triu_indices(len(head.directions))
-            self.head = (lin, const, head.mean.copy(), proj, a, b, head.coef[1 + n_in:].copy())
-            self.out_b = self.out_b + const
+                raise ModelError("a quadratic head needs every marker; models with missing-marker input have none")
+            self.head = _FoldedHead.of(head)
+            self.out_b = self.out_b + self.head.const
 
     def _head(self, d: np.ndarray) -> np.ndarray:
         """The head's weights without its constant, (..., n_w) mm, for displacements (..., 3 n_d)."""
-        lin, _, mean, proj, a, b, quad = self.head
-        p = (d - mean) @ proj
-        return d @ lin + (p[..., a] * p[..., b]) @ quad
+        f = self.head
+        p = (d - f.mean) @ f.proj
+        return d @ f.lin + (p[..., f.a] * p[..., f.b]) @ f.quad
     def _hidden(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
         """Last hidden activations (B, M h_last) for displacements (B, 3 n_d) mm."""
         W, b = self.hidden[0]
@@ -131,5 +152,5 @@ class CompiledSurrogate:
         k = self.h_last
         W = np.stack([h[:, i * k:(i + 1) * k] @ W + b for i, (W, b) in enumerate(self.member_weight_maps)])
         if self.head is not None:
-            W += self._head(d) + self.head[1]
+            W += self._head(d) + self.head.const
         return W

@@ -190,6 +190,8 @@ class DeformationModel:
         head, head_info = None, {"dims": None}
         if c.head == "quadratic" and c.marker_dropout == 0:
             head, head_info = fit_head(Xt, Yt, Xv, Uv, basis, c.head_dims)
+        elif c.head == "quadratic":
+            log.info("no quadratic head: it needs every marker, and marker_dropout > 0 trains for missing ones")
         head_t = None if head is None else head.predict(Xt)
         head_v = None if head is None else head.predict(Xv)
         members, summaries = self._train_members(Xt, Yt if head is None else Yt - head_t, Xv,
