@@ -26,7 +26,7 @@ def test_train_evaluate_predict(run, capsys):
     folder, cfg_path, cfg = run
     assert main(["train", str(cfg_path), "--out", str(folder / "model")]) == 0
     out = capsys.readouterr().out
-    assert "PCA components n_w = 6" in out
+    assert "PCA components n_w = 6" in out and "quadratic head under the network" in out
     for f in ("model.json", "weights.safetensors", "pca.npz", "mesh.npz", "model.onnx"):
         assert (folder / "model" / f).is_file()
     assert main(["evaluate", str(folder / "model"), "--out", str(folder / "rep"), "--renders", "0"]) == 0

@@ -98,6 +98,8 @@ def test_report_is_written(tmp_path, model, ds, evaluation):
     page = index.read_text()
     assert "Measured versus the baselines and the paper" in page and "0.889 – 1.181" in page
     assert "rigid registration" in page and "non-rigid part" in page and "PCA floor" in page
+    q = model.pca_choice_["head"]["dims"]  # the report names the model it measured
+    assert q is not None and f"quadratic head (q = {q}) + MLP [" in page and "x 2" in page
     for png in ("boxplots.png", "beta.png", "training.png"):
         assert (tmp_path / "rep" / png).stat().st_size > 1000 and png in page
     data = json.loads((tmp_path / "rep" / "evaluation.json").read_text())

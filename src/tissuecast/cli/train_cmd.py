@@ -56,6 +56,9 @@ def run(args) -> int:
     print(f"  training samples {tr['n_train']}, validation {tr['n_valid']}, calibration {tr.get('n_calibration', 0)} "
           f"(error bounds and alarm{'' if model.has_trust else ': none'}), PCA components n_w = {tr['n_components']} "
           f"(rule: {tr.get('pca_rule', '?')})")
+    q = ((model.pca_choice_ or {}).get("head") or {}).get("dims")
+    if q is not None:
+        print(f"  quadratic head under the network: products of q = {q} input directions (docs/surrogate.md)")
     vc = (model.pca_choice_ or {}).get("validation_curve")
     if vc:
         k = tr["n_components"] - 1
