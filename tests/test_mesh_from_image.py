@@ -3,6 +3,7 @@ segmentation shipped with slicerio, readers against each other, and every refuse
 
 from __future__ import annotations
 
+import json
 import os
 
 import numpy as np
@@ -226,3 +227,7 @@ def test_cli_from_image_writes_a_slicer_model_in_lps(tmp_path, small_ellipsoid, 
     assert abs(mesh.volume - read_label_map(path).volume) / read_label_map(path).volume < 0.02
     assert main(["mesh", "from-image", str(path), str(tmp_path / "x.vtu"), "--label", "9"]) == 2
     assert "label 9 is empty" in capsys.readouterr().err
+    # `mesh info` meshes a label map too (it has no named regions to read)
+    assert main(["mesh", "info", str(path), "--mesh-size", "2", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["regions"] == [] and abs(info["volume_mm3"] - mesh.volume) / mesh.volume < 0.05

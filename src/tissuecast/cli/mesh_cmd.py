@@ -99,11 +99,11 @@ def mesh_summary(mesh: TetMesh) -> dict:
 
 
 def run_info(args) -> int:
-    from ..mesh.tags import MeshTags, read_mesh_tags
+    from ..mesh.tags import mesh_file_tags
 
     mesh = load_mesh_argument(args.file, args.units, args.mesh_size)
     s = mesh_summary(mesh)
-    tags = MeshTags() if args.file == PHANTOM_WORD else read_mesh_tags(args.file)
+    tags = mesh_file_tags(None if args.file == PHANTOM_WORD else args.file)
     s["regions"] = tags.names()  # named regions scenario rules can use (tag = ..., materials.cell_data = ...)
     if args.json:
         print(json.dumps({"file": args.file, **s}, indent=2))
