@@ -13,6 +13,9 @@ Prints, for the data-set store given (any preset: the paper's, or a scenario suc
 2. ``--part bounds``: split-conformal bounds on test-1 and per test-2 beta: coverage and
    median bound at 90 % and 95 % nominal, the per-sample Spearman of the largest bound with
    Offset_max (target >= 0.6), the mean per-vertex Spearman, and a reliability table.
+   ``--part predictability``: how well any function of the input could rank the per-sample
+   error (out-of-fold errors on the training split regressed on the input, or averaged
+   over nearest neighbours).
 3. ``--part alarm``: false alarms on clean test-1 and detection of (a) two swapped
    markers, (b) one marker displaced 3 mm, (c) loads 1.5x beyond the largest trained load:
    test-1 force fields rescaled to 1, 1.25, 1.5 x the largest training load (Frobenius norm
@@ -120,6 +123,45 @@ def part_planning(ds, args, out: dict) -> None:
     out["planning"] = {"kcenter": kc.tolist(), "planned": {str(k): plans[k].markers.tolist() for k in counts}, "rows": rows,
                        "verdicts": verdicts, "plan_seconds": {str(k): t for k, t in t_plan.items()}, "region": args.region,
                        "exchange_rounds": args.exchange_rounds}
+
+
+# ---------------------------------------------------------------------------------- predictability
+def part_predictability(ds, model, U, out: dict, folds: int = 5) -> None:
+    """How far any function of the marker input can rank the model's per-sample error: out-of-fold
+    errors of the model's head (or of a quadratic regression, without a head) on the training
+    split, regressed on the input (linear, quadratic) or averaged over its nearest neighbours,
+    ranked against the model's test-1 Offset_max."""
+    from tissuecast.surrogate.quadratic import fit_quadratic
+    from tissuecast.surrogate.ridge import marker_columns
+
+    a = dataset_arrays(ds)
+    tr, t1 = np.asarray(a.train_idx), split_indices(ds, "test1")
+    cols = marker_columns(model.markers)
+    flat = U.reshape(len(U), -1)
+    X, Y = flat[:, cols], model.pca_.transform(flat)
+    q = ((model.pca_choice_ or {}).get("head") or {}).get("dims") or 12
+    fold = np.random.default_rng(0).permutation(len(tr)) % folds
+    oof = np.zeros(len(tr))
+    for f in range(folds):
+        fit, held = tr[fold != f], tr[fold == f]
+        reg = fit_quadratic(X[fit], Y[fit], quadratic_dims=q)
+        e = (model.pca_.inverse_transform(reg.predict(X[held])) - flat[held]).reshape(len(held), -1, 3)
+        oof[fold == f] = np.linalg.norm(e, axis=2).max(axis=1)
+    e1 = offsets_max(model.predict(U[t1][:, model.markers, :]), U[t1])
+    print(f"\n== 2b. is the per-sample error predictable from the input? ({folds}-fold out-of-fold errors of a "
+          f"q = {q} quadratic regression on {len(tr)} training samples) ==")
+    rows = {}
+    for name, qe in (("linear", 0), ("quadratic q=6", 6)):
+        er = fit_quadratic(X[tr], np.log(oof)[:, None], quadratic_dims=qe, ridge=1e-3)
+        rows[name] = (float(spearmanr(er.predict(X[t1])[:, 0], e1)[0]), float(spearmanr(er.predict(X[tr])[:, 0], oof)[0]))
+    mu, sd = X[tr].mean(axis=0), X[tr].std(axis=0) + 1e-12
+    Z, Z1 = (X[tr] - mu) / sd, (X[t1] - mu) / sd
+    near = np.argsort(((Z1[:, None, :] - Z[None]) ** 2).sum(axis=2), axis=1)
+    for k in (10, 100):
+        rows[f"{k} nearest"] = (float(spearmanr(oof[near[:, :k]].mean(axis=1), e1)[0]), float("nan"))
+    for name, (test, fit) in rows.items():
+        print(f"  {name:14s} Spearman with the model's test-1 Offset_max {test:+.3f}  (in-sample on the OOF errors {fit:+.3f})")
+    out["predictability"] = {"head_dims": q, "rows": {k: {"test1": t, "in_sample": f} for k, (t, f) in rows.items()}}
 
 
 # ---------------------------------------------------------------------------------- bounds
@@ -314,7 +356,7 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", required=True, help="data-set store (tissuecast simulate)")
-    p.add_argument("--part", choices=("planning", "bounds", "alarm", "all"), nargs="+", default=["all"],
+    p.add_argument("--part", choices=("planning", "bounds", "predictability", "alarm", "all"), nargs="+", default=["all"],
                    help="one or more parts (all = every part)")
     p.add_argument("--counts", type=int, nargs="+", default=[2, 3, 4, 5, 6, 8, 10, 12, 15, 20])
     p.add_argument("--region", default="surface", help="planning candidates: surface, any, interior")
@@ -338,13 +380,15 @@ def main(argv=None) -> int:
     ds = open_dataset(args.dataset)
     print(repr(ds))
     out: dict = {"dataset": str(args.dataset)}
-    parts = {"planning", "bounds", "alarm"} if "all" in args.part else set(args.part)
+    parts = {"planning", "bounds", "predictability", "alarm"} if "all" in args.part else set(args.part)
     if "planning" in parts:
         part_planning(ds, args, out)
-    if parts & {"bounds", "alarm"}:
+    if parts & {"bounds", "predictability", "alarm"}:
         model, U = trust_model(ds, args)
         if "bounds" in parts:
             part_bounds(ds, model, U, args, out)
+        if "predictability" in parts:
+            part_predictability(ds, model, U, out)
         if "alarm" in parts:
             part_alarm(ds, model, U, args, out)
     if args.json:
