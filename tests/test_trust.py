@@ -84,8 +84,11 @@ def test_trust_layer_round_trips_through_the_model_folder(model, test_fields, tm
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
     assert meta["files"]["trust"] == "trust.npz" and meta["trust"]["n_calibration"] == 300
     with np.load(tmp_path / "m" / "trust.npz", allow_pickle=False) as z:
-        assert "conformal.sorted_scores" in z.files
+        assert "conformal.sorted_scores" in z.files and "error_input.coef" in z.files
+    # the error model weighs the input error regression (learnt from out-of-fold errors) as a sixth feature
+    assert meta["trust"]["error_model_features"][-1] == "input_error_prediction" and len(meta["trust"]["error_model"]) == 7
     back = DeformationModel.load(tmp_path / "m")
+    assert back.trust_.error_input is not None
     d = test_fields[:20, model.markers, :]
     a, b = model.predict_trusted(d), back.predict_trusted(d)
     np.testing.assert_allclose(b.error_bound, a.error_bound, rtol=1e-6)

@@ -150,6 +150,7 @@ class TrustLayer:
     ood: OODScores
     coverage: float
     false_alarm: float
+    error_input: QuadraticRegression | None = None
 
     # ---------------------------------------------------------------- normaliser
     def _parts(self, d: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -160,8 +161,10 @@ class TrustLayer:
         miss = np.linalg.norm(u[:, self.markers, :] - d.reshape(B, -1, 3), axis=2).max(axis=1)
         dist = self.ood.distance(d)
         peak = np.linalg.norm(d.reshape(B, -1, 3), axis=2).max(axis=1)
-        feats = np.stack([_log(h.max(axis=1)), _log(h.mean(axis=1)), _log(miss), _log(dist), np.log1p(peak)], axis=1)
-        return feats, h, dist
+        cols = [_log(h.max(axis=1)), _log(h.mean(axis=1)), _log(miss), _log(dist), np.log1p(peak)]
+        if self.error_input is not None:
+            cols.append(self.error_input.predict(d)[:, 0])
+        return np.stack(cols, axis=1), h, dist
 
     def _sigma(self, feats: np.ndarray, h: np.ndarray) -> np.ndarray:
         g = np.exp(np.hstack([np.ones((len(feats), 1)), feats]) @ self.error_model)
@@ -224,6 +227,8 @@ class TrustLayer:
                "ood.scale": self.ood.scale, "ood.calibration": self.ood.calibration, "coverage": np.float64(self.coverage),
                "false_alarm": np.float64(self.false_alarm)}
         out.update(self.second.arrays("second."))
+        if self.error_input is not None:
+            out.update(self.error_input.arrays("error_input."))
         cons = self.ood.consistency
         out["ood.consistency.count"] = np.int64(0 if cons is None else len(cons.regressions))
         if cons is not None:
@@ -252,7 +257,8 @@ class TrustLayer:
                    conformal=VertexConformal(np.asarray(a["conformal.sorted_scores"])),
                    ood=OODScores(dist, cons, np.asarray(a["ood.scale"], dtype=np.float64),
                                  np.asarray(a["ood.calibration"], dtype=np.float64)),
-                   coverage=float(a["coverage"]), false_alarm=float(a["false_alarm"]))
+                   coverage=float(a["coverage"]), false_alarm=float(a["false_alarm"]),
+                   error_input=QuadraticRegression.from_arrays(a, "error_input.") if "error_input.coef" in a else None)
 
     def save(self, folder) -> str:
         """Write ``trust.npz`` into a model folder; returns the file name."""
@@ -274,7 +280,8 @@ class TrustLayer:
         """Small JSON-able description (for model.json)."""
         return {"file": FILE, "n_calibration": self.conformal.n_calibration, "coverage": self.coverage,
                 "false_alarm": self.false_alarm, "second_predictor_components": self.basis.n_components,
-                "error_model_features": list(FEATURE_NAMES), "error_model": self.error_model.tolist(),
+                "error_model_features": list(FEATURE_NAMES) + (["input_error_prediction"] if self.error_input else []),
+                "error_model": self.error_model.tolist(),
                 "consistency": self.ood.consistency is not None}
 
 
@@ -356,13 +363,64 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
     draft = TrustLayer(mk, basis, second, np.zeros(1 + len(FEATURE_NAMES)), VertexConformal(np.ones((1, 1))), ood0,
                        coverage, false_alarm)
     fv, _, ev, dv = _assessed_samples(model, draft, U, sets[1], chunk)
+    error_input = _input_error_regression(model, Ut, Xt, dv, ev)
+    if error_input is not None:
+        fv = np.hstack([fv, error_input.predict(dv)])
     beta = _error_model(fv, ev)
-    draft = TrustLayer(mk, basis, second, beta, draft.conformal, ood0, coverage, false_alarm)
+    draft = TrustLayer(mk, basis, second, beta, draft.conformal, ood0, coverage, false_alarm, error_input)
     fc, hc, ec, dc = _assessed_samples(model, draft, U, sets[2], chunk)
     conformal = fit_vertex_conformal(ec, draft._sigma(fc, hc))
     ood = calibrate_ood(distance, consistency, dv, dc)
     _warn_if_too_few(len(sets[2]), coverage, false_alarm)
-    return TrustLayer(mk, basis, second, beta, conformal, ood, coverage, false_alarm)
+    return TrustLayer(mk, basis, second, beta, conformal, ood, coverage, false_alarm, error_input)
+
+
+#: Folds of the out-of-fold errors behind the input error regression, and its quadratic sizes tried.
+ERROR_FOLDS = 5
+ERROR_INPUT_DIMS = (0, 6)
+_ERROR_INPUT_RIDGE = 1e-3
+
+
+def _input_error_regression(model, Ut: np.ndarray, Xt: np.ndarray, Xv: np.ndarray,
+                            ev: np.ndarray) -> QuadraticRegression | None:
+    """A regression of the log per-sample Offset_max on the marker input, learnt from out-of-fold
+    errors on the training samples (a quadratic regression in the model's PCA basis, refitted on
+    :data:`ERROR_FOLDS` folds: errors like the model's on samples it did not fit), so that the
+    error model sees what the input says about the error from many more samples than 'valid'.
+
+    Its size (linear or quadratic features) is the one that ranks the model's validation
+    errors best; the error model weighs it with the other features. None with too few samples.
+    """
+    n = len(Ut)
+    if n < 2 * ERROR_FOLDS:
+        return None
+    basis = model.pca_
+    W = basis.transform(Ut)
+    head = getattr(model, "head_", None)
+    q = len(head.directions) if head is not None else min(12, Xt.shape[1])
+    fold = np.random.default_rng(CALIBRATION_SEED_OFFSET).permutation(n) % ERROR_FOLDS
+    oof = np.zeros(n)
+    for f in range(ERROR_FOLDS):
+        fit, held = fold != f, fold == f
+        reg = fit_quadratic(Xt[fit], W[fit], quadratic_dims=q)
+        e = (basis.inverse_transform(reg.predict(Xt[held])) - Ut[held]).reshape(int(held.sum()), -1, 3)
+        oof[held] = np.sqrt((e**2).sum(axis=2)).max(axis=1)
+    target = _log(ev.max(axis=1))
+    best, best_rho, rhos = None, -np.inf, {}
+    for qe in ERROR_INPUT_DIMS:
+        reg = fit_quadratic(Xt, _log(oof)[:, None], quadratic_dims=qe, ridge=_ERROR_INPUT_RIDGE)
+        rhos[qe] = rho = _spearman(reg.predict(Xv)[:, 0], target)
+        if rho > best_rho:
+            best, best_rho = reg, rho
+    log.info("input error regression from out-of-fold errors: validation Spearman %s (q: rho)",
+             ", ".join(f"{q}: {r:.3f}" for q, r in rhos.items()))
+    return best
+
+
+def _spearman(a: np.ndarray, b: np.ndarray) -> float:
+    """Spearman rank correlation (no ties expected in continuous errors)."""
+    ra, rb = np.argsort(np.argsort(a)), np.argsort(np.argsort(b))
+    return float(np.corrcoef(ra, rb)[0, 1]) if len(a) > 2 else -1.0
 
 
 #: Fewest calibration (and validation) samples a trust layer is fitted from.
