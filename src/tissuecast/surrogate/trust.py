@@ -10,7 +10,8 @@ A :class:`TrustLayer` is fitted after the network, from three disjoint splits:
 - **valid**: the learned error model, a linear regression of the log of each sample's
   Offset_max on log features of the input alone (the largest and mean disagreement between
   the network and the second predictor, how far the network's field misses the markers it
-  was given, the input distance, the peak marker displacement), the mean and covariance of
+  was given, the input distance, the peak marker displacement, and a regression of the error
+  on the input learnt from out-of-fold errors on the training samples), the mean and covariance of
   the consistency residuals, and the medians that put the two alarm scores on one scale;
 - **calibration** (held out from the training split, see ``surrogate.calibration_share``):
   the split-conformal scores of the bounds (:mod:`.conformal`) and of the alarm.
