@@ -80,3 +80,21 @@ def test_no_head_without_enough_samples_or_with_missing_marker_input(quadratic_d
     masked = DeformationModel(marker_dropout=0.3, **FAST).fit(U, MARKERS, mesh=mesh, train_idx=np.arange(300),
                                                               valid_idx=np.arange(300, 350))
     assert masked.head_ is None and masked.supports_missing_markers
+
+
+def test_trust_layer_of_a_head_model_has_a_flat_normaliser_and_covers():
+    from _trust_synthetic import SPLITS, trust_data
+
+    mesh, U, _ = trust_data()
+    two = MARKERS[[0, 4]]  # two markers: the fields are not linear in them, the head is not exact
+    m = DeformationModel(epochs=60, patience=0, batch_size=64, learning_rate=3e-3, n_components=8, hidden=(64, 32))
+    m.fit(U, two, mesh=mesh, train_idx=SPLITS["train"], valid_idx=SPLITS["valid"], calibration_idx=SPLITS["calibration"])
+    assert m.head_ is not None and m.trust_.flat and m.trust_.error_input is not None
+    test = U[SPLITS["test"]]
+    d = test[:, two, :]
+    sigma = m.trust_.normaliser(d.reshape(len(d), -1), m.predict(d))
+    np.testing.assert_allclose(sigma, sigma[:, :1].repeat(sigma.shape[1], axis=1))  # g alone within a sample
+    tp = m.predict_trusted(d, coverage=0.9)
+    e = np.linalg.norm(tp.displacement - test, axis=2)
+    assert abs(np.mean(e <= tp.error_bound) - 0.9) < 0.04
+    assert np.ptp(tp.error_bound[0]) > 0  # the vertices' conformal quantiles still shape each sample's bounds

@@ -16,7 +16,10 @@ A :class:`TrustLayer` is fitted after the network, from three disjoint splits:
 - **calibration** (held out from the training split, see ``surrogate.calibration_share``):
   the split-conformal scores of the bounds (:mod:`.conformal`) and of the alarm.
 
-The normaliser of vertex i of a sample is ``g * (LAMBDA + h_i / max h) / (LAMBDA + 1)``: g the
+For a model with a quadratic head the normaliser is g alone (``flat``): the per-vertex conformal
+quantiles then carry where a sample's errors are large, which measured better than the
+networks' correction of the head did. Otherwise the normaliser of vertex i of a sample is
+``g * (LAMBDA + h_i / max h) / (LAMBDA + 1)``: g the
 error model's predicted Offset_max (ranks samples), h_i the disagreement of the two
 predictors at the vertex (ranks vertices within a sample). Bounds are the normaliser times
 the per-vertex conformal quantile.
@@ -141,6 +144,9 @@ class TrustLayer:
         ood: input distance, marker consistency and their calibration scores.
         coverage: default nominal coverage of the bounds.
         false_alarm: default false-alarm rate of the alarm.
+        error_input: regression of the log Offset_max on the marker input (the error model's
+            last feature), or None (trust files written before it).
+        flat: the normaliser is the error model's g alone (models with a quadratic head).
     """
 
     markers: np.ndarray
@@ -152,6 +158,7 @@ class TrustLayer:
     coverage: float
     false_alarm: float
     error_input: QuadraticRegression | None = None
+    flat: bool = False
 
     # ---------------------------------------------------------------- normaliser
     def _parts(self, d: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -169,6 +176,8 @@ class TrustLayer:
 
     def _sigma(self, feats: np.ndarray, h: np.ndarray) -> np.ndarray:
         g = np.exp(np.hstack([np.ones((len(feats), 1)), feats]) @ self.error_model)
+        if self.flat:
+            return np.repeat(g[:, None], h.shape[1], axis=1)
         shape = (LAMBDA + h / np.maximum(h.max(axis=1, keepdims=True), _LOG_FLOOR)) / (LAMBDA + 1.0)
         return g[:, None] * shape
 
@@ -230,6 +239,7 @@ class TrustLayer:
         out.update(self.second.arrays("second."))
         if self.error_input is not None:
             out.update(self.error_input.arrays("error_input."))
+        out["flat"] = np.bool_(self.flat)
         cons = self.ood.consistency
         out["ood.consistency.count"] = np.int64(0 if cons is None else len(cons.regressions))
         if cons is not None:
@@ -259,7 +269,8 @@ class TrustLayer:
                    ood=OODScores(dist, cons, np.asarray(a["ood.scale"], dtype=np.float64),
                                  np.asarray(a["ood.calibration"], dtype=np.float64)),
                    coverage=float(a["coverage"]), false_alarm=float(a["false_alarm"]),
-                   error_input=QuadraticRegression.from_arrays(a, "error_input.") if "error_input.coef" in a else None)
+                   error_input=QuadraticRegression.from_arrays(a, "error_input.") if "error_input.coef" in a else None,
+                   flat=bool(a["flat"]) if "flat" in a else False)
 
     def save(self, folder) -> str:
         """Write ``trust.npz`` into a model folder; returns the file name."""
@@ -283,7 +294,7 @@ class TrustLayer:
                 "false_alarm": self.false_alarm, "second_predictor_components": self.basis.n_components,
                 "error_model_features": list(FEATURE_NAMES) + (["input_error_prediction"] if self.error_input else []),
                 "error_model": self.error_model.tolist(),
-                "consistency": self.ood.consistency is not None}
+                "consistency": self.ood.consistency is not None, "flat_normaliser": self.flat}
 
 
 def _check_splits(sets: list[np.ndarray]) -> None:
@@ -351,7 +362,8 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
     mk = model.markers
     cols = marker_columns(mk)
     Ut = np.asarray(U[sets[0]], dtype=np.float64).reshape(len(sets[0]), -1)
-    if getattr(model, "head_", None) is not None:  # the networks' correction of their head
+    flat = getattr(model, "head_", None) is not None
+    if flat:  # the networks' correction of their head (ranks samples; within a sample the conformal quantiles do)
         basis, second = model.pca_, model.head_
     else:
         basis = fit_pca(Ut, min(SECOND_COMPONENTS, len(Ut) - 1, Ut.shape[1]))
@@ -362,18 +374,18 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
     consistency = fit_marker_consistency(Xt, Xv)
     ood0 = OODScores(distance, consistency, np.ones(2), np.zeros(0))
     draft = TrustLayer(mk, basis, second, np.zeros(1 + len(FEATURE_NAMES)), VertexConformal(np.ones((1, 1))), ood0,
-                       coverage, false_alarm)
+                       coverage, false_alarm, flat=flat)
     fv, _, ev, dv = _assessed_samples(model, draft, U, sets[1], chunk)
     error_input = _input_error_regression(model, Ut, Xt, dv, ev)
     if error_input is not None:
         fv = np.hstack([fv, error_input.predict(dv)])
     beta = _error_model(fv, ev)
-    draft = TrustLayer(mk, basis, second, beta, draft.conformal, ood0, coverage, false_alarm, error_input)
+    draft = TrustLayer(mk, basis, second, beta, draft.conformal, ood0, coverage, false_alarm, error_input, flat)
     fc, hc, ec, dc = _assessed_samples(model, draft, U, sets[2], chunk)
     conformal = fit_vertex_conformal(ec, draft._sigma(fc, hc))
     ood = calibrate_ood(distance, consistency, dv, dc)
     _warn_if_too_few(len(sets[2]), coverage, false_alarm)
-    return TrustLayer(mk, basis, second, beta, conformal, ood, coverage, false_alarm, error_input)
+    return TrustLayer(mk, basis, second, beta, conformal, ood, coverage, false_alarm, error_input, flat)
 
 
 #: Folds of the out-of-fold errors behind the input error regression, and its quadratic sizes tried.
