@@ -416,3 +416,22 @@ def test_batch_time_limit_stops_each_sample_by_its_share(beam):
     limited = solver.solve_batch(fields, guesses, time_limit=600.0)
     for a, b in zip(free, limited):
         np.testing.assert_array_equal(a.nodal_displacement, b.nodal_displacement)
+
+
+def test_one_blas_thread_limits_every_loaded_blas_and_restores_the_limits():
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    import scipy.linalg  # noqa: F401  (the BLAS libraries one_blas_thread loads, loaded before it)
+
+    from tissuecast.fem.linear import available_backends, one_blas_thread
+
+    if "cholmod" in available_backends():
+        import sksparse.cholmod  # noqa: F401
+
+    def blas_threads():
+        return {p["filepath"]: p["num_threads"] for p in threadpoolctl.threadpool_info() if p["user_api"] == "blas"}
+
+    before = blas_threads()
+    with one_blas_thread():
+        inside = blas_threads()
+    assert inside.keys() == before.keys() and set(inside.values()) == {1}
+    assert blas_threads() == before

@@ -62,14 +62,10 @@ def single_threaded_blas() -> None:
     """
     global _BLAS_LIMIT
     if _BLAS_LIMIT is None:
-        threadpoolctl = require("threadpoolctl", "data", "single-threaded BLAS in data-set workers")
-        import scipy.linalg  # noqa: F401  (load every BLAS the solver uses before limiting them)
+        require("threadpoolctl", "data", "single-threaded BLAS in data-set workers")
+        from ..fem.linear import one_blas_thread
 
-        try:
-            import sksparse.cholmod  # noqa: F401  (CHOLMOD links the system's BLAS; extra "fast")
-        except ImportError:
-            pass
-        _BLAS_LIMIT = threadpoolctl.threadpool_limits(limits=1)
+        _BLAS_LIMIT = one_blas_thread()
 
 
 def _init_worker(recipe: Recipe, parent: int, barrier) -> None:
