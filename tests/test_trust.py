@@ -67,6 +67,7 @@ def test_alarm_is_quiet_on_clean_inputs_and_fires_on_each_fault(model, test_fiel
     assert np.mean([a.raised for a in alarms]) >= 0.95
     caught = [a for a in alarms if a.inconsistent_markers]
     assert len(caught) > 0.9 * len(d) and "from where the other markers place it" in caught[0].text
+    assert np.mean([a.marker for a in alarms] == k) >= 0.95  # the single-marker fault score names it
     # (c) deformations beyond the simulated range (latents 1.5-2x outside [-1, 1])
     mesh, _, _ = trust_data()
     theta = rng.uniform(1.5, 2.0, (200, 3)) * rng.choice([-1, 1], (200, 3))
@@ -82,9 +83,10 @@ def test_alarm_is_quiet_on_clean_inputs_and_fires_on_each_fault(model, test_fiel
 def test_trust_layer_round_trips_through_the_model_folder(model, test_fields, tmp_path):
     model.save(tmp_path / "m")
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
-    assert meta["files"]["trust"] == "trust.npz" and meta["trust"]["n_calibration"] == 300
+    assert meta["files"]["trust"] == "trust.npz" and meta["trust"]["n_calibration"] == 300 and meta["trust"]["fault_score"]
     with np.load(tmp_path / "m" / "trust.npz", allow_pickle=False) as z:
         assert "conformal.sorted_scores" in z.files and "error_input.coef" in z.files
+        assert z["ood.consistency.sensitivity"].shape == (len(MARKERS), 3 * len(MARKERS), 3)
     # the error model weighs the input error regression (learnt from out-of-fold errors) as a sixth feature
     assert meta["trust"]["error_model_features"][-1] == "input_error_prediction" and len(meta["trust"]["error_model"]) == 7
     back = DeformationModel.load(tmp_path / "m")
@@ -94,6 +96,7 @@ def test_trust_layer_round_trips_through_the_model_folder(model, test_fields, tm
     np.testing.assert_allclose(b.error_bound, a.error_bound, rtol=1e-6)
     assert [x.raised for x in a.alarms] == [x.raised for x in b.alarms]
     np.testing.assert_allclose([x.distance for x in b.alarms], [x.distance for x in a.alarms], rtol=1e-12)
+    np.testing.assert_allclose([x.fault for x in b.alarms], [x.fault for x in a.alarms], rtol=1e-12)
     (tmp_path / "m" / "trust.npz").unlink()
     with pytest.raises(ModelError, match="trust.npz"):
         DeformationModel.load(tmp_path / "m")
@@ -124,3 +127,18 @@ def test_models_without_calibration_have_no_bounds_and_say_how_to_get_them():
 def test_trust_config_keys_are_validated(key, value, match):
     with pytest.raises(ConfigError, match=match):
         with_overrides(Config(), surrogate={key: value})
+
+
+def test_the_fault_score_joins_the_alarm_when_asked_and_is_stored():
+    mesh, U, _ = trust_data()
+    m = DeformationModel(epochs=5, patience=0, n_components=4, head="none", alarm_fault_score=True).fit(
+        U[:400], MARKERS, mesh=mesh, train_idx=np.arange(250), valid_idx=np.arange(250, 300),
+        calibration_idx=np.arange(300, 400))
+    assert m.trust_.ood.use_fault and np.isfinite(m.trust_.ood.thresholds(0.01)).all()
+    assert m.trust_.summary()["fault_score_in_alarm"]
+    back = type(m.trust_).from_arrays(m.trust_.arrays())
+    assert back.ood.use_fault
+    d = U[1100:1150, MARKERS]
+    np.testing.assert_array_equal(back.alarm_scores(d), m.trust_.alarm_scores(d))
+    with pytest.raises(ConfigError, match="alarm_fault_score"):
+        DeformationModel(alarm_fault_score="yes")

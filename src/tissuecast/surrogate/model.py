@@ -211,7 +211,7 @@ class DeformationModel:
         if len(splits.calibration):
             self.trust_ = fit_trust(self, U, train_idx=splits.train, valid_idx=splits.valid,
                                     calibration_idx=splits.calibration, coverage=c.coverage,
-                                    false_alarm=c.false_alarm_rate)
+                                    false_alarm=c.false_alarm_rate, fault_score=c.alarm_fault_score)
         self.training_ = {
             "n_train": int(len(splits.train)),
             "n_valid": int(len(splits.valid)),

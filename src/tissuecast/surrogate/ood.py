@@ -13,9 +13,18 @@ Two scores per input d (n_d, 3) mm:
   marker); the score is the Mahalanobis distance of the vector of all markers' residuals
   under its validation mean and covariance. Large for a swapped marker, a tracking
   glitch, a marker that moved in the tissue.
+- **fault** of one marker: the same residuals tested for a bias on a single marker (the
+  generalised likelihood ratio of parity-space fault detection). A bias b (3,) on marker j
+  changes the residual vector by ``F_j b`` (``F_j`` (3 n_d, 3): -1 on marker j's own
+  residual, the sensitivities of the other markers' predictions to it, taken at the
+  training mean); the statistic of marker j is the Mahalanobis length of the best-fitting
+  ``F_j b``, ``sqrt(r' L F_j (F_j' L F_j)^-1 F_j' L r)`` (L the precision), and the score is
+  its maximum over the markers. It looks along 3 directions instead of 3 n_d, so one
+  displaced marker among many stands out of the scatter sooner; its argmax names the marker.
 
-The two scores, each divided by its median on validation samples, are combined by their
-maximum; the alarm threshold is the split-conformal ``1 - alpha`` quantile of that combined
+The scores the alarm uses (distance and consistency; the fault score too where asked, else it
+only names the suspect marker), each divided by its median on validation samples, are
+combined by their maximum; the alarm threshold is the split-conformal ``1 - alpha`` quantile of that combined
 score on a calibration split, so a clean input (exchangeable with the calibration samples)
 raises an alarm with probability at most alpha (:class:`OODScores`).
 """
@@ -34,7 +43,7 @@ from .quadratic import fit_quadratic
 __all__ = ["InputDistance", "MarkerConsistency", "OODScores", "fit_input_distance", "fit_marker_consistency",
            "calibrate_ood", "SCORE_NAMES"]
 
-SCORE_NAMES = ("distance", "consistency")
+SCORE_NAMES = ("distance", "consistency", "fault")
 
 # Whitening floors each axis's variance at this share of the largest, so that directions
 # the training inputs never vary along (to round-off) do not dominate the distance.
@@ -99,6 +108,7 @@ class MarkerConsistency:
     marker's predicted minus observed displacement, 3 n_d numbers) under the residuals'
     mean and covariance on validation samples: residuals of different markers are
     correlated (a marker is an input to the others' predictions), which the distance uses.
+    :meth:`faults` tests the same residuals for a bias on one marker (module docstring).
 
     Attributes:
         regressions: n_d maps from the other markers' (3 n_d - 3) displacements to this
@@ -106,12 +116,22 @@ class MarkerConsistency:
         scale: (n_d,) root-mean-square residual distance of each marker on validation samples, mm.
         mean: (3 n_d,) mean validation residual vector, mm.
         precision: (3 n_d, 3 n_d) inverse of the (shrunk) validation residual covariance, 1/mm^2.
+        sensitivity: (n_d, 3 n_d, 3) change of the residual vector per mm of bias on each
+            marker (dimensionless; ``F_j``), or None (trust files written before it: no
+            fault score).
     """
 
     regressions: tuple
     scale: np.ndarray
     mean: np.ndarray
     precision: np.ndarray
+    sensitivity: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.sensitivity is not None:  # per marker: L F_j (3 n_d, 3) and (F_j' L F_j)^-1 (3, 3)
+            LF = np.einsum("pq,jqa->jpa", self.precision, self.sensitivity)
+            gram = np.einsum("jpa,jpb->jab", self.sensitivity, LF)
+            object.__setattr__(self, "_fault_maps", (LF, np.linalg.inv(gram)))
 
     def residual_vectors(self, X) -> np.ndarray:
         """(B, 3 n_d) predicted minus observed displacement of every marker, mm."""
@@ -124,12 +144,29 @@ class MarkerConsistency:
 
     def residuals(self, X) -> np.ndarray:
         """(B, n_d) distance (mm) of each marker from where the other markers put it."""
-        R = self.residual_vectors(X)
-        return np.linalg.norm(R.reshape(len(R), -1, 3), axis=2)
+        return self.evaluate(X)[0]
 
     def __call__(self, X) -> np.ndarray:
         """(B,) Mahalanobis distance of the residual vectors (dimensionless)."""
-        return _mahalanobis(self.residual_vectors(X) - self.mean, self.precision)
+        return self.evaluate(X)[1]
+
+    def faults(self, X) -> np.ndarray | None:
+        """(B, n_d) single-marker fault statistic of each marker (dimensionless), or None
+        without :attr:`sensitivity`."""
+        return self.evaluate(X)[2]
+
+    def evaluate(self, X) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """:meth:`residuals`, the score (``__call__``) and :meth:`faults` of inputs (B, 3 n_d)
+        mm, from one evaluation of the regressions."""
+        R = self.residual_vectors(X)
+        dist = np.linalg.norm(R.reshape(len(R), -1, 3), axis=2)
+        R -= self.mean
+        faults = None
+        if self.sensitivity is not None:
+            LF, inv_gram = self._fault_maps
+            v = np.einsum("bp,jpa->bja", R, LF)  # F_j' L r
+            faults = np.sqrt(np.maximum(np.einsum("bja,jac,bjc->bj", v, inv_gram, v), 0.0))
+        return dist, _mahalanobis(R, self.precision), faults
 
 
 def _mahalanobis(R: np.ndarray, precision: np.ndarray) -> np.ndarray:
@@ -161,41 +198,60 @@ def fit_marker_consistency(X_train, X_valid) -> MarkerConsistency | None:
     cov = (1.0 - shrink) * cov + shrink * avg * np.eye(p)
     dist = np.linalg.norm(R.reshape(len(R), -1, 3), axis=2)
     scale = np.sqrt((dist**2).mean(axis=0))
+    # F_j by central differences at the training mean (exact for the quadratic regressions)
+    center = X_train.mean(axis=0)
+    steps = np.concatenate([center + np.eye(p), center - np.eye(p)])
+    diff = draft.residual_vectors(steps)
+    sensitivity = ((diff[:p] - diff[p:]) / 2.0).reshape(n_d, 3, p).transpose(0, 2, 1)
     return MarkerConsistency(tuple(regs), np.maximum(scale, _SCALE_FLOOR_REL * max(float(scale.max()), 1e-300)), mean,
-                             np.linalg.inv(cov))
+                             np.linalg.inv(cov), sensitivity)
 
 
 @dataclass(frozen=True, eq=False)
 class OODScores:
-    """The two scores, combined into one alarm score with a calibrated threshold.
+    """The scores, combined into one alarm score with a calibrated threshold.
 
-    The alarm score of an input is ``max(distance / scale[0], consistency / scale[1])``
-    (scales: the scores' medians on validation samples); its threshold for a false-alarm
-    rate alpha is the split-conformal ``1 - alpha`` quantile of the calibration samples'
-    alarm scores, so each score's own threshold is that value times its scale.
+    The alarm score of an input is ``max(distance / scale[0], consistency / scale[1])``, and
+    with ``use_fault`` also ``fault / scale[2]`` (scales: the scores' medians on validation
+    samples; an absent score is left out); its threshold for a false-alarm rate alpha is the
+    split-conformal ``1 - alpha`` quantile of the calibration samples' alarm scores, so each
+    score's own threshold is that value times its scale.
 
     Attributes:
         distance: the :class:`InputDistance`.
-        consistency: the :class:`MarkerConsistency` (None with one marker).
-        scale: (2,) validation medians of the two scores (consistency's 1 when absent).
+        consistency: the :class:`MarkerConsistency` (None with one marker; then no
+            consistency and no fault score).
+        scale: (3,) validation medians of the three scores (1 for an absent one; trust files
+            written before the fault score hold two, and get a third 1).
         calibration: (m,) sorted alarm scores of the calibration samples.
+        use_fault: the fault score is part of the alarm score (``surrogate.alarm_fault_score``).
     """
 
     distance: InputDistance
     consistency: MarkerConsistency | None
     scale: np.ndarray
     calibration: np.ndarray
+    use_fault: bool = False
+
+    def __post_init__(self):
+        scale = np.asarray(self.scale, dtype=np.float64)
+        object.__setattr__(self, "scale", np.concatenate([scale, np.ones(len(SCORE_NAMES) - len(scale))]))
 
     def scores(self, X) -> np.ndarray:
-        """(B, 2) [distance, consistency] scores of inputs (B, 3 n_d) mm (consistency NaN if absent)."""
+        """(B, 3) [distance, consistency, fault] scores of inputs (B, 3 n_d) mm (NaN where absent)."""
         X = np.asarray(X, dtype=np.float64)
-        c = self.consistency(X) if self.consistency is not None else np.full(len(X), np.nan)
-        return np.stack([self.distance(X), c], axis=1)
+        out = np.full((len(X), len(SCORE_NAMES)), np.nan)
+        out[:, 0] = self.distance(X)
+        if self.consistency is not None:
+            _, out[:, 1], faults = self.consistency.evaluate(X)
+            if faults is not None:
+                out[:, 2] = faults.max(axis=1)
+        return out
 
     def combined(self, scores) -> np.ndarray:
-        """(B,) alarm scores from (B, 2) scores."""
+        """(B,) alarm scores from (B, 3) scores (absent scores NaN)."""
         s = np.asarray(scores, dtype=np.float64) / self.scale
-        return np.nanmax(s, axis=1) if self.consistency is not None else s[:, 0]
+        return np.nanmax(s if self.use_fault else s[:, :2], axis=1)
 
     def threshold(self, false_alarm: float) -> float:
         """Alarm-score threshold for a false-alarm rate in (0, 1) (inf with too few calibration samples)."""
@@ -204,9 +260,12 @@ class OODScores:
         return float(conformal_quantile(self.calibration, 1.0 - false_alarm))
 
     def thresholds(self, false_alarm: float) -> np.ndarray:
-        """(2,) thresholds of the distance and consistency scores (inf for an absent score)."""
+        """(3,) thresholds of the distance, consistency and fault scores (inf for a score that is
+        absent or not part of the alarm)."""
         t = self.threshold(false_alarm) * self.scale
-        return t if self.consistency is not None else np.array([t[0], np.inf])
+        present = [True, self.consistency is not None,
+                   self.use_fault and self.consistency is not None and self.consistency.sensitivity is not None]
+        return np.where(present, t, np.inf)
 
     def p_values(self, scores) -> np.ndarray:
         """(B,) conformal p-values ``(1 + #{calibration >= alarm score}) / (m + 1)``."""
@@ -215,11 +274,12 @@ class OODScores:
         return (1.0 + m - np.searchsorted(self.calibration, c, side="left")) / (m + 1.0)
 
 
-def calibrate_ood(distance: InputDistance, consistency: MarkerConsistency | None, X_valid, X_calibration) -> OODScores:
-    """Scales from validation inputs (B_v, 3 n_d) mm, calibration scores from (B_c, 3 n_d) mm."""
-    draft = OODScores(distance, consistency, np.ones(2), np.zeros(0))
+def calibrate_ood(distance: InputDistance, consistency: MarkerConsistency | None, X_valid, X_calibration,
+                  use_fault: bool = False) -> OODScores:
+    """Scales from validation inputs (B_v, 3 n_d) mm, calibration scores from (B_c, 3 n_d) mm;
+    ``use_fault``: the fault score is part of the alarm."""
+    draft = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0))
     sv = draft.scores(X_valid)
-    scale = np.array([np.median(sv[:, 0]), np.median(sv[:, 1]) if consistency is not None else 1.0])
-    scale = np.maximum(scale, _TINY_SCORE)
-    ood = OODScores(distance, consistency, scale, np.zeros(0))
-    return OODScores(distance, consistency, scale, np.sort(ood.combined(ood.scores(X_calibration))))
+    scale = np.where(np.isnan(sv[0]), 1.0, np.maximum(np.median(sv, axis=0), _TINY_SCORE))
+    ood = OODScores(distance, consistency, scale, np.zeros(0), use_fault)
+    return OODScores(distance, consistency, scale, np.sort(ood.combined(ood.scores(X_calibration))), use_fault)

@@ -12,7 +12,7 @@ A :class:`TrustLayer` is fitted after the network, from three disjoint splits:
   the network and the second predictor, how far the network's field misses the markers it
   was given, the input distance, the peak marker displacement, and a regression of the error
   on the input learnt from out-of-fold errors on the training samples), the mean and covariance of
-  the consistency residuals, and the medians that put the two alarm scores on one scale;
+  the consistency residuals, and the medians that put the three alarm scores on one scale;
 - **calibration** (held out from the training split, see ``surrogate.calibration_share``):
   the split-conformal scores of the bounds (:mod:`.conformal`) and of the alarm.
 
@@ -34,7 +34,8 @@ import numpy as np
 
 from ..errors import ModelError
 from .conformal import VertexConformal, fit_vertex_conformal, min_calibration_samples
-from .ood import InputDistance, MarkerConsistency, OODScores, calibrate_ood, fit_input_distance, fit_marker_consistency
+from .ood import (SCORE_NAMES, InputDistance, MarkerConsistency, OODScores, calibrate_ood, fit_input_distance,
+                  fit_marker_consistency)
 from .pca import PCABasis, fit_pca
 from .quadratic import QuadraticRegression, fit_quadratic
 from .ridge import marker_columns
@@ -67,14 +68,16 @@ class Alarm:
     """The out-of-distribution verdict of one prediction.
 
     Attributes:
-        raised: whether either score passed its threshold.
+        raised: whether any score passed its threshold.
         distance: input-distance score; ``distance_threshold`` its alarm level.
         consistency: marker-consistency score (NaN with one marker); ``consistency_threshold``.
-        marker: index (0-based, model marker order) of the marker farthest (in units of its
-            residual scale) from where the others put it, -1 without a consistency score. A
-            glitch of one marker also moves where the others put the rest, so this is a hint,
-            not an identification.
-        marker_residual: that distance, mm.
+        marker: index (0-based, model marker order) of the marker whose bias best explains
+            the markers' disagreement (the largest single-marker fault statistic; in trust
+            files written before it, the marker farthest in units of its residual scale from
+            where the others put it), -1 without a consistency score.
+        marker_residual: that marker's distance from where the other markers put it, mm.
+        fault: single-marker fault score (the largest fault statistic; NaN where absent);
+            ``fault_threshold``.
     """
 
     raised: bool
@@ -84,6 +87,8 @@ class Alarm:
     consistency_threshold: float
     marker: int = -1
     marker_residual: float = float("nan")
+    fault: float = float("nan")
+    fault_threshold: float = float("inf")
 
     @property
     def far_from_training(self) -> bool:
@@ -91,7 +96,8 @@ class Alarm:
 
     @property
     def inconsistent_markers(self) -> bool:
-        return bool(self.consistency > self.consistency_threshold)
+        """The markers disagree: as a whole (consistency) or one of them (fault)."""
+        return bool(self.consistency > self.consistency_threshold or self.fault > self.fault_threshold)
 
     @property
     def text(self) -> str:
@@ -100,9 +106,10 @@ class Alarm:
             return "prediction within the simulated range"
         parts = []
         if self.inconsistent_markers:
-            parts.append(f"markers disagree (score {self.consistency:.1f} > {self.consistency_threshold:.1f}; most: marker "
-                         f"{self.marker}, {self.marker_residual:.1f} mm from where the other markers place it): a swapped, "
-                         "slipped or mistracked marker?")
+            score = (f"one-marker score {self.fault:.1f} > {self.fault_threshold:.1f}" if self.fault > self.fault_threshold
+                     else f"score {self.consistency:.1f} > {self.consistency_threshold:.1f}")
+            parts.append(f"markers disagree ({score}; most: marker {self.marker}, {self.marker_residual:.1f} mm from where "
+                         "the other markers place it): a swapped, slipped or mistracked marker?")
         if self.far_from_training:
             parts.append(f"marker input far from every simulated deformation (distance {self.distance:.2f} > "
                          f"{self.distance_threshold:.2f}): do not trust the predicted shape")
@@ -207,21 +214,23 @@ class TrustLayer:
         bounds = self.conformal.bounds(self._sigma(feats, h), self.coverage if coverage is None else coverage)
         thr = self.ood.thresholds(self.false_alarm if false_alarm is None else false_alarm)
         cons = self.ood.consistency
+        faults = None
         if cons is not None:
-            res = cons.residuals(d)
-            c_score = cons(d)
-            worst = (res / cons.scale).argmax(axis=1)
+            res, c_score, faults = cons.evaluate(d)
+            worst = (res / cons.scale if faults is None else faults).argmax(axis=1)
         else:
             res, c_score, worst = None, np.full(len(d), np.nan), np.full(len(d), -1)
+        f_score = faults.max(axis=1) if faults is not None else np.full(len(d), np.nan)
         alarms = []
         for b in range(len(d)):
-            raised = bool(dist[b] > thr[0] or c_score[b] > thr[1])
+            raised = bool(dist[b] > thr[0] or c_score[b] > thr[1] or f_score[b] > thr[2])
             alarms.append(Alarm(raised, float(dist[b]), float(thr[0]), float(c_score[b]), float(thr[1]),
-                                int(worst[b]), float(res[b, worst[b]]) if res is not None else float("nan")))
+                                int(worst[b]), float(res[b, worst[b]]) if res is not None else float("nan"),
+                                float(f_score[b]), float(thr[2])))
         return bounds, alarms
 
     def alarm_scores(self, marker_displacements) -> np.ndarray:
-        """(B, 2) [distance, consistency] scores of inputs (B, 3 n_d) or (B, n_d, 3) mm."""
+        """(B, 3) [distance, consistency, fault] scores of inputs (B, 3 n_d) or (B, n_d, 3) mm (NaN where absent)."""
         d = np.asarray(marker_displacements, dtype=np.float64)
         return self.ood.scores(d.reshape(len(d), -1))
 
@@ -234,7 +243,8 @@ class TrustLayer:
                "ood.distance.mean": self.ood.distance.mean, "ood.distance.whitening": self.ood.distance.whitening,
                "ood.distance.reference": self.ood.distance.reference,
                "ood.distance.neighbours": np.int64(self.ood.distance.neighbours),
-               "ood.scale": self.ood.scale, "ood.calibration": self.ood.calibration, "coverage": np.float64(self.coverage),
+               "ood.scale": self.ood.scale, "ood.calibration": self.ood.calibration,
+               "ood.use_fault": np.bool_(self.ood.use_fault), "coverage": np.float64(self.coverage),
                "false_alarm": np.float64(self.false_alarm)}
         out.update(self.second.arrays("second."))
         if self.error_input is not None:
@@ -246,6 +256,8 @@ class TrustLayer:
             out["ood.consistency.scale"] = cons.scale
             out["ood.consistency.mean"] = cons.mean
             out["ood.consistency.precision"] = cons.precision
+            if cons.sensitivity is not None:
+                out["ood.consistency.sensitivity"] = cons.sensitivity
             for j, reg in enumerate(cons.regressions):
                 out.update(reg.arrays(f"ood.consistency.{j}."))
         return out
@@ -260,14 +272,17 @@ class TrustLayer:
         cons = None
         if count:
             regs = tuple(QuadraticRegression.from_arrays(a, f"ood.consistency.{j}.") for j in range(count))
+            sens = a.get("ood.consistency.sensitivity")  # absent in files written before the fault score
             cons = MarkerConsistency(regs, *(np.asarray(a[f"ood.consistency.{k}"], dtype=np.float64)
-                                             for k in ("scale", "mean", "precision")))
+                                             for k in ("scale", "mean", "precision")),
+                                     None if sens is None else np.asarray(sens, dtype=np.float64))
         return cls(markers=np.asarray(a["markers"], dtype=np.int64), basis=basis,
                    second=QuadraticRegression.from_arrays(a, "second."),
                    error_model=np.asarray(a["error_model"], dtype=np.float64),
                    conformal=VertexConformal(np.asarray(a["conformal.sorted_scores"])),
                    ood=OODScores(dist, cons, np.asarray(a["ood.scale"], dtype=np.float64),
-                                 np.asarray(a["ood.calibration"], dtype=np.float64)),
+                                 np.asarray(a["ood.calibration"], dtype=np.float64),
+                                 bool(a["ood.use_fault"]) if "ood.use_fault" in a else False),
                    coverage=float(a["coverage"]), false_alarm=float(a["false_alarm"]),
                    error_input=QuadraticRegression.from_arrays(a, "error_input.") if "error_input.coef" in a else None,
                    flat=bool(a["flat"]) if "flat" in a else False)
@@ -294,7 +309,10 @@ class TrustLayer:
                 "false_alarm": self.false_alarm, "second_predictor_components": self.basis.n_components,
                 "error_model_features": list(FEATURE_NAMES) + (["input_error_prediction"] if self.error_input else []),
                 "error_model": self.error_model.tolist(),
-                "consistency": self.ood.consistency is not None, "flat_normaliser": self.flat}
+                "consistency": self.ood.consistency is not None,
+                "fault_score": self.ood.consistency is not None and self.ood.consistency.sensitivity is not None,
+                "fault_score_in_alarm": self.ood.use_fault,
+                "flat_normaliser": self.flat}
 
 
 def _check_splits(sets: list[np.ndarray]) -> None:
@@ -341,7 +359,7 @@ def _warn_if_too_few(m: int, coverage: float, false_alarm: float) -> None:
 
 
 def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, coverage: float, false_alarm: float,
-              chunk: int = PREDICT_CHUNK) -> TrustLayer:
+              fault_score: bool = False, chunk: int = PREDICT_CHUNK) -> TrustLayer:
     """Fit the trust layer of a fitted :class:`~tissuecast.surrogate.DeformationModel`.
 
     Args:
@@ -351,6 +369,8 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
         train_idx, valid_idx, calibration_idx: disjoint sample indices.
         coverage: default nominal coverage of the bounds (``surrogate.coverage``).
         false_alarm: default false-alarm rate (``surrogate.false_alarm_rate``).
+        fault_score: the alarm also uses the single-marker fault score
+            (``surrogate.alarm_fault_score``; it names the suspect marker either way).
         chunk: samples predicted at once.
 
     Raises:
@@ -372,7 +392,7 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
     distance = fit_input_distance(Xt)
     Xv = np.asarray(U[sets[1]], dtype=np.float64).reshape(len(sets[1]), -1)[:, cols]
     consistency = fit_marker_consistency(Xt, Xv)
-    ood0 = OODScores(distance, consistency, np.ones(2), np.zeros(0))
+    ood0 = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0))
     draft = TrustLayer(mk, basis, second, np.zeros(1 + len(FEATURE_NAMES)), VertexConformal(np.ones((1, 1))), ood0,
                        coverage, false_alarm, flat=flat)
     fv, _, ev, dv = _assessed_samples(model, draft, U, sets[1], chunk)
@@ -383,7 +403,7 @@ def fit_trust(model, displacements, *, train_idx, valid_idx, calibration_idx, co
     draft = TrustLayer(mk, basis, second, beta, draft.conformal, ood0, coverage, false_alarm, error_input, flat)
     fc, hc, ec, dc = _assessed_samples(model, draft, U, sets[2], chunk)
     conformal = fit_vertex_conformal(ec, draft._sigma(fc, hc))
-    ood = calibrate_ood(distance, consistency, dv, dc)
+    ood = calibrate_ood(distance, consistency, dv, dc, fault_score)
     _warn_if_too_few(len(sets[2]), coverage, false_alarm)
     return TrustLayer(mk, basis, second, beta, conformal, ood, coverage, false_alarm, error_input, flat)
 

@@ -1,0 +1,55 @@
+"""Out-of-distribution scores on synthetic marker inputs: the single-marker fault score against
+the whole-vector consistency score, and its calibrated false-alarm rate."""
+
+import numpy as np
+
+from tissuecast.surrogate.ood import calibrate_ood, fit_input_distance, fit_marker_consistency
+
+
+def _inputs(n, rng, n_d=20, noise=0.3):
+    """(n, 3 n_d) mm: 20 markers moved by a smooth 3-parameter field plus independent tracking-like noise."""
+    pos = np.random.default_rng(0).uniform(-30, 30, (n_d, 3))
+    theta = rng.uniform(-1, 1, (n, 3))
+    field = (theta[:, None, :] * 5.0 + 0.02 * theta[:, [0]][:, :, None] * pos[None] ** 2 / 10
+             + 0.1 * np.cross(theta[:, None, :], pos[None]))
+    return (field + noise * rng.normal(size=field.shape)).reshape(n, -1)
+
+
+def test_the_fault_score_finds_one_displaced_marker_that_the_whole_vector_score_misses():
+    rng = np.random.default_rng(1)
+    Xt, Xv, Xc, Xs = (_inputs(n, rng) for n in (1500, 300, 400, 1000))
+    cons = fit_marker_consistency(Xt, Xv)
+    ood = calibrate_ood(fit_input_distance(Xt), cons, Xv, Xc, use_fault=True)
+    thr = ood.thresholds(0.01)
+    clean = ood.scores(Xs)
+    assert np.mean((clean / thr).max(axis=1) > 1) <= 0.03  # 1 % nominal (400 calibration inputs), 1000 clean inputs
+
+    n_d = Xs.shape[1] // 3
+    k = rng.integers(0, n_d, len(Xs))
+    v = rng.normal(size=(len(Xs), 3))
+    glitch = Xs.reshape(len(Xs), n_d, 3).copy()
+    glitch[np.arange(len(Xs)), k] += 2.0 * v / np.linalg.norm(v, axis=1, keepdims=True)  # ~4 x the residual median
+    glitch = glitch.reshape(len(Xs), -1)
+    s = ood.scores(glitch)
+    by_consistency, by_fault = np.mean(s[:, 1] > thr[1]), np.mean(s[:, 2] > thr[2])
+    assert by_fault >= 0.9 and by_consistency < by_fault - 0.5, (by_fault, by_consistency)
+    # its argmax names the displaced marker
+    named = cons.faults(glitch).argmax(axis=1) == k
+    assert np.mean(named[s[:, 2] > thr[2]]) >= 0.95
+    # by default the alarm is the distance and consistency scores' alone: the fault score is left out
+    default = calibrate_ood(ood.distance, cons, Xv, Xc)
+    assert not default.use_fault and np.isinf(default.thresholds(0.01)[2])
+    np.testing.assert_array_equal(default.combined(s), np.maximum(s[:, 0] / default.scale[0], s[:, 1] / default.scale[1]))
+
+
+def test_without_sensitivities_there_is_no_fault_score():
+    rng = np.random.default_rng(2)
+    Xt, Xv, Xc = (_inputs(n, rng, n_d=4) for n in (400, 100, 100))
+    cons = fit_marker_consistency(Xt, Xv)
+    old = type(cons)(cons.regressions, cons.scale, cons.mean, cons.precision)  # as read from an older trust file
+    assert old.faults(Xc) is None
+    ood = calibrate_ood(fit_input_distance(Xt), old, Xv, Xc, use_fault=True)
+    assert np.isnan(ood.scores(Xc)[:, 2]).all() and np.isinf(ood.thresholds(0.01)[2]) and ood.scale[2] == 1.0
+    # a two-score file's scales get a third 1 and the alarm score is the older one's
+    two = type(ood)(ood.distance, old, ood.scale[:2], ood.calibration)
+    np.testing.assert_array_equal(two.combined(two.scores(Xc)), ood.combined(ood.scores(Xc)))
