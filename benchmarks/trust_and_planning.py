@@ -325,8 +325,10 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
     by_score = {"consistency": [a.consistency > a.consistency_threshold for a in alarms],
                 "fault": [a.fault > a.fault_threshold for a in alarms]}
     res["displaced_3mm_by_score"] = {k: float(np.mean(v)) for k, v in by_score.items()}
+    fault = (f"{100 * res['displaced_3mm_by_score']['fault']:.1f} %" if model.trust_.ood.use_fault
+             else "- (not in the alarm: --alarm-fault-score)")
     print(f"(b) 3 mm: raised by the consistency score {100 * res['displaced_3mm_by_score']['consistency']:.1f} %, by the "
-          f"one-marker fault score {100 * res['displaced_3mm_by_score']['fault']:.1f} %; the alarm names the displaced marker "
+          f"one-marker fault score {fault}; the alarm names the displaced marker "
           f"in {100 * res['displaced_3mm_named']:.0f} % of the alarms ({100 * res['displaced_3mm_named_all']:.0f} % of all "
           "inputs)")
     t2 = split_indices(ds, "test2")

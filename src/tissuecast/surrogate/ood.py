@@ -1,6 +1,6 @@
 """Out-of-distribution scores of a marker input, from what is observable during surgery.
 
-Two scores per input d (n_d, 3) mm:
+Three scores per input d (n_d, 3) mm:
 
 - **distance** from the training inputs: the mean Euclidean distance to the ``k`` nearest
   training inputs after whitening (the training inputs' principal axes scaled to unit
@@ -24,9 +24,9 @@ Two scores per input d (n_d, 3) mm:
 
 The scores the alarm uses (distance and consistency; the fault score too where asked, else it
 only names the suspect marker), each divided by its median on validation samples, are
-combined by their maximum; the alarm threshold is the split-conformal ``1 - alpha`` quantile of that combined
-score on a calibration split, so a clean input (exchangeable with the calibration samples)
-raises an alarm with probability at most alpha (:class:`OODScores`).
+combined by their maximum; the alarm threshold is the split-conformal ``1 - alpha`` quantile
+of that combined score on a calibration split, so a clean input (exchangeable with the
+calibration samples) raises an alarm with probability at most alpha (:class:`OODScores`).
 """
 
 from __future__ import annotations
