@@ -312,6 +312,8 @@ class IndentationConfig:
     depth: tuple[float, ...] = _f((2.0, 6.0), lo=0.0, doc="[min, max] depth along the inward normal at the centre, mm, drawn uniformly")
     slide: tuple[float, ...] = _f((0.0, 2.0), lo=0.0, doc="[min, max] tangential slide, mm, drawn uniformly, in a uniformly drawn tangent direction")
     clearance: float = _f(8.0, lo=0.0, doc="patch centres lie at least this far (mm) from supported vertices (pins, attached region)")
+    tool: str = _f("flat", choices=("flat", "rounded"), doc="the instrument's face: flat = every patch vertex moves together (a rigid punch: its rim is singular); rounded = a ball-ended tool of tool_radius, the surface within the Hertz contact radius sqrt(tool_radius depth) follows its shape")
+    tool_radius: float = _f(5.0, lo=0.0, lo_open=True, doc="tool rounded: radius of the instrument's rounded tip, mm")
     access: AccessConfig = field(default_factory=AccessConfig, metadata={"doc": "the surgical access: the surface region where patch centres may lie (default the whole outer surface)"})
 
 
@@ -511,6 +513,11 @@ def _cross_checks(obj: Any, prefix: str) -> None:
                               "lengths are in mm (e.g. radius 4, depth [2, 6])")
         if obj.depth[1] <= 0.0:
             raise ConfigError(f"{prefix}depth = {list(obj.depth)} never pushes; give [min, max] mm with max > 0")
+        contact = (obj.tool_radius * obj.depth[1]) ** 0.5
+        if obj.tool == "rounded" and contact > obj.radius:
+            raise ConfigError(f"{prefix}radius = {obj.radius:g} mm is smaller than the rounded tool's largest contact "
+                              f"radius sqrt(tool_radius x depth max) = {contact:.3g} mm; raise {prefix}radius to at "
+                              f"least {contact:.3g} or lower {prefix}tool_radius")
     if isinstance(obj, MaterialRegionConfig):
         _check_vector(f"{prefix}point", obj.point, nonzero=False)
         _check_range(f"{prefix}youngs_modulus_range", obj.youngs_modulus_range)

@@ -234,7 +234,7 @@ class Scenario:
         ind = draw.indentation
         if ind is None:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-        return ind.vertices.copy(), np.repeat(ind.displacement[None, :], len(ind.vertices), axis=0)
+        return ind.vertices.copy(), ind.values.copy()
 
     def summary(self) -> dict:
         """JSON-able description (for data sets, models and reports)."""
