@@ -93,6 +93,7 @@ class MaterialConfig:
 
     youngs_modulus: float = _f(0.021, lo=0.0, lo_open=True, doc="E in MPa (21 kPa = 0.021 MPa)")
     poisson_ratio: float = _f(0.45, lo=-1.0, hi=0.5, lo_open=True, hi_open=True, doc="nu")
+    check_range: bool = _f(True, doc="refuse moduli outside soft tissue's 0.0001-1 MPa (a unit slip); false for stiffer phantoms or materials")
 
 
 @dataclass(frozen=True)
@@ -252,6 +253,9 @@ SUPPORT_LENGTH_SPAN = (0.01, 1.0e4)
 
 #: Accepted densities (t/mm^3): soft tissues and bone lie in 0.9e-9 .. 2.1e-9.
 DENSITY_SPAN = (1.0e-10, 1.0e-8)
+#: Young's moduli of soft tissues, MPa (0.1 kPa: brain at its softest; 1 MPa: stiff fibrous
+#: tissue): a value outside is almost surely a unit slip (21 for 21 kPa, 21000 for 21 kPa in Pa).
+SOFT_TISSUE_MODULUS_SPAN = (1.0e-4, 1.0)
 
 
 @dataclass(frozen=True)
@@ -312,7 +316,7 @@ class IndentationConfig:
     depth: tuple[float, ...] = _f((2.0, 6.0), lo=0.0, doc="[min, max] depth along the inward normal at the centre, mm, drawn uniformly")
     slide: tuple[float, ...] = _f((0.0, 2.0), lo=0.0, doc="[min, max] tangential slide, mm, drawn uniformly, in a uniformly drawn tangent direction")
     clearance: float = _f(8.0, lo=0.0, doc="patch centres lie at least this far (mm) from supported vertices (pins, attached region)")
-    tool: str = _f("flat", choices=("flat", "rounded"), doc="the instrument's face: flat = every patch vertex moves together (a rigid punch: its rim is singular); rounded = a ball-ended tool of tool_radius, the surface within the Hertz contact radius sqrt(tool_radius depth) follows its shape")
+    tool: str = _f("flat", choices=("flat", "rounded"), doc="flat = the patch moves together (a rigid punch, singular rim); rounded = a ball tip of tool_radius (Hertz profile)")
     tool_radius: float = _f(5.0, lo=0.0, lo_open=True, doc="tool rounded: radius of the instrument's rounded tip, mm")
     access: AccessConfig = field(default_factory=AccessConfig, metadata={"doc": "the surgical access: the surface region where patch centres may lie (default the whole outer surface)"})
 
@@ -477,6 +481,11 @@ def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, ForceConfig):
         if not obj.betas or any(not 0.0 <= b <= 1.0 for b in obj.betas):
             raise ConfigError(f"{prefix}betas must be numbers in [0, 1], got {list(obj.betas)}")
+        if obj.target_max_displacement < 0.1:
+            raise ConfigError(f"{prefix}target_max_displacement = {obj.target_max_displacement!r} mm looks like metres; "
+                              "lengths are in mm (e.g. 30 for 3 cm)")
+    if isinstance(obj, MaterialConfig) and obj.check_range:
+        _check_modulus(f"{prefix}youngs_modulus", obj.youngs_modulus, f"{prefix}check_range")
     if isinstance(obj, ServeConfig) and obj.tracker_to_client:
         from .frames import FrameError, check_transform
 
@@ -533,6 +542,21 @@ def _cross_checks(obj: Any, prefix: str) -> None:
         _check_scenario(obj)
 
 
+def _check_modulus(key: str, value: float, switch: str) -> None:
+    """Refuse a Young's modulus outside :data:`SOFT_TISSUE_MODULUS_SPAN` (MPa), naming the
+    likely unit slip and the switch that allows it."""
+    lo, hi = SOFT_TISSUE_MODULUS_SPAN
+    if lo <= value <= hi:
+        return
+    guess = ""
+    for factor, unit in ((1e-3, "kPa"), (1e-6, "Pa"), (1e3, "GPa")):
+        if lo <= value * factor <= hi:
+            guess = f"; {value:g} {unit} would be {value * factor:g} MPa"
+            break
+    raise ConfigError(f"{key} = {value!r} MPa is outside soft tissue's range, {lo:g}-{hi:g} MPa (0.1 kPa to 1 MPa){guess}; "
+                      f"moduli are in MPa (21 kPa = 0.021): fix the unit, or set {switch} = false for a stiffer material")
+
+
 def _check_vector(key: str, v: tuple, nonzero: bool = True) -> None:
     if len(v) != 3 or (nonzero and not any(x != 0.0 for x in v)):
         raise ConfigError(f"{key} must be 3 numbers (x, y, z){' not all zero' if nonzero else ''}, got {list(v)}")
@@ -552,6 +576,12 @@ def _check_scenario(cfg: "Config") -> None:
     if not (sc.lbo_forces or sc.gravity.enabled or sc.indentation.enabled):
         raise ConfigError("scenario has no load: set scenario.lbo_forces = true, scenario.gravity.enabled or "
                           "scenario.indentation.enabled")
+    if cfg.material.check_range:
+        for k, reg in enumerate(sc.materials.regions):
+            key = f"scenario.materials.regions[{k}]"
+            _check_modulus(f"{key}.youngs_modulus", reg.youngs_modulus, "material.check_range")
+            for value in reg.youngs_modulus_range:
+                _check_modulus(f"{key}.youngs_modulus_range", value, "material.check_range")
     if sc.springs.rule != "none":
         e = cfg.material.youngs_modulus
         lo, hi = SUPPORT_LENGTH_SPAN
