@@ -38,6 +38,12 @@ def test_vertex_fields_and_sets_map_between_the_levels():
     np.testing.assert_allclose(r.from_coarse(linear), r.mesh.points @ np.array([[1.0, 0.0, 2.0], [0.5, -1.0, 0.0],
                                                                                 [0.0, 3.0, 1.0]]), atol=1e-12)
     np.testing.assert_array_equal(r.coarse_values(r.from_coarse(linear)), linear)
+    # a quadratic field of the coarse nodes is the same quadratic on the refined nodes
+    def quadratic(x):
+        return np.column_stack([x[:, 0] ** 2 - x[:, 1] * x[:, 2], 3.0 * x[:, 1] + x[:, 0] * x[:, 2], x[:, 2] ** 2])
+
+    np.testing.assert_allclose(r.from_coarse_quadratic(quadratic(coarse.points10)), quadratic(r.mesh.points10),
+                               atol=1e-9)
     face = np.flatnonzero(np.isclose(coarse.points[:, 2], 0.0))
     np.testing.assert_array_equal(refine_vertex_set(r, face), np.flatnonzero(np.isclose(r.mesh.points[:, 2], 0.0)))
 

@@ -19,9 +19,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .tetmesh import TetMesh
+from .tetmesh import TET_EDGES, TetMesh
 
 __all__ = ["RefinedMesh", "refine_uniformly", "refine_vertex_set"]
+
+#: barycentric coordinates of the 10 quadratic nodes of a tetrahedron (vertices, then mid-edges)
+_LOCAL_BARYCENTRIC = np.vstack([np.eye(4), 0.5 * (np.eye(4)[TET_EDGES[:, 0]] + np.eye(4)[TET_EDGES[:, 1]])])
+
+
+def _quadratic_shapes(bary: np.ndarray) -> np.ndarray:
+    """(k, 10) the 10-node tetrahedron's shape functions at barycentric points (k, 4)."""
+    corner = bary * (2.0 * bary - 1.0)
+    edge = 4.0 * bary[:, TET_EDGES[:, 0]] * bary[:, TET_EDGES[:, 1]]
+    return np.hstack([corner, edge])
+
 
 # local node ids in a tets10 row: 0-3 vertices, 4 (0,1), 5 (1,2), 6 (0,2), 7 (0,3), 8 (1,3), 9 (2,3)
 _CORNERS = np.array([[0, 4, 6, 7], [4, 1, 5, 8], [6, 5, 2, 9], [7, 8, 9, 3]], dtype=np.int64)
@@ -39,12 +50,17 @@ class RefinedMesh:
         parent: (8 m,) int64 coarse element of each refined element.
         n_coarse: n, the coarse mesh's vertex count (its vertices are the refined ids ``0..n-1``).
         edges: (e, 2) int64 the coarse edges; refined vertex ``n + k`` is the midpoint of ``edges[k]``.
+        local: (8 m, 4) int64 each refined element's vertices as nodes 0-9 of its parent's
+            quadratic element (``TetMesh.tets10`` order).
+        coarse_tets10: (m, 10) int64 the coarse quadratic connectivity.
     """
 
     mesh: TetMesh
     parent: np.ndarray
     n_coarse: int
     edges: np.ndarray
+    local: np.ndarray
+    coarse_tets10: np.ndarray
 
     def coarse_values(self, values: np.ndarray) -> np.ndarray:
         """A refined vertex field (n + e, ...) read on the coarse vertices: its first n rows."""
@@ -55,15 +71,32 @@ class RefinedMesh:
         v = np.asarray(values, dtype=np.float64)
         return np.concatenate([v, 0.5 * (v[self.edges[:, 0]] + v[self.edges[:, 1]])])
 
+    def from_coarse_quadratic(self, nodal: np.ndarray) -> np.ndarray:
+        """A coarse quadratic field at the coarse element nodes ((n + e, 3), ``points10``
+        order) on the refined mesh's quadratic nodes ((len(mesh.points10), 3)): exact, the
+        coarse field is quadratic in each coarse element (e.g. a coarse solution as a start
+        for the refined solve)."""
+        u = np.asarray(nodal, dtype=np.float64)
+        fine = self.mesh
+        first = np.full(len(fine.edges), -1, dtype=np.int64)
+        child_edges = fine.tets10[:, 4:] - fine.n_vertices  # (8m, 6) refined edge ids
+        order = np.argsort(child_edges.ravel(), kind="stable")
+        keys = child_edges.ravel()[order]
+        starts = np.flatnonzero(np.r_[True, keys[1:] != keys[:-1]])
+        first[keys[starts]] = order[starts]
+        child, slot = np.divmod(first, 6)
+        a, b = TET_EDGES[slot, 0], TET_EDGES[slot, 1]
+        bary = _LOCAL_BARYCENTRIC[self.local[child]]  # (e_f, 4 vertices, 4)
+        point = 0.5 * (bary[np.arange(len(child)), a] + bary[np.arange(len(child)), b])  # (e_f, 4)
+        parent_nodes = self.coarse_tets10[self.parent[child]]  # (e_f, 10)
+        mid = np.einsum("ek,eki->ei", _quadratic_shapes(point), u[parent_nodes])
+        return np.vstack([u, mid])
 
-def _oriented(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """``tets`` (k, 4) with the last two ids swapped where the signed volume is negative."""
+
+def _negative(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """(k,) bool: the tetrahedra (k, 4) whose signed volume is negative."""
     p = points[tets]
-    vol = np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0])
-    out = tets.copy()
-    flip = vol < 0.0
-    out[flip, 2], out[flip, 3] = tets[flip, 3], tets[flip, 2]
-    return out
+    return np.einsum("ij,ij->i", np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), p[:, 3] - p[:, 0]) < 0.0
 
 
 def refine_uniformly(mesh: TetMesh) -> RefinedMesh:
@@ -84,10 +117,18 @@ def refine_uniformly(mesh: TetMesh) -> RefinedMesh:
     diag = t10[np.arange(m)[:, None], _DIAGONALS[k]]  # (m, 2)
     ring = t10[np.arange(m)[:, None], _CYCLES[k]]  # (m, 4)
     inner = np.stack([np.column_stack([diag, ring[:, j], ring[:, (j + 1) % 4]]) for j in range(4)], axis=1)
+    local = np.concatenate([np.broadcast_to(_CORNERS, (m, 4, 4)),
+                            np.stack([np.column_stack([np.broadcast_to(_DIAGONALS[k], (m, 2)), _CYCLES[k][:, j],
+                                                       _CYCLES[k][:, (j + 1) % 4]]) for j in range(4)], axis=1)],
+                           axis=1)
     tets = np.concatenate([corners, inner], axis=1).reshape(8 * m, 4)
-    tets = _oriented(points, tets)
+    local = local.reshape(8 * m, 4)
+    flip = _negative(points, tets)
+    tets[flip, 2], tets[flip, 3] = tets[flip, 3].copy(), tets[flip, 2].copy()
+    local[flip, 2], local[flip, 3] = local[flip, 3].copy(), local[flip, 2].copy()
     parent = np.repeat(np.arange(m, dtype=np.int64), 8)
-    return RefinedMesh(TetMesh(points, tets), parent, mesh.n_vertices, np.asarray(mesh.edges, dtype=np.int64))
+    return RefinedMesh(TetMesh(points, tets), parent, mesh.n_vertices, np.asarray(mesh.edges, dtype=np.int64), local,
+                       t10)
 
 
 def refine_vertex_set(refined: RefinedMesh, vertices: np.ndarray) -> np.ndarray:
