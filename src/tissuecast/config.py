@@ -30,6 +30,7 @@ __all__ = [
     "DatasetConfig",
     "SurrogateConfig",
     "EvaluateConfig",
+    "TargetConfig",
     "ServeConfig",
     "ScenarioConfig",
     "RegionConfig",
@@ -209,12 +210,31 @@ class SurrogateConfig:
     alarm_fault_score: bool = _f(False, doc="the alarm also tests for one displaced marker: catches it sooner with many markers, catches fewer of the other faults at the same false-alarm rate")
 
 
+#: Where the errors at targets (TRE) are measured (see :mod:`tissuecast.evaluate.targets`).
+TARGET_RULES = ("interior", "tag", "label", "points")
+
+
+@dataclass(frozen=True)
+class TargetConfig:
+    """Targets: the points inside the tissue where the clinic measures the error (TRE)."""
+
+    rule: str = _f("interior", choices=TARGET_RULES, doc="interior = `count` interior vertices spread by k-center at least `depth` from the surface; tag = the vertices of a mesh-file region; label = `count` points of a label-map label (e.g. the tumour); points = the points listed in `path`")
+    count: int = _f(10, lo=1, hi=10000, doc="rules 'interior' and 'label': number of targets")
+    depth: float = _f(0.0, lo=0.0, doc="rule 'interior': least distance (mm) from the outer surface; 0 = half the deepest vertex's")
+    tag: str = _f("", doc="rule 'tag': name of a point-data array, point set, cell set or cell-data array of the mesh file")
+    tag_value: int = _f(-1, doc="rule 'tag' on a data array: the value marking the region; -1 = any non-zero value")
+    path: str = _f("", doc="rule 'label': label map (.nii, .nii.gz, .nrrd, .seg.nrrd); rule 'points': CSV (x, y, z or label, x, y, z; LPS mm) or Slicer markups (.mrk.json, .fcsv; its frame honoured)")
+    label: int = _f(0, lo=0, doc="rule 'label': voxel value of the region; 0 = the only non-zero value of the map")
+    segment: str = _f("", doc="rule 'label' on a 3D Slicer segmentation (.seg.nrrd): segment name or ID")
+
+
 @dataclass(frozen=True)
 class EvaluateConfig:
     """Evaluation and report."""
 
     output: str = _f("report", doc="report folder")
     renders: int = _f(3, lo=0, hi=100, doc="number of samples rendered in 3D")
+    targets: TargetConfig = field(default_factory=TargetConfig, metadata={"doc": "where target registration errors (TRE) are measured"})
 
 
 #: How TRANSFORM marker input triggers predictions, and the frames a client may work in
@@ -503,6 +523,8 @@ def _cross_checks(obj: Any, prefix: str) -> None:
         if obj.rule == "tag" and not obj.tag:
             raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
                               "(`tissuecast mesh info FILE` lists them)")
+    if isinstance(obj, TargetConfig):
+        _check_targets(obj, prefix)
     if isinstance(obj, GravityConfig):
         _check_vector(f"{prefix}imaging_direction", obj.imaging_direction)
         _check_vector(f"{prefix}surgery_direction", obj.surgery_direction)
@@ -555,6 +577,31 @@ def _check_modulus(key: str, value: float, switch: str) -> None:
             break
     raise ConfigError(f"{key} = {value!r} MPa is outside soft tissue's range, {lo:g}-{hi:g} MPa (0.1 kPa to 1 MPa){guess}; "
                       f"moduli are in MPa (21 kPa = 0.021): fix the unit, or set {switch} = false for a stiffer material")
+
+
+def _check_targets(t: "TargetConfig", prefix: str) -> None:
+    """Each target rule has the keys it needs, and only those (a key of another rule is a slip)."""
+    from .mesh.labelmap import label_map_format
+
+    points_suffixes = (".csv", ".mrk.json", ".fcsv")
+    if t.rule == "tag" and not t.tag:
+        raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
+                          "(`tissuecast mesh info FILE` lists them)")
+    if t.rule in ("label", "points") and not t.path:
+        what = "a label map (.nii, .nii.gz, .nrrd, .seg.nrrd)" if t.rule == "label" else "a CSV or Slicer markups file"
+        raise ConfigError(f"{prefix}rule = {t.rule!r} needs {prefix}path, {what}")
+    if t.rule == "label" and label_map_format(t.path) is None:
+        raise ConfigError(f"{prefix}path = {t.path!r} is not a label map; rule 'label' reads .nii, .nii.gz, .nrrd or "
+                          ".seg.nrrd")
+    if t.rule == "points" and not t.path.lower().endswith(points_suffixes):
+        raise ConfigError(f"{prefix}path = {t.path!r}: rule 'points' reads " + ", ".join(points_suffixes))
+    if t.segment and not t.path.lower().endswith(".seg.nrrd"):
+        raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
+                          f"{prefix}path = {t.path!r} is not one: use {prefix}label")
+    unused = [k for k, rules in (("tag", ("tag",)), ("path", ("label", "points")), ("label", ("label",)),
+                                 ("segment", ("label",))) if getattr(t, k) and t.rule not in rules]
+    if unused:
+        raise ConfigError(f"{prefix}{unused[0]} does not apply to {prefix}rule = {t.rule!r}; remove it or change the rule")
 
 
 def _check_vector(key: str, v: tuple, nonzero: bool = True) -> None:
