@@ -290,3 +290,37 @@ def test_a_stiff_material_is_accepted_when_the_range_check_is_off():
                                                                     "youngs_modulus": 63.0}]}}})
     assert cfg.material.youngs_modulus == 21.0 and cfg.scenario.materials.regions[0].youngs_modulus == 63.0
     assert config_from_dict({"material": {"youngs_modulus": 1e-4}}).material.youngs_modulus == 1e-4  # brain, softest
+
+
+@pytest.mark.parametrize(
+    "targets, key, text",
+    [
+        ({"rule": "tumour"}, "evaluate.targets.rule", "is not allowed"),
+        ({"count": 0}, "evaluate.targets.count", "out of range"),
+        ({"depth": -1.0}, "evaluate.targets.depth", "out of range"),
+        ({"rule": "tag"}, "evaluate.targets.tag", "needs"),
+        ({"rule": "label"}, "evaluate.targets.path", "a label map"),
+        ({"rule": "points"}, "evaluate.targets.path", "a CSV or Slicer markups file"),
+        ({"rule": "label", "path": "tumour.vtu"}, "evaluate.targets.path", "is not a label map"),
+        ({"rule": "points", "path": "targets.txt"}, "evaluate.targets.path", "reads .csv, .mrk.json, .fcsv"),
+        ({"rule": "label", "path": "scan.nrrd", "segment": "tumour"}, "evaluate.targets.segment", "use evaluate.targets.label"),
+        ({"tag": "tumour"}, "evaluate.targets.tag", "does not apply to evaluate.targets.rule = 'interior'"),
+        ({"rule": "points", "path": "t.csv", "label": 2}, "evaluate.targets.label", "does not apply"),
+    ],
+)
+def test_bad_targets_raise_config_error_naming_the_key(targets, key, text):
+    with pytest.raises(ConfigError) as err:
+        config_from_dict({"evaluate": {"targets": targets}})
+    msg = str(err.value)
+    assert key in msg and text in msg
+
+
+def test_targets_default_and_round_trip(tmp_path):
+    t = Config().evaluate.targets
+    assert (t.rule, t.count, t.depth) == ("interior", 10, 0.0)
+    cfg = with_overrides(Config(), evaluate={"targets": {"rule": "label", "path": "scan.seg.nrrd", "segment": "tumour",
+                                                         "count": 25}})
+    path = tmp_path / "c.toml"
+    path.write_text(config_to_toml(cfg))
+    assert load_config(path) == cfg and "[evaluate.targets]" in path.read_text()
+    assert all(len(f.metadata["doc"]) <= 150 for f in dataclasses.fields(type(t)))

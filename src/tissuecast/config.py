@@ -218,12 +218,12 @@ TARGET_RULES = ("interior", "tag", "label", "points")
 class TargetConfig:
     """Targets: the points inside the tissue where the clinic measures the error (TRE)."""
 
-    rule: str = _f("interior", choices=TARGET_RULES, doc="interior = `count` interior vertices spread by k-center at least `depth` from the surface; tag = the vertices of a mesh-file region; label = `count` points of a label-map label (e.g. the tumour); points = the points listed in `path`")
+    rule: str = _f("interior", choices=TARGET_RULES, doc="interior = `count` deep vertices spread by k-center; tag = a mesh region's vertices; label = `count` points of a label-map label; points = `path`'s")
     count: int = _f(10, lo=1, hi=10000, doc="rules 'interior' and 'label': number of targets")
     depth: float = _f(0.0, lo=0.0, doc="rule 'interior': least distance (mm) from the outer surface; 0 = half the deepest vertex's")
     tag: str = _f("", doc="rule 'tag': name of a point-data array, point set, cell set or cell-data array of the mesh file")
     tag_value: int = _f(-1, doc="rule 'tag' on a data array: the value marking the region; -1 = any non-zero value")
-    path: str = _f("", doc="rule 'label': label map (.nii, .nii.gz, .nrrd, .seg.nrrd); rule 'points': CSV (x, y, z or label, x, y, z; LPS mm) or Slicer markups (.mrk.json, .fcsv; its frame honoured)")
+    path: str = _f("", doc="rule 'label': a label map (.nii[.gz], .nrrd, .seg.nrrd); rule 'points': CSV (x, y, z or label, x, y, z; LPS mm) or Slicer .mrk.json / .fcsv")
     label: int = _f(0, lo=0, doc="rule 'label': voxel value of the region; 0 = the only non-zero value of the map")
     segment: str = _f("", doc="rule 'label' on a 3D Slicer segmentation (.seg.nrrd): segment name or ID")
 
