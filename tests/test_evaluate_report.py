@@ -130,6 +130,7 @@ def test_report_is_written(tmp_path, model, ds, evaluation):
     assert "class='tc-verdict'" in head and "How good, against what (test-1, 30 samples)" in head
     assert "error at 10 targets (TRE): mean / p95 / max" in head and "How sure" in head
     assert "90 % error bounds: share of vertices covered (test-1)" in head and "<details" not in head
+    assert "<td>off</td><td>too few calibration samples" in head  # 30 calibration samples: no finite 1 % alarm
     t1 = evaluation.sets["test1"]
     assert f"{t1.rigid.offset_max:.2f} mm" in head and f"{100 * t1.target_summary('rigid').share_corrected_mean:.1f} %" in head
     assert "Measured against the baselines and the paper" in page and "0.889 – 1.181" in page
@@ -179,6 +180,19 @@ def test_viewer_data_holds_the_true_and_predicted_surfaces(tmp_path, model, ds, 
     np.testing.assert_allclose(np.reshape(first["methods"]["rigid"], (-1, 3)), pred[surface], atol=5e-4)
     assert view["methods"] == ["mlp", "rigid", "ridge"] and len(view["samples"]) == 5
     assert len(first["targets"]["mlp"]) == 3 * evaluation.targets.count
+
+
+def test_how_sure_rows_say_what_is_there():
+    from tissuecast.evaluate.headline import trust_rows
+
+    assert trust_rows(None, True)[0][1] == "—" and "calibration_share = 0" in trust_rows(None, True)[0][2]
+    assert "ensemble's spread" in trust_rows(None, True)[0][2] and "spread" not in trust_rows(None, False)[0][2]
+    row = {"coverage_0.9": 0.894, "median_bound_0.9": 0.12, "alarm_rate": 0.04, "alarm_on": True}
+    rows = trust_rows({"sets": {"test1": row, "test2": {**row, "alarm_rate": 0.5, "coverage_0.9": 0.7}}})
+    assert [r[1] for r in rows] == ["89.4 %", "4 %", "50 %"] and "median bound 0.12 mm" in rows[0][2]
+    assert "bounds cover 70 % there" in rows[2][2]
+    rows = trust_rows({"sets": {"test1": {**row, "median_bound_0.9": float("inf"), "alarm_on": False}}})
+    assert "infinite" in rows[0][2] and rows[1][1] == "off"
 
 
 def test_numbers_are_written_for_people():

@@ -111,10 +111,15 @@ def trust_rows(trust: dict | None, model_has_ensemble: bool = False) -> list[lis
     sets = trust["sets"]
     name = next(s for s in ("test1", "test2") if s in sets)
     t = sets[name]
+    finite = not _bad(t["median_bound_0.9"])
     rows = [[f"90 % error bounds: share of vertices covered ({set_title(name)})", fmt_share(t["coverage_0.9"]),
-             f"should be about 90 %; median bound {fmt_mm(t['median_bound_0.9'])}"],
-            [f"out-of-distribution alarm: samples raising it ({set_title(name)})", fmt_share(t["alarm_rate"]),
-             "in-distribution inputs: should be near the false-alarm rate"]]
+             f"should be about 90 %; median bound {fmt_mm(t['median_bound_0.9'])}" if finite else
+             "the bounds are infinite: too few calibration samples for 90 %"]]
+    if not t.get("alarm_on", True):
+        rows.append(["out-of-distribution alarm", "off", "too few calibration samples for its false-alarm rate"])
+        return rows
+    rows.append([f"out-of-distribution alarm: samples raising it ({set_title(name)})", fmt_share(t["alarm_rate"]),
+                 "in-distribution inputs: should be near the false-alarm rate"])
     if name == "test1" and "test2" in sets:
         rows.append(["alarm on test-2 (other force fields)", fmt_share(sets["test2"]["alarm_rate"]),
                      f"bounds cover {fmt_share(sets['test2']['coverage_0.9'])} there"])
@@ -145,8 +150,9 @@ def verdict(evaluation, trust: dict | None = None) -> str:
     text += "."
     if trust is not None and trust.get("sets"):
         t = trust["sets"].get("test1") or next(iter(trust["sets"].values()))
-        text += (f" Its 90 % error bounds cover {fmt_share(t['coverage_0.9'])} of vertices and the alarm fires on "
-                 f"{fmt_share(t['alarm_rate'])} of the test-1 samples.")
+        alarm = (f"the alarm fires on {fmt_share(t['alarm_rate'])} of these samples" if t.get("alarm_on", True) else
+                 "its alarm is off (too few calibration samples)")
+        text += f" Its 90 % error bounds cover {fmt_share(t['coverage_0.9'])} of vertices and {alarm}."
     elif trust is not None:
         text += " It has no calibrated error bounds or alarm."
     return text

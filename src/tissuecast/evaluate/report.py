@@ -50,7 +50,7 @@ h1{font-size:1.5em;margin:.2em 0}h2{font-size:1.2em;margin:.9em 0 .4em}h3{font-s
 padding:.6em .9em;margin:.6em 0}
 table{border-collapse:collapse;margin:.5em 0 1em}td,th{border-bottom:1px solid #d5dbe1;padding:4px 10px;text-align:right}
 th{background:#eef1f4;font-weight:600}td:first-child,th:first-child{text-align:left}td:not(:first-child){white-space:nowrap}
-table.tc-sure td:last-child{text-align:left;white-space:normal}
+table.tc-sure td:last-child,table.tc-sure th:last-child{text-align:left;white-space:normal}
 table.tc-headline td:nth-child(2),table.tc-headline th:nth-child(2){background:#e8f1fb;font-weight:600}
 img{max-width:100%}details{border-top:1px solid #d5dbe1;padding:.3em 0}summary{cursor:pointer}
 summary h2{display:inline;font-size:1.1em}small,.tc-note{color:#56606b}

@@ -47,6 +47,7 @@ def bound_figures(model, bench: np.ndarray, levels=LEVELS) -> dict:
                                       else float("nan"))
             row["vertex_spearman"] = float(spearman_rows(tp.error_bound, e).mean())
             row["alarm_rate"] = float(np.mean([a.raised for a in tp.alarms]))
+            row["alarm_on"] = bool(np.isfinite(tp.alarms[0].distance_threshold))  # off: too few calibration samples
     return row
 
 
@@ -103,7 +104,8 @@ def _bounds_table(result: dict) -> str:
             "median bound 95 %", "Spearman (largest bound, Offset_max)", "per-vertex Spearman", "alarms"]
     rows = [[set_title(name), str(r["count"]), fmt_mm(r["offset_max"]), fmt_share(r["coverage_0.9"]),
              fmt_mm(r["median_bound_0.9"]), fmt_share(r["coverage_0.95"]), fmt_mm(r["median_bound_0.95"]),
-             _fmt_rho(r["sample_spearman"]), _fmt_rho(r["vertex_spearman"]), fmt_share(r["alarm_rate"])]
+             _fmt_rho(r["sample_spearman"]), _fmt_rho(r["vertex_spearman"]),
+             fmt_share(r["alarm_rate"]) if r.get("alarm_on", True) else "off"]
             for name, r in result["sets"].items()]
     return beta_table(head, rows)
 

@@ -143,7 +143,7 @@
     this.update();
   }
 
-  Viewer.prototype.reset = function () { this.yaw = 0.5; this.pitch = 0.25; this.distance = 3.2 * this.radius; };
+  Viewer.prototype.reset = function () { this.yaw = 0.5; this.pitch = 0.25; this.distance = 3.0 * this.radius; };
 
   Viewer.prototype.q = function (name) { return this.root.querySelector("[data-control=" + name + "]"); };
 
