@@ -77,6 +77,14 @@ def test_interior_targets_follow_the_documented_rule(mesh):
     with pytest.raises(MeshError, match="lower evaluate.targets.depth"):
         interior_targets(mesh, depth=50.0)
     assert farthest_points(np.array([[0.0, 0, 0], [1, 0, 0], [5, 0, 0], [2, 0, 0]]), 3, 0).tolist() == [0, 2, 3]
+    # a thin wall has no interior vertex: its free vertices serve, spread the same way
+    from mesh_factories import box_grid
+
+    wall = box_grid(6, 6, 1, size=(2.0, 2.0, 1.0))
+    assert wall.interior_vertices.size == 0
+    t = interior_targets(wall, count=4, exclude=[0, 1])
+    assert t.count == 4 and "no free interior vertex" in t.description
+    assert not np.any(np.all(np.isclose(t.positions[:, None], wall.points[[0, 1]][None]), axis=2))
 
 
 def test_tag_targets_are_the_regions_vertices(mesh, tmp_path):

@@ -14,8 +14,10 @@ Where targets come from (``[evaluate.targets]``, :func:`targets_from_config`):
     vertices at least ``depth`` mm from the outer surface (default half the deepest vertex's
     depth) and not held by a support; the first target is the deepest candidate, each next
     one the candidate farthest from the targets so far (k-center, farthest-point order; ties
-    to the lowest id). Deterministic for a given mesh. The built-in phantom is a tumour on
-    its own (it has no regions inside), so its default targets are these points of its core.
+    to the lowest id). Deterministic for a given mesh. A mesh without a free interior vertex
+    (a thin wall) uses all its free vertices instead, from the one nearest their centroid. The
+    built-in phantom is a tumour on its own (it has no regions inside), so its default targets
+    are these points of its core.
 ``tag``
     every vertex of a named region of the mesh file (point data, point set, cell set, cell
     data; :mod:`tissuecast.mesh.tags`).
@@ -114,18 +116,24 @@ def interior_targets(mesh, count: int = 10, depth: float = 0.0, exclude=()) -> T
     """
     from ..markers import surface_depth
 
-    inner = np.setdiff1d(mesh.interior_vertices, np.asarray(exclude, dtype=np.int64))
-    if inner.size == 0:
-        raise MeshError("the mesh has no free interior vertex to place targets at; list target points instead "
-                        "(evaluate.targets.rule = 'points')")
+    free = np.setdiff1d(np.arange(mesh.n_vertices), np.asarray(exclude, dtype=np.int64))
+    inner = np.intersect1d(mesh.interior_vertices, free)
+    if inner.size == 0:  # a thin wall: every free vertex is on the surface
+        if free.size == 0:
+            raise MeshError("every vertex is held by a support; list target points instead (evaluate.targets.rule = "
+                            "'points')")
+        first = int(np.argmin(np.linalg.norm(mesh.points[free] - mesh.points[free].mean(axis=0), axis=1)))
+        ids = free[farthest_points(mesh.points[free], count, first)]
+        return _targets(mesh, "interior", f"{ids.size} vertices (k-center; the mesh has no free interior vertex)",
+                        mesh.points[ids], [f"T{i + 1} (vertex {v})" for i, v in enumerate(ids)])
     d = surface_depth(mesh, inner)
     least = depth if depth > 0 else DEPTH_FRACTION * float(d.max())
-    cand = inner[d >= least]
-    if cand.size == 0:
+    keep = d >= least
+    if not keep.any():
         raise MeshError(f"no interior vertex lies {least:g} mm from the surface (the deepest is {d.max():.3g} mm); "
                         "lower evaluate.targets.depth")
-    order = farthest_points(mesh.points[cand], count, int(np.argmax(surface_depth(mesh, cand))))
-    ids = cand[order]
+    cand = inner[keep]
+    ids = cand[farthest_points(mesh.points[cand], count, int(np.argmax(d[keep])))]
     return _targets(mesh, "interior", f"{ids.size} interior points (k-center, >= {least:.1f} mm from the surface)",
                     mesh.points[ids], [f"T{i + 1} (vertex {v})" for i, v in enumerate(ids)])
 
