@@ -6,6 +6,7 @@
 // Sets data-drawn="true" on #tc-viewer after the first frame (the report's browser test reads it).
 (function () {
   "use strict";
+  // ten stops of matplotlib's viridis and inferno colour maps (van der Walt, Smith, Firing; released under CC0)
   var VIRIDIS = ["#440154", "#482878", "#3e4989", "#31688e", "#26828e", "#1f9e89", "#35b779", "#6ece58", "#b5de2b", "#fde725"];
   var INFERNO = ["#000004", "#1b0c41", "#4a0c6b", "#781c6d", "#a52c60", "#cf4446", "#ed6925", "#fb9b06", "#f7d13d", "#fcffa4"];
 
