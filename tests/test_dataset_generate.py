@@ -118,7 +118,7 @@ def test_basis_samples_start_from_an_interim_model_of_the_pilots(tmp_path):
 
     from tissuecast.dataset import recipe_from_store
     from tissuecast.dataset.generate import setup_from_config
-    from tissuecast.dataset.predictor import MIN_INTERIM, _interim_guesses, _pilot_rows, basis_samples
+    from tissuecast.dataset.reduced_predictor import MIN_INTERIM, _interim_guesses, _pilot_rows, basis_samples
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task
     from tissuecast.fem import Solver, build_problem
@@ -216,7 +216,7 @@ def test_interrupted_before_the_calibration_record_calibrates_again_identically(
 def test_batches_are_chunks_of_the_generation_order_fixed_in_the_store(reference):
     cfg, path, _ = reference
 
-    from tissuecast.dataset.plan import generation_order
+    from tissuecast.dataset.sample_plan import generation_order
 
     ds = open_dataset(path)
     root = zarr.open_group(str(path), mode="r")
