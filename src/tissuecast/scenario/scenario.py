@@ -43,7 +43,7 @@ def scenario_rng(sample_seed) -> np.random.Generator:
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """A scenario resolved on a mesh (see :func:`build_scenario`).
+    """A scenario resolved on a mesh (see :func:`~.resolve.build_scenario`).
 
     Attributes:
         config: the scenario settings.
