@@ -30,7 +30,7 @@ Rule (documented in the store's ``calibration`` attribute):
   would measure only them.) Without LBO forces nothing is calibrated (alpha = 0).
 * If ``dataset.alpha`` > 0 in the config, it is used as is and no pilots are solved.
 * From the second round on, each pilot's solve starts from its own solution of the previous
-  round (see ``generate._calibrate``); the answers are the same within the solver
+  round (see :func:`calibrate_pilots`); the answers are the same within the solver
   tolerances, and the rounds are deterministic, so a repeated calibration gives the same
   record bit for bit.
   Where the body hangs on its pins, the first round's pilots (nearly linear at the small

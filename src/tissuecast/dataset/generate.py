@@ -250,7 +250,7 @@ def _work_items(writer: StoreWriter, order: np.ndarray, batch_size: int, task) -
 def _solve_pending(writer: StoreWriter, ex: Supervisor, batch_size: int = 1) -> Phase:
     """Solve every pending sample at the calibrated alpha, writing results as they come.
 
-    The splits are interleaved (:func:`~.plan.generation_order`), so a run stopped part-way
+    The splits are interleaved (:func:`~.sample_plan.generation_order`), so a run stopped part-way
     leaves a store whose done samples already cover every split in proportion. With
     ``batch_size`` > 1 workers solve the stored batches (:mod:`.batch`); the done samples of
     a partly written batch are solved again with it and not written again.

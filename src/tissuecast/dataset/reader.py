@@ -139,7 +139,7 @@ class Dataset:
 
     @cached_property
     def draws(self) -> dict[str, np.ndarray]:
-        """Each sample's scenario draws, by name (:data:`~.store.DRAWS`): ``gravity_direction``
+        """Each sample's scenario draws, by name (:data:`~.schema.DRAWS`): ``gravity_direction``
         (N, 3) unit vectors, ``indent_centre`` (N,) int64 vertex ids (-1: none),
         ``indent_depth`` / ``indent_slide`` (N,) mm and ``indent_displacement`` (N, 3) mm (NaN:
         not drawn). Only the draws the scenario makes; empty for the paper's set-up."""

@@ -238,7 +238,7 @@ class StoreWriter:
         a["forces"][i] = r.forces
         m = self._mem
         m["weights"][i] = r.weights
-        if self._draws and r.draw is not None:
+        if self._draws:
             for name, value in _draw_values(r.draw).items():
                 m[name][i] = value
         values = {"alpha": r.alpha, "increments": r.increments, "iterations": r.iterations,

@@ -52,7 +52,7 @@ class Recipe:
         basis: the stored :class:`~tissuecast.forces.LBOBasis`.
         scenario_arrays: the resolved scenario's :meth:`~tissuecast.scenario.Scenario.arrays`,
             as the store holds them (pins, attached region, springs, materials, indentation
-            access; :func:`~.store.read_scenario_arrays`).
+            access; :func:`~.schema.read_scenario_arrays`).
         solver_factory: ``"module:function"`` building the solver (see :func:`fem_solver_factory`).
         reduced_basis, reduced_elements, reduced_weights: the data set's reduced-order
             predictor (:class:`~tissuecast.fem.reduced.ReducedModel`), or None (solve from zero).
