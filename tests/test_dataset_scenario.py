@@ -184,7 +184,7 @@ def test_a_store_with_markers_of_an_earlier_rule_resumes_with_its_own(reference,
     root = zarr.open_group(str(path), mode="r+")
     now = np.asarray(root["markers"][...])
     root["markers"][:] = now[::-1]  # as an earlier rule might have ordered them
-    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.generate"):
+    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.store"):
         simulate(cfg, path, progress=False)
     assert "keeps its own markers" in caplog.text
     np.testing.assert_array_equal(open_dataset(path).markers, now[::-1])
@@ -204,14 +204,14 @@ def test_a_store_with_springs_of_an_earlier_lumping_goes_on_with_its_own(referen
     root = zarr.open_group(str(path), mode="r+")
     older = 0.5 * np.asarray(root["scenario/spring_stiffness"][...])
     root["scenario/spring_stiffness"][:] = older
-    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.generate"):
+    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.store"):
         simulate(cfg, path, progress=False)
     assert "holds springs other than this config gives" in caplog.text
-    np.testing.assert_array_equal(recipe_from_store(path).scenario["spring_stiffness"], older)
+    np.testing.assert_array_equal(recipe_from_store(path).scenario_arrays["spring_stiffness"], older)
     caplog.clear()
     same = tmp_path / "same.zarr"
     shutil.copytree(ref_path, same)
-    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.generate"):
+    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.store"):
         simulate(cfg, same, progress=False)  # its own springs: no warning
     assert "holds springs" not in caplog.text
 

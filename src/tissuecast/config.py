@@ -69,7 +69,7 @@ class MeshConfig:
     smoothing_iterations: int = _f(30, lo=0, hi=1000, doc="label map: Taubin (non-shrinking) smoothing passes of the marching-cubes surface")
 
 
-#: Fixed-vertex placement rules (see :func:`tissuecast.markers.select_fixed_vertices`).
+#: Fixed-vertex placement rules (see :func:`tissuecast.scenario.pins.select_fixed_vertices`).
 FIXED_RULES = ("compact", "spread")
 
 

@@ -75,16 +75,13 @@ def _example_forces(mesh, cfg, seed: int, rms: float) -> np.ndarray:
 def _from_store(args):
     """``(config, mesh, markers, scenario, forces (n, 3) N, sample seed)`` of a store's sample."""
     from ..dataset import open_dataset
-    from ..scenario import build_scenario, restore_scenario
+    from ..scenario import restore_scenario
 
     ds = open_dataset(args.mesh)
     if not 0 <= args.sample < len(ds):
         raise ConfigError(f"--sample {args.sample} is outside 0..{len(ds) - 1} (0-based) of {args.mesh}")
     cfg, mesh = ds.config, ds.mesh
-    if ds.scenario_arrays is not None:
-        scenario = restore_scenario(mesh, cfg, ds.scenario_arrays)
-    else:
-        scenario = build_scenario(mesh, cfg, ds.fixed)
+    scenario = restore_scenario(mesh, cfg, ds.scenario_arrays, ds.basis)
     forces = np.asarray(ds.forces[args.sample], dtype=np.float64)
     return cfg, mesh, np.asarray(ds.markers), scenario, forces, int(ds.seed[args.sample])
 

@@ -4,7 +4,7 @@ Each spring holds one node with a constant symmetric 3x3 stiffness ``K_a`` (N/mm
 reference directions: force ``-K_a u_a``, energy ``u_a . K_a u_a / 2``. CalculiX's SPRING1
 elements behave the same way under NLGEOM (one per principal direction of ``K_a``, oriented by
 ``*SPRING, ORIENTATION``), so a deck written from these springs describes the same discrete
-problem. :mod:`tissuecast.scenario.springs` builds them from a stiffness per unit area of a
+problem. :mod:`tissuecast.scenario.elastic_support` builds them from a stiffness per unit area of a
 surface region.
 """
 
