@@ -39,6 +39,7 @@ __all__ = [
     "IndentationConfig",
     "MaterialRegionConfig",
     "MaterialRegionsConfig",
+    "UncertainConfig",
     "load_config",
     "config_from_dict",
     "config_to_dict",
@@ -367,6 +368,29 @@ class MaterialRegionsConfig:
     regions: tuple[MaterialRegionConfig, ...] = _f((), doc="the regions ([[scenario.materials.regions]] tables); a later region wins where two overlap")
 
 
+#: Names of the parameters ``[scenario.uncertain]`` may draw (and ``measured`` may name).
+UNCERTAIN_PARAMETERS = ("youngs_modulus", "poisson_ratio", "region_youngs_modulus", "density", "spring_normal",
+                        "spring_tangential", "attached_margin")
+
+
+@dataclass(frozen=True)
+class UncertainConfig:
+    """What is not known in the operating room, drawn anew for every sample (docs/uncertainty.md).
+
+    Each key is a ``[min, max]`` range; empty = known (the nominal value, no draw). The model
+    does not see these parameters unless ``measured`` names them (then they are model inputs).
+    """
+
+    youngs_modulus: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on every element's E, drawn log-uniformly (e.g. [0.5, 2])")
+    poisson_ratio: tuple[float, ...] = _f((), lo=0.0, hi=0.5, hi_open=True, doc="[min, max] Poisson's ratio of every element, drawn uniformly (e.g. [0.40, 0.49])")
+    region_youngs_modulus: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on each material region's E, drawn log-uniformly per region")
+    density: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on the tissue density (the gravity change), drawn uniformly")
+    spring_normal: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on the springs' normal stiffness, drawn log-uniformly (e.g. [0.25, 4])")
+    spring_tangential: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on the springs' tangential stiffness, drawn log-uniformly")
+    attached_margin: tuple[float, ...] = _f((), doc="[min, max] mm the attached region grows (+) or shrinks (-) along the surface, drawn uniformly")
+    measured: tuple[str, ...] = _f((), doc="parameters measured before surgery (e.g. 'youngs_modulus' by elastography): model inputs")
+
+
 @dataclass(frozen=True)
 class ScenarioConfig:
     """The clinical scenario: how the tissue is held and what loads it per sample.
@@ -384,6 +408,7 @@ class ScenarioConfig:
     gravity: GravityConfig = field(default_factory=GravityConfig, metadata={"doc": "change of gravity between imaging and surgery"})
     indentation: IndentationConfig = field(default_factory=IndentationConfig, metadata={"doc": "one instrument indentation per sample"})
     materials: MaterialRegionsConfig = field(default_factory=MaterialRegionsConfig, metadata={"doc": "per-element materials (e.g. a stiffer tumour)"})
+    uncertain: UncertainConfig = field(default_factory=UncertainConfig, metadata={"doc": "parameters drawn per sample: what is unknown in the operating room"})
 
 
 @dataclass(frozen=True)
@@ -549,6 +574,8 @@ def _cross_checks(obj: Any, prefix: str) -> None:
             raise ConfigError(f"{prefix}radius = {obj.radius:g} mm is smaller than the rounded tool's largest contact "
                               f"radius sqrt(tool_radius x depth max) = {contact:.3g} mm; raise {prefix}radius to at "
                               f"least {contact:.3g} or lower {prefix}tool_radius")
+    if isinstance(obj, UncertainConfig):
+        _check_uncertain(obj, prefix)
     if isinstance(obj, MaterialRegionConfig):
         _check_vector(f"{prefix}point", obj.point, nonzero=False)
         _check_range(f"{prefix}youngs_modulus_range", obj.youngs_modulus_range)
@@ -562,6 +589,19 @@ def _cross_checks(obj: Any, prefix: str) -> None:
             raise ConfigError(f"{prefix}regions repeat a name ({names}); give each region its own name")
     if isinstance(obj, Config):
         _check_scenario(obj)
+
+
+def _check_uncertain(obj: "UncertainConfig", prefix: str) -> None:
+    """Each range is [min, max]; ``measured`` names drawn parameters."""
+    for name in UNCERTAIN_PARAMETERS:
+        _check_range(f"{prefix}{name}", getattr(obj, name))
+    unknown = [m for m in obj.measured if m not in UNCERTAIN_PARAMETERS]
+    if unknown:
+        raise ConfigError(f"{prefix}measured names {unknown}; choose among {list(UNCERTAIN_PARAMETERS)}")
+    undrawn = [m for m in obj.measured if not getattr(obj, m)]
+    if undrawn:
+        raise ConfigError(f"{prefix}measured names {undrawn}, which {prefix[:-1]} does not draw; give "
+                          f"{prefix}{undrawn[0]} a [min, max] range, or leave it out of {prefix}measured")
 
 
 def _check_modulus(key: str, value: float, switch: str) -> None:
@@ -623,6 +663,7 @@ def _check_scenario(cfg: "Config") -> None:
     if not (sc.lbo_forces or sc.gravity.enabled or sc.indentation.enabled):
         raise ConfigError("scenario has no load: set scenario.lbo_forces = true, scenario.gravity.enabled or "
                           "scenario.indentation.enabled")
+    _check_uncertain_needs(cfg)
     if cfg.material.check_range:
         for k, reg in enumerate(sc.materials.regions):
             key = f"scenario.materials.regions[{k}]"
@@ -640,6 +681,27 @@ def _check_scenario(cfg: "Config") -> None:
                     "the stiffness is per unit area, in N/mm^3 (= MPa/mm): surroundings of modulus E over a "
                     f"length L give E / L, e.g. {DEFAULT_SUPPORT_STIFFNESS} for 0.021 MPa over 10 mm (a value in "
                     "N/m^3 is 1e9 times too large)")
+
+
+def _check_uncertain_needs(cfg: "Config") -> None:
+    """An uncertain parameter needs what it varies (springs, gravity, an attached region,
+    material regions), and E's factors must keep it in soft tissue's range."""
+    sc, u = cfg.scenario, cfg.scenario.uncertain
+    needs = {"spring_normal": (sc.springs.rule != "none", "scenario.springs.rule"),
+             "spring_tangential": (sc.springs.rule != "none", "scenario.springs.rule"),
+             "density": (sc.gravity.enabled, "scenario.gravity.enabled"),
+             "attached_margin": (sc.attached.rule != "none", "scenario.attached.rule"),
+             "region_youngs_modulus": (bool(sc.materials.regions), "scenario.materials.regions")}
+    for name, (ok, key) in needs.items():
+        if getattr(u, name) and not ok:
+            raise ConfigError(f"scenario.uncertain.{name} varies something this scenario lacks; set {key}, or "
+                              f"remove scenario.uncertain.{name}")
+    lo, hi = SOFT_TISSUE_MODULUS_SPAN
+    e = cfg.material.youngs_modulus
+    if cfg.material.check_range and u.youngs_modulus and not lo <= min(u.youngs_modulus) * e <= max(u.youngs_modulus) * e <= hi:
+        raise ConfigError(f"scenario.uncertain.youngs_modulus = {list(u.youngs_modulus)} are factors on material.youngs_modulus "
+                          f"({e} MPa): they reach {min(u.youngs_modulus) * e:g}-{max(u.youngs_modulus) * e:g} MPa, outside soft "
+                          f"tissue's {lo:g}-{hi:g} MPa; give factors (e.g. [0.5, 2]), or set material.check_range = false")
 
 
 def config_from_dict(data: dict) -> Config:

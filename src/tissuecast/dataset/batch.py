@@ -67,7 +67,7 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
     t0 = time.perf_counter()
     inputs = [ctx.inputs(t) for t in tasks]
     keywords = [x.solve_keywords() for x in inputs]
-    guesses = [ctx.reduced.predict(x.loads) for x in inputs]
+    guesses = [ctx.reduced.predict(x.predictor_loads) for x in inputs]
     together = [k for k, g in enumerate(guesses) if g is not None]
     budget = min((tasks[k].budget for k in together), default=0.0)
     try:
@@ -76,6 +76,8 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
             values = [keywords[k].get(key) for k in together]
             if any(v is not None for v in values):
                 extra[key] = values
+        if any(inputs[k].parameters is not None for k in together):
+            extra["parameters"] = [inputs[k].solver_parameters for k in together]
         outcomes = solver.solve_batch([inputs[k].surface for k in together], [guesses[k] for k in together],
                                       time_limit=budget if budget > 0 else None, **extra)
     except (ArithmeticError, np.linalg.LinAlgError):  # a numerical breakdown stops the whole lockstep

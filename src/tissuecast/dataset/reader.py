@@ -13,7 +13,7 @@ from ..config import Config, config_from_dict
 from ..errors import DatasetError
 from .sample_plan import SPLIT_CODES, SPLIT_NAMES
 from .codes import STATUS_NAMES, InitialGuess, SampleStatus
-from .schema import DRAWS, check_schema, open_store_root, read_lbo_basis, read_scenario_arrays
+from .schema import DRAWS, PARAMETERS, check_schema, open_store_root, read_lbo_basis, read_scenario_arrays
 from .store import StoreWriter
 from .worker import Recipe
 
@@ -145,6 +145,15 @@ class Dataset:
         not drawn). Only the draws the scenario makes; empty for the paper's set-up."""
         samples = self._root["samples"]
         return {name: self._array(f"samples/{name}") for name in DRAWS if name in samples}
+
+    @cached_property
+    def parameters(self) -> dict[str, np.ndarray]:
+        """Each sample's drawn uncertain parameters (N,) float64, by name without the ``param_``
+        prefix (:data:`~.schema.PARAMETERS`): factors on E, density and the springs'
+        stiffnesses, nu (NaN: nominal), the attached margin in mm; empty for a store whose
+        scenario draws none."""
+        samples = self._root["samples"]
+        return {name[len("param_"):]: self._array(f"samples/{name}") for name in PARAMETERS if name in samples}
 
     @cached_property
     def split_codes(self) -> np.ndarray:

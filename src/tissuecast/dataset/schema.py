@@ -57,7 +57,20 @@ vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
       samples/indent_centre (N,) int64 vertex id of the indentation patch's centre (-1: none)
       samples/indent_depth, samples/indent_slide (N,) float64 mm, the indentation's depth along
                             the inward normal and its slide along the surface (NaN: none)
-      samples/indent_displacement (N, 3) float64 mm, the displacement given to every patch vertex
+      samples/indent_displacement (N, 3) float64 mm, the tool tip's displacement (every patch
+                            vertex's with a flat tool)
+      samples/param_youngs_modulus, param_density, param_spring_normal, param_spring_tangential
+                            (N,) float64 the sample's drawn factors on E, the density and the
+                            springs' stiffnesses; samples/param_poisson_ratio (N,) float64 its
+                            nu (NaN: the nominal ones); samples/param_attached_margin (N,) float64
+                            mm the attached region's growth along the surface (negative: shrink)
+                            (with [scenario.uncertain]; a function of the seed:
+                            scenario.parameters.parameter_rng)
+      scenario/attached_distance (n_v,) float64 mm signed distance along the surface from the
+                            nominal attached region's rim (with an uncertain attached margin;
+                            scenario/attached is then the region at its smallest extent)
+      scenario/spring_normal_part, scenario/spring_tangential_part (s, 3, 3) float64 N/mm the
+                            springs' normal and tangential stiffness (with uncertain springs)
       (every store has the scenario/ group, the paper's set-up too, except stores made before
       scenarios existed; the samples' draw arrays exist in stores whose scenario draws them;
       a sample's draws are a function of its seed: scenario.scenario_rng; the patch vertices
@@ -89,7 +102,7 @@ import numpy as np
 from ..errors import DatasetError, require
 from .codes import InitialGuess, SampleStatus
 
-__all__ = ["SCHEMA", "SCHEMA_VERSION", "SCALARS", "DRAWS", "check_schema", "open_root", "open_store_root",
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "SCALARS", "DRAWS", "PARAMETERS", "check_schema", "open_root", "open_store_root",
            "read_lbo_basis", "read_scenario_arrays"]
 
 SCHEMA = "tissuecast.dataset"
@@ -122,6 +135,10 @@ DRAWS = {
     "indent_slide": ((), "float64", np.nan),
     "indent_displacement": ((3,), "float64", np.nan),
 }
+#: Per-sample uncertain parameters (``samples/param_<name>``), in stores whose scenario draws
+#: them (``[scenario.uncertain]``): name -> (trailing shape, dtype, fill value).
+PARAMETERS = {f"param_{name}": ((), "float64", np.nan) for name in
+              ("youngs_modulus", "poisson_ratio", "density", "spring_normal", "spring_tangential", "attached_margin")}
 
 
 def zarr_module():

@@ -30,7 +30,7 @@ from ..config import Config, DatasetConfig, config_from_dict, config_to_dict, co
 from ..errors import DatasetError
 from .codes import STATUS_NAMES, SampleStatus
 from .sample_plan import SPLIT_NAMES, SamplePlan
-from .schema import (ADDED_LATER, BLOCK, DRAWS, SCALARS, SCHEMA, SCHEMA_VERSION, check_schema, compressor,
+from .schema import (ADDED_LATER, BLOCK, DRAWS, PARAMETERS, SCALARS, SCHEMA, SCHEMA_VERSION, check_schema, compressor,
                      open_root, open_store_root, read_lbo_basis, read_scenario_arrays, zarr_module)
 from .worker import SampleResult
 
@@ -70,7 +70,7 @@ class StoreWriter:
                 n = self.samples["status"].shape[0]
                 self.samples.create_array(name, shape=(n,), dtype=dtype, chunks=(min(BLOCK, n),), fill_value=fill,
                                           compressors=compressor(), dimension_names=("sample",))
-        self._draws = tuple(name for name in DRAWS if name in self.samples)
+        self._draws = tuple(name for name in {**DRAWS, **PARAMETERS} if name in self.samples)
         self._arrays = {name: self.samples[name] for name in (*SCALARS, "displacements", "forces", "weights",
                                                               *self._draws)}
         self._mem = {name: np.array(self._arrays[name][...]) for name in (*SCALARS, "weights", *self._draws)}
@@ -328,10 +328,10 @@ def _create_sample_arrays(root, plan: SamplePlan, scenario) -> None:
     for name, (dtype, fill) in SCALARS.items():
         s.create_array(name, shape=(n,), dtype=dtype, chunks=(min(BLOCK, n),), fill_value=fill,
                        compressors=comp, dimension_names=("sample",))
-    if scenario.draws_per_sample:
-        for name, (shape, dtype, fill) in DRAWS.items():
-            s.create_array(name, shape=(n, *shape), dtype=dtype, chunks=(min(BLOCK, n), *shape),
-                           fill_value=fill, compressors=comp, dimension_names=("sample",) + (("axis",) if shape else ()))
+    tables = ({**DRAWS} if scenario.draws_per_sample else {}) | (PARAMETERS if scenario.uncertain is not None else {})
+    for name, (shape, dtype, fill) in tables.items():
+        s.create_array(name, shape=(n, *shape), dtype=dtype, chunks=(min(BLOCK, n), *shape),
+                       fill_value=fill, compressors=comp, dimension_names=("sample",) + (("axis",) if shape else ()))
     s["beta"][:] = plan.beta
     s["seed"][:] = plan.seed
     s["split"][:] = plan.split
@@ -428,6 +428,8 @@ def _draw_values(draw) -> dict:
     if ind is not None:
         out.update(indent_centre=ind.centre, indent_depth=ind.depth, indent_slide=ind.slide,
                    indent_displacement=ind.displacement)
+    if draw.parameters is not None:
+        out.update({f"param_{k}": v for k, v in draw.parameters.record().items()})
     return out
 
 

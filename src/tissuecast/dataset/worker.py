@@ -330,7 +330,7 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     totals = np.zeros(3, dtype=np.int64)
     reasons = [task.batch_failure] if task.batch_failure else []
     load_fraction = 0.0
-    tries, predicted = _tries(ctx, task, inputs.loads)
+    tries, predicted = _tries(ctx, task, inputs.predictor_loads)
     limit = {"time_limit": task.budget} if task.budget > 0 else {}
     stopped_at = 0 if "SolveTimeout" in task.batch_failure else -1  # retry level of the last attempt stopped by the time budget
     for attempt, guess in tries:
@@ -338,6 +338,8 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
             continue  # a stalled sample goes on with its cautious retries only
         try:
             solver = ctx.solver(attempt)
+            if inputs.parameters is not None:  # the sample's own materials and springs
+                solver = solver.with_parameters(*inputs.solver_parameters)
             kw = {**extra, **limit}
             res = solver.solve(loads, **kw) if guess is None else solver.solve(loads, initial_guess=guess, **kw)
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:

@@ -10,6 +10,8 @@ surface region.
 
 from __future__ import annotations
 
+import copy
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -119,7 +121,18 @@ class SpringAssembly:
         if np.any(keys[np.minimum(pos, len(keys) - 1)] != want):  # pragma: no cover - a node's block is always there
             raise SolverSetupError("a spring's 3x3 block is not in the stiffness pattern")
         self.positions = pos
+        self._keep = keep
         self.values = springs.stiffness.reshape(-1)[keep]
+
+    def with_stiffness(self, springs: NodalSprings) -> "SpringAssembly":
+        """The same nodes with other stiffnesses (``springs.nodes`` must be this one's): the
+        positions found once are kept."""
+        if not np.array_equal(springs.nodes, self.springs.nodes):
+            raise SolverSetupError("with_stiffness: the springs must act at the same nodes")
+        out = copy.copy(self)
+        out.springs = springs
+        out.values = springs.stiffness.reshape(-1)[self._keep]
+        return out
 
     def add_tangent(self, data: np.ndarray) -> np.ndarray:
         """CSR stiffness data (nnz,) N/mm with the springs added (in place; returned)."""

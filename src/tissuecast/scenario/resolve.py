@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import Config, ScenarioConfig
+from ..config import UNCERTAIN_PARAMETERS, Config, ScenarioConfig
 from ..errors import ConfigError
 from ..fem.rigid_motions import free_rigid_motions
 from ..fem.springs import NodalSprings
@@ -24,6 +24,7 @@ from ..mesh.tetmesh import TetMesh
 from .elastic_support import surface_springs
 from .indentation import IndentationSites, indentation_sites
 from .materials import ElementMaterials, element_materials, material_rng
+from .parameters import UncertainParameters, attached_distance
 from .pins import pins_from_config
 from .regions import surface_region
 from .scenario import Scenario, held_nodes_of
@@ -56,16 +57,21 @@ def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshT
     normals = vertex_normals(mesh)
     pinned = np.asarray(fixed, dtype=np.int64) if sc.pins else np.zeros(0, dtype=np.int64)
     attached = surface_region(mesh, sc.attached, "scenario.attached", tags, normals)
+    distance = attached_distance(mesh, attached) if sc.uncertain.attached_margin else None
+    attached, reach = _attached_extents(attached, distance, sc.uncertain.attached_margin)
     region = surface_region(mesh, sc.springs, "scenario.springs", tags, normals)
     supported = np.union1d(pinned, attached)
     held = held_nodes_of(mesh, order, supported)
-    springs = None
+    springs = spring_parts = None
     if region.size:
         springs = surface_springs(mesh, region, order, sc.springs.normal_stiffness,
                                   sc.springs.tangential_stiffness, sc.springs.lumping).without(held)
         if len(springs) == 0:
             raise ConfigError("scenario.springs: the region holds no whole surface triangle outside the attached "
                               "region; widen it")
+        if sc.uncertain.spring_normal or sc.uncertain.spring_tangential:
+            spring_parts = tuple(surface_springs(mesh, region, order, kn, kt, sc.springs.lumping).without(held).stiffness
+                                 for kn, kt in ((sc.springs.normal_stiffness, 0.0), (0.0, sc.springs.tangential_stiffness)))
     points = mesh.points if order == 1 else mesh.points10
     free = free_rigid_motions(points, held, springs)
     if len(free):
@@ -79,10 +85,38 @@ def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshT
     if sc.materials.regions:
         rng = material_rng(material_seed) if material_seed is not None else None
         materials = element_materials(mesh, config.material, sc.materials, tags, rng)
-    sites = _sites(mesh, sc, normals, supported, tags=tags)
+    sites = _sites(mesh, sc, normals, np.union1d(pinned, reach), tags=tags)
     gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
     forces = _surface_forces(mesh, config, pinned, attached, basis)
-    return Scenario(sc, mesh, order, pinned, attached, region, springs, materials, normals, sites, gravity, forces)
+    uncertain = _uncertain(mesh, config, materials, distance, spring_parts)
+    return Scenario(sc, mesh, order, pinned, attached, region, springs, materials, normals, sites, gravity, forces,
+                    uncertain)
+
+
+def _attached_extents(nominal: np.ndarray, distance: np.ndarray | None, margin: tuple) -> tuple[np.ndarray, np.ndarray]:
+    """``(smallest, largest)`` extents (vertex ids) of an attached region whose margin is drawn
+    in ``margin`` mm (:func:`~.parameters.attached_distance`); ``(nominal, nominal)`` without."""
+    if distance is None:
+        return nominal, nominal
+    lo, hi = float(margin[0]), float(margin[1])
+    return np.flatnonzero(distance <= lo).astype(np.int64), np.flatnonzero(distance <= hi).astype(np.int64)
+
+
+def _uncertain(mesh: TetMesh, config: Config, materials: ElementMaterials | None, distance: np.ndarray | None,
+               spring_parts: tuple | None) -> UncertainParameters | None:
+    """The scenario's uncertain parameters (None when ``scenario.uncertain`` draws nothing)."""
+    u = config.scenario.uncertain
+    if not any(getattr(u, name) for name in UNCERTAIN_PARAMETERS):
+        return None
+    m = mesh.n_tets
+    if materials is not None:
+        e, nu, region = materials.youngs_modulus, materials.poisson_ratio, materials.region
+    else:
+        e, nu = np.full(m, config.material.youngs_modulus), np.full(m, config.material.poisson_ratio)
+        region = np.full(m, -1, dtype=np.int64)
+    return UncertainParameters(u, np.asarray(e, dtype=np.float64), np.asarray(nu, dtype=np.float64),
+                               np.asarray(region, dtype=np.int64), len(config.scenario.materials.regions), distance,
+                               spring_parts)
 
 
 def _surface_forces(mesh: TetMesh, config: Config, pinned: np.ndarray, attached: np.ndarray,
@@ -131,12 +165,18 @@ def restore_scenario(mesh: TetMesh, config: Config, arrays: dict, basis: LBOBasi
             if inside.size:
                 draws[name] = {"youngs_modulus": float(e[inside[0]]), "poisson_ratio": float(nu[inside[0]])}
         materials = ElementMaterials(e, nu, region, names, draws)
-    supported = np.union1d(pinned, attached)
-    sites = _sites(mesh, sc, normals, supported, access=arrays.get("indent_access"))
+    distance = arrays.get("attached_distance")
+    _, reach = _attached_extents(attached, distance, sc.uncertain.attached_margin)
+    sites = _sites(mesh, sc, normals, np.union1d(pinned, np.union1d(attached, reach)),
+                   access=arrays.get("indent_access"))
     gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
     forces = _surface_forces(mesh, config, pinned, attached, basis)
+    parts = None
+    if "spring_normal_part" in arrays:
+        parts = (np.asarray(arrays["spring_normal_part"]), np.asarray(arrays["spring_tangential_part"]))
+    uncertain = _uncertain(mesh, config, materials, distance, parts)
     return Scenario(sc, mesh, order, pinned, attached, np.asarray(arrays["spring_region"], dtype=np.int64), springs,
-                    materials, normals, sites, gravity, forces)
+                    materials, normals, sites, gravity, forces, uncertain)
 
 
 def scenario_markers(mesh: TetMesh, config: Config, tags: MeshTags | None = None) -> tuple[np.ndarray, np.ndarray]:

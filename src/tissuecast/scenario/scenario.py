@@ -17,16 +17,18 @@ set-up), and the loads that follow from them. Ids are 0-based; mm, N, MPa, t/mm^
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import Config, ScenarioConfig
+from ..config import UNCERTAIN_PARAMETERS, Config, ScenarioConfig
 from ..fem.springs import NodalSprings
 from ..mesh.tetmesh import TetMesh
 from .gravity import body_loads, cone_direction, gravity_body_force
 from .indentation import IndentationSites, draw_indentation
 from .materials import ElementMaterials
+from .parameters import UncertainParameters, parameter_rng
 from .sample_inputs import SampleInputs, ScenarioDraw
 from .surface_forces import SurfaceForces
 
@@ -58,6 +60,8 @@ class Scenario:
         sites: where indentations may be drawn, or None.
         gravity: ``(density t/mm^3, |g| mm/s^2)`` when the gravity change is on, else None.
         surface_forces: the random surface force fields of the samples (LBO, test-2 LSC).
+        uncertain: the parameters drawn per sample (:mod:`.parameters`), or None. With an
+            uncertain attached extent, ``attached`` is the region at its smallest extent.
     """
 
     config: ScenarioConfig
@@ -72,6 +76,7 @@ class Scenario:
     sites: IndentationSites | None
     gravity: tuple | None
     surface_forces: SurfaceForces
+    uncertain: UncertainParameters | None = None
 
     @property
     def supported(self) -> np.ndarray:
@@ -147,10 +152,38 @@ class Scenario:
             displacements they give.
         """
         forces, weights = self.surface_forces.field(seed, alpha, beta)
+        return self.inputs_for(seed, forces, weights)
+
+    def inputs_for(self, seed: int, forces: np.ndarray, weights: np.ndarray | None = None) -> SampleInputs:
+        """A sample's inputs with a given surface force field ``forces`` ((n, 3) N, e.g. a data
+        set's stored one) and the draws of its ``seed`` (:meth:`sample` draws the field too)."""
+        forces = np.asarray(forces, dtype=np.float64)
+        weights = np.zeros((0, 3)) if weights is None else weights
         draw = self.draw(scenario_rng(seed))
+        if self.uncertain is not None:
+            draw = dataclasses.replace(draw, parameters=self.uncertain.draw(parameter_rng(seed)))
         surface, body = self.sample_loads(draw, forces)
         ids, values = self.prescribed(draw)
-        return SampleInputs(forces, weights, surface, body if draw.body_force is not None else None, ids, values, draw)
+        inputs = SampleInputs(forces, weights, surface, body if draw.body_force is not None else None, ids, values, draw)
+        return inputs if draw.parameters is None else self._with_parameters(inputs, draw.parameters)
+
+    def _with_parameters(self, inputs: SampleInputs, p) -> SampleInputs:
+        """``inputs`` under the drawn parameters ``p``: the density's factor on the body loads, the
+        attached extent's vertices held at zero, and the sample's materials and springs."""
+        u, c = self.uncertain, self.config.uncertain
+        extra = u.extra_held(p, self.attached)
+        ids = np.concatenate([inputs.prescribed_ids, extra]).astype(np.int64)
+        values = np.vstack([inputs.prescribed_values, np.zeros((len(extra), 3))])
+        body = None if inputs.body is None else inputs.body * p.density
+        materials = springs = None
+        if c.youngs_modulus or c.poisson_ratio or c.region_youngs_modulus:
+            from ..fem.material import NeoHookeanField
+
+            materials = NeoHookeanField(*u.element_constants(p))
+        if c.spring_normal or c.spring_tangential:
+            springs = u.springs(self.springs, p)
+        return dataclasses.replace(inputs, body=body, prescribed_ids=ids, prescribed_values=values, parameters=p,
+                                   materials=materials, springs=springs)
 
     def sample_loads(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None,
                      loading: str | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -213,6 +246,11 @@ class Scenario:
                        material_region=self.materials.region)
         if self.sites is not None:
             out["indent_access"] = self.sites.access
+        if self.uncertain is not None and self.uncertain.distance is not None:
+            out["attached_distance"] = self.uncertain.distance
+        if self.uncertain is not None and self.uncertain.spring_parts is not None:
+            out.update(spring_normal_part=self.uncertain.spring_parts[0],
+                       spring_tangential_part=self.uncertain.spring_parts[1])
         return {k: np.asarray(v) for k, v in out.items()}
 
     def draw(self, rng: np.random.Generator) -> ScenarioDraw:
@@ -260,6 +298,10 @@ class Scenario:
                                   "access_vertices": len(self.sites.access)}
         if self.materials is not None:
             out["materials"] = self.materials.draws
+        if self.uncertain is not None:
+            u = cfg.uncertain
+            out["uncertain"] = {name: list(getattr(u, name)) for name in UNCERTAIN_PARAMETERS if getattr(u, name)}
+            out["uncertain"]["measured"] = list(u.measured)
         return out
 
 
