@@ -23,7 +23,7 @@ import numpy as np
 
 def paper_size_model(ensemble: int = 1):
     """An untrained-but-valid model of the paper's size (random weights, random PCA basis)."""
-    from tissuecast.surrogate import DeformationModel
+    from tissuecast.surrogate import DeformationModel, ModelState, NetworkPredictor
     from tissuecast.surrogate.weights import MLPWeights
     from tissuecast.surrogate.pca import PCABasis
 
@@ -42,9 +42,9 @@ def paper_size_model(ensemble: int = 1):
             biases=tuple(rng.normal(size=b).astype(np.float32) * 0.1 for b in sizes[1:]),
             x_mean=np.zeros(3 * n_d, np.float32), x_std=np.full(3 * n_d, 5.0, np.float32),
             y_mean=np.zeros(n_w, np.float32), y_std=np.full(n_w, 10.0, np.float32)))
-    model = DeformationModel()
-    model._set_state(mesh=mesh, markers=[0, 200, 400, 600, 1000], fixed=[], basis=basis, members=members, curve=None)
-    return model
+    network = NetworkPredictor(mesh, [0, 200, 400, 600, 1000], basis, members)
+    return DeformationModel.from_state(ModelState(DeformationModel().config, network, np.zeros(0, np.int64),
+                                                  {"rule": "random", "n_components": n_w}))
 
 
 def timings(fn, inputs, repeats: int) -> np.ndarray:
@@ -82,13 +82,11 @@ def main(argv=None) -> int:
         rows.append((name, np.percentile(t, 50), np.percentile(t, 99)))
 
     add("numpy  model.predict", model.predict, singles)
-    if getattr(model, "head_", None) is not None:  # the same networks without their quadratic head: its cost
-        import copy
+    net = model.network_
+    if net.head is not None:  # the same networks without their quadratic head: its cost
+        from tissuecast.surrogate import NetworkPredictor
 
-        from tissuecast.surrogate.fastpath import CompiledSurrogate
-
-        bare = copy.copy(model)
-        bare.compiled_ = CompiledSurrogate(model.members_, model.pca_)
+        bare = NetworkPredictor(net.mesh, net.markers, net.basis, net.members)
         add("numpy  model.predict, head left out", bare.predict, singles)
     add("numpy  model.predict_ridge", model.predict_ridge, singles)
     pos = [model.reference_marker_positions + s.reshape(n_d, 3) for s in singles]

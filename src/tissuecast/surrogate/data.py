@@ -7,12 +7,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ModelError
-from .trust import split_calibration
 
-__all__ = ["TrainingArrays", "dataset_arrays", "split_indices", "FitSplits", "fit_splits"]
+__all__ = ["TrainingArrays", "dataset_arrays", "split_indices", "FitSplits", "fit_splits", "split_calibration",
+           "VALIDATION_EVERY", "MIN_SAMPLES", "CALIBRATION_SEED_OFFSET"]
 
 #: Without given validation samples, one training sample in this many validates (at least one).
 VALIDATION_EVERY = 10
+#: Fewest calibration (and validation) samples a trust layer is fitted from.
+MIN_SAMPLES = 8
+#: The calibration hold-out is drawn with ``surrogate.seed`` plus this (a prime), so that it does
+#: not repeat the draw of the validation split made with the same seed.
+CALIBRATION_SEED_OFFSET = 7919
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,7 +84,7 @@ def fit_splits(n_samples: int, train_idx=None, valid_idx=None, calibration_idx=N
         valid_idx: validation indices; default: a seeded 1 in :data:`VALIDATION_EVERY` of the
             training indices.
         calibration_idx: calibration indices; default: a seeded ``calibration_share`` of the
-            training indices (:func:`tissuecast.surrogate.trust.split_calibration`).
+            training indices (:func:`split_calibration`).
         seed: seed of the default draws.
         calibration_share: share held out for calibration when ``calibration_idx`` is None.
 
@@ -105,3 +110,18 @@ def fit_splits(n_samples: int, train_idx=None, valid_idx=None, calibration_idx=N
         if idx.min() < 0 or idx.max() >= n_samples:
             raise ModelError(f"{name} holds indices outside [0, {n_samples})")
     return FitSplits(train_idx, valid_idx, calibration_idx)
+
+
+def split_calibration(train_idx, share: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Hold out a seeded ``share`` of the training indices for calibration.
+
+    Returns:
+        ``(train (k,) int64, calibration (m,) int64)``, both sorted; calibration is empty
+        when ``share`` is 0 or would hold fewer than :data:`MIN_SAMPLES` samples.
+    """
+    idx = np.asarray(train_idx, dtype=np.int64)
+    m = int(round(share * len(idx)))
+    if share <= 0 or m < MIN_SAMPLES or len(idx) - m < 2:
+        return np.sort(idx), np.zeros(0, dtype=np.int64)
+    perm = np.random.default_rng(seed + CALIBRATION_SEED_OFFSET).permutation(idx)
+    return np.sort(perm[m:]), np.sort(perm[:m])
