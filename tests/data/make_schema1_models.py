@@ -68,8 +68,8 @@ def main():
             U[:300], MARKERS, mesh=mesh, fixed=[1, 2], train_idx=np.arange(n_train), valid_idx=np.arange(200, 240),
             calibration_idx=None if kw.get("calibration_share") == 0.0 else np.arange(240, 300))
         folder = HERE / "schema1_models" / name
-        m.save(folder)
-        np.savez_compressed(folder / "expected_outputs.npz", **outputs(m, inputs(mesh, U)))
+        m.save(folder)  # the expected outputs are the saved folder's (bounds from float32-stored scores)
+        np.savez_compressed(folder / "expected_outputs.npz", **outputs(DeformationModel.load(folder), inputs(mesh, U)))
 
 
 if __name__ == "__main__":
