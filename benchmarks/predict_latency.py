@@ -61,6 +61,47 @@ def timings(fn, inputs, repeats: int) -> np.ndarray:
     return out
 
 
+def _torch_and_onnx(model, singles, batch, add) -> tuple[float | None, float | None]:
+    """Time the torch module and the ONNX graph (one thread each) where installed; returns their
+    batch throughputs (samples/s, None where not installed)."""
+    n_d = model.n_markers
+    torch_thr = ort_thr = None
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+        net = model.torch_module()
+        tin = [torch.as_tensor(s.reshape(1, n_d, 3), dtype=torch.float32) for s in singles]
+
+        def torch_call(x):
+            with torch.inference_mode():
+                return net(x)
+
+        add("torch  module (1 thread)", torch_call, tin)
+        tb = torch.as_tensor(batch, dtype=torch.float32)
+        torch_thr = len(batch) / np.median(timings(torch_call, [tb], 20))
+    except ImportError:
+        pass
+    try:
+        import onnxruntime as ort
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "m.onnx"
+            model.export_onnx(path)
+            so = ort.SessionOptions()
+            so.intra_op_num_threads = 1
+            sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        feeds = [s.reshape(1, n_d, 3).astype(np.float32) for s in singles]
+        extra = {"present": np.ones((1, n_d), np.float32)} if model.supports_missing_markers else {}
+        add("onnxruntime (1 thread)", lambda x: sess.run(None, {"markers": x, **extra}), feeds)
+        extra_b = {"present": np.ones((len(batch), n_d), np.float32)} if extra else {}
+        bf = batch.astype(np.float32)
+        ort_thr = len(batch) / np.median(timings(lambda x: sess.run(None, {"markers": x, **extra_b}), [bf], 20))
+    except ImportError:
+        pass
+    return torch_thr, ort_thr
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("model", nargs="?", help="model folder (default: random paper-size model)")
@@ -91,41 +132,8 @@ def main(argv=None) -> int:
     add("numpy  model.predict_ridge", model.predict_ridge, singles)
     pos = [model.reference_marker_positions + s.reshape(n_d, 3) for s in singles]
     add("numpy  predict_from_positions", model.predict_from_positions, pos)
-    torch_thr = ort_thr = None
     batch = rng.normal(scale=5.0, size=(args.batch, n_d, 3))
-    try:
-        import torch
-
-        torch.set_num_threads(1)
-        net = model.torch_module()
-        tin = [torch.as_tensor(s.reshape(1, n_d, 3), dtype=torch.float32) for s in singles]
-
-        def torch_call(x):
-            with torch.inference_mode():
-                return net(x)
-
-        add("torch  module (1 thread)", torch_call, tin)
-        tb = torch.as_tensor(batch, dtype=torch.float32)
-        torch_thr = args.batch / np.median(timings(torch_call, [tb], 20))
-    except ImportError:
-        pass
-    try:
-        import onnxruntime as ort
-
-        with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / "m.onnx"
-            model.export_onnx(path)
-            so = ort.SessionOptions()
-            so.intra_op_num_threads = 1
-            sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-        feeds = [s.reshape(1, n_d, 3).astype(np.float32) for s in singles]
-        extra = {"present": np.ones((1, n_d), np.float32)} if model.supports_missing_markers else {}
-        add("onnxruntime (1 thread)", lambda x: sess.run(None, {"markers": x, **extra}), feeds)
-        extra_b = {"present": np.ones((args.batch, n_d), np.float32)} if extra else {}
-        bf = batch.astype(np.float32)
-        ort_thr = args.batch / np.median(timings(lambda x: sess.run(None, {"markers": x, **extra_b}), [bf], 20))
-    except ImportError:
-        pass
+    torch_thr, ort_thr = _torch_and_onnx(model, singles, batch, add)
     np_thr = args.batch / np.median(timings(model.predict, [batch], 20))
 
     print(f"model: {model!r}")

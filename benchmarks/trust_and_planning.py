@@ -289,6 +289,48 @@ def scaled_load_fields(ds, args) -> dict:
             "converged": np.asarray(ok), "seconds": np.asarray(seconds), "largest_train_load": largest}
 
 
+def part_alarm_loads(ds, model, args) -> dict:
+    """(c) of the alarm: FEM samples under loads scaled beyond the training range; per scale, the share
+    detected, the peak displacement, the MLP's error where detected and not, and the bounds' coverage."""
+    loads = scaled_load_fields(ds, args)
+    ok = loads["converged"]
+    train_peak = np.asarray(ds.max_displacement, dtype=np.float64)[split_indices(ds, "train")]
+    p95, pmax = np.percentile(train_peak, 95), train_peak.max()
+    print(f"training peak displacement: p95 {p95:.1f} mm, max {pmax:.1f} mm")
+    rows = {}
+    for s in np.unique(loads["scale"]):
+        label = f"{s:g}x the largest training load" if s > 0 else f"{-s:g}x its own load"
+        pick = (loads["scale"] == s) & ok
+        n_all = int((loads["scale"] == s).sum())
+        row = {"solved": n_all, "converged": int(pick.sum())}
+        if pick.any():
+            fields = loads["fields"][pick]
+            d = fields[:, model.markers, :]
+            trusted = model.predict_trusted(d)
+            raised = np.array([a.raised for a in trusted.alarms])
+            cover = float(np.mean(np.linalg.norm(trusted.displacement - fields, axis=2) <= trusted.error_bound))
+            peak = np.linalg.norm(fields, axis=2).max(axis=1)
+            err = offsets_max(model.predict(d), fields)
+            beyond = peak > pmax
+            row.update(detected=float(raised.mean()), peak_median=float(np.median(peak)),
+                       beyond_training_max=int(beyond.sum()),
+                       detected_beyond_max=float(raised[beyond].mean()) if beyond.any() else float("nan"),
+                       detected_beyond_p95=float(raised[peak > p95].mean()) if (peak > p95).any() else float("nan"),
+                       mlp_offset_max_detected=float(err[raised].mean()) if raised.any() else float("nan"),
+                       mlp_offset_max_missed=float(err[~raised].mean()) if (~raised).any() else float("nan"),
+                       bound_coverage_90=cover)
+            print(f"(c) loads {label}: detected {100 * row['detected']:.1f} % of {row['converged']} converged "
+                  f"({n_all - row['converged']} of {n_all} did not converge); median peak {row['peak_median']:.1f} mm; "
+                  f"{row['beyond_training_max']} beyond the training max, detected {100 * row['detected_beyond_max']:.0f} %; "
+                  f"beyond training p95 detected {100 * row['detected_beyond_p95']:.0f} %; MLP mean Offset_max "
+                  f"{row['mlp_offset_max_detected']:.2f} mm where detected, {row['mlp_offset_max_missed']:.2f} where not; "
+                  f"90 % bounds cover {100 * cover:.1f} % of vertices")
+        else:
+            print(f"(c) loads {label}: none of {n_all} converged")
+        rows[label] = row
+    return rows
+
+
 def part_alarm(ds, model, U, args, out: dict) -> None:
     rng = np.random.default_rng(17)
     fa = model.config.false_alarm_rate
@@ -336,42 +378,7 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
     res["test2_alarm_by_beta"] = {f"{b:g}": rate(U[t2[beta[t2] == b]][:, model.markers, :]) for b in np.unique(beta[t2])}
     print("test-2 alarm rate by beta: " + ", ".join(f"{k}: {100 * v:.0f} %" for k, v in res["test2_alarm_by_beta"].items()))
     if not args.skip_fem:
-        loads = scaled_load_fields(ds, args)
-        ok = loads["converged"]
-        train_peak = np.asarray(ds.max_displacement, dtype=np.float64)[split_indices(ds, "train")]
-        p95, pmax = np.percentile(train_peak, 95), train_peak.max()
-        print(f"training peak displacement: p95 {p95:.1f} mm, max {pmax:.1f} mm")
-        res["loads"] = {}
-        for s in np.unique(loads["scale"]):
-            label = f"{s:g}x the largest training load" if s > 0 else f"{-s:g}x its own load"
-            pick = (loads["scale"] == s) & ok
-            n_all = int((loads["scale"] == s).sum())
-            row = {"solved": n_all, "converged": int(pick.sum())}
-            if pick.any():
-                fields = loads["fields"][pick]
-                d = fields[:, model.markers, :]
-                trusted = model.predict_trusted(d)
-                raised = np.array([a.raised for a in trusted.alarms])
-                cover = float(np.mean(np.linalg.norm(trusted.displacement - fields, axis=2) <= trusted.error_bound))
-                peak = np.linalg.norm(fields, axis=2).max(axis=1)
-                err = offsets_max(model.predict(d), fields)
-                beyond = peak > pmax
-                row.update(detected=float(raised.mean()), peak_median=float(np.median(peak)),
-                           beyond_training_max=int(beyond.sum()),
-                           detected_beyond_max=float(raised[beyond].mean()) if beyond.any() else float("nan"),
-                           detected_beyond_p95=float(raised[peak > p95].mean()) if (peak > p95).any() else float("nan"),
-                           mlp_offset_max_detected=float(err[raised].mean()) if raised.any() else float("nan"),
-                           mlp_offset_max_missed=float(err[~raised].mean()) if (~raised).any() else float("nan"),
-                           bound_coverage_90=cover)
-                print(f"(c) loads {label}: detected {100 * row['detected']:.1f} % of {row['converged']} converged "
-                      f"({n_all - row['converged']} of {n_all} did not converge); median peak {row['peak_median']:.1f} mm; "
-                      f"{row['beyond_training_max']} beyond the training max, detected {100 * row['detected_beyond_max']:.0f} %; "
-                      f"beyond training p95 detected {100 * row['detected_beyond_p95']:.0f} %; MLP mean Offset_max "
-                      f"{row['mlp_offset_max_detected']:.2f} mm where detected, {row['mlp_offset_max_missed']:.2f} where not; "
-                      f"90 % bounds cover {100 * cover:.1f} % of vertices")
-            else:
-                print(f"(c) loads {label}: none of {n_all} converged")
-            res["loads"][label] = row
+        res["loads"] = part_alarm_loads(ds, model, args)
     out["alarm"] = res
 
 

@@ -160,7 +160,7 @@ class DeformationModel(FieldPredictor):
         if method not in METHODS:
             raise ModelError(f"unknown prediction method {method!r}; use 'mlp', 'rigid' or 'ridge'")
         self._fitted()
-        return {"mlp": self.network_, "rigid": self.rigid_, "ridge": self.ridge_}[method]
+        return self._by_method[method]
 
     def get_state(self) -> ModelState:
         """The fitted state as plain objects (:class:`~.state.ModelState`)."""
@@ -186,6 +186,7 @@ class DeformationModel(FieldPredictor):
         self.ridge_ = RidgePredictor(net.mesh, net.markers, net.basis.truncated(k_ridge), self.config.ridge_ratio)
         self.rigid_ = RigidRegistrationPredictor(net.mesh, net.markers)
         self.trusted_ = None if state.trust is None else TrustedPredictor(net, state.trust)
+        self._by_method = {"mlp": self.network_, "rigid": self.rigid_, "ridge": self.ridge_}
         self.fixed_ = np.asarray(state.fixed, dtype=np.int64).ravel()
         self.pca_choice_ = state.pca_choice
         self.pca_curve_ = state.pca_curve
