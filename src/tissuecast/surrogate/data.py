@@ -1,4 +1,4 @@
-"""Arrays a surrogate trains on, taken from a data-set store."""
+"""Arrays a surrogate trains on: taken from a data-set store, checked, split into train / valid / calibration."""
 
 from __future__ import annotations
 
@@ -7,9 +7,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ModelError
+from .field_predictor import check_vertex_ids
 
 __all__ = ["TrainingArrays", "dataset_arrays", "split_indices", "FitSplits", "fit_splits", "split_calibration",
-           "VALIDATION_EVERY", "MIN_SAMPLES", "CALIBRATION_SEED_OFFSET"]
+           "check_fit_inputs", "flat_fields", "VALIDATION_EVERY", "MIN_SAMPLES", "CALIBRATION_SEED_OFFSET"]
 
 #: Without given validation samples, one training sample in this many validates (at least one).
 VALIDATION_EVERY = 10
@@ -125,3 +126,22 @@ def split_calibration(train_idx, share: float, seed: int) -> tuple[np.ndarray, n
         return np.sort(idx), np.zeros(0, dtype=np.int64)
     perm = np.random.default_rng(seed + CALIBRATION_SEED_OFFSET).permutation(idx)
     return np.sort(perm[m:]), np.sort(perm[:m])
+
+
+def check_fit_inputs(displacements, markers, mesh) -> tuple[np.ndarray, np.ndarray]:
+    """``(U (N, n, 3), markers (n_d,) int64)`` checked against the mesh's n vertices."""
+    U = np.asarray(displacements)
+    if U.ndim != 3 or U.shape[2] != 3:
+        raise ModelError(f"displacements must be (N, n, 3) mm, got shape {U.shape}")
+    if U.shape[1] != mesh.n_vertices:
+        raise ModelError(f"displacements have {U.shape[1]} vertices but the mesh has {mesh.n_vertices}")
+    return U, check_vertex_ids(markers, mesh.n_vertices)
+
+
+def flat_fields(U: np.ndarray, splits: FitSplits) -> tuple[np.ndarray, np.ndarray]:
+    """Training and validation fields as float64 rows (N_t, 3 n), (N_v, 3 n) mm, checked finite."""
+    Ut = U[splits.train].reshape(len(splits.train), -1).astype(np.float64)
+    Uv = U[splits.valid].reshape(len(splits.valid), -1).astype(np.float64)
+    if not (np.isfinite(Ut).all() and np.isfinite(Uv).all()):
+        raise ModelError("training/validation displacements contain NaN or inf; select samples with status 'done'")
+    return Ut, Uv

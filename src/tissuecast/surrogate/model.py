@@ -29,8 +29,8 @@ import numpy as np
 from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
 from ..errors import ModelError
 from .baselines import RidgePredictor, RigidRegistrationPredictor
-from .data import FitSplits, dataset_arrays, fit_splits
-from .field_predictor import FieldPredictor, check_vertex_ids
+from .data import check_fit_inputs, dataset_arrays, fit_splits, flat_fields
+from .field_predictor import FieldPredictor
 from .network_fit import ENSEMBLE_SEED_STRIDE, fit_network
 from .network_predictor import NetworkPredictor
 from .ridge import marker_columns
@@ -55,25 +55,6 @@ def _surrogate_config(config, overrides: dict) -> SurrogateConfig:
     if overrides:
         config = with_overrides(Config(surrogate=config), surrogate=overrides).surrogate
     return config
-
-
-def _check_fit_inputs(displacements, markers, mesh) -> tuple[np.ndarray, np.ndarray]:
-    """``(U (N, n, 3), markers (n_d,) int64)`` checked against the mesh's n vertices."""
-    U = np.asarray(displacements)
-    if U.ndim != 3 or U.shape[2] != 3:
-        raise ModelError(f"displacements must be (N, n, 3) mm, got shape {U.shape}")
-    if U.shape[1] != mesh.n_vertices:
-        raise ModelError(f"displacements have {U.shape[1]} vertices but the mesh has {mesh.n_vertices}")
-    return U, check_vertex_ids(markers, mesh.n_vertices)
-
-
-def _flat_fields(U: np.ndarray, splits: FitSplits) -> tuple[np.ndarray, np.ndarray]:
-    """Training and validation fields as float64 rows (N_t, 3 n), (N_v, 3 n) mm, checked finite."""
-    Ut = U[splits.train].reshape(len(splits.train), -1).astype(np.float64)
-    Uv = U[splits.valid].reshape(len(splits.valid), -1).astype(np.float64)
-    if not (np.isfinite(Ut).all() and np.isfinite(Uv).all()):
-        raise ModelError("training/validation displacements contain NaN or inf; select samples with status 'done'")
-    return Ut, Uv
 
 
 class DeformationModel(FieldPredictor):
@@ -218,10 +199,10 @@ class DeformationModel(FieldPredictor):
         """
         t0 = time.perf_counter()
         c = self.config
-        U, mk = _check_fit_inputs(displacements, markers, mesh)
+        U, mk = check_fit_inputs(displacements, markers, mesh)
         splits = fit_splits(U.shape[0], train_idx, valid_idx, calibration_idx, seed=c.seed,
                             calibration_share=c.calibration_share)
-        Ut, Uv = _flat_fields(U, splits)
+        Ut, Uv = flat_fields(U, splits)
         net = fit_network(Ut, Uv, mk, mesh, c)
         ridge = RidgePredictor.fit(mesh, mk, net.predictor.basis, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
         trust = None
