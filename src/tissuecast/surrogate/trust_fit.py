@@ -26,7 +26,8 @@ from .trust import FEATURE_NAMES, PREDICT_CHUNK, TrustLayer, floored_log
 __all__ = ["fit_trust_layer", "fit_trust", "held_out_predictions", "SECOND_COMPONENTS", "ERROR_FOLDS",
            "ERROR_INPUT_DIMS"]
 
-log = logging.getLogger(__name__)
+# the trust layer's messages keep the logger name they had before fitting moved here (log filters)
+log = logging.getLogger("tissuecast.surrogate.trust")
 
 #: PCA components of the second predictor (its truncation error must stay below the network's).
 SECOND_COMPONENTS = 64
