@@ -23,7 +23,7 @@ import numpy as np
 
 def paper_size_model(ensemble: int = 1):
     """An untrained-but-valid model of the paper's size (random weights, random PCA basis)."""
-    from tissuecast.surrogate import DeformationModel
+    from tissuecast.surrogate import DeformationModel, ModelState, NetworkPredictor
     from tissuecast.surrogate.weights import MLPWeights
     from tissuecast.surrogate.pca import PCABasis
 
@@ -42,9 +42,9 @@ def paper_size_model(ensemble: int = 1):
             biases=tuple(rng.normal(size=b).astype(np.float32) * 0.1 for b in sizes[1:]),
             x_mean=np.zeros(3 * n_d, np.float32), x_std=np.full(3 * n_d, 5.0, np.float32),
             y_mean=np.zeros(n_w, np.float32), y_std=np.full(n_w, 10.0, np.float32)))
-    model = DeformationModel()
-    model._set_state(mesh=mesh, markers=[0, 200, 400, 600, 1000], fixed=[], basis=basis, members=members, curve=None)
-    return model
+    network = NetworkPredictor(mesh, [0, 200, 400, 600, 1000], basis, members)
+    return DeformationModel.from_state(ModelState(DeformationModel().config, network, np.zeros(0, np.int64),
+                                                  {"rule": "random", "n_components": n_w}))
 
 
 def timings(fn, inputs, repeats: int) -> np.ndarray:
@@ -59,6 +59,47 @@ def timings(fn, inputs, repeats: int) -> np.ndarray:
         fn(x)
         out[i] = time.perf_counter() - t
     return out
+
+
+def _torch_and_onnx(model, singles, batch, add) -> tuple[float | None, float | None]:
+    """Time the torch module and the ONNX graph (one thread each) where installed; returns their
+    batch throughputs (samples/s, None where not installed)."""
+    n_d = model.n_markers
+    torch_thr = ort_thr = None
+    try:
+        import torch
+
+        torch.set_num_threads(1)
+        net = model.torch_module()
+        tin = [torch.as_tensor(s.reshape(1, n_d, 3), dtype=torch.float32) for s in singles]
+
+        def torch_call(x):
+            with torch.inference_mode():
+                return net(x)
+
+        add("torch  module (1 thread)", torch_call, tin)
+        tb = torch.as_tensor(batch, dtype=torch.float32)
+        torch_thr = len(batch) / np.median(timings(torch_call, [tb], 20))
+    except ImportError:
+        pass
+    try:
+        import onnxruntime as ort
+
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "m.onnx"
+            model.export_onnx(path)
+            so = ort.SessionOptions()
+            so.intra_op_num_threads = 1
+            sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        feeds = [s.reshape(1, n_d, 3).astype(np.float32) for s in singles]
+        extra = {"present": np.ones((1, n_d), np.float32)} if model.supports_missing_markers else {}
+        add("onnxruntime (1 thread)", lambda x: sess.run(None, {"markers": x, **extra}), feeds)
+        extra_b = {"present": np.ones((len(batch), n_d), np.float32)} if extra else {}
+        bf = batch.astype(np.float32)
+        ort_thr = len(batch) / np.median(timings(lambda x: sess.run(None, {"markers": x, **extra_b}), [bf], 20))
+    except ImportError:
+        pass
+    return torch_thr, ort_thr
 
 
 def main(argv=None) -> int:
@@ -82,52 +123,17 @@ def main(argv=None) -> int:
         rows.append((name, np.percentile(t, 50), np.percentile(t, 99)))
 
     add("numpy  model.predict", model.predict, singles)
-    if getattr(model, "head_", None) is not None:  # the same networks without their quadratic head: its cost
-        import copy
+    net = model.network_
+    if net.head is not None:  # the same networks without their quadratic head: its cost
+        from tissuecast.surrogate import NetworkPredictor
 
-        from tissuecast.surrogate.fastpath import CompiledSurrogate
-
-        bare = copy.copy(model)
-        bare.compiled_ = CompiledSurrogate(model.members_, model.pca_)
+        bare = NetworkPredictor(net.mesh, net.markers, net.basis, net.members)
         add("numpy  model.predict, head left out", bare.predict, singles)
     add("numpy  model.predict_ridge", model.predict_ridge, singles)
     pos = [model.reference_marker_positions + s.reshape(n_d, 3) for s in singles]
     add("numpy  predict_from_positions", model.predict_from_positions, pos)
-    torch_thr = ort_thr = None
     batch = rng.normal(scale=5.0, size=(args.batch, n_d, 3))
-    try:
-        import torch
-
-        torch.set_num_threads(1)
-        net = model.torch_module()
-        tin = [torch.as_tensor(s.reshape(1, n_d, 3), dtype=torch.float32) for s in singles]
-
-        def torch_call(x):
-            with torch.inference_mode():
-                return net(x)
-
-        add("torch  module (1 thread)", torch_call, tin)
-        tb = torch.as_tensor(batch, dtype=torch.float32)
-        torch_thr = args.batch / np.median(timings(torch_call, [tb], 20))
-    except ImportError:
-        pass
-    try:
-        import onnxruntime as ort
-
-        with tempfile.TemporaryDirectory() as tmp:
-            path = Path(tmp) / "m.onnx"
-            model.export_onnx(path)
-            so = ort.SessionOptions()
-            so.intra_op_num_threads = 1
-            sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-        feeds = [s.reshape(1, n_d, 3).astype(np.float32) for s in singles]
-        extra = {"present": np.ones((1, n_d), np.float32)} if model.supports_missing_markers else {}
-        add("onnxruntime (1 thread)", lambda x: sess.run(None, {"markers": x, **extra}), feeds)
-        extra_b = {"present": np.ones((args.batch, n_d), np.float32)} if extra else {}
-        bf = batch.astype(np.float32)
-        ort_thr = args.batch / np.median(timings(lambda x: sess.run(None, {"markers": x, **extra_b}), [bf], 20))
-    except ImportError:
-        pass
+    torch_thr, ort_thr = _torch_and_onnx(model, singles, batch, add)
     np_thr = args.batch / np.median(timings(model.predict, [batch], 20))
 
     print(f"model: {model!r}")

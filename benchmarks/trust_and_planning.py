@@ -139,14 +139,14 @@ def part_predictability(ds, model, U, out: dict, folds: int = 5) -> None:
     tr, t1 = np.asarray(a.train_idx), split_indices(ds, "test1")
     cols = marker_columns(model.markers)
     flat = U.reshape(len(U), -1)
-    X, Y = flat[:, cols], model.pca_.transform(flat)
+    X, Y = flat[:, cols], model.network_.basis.transform(flat)
     q = ((model.pca_choice_ or {}).get("head") or {}).get("dims") or 12
     fold = np.random.default_rng(0).permutation(len(tr)) % folds
     oof = np.zeros(len(tr))
     for f in range(folds):
         fit, held = tr[fold != f], tr[fold == f]
         reg = fit_quadratic(X[fit], Y[fit], quadratic_dims=q)
-        e = (model.pca_.inverse_transform(reg.predict(X[held])) - flat[held]).reshape(len(held), -1, 3)
+        e = (model.network_.basis.inverse_transform(reg.predict(X[held])) - flat[held]).reshape(len(held), -1, 3)
         oof[fold == f] = np.linalg.norm(e, axis=2).max(axis=1)
     e1 = offsets_max(model.predict(U[t1][:, model.markers, :]), U[t1])
     print(f"\n== 2b. is the per-sample error predictable from the input? ({folds}-fold out-of-fold errors of a "
@@ -180,7 +180,7 @@ def trust_model(ds, args):
         share["alarm_fault_score"] = True
     model = DeformationModel(ds.config, ensemble=args.ensemble, **head_override(args), **share).fit(
         U, markers, mesh=a.mesh, fixed=a.fixed, train_idx=a.train_idx, valid_idx=a.valid_idx)
-    if model.trust_ is None:
+    if model.trusted_ is None:
         raise SystemExit("the model has no calibration split (surrogate.calibration_share = 0 in the store's config, as "
                          "in the paper preset): give --calibration-share, e.g. 0.125")
     tr = model.training_
@@ -216,8 +216,8 @@ def part_bounds(ds, model, U, args, out: dict) -> None:
     bench = U[t1]
     d = bench[:, model.markers, :]
     u = model.predict(d)
-    sigma = model.trust_.normaliser(d.reshape(len(d), -1), u)
-    lv, emp = reliability_curve(model.trust_.conformal, np.linalg.norm(u - bench, axis=2), sigma)
+    sigma = model.trusted_.layer.normaliser(d.reshape(len(d), -1), u)
+    lv, emp = reliability_curve(model.trusted_.layer.conformal, np.linalg.norm(u - bench, axis=2), sigma)
     print("reliability on test-1 (nominal -> empirical coverage): "
           + ", ".join(f"{100 * a:.0f}->{100 * b:.1f}" for a, b in zip(lv, emp)))
     out["bounds"] = {"rows": rows, "reliability": {"nominal": lv.tolist(), "empirical": emp.tolist()}}
@@ -289,11 +289,53 @@ def scaled_load_fields(ds, args) -> dict:
             "converged": np.asarray(ok), "seconds": np.asarray(seconds), "largest_train_load": largest}
 
 
+def part_alarm_loads(ds, model, args) -> dict:
+    """(c) of the alarm: FEM samples under loads scaled beyond the training range; per scale, the share
+    detected, the peak displacement, the MLP's error where detected and not, and the bounds' coverage."""
+    loads = scaled_load_fields(ds, args)
+    ok = loads["converged"]
+    train_peak = np.asarray(ds.max_displacement, dtype=np.float64)[split_indices(ds, "train")]
+    p95, pmax = np.percentile(train_peak, 95), train_peak.max()
+    print(f"training peak displacement: p95 {p95:.1f} mm, max {pmax:.1f} mm")
+    rows = {}
+    for s in np.unique(loads["scale"]):
+        label = f"{s:g}x the largest training load" if s > 0 else f"{-s:g}x its own load"
+        pick = (loads["scale"] == s) & ok
+        n_all = int((loads["scale"] == s).sum())
+        row = {"solved": n_all, "converged": int(pick.sum())}
+        if pick.any():
+            fields = loads["fields"][pick]
+            d = fields[:, model.markers, :]
+            trusted = model.predict_trusted(d)
+            raised = np.array([a.raised for a in trusted.alarms])
+            cover = float(np.mean(np.linalg.norm(trusted.displacement - fields, axis=2) <= trusted.error_bound))
+            peak = np.linalg.norm(fields, axis=2).max(axis=1)
+            err = offsets_max(model.predict(d), fields)
+            beyond = peak > pmax
+            row.update(detected=float(raised.mean()), peak_median=float(np.median(peak)),
+                       beyond_training_max=int(beyond.sum()),
+                       detected_beyond_max=float(raised[beyond].mean()) if beyond.any() else float("nan"),
+                       detected_beyond_p95=float(raised[peak > p95].mean()) if (peak > p95).any() else float("nan"),
+                       mlp_offset_max_detected=float(err[raised].mean()) if raised.any() else float("nan"),
+                       mlp_offset_max_missed=float(err[~raised].mean()) if (~raised).any() else float("nan"),
+                       bound_coverage_90=cover)
+            print(f"(c) loads {label}: detected {100 * row['detected']:.1f} % of {row['converged']} converged "
+                  f"({n_all - row['converged']} of {n_all} did not converge); median peak {row['peak_median']:.1f} mm; "
+                  f"{row['beyond_training_max']} beyond the training max, detected {100 * row['detected_beyond_max']:.0f} %; "
+                  f"beyond training p95 detected {100 * row['detected_beyond_p95']:.0f} %; MLP mean Offset_max "
+                  f"{row['mlp_offset_max_detected']:.2f} mm where detected, {row['mlp_offset_max_missed']:.2f} where not; "
+                  f"90 % bounds cover {100 * cover:.1f} % of vertices")
+        else:
+            print(f"(c) loads {label}: none of {n_all} converged")
+        rows[label] = row
+    return rows
+
+
 def part_alarm(ds, model, U, args, out: dict) -> None:
     rng = np.random.default_rng(17)
     fa = model.config.false_alarm_rate
     print(f"\n== 3. out-of-distribution alarm (threshold for {100 * fa:g} % false alarms, from "
-          f"{len(model.trust_.ood.calibration)} calibration samples) ==")
+          f"{len(model.trusted_.layer.ood.calibration)} calibration samples) ==")
     ref = model.reference_marker_positions
     t1 = split_indices(ds, "test1")
     d = U[t1][:, model.markers, :]
@@ -307,7 +349,7 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
     res["displaced"] = {f"{s:g}": float(np.mean([rate(displace_marker(d, s, rng)) for _ in range(5)]))
                         for s in (0.25, 0.5, 1.0, 2.0, 3.0, 5.0)}
     print(f"clean test-1: false alarms {100 * res['false_alarms_test1']:.1f} % (n = {len(t1)})")
-    cons = model.trust_.ood.consistency
+    cons = model.trusted_.layer.ood.consistency
     if cons is not None:  # how far each clean marker lies from where the others put it: the floor of (b)
         miss = cons.residuals(d.reshape(len(d), -1))
         res["clean_marker_miss_mm"] = {q: float(np.percentile(miss, v)) for q, v in (("median", 50), ("p90", 90), ("p99", 99))}
@@ -325,7 +367,7 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
     by_score = {"consistency": [a.consistency > a.consistency_threshold for a in alarms],
                 "fault": [a.fault > a.fault_threshold for a in alarms]}
     res["displaced_3mm_by_score"] = {k: float(np.mean(v)) for k, v in by_score.items()}
-    fault = (f"{100 * res['displaced_3mm_by_score']['fault']:.1f} %" if model.trust_.ood.use_fault
+    fault = (f"{100 * res['displaced_3mm_by_score']['fault']:.1f} %" if model.trusted_.layer.ood.use_fault
              else "- (not in the alarm: --alarm-fault-score)")
     print(f"(b) 3 mm: raised by the consistency score {100 * res['displaced_3mm_by_score']['consistency']:.1f} %, by the "
           f"one-marker fault score {fault}; the alarm names the displaced marker "
@@ -336,42 +378,7 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
     res["test2_alarm_by_beta"] = {f"{b:g}": rate(U[t2[beta[t2] == b]][:, model.markers, :]) for b in np.unique(beta[t2])}
     print("test-2 alarm rate by beta: " + ", ".join(f"{k}: {100 * v:.0f} %" for k, v in res["test2_alarm_by_beta"].items()))
     if not args.skip_fem:
-        loads = scaled_load_fields(ds, args)
-        ok = loads["converged"]
-        train_peak = np.asarray(ds.max_displacement, dtype=np.float64)[split_indices(ds, "train")]
-        p95, pmax = np.percentile(train_peak, 95), train_peak.max()
-        print(f"training peak displacement: p95 {p95:.1f} mm, max {pmax:.1f} mm")
-        res["loads"] = {}
-        for s in np.unique(loads["scale"]):
-            label = f"{s:g}x the largest training load" if s > 0 else f"{-s:g}x its own load"
-            pick = (loads["scale"] == s) & ok
-            n_all = int((loads["scale"] == s).sum())
-            row = {"solved": n_all, "converged": int(pick.sum())}
-            if pick.any():
-                fields = loads["fields"][pick]
-                d = fields[:, model.markers, :]
-                trusted = model.predict_trusted(d)
-                raised = np.array([a.raised for a in trusted.alarms])
-                cover = float(np.mean(np.linalg.norm(trusted.displacement - fields, axis=2) <= trusted.error_bound))
-                peak = np.linalg.norm(fields, axis=2).max(axis=1)
-                err = offsets_max(model.predict(d), fields)
-                beyond = peak > pmax
-                row.update(detected=float(raised.mean()), peak_median=float(np.median(peak)),
-                           beyond_training_max=int(beyond.sum()),
-                           detected_beyond_max=float(raised[beyond].mean()) if beyond.any() else float("nan"),
-                           detected_beyond_p95=float(raised[peak > p95].mean()) if (peak > p95).any() else float("nan"),
-                           mlp_offset_max_detected=float(err[raised].mean()) if raised.any() else float("nan"),
-                           mlp_offset_max_missed=float(err[~raised].mean()) if (~raised).any() else float("nan"),
-                           bound_coverage_90=cover)
-                print(f"(c) loads {label}: detected {100 * row['detected']:.1f} % of {row['converged']} converged "
-                      f"({n_all - row['converged']} of {n_all} did not converge); median peak {row['peak_median']:.1f} mm; "
-                      f"{row['beyond_training_max']} beyond the training max, detected {100 * row['detected_beyond_max']:.0f} %; "
-                      f"beyond training p95 detected {100 * row['detected_beyond_p95']:.0f} %; MLP mean Offset_max "
-                      f"{row['mlp_offset_max_detected']:.2f} mm where detected, {row['mlp_offset_max_missed']:.2f} where not; "
-                      f"90 % bounds cover {100 * cover:.1f} % of vertices")
-            else:
-                print(f"(c) loads {label}: none of {n_all} converged")
-            res["loads"][label] = row
+        res["loads"] = part_alarm_loads(ds, model, args)
     out["alarm"] = res
 
 

@@ -64,6 +64,8 @@ class FakeDataset:
         self.markers = MARKERS.copy()
         self.fixed = np.array([0, 1, 2])
         self.config = None
+        self.path = None  # in memory: no store
+        self.scenario = None  # not recorded
         self.n_samples = len(codes)
 
     def select(self, split=None, status="done"):

@@ -70,3 +70,19 @@ def test_server_predicts_with_an_untracked_marker():
         positions[1] = np.nan  # two untracked markers: an error reply, the connection stays usable
         client.send_positions(positions)
         assert "at most one untracked marker" in client.receive().text
+
+
+def test_a_sub_model_set_serves_the_rigid_baseline_from_its_markers():
+    """Rigid registration learns nothing: any predictor's markers and mesh give it."""
+    from tissuecast.registration import rigid_registration_field
+    from tissuecast.serve import SurfacePredictor
+
+    s = model_set()
+    predictor = SurfacePredictor(s, method="rigid")
+    assert predictor.supports_missing and not predictor.has_uncertainty and not predictor.has_bounds
+    positions = s.reference_marker_positions + np.array([1.0, -0.5, 2.0])
+    positions[3] = np.nan  # untracked: left out of the fit
+    got = predictor.predict(positions, 0.0).displacement
+    d = positions - s.reference_marker_positions
+    np.testing.assert_allclose(got, rigid_registration_field(s.mesh.points, s.markers[:3], d[None, :3])[0], atol=1e-12)
+    np.testing.assert_allclose(got, np.broadcast_to([1.0, -0.5, 2.0], got.shape), atol=1e-9)  # a pure translation

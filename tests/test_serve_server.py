@@ -15,6 +15,7 @@ from serve_support import small_model
 
 from tissuecast.serve import IGTLClient, IGTLServer, SurfacePredictor
 from tissuecast.serve.protocol import ProtocolError
+from tissuecast.surrogate import FieldPredictor
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -237,16 +238,16 @@ def test_client_that_never_reads_is_dropped(model):
             assert_surface(client.predict(positions), model, positions)
 
 
-def test_predictor_rejects_bad_models():
-    class NoReference:
+def test_predictor_rejects_what_is_not_a_field_predictor():
+    class LooksLikeOne:  # duck-typed, but it declares none of the protocol's capabilities
         mesh = small_model("single").mesh
-        reference_marker_positions = np.zeros((3, 2))
+        reference_marker_positions = small_model("single").reference_marker_positions
 
         def predict_from_positions(self, positions):
             return np.zeros((64, 3))
 
-    with pytest.raises(ValueError, match="reference_marker_positions"):
-        SurfacePredictor(NoReference())
+    with pytest.raises(ValueError, match="serve needs a FieldPredictor .* got LooksLikeOne"):
+        SurfacePredictor(LooksLikeOne())
 
 
 def test_cli_serve_subprocess_round_trip(model, tmp_path):
@@ -328,18 +329,19 @@ def test_cli_serve_rejects_bad_options(tmp_path, capsys):
 
 
 def test_failing_model_gets_error_reply_and_server_survives(model):
-    class Flaky:
+    class Flaky(FieldPredictor):
         """Delegates to the real model but fails on every other call."""
 
+        name = "flaky"
         mesh = model.mesh
-        reference_marker_positions = model.reference_marker_positions
+        markers = model.markers
         calls = 0
 
-        def predict_from_positions(self, positions):
+        def _predict_batch(self, d, missing):
             Flaky.calls += 1
             if Flaky.calls % 2:
                 raise RuntimeError("simulated failure")
-            return model.predict_from_positions(positions)
+            return model.predict(d)
 
     with IGTLServer(Flaky(), "127.0.0.1", 0) as srv, IGTLClient(*srv.address) as client:
         positions = motion(model, 14)
@@ -376,12 +378,13 @@ def test_rigid_method_errors(model):
     with pytest.raises(ConfigError, match="unknown serving method 'affine'"):
         SurfacePredictor(model, method="affine")
 
-    class NoRigid:
+    class TwoMarkers(FieldPredictor):  # a rigid motion needs 3 markers not on one line
         mesh = model.mesh
-        reference_marker_positions = model.reference_marker_positions
+        markers = model.markers[:2]
 
-        def predict_from_positions(self, positions):
-            return np.zeros((model.mesh.n_vertices, 3))
+        def _predict_batch(self, d, missing):
+            return np.zeros((len(d), model.mesh.n_vertices, 3))
 
-    with pytest.raises(ModelError, match="no predict_rigid"):
-        SurfacePredictor(NoRigid(), method="rigid")
+    with pytest.raises(ModelError, match="rigid registration needs at least 3 markers, this model has 2"):
+        SurfacePredictor(TwoMarkers(), method="rigid")
+    assert SurfacePredictor(TwoMarkers()).method == "mlp"  # the predictor itself serves

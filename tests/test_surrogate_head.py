@@ -49,37 +49,38 @@ def test_head_is_exact_on_fields_quadratic_in_the_markers(quadratic_data):
     e_head, e_alone = _test_error(with_head, U), _test_error(alone, U)
     assert e_head < 1e-3 * peak, (e_head, peak)  # the networks learnt (nearly) nothing on top
     assert e_alone > 10 * e_head
-    assert alone.head_ is None and alone.pca_choice_["head"] == {"dims": None}
+    assert alone.network_.head is None and alone.pca_choice_["head"] == {"dims": None}
 
 
 def test_fixed_head_dims_and_round_trip(quadratic_data, tmp_path):
     mesh, U = quadratic_data
     m = DeformationModel(head_dims=2, **FAST).fit(U, MARKERS, mesh=mesh, train_idx=np.arange(300),
                                                    valid_idx=np.arange(300, 350))
-    assert m.head_.directions.shape == (2, 15) and m.pca_choice_["head"]["dims"] == 2
+    assert m.network_.head.directions.shape == (2, 15) and m.pca_choice_["head"]["dims"] == 2
     m.save(tmp_path / "m")
     meta = json.loads((tmp_path / "m" / "model.json").read_text())
     assert meta["network"]["head"] == {"kind": "quadratic", "dims": 2} and meta["files"]["head"] == "head.npz"
     loaded = DeformationModel.load(tmp_path / "m")
     d = m.marker_displacements(U[350:])
     np.testing.assert_array_equal(loaded.predict(d), m.predict(d))
-    np.testing.assert_array_equal(loaded.head_.coef, m.head_.coef)
+    np.testing.assert_array_equal(loaded.network_.head.coef, m.network_.head.coef)
 
 
 def test_no_head_without_enough_samples_or_with_missing_marker_input(quadratic_data):
     mesh, U = quadratic_data
     # 20 training samples, 5 markers: even the affine head has 16 features (> 20 / 2)
     few = DeformationModel(**FAST).fit(U, MARKERS, mesh=mesh, train_idx=np.arange(20), valid_idx=np.arange(20, 30))
-    assert few.head_ is None and few.pca_choice_["head"]["dims"] is None
+    assert few.network_.head is None and few.pca_choice_["head"]["dims"] is None
     # 40 samples: the affine head (16 features) and no quadratic one (q = 6 gives 37)
     some = DeformationModel(**FAST).fit(U, MARKERS, mesh=mesh, train_idx=np.arange(40), valid_idx=np.arange(40, 50))
-    assert some.pca_choice_["head"]["dims"] == 0 and some.head_.directions.shape == (0, 15)
+    assert some.pca_choice_["head"]["dims"] == 0 and some.network_.head.directions.shape == (0, 15)
     d = some.marker_displacements(U[350:352])
-    w = np.mean([n.predict_weights(d.reshape(2, -1)) for n in some.members_], axis=0) + some.head_.predict(d.reshape(2, -1))
-    np.testing.assert_allclose(some.predict(d), some.pca_.inverse_transform(w).reshape(2, -1, 3), atol=1e-9)
+    net = some.network_
+    w = np.mean([n.predict_weights(d.reshape(2, -1)) for n in net.members], axis=0) + net.head.predict(d.reshape(2, -1))
+    np.testing.assert_allclose(some.predict(d), some.network_.basis.inverse_transform(w).reshape(2, -1, 3), atol=1e-9)
     masked = DeformationModel(marker_dropout=0.3, **FAST).fit(U, MARKERS, mesh=mesh, train_idx=np.arange(300),
                                                               valid_idx=np.arange(300, 350))
-    assert masked.head_ is None and masked.supports_missing_markers
+    assert masked.network_.head is None and masked.supports_missing_markers
 
 
 def test_trust_layer_of_a_head_model_has_a_flat_normaliser_and_covers():
@@ -89,10 +90,10 @@ def test_trust_layer_of_a_head_model_has_a_flat_normaliser_and_covers():
     two = MARKERS[[0, 4]]  # two markers: the fields are not linear in them, the head is not exact
     m = DeformationModel(epochs=60, patience=0, batch_size=64, learning_rate=3e-3, n_components=8, hidden=(64, 32))
     m.fit(U, two, mesh=mesh, train_idx=SPLITS["train"], valid_idx=SPLITS["valid"], calibration_idx=SPLITS["calibration"])
-    assert m.head_ is not None and m.trust_.flat and m.trust_.error_input is not None
+    assert m.network_.head is not None and m.trusted_.layer.flat and m.trusted_.layer.error_input is not None
     test = U[SPLITS["test"]]
     d = test[:, two, :]
-    sigma = m.trust_.normaliser(d.reshape(len(d), -1), m.predict(d))
+    sigma = m.trusted_.layer.normaliser(d.reshape(len(d), -1), m.predict(d))
     np.testing.assert_allclose(sigma, sigma[:, :1].repeat(sigma.shape[1], axis=1))  # g alone within a sample
     tp = m.predict_trusted(d, coverage=0.9)
     e = np.linalg.norm(tp.displacement - test, axis=2)

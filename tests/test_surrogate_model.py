@@ -61,7 +61,7 @@ def test_validation_rule_keeps_the_components_the_data_use(data):
     valid = U[350:400].astype(np.float64)
     e = np.linalg.norm(m.predict(m.marker_displacements(valid)) - valid, axis=2).max(axis=1).mean()
     assert e == pytest.approx(curve["model_offset_max"][7], rel=1e-4)
-    assert all(w.weights[-1].shape[0] == 8 for w in m.members_)
+    assert all(w.weights[-1].shape[0] == 8 for w in m.network_.members)
 
 
 def test_input_layouts_agree(model, data):
@@ -81,10 +81,10 @@ def test_input_layouts_agree(model, data):
 def test_fast_path_matches_plain_forward(model, data):
     _, U = data
     d = model.marker_displacements(U[400:410]).reshape(10, -1)
-    w = np.mean([m.predict_weights(d) for m in model.members_], axis=0)
-    assert model.head_ is not None  # the default: the networks correct a quadratic head
-    w += model.head_.predict(d)  # the plain (unfolded) regression
-    ref = model.pca_.inverse_transform(w).reshape(10, -1, 3)
+    w = np.mean([m.predict_weights(d) for m in model.network_.members], axis=0)
+    assert model.network_.head is not None  # the default: the networks correct a quadratic head
+    w += model.network_.head.predict(d)  # the plain (unfolded) regression
+    ref = model.network_.basis.inverse_transform(w).reshape(10, -1, 3)
     np.testing.assert_allclose(model.predict(d), ref, atol=1e-9)
     np.testing.assert_allclose(model.predict(d[3]), ref[3], atol=1e-9)  # the single-sample path
 
@@ -105,8 +105,8 @@ def test_uncertainty_from_ensemble(model, data):
     np.testing.assert_allclose(u, model.predict(d), atol=1e-9)
     assert sigma.shape == (20, 270) and (sigma >= 0).all() and sigma.max() > 0
     # two members: sigma is half the distance between their fields
-    W = model.compiled_.member_weights(d.reshape(20, -1))
-    f = (W @ model.pca_.components).reshape(2, 20, 270, 3)
+    W = model.network_.member_weights(d.reshape(20, -1))
+    f = (W @ model.network_.basis.components).reshape(2, 20, 270, 3)
     np.testing.assert_allclose(sigma, 0.5 * np.linalg.norm(f[0] - f[1], axis=-1), atol=1e-9)
     u1, s1 = model.predict_with_uncertainty(d[0])
     assert u1.shape == (270, 3) and s1.shape == (270,)
@@ -187,8 +187,8 @@ def test_missing_markers(masked_model, model, data, tmp_path):
     # the masked fast path equals the plain forward pass with present channels
     present = np.ones((len(d), 5))
     present[:, 2] = 0
-    w = masked_model.members_[0].predict_weights(np.nan_to_num(d_nan).reshape(len(d), -1), present)
-    np.testing.assert_allclose(missing, masked_model.pca_.inverse_transform(w).reshape(missing.shape), atol=1e-9)
+    w = masked_model.network_.members[0].predict_weights(np.nan_to_num(d_nan).reshape(len(d), -1), present)
+    np.testing.assert_allclose(missing, masked_model.network_.basis.inverse_transform(w).reshape(missing.shape), atol=1e-9)
     with pytest.raises(ModelError, match="marker_dropout"):
         model.predict(d[0], missing=[1])
     masked_model.save(tmp_path / "mm")
@@ -212,10 +212,10 @@ def test_training_is_deterministic(data):
     kw = dict(epochs=20, patience=0, n_components=8, batch_size=64, noise_sigma=0.1, marker_dropout=0.2)
     a = DeformationModel(**kw).fit(U[:200], MARKERS, mesh=mesh, valid_idx=np.arange(150, 200))
     b = DeformationModel(**kw).fit(U[:200], MARKERS, mesh=mesh, valid_idx=np.arange(150, 200))
-    for wa, wb in zip(a.members_[0].weights, b.members_[0].weights):
+    for wa, wb in zip(a.network_.members[0].weights, b.network_.members[0].weights):
         np.testing.assert_array_equal(wa, wb)
     c = DeformationModel(seed=1, **kw).fit(U[:200], MARKERS, mesh=mesh, valid_idx=np.arange(150, 200))
-    assert not np.array_equal(a.members_[0].weights[0], c.members_[0].weights[0])
+    assert not np.array_equal(a.network_.members[0].weights[0], c.network_.members[0].weights[0])
 
 
 def test_train_mlp_reads_its_settings_from_the_surrogate_config(data):

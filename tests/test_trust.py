@@ -90,7 +90,7 @@ def test_trust_layer_round_trips_through_the_model_folder(model, test_fields, tm
     # the error model weighs the input error regression (learnt from out-of-fold errors) as a sixth feature
     assert meta["trust"]["error_model_features"][-1] == "input_error_prediction" and len(meta["trust"]["error_model"]) == 7
     back = DeformationModel.load(tmp_path / "m")
-    assert back.trust_.error_input is not None
+    assert back.trusted_.layer.error_input is not None
     d = test_fields[:20, model.markers, :]
     a, b = model.predict_trusted(d), back.predict_trusted(d)
     np.testing.assert_allclose(b.error_bound, a.error_bound, rtol=1e-6)
@@ -134,11 +134,11 @@ def test_the_fault_score_joins_the_alarm_when_asked_and_is_stored():
     m = DeformationModel(epochs=5, patience=0, n_components=4, head="none", alarm_fault_score=True).fit(
         U[:400], MARKERS, mesh=mesh, train_idx=np.arange(250), valid_idx=np.arange(250, 300),
         calibration_idx=np.arange(300, 400))
-    assert m.trust_.ood.use_fault and np.isfinite(m.trust_.ood.thresholds(0.01)).all()
-    assert m.trust_.summary()["fault_score_in_alarm"]
-    back = type(m.trust_).from_arrays(m.trust_.arrays())
+    assert m.trusted_.layer.ood.use_fault and np.isfinite(m.trusted_.layer.ood.thresholds(0.01)).all()
+    assert m.trusted_.layer.summary()["fault_score_in_alarm"]
+    back = type(m.trusted_.layer).from_arrays(m.trusted_.layer.arrays())
     assert back.ood.use_fault
     d = U[1100:1150, MARKERS]
-    np.testing.assert_array_equal(back.alarm_scores(d), m.trust_.alarm_scores(d))
+    np.testing.assert_array_equal(back.alarm_scores(d), m.trusted_.layer.alarm_scores(d))
     with pytest.raises(ConfigError, match="alarm_fault_score"):
         DeformationModel(alarm_fault_score="yes")

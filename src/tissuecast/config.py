@@ -239,7 +239,7 @@ class EvaluateConfig:
 
 
 #: How TRANSFORM marker input triggers predictions, and the frames a client may work in
-#: (see :mod:`tissuecast.serve.session`, :mod:`tissuecast.serve.frames`).
+#: (see :mod:`tissuecast.serve.session`, :mod:`tissuecast.serve.client_frames`).
 TRANSFORM_MODES = ("frame", "each")
 CLIENT_FRAMES = ("LPS", "RAS")
 SERVE_METHODS = ("mlp", "rigid")

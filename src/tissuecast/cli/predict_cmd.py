@@ -227,7 +227,7 @@ def run(args) -> int:
         if alarms is not None and alarms[b].raised:
             print(f"sample {b}: ALARM: {alarms[b].text}")
     if bound is not None and not np.isfinite(bound).all():
-        print(f"note: the bounds are infinite: {model.trust_.conformal.n_calibration} calibration samples are too few "
+        print(f"note: the bounds are infinite: {model.trusted_.n_calibration} calibration samples are too few "
               f"for {100 * coverage:g} % coverage; use a lower --coverage or re-train with a larger calibration_share")
     if alarms is not None and not np.isfinite(alarms[0].distance_threshold):
         print("note: the alarm is off: too few calibration samples for this false-alarm rate; use a larger "

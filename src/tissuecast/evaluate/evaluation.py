@@ -9,7 +9,9 @@ targets inside the tissue (:mod:`.targets`): TRE mean / p95 / max and the share 
 targets' displacement corrected (:func:`~.metrics.summarize_targets`).
 
 All distances in mm, times in seconds. The inputs of every prediction are the benchmark
-(FEM) displacements of the model's markers, as in the paper.
+(FEM) displacements of the model's markers, as in the paper. Each method is the model's part
+for it (``DeformationModel.predictor(method)``), called through the one predictor protocol
+(:class:`~tissuecast.surrogate.field_predictor.FieldPredictor`).
 """
 
 from __future__ import annotations
@@ -58,7 +60,8 @@ METHOD_LABELS = {"mlp": "MLP", "rigid": "rigid registration", "ridge": "ridge", 
 def method_fields(model, marker_displacements: np.ndarray, methods=PREDICTORS) -> dict:
     """The fields each predictor gives from the same marker displacements.
 
-    The one place evaluation calls the model's predictors (``model.predict(..., method=m)``).
+    The one place evaluation calls the model's predictors (``model.predictor(m)``, each a
+    :class:`~tissuecast.surrogate.field_predictor.FieldPredictor`).
 
     Args:
         model: a fitted DeformationModel.
@@ -72,7 +75,7 @@ def method_fields(model, marker_displacements: np.ndarray, methods=PREDICTORS) -
     out = {}
     for m in methods:
         try:
-            out[m] = np.asarray(model.predict(marker_displacements, method=m), dtype=np.float64)
+            out[m] = np.asarray(model.predictor(m).predict(marker_displacements), dtype=np.float64)
         except RegistrationError:
             out[m] = None
     return out
@@ -263,7 +266,7 @@ def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: s
     parts: dict = {}
     for s in range(0, idx.size, chunk):
         for k, v in _chunk(model, np.asarray(U[idx[s:s + chunk]], dtype=np.float64), targets,
-                           model.ensemble_size > 1).items():
+                           model.has_uncertainty).items():
             parts.setdefault(k, []).append(v)
     cat = lambda k: np.concatenate(parts[k]) if k in parts else np.zeros(0)  # noqa: E731
     tre = {m: cat(f"tre_{m}") for m in METHODS} if targets is not None else {}
@@ -289,8 +292,7 @@ def _timing(model, U, idx, repeats: int = TIMING_REPEATS) -> dict:
 
 def _scenario(model, dataset) -> dict | None:
     """The scenario the model was trained on (its record), else the data set's, else None."""
-    recorded = getattr(model, "scenario", None)
-    return dict(recorded) if recorded else getattr(dataset, "scenario", None)
+    return dict(model.scenario) if model.scenario else dataset.scenario
 
 
 def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, targets=None) -> Evaluation:
@@ -300,7 +302,7 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
     Args:
         model: a fitted :class:`~tissuecast.surrogate.DeformationModel` on the data set's mesh.
         dataset: a :class:`tissuecast.dataset.Dataset` (or any object with ``displacements``,
-            ``beta``, ``mesh`` and ``select(split, status)``).
+            ``beta``, ``mesh``, ``scenario`` and ``select(split, status)``).
         splits: which splits to evaluate ('train', 'valid', 'test1', 'test2').
         targets: where TRE is measured (:class:`~.targets.Targets` on the model's mesh);
             default the interior rule (:func:`~.targets.interior_targets`, away from the
@@ -325,10 +327,8 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
         for b in np.unique(t2.beta[np.isfinite(t2.beta)]):
             by_beta.append((float(b), t2.subset(t2.beta == b, f"test2 beta={b:g}")))
     timing_idx = np.asarray(dataset.select("test1", status="done"), dtype=np.int64)
-    choice = dict(getattr(model, "pca_choice_", None) or {})
-    choice.pop("validation_curve", None)
-    summary = {"n_components": model.n_components, "markers": model.markers.tolist(), "ensemble": model.ensemble_size,
-               "hidden": list(model.members_[0].hidden), "pca": choice, "training": getattr(model, "training_", None),
+    about = model.describe()
+    summary = {**{k: about[k] for k in ("n_components", "markers", "ensemble", "hidden", "pca", "training")},
                "scenario": _scenario(model, dataset)}
     return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=_timing(model, U, timing_idx), model_summary=summary,
                       targets=targets)

@@ -9,13 +9,14 @@ import numpy as np
 from ..errors import require
 
 __all__ = ["boxplots", "beta_curve", "pca_curve", "pca_validation_curve", "training_curves", "marker_count_curve",
-           "architecture_grid"]
+           "architecture_grid", "pyplot", "save_figure"]
 
 PAPER_BETA = {0.0: 1.181, 0.5: 0.889}  # test-2 mean Offset_max (mm) quoted in the paper
 PAPER_MARKER_COUNTS = {3: 2.205, 5: 0.837, 10: 0.485, 20: 0.302}  # test-1 mean Offset_max (mm) per n_d, the paper
 
 
-def _plt():
+def pyplot():
+    """``matplotlib.pyplot`` on the Agg backend (needs the ``viz`` extra)."""
     mpl = require("matplotlib", "viz", "report figures")
     mpl.use("Agg", force=True)
     import matplotlib.pyplot as plt
@@ -23,10 +24,11 @@ def _plt():
     return plt
 
 
-def _save(fig, path: Path) -> Path:
+def save_figure(fig, path: Path) -> Path:
+    """Write ``fig`` to ``path`` (PNG, 110 dpi), close it and return ``path``."""
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    _plt().close(fig)
+    pyplot().close(fig)
     return path
 
 
@@ -37,7 +39,7 @@ _STYLE = {"mlp": ("MLP", "tab:blue"), "rigid": ("rigid", "tab:green"), "ridge": 
 
 def boxplots(evaluation, path: Path) -> Path:
     """Offset_mean and Offset_max per set: MLP, rigid registration, ridge and the PCA floor."""
-    plt = _plt()
+    plt = pyplot()
     sets = [s for s in ("valid", "test1", "test2") if s in evaluation.sets]
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for ax, (col, label) in zip(axes, ((0, "Offset_mean (mm)"), (1, "Offset_max (mm)"))):
@@ -60,12 +62,12 @@ def boxplots(evaluation, path: Path) -> Path:
         ax.set_yscale("log")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def beta_curve(evaluation, path: Path) -> Path:
     """Test-2 mean Offset_max / Offset_mean versus beta for every method, paper points."""
-    plt = _plt()
+    plt = pyplot()
     b = np.array([x for x, _ in evaluation.by_beta])
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for col, ls, name in ((1, "-", "max"), (0, "--", "mean")):
@@ -78,12 +80,12 @@ def beta_curve(evaluation, path: Path) -> Path:
     ax.set_yscale("log")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def pca_curve(curve, path: Path) -> Path:
     """Cross-validated PCA reconstruction error versus n_w."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4))
     ax.semilogy(curve.n_components, curve.max_error, "o-", ms=3, label=f"{curve.folds}-fold mean of largest vertex error")
     ax.semilogy(curve.n_components, curve.mean_max_error, "s-", ms=3, label="mean per-sample Offset_max")
@@ -94,13 +96,13 @@ def pca_curve(curve, path: Path) -> Path:
     ax.set_ylabel("reconstruction error (mm)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def pca_validation_curve(curve: dict, chosen: int, path: Path) -> Path:
     """Validation mean Offset_max of the model truncated to n_w components, and of the fields'
     own projection (the PCA floor), versus n_w."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4))
     k = np.asarray(curve["n_components"])
     ax.semilogy(k, curve["model_offset_max"], "o-", ms=3, label="model (network truncated to n_w)")
@@ -110,12 +112,12 @@ def pca_validation_curve(curve: dict, chosen: int, path: Path) -> Path:
     ax.set_ylabel("validation mean Offset_max (mm)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def training_curves(members: list[dict], path: Path) -> Path:
     """Validation loss versus epoch of each ensemble member."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for k, m in enumerate(members):
         h = np.array(m.get("valid_history") or [[0, np.nan]], dtype=float)
@@ -124,12 +126,12 @@ def training_curves(members: list[dict], path: Path) -> Path:
     ax.set_ylabel("validation MSE (scaled PCA weights)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def marker_count_curve(rows: list[dict], path: Path) -> Path:
     """Test-1 mean Offset_max versus number of markers (study rows), with the paper's points."""
-    plt = _plt()
+    plt = pyplot()
     n = np.array([r["n_markers"] for r in rows], dtype=float)
     fig, ax = plt.subplots(figsize=(6.5, 4))
     for key, style, label in (("mlp_offset_max", "o-", "MLP"), ("rigid_offset_max", "^-", "rigid registration"),
@@ -142,12 +144,12 @@ def marker_count_curve(rows: list[dict], path: Path) -> Path:
     ax.set_ylabel("test-1 mean Offset_max (mm)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def architecture_grid(rows: list[dict], path: Path) -> Path:
     """Mean test-1 Offset_max and training time over the hidden-layer grid."""
-    plt = _plt()
+    plt = pyplot()
     n1 = sorted({r["n1"] for r in rows})
     n2 = sorted({r["n2"] for r in rows})
     err = np.full((len(n1), len(n2)), np.nan)
@@ -172,4 +174,4 @@ def architecture_grid(rows: list[dict], path: Path) -> Path:
                 if np.isfinite(data[i, j]):
                     ax.text(j, i, fmt.format(data[i, j]), ha="center", va="center", color="w", fontsize=8)
         fig.colorbar(im, ax=ax)
-    return _save(fig, path)
+    return save_figure(fig, path)

@@ -65,7 +65,7 @@ def _header(title: str, model, dataset, evaluation) -> str:
     ms = evaluation.model_summary
     targets = evaluation.targets
     facts = [model_description(ms), f"{len(ms['markers'])} markers (vertices {ms['markers']})",
-             f"data set: {getattr(dataset, 'path', None) or type(dataset).__name__} ({dataset.n_samples} samples)"]
+             f"data set: {dataset.path or type(dataset).__name__} ({dataset.n_samples} samples)"]
     if targets is not None:
         facts.append(f"targets: {targets.description}")
     return (f"<h1>{html.escape(title)}</h1><p class='tc-sub'>{html.escape(' · '.join(str(f) for f in facts))}. "
@@ -82,7 +82,7 @@ def _headline(evaluation, trust: dict | None, model) -> str:
         head = ["", *(METHOD_LABELS[m] for m in HEADLINE_METHODS)]
         parts.append(html_table(head, headline_rows(evaluation)).replace("<table>", "<table class='tc-headline'>", 1))
     parts.append("<h2>How sure</h2>")
-    parts.append(html_table(["", "value", "what it means"], trust_rows(trust, model.ensemble_size > 1))
+    parts.append(html_table(["", "value", "what it means"], trust_rows(trust, model.has_uncertainty))
                  .replace("<table>", "<table class='tc-sure'>", 1))
     parts.append("<p class='tc-note'>Rigid registration: the best rotation and translation of the markers onto their "
                  "tracked positions, applied to the whole mesh (what a navigation system does with fiducials alone). "
@@ -102,7 +102,7 @@ def _render_samples(folder: Path, model, dataset, evaluation, count: int) -> lis
         pred = fields["mlp"][0]
         data = {"benchmark_displacement": bench, "predicted_displacement": pred,
                 "vertex_error": np.linalg.norm(pred - bench, axis=1), "ridge_displacement": fields["ridge"][0]}
-        if model.ensemble_size > 1:
+        if model.has_uncertainty:
             data["uncertainty"] = model.predict_with_uncertainty(d)[1]
         write_vtu(folder / "vtu" / f"{stem}.vtu", model.mesh, data)
         png = folder / f"render_{stem}.png"
@@ -162,11 +162,11 @@ def _figures(folder: Path, model, evaluation, studies_folder) -> list[tuple[str,
     figs = [("Offsets per set (boxplots)", figures.boxplots(evaluation, folder / "boxplots.png"))]
     if evaluation.by_beta:
         figs.append(("Test-2 error versus β", figures.beta_curve(evaluation, folder / "beta.png")))
-    vcurve = (getattr(model, "pca_choice_", None) or {}).get("validation_curve")
+    vcurve = (model.pca_choice_ or {}).get("validation_curve")
     if vcurve:
         figs.append(("Choice of n_w: validation error of the trained model and the PCA floor versus n_w",
                      figures.pca_validation_curve(vcurve, model.n_components, folder / "pca_validation.png")))
-    if getattr(model, "pca_curve_", None) is not None:
+    if model.pca_curve_ is not None:
         figs.append(("PCA reconstruction error versus n_w (cross-validated on the training set)",
                      figures.pca_curve(model.pca_curve_, folder / "pca.png")))
     members = (evaluation.model_summary.get("training") or {}).get("members") or []
@@ -208,9 +208,9 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = EvaluateC
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     _write_tables(folder, evaluation)
-    trust = trust_evaluation(model, dataset) if model.has_trust else None
+    trust = trust_evaluation(model.trusted_, dataset) if model.has_trust else None
     parts = [_header(title, model, dataset, evaluation), _headline(evaluation, trust, model),
-             write_viewer(folder, model, dataset, evaluation), uncertainty_section(model, evaluation, trust, folder)]
+             write_viewer(folder, model, dataset, evaluation), uncertainty_section(model.trusted_, evaluation, trust, folder)]
     parts += _detail_sections(evaluation)
     figs = "".join(f"<h3>{html.escape(cap)}</h3><img src='{p.name}' alt='{html.escape(cap)}'>"
                    for cap, p in _figures(folder, model, evaluation, studies_folder))

@@ -1,6 +1,7 @@
 """How far the error bounds and the out-of-distribution alarm can be trusted, on a data set.
 
-For a model with a trust layer (:mod:`tissuecast.surrogate.trust`) and each test set
+For a predictor with a trust layer (a :class:`~tissuecast.surrogate.trusted.TrustedPredictor`,
+``DeformationModel.trusted_``; :mod:`tissuecast.surrogate.trust`) and each test set
 (test-1, test-2 and each test-2 beta): the empirical coverage of the per-vertex bounds at
 90 % and 95 % nominal (share of (sample, vertex) pairs whose error is within the bound),
 their sharpness (median bound, mm), how well the bounds rank the errors (Spearman: per
@@ -31,13 +32,14 @@ __all__ = ["bound_figures", "trust_evaluation", "reliability_figure", "uncertain
 LEVELS = (0.9, 0.95)
 
 
-def bound_figures(model, bench: np.ndarray, levels=LEVELS) -> dict:
-    """Coverage, sharpness, ranking and alarms of the bounds on fields ``bench`` (B, n, 3) mm."""
+def bound_figures(trusted, bench: np.ndarray, levels=LEVELS) -> dict:
+    """Coverage, sharpness, ranking and alarms of the bounds of a predictor with ``has_trust``
+    on fields ``bench`` (B, n, 3) mm."""
     bench = np.asarray(bench, dtype=np.float64)
-    d = bench[:, model.markers, :]
+    d = trusted.marker_displacements(bench)
     row: dict = {"count": int(len(bench))}
     for c in levels:
-        tp = model.predict_trusted(d, coverage=c)
+        tp = trusted.predict_trusted(d, coverage=c)
         e = np.linalg.norm(tp.displacement - bench, axis=2)
         row[f"coverage_{c:g}"] = float(np.mean(e <= tp.error_bound))
         row[f"median_bound_{c:g}"] = float(np.median(tp.error_bound))
@@ -51,8 +53,9 @@ def bound_figures(model, bench: np.ndarray, levels=LEVELS) -> dict:
     return row
 
 
-def trust_evaluation(model, dataset) -> dict:
-    """Figures of the bounds and alarm on the data set's test-1 and test-2 samples.
+def trust_evaluation(trusted, dataset) -> dict:
+    """Figures of the bounds and alarm of a :class:`TrustedPredictor` on the data set's test-1 and
+    test-2 samples.
 
     Returns:
         ``{"sets": {name: bound_figures row}, "reliability": {"nominal": [...], "empirical": [...]}}``
@@ -65,27 +68,27 @@ def trust_evaluation(model, dataset) -> dict:
         idx = np.asarray(dataset.select(split, status="done"), dtype=np.int64)
         if idx.size == 0:
             continue
-        sets[split] = bound_figures(model, U[idx])
+        sets[split] = bound_figures(trusted, U[idx])
         if split == "test2":
             for b in np.unique(beta[idx][np.isfinite(beta[idx])]):
-                sets[f"test2 beta={b:g}"] = bound_figures(model, U[idx[beta[idx] == b]])
+                sets[f"test2 beta={b:g}"] = bound_figures(trusted, U[idx[beta[idx] == b]])
     out: dict = {"sets": sets, "reliability": {}}
     idx = np.asarray(dataset.select("test1", status="done"), dtype=np.int64)
     if idx.size:
         bench = np.asarray(U[idx], dtype=np.float64)
-        d = bench[:, model.markers, :]
-        u = model.predict(d)
-        sigma = model.trust_.normaliser(d.reshape(len(d), -1), u)
-        lv, emp = reliability_curve(model.trust_.conformal, np.linalg.norm(u - bench, axis=2), sigma)
+        d = trusted.marker_displacements(bench)
+        u = trusted.predict(d)
+        sigma = trusted.layer.normaliser(d.reshape(len(d), -1), u)
+        lv, emp = reliability_curve(trusted.layer.conformal, np.linalg.norm(u - bench, axis=2), sigma)
         out["reliability"] = {"nominal": lv.tolist(), "empirical": emp.tolist()}
     return out
 
 
 def reliability_figure(result: dict, path: Path) -> Path:
     """Nominal versus empirical coverage of the bounds on test-1 (the reliability diagram)."""
-    from .figures import _plt, _save
+    from .figures import pyplot, save_figure
 
-    plt = _plt()
+    plt = pyplot()
     r = result["reliability"]
     fig, ax = plt.subplots(figsize=(4.8, 4.5))
     ax.plot([0.5, 1.0], [0.5, 1.0], "k--", lw=1, label="ideal")
@@ -96,7 +99,7 @@ def reliability_figure(result: dict, path: Path) -> Path:
     ax.set_ylim(0.48, 1.0)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _bounds_table(result: dict) -> str:
@@ -131,12 +134,13 @@ def _spread_html(evaluation) -> str:
             + "</details>")
 
 
-def uncertainty_section(model, evaluation, result: dict | None, folder: Path) -> str:
+def uncertainty_section(trusted, evaluation, result: dict | None, folder: Path) -> str:
     """HTML of the report's "how sure" section: the calibrated error bounds and the alarm, with the
     ensemble's spread as a detail; writes ``trust.json`` and ``reliability.png`` (calibrated models).
 
     Args:
-        model: the evaluated model.
+        trusted: the evaluated model's :class:`TrustedPredictor` (``DeformationModel.trusted_``),
+            or None for a model without a trust layer.
         evaluation: its :class:`~.evaluation.Evaluation`.
         result: :func:`trust_evaluation`'s figures, or None for a model without a trust layer.
         folder: the report folder.
@@ -147,7 +151,7 @@ def uncertainty_section(model, evaluation, result: dict | None, folder: Path) ->
                      "<code>surrogate.calibration_share = 0</code>. Re-train with a share above 0 to get both.</p>")
     else:
         Path(folder, "trust.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
-        t = model.trust_
+        t = trusted.layer
         parts.append(f"<p>Every vertex gets an error bound: the error stays below it with the nominal probability "
                      f"(split-conformal, calibrated on {t.conformal.n_calibration} samples held out from training). "
                      f"Covered: the share of vertices whose error is within their bound; it should match the nominal "

@@ -120,7 +120,7 @@ def plan_markers(dataset, count: int | None = None, *, target_mm: float | None =
     """
     _check_request(count, target_mm)
     if config is None:
-        config = getattr(dataset, "config", None)
+        config = dataset.config
     arrays = dataset_arrays(dataset)
     planner = _planner(arrays, region, allowed, shortlist, min_distance, on_step)
     n_path = count if count is not None else min(max_count, planner.candidates.size)

@@ -7,7 +7,7 @@ Protocol summary (details in :mod:`tissuecast.serve.session` and
   messages ``Marker0``..``Marker{n_d-1}`` (translation = marker position); a ``TRANSFORM``
   ``<From>To<Target>`` (``TrackerToRas``, ``ReferenceToRas``, ``TrackerToImage``) sets the
   registration: markers are then read in the tracker frame and replies go back in the
-  target frame (:mod:`tissuecast.serve.frames`);
+  target frame (:mod:`tissuecast.serve.client_frames`);
   ``GET_POLYDATA TissueField`` asks for the full field of the latest prediction.
 - out: ``POLYDATA TissueSurface`` (deformed outer surface; ``uncertainty_mm`` point data
   for ensembles), ``POLYDATA TissueField`` (all vertices, ``displacement_mm`` vectors),
@@ -15,9 +15,9 @@ Protocol summary (details in :mod:`tissuecast.serve.session` and
 """
 
 from .client import IGTLClient, Reply
-from .frames import ClientFrames
+from .client_frames import ClientFrames
 from .polydata import PolyData, PolyDataTemplate, decode_polydata
-from .predictor import FIELD_DEVICE, SURFACE_DEVICE, Prediction, PredictionError, ServableModel, SurfacePredictor
+from .predictor import FIELD_DEVICE, SURFACE_DEVICE, Prediction, PredictionError, SurfacePredictor, served_predictor
 from .protocol import ProtocolError
 from .server import IGTLServer
 from .session import ERROR_DEVICE, MARKER_PREFIX, ClientSession
@@ -29,7 +29,7 @@ __all__ = [
     "Reply",
     "ClientSession",
     "SurfacePredictor",
-    "ServableModel",
+    "served_predictor",
     "Prediction",
     "PredictionError",
     "ProtocolError",

@@ -16,7 +16,8 @@ import numpy as np
 from ..config import ServeConfig
 from .polydata import PolyData, decode_polydata
 from .predictor import FIELD_DEVICE
-from .protocol import HEADER_SIZE, Header, ProtocolError, decode_string, message_content, parse_header, pyigtl
+from .protocol import (HEADER_SIZE, Header, ProtocolError, decode_string, message_content, pack_header, parse_header,
+                       pyigtl)
 from .session import MARKER_PREFIX
 
 __all__ = ["IGTLClient", "Reply"]
@@ -87,9 +88,7 @@ class IGTLClient:
 
     def request(self, message_type: str, device_name: str) -> None:
         """Send a body-less message such as ``GET_POLYDATA``."""
-        message = pyigtl.MessageBase(device_name=device_name)
-        message._message_type = message_type  # pyigtl has no public setter for custom types
-        self.send(message)
+        self.send(pack_header(message_type, device_name, time.time(), 0, 0))  # no body: its CRC-64 is 0
 
     def request_field(self) -> None:
         """Ask for the full vertex field of the latest prediction (``GET_POLYDATA TissueField``)."""

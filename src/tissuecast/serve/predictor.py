@@ -1,21 +1,24 @@
 """Marker positions in, packed POLYDATA replies out: everything per model is precomputed.
 
-The server works with any object that has the :class:`ServableModel` interface (a
-:class:`tissuecast.surrogate.DeformationModel` does). Per request the work is: one model
-evaluation, one vectorised write of the deformed coordinates into a pre-packed message
+The server works with any :class:`~tissuecast.surrogate.field_predictor.FieldPredictor` (a
+:class:`~tissuecast.surrogate.DeformationModel`, a sub-model set, a baseline, a trust-wrapped
+predictor); what it sends follows the predictor's declared capabilities
+(``supports_missing_markers``, ``has_uncertainty``, ``has_trust``). Per request the work is: one
+model evaluation, one vectorised write of the deformed coordinates into a pre-packed message
 buffer and a CRC over the changed bytes only (see :mod:`tissuecast.serve.crc`).
 
 Replies (OpenIGTLink version-1 headers, timestamp copied from the marker message):
 
-Points go out in the client's frame (:class:`~tissuecast.serve.frames.ClientFrames`; the
+Points go out in the client's frame (:class:`~tissuecast.serve.client_frames.ClientFrames`; the
 model's LPS frame by default).
 
 - ``POLYDATA "TissueSurface"``: the deformed outer surface. Points are the mesh's surface
   vertices in ascending id order (``mesh.surface_vertices``), moved by the predicted
   displacement (mm); polygons are ``mesh.surface_triangles`` re-indexed into those points
-  (outward normals). With an ensemble model a point-data scalar ``"uncertainty_mm"`` holds the
-  per-vertex uncertainty; with a calibrated model (``has_trust``) a scalar ``"error_bound_mm"``
-  holds each vertex's conformal error bound (NaN when a marker is untracked).
+  (outward normals). With a predictor that has uncertainty (an ensemble) a point-data scalar
+  ``"uncertainty_mm"`` holds the per-vertex uncertainty; with a calibrated one (``has_trust``) a
+  scalar ``"error_bound_mm"`` holds each vertex's conformal error bound (NaN when a marker is
+  untracked).
 - ``POLYDATA "TissueField"``: the full field. Points are *all* mesh vertices in id order,
   deformed; polygons are the surface triangles with global vertex ids (interior vertices
   carry no cell); point data ``"displacement_mm"`` (vectors) and, for ensembles,
@@ -26,16 +29,17 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
 
 import numpy as np
 
 from ..config import SERVE_METHODS, ServeConfig
 from ..errors import ConfigError, MarkerError, ModelError
-from .frames import ClientFrames
+from ..surrogate.baselines import RigidRegistrationPredictor
+from ..surrogate.field_predictor import FieldPredictor
+from .client_frames import ClientFrames
 from .polydata import PolyDataTemplate
 
-__all__ = ["ServableModel", "Prediction", "SurfacePredictor", "SURFACE_DEVICE", "FIELD_DEVICE", "PredictionError"]
+__all__ = ["Prediction", "SurfacePredictor", "served_predictor", "SURFACE_DEVICE", "FIELD_DEVICE", "PredictionError"]
 
 log = logging.getLogger(__name__)
 
@@ -50,26 +54,25 @@ class PredictionError(MarkerError):
     """Marker positions that cannot be served (wrong count, implausible, model failure)."""
 
 
-@runtime_checkable
-class ServableModel(Protocol):
-    """What the server needs from a model (a DeformationModel has it).
+def served_predictor(model: FieldPredictor, method: str = ServeConfig.method) -> FieldPredictor:
+    """The predictor that serves ``method``: ``"mlp"`` the model itself, ``"rigid"`` the rigid
+    registration of the model's markers on its mesh (learns nothing, so any model has it).
 
-    Attributes:
-        mesh: the :class:`~tissuecast.mesh.TetMesh` the model predicts on (mm).
-        reference_marker_positions: (n_d, 3) float, mm, marker positions of the undeformed mesh.
-
-    An optional ``predict_with_uncertainty(marker_displacements (n_d, 3) mm)`` returning
-    ``(displacement (n, 3) mm, uncertainty (n,) mm)`` makes the replies carry uncertainty
-    (used when the model has no ``ensemble_size`` attribute or it is >= 2). A true
-    ``supports_missing_markers`` attribute means both predict methods accept
-    ``missing=(n_d,) bool`` for untracked markers.
+    Raises:
+        ModelError: ``model`` is not a FieldPredictor, or rigid registration with < 3 markers.
+        ConfigError: an unknown method.
     """
-
-    mesh: object
-    reference_marker_positions: np.ndarray
-
-    def predict_from_positions(self, positions: np.ndarray) -> np.ndarray:
-        """(n_d, 3) marker positions (mm) -> (n, 3) vertex displacement (mm)."""
+    if not isinstance(model, FieldPredictor):
+        raise ModelError(f"serve needs a FieldPredictor (a DeformationModel, SubModelSet or other "
+                         f"tissuecast.surrogate predictor), got {type(model).__name__}")
+    if method not in SERVE_METHODS:
+        raise ConfigError(f"unknown serving method {method!r}; use one of {', '.join(SERVE_METHODS)}")
+    if method == "mlp":
+        return model
+    if model.n_markers < 3:
+        raise ModelError(f"rigid registration needs at least 3 markers, this model has {model.n_markers}; "
+                         "serve it with method='mlp'")
+    return RigidRegistrationPredictor(model.mesh, model.markers)
 
 
 @dataclass(frozen=True)
@@ -92,47 +95,38 @@ class Prediction:
 
 
 class SurfacePredictor:
-    """Wraps a model for serving: validates marker positions, predicts, packs replies.
+    """Wraps a predictor for serving: validates marker positions, predicts, packs replies.
 
     Args:
-        model: a :class:`ServableModel`.
+        model: a :class:`~tissuecast.surrogate.field_predictor.FieldPredictor`.
         max_marker_offset: largest accepted distance (mm) of a marker from its reference
             position; larger ones are rejected as a likely registration/unit error.
-        use_uncertainty: send per-vertex uncertainty when the model provides it.
-        method: ``"mlp"`` (the learned model) or ``"rigid"`` (the best rigid motion of the
-            markers applied to the whole mesh: the navigation systems' baseline, a fallback
-            when the learned model is not to be trusted; no uncertainty or bounds are sent).
+        use_uncertainty: send per-vertex uncertainty when the predictor has it.
+        method: ``"mlp"`` (the model) or ``"rigid"`` (the best rigid motion of the markers
+            applied to the whole mesh: the navigation systems' baseline, a fallback when the
+            learned model is not to be trusted; no uncertainty or bounds are sent), see
+            :func:`served_predictor`.
     """
 
-    def __init__(self, model: ServableModel, *, max_marker_offset: float = ServeConfig.max_marker_offset,
+    def __init__(self, model: FieldPredictor, *, max_marker_offset: float = ServeConfig.max_marker_offset,
                  use_uncertainty: bool = True, method: str = ServeConfig.method):
-        mesh = model.mesh
-        reference = np.asarray(model.reference_marker_positions, dtype=np.float64)
+        self.model = served_predictor(model, method)
+        self.method = method
+        mesh = self.model.mesh
+        reference = np.asarray(self.model.reference_marker_positions, dtype=np.float64)
         if reference.ndim != 2 or reference.shape[1] != 3 or not np.isfinite(reference).all():
             raise ModelError(f"model.reference_marker_positions must be finite (n_d, 3) mm, got shape {reference.shape}")
-        if method not in SERVE_METHODS:
-            raise ConfigError(f"unknown serving method {method!r}; use one of {', '.join(SERVE_METHODS)}")
-        if method != "mlp" and not callable(getattr(model, "predict_rigid", None)):
-            raise ModelError(f"this model cannot serve method={method!r} (it has no predict_rigid); serve it with method='mlp'")
-        self.method = method
-        self.model = model
         self.reference = reference
         self.n_markers = len(reference)
         self.n_vertices = int(mesh.n_vertices)
         self.max_marker_offset = float(max_marker_offset)
-        self.supports_missing = bool(getattr(model, "supports_missing_markers", False))
-        self.has_uncertainty = bool(
-            use_uncertainty
-            and method == "mlp"
-            and callable(getattr(model, "predict_with_uncertainty", None))
-            and getattr(model, "ensemble_size", 2) >= 2
-        )
+        self.supports_missing = bool(self.model.supports_missing_markers)
+        self.has_uncertainty = bool(use_uncertainty and self.model.has_uncertainty)
+        self.has_bounds = bool(self.model.has_trust)
         self.points = np.asarray(mesh.points, dtype=np.float64)
         self.surface_ids = np.asarray(mesh.surface_vertices, dtype=np.int64)
         triangles = np.asarray(mesh.surface_triangles, dtype=np.int64)
         local = np.searchsorted(self.surface_ids, triangles)
-        self.has_bounds = bool(method == "mlp" and getattr(model, "has_trust", False)
-                               and callable(getattr(model, "predict_trusted", None)))
         extra = [(UNCERTAINTY_NAME, "scalars")] if self.has_uncertainty else []
         extra += [(BOUND_NAME, "scalars")] if self.has_bounds else []
         self.surface = PolyDataTemplate(len(self.surface_ids), local, extra)
@@ -179,25 +173,28 @@ class SurfacePredictor:
             )
         return positions, missing
 
+    def _evaluate(self, positions: np.ndarray, missing: np.ndarray | None) -> tuple:
+        """``(displacement, uncertainty, bound, alarm)`` of checked positions (n_d, 3) mm; the
+        bounds and alarm need every marker tracked."""
+        d = positions - self.reference
+        extra = {} if missing is None else {"missing": missing}
+        bound, alarm, mean, uncertainty = None, None, None, None
+        if self.has_bounds and missing is None:
+            trusted = self.model.predict_trusted(d)
+            bound = np.asarray(trusted.error_bound, dtype=np.float64).reshape(self.n_vertices)
+            alarm, mean = trusted.alarms, trusted.displacement
+        if self.has_uncertainty:
+            mean, spread = self.model.predict_with_uncertainty(d, **extra)
+            uncertainty = np.asarray(spread, dtype=np.float64).reshape(self.n_vertices)
+        elif mean is None:
+            mean = self.model.predict_from_positions(positions, **extra)
+        return mean, uncertainty, bound, alarm
+
     def predict(self, positions: np.ndarray, timestamp: float) -> Prediction:
         """Predict the displacement of every vertex from (n_d, 3) marker positions (mm)."""
         positions, missing = self.check_positions(positions)
-        extra = {} if missing is None else {"missing": missing}
         try:
-            bound, alarm, mean = None, None, None
-            if self.method == "rigid":
-                mean = self.model.predict_rigid(positions - self.reference, **extra)
-            elif self.has_bounds and missing is None:  # bounds and alarm need every marker
-                trusted = self.model.predict_trusted(positions - self.reference)
-                bound, alarm, mean = np.asarray(trusted.error_bound, dtype=np.float64).reshape(self.n_vertices), \
-                    trusted.alarms, trusted.displacement
-            if self.has_uncertainty:
-                mean, spread = self.model.predict_with_uncertainty(positions - self.reference, **extra)
-                uncertainty = np.asarray(spread, dtype=np.float64).reshape(self.n_vertices)
-            else:
-                uncertainty = None
-                if mean is None:
-                    mean = self.model.predict_from_positions(positions, **extra)
+            mean, uncertainty, bound, alarm = self._evaluate(positions, missing)
             displacement = np.asarray(mean, dtype=np.float64).reshape(self.n_vertices, 3)
         except ModelError as exc:  # the model refused this input (e.g. too many untracked markers)
             log.warning("model refused the marker input: %s", exc)

@@ -25,8 +25,9 @@ import time
 from collections import Counter
 
 from ..config import ServeConfig
-from .frames import ClientFrames
-from .predictor import ServableModel, SurfacePredictor
+from ..surrogate.field_predictor import FieldPredictor
+from .client_frames import ClientFrames
+from .predictor import SurfacePredictor
 from .protocol import DEFAULT_MAX_BODY_BYTES, pack_string
 from .session import ERROR_DEVICE, ClientSession
 
@@ -71,7 +72,7 @@ class IGTLServer:
     """Serve a deformation model over OpenIGTLink (see :mod:`tissuecast.serve.session`).
 
     Args:
-        model: a :class:`~tissuecast.serve.predictor.ServableModel` (e.g. a DeformationModel)
+        model: a :class:`~tissuecast.surrogate.field_predictor.FieldPredictor` (e.g. a DeformationModel)
             or a ready :class:`SurfacePredictor`.
         host: bind address; keep 127.0.0.1 unless other machines must connect.
         port: TCP port; 0 picks a free one (read it from :attr:`address`).
@@ -84,14 +85,14 @@ class IGTLServer:
         max_marker_offset: mm, see :class:`SurfacePredictor`.
         messages_per_turn: complete messages handled per client before the others get a
             turn (a client pipelining many requests cannot starve the rest).
-        frames: the :class:`~tissuecast.serve.frames.ClientFrames` shared by all
+        frames: the :class:`~tissuecast.serve.client_frames.ClientFrames` shared by all
             connections (None: everything in the model's LPS frame until a registration
             TRANSFORM arrives).
     """
 
     def __init__(
         self,
-        model: ServableModel | SurfacePredictor,
+        model: FieldPredictor | SurfacePredictor,
         host: str = ServeConfig.host,
         port: int = ServeConfig.port,
         *,
@@ -134,7 +135,7 @@ class IGTLServer:
         log.info("OpenIGTLink server listening on %s:%d", *self.address)
 
     @classmethod
-    def from_config(cls, model: ServableModel | SurfacePredictor, config: ServeConfig, **options) -> "IGTLServer":
+    def from_config(cls, model: FieldPredictor | SurfacePredictor, config: ServeConfig, **options) -> "IGTLServer":
         """A server set up as a ``[serve]`` config section says (host, port, full_field,
         transform_mode, client_timeout, max_marker_offset, client_frame, tracker_to_client, method);
         ``options`` (any argument of the constructor) take precedence."""

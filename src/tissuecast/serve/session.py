@@ -17,7 +17,7 @@ Requests a client may send (any header version 1 or 2; device names are case-sen
 - ``TRANSFORM "<From>To<Target>"`` such as ``TrackerToRas``, ``ReferenceToRas``,
   ``TrackerToImage``: the registration from the tracker's frame to RAS (3D Slicer's world)
   or to the image (the model's LPS frame); later marker positions are mapped by it before
-  prediction and replies are sent in the target frame (see :mod:`tissuecast.serve.frames`;
+  prediction and replies are sent in the target frame (see :mod:`tissuecast.serve.client_frames`;
   shared by every connection of the server). No reply.
 - ``GET_POLYDATA "TissueField"``: the full vertex field of this client's latest prediction
   (``POLYDATA "TissueField"``); ``GET_POLYDATA "TissueSurface"`` (or no device name)
@@ -44,7 +44,7 @@ import numpy as np
 
 from ..config import TRANSFORM_MODES, ServeConfig
 from ..frames import FrameError
-from .frames import REGISTRATION_PATTERN, ClientFrames
+from .client_frames import REGISTRATION_PATTERN, ClientFrames
 from .predictor import FIELD_DEVICE, SURFACE_DEVICE, Prediction, PredictionError, SurfacePredictor
 from .protocol import (
     DEFAULT_MAX_BODY_BYTES,

@@ -1,4 +1,4 @@
-"""Arrays a surrogate trains on, taken from a data-set store."""
+"""Arrays a surrogate trains on: taken from a data-set store, checked, split into train / valid / calibration."""
 
 from __future__ import annotations
 
@@ -7,12 +7,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ModelError
-from .trust import split_calibration
+from .field_predictor import check_vertex_ids
 
-__all__ = ["TrainingArrays", "dataset_arrays", "split_indices", "FitSplits", "fit_splits"]
+__all__ = ["TrainingArrays", "dataset_arrays", "split_indices", "FitSplits", "fit_splits", "split_calibration",
+           "check_fit_inputs", "flat_fields", "VALIDATION_EVERY", "MIN_SAMPLES", "CALIBRATION_SEED_OFFSET"]
 
 #: Without given validation samples, one training sample in this many validates (at least one).
 VALIDATION_EVERY = 10
+#: Fewest calibration (and validation) samples a trust layer is fitted from.
+MIN_SAMPLES = 8
+#: The calibration hold-out is drawn with ``surrogate.seed`` plus this (a prime), so that it does
+#: not repeat the draw of the validation split made with the same seed.
+CALIBRATION_SEED_OFFSET = 7919
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,7 +85,7 @@ def fit_splits(n_samples: int, train_idx=None, valid_idx=None, calibration_idx=N
         valid_idx: validation indices; default: a seeded 1 in :data:`VALIDATION_EVERY` of the
             training indices.
         calibration_idx: calibration indices; default: a seeded ``calibration_share`` of the
-            training indices (:func:`tissuecast.surrogate.trust.split_calibration`).
+            training indices (:func:`split_calibration`).
         seed: seed of the default draws.
         calibration_share: share held out for calibration when ``calibration_idx`` is None.
 
@@ -105,3 +111,37 @@ def fit_splits(n_samples: int, train_idx=None, valid_idx=None, calibration_idx=N
         if idx.min() < 0 or idx.max() >= n_samples:
             raise ModelError(f"{name} holds indices outside [0, {n_samples})")
     return FitSplits(train_idx, valid_idx, calibration_idx)
+
+
+def split_calibration(train_idx, share: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Hold out a seeded ``share`` of the training indices for calibration.
+
+    Returns:
+        ``(train (k,) int64, calibration (m,) int64)``, both sorted; calibration is empty
+        when ``share`` is 0 or would hold fewer than :data:`MIN_SAMPLES` samples.
+    """
+    idx = np.asarray(train_idx, dtype=np.int64)
+    m = int(round(share * len(idx)))
+    if share <= 0 or m < MIN_SAMPLES or len(idx) - m < 2:
+        return np.sort(idx), np.zeros(0, dtype=np.int64)
+    perm = np.random.default_rng(seed + CALIBRATION_SEED_OFFSET).permutation(idx)
+    return np.sort(perm[m:]), np.sort(perm[:m])
+
+
+def check_fit_inputs(displacements, markers, mesh) -> tuple[np.ndarray, np.ndarray]:
+    """``(U (N, n, 3), markers (n_d,) int64)`` checked against the mesh's n vertices."""
+    U = np.asarray(displacements)
+    if U.ndim != 3 or U.shape[2] != 3:
+        raise ModelError(f"displacements must be (N, n, 3) mm, got shape {U.shape}")
+    if U.shape[1] != mesh.n_vertices:
+        raise ModelError(f"displacements have {U.shape[1]} vertices but the mesh has {mesh.n_vertices}")
+    return U, check_vertex_ids(markers, mesh.n_vertices)
+
+
+def flat_fields(U: np.ndarray, splits: FitSplits) -> tuple[np.ndarray, np.ndarray]:
+    """Training and validation fields as float64 rows (N_t, 3 n), (N_v, 3 n) mm, checked finite."""
+    Ut = U[splits.train].reshape(len(splits.train), -1).astype(np.float64)
+    Uv = U[splits.valid].reshape(len(splits.valid), -1).astype(np.float64)
+    if not (np.isfinite(Ut).all() and np.isfinite(Uv).all()):
+        raise ModelError("training/validation displacements contain NaN or inf; select samples with status 'done'")
+    return Ut, Uv

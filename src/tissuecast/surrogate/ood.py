@@ -41,7 +41,7 @@ from .conformal import conformal_quantile
 from .quadratic import fit_quadratic
 
 __all__ = ["InputDistance", "MarkerConsistency", "OODScores", "fit_input_distance", "fit_marker_consistency",
-           "calibrate_ood", "SCORE_NAMES"]
+           "scale_ood", "calibrate_ood", "SCORE_NAMES"]
 
 SCORE_NAMES = ("distance", "consistency", "fault")
 
@@ -223,7 +223,8 @@ class OODScores:
             consistency and no fault score).
         scale: (3,) validation medians of the three scores (1 for an absent one; trust files
             written before the fault score hold two, and get a third 1).
-        calibration: (m,) sorted alarm scores of the calibration samples.
+        calibration: (m,) sorted alarm scores of the calibration samples (empty: not calibrated,
+            every threshold infinite).
         use_fault: the fault score is part of the alarm score (``surrogate.alarm_fault_score``).
     """
 
@@ -267,6 +268,12 @@ class OODScores:
                    self.use_fault and self.consistency is not None and self.consistency.sensitivity is not None]
         return np.where(present, t, np.inf)
 
+    def calibrated(self, X_calibration) -> "OODScores":
+        """These scores with the alarm threshold calibrated on inputs (B_c, 3 n_d) mm that the
+        alarm should pass (exchangeable with clean inputs): their sorted alarm scores."""
+        return OODScores(self.distance, self.consistency, self.scale,
+                         np.sort(self.combined(self.scores(X_calibration))), self.use_fault)
+
     def p_values(self, scores) -> np.ndarray:
         """(B,) conformal p-values ``(1 + #{calibration >= alarm score}) / (m + 1)``."""
         c = self.combined(scores)
@@ -274,12 +281,18 @@ class OODScores:
         return (1.0 + m - np.searchsorted(self.calibration, c, side="left")) / (m + 1.0)
 
 
+def scale_ood(distance: InputDistance, consistency: MarkerConsistency | None, X_valid,
+              use_fault: bool = False) -> OODScores:
+    """Uncalibrated scores (no threshold yet: :meth:`OODScores.calibrated` sets it), their scales
+    the medians on validation inputs (B_v, 3 n_d) mm; ``use_fault``: the fault score is part of the alarm."""
+    draft = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0))
+    sv = draft.scores(X_valid)
+    scale = np.where(np.isnan(sv[0]), 1.0, np.maximum(np.median(sv, axis=0), _TINY_SCORE))
+    return OODScores(distance, consistency, scale, np.zeros(0), use_fault)
+
+
 def calibrate_ood(distance: InputDistance, consistency: MarkerConsistency | None, X_valid, X_calibration,
                   use_fault: bool = False) -> OODScores:
     """Scales from validation inputs (B_v, 3 n_d) mm, calibration scores from (B_c, 3 n_d) mm;
     ``use_fault``: the fault score is part of the alarm."""
-    draft = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0))
-    sv = draft.scores(X_valid)
-    scale = np.where(np.isnan(sv[0]), 1.0, np.maximum(np.median(sv, axis=0), _TINY_SCORE))
-    ood = OODScores(distance, consistency, scale, np.zeros(0), use_fault)
-    return OODScores(distance, consistency, scale, np.sort(ood.combined(ood.scores(X_calibration))), use_fault)
+    return scale_ood(distance, consistency, X_valid, use_fault).calibrated(X_calibration)

@@ -8,9 +8,8 @@ markers. Compared with one network trained with marker dropout (``marker_dropout
 each sub-model is a plain network of the paper's kind; ``benchmarks/or_robustness.py``
 measures both. Two or more missing markers are refused.
 
-The set has the interface the OpenIGTLink server needs (``mesh``,
-``reference_marker_positions``, ``predict_from_positions(..., missing=...)``,
-``supports_missing_markers``), so ``tissuecast serve`` can serve a saved set directly.
+The set is a :class:`~.field_predictor.FieldPredictor` (it supports missing markers, and has
+uncertainty when every model is an ensemble), so ``tissuecast serve`` can serve a saved set directly.
 """
 
 from __future__ import annotations
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ModelError
+from .field_predictor import FieldPredictor
 from .inputs import missing_mask
 from .model import DeformationModel
 
@@ -30,7 +30,7 @@ MANIFEST = "submodels.json"
 _FORMAT = "tissuecast-submodels"
 
 
-class SubModelSet:
+class SubModelSet(FieldPredictor):
     """The full model plus one sub-model per dropped marker.
 
     Args:
@@ -63,15 +63,30 @@ class SubModelSet:
                 for i in range(len(markers))]
         return cls(full, subs)
 
-    # ------------------------------------------------------------------ model interface
-    mesh = property(lambda self: self.full.mesh)
-    markers = property(lambda self: self.full.markers)
-    fixed = property(lambda self: self.full.fixed)
-    reference_marker_positions = property(lambda self: self.full.reference_marker_positions)
-    n_markers = property(lambda self: self.full.n_markers)
-    n_vertices = property(lambda self: self.full.n_vertices)
-    ensemble_size = property(lambda self: min(m.ensemble_size for m in (self.full, *self.subs)))
+    # ------------------------------------------------------------------ the predictor protocol
+    name = "submodels"
     supports_missing_markers = True
+
+    @property
+    def mesh(self):
+        return self.full.mesh
+
+    @property
+    def markers(self) -> np.ndarray:
+        return self.full.markers
+
+    @property
+    def fixed(self) -> np.ndarray:
+        return self.full.fixed
+
+    @property
+    def ensemble_size(self) -> int:
+        """The smallest ensemble among the full model and the sub-models."""
+        return min(m.ensemble_size for m in (self.full, *self.subs))
+
+    @property
+    def has_uncertainty(self) -> bool:
+        return all(m.has_uncertainty for m in (self.full, *self.subs))
 
     def _route(self, marker_displacements, missing):
         """-> (d (B, n_d, 3) mm, which (B,) int: -1 = full model, i = sub-model i, single?)."""
@@ -91,14 +106,16 @@ class SubModelSet:
         which = np.where(mask.any(axis=1), mask.argmax(axis=1), -1)
         return d, which, single
 
-    def _apply(self, method: str, marker_displacements, missing):
+    def _apply(self, predict, marker_displacements, missing):
+        """``predict(model, inputs)`` of each sample's model (full, or sub-model i without marker
+        i), gathered in sample order; a tuple result gives a tuple of gathered arrays."""
         d, which, single = self._route(marker_displacements, missing)
         outputs = None
         for k in np.unique(which):
             rows = np.flatnonzero(which == k)
             model = self.full if k < 0 else self.subs[k]
             inputs = d[rows] if k < 0 else np.delete(d[rows], k, axis=1)
-            result = getattr(model, method)(inputs)
+            result = predict(model, inputs)
             result = result if isinstance(result, tuple) else (result,)
             if outputs is None:
                 outputs = [np.empty((len(d), *r.shape[1:])) for r in result]
@@ -110,15 +127,14 @@ class SubModelSet:
     def predict(self, marker_displacements, *, missing=None) -> np.ndarray:
         """(n, 3) or (B, n, 3) mm from marker displacements (as DeformationModel.predict);
         ``missing``: at most one marker index per sample, or a bool mask."""
-        return self._apply("predict", marker_displacements, missing)
+        return self._apply(lambda model, x: model.predict(x), marker_displacements, missing)
 
-    def predict_from_positions(self, positions, *, missing=None) -> np.ndarray:
-        """As :meth:`predict`, from tracked positions (n_d, 3) or (B, n_d, 3) mm in the model frame."""
-        return self.predict(np.asarray(positions, dtype=np.float64) - self.reference_marker_positions, missing=missing)
+    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
+        return self.predict(d.reshape(len(d), -1, 3), missing=missing)
 
     def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble mean (n, 3) mm and per-vertex sigma (n,) mm; every member must be an ensemble."""
-        return self._apply("predict_with_uncertainty", marker_displacements, missing)
+        return self._apply(lambda model, x: model.predict_with_uncertainty(x), marker_displacements, missing)
 
     # ------------------------------------------------------------------ persistence
     def save(self, folder) -> None:

@@ -12,7 +12,9 @@ A model folder holds::
     trust.npz           optional: error bounds and alarm (tissuecast.surrogate.trust), float64
     model.onnx          optional, from export_onnx
 
-Arrays are read with ``allow_pickle=False``; torch.load is never used.
+Arrays are read with ``allow_pickle=False``; torch.load is never used. The folder holds a
+:class:`~.state.ModelState` (``DeformationModel.get_state()`` / ``from_state``): the learned
+predictor's parts, the trust layer and the record of the fit; the baselines are rebuilt from them.
 """
 
 from __future__ import annotations
@@ -27,8 +29,11 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ModelError, require
-from .mlp import TrainingSummary
+from .network_predictor import NetworkPredictor
 from .pca import PCABasis, PCACurve
+from .quadratic import QuadraticRegression
+from .state import ModelState
+from .trust import TrustLayer
 from .weights import MLPWeights
 
 __all__ = ["FORMAT", "SCHEMA", "save_model", "load_model", "export_onnx", "read_metadata"]
@@ -48,60 +53,66 @@ def _versions() -> dict:
     return out
 
 
-def save_model(model, folder, *, onnx: bool = False) -> None:
-    """Write ``model`` (fitted) to ``folder`` (created if needed; files overwritten)."""
+def _metadata(state: ModelState) -> dict:
+    """``model.json`` of a model state (its ``files`` without the optional trust and ONNX files)."""
     from ..config import config_to_dict
 
-    st = require("safetensors.numpy", "learn", "saving model weights")
-    model._fitted()
-    out = Path(folder)
-    out.mkdir(parents=True, exist_ok=True)
-    tensors = {}
-    for k, m in enumerate(model.members_):
-        tensors.update(m.tensors(f"member{k}."))
-    st.save_file(tensors, str(out / "weights.safetensors"), metadata={"format": FORMAT, "schema": str(SCHEMA)})
-    b = model.pca_
-    np.savez(out / "pca.npz", mean=b.mean, components=b.components, singular_values=b.singular_values,
-             n_samples=np.int64(b.n_samples))
-    np.savez(out / "mesh.npz", points=np.asarray(model.mesh_.points, dtype=np.float64),
-             tets=np.asarray(model.mesh_.tets, dtype=np.int64))
-    m0 = model.members_[0]
-    head = getattr(model, "head_", None)
-    if head is not None:
-        np.savez(out / "head.npz", **head.arrays(""))
-    meta = {
+    net = state.network
+    b, m0, head, mesh = net.basis, net.members[0], net.head, net.mesh
+    return {
         "format": FORMAT,
         "schema": SCHEMA,
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "versions": _versions(),
         "units": {"length": "mm", "displacement": "mm"},
         "vertex_ids": "0-based",
-        "n_vertices": int(model.mesh_.n_vertices),
-        "n_tets": int(model.mesh_.n_tets),
-        "mesh_fingerprint": model.mesh_.fingerprint(),
-        "markers": model.markers_.tolist(),
-        "fixed": model.fixed_.tolist(),
-        "reference_marker_positions": model.reference_marker_positions.tolist(),
+        "n_vertices": int(mesh.n_vertices),
+        "n_tets": int(mesh.n_tets),
+        "mesh_fingerprint": mesh.fingerprint(),
+        "markers": net.markers.tolist(),
+        "fixed": np.asarray(state.fixed, dtype=np.int64).tolist(),
+        "reference_marker_positions": net.reference_marker_positions.tolist(),
         "n_components": int(b.n_components),
         "network": {"hidden": list(m0.hidden), "n_layers": len(m0.weights), "masked": bool(m0.masked),
-                    "ensemble": len(model.members_), "input": "marker displacements (n_d, 3) mm, vertex-major",
+                    "ensemble": len(net.members), "input": "marker displacements (n_d, 3) mm, vertex-major",
                     "output": "PCA weights (n_w,) mm",
                     "head": None if head is None else {"kind": "quadratic", "dims": int(len(head.directions))}},
-        "surrogate_config": config_to_dict(model.config),
-        "config": model.run_config,
-        "dataset_path": model.dataset_path,
-        "scenario": model.scenario,
-        "pca_curve": None if model.pca_curve_ is None else model.pca_curve_.as_dict(),
-        "pca_choice": getattr(model, "pca_choice_", None),
-        "training": getattr(model, "training_", None),
+        "surrogate_config": config_to_dict(state.config),
+        "config": state.run_config,
+        "dataset_path": state.dataset_path,
+        "scenario": state.scenario,
+        "pca_curve": None if state.pca_curve is None else state.pca_curve.as_dict(),
+        "pca_choice": state.pca_choice,
+        "training": state.training,
         "files": {"weights": "weights.safetensors", "pca": "pca.npz", "mesh": "mesh.npz",
                   **({"head": "head.npz"} if head is not None else {})},
     }
-    if getattr(model, "trust_", None) is not None:
-        meta["files"]["trust"] = model.trust_.save(out)
-        meta["trust"] = model.trust_.summary()
+
+
+def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
+    """Write a fitted model's state (``DeformationModel.get_state()``) to ``folder`` (created if
+    needed; files overwritten)."""
+    st = require("safetensors.numpy", "learn", "saving model weights")
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    net = state.network
+    tensors = {}
+    for k, m in enumerate(net.members):
+        tensors.update(m.tensors(f"member{k}."))
+    st.save_file(tensors, str(out / "weights.safetensors"), metadata={"format": FORMAT, "schema": str(SCHEMA)})
+    b = net.basis
+    np.savez(out / "pca.npz", mean=b.mean, components=b.components, singular_values=b.singular_values,
+             n_samples=np.int64(b.n_samples))
+    np.savez(out / "mesh.npz", points=np.asarray(net.mesh.points, dtype=np.float64),
+             tets=np.asarray(net.mesh.tets, dtype=np.int64))
+    if net.head is not None:
+        np.savez(out / "head.npz", **net.head.arrays(""))
+    meta = _metadata(state)
+    if state.trust is not None:
+        meta["files"]["trust"] = state.trust.save(out)
+        meta["trust"] = state.trust.summary()
     if onnx:
-        export_onnx(model, out / "model.onnx")
+        export_onnx(net, out / "model.onnx")
         meta["files"]["onnx"] = "model.onnx"
     (out / "model.json").write_text(json.dumps(meta, indent=2), encoding="utf-8")
 
@@ -136,14 +147,8 @@ def _npz(path: Path, keys) -> dict:
         raise ModelError(f"model file {str(path)!r} is unreadable or incomplete: {exc}") from exc
 
 
-def load_model(cls, folder):
-    """Rebuild a model saved by :func:`save_model`."""
-    from ..config import config_from_dict
-    from ..mesh import TetMesh
-
+def _weights(folder: Path, meta: dict) -> list[MLPWeights]:
     st = require("safetensors.numpy", "learn", "loading model weights")
-    folder = Path(folder)
-    meta = read_metadata(folder)
     net = meta["network"]
     wpath = folder / meta["files"]["weights"]
     if not wpath.is_file():
@@ -152,7 +157,14 @@ def load_model(cls, folder):
         tensors = st.load_file(str(wpath))
     except Exception as exc:  # safetensors raises its own error types
         raise ModelError(f"model weights {str(wpath)!r} are unreadable: {exc}") from exc
-    members = [MLPWeights.from_tensors(tensors, f"member{k}.", net["n_layers"], net["masked"]) for k in range(net["ensemble"])]
+    return [MLPWeights.from_tensors(tensors, f"member{k}.", net["n_layers"], net["masked"]) for k in range(net["ensemble"])]
+
+
+def _network(folder: Path, meta: dict) -> NetworkPredictor:
+    """The learned predictor of a model folder, its mesh checked against the metadata."""
+    from ..mesh import TetMesh
+
+    members = _weights(folder, meta)
     p = _npz(folder / meta["files"]["pca"], ["mean", "components", "singular_values", "n_samples"])
     basis = PCABasis(mean=p["mean"], components=p["components"], singular_values=p["singular_values"],
                      n_samples=int(p["n_samples"]))
@@ -160,48 +172,45 @@ def load_model(cls, folder):
     mesh = TetMesh(m["points"], m["tets"])
     if mesh.fingerprint() != meta["mesh_fingerprint"] or basis.n_features != 3 * mesh.n_vertices:
         raise ModelError(f"the mesh in {str(folder)!r} does not match the model's metadata; the folder is corrupt")
-    sc = config_from_dict({"surrogate": meta["surrogate_config"]}).surrogate
-    model = cls(sc)
-    model.run_config = meta.get("config")
-    model.dataset_path = meta.get("dataset_path")
-    model.scenario = meta.get("scenario")
-    curve = PCACurve.from_dict(meta["pca_curve"]) if meta.get("pca_curve") else None
-    model.pca_choice_ = meta.get("pca_choice") or {"rule": "paper" if curve else "unrecorded",
-                                                   "n_components": basis.n_components}
     head = None
     if meta["files"].get("head"):
-        from .quadratic import QuadraticRegression
-
         head = QuadraticRegression.from_arrays(_npz(folder / meta["files"]["head"], ["mean", "scale", "directions", "coef"]), "")
-    model._set_state(mesh=mesh, markers=meta["markers"], fixed=meta["fixed"], basis=basis, members=members, curve=curve,
-                     head=head)
-    if meta.get("training"):
-        model.training_ = meta["training"]
-        model.summaries_ = [TrainingSummary(**{k: (tuple(map(tuple, v)) if k == "valid_history" else v) for k, v in s.items()})
-                            for s in meta["training"].get("members", [])]
-    model.trust_ = None
-    if meta["files"].get("trust"):
-        from .trust import TrustLayer
+    return NetworkPredictor(mesh, meta["markers"], basis, members, head)
 
+
+def load_model(folder) -> ModelState:
+    """Read the state of a model saved by :func:`save_model` (``DeformationModel.from_state`` builds the model)."""
+    from ..config import config_from_dict
+
+    folder = Path(folder)
+    meta = read_metadata(folder)
+    network = _network(folder, meta)
+    curve = PCACurve.from_dict(meta["pca_curve"]) if meta.get("pca_curve") else None
+    trust = None
+    if meta["files"].get("trust"):
         tpath = folder / meta["files"]["trust"]
         if not tpath.is_file():
             raise ModelError(f"model file {str(tpath)!r} is missing; the model folder is incomplete")
-        model.trust_ = TrustLayer.load(tpath)
-    model.metadata_ = meta
-    return model
+        trust = TrustLayer.load(tpath)
+    return ModelState(
+        config=config_from_dict({"surrogate": meta["surrogate_config"]}).surrogate, network=network,
+        fixed=np.asarray(meta["fixed"], dtype=np.int64),
+        pca_choice=meta.get("pca_choice") or {"rule": "paper" if curve else "unrecorded",
+                                              "n_components": network.n_components},
+        pca_curve=curve, trust=trust, training=meta.get("training") or None, run_config=meta.get("config"),
+        dataset_path=meta.get("dataset_path"), scenario=meta.get("scenario"), metadata=meta)
 
 
-def export_onnx(model, path) -> None:
-    """Export the full marker -> field network to ONNX (opset 17, dynamic batch)."""
+def export_onnx(network: NetworkPredictor, path) -> None:
+    """Export the learned predictor's full marker -> field network to ONNX (opset 17, dynamic batch)."""
     torch = require("torch", "learn", "ONNX export")
     require("onnx", "learn", "ONNX export")
-    model._fitted()
-    net = model.torch_module()
-    n_d = model.n_markers
+    net = network.torch_module()
+    n_d = network.n_markers
     args = (torch.zeros(1, n_d, 3),)
     names = ["markers"]
     axes = {"markers": {0: "batch"}, "displacement": {0: "batch"}}
-    if model.supports_missing_markers:
+    if network.supports_missing_markers:
         args = args + (torch.ones(1, n_d),)
         names.append("present")
         axes["present"] = {0: "batch"}

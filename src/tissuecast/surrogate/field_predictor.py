@@ -1,0 +1,145 @@
+"""The one protocol every predictor of a displacement field from marker displacements follows.
+
+A :class:`FieldPredictor` maps the displacements of n_d fiducial markers (mm, model marker
+order, vertex-major ``(d0x, d0y, d0z, d1x, ...)``) to the displacement of every vertex of its
+mesh (mm, 0-based vertex ids). The learned model (:class:`~.network_predictor.NetworkPredictor`:
+PCA basis, quadratic head, network ensemble), the baselines (:class:`~.baselines.RidgePredictor`,
+:class:`~.baselines.RigidRegistrationPredictor`), the trust wrapper
+(:class:`~.trusted.TrustedPredictor`), the sub-model set (:class:`~.robust.SubModelSet`) and the
+facade :class:`~.model.DeformationModel` all implement it, so callers (``serve``, ``evaluate``,
+the CLI) talk to one interface.
+
+What a predictor can do beyond :meth:`FieldPredictor.predict` is declared, never probed:
+
+- ``supports_missing_markers``: ``predict(..., missing=...)`` accepts untracked markers;
+- ``has_uncertainty``: :meth:`FieldPredictor.predict_with_uncertainty` gives a per-vertex spread;
+- ``has_trust``: :meth:`FieldPredictor.predict_trusted` gives calibrated error bounds and the
+  out-of-distribution alarm.
+
+A predictor without a capability raises :class:`~tissuecast.errors.ModelError` naming it when
+the method is called.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from ..errors import ModelError
+from .inputs import marker_batch
+
+__all__ = ["FieldPredictor", "check_vertex_ids"]
+
+
+def check_vertex_ids(markers, n_vertices: int) -> np.ndarray:
+    """(n_d,) int64 marker ids, checked to be distinct 0-based ids in [0, n_vertices).
+
+    Raises:
+        ModelError: no markers, an id outside the mesh, or a repeated id.
+    """
+    mk = np.asarray(markers, dtype=np.int64).ravel()
+    if mk.size == 0 or mk.min() < 0 or mk.max() >= n_vertices or np.unique(mk).size != mk.size:
+        raise ModelError(f"markers must be distinct 0-based vertex ids in [0, {n_vertices}), got {mk.tolist()}")
+    return mk
+
+
+class FieldPredictor(ABC):
+    """Marker displacements (n_d, 3) or (B, n_d, 3) mm -> displacement field (n, 3) or (B, n, 3) mm.
+
+    Subclasses provide ``mesh`` (a :class:`~tissuecast.mesh.TetMesh` with n vertices, mm),
+    ``markers`` ((n_d,) int64 0-based vertex ids, in input order), a ``name`` and
+    :meth:`_predict_batch`; they override the capability flags and the matching methods they
+    support.
+
+    Attributes:
+        name: short name of the method (``"mlp"``, ``"ridge"``, ``"rigid"``, ...).
+        supports_missing_markers: ``predict(..., missing=...)`` accepts untracked markers.
+        has_uncertainty: :meth:`predict_with_uncertainty` is available.
+        has_trust: :meth:`predict_trusted` is available.
+    """
+
+    name: str = "predictor"
+    mesh: object
+    markers: np.ndarray
+    supports_missing_markers: bool = False
+    has_uncertainty: bool = False
+    has_trust: bool = False
+
+    # ------------------------------------------------------------------ geometry
+    @property
+    def n_markers(self) -> int:
+        return int(np.asarray(self.markers).size)
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.mesh.n_vertices)
+
+    @property
+    def reference_marker_positions(self) -> np.ndarray:
+        """(n_d, 3) float64 mm: undeformed marker positions (subtracted from tracked positions)."""
+        return np.asarray(self.mesh.points, dtype=np.float64)[self.markers]
+
+    def marker_displacements(self, fields) -> np.ndarray:
+        """Marker displacements (B, n_d, 3) mm picked from full fields (B, n, 3) mm."""
+        return np.asarray(fields, dtype=np.float64)[..., self.markers, :]
+
+    # ------------------------------------------------------------------ prediction
+    def marker_batch(self, marker_displacements, missing=None) -> tuple[np.ndarray, np.ndarray | None, bool]:
+        """Checked input: ``(d (B, 3 n_d) float64, missing (B, n_d) bool or None, single sample?)``.
+
+        Accepts (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) mm (:func:`.inputs.marker_batch`).
+        """
+        return marker_batch(marker_displacements, self.n_markers, missing, self.supports_missing_markers)
+
+    def predict(self, marker_displacements, *, missing=None) -> np.ndarray:
+        """Displacement field from marker displacements.
+
+        Args:
+            marker_displacements: (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) float, mm.
+            missing: optional untracked markers (predictors with ``supports_missing_markers``):
+                indices into the marker list, or a bool mask (n_d,) / (B, n_d).
+
+        Returns:
+            (n, 3) float64 mm for one sample, (B, n, 3) for a batch.
+        """
+        d, miss, single = self.marker_batch(marker_displacements, missing)
+        u = self._predict_batch(d, miss)
+        return u[0] if single else u
+
+    @abstractmethod
+    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
+        """Fields (B, n, 3) float64 mm from checked displacements d (B, 3 n_d) mm and the
+        untracked-marker mask (B, n_d) bool or None."""
+
+    def predict_from_positions(self, positions, *, missing=None) -> np.ndarray:
+        """As :meth:`predict`, from tracked marker positions (n_d, 3) or (B, n_d, 3) mm in the
+        model's (mesh) frame: the reference marker positions are subtracted."""
+        p = np.asarray(positions, dtype=np.float64)
+        if p.shape[-2:] != (self.n_markers, 3) or p.ndim not in (2, 3):
+            raise ModelError(f"marker positions must be ({self.n_markers}, 3) or (B, {self.n_markers}, 3) mm, got {p.shape}")
+        return self.predict(p - self.reference_marker_positions, missing=missing)
+
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(u, sigma)``: the field as :meth:`predict` and a per-vertex spread (n,) or (B, n) mm.
+
+        Raises:
+            ModelError: this predictor has no uncertainty (``has_uncertainty`` is False).
+        """
+        raise ModelError(f"the {self.name} predictor gives no uncertainty; use an ensemble model (surrogate.ensemble >= 2)")
+
+    def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None):
+        """The field with per-vertex error bounds and the out-of-distribution alarm
+        (:class:`~.trust.TrustedPrediction`).
+
+        Raises:
+            ModelError: this predictor is not calibrated (``has_trust`` is False).
+        """
+        raise ModelError(f"the {self.name} predictor has no calibrated error bounds or alarm; wrap it in a "
+                         "TrustedPredictor (tissuecast.surrogate.trusted) or train with surrogate.calibration_share > 0")
+
+    def describe(self) -> dict:
+        """Small JSON-able description: name, sizes and capabilities."""
+        return {"name": self.name, "n_vertices": self.n_vertices, "markers": np.asarray(self.markers).tolist(),
+                "supports_missing_markers": bool(self.supports_missing_markers),
+                "has_uncertainty": bool(self.has_uncertainty), "has_trust": bool(self.has_trust)}

@@ -1,0 +1,103 @@
+"""Fitting the learned predictor's parts in order: the number of PCA components, the PCA basis
+(training fields only), the quadratic head, the network ensemble on the head's residual, and
+(validation rule) the cut of every part to the chosen number of components.
+
+The result is a :class:`~.network_predictor.NetworkPredictor` with the record of the choices
+(:class:`NetworkFit`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import SurrogateConfig
+from .component_choice import choose_by_validation, components_to_train
+from .head import fit_head, truncated_head
+from .mlp import TrainingSummary, train_mlp
+from .network_predictor import NetworkPredictor
+from .pca import PCACurve, fit_pca
+from .ridge import marker_columns
+from .weights import MLPWeights
+
+__all__ = ["NetworkFit", "fit_network", "train_members", "ENSEMBLE_SEED_STRIDE"]
+
+log = logging.getLogger(__name__)
+
+#: Member k of an ensemble trains with seed ``surrogate.seed + ENSEMBLE_SEED_STRIDE * k``: far
+#: enough apart that runs with neighbouring seeds share no member.
+ENSEMBLE_SEED_STRIDE = 1000
+
+
+@dataclass(frozen=True, eq=False)
+class NetworkFit:
+    """A fitted :class:`NetworkPredictor` and how it was chosen.
+
+    Attributes:
+        predictor: the fitted predictor.
+        choice: the rule behind n_w and its curves, the head's size (``pca_choice`` of the model).
+        curve: the paper rule's cross-validated PCA curve, or None.
+        summaries: one :class:`TrainingSummary` per member.
+        pca_seconds: seconds spent choosing n_w before the PCA fit.
+    """
+
+    predictor: NetworkPredictor
+    choice: dict
+    curve: PCACurve | None
+    summaries: list
+    pca_seconds: float
+
+
+def train_members(Xt, Yt, Xv, Yv, config: SurrogateConfig) -> tuple[list[MLPWeights], list[TrainingSummary]]:
+    """The ensemble's networks (member k seeded ``seed + ENSEMBLE_SEED_STRIDE k``) and their training summaries.
+
+    Args:
+        Xt, Xv: (N_t, 3 n_d), (N_v, 3 n_d) marker displacements, mm.
+        Yt, Yv: (N_t, n_w), (N_v, n_w) target PCA weights, mm.
+        config: the surrogate settings (``ensemble``, ``seed`` and the training settings).
+    """
+    members, summaries = [], []
+    for k in range(config.ensemble):
+        w, s = train_mlp(Xt, Yt, Xv, Yv, config, seed=config.seed + ENSEMBLE_SEED_STRIDE * k)
+        members.append(w)
+        summaries.append(s)
+    return members, summaries
+
+
+def fit_network(Ut: np.ndarray, Uv: np.ndarray, markers: np.ndarray, mesh, config: SurrogateConfig) -> NetworkFit:
+    """Fit the PCA + (head +) MLP predictor.
+
+    Args:
+        Ut: (N_t, 3 n) training fields, float64 mm (finite).
+        Uv: (N_v, 3 n) validation fields, float64 mm (checkpointing, the head's size, n_w).
+        markers: (n_d,) int64 0-based marker ids.
+        mesh: the :class:`TetMesh` with n vertices.
+        config: the surrogate settings.
+    """
+    c = config
+    t0 = time.perf_counter()
+    n_w, rule, curve = components_to_train(c, Ut)
+    t_pca = time.perf_counter()
+    basis = fit_pca(Ut, n_w)
+    cols = marker_columns(markers)
+    Xt, Xv = Ut[:, cols], Uv[:, cols]
+    Yt, Yv = basis.transform(Ut), basis.transform(Uv)
+    head, head_info = None, {"dims": None}
+    if c.head == "quadratic" and c.marker_dropout == 0:
+        head, head_info = fit_head(Xt, Yt, Xv, Uv, basis, c.head_dims)
+    elif c.head == "quadratic":
+        log.info("no quadratic head: it needs every marker, and marker_dropout > 0 trains for missing ones")
+    head_t = None if head is None else head.predict(Xt)
+    head_v = None if head is None else head.predict(Xv)
+    members, summaries = train_members(Xt, Yt if head is None else Yt - head_t, Xv,
+                                       Yv if head is None else Yv - head_v, c)
+    choice = {"rule": rule, "n_components": n_w, "head": head_info}
+    if not c.n_components and c.pca_rule == "validation":
+        n_w, curve_v = choose_by_validation(members, basis, Xv, Uv, head_v)
+        basis, members = basis.truncated(n_w), [m.truncated(n_w) for m in members]
+        head = truncated_head(head, n_w)
+        choice.update(n_components=n_w, trained_components=int(curve_v["n_components"][-1]), validation_curve=curve_v)
+    return NetworkFit(NetworkPredictor(mesh, markers, basis, members, head), choice, curve, summaries, t_pca - t0)

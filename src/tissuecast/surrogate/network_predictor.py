@@ -1,0 +1,134 @@
+"""The learned predictor: PCA basis, quadratic head and network ensemble, composed.
+
+A prediction is ``decode(head(d) + mean over members of network_k(d))``: the networks
+(:class:`~.weights.MLPWeights`) and the optional quadratic head (:mod:`.head`) map the marker
+displacements d (3 n_d,) mm to the PCA weights (n_w,) mm, and the PCA basis
+(:class:`~.pca.PCABasis`) decodes them into the field (3 n,) mm. The precompiled numpy
+forward pass (:class:`~.fastpath.CompiledSurrogate`) evaluates the whole chain; the torch
+module (:func:`~.network.torch_network`) is its float32 twin for ONNX.
+
+Fitting the parts (PCA, the number of components, head, ensemble) is :mod:`.network_fit`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ModelError
+from .fastpath import CompiledSurrogate
+from .field_predictor import FieldPredictor, check_vertex_ids
+from .pca import PCABasis
+from .quadratic import QuadraticRegression
+from .weights import MLPWeights
+
+__all__ = ["NetworkPredictor"]
+
+
+class NetworkPredictor(FieldPredictor):
+    """PCA + (quadratic head +) MLP ensemble surrogate of nonlinear FEM (Liu et al. 2020).
+
+    Args:
+        mesh: the :class:`~tissuecast.mesh.TetMesh` (n vertices, mm).
+        markers: (n_d,) 0-based marker vertex ids, in input order.
+        basis: the PCA basis with n_w components (decodes weights into fields).
+        members: M >= 1 trained networks predicting the n_w weights (residual of the head).
+        head: optional quadratic head (:mod:`.head`) the networks correct; None without one
+            (and always None for networks trained with marker masking).
+
+    Raises:
+        ModelError: the parts do not fit together (components, markers, masking).
+    """
+
+    name = "mlp"
+
+    def __init__(self, mesh, markers, basis: PCABasis, members: list[MLPWeights], head: QuadraticRegression | None = None):
+        mk = check_vertex_ids(markers, mesh.n_vertices)
+        members = list(members)
+        if not members or members[0].weights[-1].shape[0] != basis.n_components or members[0].n_markers != len(mk):
+            raise ModelError("network and PCA basis/markers do not fit together; the model folder is inconsistent")
+        if head is not None and (head.coef.shape[1] != basis.n_components or head.mean.size != 3 * len(mk)
+                                 or members[0].masked):
+            raise ModelError("the quadratic head does not fit the network, PCA basis or markers; "
+                             "the model folder is inconsistent")
+        if basis.n_features != 3 * mesh.n_vertices:
+            raise ModelError(f"the PCA basis describes {basis.n_features // 3} vertices, the mesh has {mesh.n_vertices}")
+        self.mesh = mesh
+        self.markers = mk
+        self.basis = basis
+        self.members = members
+        self.head = head
+        self.compiled = CompiledSurrogate(members, basis, head)
+
+    # ------------------------------------------------------------------ description
+    @property
+    def n_components(self) -> int:
+        return self.basis.n_components
+
+    @property
+    def ensemble_size(self) -> int:
+        return len(self.members)
+
+    @property
+    def hidden(self) -> tuple[int, ...]:
+        """Hidden layer widths of the networks."""
+        return self.members[0].hidden
+
+    @property
+    def supports_missing_markers(self) -> bool:
+        """Whether the networks were trained with marker masking (``marker_dropout > 0``)."""
+        return bool(self.members[0].masked)
+
+    @property
+    def has_uncertainty(self) -> bool:
+        """An ensemble (>= 2 networks) gives a per-vertex spread."""
+        return self.ensemble_size >= 2
+
+    def describe(self) -> dict:
+        return {**super().describe(), "n_components": self.n_components, "hidden": list(self.hidden),
+                "ensemble": self.ensemble_size,
+                "head": None if self.head is None else {"kind": "quadratic", "dims": int(len(self.head.directions))}}
+
+    # ------------------------------------------------------------------ prediction
+    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
+        return self.compiled.fields(d, missing).reshape(d.shape[0], -1, 3)
+
+    def member_weights(self, marker_displacements, *, missing=None) -> np.ndarray:
+        """PCA weights of every member (M, B, n_w) mm (the head's added), inputs as :meth:`predict` (batch)."""
+        d, miss, _ = self.marker_batch(marker_displacements, missing)
+        return self.compiled.member_weights(d, miss)
+
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
+        """Ensemble mean field and per-vertex uncertainty.
+
+        Returns:
+            ``(u, sigma)``: u (n, 3) or (B, n, 3) mm as :meth:`predict`; sigma (n,) or (B, n) mm,
+            the root-mean-square over members of each vertex's deviation from the ensemble
+            mean (``sqrt(sum_xyz var)``, ddof 0). Needs ``ensemble >= 2``.
+        """
+        d, miss, single = self.marker_batch(marker_displacements, missing)
+        if not self.has_uncertainty:
+            raise ModelError("uncertainty needs an ensemble; fit with surrogate.ensemble >= 2")
+        W = self.compiled.member_weights(d, miss)  # (M, B, n_w)
+        C = self.basis.components
+        u = (W.mean(axis=0) @ C + self.basis.mean).reshape(d.shape[0], -1, 3)
+        dev = ((W - W.mean(axis=0)) @ C).reshape(W.shape[0], d.shape[0], -1, 3)
+        sigma = np.sqrt((dev**2).sum(axis=3).mean(axis=0))
+        return (u[0], sigma[0]) if single else (u, sigma)
+
+    def pca_projection(self, fields) -> np.ndarray:
+        """Projection of displacement fields on the PCA basis: (n, 3) or (B, n, 3) mm -> same
+        shape. No prediction of this model can come closer to a field than this (the PCA
+        truncation floor)."""
+        f = np.asarray(fields, dtype=np.float64)
+        flat = f.reshape(-1, self.basis.n_features)
+        return self.basis.inverse_transform(self.basis.transform(flat)).reshape(f.shape)
+
+    def torch_module(self):
+        """The equivalent torch module (float32), see :func:`tissuecast.surrogate.network.torch_network`."""
+        from .network import torch_network
+
+        return torch_network(self.members, self.basis.components, self.basis.mean, self.head)
+
+    def __repr__(self) -> str:
+        return (f"NetworkPredictor(n_vertices={self.n_vertices}, markers={self.markers.tolist()}, "
+                f"n_components={self.n_components}, hidden={list(self.hidden)}, ensemble={self.ensemble_size})")

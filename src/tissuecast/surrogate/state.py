@@ -1,0 +1,64 @@
+"""The state of a fitted :class:`~.model.DeformationModel`: its parts and the record of how they
+were chosen, as plain objects.
+
+``DeformationModel.get_state()`` returns a :class:`ModelState`, ``DeformationModel.from_state``
+rebuilds the model from one, and the model folder (:mod:`.storage`) writes and reads them: the
+baselines are not stored, they are rebuilt from the network's PCA basis and the markers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import SurrogateConfig
+from .mlp import TrainingSummary
+from .network_predictor import NetworkPredictor
+from .pca import PCACurve
+from .trust import TrustLayer
+
+__all__ = ["ModelState", "training_summaries"]
+
+
+@dataclass(frozen=True, eq=False)
+class ModelState:
+    """Everything a fitted model is made of.
+
+    Attributes:
+        config: the surrogate settings it was fitted with.
+        network: the learned predictor (mesh, markers, PCA basis, networks, quadratic head).
+        fixed: (k,) int64 0-based fixed vertex ids of the simulations (metadata).
+        pca_choice: the rule behind n_w, its curves, the head's size and the ridge
+            baseline's number of components (``ridge_components``).
+        pca_curve: the paper rule's cross-validated PCA curve, or None.
+        trust: the calibrated trust layer, or None (no calibration samples).
+        training: the training summary (sample counts, times, per-member summaries), or None.
+        run_config: the whole run's configuration as a dict, or None.
+        dataset_path: the store it was trained on, or None.
+        scenario: the training data's clinical scenario summary, or None.
+        metadata: the ``model.json`` it was read from (None for a model fitted in this process).
+    """
+
+    config: SurrogateConfig
+    network: NetworkPredictor
+    fixed: np.ndarray
+    pca_choice: dict
+    pca_curve: PCACurve | None = None
+    trust: TrustLayer | None = None
+    training: dict | None = None
+    run_config: dict | None = None
+    dataset_path: str | None = None
+    scenario: dict | None = None
+    metadata: dict | None = field(default=None, repr=False)
+
+    @property
+    def ridge_components(self) -> int:
+        """Components of the ridge baseline: its recorded best, else all of the network's."""
+        return int(self.pca_choice.get("ridge_components") or self.network.n_components)
+
+
+def training_summaries(training: dict | None) -> list[TrainingSummary]:
+    """The members' :class:`TrainingSummary` objects from a training record (``model.json``)."""
+    return [TrainingSummary(**{k: (tuple(map(tuple, v)) if k == "valid_history" else v) for k, v in s.items()})
+            for s in (training or {}).get("members", [])]

@@ -1,0 +1,127 @@
+"""A field predictor wrapped with its trust layer: calibrated error bounds and the alarm.
+
+In the manner of scikit-learn's ``CalibratedClassifierCV``, :class:`TrustedPredictor` holds a
+fitted :class:`~.field_predictor.FieldPredictor` and the :class:`~.trust.TrustLayer` calibrated
+for it; it predicts as the wrapped predictor does and adds :meth:`TrustedPredictor.predict_trusted`.
+Any predictor can be wrapped: the learned model (whose PCA basis and quadratic head the layer
+reuses), a baseline, or a sub-model set.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..errors import ModelError
+from .field_predictor import FieldPredictor
+from .pca import PCABasis
+from .quadratic import QuadraticRegression
+from .trust import PREDICT_CHUNK, TrustedPrediction, TrustLayer
+from .trust_fit import fit_trust
+
+__all__ = ["TrustedPredictor"]
+
+
+class TrustedPredictor(FieldPredictor):
+    """A predictor and its calibrated trust layer.
+
+    Args:
+        predictor: the fitted predictor.
+        layer: its :class:`TrustLayer` (same markers), fitted on samples the predictor was not
+            trained on.
+
+    Raises:
+        ModelError: the layer was fitted for other markers.
+    """
+
+    has_trust = True
+
+    def __init__(self, predictor: FieldPredictor, layer: TrustLayer):
+        if not np.array_equal(np.asarray(layer.markers), predictor.markers):
+            raise ModelError(f"the trust layer is for markers {np.asarray(layer.markers).tolist()}, the predictor uses "
+                             f"{predictor.markers.tolist()}; calibrate the layer for this predictor")
+        self.predictor = predictor
+        self.layer = layer
+
+    @classmethod
+    def fit(cls, predictor: FieldPredictor, displacements, *, train_idx, valid_idx, calibration_idx, coverage: float,
+            false_alarm: float, fault_score: bool = False, basis: PCABasis | None = None,
+            head: QuadraticRegression | None = None, chunk: int = PREDICT_CHUNK) -> "TrustedPredictor":
+        """Fit and calibrate the layer of a fitted ``predictor`` (:func:`.trust_fit.fit_trust`;
+        arguments as there) and wrap it."""
+        layer = fit_trust(predictor, displacements, train_idx=train_idx, valid_idx=valid_idx,
+                          calibration_idx=calibration_idx, coverage=coverage, false_alarm=false_alarm,
+                          fault_score=fault_score, basis=basis, head=head, chunk=chunk)
+        return cls(predictor, layer)
+
+    def calibrate(self, marker_displacements, displacements, truths) -> "TrustedPredictor":
+        """The same predictor with its layer recalibrated on (input (m, n_d, 3), prediction
+        (m, n, 3), truth (m, n, 3)) triples, mm, that the predictor was not fitted on
+        (:meth:`TrustLayer.calibrate`)."""
+        return TrustedPredictor(self.predictor, self.layer.calibrate(marker_displacements, displacements, truths))
+
+    # ------------------------------------------------------------------ the wrapped predictor
+    @property
+    def name(self) -> str:
+        return self.predictor.name
+
+    @property
+    def mesh(self):
+        return self.predictor.mesh
+
+    @property
+    def markers(self) -> np.ndarray:
+        return self.predictor.markers
+
+    @property
+    def supports_missing_markers(self) -> bool:
+        return self.predictor.supports_missing_markers
+
+    @property
+    def has_uncertainty(self) -> bool:
+        return self.predictor.has_uncertainty
+
+    def predict(self, marker_displacements, *, missing=None) -> np.ndarray:
+        return self.predictor.predict(marker_displacements, missing=missing)
+
+    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
+        return self.predictor.predict(d, missing=missing)
+
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
+        return self.predictor.predict_with_uncertainty(marker_displacements, missing=missing)
+
+    # ------------------------------------------------------------------ bounds and alarm
+    @property
+    def coverage(self) -> float:
+        """Default nominal coverage of the bounds."""
+        return self.layer.coverage
+
+    @property
+    def n_calibration(self) -> int:
+        """Samples the bounds were calibrated on (0: infinite bounds)."""
+        return self.layer.conformal.n_calibration
+
+    def predict_trusted(self, marker_displacements, *, coverage: float | None = None,
+                        false_alarm: float | None = None) -> TrustedPrediction:
+        """The predictor's field with per-vertex error bounds and the out-of-distribution alarm.
+
+        Args:
+            marker_displacements: as for :meth:`predict` (every marker tracked), mm.
+            coverage: nominal coverage of the bounds (default: the layer's).
+            false_alarm: false-alarm rate of the alarm (default: the layer's).
+
+        Returns:
+            A :class:`~tissuecast.surrogate.trust.TrustedPrediction`: displacement (n, 3) or
+            (B, n, 3) mm, error_bound (n,) or (B, n) mm, and one Alarm or a list of B.
+        """
+        d, _, single = self.marker_batch(marker_displacements)
+        u = self.predictor.predict(d)
+        bounds, alarms = self.layer.assess(d, u, coverage=coverage, false_alarm=false_alarm)
+        if single:
+            return TrustedPrediction(u[0], bounds[0], coverage or self.layer.coverage, alarms[0])
+        return TrustedPrediction(u, bounds, coverage or self.layer.coverage, alarms)
+
+    def describe(self) -> dict:
+        return {**self.predictor.describe(), "has_trust": True, "trust": self.layer.summary()}
+
+    def __repr__(self) -> str:
+        return f"TrustedPredictor({self.predictor!r}, {self.n_calibration} calibration samples)"
