@@ -39,6 +39,9 @@ class TrustedPredictor(FieldPredictor):
         if not np.array_equal(np.asarray(layer.markers), predictor.markers):
             raise ModelError(f"the trust layer is for markers {np.asarray(layer.markers).tolist()}, the predictor uses "
                              f"{predictor.markers.tolist()}; calibrate the layer for this predictor")
+        if layer.n_auxiliary != predictor.auxiliary.width:
+            raise ModelError(f"the trust layer reads {layer.n_auxiliary} auxiliary inputs, the predictor "
+                             f"{predictor.auxiliary.width}; calibrate the layer for this predictor")
         self.predictor = predictor
         self.layer = layer
 
