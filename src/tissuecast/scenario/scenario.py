@@ -137,13 +137,14 @@ class Scenario:
         return build_problem(self.mesh, config, self.supported, order=self.order, springs=self.springs,
                              materials=field, can_swing=self.can_swing)
 
-    def sample(self, seed: int, alpha: float, beta: float = float("nan")) -> SampleInputs:
+    def sample(self, seed: int, alpha: float, beta: float = float("nan"), *, nominal: bool = False) -> SampleInputs:
         """Everything one sample is solved with and recorded by, from its seed alone.
 
         Args:
             seed: the sample's seed (``samples/seed`` of a data set).
             alpha: the surface force field's magnitude, N.
             beta: the LBO share of a test-2 sample; NaN for an LBO sample.
+            nominal: keep the nominal parameters (draw no uncertain parameter).
 
         Returns:
             The sample's :class:`~.sample_inputs.SampleInputs`: its surface force field
@@ -152,15 +153,17 @@ class Scenario:
             displacements they give.
         """
         forces, weights = self.surface_forces.field(seed, alpha, beta)
-        return self.inputs_for(seed, forces, weights)
+        return self.inputs_for(seed, forces, weights, nominal=nominal)
 
-    def inputs_for(self, seed: int, forces: np.ndarray, weights: np.ndarray | None = None) -> SampleInputs:
+    def inputs_for(self, seed: int, forces: np.ndarray, weights: np.ndarray | None = None, *,
+                   nominal: bool = False) -> SampleInputs:
         """A sample's inputs with a given surface force field ``forces`` ((n, 3) N, e.g. a data
-        set's stored one) and the draws of its ``seed`` (:meth:`sample` draws the field too)."""
+        set's stored one) and the draws of its ``seed`` (:meth:`sample` draws the field too);
+        ``nominal``: no uncertain parameter drawn."""
         forces = np.asarray(forces, dtype=np.float64)
         weights = np.zeros((0, 3)) if weights is None else weights
         draw = self.draw(scenario_rng(seed))
-        if self.uncertain is not None:
+        if self.uncertain is not None and not nominal:
             draw = dataclasses.replace(draw, parameters=self.uncertain.draw(parameter_rng(seed)))
         surface, body = self.sample_loads(draw, forces)
         ids, values = self.prescribed(draw)
