@@ -28,7 +28,6 @@ converts coordinates to mm.
 from __future__ import annotations
 
 import logging
-import re
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +35,7 @@ import numpy as np
 from ..errors import MeshError, MeshFormatError
 from .meshio_read import read_with_meshio
 from .tetmesh import TetMesh
+from .vtk_space import file_space
 
 __all__ = ["read_mesh", "write_mesh", "write_point_set", "UNITS", "VOLUME_FORMATS", "SURFACE_FORMATS", "LEGACY_VTK_HEADER",
            "write_tetrahedra"]
@@ -85,38 +85,6 @@ def _check_scale(points: np.ndarray, units: str, path: Path) -> None:
                 f"'{path}' is only {diag:.3g} mm across (bounding-box diagonal) when read as mm; "
                 "it looks like it is in metres: pass units='m' (or 'cm'; CLI: --units m)"
             )
-
-
-def _file_space(path: Path, ext: str) -> str:
-    """The coordinate system a .vtk/.vtu file states where 3D Slicer looks for it; LPS when none.
-
-    ``.vtk``: ``SPACE=RAS``/``SPACE=LPS`` in the header line. ``.vtu``: the ``SPACE`` string
-    array of the field data, decoded here when written as text (tissuecast's files), else
-    read with VTK (3D Slicer's files; without VTK such a file is taken as LPS, with a warning).
-    """
-    if ext == ".vtk":
-        with open(path, "rb") as fh:
-            fh.readline()
-            header = fh.readline()
-        return "RAS" if b"SPACE=RAS" in header else "LPS"
-    if ext != ".vtu":
-        return "LPS"
-    with open(path, "rb") as fh:
-        head = fh.read(1 << 16)
-    if b'Name="SPACE"' not in head:
-        return "LPS"
-    text = re.search(rb'<Array\b[^>]*Name="SPACE"[^>]*format="ascii"[^>]*>([0-9\s]*)</Array>', head)
-    if text:
-        value = bytes(int(c) for c in text.group(1).split()).decode("ascii", "replace")
-        return "RAS" if "RAS" in value else "LPS"
-    try:
-        from ..slicer.models import read_model_space
-
-        return read_model_space(path) or "LPS"
-    except ImportError as exc:  # DependencyError: VTK (extra 'viz') is not installed
-        log.warning("'%s' states its coordinate system in a SPACE array that needs VTK to read (%s); taken as LPS",
-                    path, exc)
-        return "LPS"
 
 
 def _points_from_meshio(m, path: Path) -> np.ndarray:
@@ -197,7 +165,7 @@ def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = 
         points, tets = _points_from_meshio(m, path), _tets_from_meshio(m, path)
         if points.shape[1] != 3:
             raise MeshFormatError(f"'{path}' has {points.shape[1]}-D points; 3-D coordinates are needed")
-        if _file_space(path, ext) == "RAS":  # a 3D Slicer model saved in RAS: tissuecast works in LPS
+        if file_space(path) == "RAS":  # a 3D Slicer model saved in RAS: tissuecast works in LPS
             log.info("'%s' states SPACE=RAS; converted to LPS", path)
             points = points * np.array([-1.0, -1.0, 1.0])
     points, tets = _compact(points, tets, path)

@@ -21,7 +21,6 @@ volume meshes. docs/files.md tabulates which tool reads which file.
 
 from __future__ import annotations
 
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,9 +28,9 @@ import numpy as np
 
 from ..errors import MeshFormatError, require
 from ..mesh.tetmesh import TetMesh
+from ..mesh.vtk_space import quiet_vtk
 
-__all__ = ["MODEL_SUFFIXES", "SlicerModel", "write_model", "read_model", "read_model_as_slicer", "read_model_space",
-           "quiet_vtk"]
+__all__ = ["MODEL_SUFFIXES", "SlicerModel", "write_model", "read_model", "read_model_as_slicer", "read_model_space"]
 
 #: model file endings 3D Slicer opens and this module writes
 MODEL_SUFFIXES = (".vtk", ".vtp", ".vtu")
@@ -153,18 +152,6 @@ class SlicerModel:
         """(m, 4) int64 the tetrahedra (other cells dropped)."""
         starts = self.offsets[:-1][self.cell_types == _VTK_TETRA]
         return self.connectivity[starts[:, None] + np.arange(4)].astype(np.int64).reshape(-1, 4)
-
-
-@contextmanager
-def quiet_vtk():
-    """VTK's error and warning output off while reading (corrupt files give one clear error instead)."""
-    core = _vtk()[0]
-    previous = core.vtkObject.GetGlobalWarningDisplay()
-    core.vtkObject.GlobalWarningDisplayOff()
-    try:
-        yield
-    finally:
-        core.vtkObject.SetGlobalWarningDisplay(previous)
 
 
 def _space_in_text(text: str | None) -> str | None:
