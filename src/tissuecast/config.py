@@ -66,6 +66,7 @@ class MeshConfig:
     keep_largest: bool = _f(False, doc="label map: keep the largest face-connected piece of the label instead of refusing several")
     fill_cavities: bool = _f(False, doc="label map: fill background enclosed by the label instead of refusing it")
     smoothing_iterations: int = _f(30, lo=0, hi=1000, doc="label map: Taubin (non-shrinking) smoothing passes of the marching-cubes surface")
+    max_vertices: int = _f(0, lo=0, doc="label map or closed surface: mesh with at most this many vertices, the edge length searched (surface_mesh_size unused); 0 = mesh at surface_mesh_size")
 
 
 #: Fixed-vertex placement rules (see :func:`tissuecast.markers.select_fixed_vertices`).
@@ -461,6 +462,8 @@ def _cross_checks(obj: Any, prefix: str) -> None:
         if obj.segment and kind != "segmentation":
             raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
                               f"{obj.path!r} is not one: use {prefix}label")
+        if obj.max_vertices:
+            _check_budget_source(obj, prefix, kind)
         if kind is not None and obj.units != "mm":
             raise ConfigError(f"{prefix}units applies to mesh files; a label map is read in its own physical units (mm), "
                               f"remove {prefix}units = {obj.units!r}")
@@ -524,6 +527,19 @@ def _cross_checks(obj: Any, prefix: str) -> None:
             raise ConfigError(f"{prefix}regions repeat a name ({names}); give each region its own name")
     if isinstance(obj, Config):
         _check_scenario(obj)
+
+
+def _check_budget_source(obj: "MeshConfig", prefix: str, kind: str | None) -> None:
+    """``mesh.max_vertices`` remeshes label maps and closed surfaces only."""
+    from .mesh.mesher import SURFACE_FORMATS
+
+    if obj.max_vertices < 4:
+        raise ConfigError(f"{prefix}max_vertices = {obj.max_vertices} is too small; a tetrahedral mesh needs at "
+                          "least 4 vertices (0 = no budget)")
+    if kind is None and Path(obj.path).suffix.lower() not in SURFACE_FORMATS:
+        what = f"{obj.path!r} is a volume mesh, used as it is" if obj.path else "the built-in phantom is fixed"
+        raise ConfigError(f"{prefix}max_vertices applies when {prefix}path names a label map or a closed surface "
+                          f"(.stl .obj .ply .off .face), which are meshed; {what}: remove {prefix}max_vertices")
 
 
 def _check_vector(key: str, v: tuple, nonzero: bool = True) -> None:

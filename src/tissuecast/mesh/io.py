@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import MeshError, MeshFormatError
+from .mesher import SURFACE_FORMATS
 from .meshio_read import read_with_meshio
 from .tetmesh import TetMesh
 from .vtk_space import file_space
@@ -54,8 +55,6 @@ LEGACY_VTK_HEADER = "tissuecast output. SPACE=LPS"
 # a .vtu field-data block with the string array SPACE = "LPS" (characters and a NUL, as VTK writes it)
 _SPACE_FIELD_DATA = ('<FieldData>\n<Array type="String" Name="SPACE" NumberOfTuples="1" format="ascii">\n'
                      + " ".join(str(c) for c in b"LPS\0") + "\n</Array>\n</FieldData>\n").encode("ascii")
-#: closed-surface extensions, tetrahedralised on read
-SURFACE_FORMATS = {".stl": "stl", ".obj": "obj", ".ply": "ply", ".off": "off", ".face": "tetgen"}
 
 
 def _extension(path: Path) -> str:
@@ -129,7 +128,8 @@ def _compact(points: np.ndarray, tets: np.ndarray, path: Path) -> tuple[np.ndarr
     return points[used], renum[tets]
 
 
-def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = None) -> TetMesh:
+def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = None,
+              max_vertices: int | None = None) -> TetMesh:
     """Read a tetrahedral mesh (or a closed surface, which is tetrahedralised).
 
     Args:
@@ -138,6 +138,9 @@ def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = 
             converted to mm.
         mesh_size: target edge length in mm when tetrahedralising a surface file; default
             ``MeshConfig.surface_mesh_size`` (3 mm). Ignored for volume meshes.
+        max_vertices: a surface file is meshed with at most this many vertices, the edge
+            length searched (:func:`~tissuecast.mesh.sizing.mesh_to_budget`; ``mesh_size``
+            unused); refused for volume meshes, which are read as they are.
 
     Returns:
         The mesh, coordinates in mm, 0-based ids.
@@ -153,7 +156,10 @@ def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = 
     if not path.is_file():
         raise MeshFormatError(f"mesh file '{path}' does not exist")
     if ext in SURFACE_FORMATS:
-        return _read_surface(path, ext, factor, units, mesh_size)
+        return _read_surface(path, ext, factor, units, mesh_size, max_vertices)
+    if max_vertices:
+        raise MeshError(f"'{path}' is a volume mesh, read as it is; a vertex budget (max_vertices) applies to "
+                        "closed surfaces and label maps, which are meshed")
     if ext in (".node", ".ele"):
         from .tetgen import read_tetgen
 
@@ -177,7 +183,8 @@ def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = 
         raise type(exc)(f"'{path}': {exc}") from exc
 
 
-def _read_surface(path: Path, ext: str, factor: float, units: str, mesh_size: float | None) -> TetMesh:
+def _read_surface(path: Path, ext: str, factor: float, units: str, mesh_size: float | None,
+                  max_vertices: int | None) -> TetMesh:
     if ext == ".face":
         from .tetgen import read_tetgen_surface
 
@@ -196,6 +203,11 @@ def _read_surface(path: Path, ext: str, factor: float, units: str, mesh_size: fl
     from .mesher import tetrahedralize_surface
 
     try:
+        if max_vertices:
+            from .sizing import mesh_to_budget, surface_volume
+
+            return mesh_to_budget(lambda size: tetrahedralize_surface(points, tri, size), max_vertices,
+                                  surface_volume(points, tri)).mesh
         return tetrahedralize_surface(points, tri, mesh_size)
     except MeshError as exc:
         raise MeshError(f"'{path}': {exc}") from exc
