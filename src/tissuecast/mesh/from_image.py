@@ -55,8 +55,10 @@ _TAUBIN_MU = -0.53
 # voxels stay apart, as in the 6-connected pieces; at exactly 0.5 such ties give
 # non-manifold edges. Vertices move by 0.001 voxel.
 _MC_LEVEL = 0.501
-# sample spacing of the surfaces compared by label_map_fidelity, in voxels
+# sample spacing of the surfaces compared by label_map_fidelity, in voxels; doubled (up to
+# 1 voxel) while the label's boundary would get more than _FIDELITY_POINTS sample points
 _FIDELITY_SAMPLING = 0.25
+_FIDELITY_POINTS = 2_000_000
 
 
 def label_pieces(mask: np.ndarray, *, keep_largest: bool = False, fill_cavities: bool = False,
@@ -316,7 +318,9 @@ def label_map_fidelity(mesh: TetMesh, labelmap: LabelMap) -> LabelMapFidelity:
     neighbour, where the mask's 0.5 iso-surface crosses) from the mesh surface. Face corners
     are left out of (b): no smooth surface can follow the voxel staircase into its corners
     (up to 0.87 voxel away from any plane through the face centres). Both surfaces are
-    sampled about every :data:`_FIDELITY_SAMPLING` voxel and compared with k-d trees, in
+    sampled about every :data:`_FIDELITY_SAMPLING` voxel (coarser, up to one voxel, on labels
+    whose boundary would need more than :data:`_FIDELITY_POINTS` samples; the spacing used is
+    returned as ``sampling_voxels``) and compared with k-d trees, in
     voxel indices and in LPS mm. The 95th percentile of each directed distance is kept as
     well ((a) over the mesh-surface samples, (b) over the face centres); the 95th-percentile
     Hausdorff distance (HD95) is the larger of the two.
@@ -328,8 +332,12 @@ def label_map_fidelity(mesh: TetMesh, labelmap: LabelMap) -> LabelMapFidelity:
     """
     from scipy.spatial import cKDTree
 
-    centres, faces = _boundary_faces(labelmap.mask, int(round(1.0 / _FIDELITY_SAMPLING)))
-    surface = _triangle_samples(labelmap.to_ijk(mesh.points), mesh.surface_triangles, _FIDELITY_SAMPLING)
+    sampling = _FIDELITY_SAMPLING
+    n_faces = sum(int(np.count_nonzero(np.diff(np.pad(labelmap.mask, 1).astype(np.int8), axis=a))) for a in range(3))
+    while sampling < 1.0 and n_faces * (round(1.0 / sampling) + 1) ** 2 > _FIDELITY_POINTS:
+        sampling *= 2.0
+    centres, faces = _boundary_faces(labelmap.mask, int(round(1.0 / sampling)))
+    surface = _triangle_samples(labelmap.to_ijk(mesh.points), mesh.surface_triangles, sampling)
     to_mm = labelmap.ijk_to_lps[:3, :3]
     surface_vox = cKDTree(faces).query(surface)[0]  # mesh surface -> label boundary
     boundary_vox = cKDTree(surface).query(centres)[0]  # label boundary -> mesh surface
@@ -348,5 +356,5 @@ def label_map_fidelity(mesh: TetMesh, labelmap: LabelMap) -> LabelMapFidelity:
         surface_p95_voxels=float(np.percentile(surface_vox, 95)),
         boundary_p95_mm=float(np.percentile(boundary_mm, 95)),
         boundary_p95_voxels=float(np.percentile(boundary_vox, 95)),
-        sampling_voxels=_FIDELITY_SAMPLING,
+        sampling_voxels=sampling,
     )
