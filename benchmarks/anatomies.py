@@ -19,7 +19,7 @@ calibrated q90 peak displacement, mm):
   rod     120 x 8 x 8 mm bar bowed by 10 mm, 2 cells across (one line of interior vertices)
 
 With compact pins the tube and the bar are held at one spot and swing and bend about it like
-a hinge: the supports check refuses them at once (``tissuecast.dataset.supports``), naming the
+a hinge: the supports check refuses them at once (``tissuecast.dataset.mechanism_check``), naming the
 options; with spread pins they are held against rotation (whether the data sets then
 complete, and how slow their worst sample is, is what this benchmark shows).
 

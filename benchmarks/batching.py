@@ -63,7 +63,7 @@ def main(argv=None) -> int:
     from tissuecast.dataset import SampleStatus, recipe_from_store, simulate
     from tissuecast.dataset.batch import solve_batch_tasks
     from tissuecast.dataset.executors import single_threaded_blas
-    from tissuecast.dataset.plan import sample_seed
+    from tissuecast.dataset.sample_plan import sample_seed
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task, context_for, solve_task
 

@@ -90,9 +90,9 @@ def _profile(store: Path, indices) -> tuple[dict, float, list]:
     out["other"] = max(total - sum(out.values()), 0.0)
     pairs = []
     for task, warm in zip(tasks, results):
-        forces, _ = ctx.forces(task)
+        inputs = ctx.inputs(task)
         t = time.perf_counter()
-        cold = ctx.solver(0).solve(forces)
+        cold = ctx.solver(0).solve(inputs.surface, **inputs.solve_keywords())
         sec = time.perf_counter() - t
         peak = float(np.abs(cold.displacement).max())
         diff = (float(np.abs(warm.displacement - cold.displacement).max()) / peak

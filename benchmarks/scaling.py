@@ -122,13 +122,14 @@ def child(spec: str, backend: str, args) -> dict:
     what, nnz = _fill(solver)
     warm, cold = [], []
     for i in predicted[: args.resolve]:
-        forces, _ = ctx.forces(Task(int(i), int(seeds[i]), float(betas[i]), alpha))
+        inputs = ctx.inputs(Task(int(i), int(seeds[i]), float(betas[i]), alpha))
+        forces = inputs.surface
         t = time.process_time()
-        guess = ctx.reduced.predict(forces)
-        res = solver.solve(forces, initial_guess=guess)
+        guess = ctx.reduced.predict(inputs.loads)
+        res = solver.solve(forces, initial_guess=guess, **inputs.solve_keywords())
         warm.append((time.process_time() - t, res.iterations, res.solves, res.factorizations))
         t = time.process_time()
-        res0 = solver.solve(forces)
+        res0 = solver.solve(forces, **inputs.solve_keywords())
         cold.append((time.process_time() - t, res0.iterations, res0.solves, res0.factorizations))
     sample_wall = float(np.median(ds.seconds[predicted])) if len(predicted) else float("nan")
     before = int(run["solved"] - run["sample_phase_samples"])

@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Debian packages tissuecast needs: CalculiX (cross-checks, second FEM backend),
 # SuiteSparse headers + OpenBLAS (scikit-sparse CHOLMOD), GL/EGL libraries (gmsh, VTK renders),
-# the official OpenIGTLink C++ library and a C++ compiler (the interoperability test builds a client).
+# the official OpenIGTLink C++ library and a C++ compiler (the interoperability test builds a client),
+# and chromium (the report's headless-browser test: the page loads, the 3D view draws).
 # Skips apt when everything is already there; needs root (or sudo) otherwise.
 set -euo pipefail
 pkgs=(calculix-ccx libsuitesparse-dev libopenblas0-pthread libopenblas-dev libglu1-mesa libxrender1
-      libxcursor1 libxft2 libxinerama1 libgl1 libegl1 libopenigtlink-dev g++)
+      libxcursor1 libxft2 libxinerama1 libgl1 libegl1 libopenigtlink-dev g++ chromium)
 missing=()
 for p in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

@@ -78,13 +78,14 @@ class FakeDataset:
         return f"FakeDataset({self.n_samples} samples)"
 
 
-def smooth_solver_factory(mesh, fixed, cfg):
+def smooth_solver_factory(scenario, cfg):
     """A fast stand-in for the FEM solver (for pipeline tests): forces are smoothed over the
     mesh graph and passed through a mild nonlinearity, u = s + 0.05 |s| s (mm)."""
     from types import SimpleNamespace
 
     import scipy.sparse as sp
 
+    mesh, fixed = scenario.mesh, scenario.supported
     A = mesh.vertex_adjacency.astype(float)
     deg = np.asarray(A.sum(axis=1)).ravel()
     P = sp.diags(1.0 / (deg + 1.0)) @ (A + sp.eye(mesh.n_vertices))

@@ -91,7 +91,9 @@ def test_deck_scenario_from_problem_carries_springs_and_materials():
     assert deck.springs is problem.springs and len(deck.materials) == 2
     assert sum(len(ids) for _, _, ids in deck.materials) == MESH.n_tets
     plain, _, _ = _case("attached")
-    assert DeckScenario.from_problem(plain) is None
+    nothing = DeckScenario.from_problem(plain)  # held, one material, no gravity: adds nothing
+    assert nothing.springs is None and nothing.materials is None and nothing.acceleration is None
+    assert nothing.spring_lines(1, repr) == [] and nothing.step_lines(repr) == []
     assert isinstance(problem.springs, NodalSprings)
 
 

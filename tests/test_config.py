@@ -236,8 +236,8 @@ def test_bad_scenario_values_raise_config_error_naming_the_key(scenario, key, te
 
 def test_spring_stiffness_is_judged_against_the_tissue_modulus():
     """k = E / L: the same k is plausible for a stiff tissue and implausible for a soft one."""
-    stiff = {"material": {"youngs_modulus": 10.0}, "scenario": {"springs": {"rule": "surface", "normal_stiffness": 1.0,
-                                                                             "tangential_stiffness": 1.0}}}
+    springs = {"rule": "surface", "normal_stiffness": 1.0, "tangential_stiffness": 1.0}
+    stiff = {"material": {"youngs_modulus": 10.0, "check_range": False}, "scenario": {"springs": springs}}
     assert config_from_dict(stiff).scenario.springs.normal_stiffness == 1.0  # 10 MPa over 10 mm
     stiff["material"]["youngs_modulus"] = 0.001
     with pytest.raises(ConfigError, match=r"over 0\.001 mm"):
@@ -262,3 +262,65 @@ def test_forces_and_scenario_key_descriptions_are_one_short_line(section):
     check(getattr(Config(), section), section)
     if section == "scenario":
         check(MaterialRegionConfig(), "scenario.materials.regions")
+
+
+@pytest.mark.parametrize(
+    "data, key, text",
+    [
+        ({"material": {"youngs_modulus": 21.0}}, "material.youngs_modulus = 21.0 MPa", "21 kPa would be 0.021 MPa"),
+        ({"material": {"youngs_modulus": 21000.0}}, "material.youngs_modulus = 21000.0 MPa", "21000 Pa would be 0.021 MPa"),
+        ({"material": {"youngs_modulus": 2e-5}}, "material.youngs_modulus", "outside soft tissue's range"),
+        ({"scenario": {"materials": {"regions": [{"name": "t", "rule": "distance", "youngs_modulus": 63.0}]}}},
+         "scenario.materials.regions[0].youngs_modulus = 63.0 MPa", "63 kPa would be 0.063 MPa"),
+        ({"scenario": {"materials": {"regions": [{"name": "t", "rule": "distance", "youngs_modulus_range": [0.01, 50.0]}]}}},
+         "scenario.materials.regions[0].youngs_modulus_range = 50.0 MPa", "material.check_range = false"),
+        ({"forces": {"target_max_displacement": 0.03}}, "forces.target_max_displacement = 0.03 mm", "looks like metres"),
+        ({"scenario": {"gravity": {"enabled": True, "density": 1000.0}}}, "scenario.gravity.density", "1e-9 t/mm^3"),
+    ],
+)
+def test_values_that_are_almost_surely_a_unit_slip_are_refused_with_the_fix(data, key, text):
+    with pytest.raises(ConfigError) as err:
+        config_from_dict(data)
+    assert key in str(err.value) and text in str(err.value)
+
+
+def test_a_stiff_material_is_accepted_when_the_range_check_is_off():
+    cfg = config_from_dict({"material": {"youngs_modulus": 21.0, "check_range": False},
+                            "scenario": {"materials": {"regions": [{"name": "t", "rule": "distance",
+                                                                    "youngs_modulus": 63.0}]}}})
+    assert cfg.material.youngs_modulus == 21.0 and cfg.scenario.materials.regions[0].youngs_modulus == 63.0
+    assert config_from_dict({"material": {"youngs_modulus": 1e-4}}).material.youngs_modulus == 1e-4  # brain, softest
+
+
+@pytest.mark.parametrize(
+    "targets, key, text",
+    [
+        ({"rule": "tumour"}, "evaluate.targets.rule", "is not allowed"),
+        ({"count": 0}, "evaluate.targets.count", "out of range"),
+        ({"depth": -1.0}, "evaluate.targets.depth", "out of range"),
+        ({"rule": "tag"}, "evaluate.targets.tag", "needs"),
+        ({"rule": "label"}, "evaluate.targets.path", "a label map"),
+        ({"rule": "points"}, "evaluate.targets.path", "a CSV or Slicer markups file"),
+        ({"rule": "label", "path": "tumour.vtu"}, "evaluate.targets.path", "is not a label map"),
+        ({"rule": "points", "path": "targets.txt"}, "evaluate.targets.path", "reads .csv, .mrk.json, .fcsv"),
+        ({"rule": "label", "path": "scan.nrrd", "segment": "tumour"}, "evaluate.targets.segment", "use evaluate.targets.label"),
+        ({"tag": "tumour"}, "evaluate.targets.tag", "does not apply to evaluate.targets.rule = 'interior'"),
+        ({"rule": "points", "path": "t.csv", "label": 2}, "evaluate.targets.label", "does not apply"),
+    ],
+)
+def test_bad_targets_raise_config_error_naming_the_key(targets, key, text):
+    with pytest.raises(ConfigError) as err:
+        config_from_dict({"evaluate": {"targets": targets}})
+    msg = str(err.value)
+    assert key in msg and text in msg
+
+
+def test_targets_default_and_round_trip(tmp_path):
+    t = Config().evaluate.targets
+    assert (t.rule, t.count, t.depth) == ("interior", 10, 0.0)
+    cfg = with_overrides(Config(), evaluate={"targets": {"rule": "label", "path": "scan.seg.nrrd", "segment": "tumour",
+                                                         "count": 25}})
+    path = tmp_path / "c.toml"
+    path.write_text(config_to_toml(cfg))
+    assert load_config(path) == cfg and "[evaluate.targets]" in path.read_text()
+    assert all(len(f.metadata["doc"]) <= 150 for f in dataclasses.fields(type(t)))

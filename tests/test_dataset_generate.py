@@ -118,7 +118,7 @@ def test_basis_samples_start_from_an_interim_model_of_the_pilots(tmp_path):
 
     from tissuecast.dataset import recipe_from_store
     from tissuecast.dataset.generate import setup_from_config
-    from tissuecast.dataset.predictor import MIN_INTERIM, _interim_guesses, _pilot_rows, basis_samples
+    from tissuecast.dataset.reduced_predictor import MIN_INTERIM, _interim_guesses, _pilot_rows, basis_samples
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task
     from tissuecast.fem import Solver, build_problem
@@ -166,14 +166,22 @@ def test_first_round_pilots_start_warm_from_zero_only_where_that_changes_the_pat
     increment preconditioned by the shared stiffness at zero) with the krylov strategy and
     its reference preconditioner on the paper's set-up; not otherwise."""
     from tissuecast.dataset import recipe_from_store
-    from tissuecast.dataset.generate import _warm_zero
+    from tissuecast.dataset.calibrate import warm_zero
 
     cfg, path, _ = reference
     recipe = recipe_from_store(path)
-    zero = _warm_zero(cfg, recipe)
+    scenario = recipe.scenario()
+    assert scenario.hangs_on_pins
+    zero = warm_zero(cfg.solver, scenario)
     assert zero is not None and zero.shape == (len(recipe.problem().nodes), 3) and not zero.any()
-    assert _warm_zero(with_overrides(cfg, solver={"strategy": "newton"}), recipe) is None
-    assert _warm_zero(with_overrides(cfg, solver={"reference_preconditioner": False}), recipe) is None
+    assert warm_zero(with_overrides(cfg, solver={"strategy": "newton"}).solver, scenario) is None
+    assert warm_zero(with_overrides(cfg, solver={"reference_preconditioner": False}).solver, scenario) is None
+    # a body held otherwise (here: with gravity too, so not hanging on its pins alone) starts cold
+    gravity = with_overrides(cfg, scenario={"gravity": {"enabled": True}})
+    from tissuecast.scenario import restore_scenario
+
+    held = restore_scenario(scenario.mesh, gravity, recipe.scenario_arrays, recipe.basis)
+    assert not held.hangs_on_pins and warm_zero(gravity.solver, held) is None
 
 
 def test_calibration_pilots_start_from_their_previous_round(reference):
@@ -216,7 +224,7 @@ def test_interrupted_before_the_calibration_record_calibrates_again_identically(
 def test_batches_are_chunks_of_the_generation_order_fixed_in_the_store(reference):
     cfg, path, _ = reference
 
-    from tissuecast.dataset.plan import generation_order
+    from tissuecast.dataset.sample_plan import generation_order
 
     ds = open_dataset(path)
     root = zarr.open_group(str(path), mode="r")
@@ -312,7 +320,7 @@ def test_samples_failing_in_a_batch_go_on_alone_and_are_recorded(reference, tmp_
 
     ctx = SampleContext(recipe_from_store(store))
     alpha = float(ds.calibration["alpha"])
-    fp = np.array([_fingerprint(ctx.forces(Task(int(i), int(ds.seed[i]), float(ds.beta[i]), alpha))[0])
+    fp = np.array([_fingerprint(ctx.inputs(Task(int(i), int(ds.seed[i]), float(ds.beta[i]), alpha)).forces)
                    for i in batched])
     flaky, doomed = batched[fp % 4 == 0], batched[(fp % 4 == 0) & (fp % 3 == 0)]
     rescued = np.setdiff1d(flaky, doomed)

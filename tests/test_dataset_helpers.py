@@ -47,7 +47,7 @@ def write_config(cfg: Config, path: Path) -> Path:
     return path
 
 
-def fake_solver_factory(mesh, fixed, cfg):
+def fake_solver_factory(scenario, cfg):
     """A deterministic stand-in solver: u = forces * 0.5 mm/N, failing when |f| > 1 N anywhere."""
 
     def make(solver_cfg):
@@ -61,12 +61,12 @@ def fake_solver_factory(mesh, fixed, cfg):
     return make
 
 
-def dying_solver_factory(mesh, fixed, cfg):
+def dying_solver_factory(scenario, cfg):
     """The fake solver, except that the worker process dies (os._exit) on its first solve
     while the file named by ``TISSUECAST_TEST_DIE`` exists (the file is removed first)."""
     import os
 
-    fake = fake_solver_factory(mesh, fixed, cfg)
+    fake = fake_solver_factory(scenario, cfg)
 
     def make(solver_cfg):
         inner = fake(solver_cfg)
@@ -87,7 +87,7 @@ def dying_solver_factory(mesh, fixed, cfg):
 STALL_BAND = (0.6, 0.7)
 
 
-def stalling_solver_factory(mesh, fixed, cfg):
+def stalling_solver_factory(scenario, cfg):
     """The fake solver, except that samples whose largest force lies in ``STALL_BAND`` stall
     at every retry level: without a time limit they take 1.5 s and converge, with one they
     run to it and raise SolveTimeout (as the FEM solver does)."""
@@ -95,7 +95,7 @@ def stalling_solver_factory(mesh, fixed, cfg):
 
     from tissuecast.errors import SolveTimeout
 
-    fake = fake_solver_factory(mesh, fixed, cfg)
+    fake = fake_solver_factory(scenario, cfg)
 
     def make(solver_cfg):
         inner = fake(solver_cfg)
@@ -119,12 +119,12 @@ def _fingerprint(forces) -> int:
     return int(np.abs(np.asarray(forces, dtype=np.float64)).sum() * 1e6)
 
 
-def batch_failing_solver_factory(mesh, fixed, cfg):
+def batch_failing_solver_factory(scenario, cfg):
     """The real FEM solver, except that in ``solve_batch`` every sample whose force field's
     fingerprint is a multiple of 4 fails (ConvergenceError at load fraction 0.5, the others
     solved by the real batch), and of those, the multiples of 3 fail every solve alone too
     (once they have failed in a batch of this process)."""
-    from tissuecast.fem import Solver, build_problem
+    from tissuecast.fem import Solver
 
     failed_in_batch: set = set()
 
@@ -150,7 +150,7 @@ def batch_failing_solver_factory(mesh, fixed, cfg):
                 raise ConvergenceError("made to fail alone too", 0.25)
             return super().solve(forces, initial_guess=initial_guess, time_limit=time_limit)
 
-    problem = build_problem(mesh, cfg, fixed)
+    problem = scenario.problem(cfg)
     return lambda solver_cfg: FlakyBatches(problem, solver_cfg)
 
 

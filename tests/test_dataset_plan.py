@@ -9,7 +9,7 @@ import pytest
 
 from tissuecast.config import Config, with_overrides
 from tissuecast.dataset import SPLIT_CODES, make_plan, sample_seed
-from tissuecast.dataset.plan import generation_order
+from tissuecast.dataset.sample_plan import generation_order
 from tissuecast.dataset.calibrate import _quantile, calibrate_alpha
 from tissuecast.errors import DatasetError
 

@@ -184,7 +184,7 @@ def test_a_store_with_markers_of_an_earlier_rule_resumes_with_its_own(reference,
     root = zarr.open_group(str(path), mode="r+")
     now = np.asarray(root["markers"][...])
     root["markers"][:] = now[::-1]  # as an earlier rule might have ordered them
-    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.generate"):
+    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.store"):
         simulate(cfg, path, progress=False)
     assert "keeps its own markers" in caplog.text
     np.testing.assert_array_equal(open_dataset(path).markers, now[::-1])
@@ -204,14 +204,14 @@ def test_a_store_with_springs_of_an_earlier_lumping_goes_on_with_its_own(referen
     root = zarr.open_group(str(path), mode="r+")
     older = 0.5 * np.asarray(root["scenario/spring_stiffness"][...])
     root["scenario/spring_stiffness"][:] = older
-    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.generate"):
+    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.store"):
         simulate(cfg, path, progress=False)
     assert "holds springs other than this config gives" in caplog.text
-    np.testing.assert_array_equal(recipe_from_store(path).scenario["spring_stiffness"], older)
+    np.testing.assert_array_equal(recipe_from_store(path).scenario_arrays["spring_stiffness"], older)
     caplog.clear()
     same = tmp_path / "same.zarr"
     shutil.copytree(ref_path, same)
-    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.generate"):
+    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.store"):
         simulate(cfg, same, progress=False)  # its own springs: no warning
     assert "holds springs" not in caplog.text
 
@@ -231,3 +231,54 @@ def test_export_inp_of_a_stored_scenario_sample(reference, tmp_path, capsys):
     assert "SPRING1" in text and "*DLOAD" in text and "GRAV" in text and "*BOUNDARY" in text
     assert main(["export-inp", str(ref_path), str(deck), "--sample", str(len(ds))]) == 2
     assert f"--sample {len(ds)} is outside" in capsys.readouterr().err
+
+
+UNCERTAIN = {"youngs_modulus": [0.5, 2.0], "poisson_ratio": [0.40, 0.49], "spring_normal": [0.25, 4.0],
+             "spring_tangential": [0.25, 4.0], "density": [0.8, 1.2], "attached_margin": [-3.0, 3.0]}
+
+
+@pytest.fixture(scope="module")
+def uncertain(tmp_path_factory):
+    """The scenario with every uncertain parameter drawn per sample."""
+    folder = tmp_path_factory.mktemp("uncertain")
+    cfg = with_overrides(_config(folder, n_samples=24, n_test2=2, predictor_samples=6),
+                         scenario={"uncertain": UNCERTAIN})
+    path = folder / "reference.zarr"
+    return cfg, path, simulate(cfg, path, progress=False)
+
+
+def test_a_store_records_each_samples_drawn_parameters_and_solves_with_them(uncertain):
+    from tissuecast.scenario.parameters import parameter_rng
+
+    cfg, path, summary = uncertain
+    ds = open_dataset(path)
+    assert summary["totals"]["failed"] == 0 and ds.scenario["uncertain"]["youngs_modulus"] == [0.5, 2.0]
+    params = ds.parameters
+    assert set(params) == {"youngs_modulus", "poisson_ratio", "density", "spring_normal", "spring_tangential",
+                           "attached_margin"}
+    _, _, _, sc = scenario_from_config(cfg)
+    for i in (0, 9, 25):
+        p = sc.uncertain.draw(parameter_rng(int(ds.seed[i])))
+        assert {k: params[k][i] for k in params} == p.record()
+        band = sc.uncertain.extra_held(p, sc.attached)
+        assert not ds.displacements[i][band].any()  # the drawn attached extent does not move
+    assert 0.5 <= params["youngs_modulus"].min() and params["youngs_modulus"].max() <= 2.0
+    # a stored sample is the solve with its own parameters, not with the nominal ones
+    from tissuecast.fem import Solver
+
+    i = int(np.argmax(np.abs(np.log(params["youngs_modulus"][:24]))))
+    x = sc.sample(int(ds.seed[i]), float(ds.alpha[i]))
+    solver = Solver(sc.problem(cfg), cfg.solver)
+    own = solver.with_parameters(*x.solver_parameters).solve(x.surface, **x.solve_keywords()).displacement
+    nominal = solver.solve(x.surface, **x.solve_keywords()).displacement
+    stored = ds.displacements[i].astype(np.float64)
+    peak = np.abs(stored).max()
+    assert np.abs(stored - own).max() < 0.01 * peak < 0.2 * np.abs(stored - nominal).max()
+
+
+def test_an_uncertain_store_is_the_same_on_dask_and_after_a_kill(uncertain, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    cfg, ref_path, _ = uncertain
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+        simulate(cfg, tmp_path / "dask.zarr", progress=False, scheduler=cluster.scheduler_address)
+    assert_same_store(tmp_path / "dask.zarr", ref_path)

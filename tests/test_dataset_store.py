@@ -162,10 +162,10 @@ def test_other_pins_under_the_same_config_are_refused(made, monkeypatch):
     default rule) is not continued with the config's pins."""
     cfg, path, _ = made
     before = store_arrays(path)
-    import tissuecast.markers as tm
+    import tissuecast.scenario.pins as pins
 
-    real = tm.select_fixed_vertices
-    monkeypatch.setattr(tm, "select_fixed_vertices", lambda *a, **k: real(*a, **k)[::-1].copy())
+    real = pins.select_fixed_vertices
+    monkeypatch.setattr(pins, "select_fixed_vertices", lambda *a, **k: real(*a, **k)[::-1].copy())
     with pytest.raises(DatasetError, match=r"has fixed vertices \[.*\] but this config gives.*version that made it"):
         simulate(cfg, path, progress=False, solver_factory=FAKE)
     assert store_arrays(path) == before

@@ -35,6 +35,19 @@ def test_train_evaluate_predict(run, capsys):
     assert "rigid" in out and "PCA floor" in out and "non-rigid part" in out
     ev = json.loads((folder / "rep" / "evaluation.json").read_text())
     assert {"valid", "test1", "test2"} <= set(ev["sets"]) and len(ev["by_beta"]) == 3
+    # errors at the targets beside the offsets: the default interior targets, or listed points
+    assert "targets: 10 interior points" in out and "test-1 TRE at the 10 targets: mean / p95 / max" in out
+    assert "share of the targets' displacement corrected" in out and ev["targets"]["name"] == "interior"
+    from tissuecast.surrogate import DeformationModel as _Model
+
+    mesh = _Model.load(folder / "model").mesh
+    centroids = mesh.points[mesh.tets[[0, 5, 9]]].mean(axis=1)
+    (folder / "t.csv").write_text("\n".join(f"tip{i},{x},{y},{z}" for i, (x, y, z) in enumerate(centroids)))
+    assert main(["evaluate", str(folder / "model"), "--out", str(folder / "rep_t"), "--renders", "0",
+                 "--targets", str(folder / "t.csv"), "--json"]) == 0
+    ev_t = json.loads(capsys.readouterr().out)
+    assert ev_t["targets"]["labels"] == ["tip0", "tip1", "tip2"] and ev_t["targets"]["count"] == 3
+    assert ev_t["sets"]["test1"]["targets"]["mlp"]["tre_mean"] != ev["sets"]["test1"]["targets"]["mlp"]["tre_mean"]
 
     from tissuecast.dataset import open_dataset
     from tissuecast.surrogate import DeformationModel

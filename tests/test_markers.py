@@ -6,13 +6,13 @@ import pytest
 import tissuecast.mesh as tcmesh
 from tissuecast.errors import MarkerError
 from tissuecast.markers import (
-    _point_triangle_distance,
     revised_k_center,
     select_fixed_vertices,
     select_markers,
     surface_depth,
     validate_vertex_ids,
 )
+from tissuecast.mesh.depth import point_triangle_distance
 from tissuecast.mesh.tetmesh import TetMesh
 
 
@@ -155,7 +155,7 @@ def test_point_triangle_distance_matches_dense_sampling():
     rng = np.random.default_rng(1)
     tri = rng.normal(size=(3, 3))
     p = rng.normal(scale=2.0, size=(300, 3))
-    got = _point_triangle_distance(p, *(np.broadcast_to(t, p.shape) for t in tri))
+    got = point_triangle_distance(p, *(np.broadcast_to(t, p.shape) for t in tri))
     u, v = np.meshgrid(np.linspace(0, 1, 301), np.linspace(0, 1, 301))
     keep = u + v <= 1
     samples = tri[0] + np.outer(u[keep], tri[1] - tri[0]) + np.outer(v[keep], tri[2] - tri[0])
@@ -354,3 +354,17 @@ def test_markers_and_fixed_avoid_held_vertices():
         select_markers(mesh, count=2, start=5, exclude=[9999])
     with pytest.raises(MarkerError, match=r"excluded vertex ids must be integers, got float64"):
         select_markers(mesh, count=2, start=5, exclude=[1.5])
+
+
+def test_the_pins_live_in_the_scenario_and_stay_importable_from_the_markers():
+    """Pin selection is one of the scenario's supports (tissuecast.scenario.pins); the public
+    names tissuecast.select_fixed_vertices and tissuecast.markers.select_fixed_vertices are it."""
+    import tissuecast
+    import tissuecast.markers as tm
+    from tissuecast.scenario import pins
+
+    assert tm.select_fixed_vertices is pins.select_fixed_vertices is tissuecast.select_fixed_vertices
+    assert "select_fixed_vertices" in tm.__all__
+    with pytest.raises(AttributeError, match="no attribute 'select_pins'"):
+        tm.select_pins  # noqa: B018 - the module's __getattr__ refuses other names
+

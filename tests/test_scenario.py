@@ -249,6 +249,45 @@ def test_indentation_sites_and_draws():
         indentation_sites(mesh, IndentationConfig(clearance=500.0), normals, supported)
 
 
+def test_a_rounded_tool_follows_the_hertz_profile_and_a_flat_one_moves_its_patch_together():
+    from tissuecast.scenario.indentation import contact_profile
+
+    mesh = phantom()
+    normals = vertex_normals(mesh)
+    supported = surface_region(mesh, RegionConfig(rule="normal", direction=(0.0, -1.0, 0.0), angle=30.0), "k")
+    flat = IndentationConfig(enabled=True, radius=8.0, depth=(2.0, 6.0), slide=(0.5, 2.0))
+    rounded = IndentationConfig(enabled=True, radius=8.0, depth=(2.0, 6.0), slide=(0.5, 2.0), tool="rounded",
+                                tool_radius=5.0)
+    sites = indentation_sites(mesh, flat, normals, supported)
+    for seed in range(20):
+        f = draw_indentation(np.random.default_rng(seed), sites, flat)
+        r = draw_indentation(np.random.default_rng(seed), sites, rounded)
+        # the same draws: centre, depth, slide and the tip's displacement
+        assert f.centre == r.centre and f.depth == r.depth
+        np.testing.assert_array_equal(f.displacement, r.displacement)
+        np.testing.assert_array_equal(f.values, np.repeat(f.displacement[None, :], len(f.vertices), axis=0))
+        assert set(r.vertices) <= set(f.vertices) and len(r.vertices) >= 3
+        n = r.normal
+        tangential = r.displacement + r.depth * n
+        rel = mesh.points[r.vertices] - mesh.points[r.centre]
+        rt = np.linalg.norm(rel - np.outer(rel @ n, n), axis=1)
+        # push along the inward normal: depth - r^2 / 2R; the tangential slide is the tip's
+        np.testing.assert_allclose(-(r.values - tangential) @ n, r.depth - rt**2 / 10.0, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(r.values - np.outer(r.values @ n, n), np.repeat(tangential[None], len(rt), 0),
+                                   atol=1e-12)
+        a = np.sqrt(5.0 * r.depth)
+        outside = rt > a + 1e-12
+        assert outside.sum() <= 3  # only the nearest three are kept beyond the Hertz radius
+    inside, push = contact_profile(np.array([0.0, 1.0, 2.0, 3.0, 4.0]), 3.2, 5.0)  # a = 4 mm
+    np.testing.assert_array_equal(inside, [True] * 5)
+    np.testing.assert_allclose(push, [3.2, 3.1, 2.8, 2.3, 1.6])  # half the depth at the contact's rim
+    assert contact_profile(np.array([4.5, 5.0, 6.0, 7.0]), 3.2, 5.0)[0].tolist() == [True, True, True, False]
+    with pytest.raises(ConfigError, match=r"scenario.indentation.radius = 4 mm is smaller than the rounded tool's "
+                                          r"largest contact radius .* = 5.48 mm"):
+        with_overrides(Config(), scenario={"indentation": {"enabled": True, "radius": 4.0, "depth": [2.0, 6.0],
+                                                           "tool": "rounded", "tool_radius": 5.0}})
+
+
 def test_indentation_centres_lie_in_the_access_region_and_survive_a_store_round_trip():
     from tissuecast.scenario import restore_scenario
 

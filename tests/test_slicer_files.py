@@ -155,3 +155,39 @@ def test_model_files_state_lps_and_ras_files_are_read_as_lps(tmp_path):
     (tmp_path / "r.vtk").write_bytes(raw.replace(b"SPACE=LPS", b"SPACE=RAS", 1))  # as Slicer saves in RAS
     np.testing.assert_array_equal(read_mesh(tmp_path / "r.vtk").points, mesh.points * [-1.0, -1.0, 1.0])
     np.testing.assert_array_equal(read_mesh(tmp_path / "m.vtu").points, mesh.points)
+
+
+def test_predict_writes_the_targets_predicted_positions_as_slicer_markups_and_csv(tmp_path, capsys):
+    from tissuecast.cli.main import main
+    from tissuecast.evaluate.targets import interior_targets
+    from tissuecast.mesh.locate import interpolate, locate_points
+
+    model = small_model("single")
+    model.save(tmp_path / "model")
+    positions = model.reference_marker_positions + np.random.default_rng(2).normal(0.0, 1.0, (model.n_markers, 3))
+    tracked = write_markups(tmp_path / "tracked.mrk.json", [MarkupList("tracked", positions)], "RAS")
+    u = model.predict(positions - model.reference_marker_positions)
+    # default: the interior targets of the model's mesh (it records no [evaluate.targets])
+    out = tmp_path / "targets.mrk.json"
+    assert main(["predict", str(tmp_path / "model"), "--markers", str(tracked), "--targets-out", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    _validate(doc)
+    assert doc["markups"][0]["coordinateSystem"] == "LPS" and doc["markups"][0]["name"] == "PredictedTargets"
+    t = interior_targets(model.mesh, exclude=model.fixed)
+    loc = locate_points(model.mesh, t.positions)
+    np.testing.assert_allclose(read_markups(out)[0].positions, t.positions + interpolate(model.mesh, loc, u), atol=1e-9)
+    # listed target points (a Slicer file in RAS) and CSV output, for the rigid baseline
+    points = model.mesh.points[model.mesh.tets[:3]].mean(axis=1)  # three tetrahedra's centroids
+    listed = write_markups(tmp_path / "tumour.mrk.json", [MarkupList("tumour", points, ("a", "b", "c"))], "RAS")
+    csv_out = tmp_path / "targets.csv"
+    assert main(["predict", str(tmp_path / "model"), "--markers", str(tracked), "--method", "rigid",
+                 "--targets", str(listed), "--targets-out", str(csv_out)]) == 0
+    rows = np.loadtxt(csv_out, delimiter=",", skiprows=1, usecols=range(3, 9))
+    rigid = model.predict(positions - model.reference_marker_positions, method="rigid")
+    expected = interpolate(model.mesh, locate_points(model.mesh, points), rigid)
+    np.testing.assert_allclose(rows[:, 3:], expected, atol=1e-6)
+    np.testing.assert_allclose(rows[:, :3], points + expected, atol=1e-6)
+    assert csv_out.read_text().splitlines()[1].split(",")[2] == "a"
+    capsys.readouterr()
+    assert main(["predict", str(tmp_path / "model"), "--markers", str(tracked), "--targets", str(listed)]) == 2
+    assert "add --targets-out FILE" in capsys.readouterr().err

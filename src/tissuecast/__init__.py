@@ -20,7 +20,7 @@ _LAZY = {
     "write_mesh": "tissuecast.mesh",
     "phantom": "tissuecast.mesh",
     "select_markers": "tissuecast.markers",
-    "select_fixed_vertices": "tissuecast.markers",
+    "select_fixed_vertices": "tissuecast.scenario.pins",
     "Config": "tissuecast.config",
     "load_config": "tissuecast.config",
     "NeoHookean": "tissuecast.fem",

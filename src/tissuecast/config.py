@@ -30,6 +30,7 @@ __all__ = [
     "DatasetConfig",
     "SurrogateConfig",
     "EvaluateConfig",
+    "TargetConfig",
     "ServeConfig",
     "ScenarioConfig",
     "RegionConfig",
@@ -39,6 +40,7 @@ __all__ = [
     "IndentationConfig",
     "MaterialRegionConfig",
     "MaterialRegionsConfig",
+    "UncertainConfig",
     "load_config",
     "config_from_dict",
     "config_to_dict",
@@ -70,7 +72,7 @@ class MeshConfig:
     max_vertices: int = _f(0, lo=0, doc="label map or closed surface: at most this many vertices, the edge length searched (surface_mesh_size unused); 0 = no budget")
 
 
-#: Fixed-vertex placement rules (see :func:`tissuecast.markers.select_fixed_vertices`).
+#: Fixed-vertex placement rules (see :func:`tissuecast.scenario.pins.select_fixed_vertices`).
 FIXED_RULES = ("compact", "spread")
 
 
@@ -95,6 +97,7 @@ class MaterialConfig:
 
     youngs_modulus: float = _f(0.021, lo=0.0, lo_open=True, doc="E in MPa (21 kPa = 0.021 MPa)")
     poisson_ratio: float = _f(0.45, lo=-1.0, hi=0.5, lo_open=True, hi_open=True, doc="nu")
+    check_range: bool = _f(True, doc="refuse moduli outside soft tissue's 0.0001-1 MPa (a unit slip); false for stiffer phantoms or materials")
 
 
 @dataclass(frozen=True)
@@ -210,12 +213,31 @@ class SurrogateConfig:
     alarm_fault_score: bool = _f(False, doc="the alarm also tests for one displaced marker: catches it sooner with many markers, catches fewer of the other faults at the same false-alarm rate")
 
 
+#: Where the errors at targets (TRE) are measured (see :mod:`tissuecast.evaluate.targets`).
+TARGET_RULES = ("interior", "tag", "label", "points")
+
+
+@dataclass(frozen=True)
+class TargetConfig:
+    """Targets: the points inside the tissue where the clinic measures the error (TRE)."""
+
+    rule: str = _f("interior", choices=TARGET_RULES, doc="interior = `count` deep vertices spread by k-center; tag = a mesh region's vertices; label = `count` points of a label-map label; points = `path`'s")
+    count: int = _f(10, lo=1, hi=10000, doc="rules 'interior' and 'label': number of targets")
+    depth: float = _f(0.0, lo=0.0, doc="rule 'interior': least distance (mm) from the outer surface; 0 = half the deepest vertex's")
+    tag: str = _f("", doc="rule 'tag': name of a point-data array, point set, cell set or cell-data array of the mesh file")
+    tag_value: int = _f(-1, doc="rule 'tag' on a data array: the value marking the region; -1 = any non-zero value")
+    path: str = _f("", doc="rule 'label': a label map (.nii[.gz], .nrrd, .seg.nrrd); rule 'points': CSV (x, y, z or label, x, y, z; LPS mm) or Slicer .mrk.json / .fcsv")
+    label: int = _f(0, lo=0, doc="rule 'label': voxel value of the region; 0 = the only non-zero value of the map")
+    segment: str = _f("", doc="rule 'label' on a 3D Slicer segmentation (.seg.nrrd): segment name or ID")
+
+
 @dataclass(frozen=True)
 class EvaluateConfig:
     """Evaluation and report."""
 
     output: str = _f("report", doc="report folder")
     renders: int = _f(3, lo=0, hi=100, doc="number of samples rendered in 3D")
+    targets: TargetConfig = field(default_factory=TargetConfig, metadata={"doc": "where target registration errors (TRE) are measured"})
 
 
 #: How TRANSFORM marker input triggers predictions, and the frames a client may work in
@@ -257,6 +279,9 @@ SUPPORT_LENGTH_SPAN = (0.01, 1.0e4)
 
 #: Accepted densities (t/mm^3): soft tissues and bone lie in 0.9e-9 .. 2.1e-9.
 DENSITY_SPAN = (1.0e-10, 1.0e-8)
+#: Young's moduli of soft tissues, MPa (0.1 kPa: brain at its softest; 1 MPa: stiff fibrous
+#: tissue): a value outside is almost surely a unit slip (21 for 21 kPa, 21000 for 21 kPa in Pa).
+SOFT_TISSUE_MODULUS_SPAN = (1.0e-4, 1.0)
 
 
 @dataclass(frozen=True)
@@ -323,6 +348,8 @@ class IndentationConfig:
     depth: tuple[float, ...] = _f((2.0, 6.0), lo=0.0, doc="[min, max] depth along the inward normal at the centre, mm, drawn uniformly")
     slide: tuple[float, ...] = _f((0.0, 2.0), lo=0.0, doc="[min, max] tangential slide, mm, drawn uniformly, in a uniformly drawn tangent direction")
     clearance: float = _f(8.0, lo=0.0, doc="patch centres lie at least this far (mm) from supported vertices (pins, attached region)")
+    tool: str = _f("flat", choices=("flat", "rounded"), doc="flat = the patch moves together (a rigid punch, singular rim); rounded = a ball tip of tool_radius (Hertz profile)")
+    tool_radius: float = _f(5.0, lo=0.0, lo_open=True, doc="tool rounded: radius of the instrument's rounded tip, mm")
     access: AccessConfig = field(default_factory=AccessConfig, metadata={"doc": "the surgical access: the surface region where patch centres may lie (default the whole outer surface)"})
 
 
@@ -352,6 +379,29 @@ class MaterialRegionsConfig:
     regions: tuple[MaterialRegionConfig, ...] = _f((), doc="the regions ([[scenario.materials.regions]] tables); a later region wins where two overlap")
 
 
+#: Names of the parameters ``[scenario.uncertain]`` may draw (and ``measured`` may name).
+UNCERTAIN_PARAMETERS = ("youngs_modulus", "poisson_ratio", "region_youngs_modulus", "density", "spring_normal",
+                        "spring_tangential", "attached_margin")
+
+
+@dataclass(frozen=True)
+class UncertainConfig:
+    """What is not known in the operating room, drawn anew for every sample (docs/uncertainty.md).
+
+    Each key is a ``[min, max]`` range; empty = known (the nominal value, no draw). The model
+    does not see these parameters unless ``measured`` names them (then they are model inputs).
+    """
+
+    youngs_modulus: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on every element's E, drawn log-uniformly (e.g. [0.5, 2])")
+    poisson_ratio: tuple[float, ...] = _f((), lo=0.0, hi=0.5, hi_open=True, doc="[min, max] Poisson's ratio of every element, drawn uniformly (e.g. [0.40, 0.49])")
+    region_youngs_modulus: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on each material region's E, drawn log-uniformly per region")
+    density: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on the tissue density (the gravity change), drawn uniformly")
+    spring_normal: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on the springs' normal stiffness, drawn log-uniformly (e.g. [0.25, 4])")
+    spring_tangential: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on the springs' tangential stiffness, drawn log-uniformly")
+    attached_margin: tuple[float, ...] = _f((), doc="[min, max] mm the attached region grows (+) or shrinks (-) along the surface, drawn uniformly")
+    measured: tuple[str, ...] = _f((), doc="parameters measured before surgery (e.g. 'youngs_modulus' by elastography): model inputs")
+
+
 @dataclass(frozen=True)
 class ScenarioConfig:
     """The clinical scenario: how the tissue is held and what loads it per sample.
@@ -369,6 +419,7 @@ class ScenarioConfig:
     gravity: GravityConfig = field(default_factory=GravityConfig, metadata={"doc": "change of gravity between imaging and surgery"})
     indentation: IndentationConfig = field(default_factory=IndentationConfig, metadata={"doc": "one instrument indentation per sample"})
     materials: MaterialRegionsConfig = field(default_factory=MaterialRegionsConfig, metadata={"doc": "per-element materials (e.g. a stiffer tumour)"})
+    uncertain: UncertainConfig = field(default_factory=UncertainConfig, metadata={"doc": "parameters drawn per sample: what is unknown in the operating room"})
 
 
 @dataclass(frozen=True)
@@ -488,6 +539,11 @@ def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, ForceConfig):
         if not obj.betas or any(not 0.0 <= b <= 1.0 for b in obj.betas):
             raise ConfigError(f"{prefix}betas must be numbers in [0, 1], got {list(obj.betas)}")
+        if obj.target_max_displacement < 0.1:
+            raise ConfigError(f"{prefix}target_max_displacement = {obj.target_max_displacement!r} mm looks like metres; "
+                              "lengths are in mm (e.g. 30 for 3 cm)")
+    if isinstance(obj, MaterialConfig) and obj.check_range:
+        _check_modulus(f"{prefix}youngs_modulus", obj.youngs_modulus, f"{prefix}check_range")
     if isinstance(obj, ServeConfig) and obj.tracker_to_client:
         from .frames import FrameError, check_transform
 
@@ -506,6 +562,8 @@ def _cross_checks(obj: Any, prefix: str) -> None:
         if obj.rule == "tag" and not obj.tag:
             raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
                               "(`tissuecast mesh info FILE` lists them)")
+    if isinstance(obj, TargetConfig):
+        _check_targets(obj, prefix)
     if isinstance(obj, GravityConfig):
         _check_vector(f"{prefix}imaging_direction", obj.imaging_direction)
         _check_vector(f"{prefix}surgery_direction", obj.surgery_direction)
@@ -525,6 +583,13 @@ def _cross_checks(obj: Any, prefix: str) -> None:
                               "lengths are in mm (e.g. radius 4, depth [2, 6])")
         if obj.depth[1] <= 0.0:
             raise ConfigError(f"{prefix}depth = {list(obj.depth)} never pushes; give [min, max] mm with max > 0")
+        contact = (obj.tool_radius * obj.depth[1]) ** 0.5
+        if obj.tool == "rounded" and contact > obj.radius:
+            raise ConfigError(f"{prefix}radius = {obj.radius:g} mm is smaller than the rounded tool's largest contact "
+                              f"radius sqrt(tool_radius x depth max) = {contact:.3g} mm; raise {prefix}radius to at "
+                              f"least {contact:.3g} or lower {prefix}tool_radius")
+    if isinstance(obj, UncertainConfig):
+        _check_uncertain(obj, prefix)
     if isinstance(obj, MaterialRegionConfig):
         _check_vector(f"{prefix}point", obj.point, nonzero=False)
         _check_range(f"{prefix}youngs_modulus_range", obj.youngs_modulus_range)
@@ -572,6 +637,59 @@ def _check_budget_source(obj: "MeshConfig", prefix: str, kind: str | None) -> No
                           f"(.stl .obj .ply .off .face), which are meshed; {what}: remove {prefix}max_vertices")
 
 
+def _check_uncertain(obj: "UncertainConfig", prefix: str) -> None:
+    """Each range is [min, max]; ``measured`` names drawn parameters."""
+    for name in UNCERTAIN_PARAMETERS:
+        _check_range(f"{prefix}{name}", getattr(obj, name))
+    unknown = [m for m in obj.measured if m not in UNCERTAIN_PARAMETERS]
+    if unknown:
+        raise ConfigError(f"{prefix}measured names {unknown}; choose among {list(UNCERTAIN_PARAMETERS)}")
+    undrawn = [m for m in obj.measured if not getattr(obj, m)]
+    if undrawn:
+        raise ConfigError(f"{prefix}measured names {undrawn}, which {prefix[:-1]} does not draw; give "
+                          f"{prefix}{undrawn[0]} a [min, max] range, or leave it out of {prefix}measured")
+
+
+def _check_modulus(key: str, value: float, switch: str) -> None:
+    """Refuse a Young's modulus outside :data:`SOFT_TISSUE_MODULUS_SPAN` (MPa), naming the
+    likely unit slip and the switch that allows it."""
+    lo, hi = SOFT_TISSUE_MODULUS_SPAN
+    if lo <= value <= hi:
+        return
+    guess = ""
+    for factor, unit in ((1e-3, "kPa"), (1e-6, "Pa"), (1e3, "GPa")):
+        if lo <= value * factor <= hi:
+            guess = f"; {value:g} {unit} would be {value * factor:g} MPa"
+            break
+    raise ConfigError(f"{key} = {value!r} MPa is outside soft tissue's range, {lo:g}-{hi:g} MPa (0.1 kPa to 1 MPa){guess}; "
+                      f"moduli are in MPa (21 kPa = 0.021): fix the unit, or set {switch} = false for a stiffer material")
+
+
+def _check_targets(t: "TargetConfig", prefix: str) -> None:
+    """Each target rule has the keys it needs, and only those (a key of another rule is a slip)."""
+    from .mesh.labelmap import label_map_format
+
+    points_suffixes = (".csv", ".mrk.json", ".fcsv")
+    if t.rule == "tag" and not t.tag:
+        raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
+                          "(`tissuecast mesh info FILE` lists them)")
+    if t.rule in ("label", "points") and not t.path:
+        what = "a label map (.nii, .nii.gz, .nrrd, .seg.nrrd)" if t.rule == "label" else "a CSV or Slicer markups file"
+        raise ConfigError(f"{prefix}rule = {t.rule!r} needs {prefix}path, {what}")
+    if t.rule == "label" and label_map_format(t.path) is None:
+        raise ConfigError(f"{prefix}path = {t.path!r} is not a label map; rule 'label' reads .nii, .nii.gz, .nrrd or "
+                          ".seg.nrrd")
+    if t.rule == "points" and not t.path.lower().endswith(points_suffixes):
+        raise ConfigError(f"{prefix}path = {t.path!r}: rule 'points' reads " + ", ".join(points_suffixes))
+    if t.segment and not t.path.lower().endswith(".seg.nrrd"):
+        raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
+                          f"{prefix}path = {t.path!r} is not one: use {prefix}label")
+    unused = [k for k, rules in (("tag", ("tag",)), ("path", ("label", "points")), ("label", ("label",)),
+                                 ("segment", ("label",))) if getattr(t, k) and t.rule not in rules]
+    if unused:
+        raise ConfigError(f"{prefix}{unused[0]} does not apply to {prefix}rule = {t.rule!r}; remove it or change the rule")
+
+
 def _check_vector(key: str, v: tuple, nonzero: bool = True) -> None:
     if len(v) != 3 or (nonzero and not any(x != 0.0 for x in v)):
         raise ConfigError(f"{key} must be 3 numbers (x, y, z){' not all zero' if nonzero else ''}, got {list(v)}")
@@ -591,6 +709,13 @@ def _check_scenario(cfg: "Config") -> None:
     if not (sc.lbo_forces or sc.gravity.enabled or sc.indentation.enabled):
         raise ConfigError("scenario has no load: set scenario.lbo_forces = true, scenario.gravity.enabled or "
                           "scenario.indentation.enabled")
+    _check_uncertain_needs(cfg)
+    if cfg.material.check_range:
+        for k, reg in enumerate(sc.materials.regions):
+            key = f"scenario.materials.regions[{k}]"
+            _check_modulus(f"{key}.youngs_modulus", reg.youngs_modulus, "material.check_range")
+            for value in reg.youngs_modulus_range:
+                _check_modulus(f"{key}.youngs_modulus_range", value, "material.check_range")
     if sc.springs.rule != "none":
         e = cfg.material.youngs_modulus
         lo, hi = SUPPORT_LENGTH_SPAN
@@ -602,6 +727,27 @@ def _check_scenario(cfg: "Config") -> None:
                     "the stiffness is per unit area, in N/mm^3 (= MPa/mm): surroundings of modulus E over a "
                     f"length L give E / L, e.g. {DEFAULT_SUPPORT_STIFFNESS} for 0.021 MPa over 10 mm (a value in "
                     "N/m^3 is 1e9 times too large)")
+
+
+def _check_uncertain_needs(cfg: "Config") -> None:
+    """An uncertain parameter needs what it varies (springs, gravity, an attached region,
+    material regions), and E's factors must keep it in soft tissue's range."""
+    sc, u = cfg.scenario, cfg.scenario.uncertain
+    needs = {"spring_normal": (sc.springs.rule != "none", "scenario.springs.rule"),
+             "spring_tangential": (sc.springs.rule != "none", "scenario.springs.rule"),
+             "density": (sc.gravity.enabled, "scenario.gravity.enabled"),
+             "attached_margin": (sc.attached.rule != "none", "scenario.attached.rule"),
+             "region_youngs_modulus": (bool(sc.materials.regions), "scenario.materials.regions")}
+    for name, (ok, key) in needs.items():
+        if getattr(u, name) and not ok:
+            raise ConfigError(f"scenario.uncertain.{name} varies something this scenario lacks; set {key}, or "
+                              f"remove scenario.uncertain.{name}")
+    lo, hi = SOFT_TISSUE_MODULUS_SPAN
+    e = cfg.material.youngs_modulus
+    if cfg.material.check_range and u.youngs_modulus and not lo <= min(u.youngs_modulus) * e <= max(u.youngs_modulus) * e <= hi:
+        raise ConfigError(f"scenario.uncertain.youngs_modulus = {list(u.youngs_modulus)} are factors on material.youngs_modulus "
+                          f"({e} MPa): they reach {min(u.youngs_modulus) * e:g}-{max(u.youngs_modulus) * e:g} MPa, outside soft "
+                          f"tissue's {lo:g}-{hi:g} MPa; give factors (e.g. [0.5, 2]), or set material.check_range = false")
 
 
 def config_from_dict(data: dict) -> Config:

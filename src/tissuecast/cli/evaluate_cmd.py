@@ -1,5 +1,6 @@
 """``tissuecast evaluate MODEL``: accuracy on the data set (the MLP next to rigid registration,
-ridge and the PCA floor) and the HTML report."""
+ridge and the PCA floor; Offset_max / Offset_mean over the vertices, TRE and the share of the
+displacement corrected at targets) and the HTML report."""
 
 from __future__ import annotations
 
@@ -11,16 +12,21 @@ from ..config import EvaluateConfig
 
 def register(sub) -> None:
     p = sub.add_parser("evaluate", help="evaluate a model on its data set and write the report",
-                       description="Offset_mean / Offset_max on valid, test-1 and test-2 (per beta): the MLP next to "
-                                   "rigid registration from the same markers, the ridge baseline and the PCA floor, with "
-                                   "the peak displacement and non-rigid part of the samples; prediction time; writes "
-                                   "index.html with figures, renders and VTU files.")
+                       description="Offset_mean / Offset_max on valid, test-1 and test-2 (per beta), and the target "
+                                   "registration error (TRE mean / p95 / max) with the share of the targets' displacement "
+                                   "corrected: the MLP next to rigid registration from the same markers, the ridge baseline "
+                                   "and the PCA floor, with the peak displacement and non-rigid part of the samples; "
+                                   "prediction time; writes index.html (headline, interactive 3D view, figures, renders) "
+                                   "and VTU files.")
     p.add_argument("model", help="model folder (from `tissuecast train`)")
     p.add_argument("--store", help="data-set store (default: the store the model was trained on)")
     p.add_argument("--out", help="report folder (default: the model folder's sibling 'report')")
     p.add_argument("--renders", type=int, default=EvaluateConfig.renders,
                    help=f"samples rendered in 3D (default {EvaluateConfig.renders}; 0 = none)")
     p.add_argument("--studies", help="folder with study_*.csv to include (default: the report folder)")
+    p.add_argument("--targets", metavar="FILE",
+                   help="target points where TRE is measured: CSV (x, y, z or label, x, y, z; LPS mm) or Slicer markups "
+                        "(.mrk.json, .fcsv); default the model config's [evaluate.targets] (interior points)")
     p.add_argument("--json", action="store_true", help="print the evaluation as JSON")
     p.set_defaults(func=run)
 
@@ -30,6 +36,7 @@ def run(args) -> int:
     from ..errors import ModelError
     from ..evaluate.pipeline import evaluate_and_report
     from ..evaluate.report import format_evaluation
+    from ..evaluate.targets import model_targets
     from ..surrogate import DeformationModel
 
     model = DeformationModel.load(args.model)
@@ -38,7 +45,9 @@ def run(args) -> int:
         raise ModelError("the model does not record its data set; pass --store PATH")
     ds = open_dataset(store)
     out = Path(args.out) if args.out else Path(args.model).resolve().parent / "report"
-    evaluation, index = evaluate_and_report(model, ds, out, renders=args.renders, studies_folder=args.studies)
+    targets = model_targets(model, points=args.targets)
+    evaluation, index = evaluate_and_report(model, ds, out, renders=args.renders, studies_folder=args.studies,
+                                            targets=targets)
     if args.json:
         print(json.dumps(evaluation.as_dict(), indent=2, default=float))
     else:

@@ -12,6 +12,8 @@ in the deck are 1-based: vertex i (0-based) is node i + 1. Units: mm, N, MPa, t/
 
 from __future__ import annotations
 
+import dataclasses
+
 from pathlib import Path
 
 import numpy as np
@@ -75,16 +77,13 @@ def _example_forces(mesh, cfg, seed: int, rms: float) -> np.ndarray:
 def _from_store(args):
     """``(config, mesh, markers, scenario, forces (n, 3) N, sample seed)`` of a store's sample."""
     from ..dataset import open_dataset
-    from ..scenario import build_scenario, restore_scenario
+    from ..scenario import restore_scenario
 
     ds = open_dataset(args.mesh)
     if not 0 <= args.sample < len(ds):
         raise ConfigError(f"--sample {args.sample} is outside 0..{len(ds) - 1} (0-based) of {args.mesh}")
     cfg, mesh = ds.config, ds.mesh
-    if ds.scenario_arrays is not None:
-        scenario = restore_scenario(mesh, cfg, ds.scenario_arrays)
-    else:
-        scenario = build_scenario(mesh, cfg, ds.fixed)
+    scenario = restore_scenario(mesh, cfg, ds.scenario_arrays, ds.basis)
     forces = np.asarray(ds.forces[args.sample], dtype=np.float64)
     return cfg, mesh, np.asarray(ds.markers), scenario, forces, int(ds.seed[args.sample])
 
@@ -111,7 +110,6 @@ def _from_config(args):
 
 def run(args) -> int:
     from ..fem.calculix import DeckScenario, write_inp
-    from ..scenario import scenario_rng
 
     is_store = Path(args.mesh).is_dir()
     if is_store and (args.config or args.order or args.forces):
@@ -120,21 +118,28 @@ def run(args) -> int:
     cfg, mesh, markers, scenario, forces, seed = (_from_store if is_store else _from_config)(args)
     if not cfg.scenario.lbo_forces:
         forces = np.zeros_like(forces)
+    inputs = scenario.inputs_for(seed, forces)
+    draw, params = inputs.draw, inputs.parameters
     problem = scenario.problem(cfg)
+    changes = {k: v for k, v in zip(("materials", "springs"), inputs.solver_parameters) if v is not None}
+    problem = dataclasses.replace(problem, **changes) if changes else problem
     order, material = problem.order, problem.material
-    draw = scenario.draw(scenario_rng(seed))
-    surface, _ = scenario.sample_loads(draw, forces, cfg.forces.loading)
+    surface = inputs.surface
     if cfg.forces.loading == "nodal":
         surface = surface[: mesh.n_vertices]
     density = acceleration = None
     if draw.body_force is not None:  # *DLOAD, GRAV: the same consistent loads as the solver's body loads
-        density = cfg.scenario.gravity.density
-        acceleration = draw.body_force / density
-    ids, values = scenario.prescribed(draw)
+        density = cfg.scenario.gravity.density * (1.0 if params is None else params.density)
+        acceleration = draw.body_force / cfg.scenario.gravity.density
+    ids, values = inputs.prescribed_ids, inputs.prescribed_values
     fixed = scenario.supported
     sets = {"MARKERS": markers}
-    if len(ids):
-        sets["INDENT"] = ids
+    if draw.indentation is not None:
+        sets["INDENT"] = draw.indentation.vertices
+    if len(ids) and params is not None:  # the attached region's drawn extent beyond its smallest, held at zero
+        band = ids[~np.isin(ids, sets.get("INDENT", []))]
+        if len(band):
+            sets["ATTACHED_EXTENT"] = band
     source = args.mesh if args.mesh == "phantom" else Path(args.mesh).name
     out = write_inp(
         args.out, mesh, material, fixed, surface, order=order, node_sets=sets,
@@ -150,6 +155,9 @@ def run(args) -> int:
           + f"markers {markers.tolist()} "
           f"(node set MARKERS), max |force| {np.linalg.norm(forces, axis=1).max():.4g} N")
     print(f"scenario {cfg.scenario.name!r} (sample seed {seed}): " + ", ".join(_deck_parts(scenario, draw)))
+    if params is not None:
+        print("drawn parameters (in the deck: materials, springs, density, attached extent held at zero): "
+              + ", ".join(f"{k} {v:.4g}" for k, v in params.record().items()))
     print(f"run it with: cd {out.resolve().parent} && ccx -i {out.stem}")
     return 0
 

@@ -14,6 +14,9 @@ or .json. Vertex ids are 0-based. With a calibrated model (trained with
 surrogate.calibration_share > 0) every vertex gets its conformal error bound
 (``error_bound_mm`` point data / column: the error is below it with probability
 --coverage) and each sample's out-of-distribution alarm is printed.
+--targets-out writes where the targets (the model config's [evaluate.targets], or the
+points of --targets) are predicted to be: Slicer markups .mrk.json (LPS, one point list per
+sample) or CSV.
 """
 
 from __future__ import annotations
@@ -36,6 +39,11 @@ def register(sub) -> None:
     p.add_argument("--positions", action="store_true",
                    help="the file holds tracked marker positions (mm, model frame); reference positions are subtracted")
     p.add_argument("--out", help="output file .vtu, .vtk, .vtp, .csv or .json (default: print a summary only)")
+    p.add_argument("--targets-out", metavar="FILE",
+                   help="write the targets' predicted positions: Slicer markups .mrk.json (LPS) or .csv")
+    p.add_argument("--targets", metavar="FILE",
+                   help="target points for --targets-out: CSV (x, y, z or label, x, y, z; LPS mm) or Slicer markups "
+                        "(.mrk.json, .fcsv); default the model config's [evaluate.targets]")
     p.add_argument("--uncertainty", action="store_true", help="add the ensemble's per-vertex uncertainty (ensemble >= 2)")
     p.add_argument("--method", choices=("mlp", "rigid", "ridge"), default="mlp",
                    help="mlp: the learned model (default); rigid: rigid registration from the markers (the baseline "
@@ -173,6 +181,10 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.
 def run(args) -> int:
     from ..surrogate import DeformationModel
 
+    if args.targets and not args.targets_out:
+        from ..errors import ModelError
+
+        raise ModelError("--targets chooses the points --targets-out writes; add --targets-out FILE (.mrk.json or .csv)")
     model = DeformationModel.load(args.model)
     d, flag = read_marker_file(Path(args.markers), model.n_markers)
     positions = args.positions or bool(flag)
@@ -224,4 +236,15 @@ def run(args) -> int:
     if args.out:
         for f in _write(Path(args.out), model, u, sigma, bound):
             print(f"wrote {f}")
+    if args.targets_out:
+        print(f"wrote {_write_targets(Path(args.targets_out), model, u, args.targets, args.method)}")
     return 0
+
+
+def _write_targets(path: Path, model, u: np.ndarray, points: str | None, method: str) -> Path:
+    """The targets' predicted positions from the predicted fields u (B, n, 3) mm."""
+    from ..evaluate.target_files import write_predicted_targets
+    from ..evaluate.targets import model_targets
+
+    targets = model_targets(model, points=points)
+    return write_predicted_targets(path, targets, targets.displacements(u), method=method)

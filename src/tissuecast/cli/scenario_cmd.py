@@ -34,7 +34,7 @@ def register(sub) -> None:
 
 
 def run_preview(args) -> int:
-    from ..dataset.plan import sample_seed
+    from ..dataset.sample_plan import sample_seed
     from ..scenario import scenario_from_config, scenario_rng
     from ..scenario.preview import example_deformations, render_preview, scenario_places, write_preview_vtu
 

@@ -1,15 +1,16 @@
 """Presurgical simulation data sets: plan, force calibration, parallel FEM solves, Zarr store.
 
 ``simulate(config)`` creates or continues a store (resumable, exact); ``open_dataset(path)``
-reads one. The store layout is documented in :mod:`tissuecast.dataset.store` and
+reads one. The store layout is documented in :mod:`tissuecast.dataset.schema` and
 ``docs/dataset-schema.md``.
 """
 
-from .generate import data_config, recipe_from_store, setup_from_config, simulate
-from .plan import SPLIT_CODES, SPLIT_NAMES, SamplePlan, make_plan, sample_seed
-from .reader import Dataset, max_displacement_stats, open_dataset
 from .codes import STATUS_NAMES, InitialGuess, SampleStatus
-from .store import SCHEMA, SCHEMA_VERSION
+from .generate import setup_from_config, simulate
+from .reader import Dataset, max_displacement_stats, open_dataset, recipe_from_store
+from .sample_plan import SPLIT_CODES, SPLIT_NAMES, SamplePlan, make_plan, sample_seed
+from .schema import SCHEMA, SCHEMA_VERSION
+from .store import data_config
 
 __all__ = [
     "simulate",

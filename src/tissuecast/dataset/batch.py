@@ -65,25 +65,27 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
     if ctx.reduced is None or not hasattr(solver, "solve_batch"):
         return [solve_task(recipe, t) for t in tasks]
     t0 = time.perf_counter()
-    fields = [ctx.forces(t) for t in tasks]
-    setups = [ctx.loads(t, f) for t, (f, _) in zip(tasks, fields)]  # (loads, keywords, scenario draw)
-    guesses = [ctx.reduced.predict(loads + extra.get("body_loads", 0.0)) for loads, extra, _ in setups]
+    inputs = [ctx.inputs(t) for t in tasks]
+    keywords = [x.solve_keywords() for x in inputs]
+    guesses = [ctx.reduced.predict(x.predictor_loads) for x in inputs]
     together = [k for k, g in enumerate(guesses) if g is not None]
     budget = min((tasks[k].budget for k in together), default=0.0)
     try:
-        scenario = {}  # per-sample prescribed displacements and body loads, only where a scenario has them
+        extra = {}  # per-sample prescribed displacements and body loads, only where samples have them
         for key in ("prescribed", "body_loads"):
-            values = [setups[k][1].get(key) for k in together]
+            values = [keywords[k].get(key) for k in together]
             if any(v is not None for v in values):
-                scenario[key] = values
-        outcomes = solver.solve_batch([setups[k][0] for k in together], [guesses[k] for k in together],
-                                      time_limit=budget if budget > 0 else None, **scenario)
+                extra[key] = values
+        if any(inputs[k].parameters is not None for k in together):
+            extra["parameters"] = [inputs[k].solver_parameters for k in together]
+        outcomes = solver.solve_batch([inputs[k].surface for k in together], [guesses[k] for k in together],
+                                      time_limit=budget if budget > 0 else None, **extra)
     except (ArithmeticError, np.linalg.LinAlgError):  # a numerical breakdown stops the whole lockstep
         return [solve_task(recipe, t) for t in tasks]
-    prep = (time.perf_counter() - t0) / max(len(tasks), 1)  # forces, predictions and the batch, per sample
+    prep = (time.perf_counter() - t0) / max(len(tasks), 1)  # inputs, predictions and the batch, per sample
     out: dict[int, SampleResult] = {}
     for k, res in zip(together, outcomes):
-        t, (forces, weights) = tasks[k], fields[k]
+        t, forces, weights = tasks[k], inputs[k].forces, inputs[k].weights
         if not isinstance(res, ConvergenceError) and getattr(res, "converged", True):
             nodal = getattr(res, "nodal_displacement", None)
             out[k] = SampleResult(t.index, SampleStatus.DONE, np.asarray(res.displacement, dtype=np.float32),
@@ -91,7 +93,7 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
                                   int(res.iterations), int(res.factorizations), prep, 1.0, 1,
                                   predicted=InitialGuess.REDUCED_MODEL,
                                   nodal=None if nodal is None else np.asarray(nodal, dtype=np.float64),
-                                  draw=setups[k][2])
+                                  draw=inputs[k].draw)
             continue
         what = res if isinstance(res, ConvergenceError) else f"not converged at load fraction {res.load_fraction:.4g}"
         reason = f"attempt 1 from the prediction, in a batch of {len(together)}: {type(res).__name__}: {what}"

@@ -18,21 +18,24 @@ Rule (documented in the store's ``calibration`` attribute):
   If pilots fail before the target is reached, the bracket closes (within ``RTOL``) on the
   largest alpha at which the quantile is still finite: the record says
   ``limited_by_failures`` and the data set stays below the target rather than failing.
-* With a scenario (supports other than pins alone, other loads, material regions), the LBO
-  magnitude is calibrated with the other loads present: each pilot is the whole sample (its
-  LBO field at alpha, its gravity change, its indentation). The first trial alpha then comes
-  from the linear response instead (:func:`linear_alpha`): the pilots' LBO fields alone,
-  solved with the stiffness at zero displacement, aimed at ``FIRST_AIM`` of the target. (The
-  dimensional estimate assumes a body hanging on pins, and with the other loads present a
-  first round at 1 % of the target would measure only them.) Without LBO forces nothing is
-  calibrated (alpha = 0).
+* Each pilot is the whole sample (:meth:`tissuecast.scenario.Scenario.sample`: its LBO field
+  at alpha and, where the scenario has them, its gravity change and indentation), so the LBO
+  magnitude is calibrated with the other loads present. The first trial alpha is the
+  dimensional estimate above only where the body hangs on its pins under the LBO nodal forces
+  alone (:attr:`~tissuecast.scenario.Scenario.hangs_on_pins`, the paper's set-up); otherwise
+  (other supports, other loads, tractions, material regions) it comes from the linear
+  response (:func:`linear_alpha`): the pilots' LBO fields alone, solved with the stiffness at
+  zero displacement, aimed at ``FIRST_AIM`` of the target. (The dimensional estimate assumes
+  a body hanging on pins, and with the other loads present a first round at 1 % of the target
+  would measure only them.) Without LBO forces nothing is calibrated (alpha = 0).
 * If ``dataset.alpha`` > 0 in the config, it is used as is and no pilots are solved.
 * From the second round on, each pilot's solve starts from its own solution of the previous
-  round (see ``generate._calibrate``); the answers are the same within the solver
+  round (see :func:`calibrate_pilots`); the answers are the same within the solver
   tolerances, and the rounds are deterministic, so a repeated calibration gives the same
   record bit for bit.
-  In the first round of the paper's set-up each pilot starts from a zero guess, the solver's
-  warm path (one increment with the shared reference preconditioner; ``generate._warm_zero``).
+  Where the body hangs on its pins, the first round's pilots (nearly linear at the small
+  first alpha) start from a zero guess, the solver's warm path (one increment with the shared
+  reference preconditioner; :func:`warm_zero`).
 
 So a softer material, a larger tumour or a different mesh resolution all land near the
 target: the rule measures the mesh at hand, not a fixed force.
@@ -42,13 +45,21 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from ..config import Config, SolverConfig
 from ..errors import DatasetError
+from .codes import InitialGuess, SampleStatus
+from .mechanism_check import MECHANISM_RATIO, check_supports
+from .worker import Recipe, SampleContext, Task
 
-__all__ = ["calibrate_alpha", "initial_alpha", "linear_alpha", "RTOL", "MAX_ROUNDS", "FIRST_AIM"]
+if TYPE_CHECKING:
+    from ..scenario import Scenario
+
+__all__ = ["calibrate_pilots", "calibrate_alpha", "initial_alpha", "linear_alpha", "warm_zero", "RTOL", "MAX_ROUNDS",
+           "FIRST_AIM", "SUPPORT_PILOTS"]
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +72,95 @@ EXPONENT_MIN, EXPONENT_MAX = 0.5, 3.0
 #: Significant digits of the first alpha of a scenario's calibration (:func:`linear_alpha`).
 LINEAR_ALPHA_DIGITS = 6
 FAILURE_DIVISOR = 4.0  # after a round with failures and no lower bound, alpha is divided by this
+#: Pilots whose linear answers check the pins before the calibration (:mod:`.mechanism_check`).
+SUPPORT_PILOTS = 4
+
+
+def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, list]:
+    """Calibrate alpha on the data set's pilot samples (module notes).
+
+    Args:
+        writer: the :class:`~.store.StoreWriter` (the pilots' seeds and betas).
+        ex: a :class:`~.supervise.Supervisor` of an executor holding ``recipe``.
+        cfg: the data set's configuration.  recipe: its :class:`~.worker.Recipe`.
+
+    Returns:
+        ``(record, results)``: the calibration record (``dataset.alpha`` when given; alpha 0
+        without LBO forces) and the last round's :class:`~.worker.SampleResult` of the pilots
+        solved at the calibrated alpha (the samples themselves).
+
+    Raises:
+        DatasetError: no LBO sample to calibrate on, pins that leave a near-mechanism, or every
+            pilot failed at every trial alpha.
+    """
+    ds = cfg.dataset
+    if ds.alpha > 0:
+        return {"rule": "given (dataset.alpha)", "alpha": ds.alpha, "converged": True, "rounds": []}, []
+    if not cfg.scenario.lbo_forces:
+        return {"rule": "none: the scenario has no LBO forces (scenario.lbo_forces = false)", "alpha": 0.0,
+                "converged": True, "rounds": []}, []
+    seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
+    pilots = list(range(min(ds.calibration_samples, int(writer.root.attrs["n_lbo"]))))
+    if not pilots:
+        raise DatasetError("force calibration needs at least one LBO sample; set dataset.n_samples >= 1 or dataset.alpha")
+    last: list = []
+    rounds: list = []
+    scenario = recipe.scenario()
+    zero = warm_zero(cfg.solver, scenario)
+
+    def pilot_max(alpha: float) -> np.ndarray:
+        # each pilot starts from its solution of the previous round (if it converged)
+        prev = {r.index: r.nodal for r in last if r.status == SampleStatus.DONE and r.nodal is not None}
+        phase = f"calibration round {len(rounds) + 1} (at most {MAX_ROUNDS}), alpha {alpha:.4g} N"
+        rounds.append(alpha)
+        tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i)) if i in prev or zero is None
+                 else Task(i, int(seeds[i]), float(betas[i]), alpha, zero, int(InitialGuess.ZERO))
+                 for i in pilots]
+        last[:] = sorted(ex.run(tasks, phase, unit="pilot"), key=lambda r: r.index)
+        return np.array([r.max_displacement for r in last])
+
+    alpha0 = _first_alpha(cfg, recipe, scenario, [(int(seeds[i]), float(betas[i])) for i in pilots])
+    record = calibrate_alpha(pilot_max, alpha0, cfg.forces.target_max_displacement, quantile=ds.calibration_quantile)
+    record["pilots"] = pilots
+    return record, [r for r in last if r.alpha == record["alpha"]]
+
+
+def _first_alpha(cfg: Config, recipe: Recipe, scenario: "Scenario", pilots: list) -> float:
+    """The calibration's first trial alpha (N): the dimensional estimate where the body hangs
+    on its pins (the pins checked for a near-mechanism first), else the linear response's;
+    ``pilots``: their ``(seed, beta)``."""
+    target = cfg.forces.target_max_displacement
+    if not scenario.hangs_on_pins:
+        return linear_alpha(recipe, pilots, target)
+    alpha0 = initial_alpha(scenario.surface_forces.basis, scenario.mesh, scenario.supported,
+                           cfg.material.youngs_modulus, target)
+    _check_pins(cfg, scenario, pilots[:SUPPORT_PILOTS], alpha0)
+    return alpha0
+
+
+def _check_pins(cfg: Config, scenario: "Scenario", pilots: list, alpha0: float) -> None:
+    """Refuse pins that leave a near-mechanism (:func:`.mechanism_check.check_supports`), from
+    the linear answers of the ``pilots`` ((seed, beta) pairs) at ``alpha0`` on linear elements."""
+    from ..fem import build_problem
+
+    forces = [scenario.surface_forces.field(seed, alpha0, beta)[0] for seed, beta in pilots]
+    peak = check_supports(build_problem(scenario.mesh, cfg, scenario.supported, order=1), forces, alpha0,
+                          cfg.forces.target_max_displacement)
+    log.info("supports: the first pilots' linear answers at alpha %.3g N peak at %.3g mm (refused above %.3g mm)",
+             alpha0, peak, MECHANISM_RATIO * cfg.forces.target_max_displacement)
+
+
+def warm_zero(solver: SolverConfig, scenario: "Scenario") -> np.ndarray | None:
+    """Zero displacements (n_nodes, 3) as the first guess of pilots that hang on their pins
+    (:attr:`~tissuecast.scenario.Scenario.hangs_on_pins`: nearly linear at the small first
+    alpha), where a guess changes the solver's path (``krylov`` with
+    ``reference_preconditioner``: one full increment preconditioned by the shared stiffness at
+    zero, no factorisation of its own); else None. A pilot that fails from it goes on with the
+    usual attempts from zero (:func:`~.worker.solve_task`); timings in ``docs/scaling.md``.
+    """
+    if not scenario.hangs_on_pins or solver.strategy != "krylov" or not solver.reference_preconditioner:
+        return None
+    return np.zeros((scenario.n_nodes, 3))
 
 
 def initial_alpha(basis, mesh, fixed, youngs_modulus: float, target: float, fraction: float = 0.01) -> float:
@@ -81,7 +181,7 @@ def initial_alpha(basis, mesh, fixed, youngs_modulus: float, target: float, frac
     return fraction * target * youngs_modulus * h / net
 
 
-def linear_alpha(recipe, tasks, target: float, quantile: float = 0.9, aim: float = FIRST_AIM) -> float:
+def linear_alpha(recipe: Recipe, pilots: list, target: float, quantile: float = 0.9, aim: float = FIRST_AIM) -> float:
     """First trial alpha (N) of a scenario's calibration, from the linear response.
 
     The pilots' LBO fields at unit alpha, applied as the scenario applies them
@@ -94,8 +194,8 @@ def linear_alpha(recipe, tasks, target: float, quantile: float = 0.9, aim: float
     the data set) is the same in any process.
 
     Args:
-        recipe: the data set's :class:`~.worker.Recipe` (with its scenario).
-        tasks: the pilots as :class:`~.worker.Task` with ``alpha = 1``.
+        recipe: the data set's :class:`~.worker.Recipe`.
+        pilots: the pilots' ``(seed, beta)``.
         target: mm.
 
     Raises:
@@ -103,7 +203,6 @@ def linear_alpha(recipe, tasks, target: float, quantile: float = 0.9, aim: float
             rigid-body motion free) or the fields do not move the body.
     """
     from ..scenario import ScenarioDraw
-    from .worker import SampleContext
 
     ctx = SampleContext(recipe)
     solver = ctx.solver(0)
@@ -114,9 +213,9 @@ def linear_alpha(recipe, tasks, target: float, quantile: float = 0.9, aim: float
     free = solver.free_dofs
     n = ctx.mesh.n_vertices
     peaks = []
-    for task in tasks:
-        f, _ = ctx.forces(task)
-        loads = ctx.scenario.loads(ScenarioDraw(), f, ctx.config.forces.loading)
+    for seed, beta in pilots:
+        f, _ = ctx.scenario.surface_forces.field(seed, 1.0, beta)
+        loads = ctx.scenario.loads(ScenarioDraw(), f)
         u = np.zeros(3 * len(loads))
         u[free] = reference.solve(loads.ravel()[free])
         peaks.append(float(np.linalg.norm(u.reshape(-1, 3)[:n], axis=1).max()))

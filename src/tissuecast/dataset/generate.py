@@ -1,11 +1,13 @@
 """Generate (or continue) a data set: plan, calibrate the force magnitude, solve, store.
 
-``simulate(config)`` runs three phases, each skipped when the store already has its result:
-the force calibration (:mod:`.calibrate`; its last round's pilots are kept as samples), the
-reduced-order predictor (:mod:`.predictor`), and the solves of every pending sample. It is
-resumable and exact: every sample is a pure function of the stored set-up (mesh, fixed
-vertices, LBO basis, config, reduced model), its own seed and the calibrated alpha, solved
-with single-threaded BLAS. Which worker solved it, in which order, and whether the run was
+``simulate(config)`` resolves the config's scenario, creates the store or resumes it (the
+store's writer checks that it may: :meth:`~.store.StoreWriter.resume`), then runs three
+phases, each skipped when the store already has its result: the force calibration
+(:mod:`.calibrate`; its last round's pilots are kept as samples), the reduced-order predictor
+(:mod:`.reduced_predictor`), and the solves of every pending sample. It is resumable and
+exact: every sample is a pure function of the stored set-up (mesh, scenario arrays, LBO
+basis, config, reduced model), its own seed and the calibrated alpha, solved with
+single-threaded BLAS. Which worker solved it, in which order, and whether the run was
 interrupted (``kill -9``) and resumed do not change a bit of the store (except
 ``samples/seconds``, the wall-clock times, and the ``created`` attribute).
 """
@@ -15,45 +17,27 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ..config import Config, DatasetConfig, config_from_dict, config_to_dict, config_to_toml, load_config
-from ..errors import DatasetError
+from ..config import Config, load_config
 from .batch import Batch, chunk_batches, pending_batches
-from .calibrate import MAX_ROUNDS, calibrate_alpha, initial_alpha, linear_alpha
-from .codes import InitialGuess, SampleStatus
+from .calibrate import calibrate_pilots
+from .codes import SampleStatus
 from .executors import make_executor
-from .plan import generation_order, make_plan
-from .predictor import build_reduced, keep_snapshots
-from .reader import open_dataset
-from .store import StoreWriter, open_root, read_lbo_basis, read_scenario_arrays
+from .reader import open_dataset, recipe_from_store
+from .reduced_predictor import build_reduced, keep_snapshots
+from .sample_plan import generation_order, make_plan
+from .store import StoreWriter, data_config
 from .supervise import Supervisor
-from .supports import MECHANISM_RATIO, check_supports
-from .worker import Recipe, SampleContext, Task
+from .worker import Recipe, Task
 
-__all__ = ["simulate", "recipe_from_store", "setup_from_config", "scenario_setup", "uses_scenario", "data_config",
-           "SimulationRun", "Phase"]
+__all__ = ["simulate", "recipe_from_store", "setup_from_config", "scenario_setup", "data_config", "SimulationRun",
+           "Phase"]
 
 log = logging.getLogger(__name__)
-
-# config keys that do not change a data set's numbers (may differ when resuming); the mesh
-# file may move: its content is checked by fingerprint instead
-_RUNTIME_KEYS = {"dataset": ("store", "workers", "scheduler", "time_budget", "time_budget_min"), "mesh": ("path",)}
-_DATA_SECTIONS = ("mesh", "markers", "material", "solver", "forces", "dataset", "scenario")
-
-
-def data_config(cfg: Config) -> dict:
-    """The part of a config that determines a data set's contents (nested dict)."""
-    d = config_to_dict(cfg)
-    out = {sec: dict(d[sec]) for sec in _DATA_SECTIONS}
-    for sec, keys in _RUNTIME_KEYS.items():
-        for k in keys:
-            out[sec].pop(k, None)
-    return out
 
 
 def setup_from_config(cfg: Config):
@@ -80,62 +64,6 @@ def scenario_setup(cfg: Config):
     return scenario_from_config(cfg)
 
 
-def _check_same(writer: StoreWriter, cfg: Config, mesh, markers: np.ndarray, fixed: np.ndarray) -> None:
-    stored = data_config(config_from_dict(tomllib.loads(writer.config_toml)))
-    now = data_config(cfg)
-    if writer.batches is not None:  # the store's own batches decide from here on (.batch)
-        for key in ("batch_size", "batch_memory"):
-            stored["dataset"].pop(key, None)
-            now["dataset"].pop(key, None)
-    diffs = [f"{sec}.{k}: {stored[sec].get(k)!r} in the store, {now[sec].get(k)!r} now"
-             for sec in _DATA_SECTIONS for k in sorted(set(stored[sec]) | set(now[sec]))
-             if stored[sec].get(k) != now[sec].get(k)]
-    if diffs:
-        raise DatasetError(
-            f"data set {str(writer.path)!r} was made with a different configuration ({'; '.join(diffs[:4])}"
-            f"{'; ...' if len(diffs) > 4 else ''}); resume it with its own config (`tissuecast dataset info` shows it) "
-            "or choose another --store path; a store is never overwritten")
-    fp = writer.root.attrs.get("mesh_fingerprint")
-    if fp != mesh.fingerprint():
-        raise DatasetError(
-            f"data set {str(writer.path)!r} was made on a different mesh (fingerprint {str(fp)[:12]}..., this mesh "
-            f"{mesh.fingerprint()[:12]}...); use the original mesh or another --store path; a store is never overwritten")
-    for what, now in (("markers", markers), ("fixed", fixed)):
-        stored_ids = np.asarray(writer.read(what), dtype=np.int64)
-        if np.array_equal(stored_ids, now):
-            continue
-        if what == "markers" and not cfg.scenario.pins:
-            # without pins the markers do not enter the simulation (pins are chosen around them):
-            # the store keeps the markers it was made with, and the model is trained on those
-            log.warning("data set %r was made with markers %s, this config chooses %s (e.g. a store from a version "
-                        "whose marker rule did not avoid the attached region); the store keeps its own markers",
-                        str(writer.path), stored_ids.tolist(), np.asarray(now).tolist())
-            continue
-        raise DatasetError(
-            f"data set {str(writer.path)!r} has {what} vertices {stored_ids.tolist()} but this config gives "
-            f"{np.asarray(now).tolist()} (e.g. a store from a version with another marker or pin rule), and "
-            f"{'the pins are chosen around the markers' if what == 'markers' else 'the fixed vertices'} change the "
-            "simulated fields: continue it with the tissuecast version that made it, or choose another --store path "
-            "(a store is never overwritten)")
-
-
-def _check_springs(writer: StoreWriter, scenario) -> None:
-    """Warn when a store's springs differ from those its config gives now (a store from a
-    version that lumped P2 springs by ``integral(N_a) dA`` only); its workers go on with the
-    stored springs (:func:`recipe_from_store`)."""
-    stored = read_scenario_arrays(writer.root) or {}
-    springs = scenario.springs
-    if "spring_nodes" not in stored or springs is None:
-        return
-    if np.array_equal(stored["spring_nodes"], springs.nodes) and np.allclose(stored["spring_stiffness"],
-                                                                            springs.stiffness, rtol=1e-12, atol=0.0):
-        return
-    log.warning("data set %r holds springs other than this config gives (%d nodes, now %d: e.g. made before P2 "
-                "springs were lumped HRZ-style by default); it goes on with its own springs, so its samples stay "
-                "one data set",
-                str(writer.path), len(stored["spring_nodes"]), len(springs.nodes))
-
-
 _FLUSH_SECONDS = 2.0  # per-sample values and statuses reach the disk at least this often ...
 _FLUSH_SAMPLES = 32  # ... and at least every this many samples
 
@@ -149,134 +77,12 @@ def _flush_quietly(writer: StoreWriter) -> None:
 
 
 def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
-    mesh, markers, _, scenario = scenario_setup(cfg)
-    fixed = scenario.supported
+    """The store's writer: the existing store, checked by its writer to be this config's
+    (:meth:`~.store.StoreWriter.resume`), or a new one."""
+    _, markers, _, scenario = scenario_setup(cfg)
     if path.exists():
-        writer = StoreWriter.open(path)
-        _check_same(writer, cfg, mesh, markers, fixed)
-        _check_springs(writer, scenario)
-        return writer
-    from ..forces import lbo_basis
-
-    basis = lbo_basis(mesh, cfg.forces.n_basis)
-    # where the samples are solved (local workers, a Dask scheduler's address) is not part of the
-    # data set: the store records the defaults, so a cluster run and a local run give one store
-    default = DatasetConfig()
-    recorded = dataclasses.replace(cfg, dataset=dataclasses.replace(cfg.dataset, workers=default.workers,
-                                                                     scheduler=default.scheduler))
-    return StoreWriter.create(path, config_toml=config_to_toml(recorded, comments=False), mesh=mesh, markers=markers,
-                              fixed=fixed, basis=basis, plan=make_plan(cfg), scenario=scenario)
-
-
-def uses_scenario(cfg: Config) -> bool:
-    """Whether a data set's samples go through the scenario path (loads on every element node,
-    per-sample draws): every set-up but the paper's (pins, LBO forces as nodal forces)."""
-    sc = cfg.scenario
-    plain = (sc.pins and sc.lbo_forces and sc.attached.rule == "none" and sc.springs.rule == "none"
-             and not sc.gravity.enabled and not sc.indentation.enabled and not sc.materials.regions)
-    return not plain or cfg.forces.loading != "nodal"
-
-
-def recipe_from_store(store, solver_factory: str | None = None) -> Recipe:
-    """Everything a worker needs to solve a stored data set's samples exactly as its run did.
-
-    Args:
-        store: the store's path (opened read-only), or an open :class:`~.store.StoreWriter`.
-        solver_factory: ``"module:function"`` replacing the FEM solver factory (for testing).
-
-    Returns:
-        The :class:`~.worker.Recipe` (config, mesh, fixed vertices, LBO basis, scenario
-        arrays and the reduced-order predictor, when the store has them); with
-        :class:`~.worker.Task` and :func:`~.worker.solve_task` a sample (or a variant of it,
-        e.g. another force magnitude) is solved in this process.
-    """
-    root = store.root if isinstance(store, StoreWriter) else open_root(Path(store))
-
-    def read(name: str) -> np.ndarray:
-        return np.asarray(root[name][...])
-
-    kw = {"solver_factory": solver_factory} if solver_factory else {}
-    if root.attrs.get("reduced") is not None:
-        kw.update(reduced_basis=read("reduced/basis"), reduced_elements=read("reduced/elements"),
-                  reduced_weights=read("reduced/weights"))
-    config_toml = root.attrs["config_toml"]
-    if uses_scenario(config_from_dict(tomllib.loads(config_toml))):
-        kw["scenario"] = read_scenario_arrays(root)
-    return Recipe(config_toml, read("mesh/points"), read("mesh/tets"), read("fixed"), read_lbo_basis(root), **kw)
-
-
-def _calibrate(writer: StoreWriter, ex: Supervisor, cfg: Config, recipe: Recipe) -> tuple[dict, list]:
-    """Calibrate alpha on the pilot samples; returns the record and the last round's results."""
-    ds = cfg.dataset
-    if ds.alpha > 0:
-        return {"rule": "given (dataset.alpha)", "alpha": ds.alpha, "converged": True, "rounds": []}, []
-    if not cfg.scenario.lbo_forces:
-        return {"rule": "none: the scenario has no LBO forces (scenario.lbo_forces = false)", "alpha": 0.0,
-                "converged": True, "rounds": []}, []
-    seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
-    n_lbo = int(writer.root.attrs["n_lbo"])
-    pilots = list(range(min(ds.calibration_samples, n_lbo)))
-    if not pilots:
-        raise DatasetError("force calibration needs at least one LBO sample; set dataset.n_samples >= 1 or dataset.alpha")
-    last: list = []
-    rounds: list = []
-
-    warm_zero = _warm_zero(cfg, recipe)
-
-    def pilot_max(alpha: float) -> np.ndarray:
-        # each pilot starts from its solution of the previous round (if it converged)
-        prev = {r.index: r.nodal for r in last if r.status == SampleStatus.DONE and r.nodal is not None}
-        phase = f"calibration round {len(rounds) + 1} (at most {MAX_ROUNDS}), alpha {alpha:.4g} N"
-        rounds.append(alpha)
-        tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i)) if i in prev or warm_zero is None
-                 else Task(i, int(seeds[i]), float(betas[i]), alpha, warm_zero, int(InitialGuess.ZERO))
-                 for i in pilots]
-        last[:] = sorted(ex.run(tasks, phase, unit="pilot"), key=lambda r: r.index)
-        return np.array([r.max_displacement for r in last])
-
-    target = cfg.forces.target_max_displacement
-    if recipe.scenario is None:
-        alpha0 = initial_alpha(recipe.basis, recipe.mesh, recipe.fixed, cfg.material.youngs_modulus, target)
-        # pins that leave a near-mechanism are refused (a scenario's supports are checked for
-        # rigid motions when it is built)
-        _check_supports(cfg, recipe, [(int(seeds[i]), float(betas[i])) for i in pilots[:SUPPORT_PILOTS]], alpha0)
-    else:
-        alpha0 = linear_alpha(recipe, [Task(i, int(seeds[i]), float(betas[i]), 1.0) for i in pilots], target)
-    record = calibrate_alpha(pilot_max, alpha0, target, quantile=ds.calibration_quantile)
-    record["pilots"] = pilots
-    reusable = [r for r in last if r.alpha == record["alpha"]]
-    return record, reusable
-
-
-def _warm_zero(cfg: Config, recipe: Recipe) -> np.ndarray | None:
-    """Zero displacements (n_nodes, 3) as a pilot's first guess where a guess changes the
-    solver's path (``krylov`` with ``reference_preconditioner``: one full increment
-    preconditioned by the shared stiffness at zero, no factorisation of its own), else None.
-    A pilot that fails from it goes on with the usual attempts from zero
-    (:func:`~.worker.solve_task`); timings in ``docs/scaling.md``.
-    """
-    sc = cfg.solver
-    if recipe.scenario is not None or sc.strategy != "krylov" or not sc.reference_preconditioner:
-        return None
-    mesh = recipe.mesh
-    return np.zeros_like(mesh.points if sc.order == 1 else mesh.points10, dtype=np.float64)
-
-
-#: Pilots whose linear answers check the supports before the calibration (:mod:`.supports`).
-SUPPORT_PILOTS = 4
-
-
-def _check_supports(cfg: Config, recipe: Recipe, pilots: list, alpha0: float) -> None:
-    """Refuse supports that leave a near-mechanism (:func:`.supports.check_supports`), from
-    the linear answers of the ``pilots`` ((seed, beta) pairs) at ``alpha0`` on linear elements."""
-    from ..fem import build_problem
-
-    ctx = SampleContext(recipe)
-    forces = [ctx.forces(Task(-1, seed, beta, alpha0))[0] for seed, beta in pilots]
-    peak = check_supports(build_problem(ctx.mesh, cfg, ctx.fixed, order=1), forces, alpha0,
-                          cfg.forces.target_max_displacement)
-    log.info("supports: the first pilots' linear answers at alpha %.3g N peak at %.3g mm (refused above %.3g mm)",
-             alpha0, peak, MECHANISM_RATIO * cfg.forces.target_max_displacement)
+        return StoreWriter.resume(path, config=cfg, markers=markers, scenario=scenario)
+    return StoreWriter.create(path, config=cfg, markers=markers, plan=make_plan(cfg), scenario=scenario)
 
 
 @dataclass(frozen=True)
@@ -389,7 +195,7 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
 def _calibration_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Phase:
     """Calibrate alpha, keep the last round's pilots as samples, then record the calibration."""
     tc = time.monotonic()
-    record, reusable = _calibrate(writer, ex, cfg, recipe)
+    record, reusable = calibrate_pilots(writer, ex, cfg, recipe)
     seconds = time.monotonic() - tc
     written = 0
     for r in reusable:  # pilot solves at the final alpha are the samples themselves
@@ -405,7 +211,7 @@ def _calibration_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> 
 
 
 def _predictor_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Phase:
-    """Solve the basis samples and fit the reduced model (:func:`.predictor.build_reduced`)."""
+    """Solve the basis samples and fit the reduced model (:func:`.reduced_predictor.build_reduced`)."""
     tr = time.monotonic()
     solved, built = build_reduced(writer, ex, cfg, recipe)
     seconds = time.monotonic() - tr
@@ -444,7 +250,7 @@ def _work_items(writer: StoreWriter, order: np.ndarray, batch_size: int, task) -
 def _solve_pending(writer: StoreWriter, ex: Supervisor, batch_size: int = 1) -> Phase:
     """Solve every pending sample at the calibrated alpha, writing results as they come.
 
-    The splits are interleaved (:func:`~.plan.generation_order`), so a run stopped part-way
+    The splits are interleaved (:func:`~.sample_plan.generation_order`), so a run stopped part-way
     leaves a store whose done samples already cover every split in proportion. With
     ``batch_size`` > 1 workers solve the stored batches (:mod:`.batch`); the done samples of
     a partly written batch are solved again with it and not written again.

@@ -1,4 +1,5 @@
-"""Read-only access to a data-set store (see :mod:`.store` for the schema)."""
+"""Read-only access to a data-set store (see :mod:`.schema` for the layout), including the
+:class:`~.worker.Recipe` its samples are solved with (:func:`recipe_from_store`)."""
 
 from __future__ import annotations
 
@@ -10,11 +11,13 @@ import numpy as np
 
 from ..config import Config, config_from_dict
 from ..errors import DatasetError
-from .plan import SPLIT_CODES, SPLIT_NAMES
+from .sample_plan import SPLIT_CODES, SPLIT_NAMES
 from .codes import STATUS_NAMES, InitialGuess, SampleStatus
-from .store import DRAWS, _open_root, check_schema, read_lbo_basis, read_scenario_arrays
+from .schema import DRAWS, PARAMETERS, check_schema, open_store_root, read_lbo_basis, read_scenario_arrays
+from .store import StoreWriter
+from .worker import Recipe
 
-__all__ = ["Dataset", "open_dataset", "max_displacement_stats"]
+__all__ = ["Dataset", "open_dataset", "recipe_from_store", "max_displacement_stats"]
 
 _STATUS_CODES = {v: k for k, v in STATUS_NAMES.items()}
 #: ``summary()["predictor"]`` key of each initial-guess code
@@ -31,9 +34,25 @@ def open_dataset(path) -> "Dataset":
             of a newer schema version than this tissuecast reads.
     """
     path = Path(path)
-    root = _open_root(path, mode="r")
+    root = open_store_root(path, mode="r")
     check_schema(root, path)
     return Dataset(path, root)
+
+
+def recipe_from_store(store, solver_factory: str | None = None) -> Recipe:
+    """Everything a worker needs to solve a stored data set's samples exactly as its run did.
+
+    Args:
+        store: the store's path (opened read-only), or an open :class:`~.store.StoreWriter`.
+        solver_factory: ``"module:function"`` replacing the FEM solver factory (for testing).
+
+    Returns:
+        The data set's :meth:`Dataset.recipe`; with :class:`~.worker.Task` and
+        :func:`~.worker.solve_task` a sample (or a variant of it, e.g. another force
+        magnitude) is solved in this process.
+    """
+    ds = Dataset(store.path, store.root) if isinstance(store, StoreWriter) else open_dataset(store)
+    return ds.recipe(solver_factory)
 
 
 def max_displacement_stats(values: np.ndarray) -> dict:
@@ -120,12 +139,21 @@ class Dataset:
 
     @cached_property
     def draws(self) -> dict[str, np.ndarray]:
-        """Each sample's scenario draws, by name (:data:`~.store.DRAWS`): ``gravity_direction``
+        """Each sample's scenario draws, by name (:data:`~.schema.DRAWS`): ``gravity_direction``
         (N, 3) unit vectors, ``indent_centre`` (N,) int64 vertex ids (-1: none),
         ``indent_depth`` / ``indent_slide`` (N,) mm and ``indent_displacement`` (N, 3) mm (NaN:
         not drawn). Only the draws the scenario makes; empty for the paper's set-up."""
         samples = self._root["samples"]
         return {name: self._array(f"samples/{name}") for name in DRAWS if name in samples}
+
+    @cached_property
+    def parameters(self) -> dict[str, np.ndarray]:
+        """Each sample's drawn uncertain parameters (N,) float64, by name without the ``param_``
+        prefix (:data:`~.schema.PARAMETERS`): factors on E, density and the springs'
+        stiffnesses, nu (NaN: nominal), the attached margin in mm; empty for a store whose
+        scenario draws none."""
+        samples = self._root["samples"]
+        return {name[len("param_"):]: self._array(f"samples/{name}") for name in PARAMETERS if name in samples}
 
     @cached_property
     def split_codes(self) -> np.ndarray:
@@ -157,9 +185,31 @@ class Dataset:
         return self._array("markers")
 
     @cached_property
-    def scenario_arrays(self) -> dict[str, np.ndarray] | None:
-        """The resolved scenario's stored arrays (:func:`~.store.read_scenario_arrays`), or None."""
+    def scenario_arrays(self) -> dict[str, np.ndarray]:
+        """The resolved scenario's stored arrays (:func:`~.schema.read_scenario_arrays`: pins,
+        attached region, springs, materials, indentation access; for a store made before
+        scenarios were recorded, its fixed vertices as the pins)."""
         return read_scenario_arrays(self._root)
+
+    @property
+    def reduced_arrays(self) -> dict[str, np.ndarray]:
+        """The reduced-order predictor's ``basis`` (n_free, r), ``elements`` (k,) int64 and
+        ``weights`` (k,) (``reduced/*``), once it is complete; empty before / without one."""
+        if self._root.attrs.get("reduced") is None:
+            return {}
+        return {name: np.asarray(self._root[f"reduced/{name}"][...]) for name in ("basis", "elements", "weights")}
+
+    def recipe(self, solver_factory: str | None = None) -> Recipe:
+        """The :class:`~.worker.Recipe` the data set's samples are solved with: its config,
+        mesh, LBO basis and scenario arrays, and its reduced-order predictor once built.
+
+        Args:
+            solver_factory: ``"module:function"`` replacing the FEM solver factory (for testing).
+        """
+        kw = {"solver_factory": solver_factory} if solver_factory else {}
+        kw.update({f"reduced_{name}": a for name, a in self.reduced_arrays.items()})
+        return Recipe(self.config_toml, np.asarray(self._root["mesh/points"][...]),
+                      np.asarray(self._root["mesh/tets"][...]), self.basis, self.scenario_arrays, **kw)
 
     @cached_property
     def fixed(self) -> np.ndarray:

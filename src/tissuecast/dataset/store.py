@@ -1,75 +1,9 @@
-"""The data-set store: one Zarr v3 directory per data set, readable with zarr alone.
+"""Writing a data-set store (its layout: :mod:`.schema`, ``docs/dataset-schema.md``).
 
-Schema (``schema = "tissuecast.dataset"``, ``schema_version = 1``); N samples, n_v mesh
-vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
-
-    STORE/                          root group; attributes:
-        schema, schema_version      "tissuecast.dataset", 1
-        created                     ISO-8601 UTC time the store was created
-        versions                    {package: version} of the software that made it
-        config_toml                 the full configuration (TOML text)
-        mesh_fingerprint            TetMesh.fingerprint() of the mesh
-        n_samples, n_lbo, n_test2   N = n_lbo + n_test2; LBO samples come first
-        split_labels                {"0": "train", "1": "valid", "2": "test1", "3": "test2"}
-        status_labels               {"0": "pending", "1": "done", "2": "failed"}
-        calibration                 force-magnitude calibration (see calibrate.py), null until done
-        failures                    {"<sample index>": "reason"} of failed samples
-        scenario                    the clinical scenario (Scenario.summary(): supports, springs,
-                                    gravity, indentation, material draws); absent in stores made
-                                    before scenarios existed (they are the paper's: pins + LBO)
-      mesh/points     (n_v, 3) float64 mm        mesh/tets (m, 4) int64 (0-based, positive volume)
-      markers         (n_d,)  int64 fiducial-marker vertex ids (pick order)
-      fixed           (k,)    int64 vertex ids fixed in all components: the pins and the attached
-                              region of the scenario (the paper's set-up: the pins)
-      lbo/vertices    (s,)    int64 surface vertex ids     lbo/vectors (s, n_b) float64 1/mm
-      lbo/eigenvalues (n_b,)  float64 1/mm^2               lbo/mass    (s,)     float64 mm^2
-      samples/displacements (N, n_v, 3) float32 mm; one chunk per sample; NaN unless done
-      samples/forces        (N, n_v, 3) float32 N, dense (zero off the surface; compresses
-                            well); one chunk per sample; written for done and failed samples
-      samples/weights       (N, n_b, 3) float64 LBO weights W (test-2: of the blended LBO field)
-      samples/alpha         (N,) float64 N, force magnitude  (NaN until solved)
-      samples/beta          (N,) float64 LBO share of test-2 samples; NaN for LBO samples
-      samples/seed          (N,) uint64 per-sample seed (numpy default_rng(seed) makes the field)
-      samples/split         (N,) int8 split code (split_labels)
-      samples/status        (N,) int8 0 pending, 1 done, 2 failed (codes.SampleStatus)
-      samples/increments, iterations, factorizations   (N,) int32 solver counts (all attempts)
-      samples/attempts      (N,) int8 solver attempts (1 + retries used)
-      samples/load_fraction (N,) float64 share of the load reached (1 when done)
-      samples/max_displacement (N,) float32 mm, largest vertex displacement (NaN unless done)
-      samples/seconds       (N,) float64 wall-clock solve time (the only non-reproducible array)
-      samples/predicted     (N,) int8 initial guess (codes.InitialGuess): 0 zero (no reduced
-                            model yet), 1 the reduced model's prediction, 2 the guess did not
-                            work (then zero), 3 a calibration pilot's solution of the previous round
-      scenario/pinned, scenario/attached, scenario/spring_region   (k,) int64 vertex ids of the
-                            pins, the attached region and the elastic support's region
-      scenario/spring_nodes (s,) int64 element nodes with a spring (P2: vertices, then mid-edge
-                            nodes as in reduced/snapshots); scenario/spring_stiffness (s, 3, 3)
-                            float64 N/mm, each node's spring K_a (present with an elastic support)
-      scenario/youngs_modulus (m,) float64 MPa, scenario/poisson_ratio (m,) float64,
-      scenario/material_region (m,) int64 (-1 = [material])   per element (with material regions)
-      samples/gravity_direction   (N, 3) float64 unit direction of gravity during surgery drawn
-                            for the sample (NaN: not drawn yet, or no gravity change)
-      samples/indent_centre (N,) int64 vertex id of the indentation patch's centre (-1: none)
-      samples/indent_depth, samples/indent_slide (N,) float64 mm, the indentation's depth along
-                            the inward normal and its slide along the surface (NaN: none)
-      samples/indent_displacement (N, 3) float64 mm, the displacement given to every patch vertex
-      (the scenario/ group and the samples' draw arrays exist in stores whose scenario has them;
-      a sample's draws are a function of its seed: scenario.scenario_rng; the patch vertices
-      follow from the centre, the mesh and the config)
-      samples/batch         (N,) int32 the batch each sample of the sample phase is solved in
-                            (dataset.batch_size > 1 with a reduced model; -1: solved alone);
-                            absent until that phase first starts; the root attribute
-                            ``batches`` ({size, count}) is written after it and marks it complete
-      reduced/samples       (s,) int64 ids of the samples whose full solutions built the reduced
-                            model (dataset.predictor = "reduced"; absent otherwise)
-      reduced/snapshots     (s, n_nodes, 3) float64 mm their displacements at every element node
-                            (vertices first, then P2 mid-edge nodes in TetMesh.edges order);
-                            NaN until solved; one chunk per sample
-      reduced/basis         (n_free, r) float64 the reduced basis over the free dofs (node-major
-                            x, y, z; nodes of fixed vertices left out)
-      reduced/elements (k,) int64, reduced/weights (k,) float64   ECSW elements (0-based) and
-                            weights; the root attribute ``reduced`` ({modes, elements, fit_error,
-                            snapshots}) is written last and marks the model complete
+:meth:`StoreWriter.create` makes a new store from a configuration and its resolved scenario;
+:meth:`StoreWriter.resume` opens an existing one to continue it, after checking that the
+configuration, mesh, markers and supports are those it was made with (a store is never
+overwritten, and its samples stay one data set).
 
 Chunks are compressed with Blosc/zstd. Only the parent process writes; every chunk write is
 atomic (zarr's LocalStore writes a temporary file and renames it). A sample's field chunks
@@ -81,53 +15,29 @@ in ``STORE.partial`` and renamed into place once its skeleton is complete.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 import os
 import shutil
+import tomllib
 from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import DatasetError, require
-from .codes import STATUS_NAMES, InitialGuess, SampleStatus
-from .plan import SPLIT_NAMES, SamplePlan
+from ..config import Config, DatasetConfig, config_from_dict, config_to_dict, config_to_toml
+from ..errors import DatasetError
+from .codes import STATUS_NAMES, SampleStatus
+from .sample_plan import SPLIT_NAMES, SamplePlan
+from .schema import (ADDED_LATER, BLOCK, DRAWS, PARAMETERS, SCALARS, SCHEMA, SCHEMA_VERSION, check_schema, compressor,
+                     open_root, open_store_root, read_lbo_basis, read_scenario_arrays, zarr_module)
 from .worker import SampleResult
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "STATUS_NAMES", "StoreWriter", "package_versions", "check_schema",
-           "read_lbo_basis"]
+           "read_lbo_basis", "read_scenario_arrays", "open_root", "data_config"]
 
-SCHEMA = "tissuecast.dataset"
-SCHEMA_VERSION = 1
-_BLOCK = 256  # chunk length of the per-sample 1-D arrays and weights
-
-# per-sample scalar arrays: name -> (dtype, fill value)
-SCALARS = {
-    "alpha": ("float64", np.nan),
-    "beta": ("float64", np.nan),
-    "seed": ("uint64", 0),
-    "split": ("int8", -1),
-    "status": ("int8", SampleStatus.PENDING.value),
-    "increments": ("int32", 0),
-    "iterations": ("int32", 0),
-    "factorizations": ("int32", 0),
-    "attempts": ("int8", 0),
-    "load_fraction": ("float64", np.nan),
-    "max_displacement": ("float32", np.nan),
-    "seconds": ("float64", np.nan),
-    "predicted": ("int8", InitialGuess.ZERO.value),
-}
-_ADDED_LATER = ("predicted",)  # per-sample arrays that stores of earlier releases lack (created on open)
-#: Per-sample scenario draws: name -> (trailing shape, dtype, fill value), in stores whose
-#: scenario draws a gravity direction or an indentation.
-DRAWS = {
-    "gravity_direction": ((3,), "float64", np.nan),
-    "indent_centre": ((), "int64", -1),
-    "indent_depth": ((), "float64", np.nan),
-    "indent_slide": ((), "float64", np.nan),
-    "indent_displacement": ((3,), "float64", np.nan),
-}
-
+log = logging.getLogger(__name__)
 
 def package_versions() -> dict[str, str]:
     """Versions of the packages that shape a data set's numbers."""
@@ -143,46 +53,6 @@ def package_versions() -> dict[str, str]:
     return out
 
 
-def _zarr():
-    return require("zarr", "data", "data-set stores")
-
-
-def _compressor():
-    return _zarr().codecs.BloscCodec(cname="zstd", clevel=5, shuffle="shuffle")
-
-
-def check_schema(root, path) -> None:
-    """Raise DatasetError unless ``root`` is a tissuecast data set of a known schema."""
-    attrs = root.attrs
-    if attrs.get("schema") != SCHEMA:
-        raise DatasetError(f"{str(path)!r} is not a tissuecast data set (no schema = {SCHEMA!r} attribute); "
-                           "create one with `tissuecast simulate CONFIG --store PATH`")
-    version = attrs.get("schema_version")
-    if not isinstance(version, int) or version > SCHEMA_VERSION or version < 1:
-        raise DatasetError(f"data set {str(path)!r} has schema version {version!r}, but this tissuecast reads "
-                           f"versions 1..{SCHEMA_VERSION}; upgrade tissuecast to read it")
-
-
-def read_lbo_basis(root):
-    """The stored :class:`~tissuecast.forces.LBOBasis` of a store's root group (read-only arrays)."""
-    from ..forces import LBOBasis
-
-    arrays = [np.asarray(root[f"lbo/{k}"][...]) for k in ("vertices", "vectors", "eigenvalues", "mass")]
-    for a in arrays:
-        a.setflags(write=False)
-    return LBOBasis(*arrays)
-
-
-def read_scenario_arrays(root) -> dict[str, np.ndarray] | None:
-    """The resolved scenario's stored arrays (``scenario/*``: pins, attached region, springs,
-    indentation access; :func:`tissuecast.scenario.restore_scenario` rebuilds the scenario
-    from them) of a store's root group, or None for a store without them (the paper's set-up)."""
-    if "scenario" not in root:
-        return None
-    group = root["scenario"]
-    return {name: np.asarray(group[name][...]) for name in group.array_keys()}
-
-
 class StoreWriter:
     """Writes samples into a store (the parent process is the only writer).
 
@@ -194,13 +64,13 @@ class StoreWriter:
     def __init__(self, path: Path, root):
         self.path, self.root = path, root
         self.samples = root["samples"]
-        for name in _ADDED_LATER:
+        for name in ADDED_LATER:
             if name not in self.samples:
                 dtype, fill = SCALARS[name]
                 n = self.samples["status"].shape[0]
-                self.samples.create_array(name, shape=(n,), dtype=dtype, chunks=(min(_BLOCK, n),), fill_value=fill,
-                                          compressors=_compressor(), dimension_names=("sample",))
-        self._draws = tuple(name for name in DRAWS if name in self.samples)
+                self.samples.create_array(name, shape=(n,), dtype=dtype, chunks=(min(BLOCK, n),), fill_value=fill,
+                                          compressors=compressor(), dimension_names=("sample",))
+        self._draws = tuple(name for name in {**DRAWS, **PARAMETERS} if name in self.samples)
         self._arrays = {name: self.samples[name] for name in (*SCALARS, "displacements", "forces", "weights",
                                                               *self._draws)}
         self._mem = {name: np.array(self._arrays[name][...]) for name in (*SCALARS, "weights", *self._draws)}
@@ -211,80 +81,67 @@ class StoreWriter:
 
     # ------------------------------------------------------------ creation / opening
     @classmethod
-    def create(cls, path, *, config_toml: str, mesh, markers, fixed, basis, plan: SamplePlan,
-               scenario=None) -> "StoreWriter":
+    def create(cls, path, *, config: Config, markers, plan: SamplePlan, scenario) -> "StoreWriter":
         """Create a new store at ``path`` (which must not exist) and return its writer.
 
-        ``scenario``: the resolved :class:`~tissuecast.scenario.Scenario` (its summary, arrays
-        and, if it draws per sample, the draw arrays are stored), or None."""
-        zarr = _zarr()
+        Args:
+            path: the store directory (built in ``PATH.partial``, renamed when complete).
+            config: the data set's configuration; the store records it with the default
+                ``dataset.workers`` and ``dataset.scheduler`` (where the samples are solved is
+                not part of the data set: a cluster run and a local run give one store).
+            markers: (n_d,) int fiducial-marker vertex ids (0-based).
+            plan: the sample plan (:func:`~.sample_plan.make_plan`).
+            scenario: the resolved :class:`~tissuecast.scenario.Scenario`: its mesh, supported
+                vertices (``fixed``), LBO basis, summary and arrays are stored, and the draw
+                arrays when it draws per sample.
+        """
+        zarr = zarr_module()
         path = Path(path)
         tmp = path.with_name(path.name + ".partial")
         if tmp.exists():
             _remove_partial(tmp)
-        root = zarr.create_group(zarr.storage.LocalStore(tmp), zarr_format=3, attributes={
-            "schema": SCHEMA, "schema_version": SCHEMA_VERSION,
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-            "versions": package_versions(), "config_toml": config_toml,
-            "mesh_fingerprint": mesh.fingerprint(),
-            "n_samples": plan.n_samples, "n_lbo": plan.n_lbo, "n_test2": plan.n_samples - plan.n_lbo,
-            "split_labels": {str(k): v for k, v in SPLIT_NAMES.items()},
-            "status_labels": {str(k): v for k, v in STATUS_NAMES.items()},
-            "units": {"length": "mm", "force": "N", "stress": "MPa"},
-            "calibration": None, "failures": {},
-            **({} if scenario is None else {"scenario": json.loads(json.dumps(scenario.summary(), default=float))}),
-        })  # attributes go into the very first zarr.json: a .partial dir is always recognisable
-        comp = _compressor()
-
-        def put(name, data):
-            data = np.ascontiguousarray(data)
-            chunks = tuple(max(1, d) for d in data.shape) or None  # an empty array still needs a chunk
-            a = root.create_array(name, shape=data.shape, dtype=data.dtype, chunks=chunks, compressors=comp)
-            a[...] = data
-
-        put("mesh/points", np.asarray(mesh.points, dtype=np.float64))
-        put("mesh/tets", np.asarray(mesh.tets, dtype=np.int64))
-        put("markers", np.asarray(markers, dtype=np.int64))
-        put("fixed", np.asarray(fixed, dtype=np.int64))
-        put("lbo/vertices", np.asarray(basis.vertices, dtype=np.int64))
-        put("lbo/vectors", np.asarray(basis.vectors, dtype=np.float64))
-        put("lbo/eigenvalues", np.asarray(basis.eigenvalues, dtype=np.float64))
-        put("lbo/mass", np.asarray(basis.mass, dtype=np.float64))
-        n, nv, nb = plan.n_samples, mesh.n_vertices, basis.vectors.shape[1]
-        s = root.create_group("samples")
-        s.create_array("displacements", shape=(n, nv, 3), dtype="float32", chunks=(1, nv, 3),
-                       fill_value=np.nan, compressors=comp, dimension_names=("sample", "vertex", "axis"))
-        s.create_array("forces", shape=(n, nv, 3), dtype="float32", chunks=(1, nv, 3), fill_value=0.0,
-                       compressors=comp, dimension_names=("sample", "vertex", "axis"))
-        s.create_array("weights", shape=(n, nb, 3), dtype="float64", chunks=(_BLOCK, nb, 3), fill_value=np.nan,
-                       compressors=comp, dimension_names=("sample", "basis", "axis"))
-        for name, (dtype, fill) in SCALARS.items():
-            s.create_array(name, shape=(n,), dtype=dtype, chunks=(min(_BLOCK, n),), fill_value=fill,
-                           compressors=comp, dimension_names=("sample",))
-        if scenario is not None:
-            for name, data in scenario.arrays().items():
-                put(f"scenario/{name}", data)
-            if scenario.draws_per_sample:
-                for name, (shape, dtype, fill) in DRAWS.items():
-                    s.create_array(name, shape=(n, *shape), dtype=dtype, chunks=(min(_BLOCK, n), *shape),
-                                   fill_value=fill, compressors=comp,
-                                   dimension_names=("sample",) + (("axis",) if shape else ()))
-        s["beta"][:] = plan.beta
-        s["seed"][:] = plan.seed
-        s["split"][:] = plan.split
+        root = zarr.create_group(zarr.storage.LocalStore(tmp), zarr_format=3,
+                                 attributes=_root_attributes(config, plan, scenario))
+        # the attributes go into the very first zarr.json: a .partial dir is always recognisable
+        _put_setup(root, markers, scenario)
+        _create_sample_arrays(root, plan, scenario)
         os.rename(tmp, path)  # the store appears complete or not at all
         return cls.open(path)
 
     @classmethod
     def open(cls, path) -> "StoreWriter":
         """Open an existing store for appending (schema checked; removes stale temp files)."""
-        zarr = _zarr()
+        zarr = zarr_module()
         path = Path(path)
-        root = _open_root(path, mode="r+")
+        root = open_store_root(path, mode="r+")
         check_schema(root, path)
         for stale in path.rglob("*.partial"):  # leftovers of a write interrupted by kill -9
             stale.unlink(missing_ok=True)
         return cls(path, zarr.open_group(zarr.storage.LocalStore(path), mode="r+"))
+
+    @classmethod
+    def resume(cls, path, *, config: Config, markers, scenario) -> "StoreWriter":
+        """Open an existing store to continue it with ``config``, its markers and resolved
+        scenario, once :meth:`check_compatible` has accepted them."""
+        writer = cls.open(path)
+        writer.check_compatible(config, markers, scenario)
+        return writer
+
+    def check_compatible(self, config: Config, markers, scenario) -> None:
+        """Check that the store can be continued with ``config``, ``markers`` ((n_d,) int) and
+        the resolved ``scenario``: the same data settings (:func:`data_config`; the batch
+        settings only until the store fixed its batches), the same mesh (by fingerprint) and
+        the same markers and supported vertices. A store without pins keeps its own markers
+        (they do not enter its simulation), and a store with springs other than the config's
+        goes on with its own (both logged).
+
+        Raises:
+            DatasetError: what differs, and what to do (a store is never overwritten).
+        """
+        _check_config(self, config)
+        _check_mesh(self, scenario.mesh)
+        _check_ids(self, config, markers, scenario.supported)
+        _check_springs(self, scenario)
 
     # ------------------------------------------------------------ state
     @property
@@ -314,7 +171,7 @@ class StoreWriter:
         if self._snapshot_rows is not None:
             return self._snapshot_rows
         if "reduced/samples" not in self.root:
-            comp = _compressor()
+            comp = compressor()
             samples = np.asarray(samples, dtype=np.int64)
             self.root.create_array("reduced/snapshots", shape=(len(samples), n_nodes, 3), dtype="float64",
                                    chunks=(1, n_nodes, 3), fill_value=np.nan, compressors=comp,
@@ -336,7 +193,7 @@ class StoreWriter:
 
     def set_reduced(self, basis: np.ndarray, elements: np.ndarray, weights: np.ndarray, record: dict) -> None:
         """Store the reduced model; the ``reduced`` attribute last."""
-        comp = _compressor()
+        comp = compressor()
         for name, data in (("basis", basis), ("elements", elements), ("weights", weights)):
             data = np.ascontiguousarray(data)
             key = f"reduced/{name}"
@@ -359,7 +216,7 @@ class StoreWriter:
             del self.root["samples/batch"]
         n = len(batch_of)
         a = self.root.create_array("samples/batch", shape=(n,), dtype="int32", chunks=(n,), fill_value=-1,
-                                   compressors=_compressor(), dimension_names=("sample",))
+                                   compressors=compressor(), dimension_names=("sample",))
         a[...] = batch_of
         self.root.attrs["batches"] = {"size": int(size), "count": int(batch_of.max(initial=-1)) + 1}
 
@@ -381,7 +238,7 @@ class StoreWriter:
         a["forces"][i] = r.forces
         m = self._mem
         m["weights"][i] = r.weights
-        if self._draws and r.draw is not None:
+        if self._draws:
             for name, value in _draw_values(r.draw).items():
                 m[name][i] = value
         values = {"alpha": r.alpha, "increments": r.increments, "iterations": r.iterations,
@@ -393,7 +250,7 @@ class StoreWriter:
         if r.status == SampleStatus.FAILED:
             self._failures[str(i)] = r.reason
         self.status[i] = r.status
-        self._dirty.add(i // _BLOCK)
+        self._dirty.add(i // BLOCK)
 
     def flush(self) -> None:
         """Write the per-sample values of the samples written since the last flush, status last."""
@@ -409,9 +266,158 @@ class StoreWriter:
                     self.root.attrs["failures"] = {k: self._failures[k] for k in sorted(self._failures, key=int)}
                 continue
             for blk in blocks:  # whole chunks from memory: one write each, no read
-                lo, hi = blk * _BLOCK, min((blk + 1) * _BLOCK, n)
+                lo, hi = blk * BLOCK, min((blk + 1) * BLOCK, n)
                 self._arrays[name][lo:hi] = self._mem[name][lo:hi]
         self._dirty.clear()
+
+def _root_attributes(config: Config, plan: SamplePlan, scenario) -> dict:
+    """The root attributes of a new store (see :mod:`.schema`)."""
+    default = DatasetConfig()
+    recorded = dataclasses.replace(config, dataset=dataclasses.replace(config.dataset, workers=default.workers,
+                                                                       scheduler=default.scheduler))
+    return {
+        "schema": SCHEMA, "schema_version": SCHEMA_VERSION,
+        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "versions": package_versions(), "config_toml": config_to_toml(recorded, comments=False),
+        "mesh_fingerprint": scenario.mesh.fingerprint(),
+        "n_samples": plan.n_samples, "n_lbo": plan.n_lbo, "n_test2": plan.n_samples - plan.n_lbo,
+        "split_labels": {str(k): v for k, v in SPLIT_NAMES.items()},
+        "status_labels": {str(k): v for k, v in STATUS_NAMES.items()},
+        "units": {"length": "mm", "force": "N", "stress": "MPa"},
+        "calibration": None, "failures": {},
+        "scenario": json.loads(json.dumps(scenario.summary(), default=float)),
+    }
+
+
+def _put_setup(root, markers, scenario) -> None:
+    """Store the set-up arrays of a new store: mesh, markers, supported vertices, LBO basis
+    and the scenario's arrays."""
+    comp = compressor()
+
+    def put(name, data):
+        data = np.ascontiguousarray(data)
+        chunks = tuple(max(1, d) for d in data.shape) or None  # an empty array still needs a chunk
+        a = root.create_array(name, shape=data.shape, dtype=data.dtype, chunks=chunks, compressors=comp)
+        a[...] = data
+
+    mesh, basis = scenario.mesh, scenario.surface_forces.basis
+    put("mesh/points", np.asarray(mesh.points, dtype=np.float64))
+    put("mesh/tets", np.asarray(mesh.tets, dtype=np.int64))
+    put("markers", np.asarray(markers, dtype=np.int64))
+    put("fixed", np.asarray(scenario.supported, dtype=np.int64))
+    put("lbo/vertices", np.asarray(basis.vertices, dtype=np.int64))
+    put("lbo/vectors", np.asarray(basis.vectors, dtype=np.float64))
+    put("lbo/eigenvalues", np.asarray(basis.eigenvalues, dtype=np.float64))
+    put("lbo/mass", np.asarray(basis.mass, dtype=np.float64))
+    for name, data in scenario.arrays().items():
+        put(f"scenario/{name}", data)
+
+
+def _create_sample_arrays(root, plan: SamplePlan, scenario) -> None:
+    """The per-sample arrays of a new store (the draw arrays when the scenario draws per
+    sample), with the plan's betas, seeds and splits."""
+    comp = compressor()
+    n, nv, nb = plan.n_samples, scenario.mesh.n_vertices, scenario.surface_forces.basis.vectors.shape[1]
+    s = root.create_group("samples")
+    s.create_array("displacements", shape=(n, nv, 3), dtype="float32", chunks=(1, nv, 3),
+                   fill_value=np.nan, compressors=comp, dimension_names=("sample", "vertex", "axis"))
+    s.create_array("forces", shape=(n, nv, 3), dtype="float32", chunks=(1, nv, 3), fill_value=0.0,
+                   compressors=comp, dimension_names=("sample", "vertex", "axis"))
+    s.create_array("weights", shape=(n, nb, 3), dtype="float64", chunks=(BLOCK, nb, 3), fill_value=np.nan,
+                   compressors=comp, dimension_names=("sample", "basis", "axis"))
+    for name, (dtype, fill) in SCALARS.items():
+        s.create_array(name, shape=(n,), dtype=dtype, chunks=(min(BLOCK, n),), fill_value=fill,
+                       compressors=comp, dimension_names=("sample",))
+    tables = ({**DRAWS} if scenario.draws_per_sample else {}) | (PARAMETERS if scenario.uncertain is not None else {})
+    for name, (shape, dtype, fill) in tables.items():
+        s.create_array(name, shape=(n, *shape), dtype=dtype, chunks=(min(BLOCK, n), *shape),
+                       fill_value=fill, compressors=comp, dimension_names=("sample",) + (("axis",) if shape else ()))
+    s["beta"][:] = plan.beta
+    s["seed"][:] = plan.seed
+    s["split"][:] = plan.split
+
+
+# ---------------------------------------------------------------- compatibility of a store
+#: config keys that do not change a data set's numbers (may differ when resuming); the mesh
+#: file may move: its content is checked by fingerprint instead
+_RUNTIME_KEYS = {"dataset": ("store", "workers", "scheduler", "time_budget", "time_budget_min"), "mesh": ("path",)}
+_DATA_SECTIONS = ("mesh", "markers", "material", "solver", "forces", "dataset", "scenario")
+
+
+def data_config(cfg: Config) -> dict:
+    """The part of a config that determines a data set's contents (nested dict)."""
+    d = config_to_dict(cfg)
+    out = {sec: dict(d[sec]) for sec in _DATA_SECTIONS}
+    for sec, keys in _RUNTIME_KEYS.items():
+        for k in keys:
+            out[sec].pop(k, None)
+    return out
+
+
+def _check_config(writer: StoreWriter, cfg: Config) -> None:
+    """Refuse data settings other than the store's (batch settings once its batches are fixed excepted)."""
+    stored = data_config(config_from_dict(tomllib.loads(writer.config_toml)))
+    now = data_config(cfg)
+    if writer.batches is not None:  # the store's own batches decide from here on (.batch)
+        for key in ("batch_size", "batch_memory"):
+            stored["dataset"].pop(key, None)
+            now["dataset"].pop(key, None)
+    diffs = [f"{sec}.{k}: {stored[sec].get(k)!r} in the store, {now[sec].get(k)!r} now"
+             for sec in _DATA_SECTIONS for k in sorted(set(stored[sec]) | set(now[sec]))
+             if stored[sec].get(k) != now[sec].get(k)]
+    if diffs:
+        raise DatasetError(
+            f"data set {str(writer.path)!r} was made with a different configuration ({'; '.join(diffs[:4])}"
+            f"{'; ...' if len(diffs) > 4 else ''}); resume it with its own config (`tissuecast dataset info` shows it) "
+            "or choose another --store path; a store is never overwritten")
+
+
+def _check_mesh(writer: StoreWriter, mesh) -> None:
+    """Refuse a mesh other than the store's (by fingerprint)."""
+    fp = writer.root.attrs.get("mesh_fingerprint")
+    if fp != mesh.fingerprint():
+        raise DatasetError(
+            f"data set {str(writer.path)!r} was made on a different mesh (fingerprint {str(fp)[:12]}..., this mesh "
+            f"{mesh.fingerprint()[:12]}...); use the original mesh or another --store path; a store is never overwritten")
+
+
+def _check_ids(writer: StoreWriter, cfg: Config, markers: np.ndarray, fixed: np.ndarray) -> None:
+    """Refuse markers (with pins) or supported vertices other than the store's."""
+    for what, now in (("markers", markers), ("fixed", fixed)):
+        stored_ids = np.asarray(writer.read(what), dtype=np.int64)
+        if np.array_equal(stored_ids, now):
+            continue
+        if what == "markers" and not cfg.scenario.pins:
+            # without pins the markers do not enter the simulation (pins are chosen around them):
+            # the store keeps the markers it was made with, and the model is trained on those
+            log.warning("data set %r was made with markers %s, this config chooses %s (e.g. a store from a version "
+                        "whose marker rule did not avoid the attached region); the store keeps its own markers",
+                        str(writer.path), stored_ids.tolist(), np.asarray(now).tolist())
+            continue
+        raise DatasetError(
+            f"data set {str(writer.path)!r} has {what} vertices {stored_ids.tolist()} but this config gives "
+            f"{np.asarray(now).tolist()} (e.g. a store from a version with another marker or pin rule), and "
+            f"{'the pins are chosen around the markers' if what == 'markers' else 'the fixed vertices'} change the "
+            "simulated fields: continue it with the tissuecast version that made it, or choose another --store path "
+            "(a store is never overwritten)")
+
+
+def _check_springs(writer: StoreWriter, scenario) -> None:
+    """Warn when a store's springs differ from those its config gives now (a store from a
+    version that lumped P2 springs by ``integral(N_a) dA`` only); its workers go on with the
+    stored springs (:meth:`~.reader.Dataset.recipe`)."""
+    stored = read_scenario_arrays(writer.root)
+    springs = scenario.springs
+    if "spring_nodes" not in stored or springs is None:
+        return
+    if np.array_equal(stored["spring_nodes"], springs.nodes) and np.allclose(stored["spring_stiffness"],
+                                                                            springs.stiffness, rtol=1e-12, atol=0.0):
+        return
+    log.warning("data set %r holds springs other than this config gives (%d nodes, now %d: e.g. made before P2 "
+                "springs were lumped HRZ-style by default); it goes on with its own springs, so its samples stay "
+                "one data set",
+                str(writer.path), len(stored["spring_nodes"]), len(springs.nodes))
+
 
 def _draw_values(draw) -> dict:
     """A :class:`~tissuecast.scenario.ScenarioDraw` as the values of the :data:`DRAWS` arrays."""
@@ -422,30 +428,9 @@ def _draw_values(draw) -> dict:
     if ind is not None:
         out.update(indent_centre=ind.centre, indent_depth=ind.depth, indent_slide=ind.slide,
                    indent_displacement=ind.displacement)
+    if draw.parameters is not None:
+        out.update({f"param_{k}": v for k, v in draw.parameters.record().items()})
     return out
-
-
-def open_root(path: Path):
-    """The store's root Zarr group, read-only, its schema checked.
-
-    Raises:
-        DatasetError: as :func:`~.reader.open_dataset`.
-    """
-    root = _open_root(Path(path), mode="r")
-    check_schema(root, Path(path))
-    return root
-
-
-def _open_root(path: Path, mode: str):
-    zarr = _zarr()
-    if not path.exists():
-        raise DatasetError(f"data set {str(path)!r} does not exist; create it with `tissuecast simulate CONFIG --store {path}`")
-    if not (path / "zarr.json").is_file():
-        raise DatasetError(f"{str(path)!r} is not a Zarr v3 store (no zarr.json); is it a tissuecast data set?")
-    try:
-        return zarr.open_group(zarr.storage.LocalStore(path, read_only=(mode == "r")), mode=mode)
-    except (ValueError, KeyError, OSError, TypeError) as exc:
-        raise DatasetError(f"cannot open data set {str(path)!r}: {exc}") from exc
 
 
 def _remove_partial(tmp: Path) -> None:

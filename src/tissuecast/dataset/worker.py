@@ -1,15 +1,17 @@
-"""Solving one sample: its force field, the nonlinear FEM solve, retries on failure.
+"""Solving one sample: the scenario's inputs of the sample, the nonlinear FEM solve, retries.
 
 Everything a worker process needs travels once, as a :class:`Recipe` (plain arrays read
-back from the store plus the config TOML). Each worker process builds the mesh, the FEM
-problem and its :class:`~tissuecast.fem.Solver` once (:func:`context_for`) and reuses them
-for every sample it is given, so per-sample cost is the solve alone.
+back from the store plus the config TOML). Each worker process rebuilds the data set's
+scenario (:func:`~tissuecast.scenario.restore_scenario`), the FEM problem and its
+:class:`~tissuecast.fem.Solver` once (:func:`context_for`) and reuses them for every sample it
+is given, so per-sample cost is the solve alone.
 
-A sample's result is a pure function of (recipe, task): the force field and the scenario's
-draws (gravity direction, indentation) come from the sample's own seed, the solve starts
-from zero, the task's guess or the recipe's reduced-model prediction, and worker processes
-run their BLAS single-threaded (see :mod:`.executors`). Hence the same sample gives the same
-bits on any worker, in any order, in a first run or after a resume.
+A sample's result is a pure function of (recipe, task): everything that loads it (the force
+field, the scenario's draws: gravity direction, indentation) comes from the scenario given
+the sample's own seed (:meth:`~tissuecast.scenario.Scenario.sample`), the solve starts from
+zero, the task's guess or the recipe's reduced-model prediction, and worker processes run
+their BLAS single-threaded (see :mod:`.executors`). Hence the same sample gives the same bits
+on any worker, in any order, in a first run or after a resume.
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ from .codes import InitialGuess, SampleStatus
 if TYPE_CHECKING:
     from ..forces import LBOBasis
     from ..mesh import TetMesh
+    from ..scenario import SampleInputs, Scenario
 
 __all__ = ["Recipe", "Task", "SampleResult", "SampleContext", "context_for", "solve_task", "retry_solver_config",
            "fem_solver_factory"]
@@ -46,26 +49,24 @@ class Recipe:
     Attributes:
         config_toml: the data set's configuration as TOML text.
         points: (n, 3) float64 mesh vertices, mm.  tets: (m, 4) int64.
-        fixed: (k,) int64 fixed vertex ids.
         basis: the stored :class:`~tissuecast.forces.LBOBasis`.
+        scenario_arrays: the resolved scenario's :meth:`~tissuecast.scenario.Scenario.arrays`,
+            as the store holds them (pins, attached region, springs, materials, indentation
+            access; :func:`~.schema.read_scenario_arrays`).
         solver_factory: ``"module:function"`` building the solver (see :func:`fem_solver_factory`).
         reduced_basis, reduced_elements, reduced_weights: the data set's reduced-order
             predictor (:class:`~tissuecast.fem.reduced.ReducedModel`), or None (solve from zero).
-        scenario: the resolved scenario's :meth:`~tissuecast.scenario.Scenario.arrays` (as the
-            store holds them), or None for the paper's set-up (pins and LBO forces on the
-            vertices): then ``fixed`` are the pins and the solver is the factory's plain one.
     """
 
     config_toml: str
     points: np.ndarray
     tets: np.ndarray
-    fixed: np.ndarray
     basis: "LBOBasis"
+    scenario_arrays: dict
     solver_factory: str = "tissuecast.dataset.worker:fem_solver_factory"
     reduced_basis: np.ndarray | None = None
     reduced_elements: np.ndarray | None = None
     reduced_weights: np.ndarray | None = None
-    scenario: dict | None = None
 
     @property
     def key(self) -> str:
@@ -80,8 +81,8 @@ class Recipe:
         """Content hash of everything but the reduced-order predictor: recipes with the same
         base key have the same problem and solvers (:func:`context_for` keeps them)."""
         h = hashlib.sha256(self.config_toml.encode() + self.solver_factory.encode())
-        extra = [] if self.scenario is None else [a for _, a in sorted(self.scenario.items())]
-        for a in (self.points, self.tets, self.fixed, self.basis.vertices, self.basis.vectors, *extra):
+        scenario = [a for _, a in sorted(self.scenario_arrays.items())]
+        for a in (self.points, self.tets, self.basis.vertices, self.basis.vectors, *scenario):
             h.update(np.ascontiguousarray(a).tobytes())
         return h.hexdigest()
 
@@ -97,16 +98,15 @@ class Recipe:
 
         return TetMesh(self.points, self.tets)
 
-    def problem(self):
-        """The data set's :class:`~tissuecast.fem.Problem` (the scenario's, or the pins')."""
-        from ..fem import build_problem
-
-        mesh, cfg = self.mesh, self.config
-        if self.scenario is None:
-            return build_problem(mesh, cfg, self.fixed)
+    def scenario(self) -> "Scenario":
+        """The data set's scenario, rebuilt from the stored arrays and LBO basis (anew on each call)."""
         from ..scenario import restore_scenario
 
-        return restore_scenario(mesh, cfg, self.scenario).problem(cfg)
+        return restore_scenario(self.mesh, self.config, self.scenario_arrays, self.basis)
+
+    def problem(self):
+        """The data set's :class:`~tissuecast.fem.Problem` (its scenario's)."""
+        return self.scenario().problem(self.config)
 
 
 @dataclass(frozen=True)
@@ -143,8 +143,8 @@ class SampleResult:
         status: :class:`~.codes.SampleStatus` DONE or FAILED.  reason: failure message ('' when done).
         load_fraction: share of the load reached (1.0 when done).
         attempts: solver attempts used (1 + retries used).
-        draw: the sample's scenario draws (:class:`~tissuecast.scenario.ScenarioDraw`), or
-            None (the paper's set-up).
+        draw: the sample's scenario draws (:class:`~tissuecast.scenario.ScenarioDraw`; no
+            gravity change or indentation in the paper's set-up).
         predicted: :class:`~.codes.InitialGuess`: ZERO solved from zero (no reduced model),
             REDUCED_MODEL converged from the reduced model's prediction, GUESS_FAILED the
             initial guess did not work (the reduced problem or the solve from the guess did
@@ -205,47 +205,37 @@ def retry_solver_config(base: SolverConfig, attempt: int) -> SolverConfig:
     )
 
 
-def fem_solver_factory(mesh, fixed: np.ndarray, cfg: Config, scenario=None) -> Callable[[SolverConfig], object]:
+def fem_solver_factory(scenario: "Scenario", cfg: Config) -> Callable[[SolverConfig], object]:
     """The default solver factory: tissuecast's nonlinear neo-Hookean FEM.
 
     Args:
-        mesh, fixed, cfg: the mesh, the fixed vertices (0-based) and the data set's config.
-        scenario: the resolved :class:`~tissuecast.scenario.Scenario` (springs, material
-            regions, its supports), or None for the paper's pins (``fixed``). Factories of
-            other solvers are called without it (paper set-ups only).
+        scenario: the data set's :class:`~tissuecast.scenario.Scenario` (mesh, supports,
+            springs, material regions).
+        cfg: the data set's config (material, element order).
 
     Returns a function mapping solver settings to a reusable ``Solver`` with
-    ``.solve(forces (n,3) N, initial_guess=None, prescribed=None, body_loads=None, time_limit=None)
-    -> SolveResult`` (raising ConvergenceError on failure, SolveTimeout past ``time_limit``
-    seconds); a replacement factory must give solvers with the same call.
+    ``.solve(loads (n_nodes, 3) N, initial_guess=None, prescribed=None, body_loads=None,
+    time_limit=None) -> SolveResult`` (raising ConvergenceError on failure, SolveTimeout past
+    ``time_limit`` seconds); a replacement factory takes the same two arguments and must give
+    solvers with the same call (``prescribed`` and ``body_loads`` are passed only to samples
+    that have them).
     """
-    from ..fem import Solver, build_problem
+    from ..fem import Solver
 
-    problem = build_problem(mesh, cfg, fixed) if scenario is None else scenario.problem(cfg)
+    problem = scenario.problem(cfg)
     return lambda solver_cfg: Solver(problem, solver_cfg)
 
 
 class SampleContext:
-    """Per-process state: mesh, basis, config, scenario and the solvers (one per retry level)."""
+    """Per-process state: config, the data set's scenario and the solvers (one per retry level)."""
 
     def __init__(self, recipe: Recipe):
-        from ..forces import surface_graph_laplacian
-
         self.config = recipe.config
-        self.mesh = recipe.mesh
-        self.fixed = np.asarray(recipe.fixed, dtype=np.int64)
-        self.basis = recipe.basis
-        self.laplacian = surface_graph_laplacian(self.mesh)
-        self.scenario = None
+        self.scenario = recipe.scenario()
+        self.mesh = self.scenario.mesh
         module, _, name = recipe.solver_factory.partition(":")
         factory = getattr(importlib.import_module(module), name)
-        if recipe.scenario is not None:
-            from ..scenario import restore_scenario
-
-            self.scenario = restore_scenario(self.mesh, self.config, recipe.scenario)
-            self._make_solver = factory(self.mesh, self.fixed, self.config, scenario=self.scenario)
-        else:
-            self._make_solver = factory(self.mesh, self.fixed, self.config)
+        self._make_solver = factory(self.scenario, self.config)
         self._solvers: dict[int, object] = {}
         self.base_key = recipe.base_key
         self.reduced = None
@@ -269,47 +259,11 @@ class SampleContext:
             self._solvers[attempt] = self._make_solver(retry_solver_config(self.config.solver, attempt))
         return self._solvers[attempt]
 
-    def forces(self, task: Task) -> tuple[np.ndarray, np.ndarray]:
-        """The sample's nodal forces (n, 3) N and LBO weights (n_b, 3), from its seed alone.
-
-        Random draws from ``default_rng(seed)``, in order: the LBO weights W
-        (``random_lbo_weights``); for test-2 samples then the LSC field (``lsc_field``,
-        scaled to the LBO field's nodal L2 norm), blended as ``beta f_LBO + (1-beta) f_LSC``.
-        A scenario without LBO forces (``scenario.lbo_forces = false``) still draws W (the
-        store records it) but applies no surface field: zero forces.
-        """
-        from ..forces import blend, lbo_field, lsc_field, random_lbo_weights
-
-        rng = np.random.default_rng(np.uint64(task.seed))
-        w = random_lbo_weights(rng, self.basis.n_vectors)
-        f = lbo_field(self.basis, w, task.alpha, self.mesh.n_vertices)
-        if not self.config.scenario.lbo_forces:
-            return np.zeros_like(f), w
-        if not np.isnan(task.beta):
-            fc = self.config.forces
-            f_lsc = lsc_field(self.mesh, rng, n_forces=fc.lsc_points, iterations=fc.lsc_iterations, rate=fc.lsc_rate,
-                              exclude=self.fixed, reference=f, laplacian=self.laplacian)
-            f = blend(f, f_lsc, task.beta)
-        return f, w
-
-    def loads(self, task: Task, forces: np.ndarray):
-        """What the solver gets: ``(loads, solve keywords, draw)``. For the paper's set-up the
-        vertex forces themselves, no keywords and no draw; with a scenario its surface loads on
-        every element node (the field as ``forces.loading`` says), ``body_loads`` (the gravity
-        change) and ``prescribed`` (the indentation patch) as keywords
-        (:meth:`~tissuecast.scenario.Scenario.sample_loads`), and the sample's
-        :class:`~tissuecast.scenario.ScenarioDraw` (from ``scenario_rng(seed)``)."""
-        if self.scenario is None:
-            return forces, {}, None
-        from ..scenario import scenario_rng
-
-        draw = self.scenario.draw(scenario_rng(task.seed))
-        surface, body = self.scenario.sample_loads(draw, forces, self.config.forces.loading)
-        ids, values = self.scenario.prescribed(draw)
-        extra = {"body_loads": body} if draw.body_force is not None else {}
-        if len(ids):
-            extra["prescribed"] = (ids, values)
-        return surface, extra, draw
+    def inputs(self, task: Task) -> "SampleInputs":
+        """Everything the sample of ``task`` is solved with and recorded by, from its seed
+        (:meth:`tissuecast.scenario.Scenario.sample`: its force field, LBO weights, loads on
+        every element node, prescribed displacements and scenario draws)."""
+        return self.scenario.sample(task.seed, task.alpha, task.beta)
 
 
 _CONTEXTS: dict[str, SampleContext] = {}
@@ -369,13 +323,14 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     retry makes a failed result carrying the reason; any other exception propagates.
     """
     ctx = context_for(recipe)
-    forces, weights = ctx.forces(task)
-    loads, extra, draw = ctx.loads(task, forces)
+    inputs = ctx.inputs(task)
+    loads, extra = inputs.surface, inputs.solve_keywords()
+    forces, weights, draw = inputs.forces, inputs.weights, inputs.draw
     t0 = time.perf_counter()
     totals = np.zeros(3, dtype=np.int64)
     reasons = [task.batch_failure] if task.batch_failure else []
     load_fraction = 0.0
-    tries, predicted = _tries(ctx, task, loads + extra.get("body_loads", 0.0))
+    tries, predicted = _tries(ctx, task, inputs.predictor_loads)
     limit = {"time_limit": task.budget} if task.budget > 0 else {}
     stopped_at = 0 if "SolveTimeout" in task.batch_failure else -1  # retry level of the last attempt stopped by the time budget
     for attempt, guess in tries:
@@ -383,6 +338,8 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
             continue  # a stalled sample goes on with its cautious retries only
         try:
             solver = ctx.solver(attempt)
+            if inputs.parameters is not None:  # the sample's own materials and springs
+                solver = solver.with_parameters(*inputs.solver_parameters)
             kw = {**extra, **limit}
             res = solver.solve(loads, **kw) if guess is None else solver.solve(loads, initial_guess=guess, **kw)
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError) as exc:

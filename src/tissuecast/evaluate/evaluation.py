@@ -3,7 +3,10 @@
 Every set shows the learned model (MLP), rigid registration from the same markers (what
 navigation systems do today), the paper's ridge baseline, the PCA floor (the best any
 prediction on the model's PCA basis can do), and the size of the deformations: peak
-displacement and non-rigid part (:func:`tissuecast.registration.nonrigid_part`).
+displacement and non-rigid part (:func:`tissuecast.registration.nonrigid_part`). Next to the
+paper's Offset_mean / Offset_max over all vertices, every method gets the clinic's figures at
+targets inside the tissue (:mod:`.targets`): TRE mean / p95 / max and the share of the
+targets' displacement corrected (:func:`~.metrics.summarize_targets`).
 
 All distances in mm, times in seconds. The inputs of every prediction are the benchmark
 (FEM) displacements of the model's markers, as in the paper.
@@ -17,10 +20,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.stats import rankdata
 
-from ..errors import ModelError
-from .metrics import SetSummary, summarize_offsets
+from ..errors import ModelError, RegistrationError
+from .metrics import SetSummary, TargetSummary, summarize_offsets, summarize_targets, target_errors
 
-__all__ = ["SetResult", "Evaluation", "evaluate_model", "spearman_rows", "SPLITS", "METHODS", "METHOD_LABELS"]
+__all__ = ["SetResult", "Evaluation", "evaluate_model", "method_fields", "spearman_rows", "SPLITS", "METHODS",
+           "PREDICTORS", "METHOD_LABELS"]
 
 #: Samples predicted at once (bounds the memory to chunk x n x 3 floats per method).
 CHUNK = 256
@@ -46,7 +50,32 @@ def spearman_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 #: (the projection of the true field on the model's PCA basis: what no prediction of this
 #: model can beat).
 METHODS = ("mlp", "rigid", "ridge", "pca_floor")
+#: The methods that predict from the markers (the PCA floor needs the true field).
+PREDICTORS = ("mlp", "rigid", "ridge")
 METHOD_LABELS = {"mlp": "MLP", "rigid": "rigid registration", "ridge": "ridge", "pca_floor": "PCA floor"}
+
+
+def method_fields(model, marker_displacements: np.ndarray, methods=PREDICTORS) -> dict:
+    """The fields each predictor gives from the same marker displacements.
+
+    The one place evaluation calls the model's predictors (``model.predict(..., method=m)``).
+
+    Args:
+        model: a fitted DeformationModel.
+        marker_displacements: (B, n_d, 3) float, mm.
+        methods: names among :data:`PREDICTORS`.
+
+    Returns:
+        ``{method: (B, n, 3) float64 mm}``; rigid registration is None when the markers cannot
+        define one (fewer than 3, or collinear).
+    """
+    out = {}
+    for m in methods:
+        try:
+            out[m] = np.asarray(model.predict(marker_displacements, method=m), dtype=np.float64)
+        except RegistrationError:
+            out[m] = None
+    return out
 
 
 @dataclass(eq=False)
@@ -67,6 +96,9 @@ class SetResult:
         sigma_spearman: (k,) per-sample Spearman correlation of predicted uncertainty and
             true vertex error (ensembles only, else empty).
         sigma_max: (k,) largest per-vertex uncertainty per sample, mm (ensembles only).
+        tre: {method: (k, 3) float64 [mean, p95, max] of the target errors per sample, mm}
+            (NaN rows where a method could not predict).
+        target_displacement: (k,) mean true displacement of the targets per sample, mm.
     """
 
     name: str
@@ -77,11 +109,19 @@ class SetResult:
     nonrigid: np.ndarray
     sigma_spearman: np.ndarray = field(default_factory=lambda: np.zeros(0))
     sigma_max: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    tre: dict = field(default_factory=dict)
+    target_displacement: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def summary(self, method: str) -> SetSummary:
         """Offsets of ``method`` (one of :data:`METHODS`) summarised over the set."""
         o = self.offsets[method]
         return summarize_offsets(o[:, 0], o[:, 1])
+
+    def target_summary(self, method: str) -> TargetSummary | None:
+        """Errors at the targets of ``method`` over the set (None without targets)."""
+        if method not in self.tre:
+            return None
+        return summarize_targets(self.tre[method], self.target_displacement)
 
     @property
     def mlp(self) -> SetSummary:
@@ -116,7 +156,8 @@ class SetResult:
         pick = lambda a: a[keep] if a.size else a  # noqa: E731
         return SetResult(name, self.indices[keep], self.beta[keep], {k: v[keep] for k, v in self.offsets.items()},
                          self.max_displacement[keep], self.nonrigid[keep], pick(self.sigma_spearman),
-                         pick(self.sigma_max))
+                         pick(self.sigma_max), {k: v[keep] for k, v in self.tre.items()},
+                         pick(self.target_displacement))
 
     def deformation(self) -> dict:
         """Size of the deformations (mm): peak displacement and non-rigid part, median / p90 /
@@ -134,6 +175,8 @@ class SetResult:
         d = {"name": self.name, "count": int(self.indices.size)}
         d.update({m: self.summary(m).as_dict() for m in METHODS})
         d["gain_over_rigid"] = self.gain_over_rigid
+        if self.tre:
+            d["targets"] = {m: self.target_summary(m).as_dict() for m in self.tre}
         d["deformation"] = self.deformation()
         if self.sigma_spearman.size:
             d["uncertainty"] = {
@@ -152,6 +195,7 @@ class Evaluation:
     by_beta: list
     predict_seconds: dict
     model_summary: dict
+    targets: object = None
 
     def as_dict(self) -> dict:
         return {
@@ -159,6 +203,7 @@ class Evaluation:
             "by_beta": [{"beta": b, **r.as_dict()} for b, r in self.by_beta],
             "predict_seconds": self.predict_seconds,
             "model": self.model_summary,
+            "targets": self.targets.as_dict() if self.targets is not None else None,
         }
 
     def samples_table(self) -> list[dict]:
@@ -171,6 +216,11 @@ class Evaluation:
                 for m in METHODS:
                     row[f"{m}_offset_mean"] = float(r.offsets[m][i, 0])
                     row[f"{m}_offset_max"] = float(r.offsets[m][i, 1])
+                for m, t in r.tre.items():
+                    row.update({f"{m}_tre_mean": float(t[i, 0]), f"{m}_tre_p95": float(t[i, 1]),
+                                f"{m}_tre_max": float(t[i, 2])})
+                if r.target_displacement.size:
+                    row["target_displacement_mean"] = float(r.target_displacement[i])
                 if r.sigma_spearman.size:
                     row["sigma_spearman"] = float(r.sigma_spearman[i])
                     row["sigma_max"] = float(r.sigma_max[i])
@@ -184,40 +234,41 @@ def _offsets(pred: np.ndarray, bench: np.ndarray) -> np.ndarray:
     return np.stack([e.mean(axis=1), e.max(axis=1)], axis=1)
 
 
-def _rigid_offsets(model, d: np.ndarray, bench: np.ndarray) -> np.ndarray:
-    """Offsets of rigid registration; NaN when the markers cannot define one (< 3, collinear)."""
-    from ..errors import RegistrationError
-
-    try:
-        return _offsets(model.predict_rigid(d), bench)
-    except RegistrationError:
-        return np.full((len(bench), 2), np.nan)
-
-
-def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: str, chunk: int = CHUNK) -> SetResult:
+def _chunk(model, bench: np.ndarray, targets, unc: bool) -> dict:
+    """Per-sample figures of one chunk of true fields (B, n, 3) mm: offsets and TRE of every
+    method, peak displacement, non-rigid part, and the ensemble's spread against the error."""
     from ..registration import nonrigid_part
 
-    parts = {k: [] for k in (*METHODS, "md", "nr", "ss", "sm")}
-    unc = model.ensemble_size > 1
-    points = model.mesh.points
+    d = model.marker_displacements(bench)
+    fields = method_fields(model, d)
+    fields["pca_floor"] = model.pca_projection(bench)
+    out = {m: _offsets(f, bench) if f is not None else np.full((len(bench), 2), np.nan) for m, f in fields.items()}
+    out["md"] = np.linalg.norm(bench, axis=2).max(axis=1)
+    out["nr"] = nonrigid_part(model.mesh.points, bench)
+    if targets is not None:
+        true_t = targets.displacements(bench)
+        out["td"] = np.linalg.norm(true_t, axis=2).mean(axis=1)
+        nan = np.full((len(bench), 3), np.nan)
+        for m, f in fields.items():
+            out[f"tre_{m}"] = target_errors(targets.displacements(f), true_t) if f is not None else nan
+    if unc:
+        sigma = model.predict_with_uncertainty(d)[1]
+        out["ss"] = spearman_rows(sigma, np.linalg.norm(fields["mlp"] - bench, axis=2))
+        out["sm"] = sigma.max(axis=1)
+    return out
+
+
+def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: str, targets=None,
+                chunk: int = CHUNK) -> SetResult:
+    parts: dict = {}
     for s in range(0, idx.size, chunk):
-        bench = np.asarray(U[idx[s:s + chunk]], dtype=np.float64)
-        d = model.marker_displacements(bench)
-        if unc:
-            pred, sigma = model.predict_with_uncertainty(d)
-        else:
-            pred = model.predict(d)
-        parts["mlp"].append(_offsets(pred, bench))
-        parts["rigid"].append(_rigid_offsets(model, d, bench))
-        parts["ridge"].append(_offsets(model.predict_ridge(d), bench))
-        parts["pca_floor"].append(_offsets(model.pca_projection(bench), bench))
-        parts["md"].append(np.linalg.norm(bench, axis=2).max(axis=1))
-        parts["nr"].append(nonrigid_part(points, bench))
-        if unc:
-            parts["ss"].append(spearman_rows(sigma, np.linalg.norm(pred - bench, axis=2)))
-            parts["sm"].append(sigma.max(axis=1))
-    cat = lambda k: np.concatenate(parts[k]) if parts[k] else np.zeros(0)  # noqa: E731
-    return SetResult(name, idx, beta, {m: cat(m) for m in METHODS}, cat("md"), cat("nr"), cat("ss"), cat("sm"))
+        for k, v in _chunk(model, np.asarray(U[idx[s:s + chunk]], dtype=np.float64), targets,
+                           model.ensemble_size > 1).items():
+            parts.setdefault(k, []).append(v)
+    cat = lambda k: np.concatenate(parts[k]) if k in parts else np.zeros(0)  # noqa: E731
+    tre = {m: cat(f"tre_{m}") for m in METHODS} if targets is not None else {}
+    return SetResult(name, idx, beta, {m: cat(m) for m in METHODS}, cat("md"), cat("nr"), cat("ss"), cat("sm"), tre,
+                     cat("td"))
 
 
 def _timing(model, U, idx, repeats: int = TIMING_REPEATS) -> dict:
@@ -242,15 +293,23 @@ def _scenario(model, dataset) -> dict | None:
     return dict(recorded) if recorded else getattr(dataset, "scenario", None)
 
 
-def evaluate_model(model, dataset, splits=("valid", "test1", "test2")) -> Evaluation:
-    """Offsets of the MLP, its baselines and the PCA floor on the converged samples of each split.
+def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, targets=None) -> Evaluation:
+    """Offsets and target errors of the MLP, its baselines and the PCA floor on the converged
+    samples of each split.
 
     Args:
         model: a fitted :class:`~tissuecast.surrogate.DeformationModel` on the data set's mesh.
         dataset: a :class:`tissuecast.dataset.Dataset` (or any object with ``displacements``,
             ``beta``, ``mesh`` and ``select(split, status)``).
         splits: which splits to evaluate ('train', 'valid', 'test1', 'test2').
+        targets: where TRE is measured (:class:`~.targets.Targets` on the model's mesh);
+            default the interior rule (:func:`~.targets.interior_targets`, away from the
+            vertices the supports hold).
     """
+    from .targets import interior_targets
+
+    if targets is None:
+        targets = interior_targets(model.mesh, exclude=model.fixed)
     if model.n_vertices != dataset.mesh.n_vertices or model.mesh.fingerprint() != dataset.mesh.fingerprint():
         raise ModelError("the model was trained on another mesh than this data set's; evaluate it on its own data set")
     U = dataset.displacements
@@ -260,7 +319,7 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2")) -> Evalua
         idx = np.asarray(dataset.select(name, status="done"), dtype=np.int64)
         if idx.size == 0:
             continue
-        sets[name] = _set_result(model, U, idx, beta[idx], name)
+        sets[name] = _set_result(model, U, idx, beta[idx], name, targets)
     if "test2" in sets:
         t2 = sets["test2"]
         for b in np.unique(t2.beta[np.isfinite(t2.beta)]):
@@ -271,4 +330,5 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2")) -> Evalua
     summary = {"n_components": model.n_components, "markers": model.markers.tolist(), "ensemble": model.ensemble_size,
                "hidden": list(model.members_[0].hidden), "pca": choice, "training": getattr(model, "training_", None),
                "scenario": _scenario(model, dataset)}
-    return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=_timing(model, U, timing_idx), model_summary=summary)
+    return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=_timing(model, U, timing_idx), model_summary=summary,
+                      targets=targets)

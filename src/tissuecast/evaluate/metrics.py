@@ -1,9 +1,15 @@
-"""Accuracy metrics of predicted displacement fields (the paper's Offset_mean / Offset_max).
+"""Accuracy metrics of predicted displacement fields (the paper's Offset_mean / Offset_max, and TRE).
 
 For one sample with benchmark (FEM) displacements ``u_bench (n, 3)`` and prediction
 ``u_pred (n, 3)``, the vertex error is ``e_i = ||u_bench_i - u_pred_i||`` (mm). The paper's
 metrics are ``Offset_mean = mean_i e_i`` and ``Offset_max = max_i e_i`` over all n vertices
 (comparing deformed positions x = X + u is the same thing since X cancels).
+
+The clinic's metrics are read at k targets inside the tissue (:mod:`.targets`): the target
+registration error ``TRE_j = ||u_bench(t_j) - u_pred(t_j)||`` per target, summarised per
+sample by its mean, 95th percentile and maximum over the targets, and the **share of the
+targets' displacement corrected** ``1 - mean_j TRE_j / mean_j ||u_bench(t_j)||`` (1 = every
+target where it truly is; 0 = no better than assuming no motion; negative = worse).
 """
 
 from __future__ import annotations
@@ -14,7 +20,8 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["vertex_errors", "offset_mean", "offset_max", "SetSummary", "summarize", "summarize_offsets", "PERCENTILES"]
+__all__ = ["vertex_errors", "offset_mean", "offset_max", "SetSummary", "summarize", "summarize_offsets", "PERCENTILES",
+           "target_errors", "share_corrected", "TargetSummary", "summarize_targets"]
 
 PERCENTILES = (50.0, 90.0, 95.0, 99.0)
 
@@ -118,4 +125,80 @@ def summarize_offsets(offset_means, offset_maxes, *, threshold: float = 1.0, per
         worst_offset_max=float(ox.max()),
         share_below=float(np.mean(ox < threshold)),
         threshold=float(threshold),
+    )
+
+
+def target_errors(predicted, benchmark) -> np.ndarray:
+    """Per-sample TRE statistics from target displacements.
+
+    Args:
+        predicted: (B, k, 3) float, predicted displacement at the k targets, mm.
+        benchmark: (B, k, 3) float, true displacement there, mm.
+
+    Returns:
+        (B, 3) float64 [mean, p95, max] of the k target errors per sample, mm.
+    """
+    e = vertex_errors(predicted, benchmark)
+    if e.ndim != 2 or e.shape[1] == 0:
+        raise ModelError(f"target displacements must be (B, k, 3) with k >= 1, got {np.shape(predicted)}")
+    return np.stack([e.mean(axis=1), np.percentile(e, 95, axis=1), e.max(axis=1)], axis=1)
+
+
+def share_corrected(tre_mean, displacement_mean) -> np.ndarray:
+    """``1 - TRE / |u|`` per sample: (B,) mean TRE and (B,) mean true target displacement, mm -> (B,);
+    NaN where the targets did not move."""
+    t = np.asarray(tre_mean, dtype=np.float64)
+    u = np.asarray(displacement_mean, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(u > 0, 1.0 - t / np.where(u > 0, u, 1.0), np.nan)
+
+
+@dataclass(frozen=True)
+class TargetSummary:
+    """Errors at the targets over a set of samples (lengths in mm, shares 0..1).
+
+    Attributes:
+        count: number of samples.
+        tre_mean, tre_p95, tre_max: per-sample mean / 95th percentile / largest target error,
+            averaged over the samples.
+        worst_tre_max: largest target error in the set.
+        share_corrected_mean: mean over samples of the share of the targets' displacement
+            corrected (NaN samples, whose targets did not move, left out).
+        share_corrected_worst: its smallest value over the samples.
+        target_displacement: mean over samples of the targets' mean true displacement.
+    """
+
+    count: int
+    tre_mean: float
+    tre_p95: float
+    tre_max: float
+    worst_tre_max: float
+    share_corrected_mean: float
+    share_corrected_worst: float
+    target_displacement: float
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def summarize_targets(tre, displacement_mean) -> TargetSummary:
+    """Summary of per-sample TRE rows (B, 3) [mean, p95, max] mm and the targets' mean true
+    displacement (B,) mm. Samples whose TRE is NaN (a baseline that could not predict) are left out."""
+    t = np.asarray(tre, dtype=np.float64).reshape(-1, 3)
+    u = np.asarray(displacement_mean, dtype=np.float64).ravel()
+    ok = np.isfinite(t).all(axis=1)
+    if not ok.any():
+        nan = float("nan")
+        return TargetSummary(int(len(t)), nan, nan, nan, nan, nan, nan, float(np.mean(u)) if u.size else nan)
+    share = share_corrected(t[ok, 0], u[ok])
+    has = np.isfinite(share)
+    return TargetSummary(
+        count=int(len(t)),
+        tre_mean=float(t[ok, 0].mean()),
+        tre_p95=float(t[ok, 1].mean()),
+        tre_max=float(t[ok, 2].mean()),
+        worst_tre_max=float(t[ok, 2].max()),
+        share_corrected_mean=float(share[has].mean()) if has.any() else float("nan"),
+        share_corrected_worst=float(share[has].min()) if has.any() else float("nan"),
+        target_displacement=float(u.mean()),
     )

@@ -54,12 +54,17 @@ def train_from_store(config: Config, store, *, model_folder=None, onnx: bool = T
 
 
 def evaluate_and_report(model, dataset, folder, *, renders: int = EvaluateConfig.renders, studies_folder=None,
-                        title="tissuecast report"):
-    """Evaluate on valid/test-1/test-2 and write the report; returns ``(evaluation, index.html path)``."""
+                        title="tissuecast report", targets=None):
+    """Evaluate on valid/test-1/test-2 and write the report; returns ``(evaluation, index.html path)``.
+
+    ``targets``: where TRE is measured (:class:`~.targets.Targets`); default the targets of
+    the config the model was trained with (:func:`~.targets.model_targets`).
+    """
     from .evaluation import evaluate_model
     from .report import write_report
+    from .targets import model_targets
 
-    evaluation = evaluate_model(model, dataset)
+    evaluation = evaluate_model(model, dataset, targets=targets if targets is not None else model_targets(model))
     index = write_report(folder, model, dataset, evaluation, renders=renders, studies_folder=studies_folder, title=title)
     return evaluation, index
 
@@ -85,8 +90,10 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
     model, ds = train_from_store(config, paths.store, model_folder=paths.model)
     seconds["train"] = time.perf_counter() - t
     t = time.perf_counter()
+    from .targets import model_targets
+
     evaluation, index = evaluate_and_report(model, ds, paths.report, renders=config.evaluate.renders,
-                                            title=f"tissuecast: {config.name}")
+                                            title=f"tissuecast: {config.name}", targets=model_targets(model, config))
     seconds["evaluate"] = time.perf_counter() - t
     return {"paths": paths, "dataset": summary, "model": model, "evaluation": evaluation, "report": index, "seconds": seconds}
 

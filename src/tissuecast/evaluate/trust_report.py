@@ -7,11 +7,14 @@ their sharpness (median bound, mm), how well the bounds rank the errors (Spearma
 sample, the largest bound against Offset_max; per vertex within each sample, averaged), the
 share of samples raising the alarm, and the reliability diagram on test-1. The inputs are
 the benchmark (FEM) marker displacements, as in :mod:`.evaluation`.
+
+In the report these are the uncertainty story (:func:`uncertainty_section`): the bounds are
+calibrated lengths with a coverage, so they are what the page states; the ensemble's spread
+(how much its networks disagree) only ranks errors and is shown as a detail of it.
 """
 
 from __future__ import annotations
 
-import html
 import json
 from pathlib import Path
 
@@ -20,8 +23,9 @@ from scipy.stats import spearmanr
 
 from ..surrogate.conformal import reliability_curve
 from .evaluation import spearman_rows
+from .headline import DASH, beta_table, fmt_mm, fmt_share, html_table, set_title
 
-__all__ = ["bound_figures", "trust_evaluation", "reliability_figure", "trust_section", "LEVELS"]
+__all__ = ["bound_figures", "trust_evaluation", "reliability_figure", "uncertainty_section", "LEVELS"]
 
 #: Nominal coverages reported.
 LEVELS = (0.9, 0.95)
@@ -43,6 +47,7 @@ def bound_figures(model, bench: np.ndarray, levels=LEVELS) -> dict:
                                       else float("nan"))
             row["vertex_spearman"] = float(spearman_rows(tp.error_bound, e).mean())
             row["alarm_rate"] = float(np.mean([a.raised for a in tp.alarms]))
+            row["alarm_on"] = bool(np.isfinite(tp.alarms[0].distance_threshold))  # off: too few calibration samples
     return row
 
 
@@ -94,26 +99,64 @@ def reliability_figure(result: dict, path: Path) -> Path:
     return _save(fig, path)
 
 
-def trust_section(model, dataset, folder: Path) -> str:
-    """HTML of the report's bounds-and-alarm section; writes ``trust.json`` and ``reliability.png``."""
-    result = trust_evaluation(model, dataset)
-    folder = Path(folder)
-    (folder / "trust.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
-    head = ["set", "samples", "mean Offset_max", "coverage 90 %", "median bound 90 % (mm)", "coverage 95 %",
-            "median bound 95 % (mm)", "Spearman(max bound, Offset_max)", "per-vertex Spearman", "alarms (%)"]
+def _bounds_table(result: dict) -> str:
+    head = ["set", "samples", "mean Offset_max", "covered at 90 %", "median bound 90 %", "covered at 95 %",
+            "median bound 95 %", "Spearman (largest bound, Offset_max)", "per-vertex Spearman", "alarms"]
+    rows = [[set_title(name), str(r["count"]), fmt_mm(r["offset_max"]), fmt_share(r["coverage_0.9"]),
+             fmt_mm(r["median_bound_0.9"]), fmt_share(r["coverage_0.95"]), fmt_mm(r["median_bound_0.95"]),
+             _fmt_rho(r["sample_spearman"]), _fmt_rho(r["vertex_spearman"]),
+             fmt_share(r["alarm_rate"]) if r.get("alarm_on", True) else "off"]
+            for name, r in result["sets"].items()]
+    return beta_table(head, rows)
+
+
+def _fmt_rho(v) -> str:
+    return DASH if v is None or v != v else f"{v:.2f}"
+
+
+def _spread_html(evaluation) -> str:
+    """The ensemble's spread as a detail of the uncertainty story (empty without an ensemble)."""
     rows = []
-    for name, r in result["sets"].items():
-        rows.append([html.escape(name), str(r["count"]), f"{r['offset_max']:.3f}", f"{100 * r['coverage_0.9']:.1f} %",
-                     f"{r['median_bound_0.9']:.3f}", f"{100 * r['coverage_0.95']:.1f} %", f"{r['median_bound_0.95']:.3f}",
-                     f"{r['sample_spearman']:.3f}", f"{r['vertex_spearman']:.3f}", f"{100 * r['alarm_rate']:.1f}"])
-    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in rows)
-    t = model.trust_
-    parts = ["<h2>Error bounds and out-of-distribution alarm</h2>",
-             f"<p>Split-conformal per-vertex bounds calibrated on {t.conformal.n_calibration} samples held out from "
-             f"training; alarm threshold for {100 * t.false_alarm:g} % false alarms. Coverage: share of vertices whose "
-             "error is within their bound (should match the nominal level on test-1; test-2 is out of distribution).</p>",
-             "<table><tr>" + "".join(f"<th>{html.escape(h)}</th>" for h in head) + f"</tr>{body}</table>"]
-    if result["reliability"]:
-        png = reliability_figure(result, folder / "reliability.png")
-        parts.append(f"<h3>Reliability diagram (test-1)</h3><img src='{png.name}' alt='reliability diagram'>")
+    for name, r in evaluation.sets.items():
+        u = r.as_dict().get("uncertainty")
+        if u:
+            rows.append([set_title(name), _fmt_rho(u["vertex_spearman_mean"]),
+                         _fmt_rho(u["sample_spearman_sigma_max_vs_offset_max"])])
+    if not rows:
+        return ""
+    return ("<details><summary>The ensemble's spread (a detail)</summary><p>How much the networks of the ensemble "
+            "disagree (σ per vertex) ranks where the model errs, but it is not a length the error stays under: it "
+            "carries no coverage, so the calibrated bounds above are the figures to act on.</p>"
+            + html_table(["set", "per-sample Spearman (σ, vertex error), mean", "Spearman (largest σ, Offset_max)"], rows)
+            + "</details>")
+
+
+def uncertainty_section(model, evaluation, result: dict | None, folder: Path) -> str:
+    """HTML of the report's "how sure" section: the calibrated error bounds and the alarm, with the
+    ensemble's spread as a detail; writes ``trust.json`` and ``reliability.png`` (calibrated models).
+
+    Args:
+        model: the evaluated model.
+        evaluation: its :class:`~.evaluation.Evaluation`.
+        result: :func:`trust_evaluation`'s figures, or None for a model without a trust layer.
+        folder: the report folder.
+    """
+    parts = ["<details><summary><h2>How sure: error bounds and alarm</h2></summary>"]
+    if result is None:
+        parts.append("<p>This model has no calibrated error bounds and no out-of-distribution alarm: it was trained with "
+                     "<code>surrogate.calibration_share = 0</code>. Re-train with a share above 0 to get both.</p>")
+    else:
+        Path(folder, "trust.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
+        t = model.trust_
+        parts.append(f"<p>Every vertex gets an error bound: the error stays below it with the nominal probability "
+                     f"(split-conformal, calibrated on {t.conformal.n_calibration} samples held out from training). "
+                     f"Covered: the share of vertices whose error is within their bound; it should match the nominal "
+                     f"level on test-1 (test-2's force fields were never trained on). The alarm flags inputs unlike the "
+                     f"training data, at {fmt_share(t.false_alarm)} false alarms.</p>")
+        parts.append(_bounds_table(result))
+        if result["reliability"]:
+            png = reliability_figure(result, Path(folder) / "reliability.png")
+            parts.append(f"<h3>Reliability diagram (test-1)</h3><img src='{png.name}' alt='reliability diagram'>")
+    parts.append(_spread_html(evaluation))
+    parts.append("</details>")
     return "".join(parts)

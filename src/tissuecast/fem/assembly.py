@@ -20,6 +20,7 @@ positions the element pattern already has (:class:`~.springs.SpringAssembly`).
 
 from __future__ import annotations
 
+import copy
 import os
 
 import numpy as np
@@ -120,6 +121,27 @@ class Assembler:
         self.backend = _backend(backend, material)
         self.element_constants = _element_constants(material, m)
         self.springs = SpringAssembly(springs, self) if springs is not None and len(springs) else None
+
+    def with_parameters(self, material=None, springs: NodalSprings | None = None) -> "Assembler":
+        """This assembler with other material constants and/or spring stiffnesses (a sample's
+        drawn parameters): the mesh, quadrature, free dofs and CSR pattern are shared, so the
+        tangent's symbolic factorisation stays valid.
+
+        Args:
+            material: a :class:`~.material.NeoHookean` or :class:`~.material.NeoHookeanField`
+                (m elements), or None to keep this one's.
+            springs: springs at the same nodes as this assembler's, or None to keep them.
+        """
+        out = copy.copy(self)
+        if material is not None:
+            out.material = material
+            out.backend = _backend(self.backend, material)
+            out.element_constants = _element_constants(material, len(self.connectivity))
+        if springs is not None:
+            if self.springs is None:
+                raise SolverSetupError("with_parameters: this assembler has no springs to change")
+            out.springs = self.springs.with_stiffness(springs)
+        return out
 
     # ----------------------------------------------------------------- kinematics
     def deformation_gradient(self, u: np.ndarray) -> np.ndarray:

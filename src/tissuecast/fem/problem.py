@@ -29,7 +29,7 @@ from ..errors import SolverSetupError
 from ..mesh.tetmesh import TetMesh
 from .material import NeoHookean, NeoHookeanField
 from .springs import NodalSprings
-from .supports import free_rigid_motions
+from .rigid_motions import free_rigid_motions
 
 __all__ = ["Problem", "check_forces", "build_problem"]
 

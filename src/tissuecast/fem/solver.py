@@ -46,6 +46,7 @@ Design, measurements and the history of what was tried: ``docs/solver.md``.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 
@@ -101,6 +102,28 @@ class Solver:
         self._reference: LinearSolver | bool | None = None  # stiffness at u = 0, factorised on first use
         self._idle_factors: list[LinearSolver] = []  # numeric factors no run holds now
 
+    def with_parameters(self, materials=None, springs=None) -> "Solver":
+        """This solver for the same problem with other material constants and/or spring
+        stiffnesses (a sample's drawn parameters, :mod:`tissuecast.scenario.parameters`).
+
+        The nodes, supports, sparsity pattern and symbolic factorisation are shared, and so is
+        the reference factorisation (the stiffness at zero of this solver's own parameters):
+        it only preconditions, so solves still converge to the new parameters' equilibrium.
+
+        Args:
+            materials: a :class:`~.material.NeoHookeanField` of the problem's m elements, or None.
+            springs: :class:`~.springs.NodalSprings` at the problem's spring nodes, or None.
+        """
+        if materials is None and springs is None:
+            return self
+        if self.config.strategy == "krylov" and self.config.reference_preconditioner:
+            self.reference_factor()  # factorised once, here, and shared by every view
+        out = copy.copy(self)
+        changes = {k: v for k, v in (("materials", materials), ("springs", springs)) if v is not None}
+        out.problem = dataclasses.replace(self.problem, **changes)
+        out.assembler = self.assembler.with_parameters(materials, springs)
+        return out
+
     # ------------------------------------------------------------------ solves
     def solve(self, forces: np.ndarray, initial_guess: np.ndarray | None = None, *, prescribed=None,
               body_loads=None, time_limit: float | None = None) -> SolveResult:
@@ -146,7 +169,7 @@ class Solver:
                       time_limit)
 
     def solve_batch(self, forces, initial_guesses=None, prescribed=None, body_loads=None, *,
-                    time_limit: float | None = None) -> list:
+                    time_limit: float | None = None, parameters=None) -> list:
         """Solve several force fields together, their triangular solves gathered.
 
         The samples are solved in lockstep: each round advances every unfinished sample to
@@ -170,6 +193,9 @@ class Solver:
                 guesses as for :meth:`solve`.
             prescribed, body_loads: None, or sequences of the same length of per-solve
                 prescribed displacements and body loads as for :meth:`solve` (entries may be None).
+            parameters: None, or a sequence of the same length of ``(materials, springs)``
+                pairs (entries may be None): each sample solved by :meth:`with_parameters`
+                of them (its drawn parameters); the reference factorisation stays shared.
             time_limit: optional wall-clock limit per sample, s. Each round's wall time is
                 shared out among the samples active in it; a sample whose share passes the
                 limit is stopped at its next preconditioner application and gets a
@@ -198,12 +224,15 @@ class Solver:
         if len(held) != len(forces) or len(body) != len(forces):
             raise SolverSetupError(f"prescribed / body_loads have {len(held)} / {len(body)} entries for {len(forces)} "
                                    "force fields; give one per field (None for none)")
+        views = [self] * len(forces) if parameters is None else [self.with_parameters(*p) for p in parameters]
+        if len(views) != len(forces):
+            raise SolverSetupError(f"parameters has {len(views)} entries for {len(forces)} force fields")
         loads = [self._external_forces(f, b) for f, b in zip(forces, body)]
         guesses = [self._nodal_guess(g) for g in guesses]
         held = [self.problem.solve_constraints(p) for p in held]
         t0 = time.perf_counter()
-        out = _drive_lockstep([SolveRun(self, fext, g, held=h, counted=c).steps()
-                               for (fext, c), g, h in zip(loads, guesses, held)], time_limit)
+        out = _drive_lockstep([SolveRun(v, fext, g, held=h, counted=c).steps()
+                               for v, (fext, c), g, h in zip(views, loads, guesses, held)], time_limit)
         share = (time.perf_counter() - t0) / max(len(forces), 1)
         return [dataclasses.replace(r, seconds=share) if isinstance(r, SolveResult) else r for r in out]
 

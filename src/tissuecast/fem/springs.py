@@ -4,11 +4,13 @@ Each spring holds one node with a constant symmetric 3x3 stiffness ``K_a`` (N/mm
 reference directions: force ``-K_a u_a``, energy ``u_a . K_a u_a / 2``. CalculiX's SPRING1
 elements behave the same way under NLGEOM (one per principal direction of ``K_a``, oriented by
 ``*SPRING, ORIENTATION``), so a deck written from these springs describes the same discrete
-problem. :mod:`tissuecast.scenario.springs` builds them from a stiffness per unit area of a
+problem. :mod:`tissuecast.scenario.elastic_support` builds them from a stiffness per unit area of a
 surface region.
 """
 
 from __future__ import annotations
+
+import copy
 
 from dataclasses import dataclass
 
@@ -119,7 +121,18 @@ class SpringAssembly:
         if np.any(keys[np.minimum(pos, len(keys) - 1)] != want):  # pragma: no cover - a node's block is always there
             raise SolverSetupError("a spring's 3x3 block is not in the stiffness pattern")
         self.positions = pos
+        self._keep = keep
         self.values = springs.stiffness.reshape(-1)[keep]
+
+    def with_stiffness(self, springs: NodalSprings) -> "SpringAssembly":
+        """The same nodes with other stiffnesses (``springs.nodes`` must be this one's): the
+        positions found once are kept."""
+        if not np.array_equal(springs.nodes, self.springs.nodes):
+            raise SolverSetupError("with_stiffness: the springs must act at the same nodes")
+        out = copy.copy(self)
+        out.springs = springs
+        out.values = springs.stiffness.reshape(-1)[self._keep]
+        return out
 
     def add_tangent(self, data: np.ndarray) -> np.ndarray:
         """CSR stiffness data (nnz,) N/mm with the springs added (in place; returned)."""

@@ -10,8 +10,19 @@ the same displacement
     d = depth (-n_c) + slide (cos phi t_1 + sin phi t_2),
 
 ``n_c`` the centre's outward normal and ``t_1, t_2`` a tangent frame there: a rigid,
-non-slipping tool face pressed in and dragged along. The solver reaches it in proportion to
-the load fraction, like every load.
+non-slipping tool face pressed in and dragged along (``tool = "flat"``). A flat punch's rim is
+a singularity of the elastic field (the strain there grows without bound as the mesh is
+refined), so quadratic elements meet elements squeezed to J ~ 0.3 at the rim. With
+``tool = "rounded"`` the instrument is a ball-ended tip of radius ``R`` (``tool_radius``): as
+in Hertz's contact of a sphere, the surface is in contact within ``a = sqrt(R depth)`` of the
+centre and follows the tip there, a patch vertex at distance ``r`` from the centre (in the
+tangent plane) moving by
+
+    d(r) = (depth - r^2 / (2 R)) (-n_c) + slide (cos phi t_1 + sin phi t_2),
+
+so the push falls smoothly to half the depth at the contact's rim (at least
+:data:`PATCH_MIN_VERTICES` vertices, the nearest, are always in contact). The solver reaches
+the displacements in proportion to the load fraction, like every load.
 
 Draws (from the sample's scenario generator, in this order): the centre (``rng.choice`` with
 area weights), the depth (``rng.uniform(*depth)``), the slide (``rng.uniform(*slide)``) and its
@@ -29,8 +40,8 @@ from ..errors import ConfigError
 from ..mesh.tetmesh import TetMesh
 from ..mesh.surface import lumped_areas
 
-__all__ = ["Indentation", "IndentationSites", "indentation_sites", "draw_indentation", "PATCH_MIN_VERTICES",
-           "PATCH_FACING_COS"]
+__all__ = ["Indentation", "IndentationSites", "indentation_sites", "draw_indentation", "contact_profile",
+           "PATCH_MIN_VERTICES", "PATCH_FACING_COS"]
 
 #: A patch holds at least this many vertices (fewer would be a point load, singular in 3-D).
 PATCH_MIN_VERTICES = 3
@@ -45,10 +56,12 @@ class Indentation:
 
     Attributes:
         centre: vertex id of the patch centre.
-        vertices: (p,) int64 sorted ids of the patch vertices.
-        displacement: (3,) float, mm, the displacement every patch vertex is given.
+        vertices: (p,) int64 sorted ids of the patch vertices (those in contact).
+        displacement: (3,) float, mm, the tool tip's displacement (the centre's).
         depth: mm along the inward normal.  slide: mm along the surface.
         normal: (3,) unit outward normal at the centre.
+        values: (p, 3) float, mm, each patch vertex's displacement (all ``displacement`` for a
+            flat tool; the rounded tip's profile otherwise).
     """
 
     centre: int
@@ -57,6 +70,7 @@ class Indentation:
     depth: float
     slide: float
     normal: np.ndarray
+    values: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,8 +82,10 @@ class IndentationSites:
         access: (a,) int64 sorted surface vertices of the access region (the centres are
             those of them far enough from the supports with a large enough patch).
         weights: (c,) float, probabilities (lumped vertex areas, normalised).
-        patches: list of (p,) int64 patch vertices, one per centre.
+        patches: list of (p,) int64 patch vertices, one per centre (the tool's reach).
         normals: (c, 3) outward unit normals at the centres.
+        radii: list of (p,) float, mm: each patch vertex's distance from its centre in the
+            centre's tangent plane.
     """
 
     centres: np.ndarray
@@ -77,6 +93,7 @@ class IndentationSites:
     patches: list
     normals: np.ndarray
     access: np.ndarray
+    radii: list
 
 
 def indentation_sites(mesh: TetMesh, config: IndentationConfig, normals: np.ndarray, supported: np.ndarray,
@@ -126,7 +143,23 @@ def indentation_sites(mesh: TetMesh, config: IndentationConfig, normals: np.ndar
                           f"({mesh.quality.edge_length_mean:.3g} mm on this mesh)")
     centres = np.asarray(centres, dtype=np.int64)
     w = vertex_area[centres]
-    return IndentationSites(centres, w / w.sum(), patches, normals[centres], access)
+    radii = [_tangent_distances(pts[p] - pts[c], normals[c]) for c, p in zip(centres, patches)]
+    return IndentationSites(centres, w / w.sum(), patches, normals[centres], access, radii)
+
+
+def _tangent_distances(offsets: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """(p,) float: lengths of the ``offsets`` (p, 3) projected on the plane normal to ``normal``."""
+    return np.linalg.norm(offsets - np.outer(offsets @ normal, normal), axis=1)
+
+
+def contact_profile(radii: np.ndarray, depth: float, tool_radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """The rounded tip's contact (module notes): ``(in contact (p,) bool, push (p,) mm along
+    the inward normal)`` of patch vertices at tangent-plane distances ``radii`` (p,) mm;
+    the :data:`PATCH_MIN_VERTICES` nearest are always in contact."""
+    radii = np.asarray(radii, dtype=np.float64)
+    inside = radii <= np.sqrt(tool_radius * depth)
+    inside[np.argsort(radii, kind="stable")[:PATCH_MIN_VERTICES]] = True
+    return inside, depth - radii**2 / (2.0 * tool_radius)
 
 
 def draw_indentation(rng: np.random.Generator, sites: IndentationSites, config: IndentationConfig) -> Indentation:
@@ -140,5 +173,11 @@ def draw_indentation(rng: np.random.Generator, sites: IndentationSites, config: 
     t1 = np.cross(n, helper)
     t1 /= np.linalg.norm(t1)
     t2 = np.cross(n, t1)
-    d = -depth * n + slide * (np.cos(phi) * t1 + np.sin(phi) * t2)
-    return Indentation(int(sites.centres[k]), sites.patches[k], d, depth, slide, n.copy())
+    tangential = slide * (np.cos(phi) * t1 + np.sin(phi) * t2)
+    d = -depth * n + tangential
+    patch = sites.patches[k]
+    if config.tool == "flat":
+        return Indentation(int(sites.centres[k]), patch, d, depth, slide, n.copy(), np.repeat(d[None, :], len(patch), 0))
+    inside, push = contact_profile(sites.radii[k], depth, config.tool_radius)
+    values = -push[inside, None] * n[None, :] + tangential[None, :]
+    return Indentation(int(sites.centres[k]), patch[inside], d, depth, slide, n.copy(), values)

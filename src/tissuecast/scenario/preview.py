@@ -108,7 +108,6 @@ def example_deformations(sc: Scenario, config, seeds) -> list[tuple[str, np.ndar
     """
     from ..errors import ConvergenceError
     from ..fem import Solver
-    from ..forces import lbo_basis, lbo_field, random_lbo_weights
     from .scenario import scenario_rng
 
     problem = sc.problem(config)
@@ -116,9 +115,7 @@ def example_deformations(sc: Scenario, config, seeds) -> list[tuple[str, np.ndar
     n = sc.mesh.n_vertices
     fields = [None] * len(seeds)
     if config.scenario.lbo_forces:
-        basis = lbo_basis(sc.mesh, n=config.forces.n_basis)
-        fields = [lbo_field(basis, random_lbo_weights(np.random.default_rng(np.uint64(s)), basis.n_vectors), 1.0, n)
-                  for s in seeds]
+        fields = [sc.surface_forces.field(s, 1.0)[0] for s in seeds]
         alpha = config.dataset.alpha
         if not alpha > 0:
             reference, free = solver.reference_factor(), solver.free_dofs

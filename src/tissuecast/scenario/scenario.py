@@ -1,40 +1,38 @@
 """A clinical scenario on a mesh: its supports, its materials and its per-sample loads.
 
-:func:`build_scenario` resolves a :class:`~tissuecast.config.ScenarioConfig` on a mesh: the
-pinned vertices (``[markers]`` fixed_*, if ``pins``), the attached surface region (all
-components fixed), the elastic support (:class:`~tissuecast.fem.springs.NodalSprings`), the
-per-element materials and the eligible indentation sites. It refuses supports that leave a
-rigid-body motion free (:func:`free_rigid_motions`).
+There is always a scenario; the paper's set-up (pins and LBO nodal forces) is the default
+one. A :class:`Scenario` (resolved on a mesh by :func:`~.resolve.build_scenario`, or rebuilt
+from a data set's arrays by :func:`~.resolve.restore_scenario`) holds the supports (the pins,
+the attached surface region, the elastic support :class:`~tissuecast.fem.springs.NodalSprings`),
+the per-element materials, the eligible indentation sites and the random surface force
+fields (:class:`~.surface_forces.SurfaceForces`).
 
-Per sample, :meth:`Scenario.draw` draws the gravity direction and the indentation from the
-sample's scenario generator (:func:`scenario_rng`, a stream of its own, so that the LBO
-weights drawn from the sample seed stay those of the paper's set-up), in that order; the
-loads follow from the draw (:meth:`Scenario.body_loads`, :meth:`Scenario.prescribed`).
-Ids are 0-based; mm, N, MPa, t/mm^3.
+Per sample, :meth:`Scenario.sample` gives everything the solver needs and a data set records
+(:class:`~.sample_inputs.SampleInputs`) from the sample's seed: the surface force field (from
+``default_rng(seed)``), then the gravity direction and the indentation
+(:meth:`Scenario.draw`, from the sample's scenario generator :func:`scenario_rng`, a stream of
+its own, so that the LBO weights drawn from the sample seed stay those of the paper's
+set-up), and the loads that follow from them. Ids are 0-based; mm, N, MPa, t/mm^3.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..config import Config, ScenarioConfig
-from ..errors import ConfigError
+from ..config import UNCERTAIN_PARAMETERS, Config, ScenarioConfig
 from ..fem.springs import NodalSprings
-from ..fem.supports import free_rigid_motions
-from ..mesh.tags import MeshTags
 from ..mesh.tetmesh import TetMesh
 from .gravity import body_loads, cone_direction, gravity_body_force
-from .indentation import Indentation, IndentationSites, draw_indentation, indentation_sites
-from .materials import ElementMaterials, element_materials, material_rng
-from .regions import surface_region
-from .springs import surface_springs
-from ..mesh.surface import vertex_normals
+from .indentation import IndentationSites, draw_indentation
+from .materials import ElementMaterials
+from .parameters import UncertainParameters, parameter_rng
+from .sample_inputs import SampleInputs, ScenarioDraw
+from .surface_forces import SurfaceForces
 
-__all__ = ["Scenario", "ScenarioDraw", "build_scenario", "restore_scenario", "scenario_from_config", "scenario_rng",
-           "free_rigid_motions",
-           "SCENARIO_STREAM"]
+__all__ = ["Scenario", "ScenarioDraw", "SampleInputs", "scenario_rng", "SCENARIO_STREAM"]
 
 #: Second SeedSequence word of a sample's scenario draws: ``SeedSequence([sample_seed, SCENARIO_STREAM])``.
 SCENARIO_STREAM = 2**63 - 3
@@ -46,36 +44,8 @@ def scenario_rng(sample_seed) -> np.random.Generator:
 
 
 @dataclass(frozen=True, eq=False)
-class ScenarioDraw:
-    """One sample's draws.
-
-    Attributes:
-        gravity_direction: (3,) unit surgery direction of gravity, or None (no gravity load).
-        body_force: (3,) N/mm^3, ``rho |g| (d_surgery - d_imaging)``, or None.
-        indentation: the sample's indentation, or None.
-    """
-
-    gravity_direction: np.ndarray | None = None
-    body_force: np.ndarray | None = None
-    indentation: Indentation | None = None
-
-    def record(self) -> dict[str, float]:
-        """Flat numbers for a data set (NaN where the load is absent): gravity direction x/y/z,
-        indentation centre (vertex id), depth, slide (mm) and displacement x/y/z (mm)."""
-        nan3 = [np.nan] * 3
-        g = self.gravity_direction if self.gravity_direction is not None else nan3
-        ind = self.indentation
-        d = ind.displacement if ind is not None else nan3
-        return {"gravity_x": float(g[0]), "gravity_y": float(g[1]), "gravity_z": float(g[2]),
-                "indent_centre": float(ind.centre) if ind is not None else np.nan,
-                "indent_depth": ind.depth if ind is not None else np.nan,
-                "indent_slide": ind.slide if ind is not None else np.nan,
-                "indent_x": float(d[0]), "indent_y": float(d[1]), "indent_z": float(d[2])}
-
-
-@dataclass(frozen=True, eq=False)
 class Scenario:
-    """A scenario resolved on a mesh (see :func:`build_scenario`).
+    """A scenario resolved on a mesh (see :func:`~.resolve.build_scenario`).
 
     Attributes:
         config: the scenario settings.
@@ -89,6 +59,9 @@ class Scenario:
         normals: (n, 3) outward unit vertex normals (zero inside).
         sites: where indentations may be drawn, or None.
         gravity: ``(density t/mm^3, |g| mm/s^2)`` when the gravity change is on, else None.
+        surface_forces: the random surface force fields of the samples (LBO, test-2 LSC).
+        uncertain: the parameters drawn per sample (:mod:`.parameters`), or None. With an
+            uncertain attached extent, ``attached`` is the region at its smallest extent.
     """
 
     config: ScenarioConfig
@@ -102,6 +75,8 @@ class Scenario:
     normals: np.ndarray
     sites: IndentationSites | None
     gravity: tuple | None
+    surface_forces: SurfaceForces
+    uncertain: UncertainParameters | None = None
 
     @property
     def supported(self) -> np.ndarray:
@@ -119,14 +94,25 @@ class Scenario:
     def held_nodes(self) -> np.ndarray:
         """(h,) int64 element nodes fixed in all components: the supported vertices and, for
         P2, the mid-edge nodes between two of them."""
-        return _held_nodes(self.mesh, self.order, self.supported)
+        return held_nodes_of(self.mesh, self.order, self.supported)
 
     @property
-    def plain(self) -> bool:
-        """True for the paper's set-up: pins and LBO forces only (no attached region, springs,
-        gravity change, indentation or material regions)."""
-        return bool(self.config.pins and self.config.lbo_forces and not len(self.attached) and self.springs is None
-                    and self.gravity is None and self.sites is None and self.materials is None)
+    def loading(self) -> str:
+        """How the surface force field loads the body: ``"nodal"`` (forces on the vertices, the
+        paper's) or ``"traction"`` (``forces.loading``)."""
+        return self.surface_forces.settings.loading
+
+    @property
+    def hangs_on_pins(self) -> bool:
+        """Whether the body hangs on its pins under the surface force field alone: pins are its
+        only support (:attr:`can_swing`), the LBO field applied as nodal forces is its only
+        load (no gravity change, no indentation) and one material fills it (the paper's
+        set-up). Such a body swings about its pins as a near-rigid body, which the linear
+        response misjudges: the force calibration then starts from a small dimensional
+        estimate (nearly linear first pilots), checks that the pins leave no near-mechanism,
+        and starts those pilots warm from zero (:mod:`tissuecast.dataset.calibrate`)."""
+        return bool(self.can_swing and self.config.pins and self.config.lbo_forces and self.loading == "nodal"
+                    and not self.draws_per_sample and self.materials is None)
 
     @property
     def draws_per_sample(self) -> bool:
@@ -151,17 +137,66 @@ class Scenario:
         return build_problem(self.mesh, config, self.supported, order=self.order, springs=self.springs,
                              materials=field, can_swing=self.can_swing)
 
+    def sample(self, seed: int, alpha: float, beta: float = float("nan")) -> SampleInputs:
+        """Everything one sample is solved with and recorded by, from its seed alone.
+
+        Args:
+            seed: the sample's seed (``samples/seed`` of a data set).
+            alpha: the surface force field's magnitude, N.
+            beta: the LBO share of a test-2 sample; NaN for an LBO sample.
+
+        Returns:
+            The sample's :class:`~.sample_inputs.SampleInputs`: its surface force field
+            (:meth:`.SurfaceForces.field`, from ``default_rng(seed)``), its draws
+            (:meth:`draw`, from :func:`scenario_rng`) and the loads and prescribed
+            displacements they give.
+        """
+        forces, weights = self.surface_forces.field(seed, alpha, beta)
+        return self.inputs_for(seed, forces, weights)
+
+    def inputs_for(self, seed: int, forces: np.ndarray, weights: np.ndarray | None = None) -> SampleInputs:
+        """A sample's inputs with a given surface force field ``forces`` ((n, 3) N, e.g. a data
+        set's stored one) and the draws of its ``seed`` (:meth:`sample` draws the field too)."""
+        forces = np.asarray(forces, dtype=np.float64)
+        weights = np.zeros((0, 3)) if weights is None else weights
+        draw = self.draw(scenario_rng(seed))
+        if self.uncertain is not None:
+            draw = dataclasses.replace(draw, parameters=self.uncertain.draw(parameter_rng(seed)))
+        surface, body = self.sample_loads(draw, forces)
+        ids, values = self.prescribed(draw)
+        inputs = SampleInputs(forces, weights, surface, body if draw.body_force is not None else None, ids, values, draw)
+        return inputs if draw.parameters is None else self._with_parameters(inputs, draw.parameters)
+
+    def _with_parameters(self, inputs: SampleInputs, p) -> SampleInputs:
+        """``inputs`` under the drawn parameters ``p``: the density's factor on the body loads, the
+        attached extent's vertices held at zero, and the sample's materials and springs."""
+        u, c = self.uncertain, self.config.uncertain
+        extra = u.extra_held(p, self.attached)
+        ids = np.concatenate([inputs.prescribed_ids, extra]).astype(np.int64)
+        values = np.vstack([inputs.prescribed_values, np.zeros((len(extra), 3))])
+        body = None if inputs.body is None else inputs.body * p.density
+        materials = springs = None
+        if c.youngs_modulus or c.poisson_ratio or c.region_youngs_modulus:
+            from ..fem.material import NeoHookeanField
+
+            materials = NeoHookeanField(*u.element_constants(p))
+        if c.spring_normal or c.spring_tangential:
+            springs = u.springs(self.springs, p)
+        return dataclasses.replace(inputs, body=body, prescribed_ids=ids, prescribed_values=values, parameters=p,
+                                   materials=materials, springs=springs)
+
     def sample_loads(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None,
-                     loading: str = "nodal") -> tuple[np.ndarray, np.ndarray]:
+                     loading: str | None = None) -> tuple[np.ndarray, np.ndarray]:
         """A sample's external loads on every element node: ``(surface (n_nodes, 3) N, body
         (n_nodes, 3) N)``, both zero at the held nodes (loads there go straight into the
         supports).
 
         ``surface``: the field ``vertex_forces`` ((n, 3) N: the LBO or test-2 field, or None)
         as nodal forces on the vertices (``loading = "nodal"``, the paper's) or as a traction
-        (``"traction"``, :func:`~tissuecast.forces.traction_loads`); ``body``: the draw's
-        consistent gravity-change loads (:meth:`body_loads`).
+        (``"traction"``, :func:`~tissuecast.forces.traction_loads`); None = the scenario's own
+        :attr:`loading`. ``body``: the draw's consistent gravity-change loads (:meth:`body_loads`).
         """
+        loading = self.loading if loading is None else loading
         surface = np.zeros((self.n_nodes, 3))
         if vertex_forces is not None:
             vf = np.asarray(vertex_forces, dtype=np.float64)
@@ -178,7 +213,7 @@ class Scenario:
         return surface, body
 
     def solve_inputs(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None,
-                     loading: str = "nodal") -> tuple[np.ndarray, dict]:
+                     loading: str | None = None) -> tuple[np.ndarray, dict]:
         """What a solver takes for a sample: ``(surface loads (n_nodes, 3) N, keywords)`` with
         ``body_loads`` (n_nodes, 3) N when the draw has a gravity change and ``prescribed``
         ``(ids (k,), values (k, 3) mm)`` when it has an indentation, for
@@ -190,7 +225,8 @@ class Scenario:
             extra["prescribed"] = (ids, values)
         return surface, extra
 
-    def loads(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None, loading: str = "nodal") -> np.ndarray:
+    def loads(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None,
+              loading: str | None = None) -> np.ndarray:
         """A sample's external loads on every element node, (n_nodes, 3) N: the sum of
         :meth:`sample_loads`."""
         surface, body = self.sample_loads(draw, vertex_forces, loading)
@@ -210,6 +246,11 @@ class Scenario:
                        material_region=self.materials.region)
         if self.sites is not None:
             out["indent_access"] = self.sites.access
+        if self.uncertain is not None and self.uncertain.distance is not None:
+            out["attached_distance"] = self.uncertain.distance
+        if self.uncertain is not None and self.uncertain.spring_parts is not None:
+            out.update(spring_normal_part=self.uncertain.spring_parts[0],
+                       spring_tangential_part=self.uncertain.spring_parts[1])
         return {k: np.asarray(v) for k, v in out.items()}
 
     def draw(self, rng: np.random.Generator) -> ScenarioDraw:
@@ -234,7 +275,7 @@ class Scenario:
         ind = draw.indentation
         if ind is None:
             return np.zeros(0, dtype=np.int64), np.zeros((0, 3))
-        return ind.vertices.copy(), np.repeat(ind.displacement[None, :], len(ind.vertices), axis=0)
+        return ind.vertices.copy(), ind.values.copy()
 
     def summary(self) -> dict:
         """JSON-able description (for data sets, models and reports)."""
@@ -257,137 +298,17 @@ class Scenario:
                                   "access_vertices": len(self.sites.access)}
         if self.materials is not None:
             out["materials"] = self.materials.draws
+        if self.uncertain is not None:
+            u = cfg.uncertain
+            out["uncertain"] = {name: list(getattr(u, name)) for name in UNCERTAIN_PARAMETERS if getattr(u, name)}
+            out["uncertain"]["measured"] = list(u.measured)
         return out
 
 
-def _held_nodes(mesh: TetMesh, order: int, vertices: np.ndarray) -> np.ndarray:
+def held_nodes_of(mesh: TetMesh, order: int, vertices: np.ndarray) -> np.ndarray:
     """Vertices held in all components and, for P2, the mid-edge nodes between two of them."""
     vertices = np.asarray(vertices, dtype=np.int64)
     if order == 1:
         return vertices
     both = np.isin(mesh.edges, vertices).all(axis=1)
     return np.concatenate([vertices, mesh.n_vertices + np.flatnonzero(both)])
-
-
-def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshTags | None = None,
-                   material_seed: int | None = None) -> Scenario:
-    """Resolve ``config.scenario`` on a mesh.
-
-    Args:
-        mesh: the mesh (mm).
-        config: the whole configuration (``scenario``, ``material`` and ``solver.order`` are used).
-        fixed: (k,) int the pinned vertices ``[markers]`` gives (used when ``scenario.pins``).
-        tags: the mesh file's named regions (:func:`~tissuecast.mesh.tags.read_mesh_tags`).
-        material_seed: seed of the per-data-set material draws (:func:`~.materials.material_rng`);
-            None = the regions' nominal constants.
-
-    Raises:
-        ConfigError: an empty or unknown region, supports that leave a rigid-body motion
-            free, no eligible indentation site.
-    """
-    sc = config.scenario
-    order = config.solver.order
-    normals = vertex_normals(mesh)
-    pinned = np.asarray(fixed, dtype=np.int64) if sc.pins else np.zeros(0, dtype=np.int64)
-    attached = surface_region(mesh, sc.attached, "scenario.attached", tags, normals)
-    region = surface_region(mesh, sc.springs, "scenario.springs", tags, normals)
-    supported = np.union1d(pinned, attached)
-    held = _held_nodes(mesh, order, supported)
-    springs = None
-    if region.size:
-        springs = surface_springs(mesh, region, order, sc.springs.normal_stiffness,
-                                  sc.springs.tangential_stiffness, sc.springs.lumping).without(held)
-        if len(springs) == 0:
-            raise ConfigError("scenario.springs: the region holds no whole surface triangle outside the attached "
-                              "region; widen it")
-    points = mesh.points if order == 1 else mesh.points10
-    free = free_rigid_motions(points, held, springs)
-    if len(free):
-        kinds = ["a rotation" if np.linalg.norm(v[3:]) > np.linalg.norm(v[:3]) else "a translation" for v in free]
-        raise ConfigError(
-            f"the scenario's supports leave {len(free)} rigid-body motion(s) free ({', '.join(sorted(set(kinds)))}): "
-            "the body could move without straining; pin at least 3 non-collinear vertices (scenario.pins), attach a "
-            "surface region (scenario.attached) or give the elastic support tangential stiffness / a wider region "
-            "(scenario.springs)")
-    materials = None
-    if sc.materials.regions:
-        rng = material_rng(material_seed) if material_seed is not None else None
-        materials = element_materials(mesh, config.material, sc.materials, tags, rng)
-    sites = _sites(mesh, sc, normals, supported, tags=tags)
-    gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
-    return Scenario(sc, mesh, order, pinned, attached, region, springs, materials, normals, sites, gravity)
-
-
-def _sites(mesh: TetMesh, sc: ScenarioConfig, normals: np.ndarray, supported: np.ndarray, tags: MeshTags | None = None,
-           access: np.ndarray | None = None) -> IndentationSites | None:
-    """The indentation's sites (None without one); ``access`` (a,) int the stored access region,
-    or None to resolve ``sc.indentation.access`` on the mesh (with ``tags`` for rule ``tag``)."""
-    if not sc.indentation.enabled:
-        return None
-    if access is None:
-        access = surface_region(mesh, sc.indentation.access, "scenario.indentation.access", tags, normals)
-    return indentation_sites(mesh, sc.indentation, normals, supported, access=np.asarray(access, dtype=np.int64))
-
-
-def restore_scenario(mesh: TetMesh, config: Config, arrays: dict) -> Scenario:
-    """A scenario from its :meth:`Scenario.arrays` (e.g. read back from a data set), without
-    the mesh file's named regions: the supports, materials and the indentation's access region
-    are the stored ones (a store without ``indent_access`` resolves ``config``'s); normals and
-    indentation sites are recomputed from them, the mesh and ``config``."""
-    sc = config.scenario
-    order = config.solver.order
-    normals = vertex_normals(mesh)
-    pinned, attached = (np.asarray(arrays[k], dtype=np.int64) for k in ("pinned", "attached"))
-    springs = None
-    if "spring_nodes" in arrays:
-        springs = NodalSprings(arrays["spring_nodes"], arrays["spring_stiffness"])
-    materials = None
-    if "youngs_modulus" in arrays:
-        e, nu = (np.asarray(arrays[k], dtype=np.float64) for k in ("youngs_modulus", "poisson_ratio"))
-        region = np.asarray(arrays["material_region"], dtype=np.int64)
-        names = tuple(r.name for r in sc.materials.regions)
-        draws = {}
-        for k, name in enumerate(names):
-            inside = np.flatnonzero(region == k)
-            if inside.size:
-                draws[name] = {"youngs_modulus": float(e[inside[0]]), "poisson_ratio": float(nu[inside[0]])}
-        materials = ElementMaterials(e, nu, region, names, draws)
-    supported = np.union1d(pinned, attached)
-    sites = _sites(mesh, sc, normals, supported, access=arrays.get("indent_access"))
-    gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
-    return Scenario(sc, mesh, order, pinned, attached, np.asarray(arrays["spring_region"], dtype=np.int64), springs,
-                    materials, normals, sites, gravity)
-
-
-def scenario_markers(mesh: TetMesh, config: Config, tags: MeshTags | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The markers and pins ``[markers]`` gives with this scenario
-    (:func:`~tissuecast.markers.markers_and_fixed`): no pins with ``scenario.pins = false``,
-    and no marker on the vertices ``scenario.attached`` holds (they never move).
-
-    Returns:
-        ``(markers (n_d,) int64, pins (k,) int64)``, 0-based.
-    """
-    from ..markers import markers_and_fixed
-
-    held = surface_region(mesh, config.scenario.attached, "scenario.attached", tags)
-    markers, fixed = markers_and_fixed(mesh, config.markers, pins=config.scenario.pins, held=held)
-    return np.asarray(markers, dtype=np.int64), np.asarray(fixed, dtype=np.int64)
-
-
-def scenario_from_config(config: Config):
-    """The mesh, fiducial markers, pinned vertices and resolved scenario a config describes.
-
-    The mesh is ``mesh.path`` (with its named regions, :func:`~tissuecast.mesh.tags.read_mesh_tags`)
-    or the built-in phantom; material draws use ``dataset.seed``.
-
-    Returns:
-        ``(mesh, markers (n_d,) int64, fixed (k,) int64, scenario)``: ``fixed`` are the pins
-        (empty with ``scenario.pins = false``, when none are chosen).
-    """
-    from ..mesh.source import mesh_from_config
-    from ..mesh.tags import mesh_file_tags
-
-    mesh = mesh_from_config(config.mesh)
-    tags = mesh_file_tags(config.mesh.path)
-    markers, fixed = scenario_markers(mesh, config, tags)
-    return mesh, markers, fixed, build_scenario(mesh, config, fixed, tags, material_seed=config.dataset.seed)

@@ -12,6 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import SolverSetupError
+from ._format import id_lines as _id_lines
+from ._format import number_text as _num
+from ._scenario import NO_ADDITIONS, DeckScenario
 
 __all__ = ["write_inp"]
 
@@ -94,21 +97,6 @@ def _material_constants(material) -> tuple[float, float]:
     return c10, d1
 
 
-def _num(x) -> str:
-    """Text of a float that ccx reads: the shortest exact form, or 14 digits if that is longer
-    than 20 characters (ccx rejects longer numbers such as ``-2.786959021906976E-05``)."""
-    text = repr(float(x))
-    digits = 13
-    while len(text) > 20:
-        text = f"{float(x):.{digits}e}"
-        digits -= 1
-    return text
-
-
-def _id_lines(ids: np.ndarray, per_line: int = 8) -> list[str]:
-    return [", ".join(str(int(i)) for i in ids[k : k + per_line]) for k in range(0, len(ids), per_line)]
-
-
 def write_inp(
     path,
     mesh,
@@ -127,7 +115,7 @@ def write_inp(
     force_tolerance: float | None = None,
     displacement_tolerance: float | None = None,
     title: str = "tissuecast neo-Hookean problem",
-    scenario=None,
+    scenario: DeckScenario = NO_ADDITIONS,
 ) -> Path:
     """Write the problem as a CalculiX/Abaqus input deck.
 
@@ -154,8 +142,9 @@ def write_inp(
             of displacement); None keeps the defaults 0.005 and 0.01 (both programs'; a
             missing one of the two is written with its default).
         title: ``*HEADING`` text.
-        scenario: optional :class:`~._scenario.DeckScenario`: springs to ground, a gravity
-            load, per-element materials.
+        scenario: what the scenario adds (:class:`~._scenario.DeckScenario`: springs to
+            ground, a gravity load, per-element materials); the default adds nothing (the
+            material everywhere, no springs, no gravity: the paper's set-up).
 
     Returns:
         The path written.
@@ -167,14 +156,14 @@ def write_inp(
     if order not in (1, 2):
         raise SolverSetupError(f"order must be 1 (C3D4) or 2 (C3D10), got {order!r}")
     n = mesh.n_vertices
-    c10, d1 = _material_constants(material)
+    _material_constants(material)
     n_nodes = len(mesh.points10) if order == 2 else None
     f, fixed, pre_ids, pre_val = _checked_setup(mesh, fixed, forces, prescribed, n_nodes)
     _check_increments(initial_increment, min_increment, max_increment)
     fixed_nodes, pre_nodes, pre_nodal = _constrained_nodes(mesh, order, fixed, pre_ids, pre_val)
     out = _mesh_lines(mesh, order, title)
     out += _set_lines(n, fixed_nodes, node_sets)
-    out += _material_lines(material, c10, d1, scenario, mesh.n_tets)
+    out += _material_lines(material, scenario, mesh.n_tets)
     out += _step_lines(nlgeom, max_increments, (initial_increment, min_increment, max_increment),
                        force_tolerance, displacement_tolerance)
     out += _load_lines(fixed_nodes, pre_nodes, pre_nodal, f, scenario)
@@ -243,11 +232,9 @@ def _set_lines(n: int, fixed_nodes: np.ndarray, node_sets: dict | None) -> list[
     return out
 
 
-def _material_lines(material, c10: float, d1: float, scenario, n_elements: int) -> list[str]:
-    """Material(s) and section(s); with a scenario also its per-region materials and springs."""
-    if scenario is None:
-        return ["*MATERIAL, NAME=TISSUE", "*HYPERELASTIC, NEO HOOKE", f"{_num(c10)}, {_num(d1)}",
-                "*SOLID SECTION, ELSET=TISSUE, MATERIAL=TISSUE"]
+def _material_lines(material, scenario: DeckScenario, n_elements: int) -> list[str]:
+    """Material(s) and section(s) (the scenario's per-region materials, or ``material``
+    everywhere) and the scenario's springs."""
     return scenario.material_lines(material, n_elements, _num) + scenario.spring_lines(n_elements + 1, _num)
 
 
@@ -270,7 +257,7 @@ def _step_lines(nlgeom: bool, max_increments: int, increments: tuple,
 
 
 def _load_lines(fixed_nodes: np.ndarray, pre_nodes: np.ndarray, pre_nodal: np.ndarray, f: np.ndarray,
-                scenario=None) -> list[str]:
+                scenario: DeckScenario) -> list[str]:
     """Boundary conditions, nodal loads (non-zero components) and the output requests."""
     out = []
     bc = ["NFIXED, 1, 3"] if fixed_nodes.size else []
@@ -281,7 +268,6 @@ def _load_lines(fixed_nodes: np.ndarray, pre_nodes: np.ndarray, pre_nodal: np.nd
     nz = np.argwhere(f != 0)
     if nz.size:
         out += ["*CLOAD"] + [f"{i + 1}, {d + 1}, {_num(f[i, d])}" for i, d in nz.tolist()]
-    if scenario is not None:
-        out += scenario.step_lines(_num)
+    out += scenario.step_lines(_num)
     out += ["*NODE PRINT, NSET=NVERT", "U", "*NODE FILE", "U", "*END STEP", ""]
     return out

@@ -25,9 +25,9 @@ import numpy as np
 
 from ...errors import SolverSetupError
 from ..springs import NodalSprings
-from ._deck import _id_lines
+from ._format import id_lines
 
-__all__ = ["DeckScenario"]
+__all__ = ["DeckScenario", "NO_ADDITIONS"]
 
 #: Principal stiffnesses within this share of the largest count as equal (an isotropic spring).
 _ISOTROPIC_RTOL = 1e-12
@@ -60,14 +60,13 @@ class DeckScenario:
             object.__setattr__(self, "acceleration", a)
 
     @classmethod
-    def from_problem(cls, problem, density: float | None = None, acceleration=None) -> "DeckScenario | None":
+    def from_problem(cls, problem, density: float | None = None, acceleration=None) -> "DeckScenario":
         """What a :class:`~tissuecast.fem.Problem` adds to a deck: its springs and per-element
         materials (one group per distinct (E, nu)), and a gravity load ``density * acceleration``
-        if given; None when it adds nothing."""
+        if given (a problem held by pins alone, of one material and without gravity adds
+        nothing: the deck's material everywhere)."""
         springs = problem.springs if problem.springs is not None and len(problem.springs) else None
         materials = problem.materials.groups() if problem.materials is not None else None
-        if springs is None and materials is None and acceleration is None:
-            return None
         return cls(springs=springs, density=density, acceleration=acceleration, materials=materials)
 
     def material_lines(self, material, n_elements: int, num) -> list[str]:
@@ -95,7 +94,7 @@ class DeckScenario:
             if self.acceleration is not None:
                 out += ["*DENSITY", num(float(self.density))]
             if self.materials is not None:
-                out += [f"*ELSET, ELSET={name}"] + _id_lines(ids + 1)
+                out += [f"*ELSET, ELSET={name}"] + id_lines(ids + 1)
             out.append(f"*SOLID SECTION, ELSET={name}, MATERIAL={name}")
         if np.any(covered != 1):
             raise SolverSetupError(f"materials must give every element exactly one material; element "
@@ -148,3 +147,7 @@ class DeckScenario:
         d = a / size
         return ["*DLOAD", "TISSUE, GRAV, " + ", ".join(num(float(x)) for x in (size, *d))]
 
+
+#: What a problem held by fixed vertices alone, of one material and without gravity adds to a
+#: deck: nothing (the deck's material everywhere; the paper's set-up).
+NO_ADDITIONS = DeckScenario()

@@ -135,7 +135,7 @@ def _interim_guesses(writer: StoreWriter, cfg: Config, recipe: Recipe, problem, 
     t0 = time.perf_counter()
     stored = writer.root["reduced/snapshots"]
     snaps = np.stack([np.asarray(stored[k], dtype=np.float64) for k in rows])
-    ctx = SampleContext(recipe)  # forces and scenario loads of each task, as a worker makes them
+    ctx = SampleContext(recipe)  # the inputs of each task, as a worker makes them
     try:
         model = ReducedModel.fit(problem, snaps, tolerance=cfg.dataset.predictor_tolerance)
     except (SolverSetupError, ArithmeticError, np.linalg.LinAlgError) as exc:
@@ -143,9 +143,7 @@ def _interim_guesses(writer: StoreWriter, cfg: Config, recipe: Recipe, problem, 
         return tasks
     out = []
     for task in tasks:
-        forces, _ = ctx.forces(task)
-        loads, extra, _ = ctx.loads(task, forces)
-        guess = model.predict(loads + extra.get("body_loads", 0.0))
+        guess = model.predict(ctx.inputs(task).loads)
         out.append(task if guess is None else dataclasses.replace(task, guess=guess,
                                                                   guess_code=int(InitialGuess.INTERIM_MODEL)))
     log.info("interim reduced model of %d pilot solutions (%d modes, %d elements): %d of %d basis samples predicted "

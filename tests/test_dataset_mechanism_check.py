@@ -8,7 +8,7 @@ import pytest
 
 from tissuecast.config import with_overrides
 from tissuecast.dataset import simulate
-from tissuecast.dataset.supports import MECHANISM_RATIO, check_supports, linear_peak
+from tissuecast.dataset.mechanism_check import MECHANISM_RATIO, check_supports, linear_peak
 from tissuecast.errors import DatasetError
 from tissuecast.fem import NeoHookean, Problem, Solver
 from tissuecast.mesh import write_mesh

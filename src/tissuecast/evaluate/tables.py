@@ -1,0 +1,143 @@
+"""The evaluation's tables, written for people: the paper comparison, per set, the deformations,
+and the plain-text summary that ``tissuecast evaluate`` / ``run`` print."""
+
+from __future__ import annotations
+
+from .evaluation import METHOD_LABELS
+from .headline import DASH, fmt_mm, fmt_ratio, fmt_share, fmt_time, set_title, verdict
+from ..scenario.describe import scenario_lines
+
+__all__ = ["COLUMNS", "model_description", "paper_table", "set_rows", "deformation_rows", "format_evaluation", "SET_HEAD",
+           "DEFORMATION_HEAD"]
+
+#: Columns of the comparison tables: the learned model, then what it is compared with.
+COLUMNS = ("mlp", "rigid", "ridge", "pca_floor")
+
+
+def model_description(summary: dict) -> str:
+    """'quadratic head (q = 15) + MLP [128, 64]' (x M for an ensemble) from an evaluation's model summary."""
+    net = f"MLP {summary.get('hidden')}" + (f" x {summary['ensemble']}" if summary.get("ensemble", 1) > 1 else "")
+    q = ((summary.get("pca") or {}).get("head") or {}).get("dims")
+    return net if q is None else f"quadratic head (q = {q}) + {net}"
+
+
+def _tre_cells(r) -> list[list[str]]:
+    """The TRE and share-corrected rows' cells of a set, per method of :data:`COLUMNS`."""
+    t = [r.target_summary(m) for m in COLUMNS]
+    if not all(t):
+        return []
+    tre = [DASH if x.tre_mean != x.tre_mean else f"{fmt_mm(x.tre_mean, False)} / {fmt_mm(x.tre_p95, False)} / "
+           f"{fmt_mm(x.tre_max)}" for x in t]
+    share = [DASH if x.share_corrected_mean != x.share_corrected_mean else
+             f"{fmt_share(x.share_corrected_mean)} ({fmt_share(x.share_corrected_worst)})" for x in t]
+    return [tre, share]
+
+
+def paper_table(evaluation) -> list[list[str]]:
+    """Rows ``[quantity, MLP, rigid, ridge, PCA floor, paper]`` comparing the learned model with
+    rigid registration from the markers, the paper's ridge baseline, the PCA floor and the
+    paper's figures (Offset_max, Offset_mean, TRE at the targets and the share of their
+    displacement corrected); then the size of the deformations, times and the model."""
+    rows = []
+    t1 = evaluation.sets.get("test1")
+    dash = [DASH] * len(COLUMNS)
+    if t1 is not None:
+        s = [t1.summary(m) for m in COLUMNS]
+        rows += [["test-1 mean Offset_max", *(fmt_mm(x.offset_max) for x in s), "0.533 (architecture table) / 0.837 mm"],
+                 ["test-1 mean Offset_mean", *(fmt_mm(x.offset_mean) for x in s), "0.146 – 0.287 mm"]]
+        tre = _tre_cells(t1)
+        if tre:
+            k = evaluation.targets.count if evaluation.targets is not None else ""
+            rows += [[f"test-1 TRE at the {k} targets: mean / p95 / max", *tre[0], DASH],
+                     ["test-1 share of the targets' displacement corrected: mean (worst)", *tre[1], DASH]]
+        rows += [["test-1 share with Offset_max < 1 mm", *(fmt_share(x.share_below) for x in s), "98 %"],
+                 ["test-1 worst Offset_max", *(fmt_mm(x.worst_offset_max) for x in s), DASH],
+                 ["test-1 gain over rigid registration (mean Offset_max ratio)", fmt_ratio(t1.gain_over_rigid), *dash[1:],
+                  DASH]]
+        dfm = t1.deformation()
+        rows += [["test-1 peak displacement, median / p90", f"{fmt_mm(dfm['max_displacement_median'], False)} / "
+                  f"{fmt_mm(dfm['max_displacement_p90'])}", *dash[1:], "~30 mm (largest)"],
+                 ["test-1 non-rigid part, median / p90 (median share of peak)",
+                  f"{fmt_mm(dfm['nonrigid_median'], False)} / {fmt_mm(dfm['nonrigid_p90'])} "
+                  f"({fmt_share(dfm['nonrigid_share_median'])})", *dash[1:], DASH]]
+    if evaluation.by_beta:
+        for what, attr, paper in (("Offset_max", "offset_max", "0.889 – 1.181 mm"), ("Offset_mean", "offset_mean",
+                                                                                      "0.350 – 0.453 mm")):
+            cells = []
+            for m in COLUMNS:
+                v = [getattr(b.summary(m), attr) for _, b in evaluation.by_beta]
+                cells.append(f"{fmt_mm(min(v), False)} – {fmt_mm(max(v))}")
+            rows.append([f"test-2 mean {what}, range over beta", *cells, paper])
+    ps = evaluation.predict_seconds
+    if ps:
+        rows.append(["prediction time, one case (p50 / p99)", f"{fmt_time(ps['p50'])} / {fmt_time(ps['p99'])}",
+                     *dash[1:], "< 0.5 s"])
+    ms = evaluation.model_summary
+    tr = ms.get("training") or {}
+    if tr:
+        rows.append(["training time (PCA choice + head + MLP)", fmt_time(tr.get("seconds", float("nan"))), *dash[1:],
+                     "1022 s (MLP only)"])
+    rows.append(["model", model_description(ms), *dash[1:], "MLP [128, 64] (their Fig. 5)"])
+    rule = str((ms.get("pca") or {}).get("rule", "")).split(" (")[0]
+    rows.append([f"PCA components n_w{' (' + rule + ' rule)' if rule else ''}", str(ms["n_components"]), *dash[1:], "27"])
+    return rows
+
+
+def _items(evaluation) -> list:
+    return [(set_title(k), r) for k, r in evaluation.sets.items()] + [(f"test-2 β={b:g}", r) for b, r in evaluation.by_beta]
+
+
+def set_rows(evaluation) -> list[list[str]]:
+    """One row per set (and per test-2 β): samples; mean Offset_max of every method; mean TRE of
+    the MLP, rigid registration and ridge; the MLP's share corrected and share below 1 mm."""
+    rows = []
+    for name, r in _items(evaluation):
+        s = {m: r.summary(m) for m in COLUMNS}
+        t = {m: r.target_summary(m) for m in ("mlp", "rigid", "ridge")}
+        tre = [fmt_mm(t[m].tre_mean, False) if t[m] else DASH for m in t]
+        share = fmt_share(t["mlp"].share_corrected_mean) if t["mlp"] else DASH
+        rows.append([name, str(r.indices.size), *(fmt_mm(s[m].offset_max, False) for m in COLUMNS), *tre, share,
+                     fmt_share(s["mlp"].share_below)])
+    return rows
+
+
+#: Column heads of :func:`set_rows`.
+SET_HEAD = ["set", "samples", *(f"{METHOD_LABELS[m]} Offset_max (mm)" for m in COLUMNS),
+            *(f"{METHOD_LABELS[m]} TRE mean (mm)" for m in ("mlp", "rigid", "ridge")), "MLP share corrected",
+            "MLP Offset_max < 1 mm"]
+
+
+def deformation_rows(evaluation) -> list[list[str]]:
+    """Per set: peak displacement and non-rigid part (median / p90), rigid and MLP error, gain."""
+    rows = []
+    for name, r in _items(evaluation):
+        d = r.deformation()
+        rows.append([name, str(r.indices.size), fmt_mm(d["max_displacement_median"]), fmt_mm(d["max_displacement_p90"]),
+                     fmt_mm(d["nonrigid_median"]), fmt_mm(d["nonrigid_p90"]), fmt_share(d["nonrigid_share_median"]),
+                     fmt_mm(r.rigid.offset_max), fmt_mm(r.mlp.offset_max), fmt_ratio(r.gain_over_rigid)])
+    return rows
+
+
+DEFORMATION_HEAD = ["set", "samples", "peak displacement median", "peak p90", "non-rigid part median", "non-rigid p90",
+                    "non-rigid share of peak, median", "rigid mean Offset_max", "MLP mean Offset_max", "gain over rigid"]
+
+
+def format_evaluation(evaluation) -> str:
+    """Plain-text summary for terminals and logs: the verdict, the headline, the paper table."""
+    lines = [f"{what}: {text}" for what, text in scenario_lines(evaluation.model_summary.get("scenario"))]
+    if evaluation.targets is not None:
+        lines.append(f"targets: {evaluation.targets.description}")
+    lines.append(verdict(evaluation))
+    width = 24
+    lines.append(f"{'quantity':66s} " + " ".join(f"{METHOD_LABELS[m][:width]:>{width}s}" for m in COLUMNS) + "   paper")
+    for q, *cells, p in paper_table(evaluation):
+        if all(c == DASH for c in cells[1:]):  # a figure of the model alone: one wide cell
+            lines.append(f"{q:66s} {cells[0]:>{width}s}" + " " * (3 * (width + 1)) + f"   {p}")
+        else:
+            lines.append(f"{q:66s} " + " ".join(f"{c:>{width}s}" for c in cells) + f"   {p}")
+    if evaluation.by_beta:
+        lines.append("test-2 mean Offset_max per beta, MLP (rigid, ridge): " + ", ".join(
+            f"β={b:g}: {fmt_mm(r.mlp.offset_max, False)} ({fmt_mm(r.rigid.offset_max, False)}, "
+            f"{fmt_mm(r.ridge.offset_max, False)})" for b, r in evaluation.by_beta))
+    return "\n".join(lines)
+

@@ -1,0 +1,124 @@
+"""What one sample of a scenario is solved with and recorded by (:meth:`Scenario.sample`).
+
+A sample is a pure function of its seed: its surface force field
+(:class:`~.surface_forces.SurfaceForces`) and its scenario draws (:class:`ScenarioDraw`),
+turned into the loads on every element node and the prescribed displacements the solver
+takes. Whatever else a sample draws belongs here too, as a further field and in the draw's
+record, so that the solver and the data set receive it from this one object.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .indentation import Indentation
+from .parameters import ParameterDraw
+
+__all__ = ["SampleInputs", "ScenarioDraw"]
+
+
+@dataclass(frozen=True, eq=False)
+class ScenarioDraw:
+    """One sample's draws.
+
+    Attributes:
+        gravity_direction: (3,) unit surgery direction of gravity, or None (no gravity load).
+        body_force: (3,) N/mm^3, ``rho |g| (d_surgery - d_imaging)``, or None.
+        indentation: the sample's indentation, or None.
+        parameters: the sample's uncertain parameters (:class:`~.parameters.ParameterDraw`),
+            or None when the scenario draws none.
+    """
+
+    gravity_direction: np.ndarray | None = None
+    body_force: np.ndarray | None = None
+    indentation: Indentation | None = None
+    parameters: ParameterDraw | None = None
+
+    def record(self) -> dict[str, float]:
+        """Flat numbers for a data set (NaN where the load is absent): gravity direction x/y/z,
+        indentation centre (vertex id), depth, slide (mm) and displacement x/y/z (mm), and the
+        drawn parameters as ``param_<name>`` (with uncertain parameters)."""
+        nan3 = [np.nan] * 3
+        g = self.gravity_direction if self.gravity_direction is not None else nan3
+        ind = self.indentation
+        d = ind.displacement if ind is not None else nan3
+        out = {"gravity_x": float(g[0]), "gravity_y": float(g[1]), "gravity_z": float(g[2]),
+               "indent_centre": float(ind.centre) if ind is not None else np.nan,
+               "indent_depth": ind.depth if ind is not None else np.nan,
+               "indent_slide": ind.slide if ind is not None else np.nan,
+               "indent_x": float(d[0]), "indent_y": float(d[1]), "indent_z": float(d[2])}
+        if self.parameters is not None:
+            out.update({f"param_{k}": v for k, v in self.parameters.record().items()})
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class SampleInputs:
+    """One sample's loads and draws.
+
+    Attributes:
+        forces: (n, 3) float64 N, the sample's surface force field on the vertices (an LBO
+            field, or a test-2 blend with an LSC field; zero without LBO forces), as a data
+            set records it.
+        weights: (n_b, 3) float64, its LBO weights W.
+        surface: (n_nodes, 3) float64 N, the field as external loads on every element node
+            (nodal forces on the vertices, or the consistent loads of a traction), zero at
+            the held nodes.
+        body: (n_nodes, 3) float64 N, the consistent loads of the sample's gravity change, or
+            None when it has none.
+        prescribed_ids: (k,) int64 vertices whose displacement the sample prescribes (its
+            indentation patch; k = 0 without one).
+        prescribed_values: (k, 3) float64 mm, their displacements.
+        draw: the sample's scenario draws (gravity direction, indentation), which a data set
+            records per sample (:meth:`ScenarioDraw.record`).
+        parameters: the sample's drawn uncertain parameters
+            (:class:`~.parameters.ParameterDraw`; a data set records them), or None when the
+            scenario draws none. Their effect is in the fields: the body loads (density), the
+            prescribed ids (the attached region's extent, held at zero), and below.
+        materials: (the sample's E and nu) a :class:`~tissuecast.fem.material.NeoHookeanField`
+            of every element, or None for the problem's own.
+        springs: the sample's :class:`~tissuecast.fem.springs.NodalSprings` (the problem's
+            nodes, scaled stiffnesses), or None for the problem's own.
+    """
+
+    forces: np.ndarray
+    weights: np.ndarray
+    surface: np.ndarray
+    body: np.ndarray | None
+    prescribed_ids: np.ndarray
+    prescribed_values: np.ndarray
+    draw: ScenarioDraw
+    parameters: object = None
+    materials: object = None
+    springs: object = None
+
+    @property
+    def solver_parameters(self) -> tuple:
+        """``(materials, springs)`` for :meth:`tissuecast.fem.Solver.with_parameters` (both None
+        for the problem's own)."""
+        return self.materials, self.springs
+
+    @property
+    def predictor_loads(self) -> np.ndarray:
+        """(n_nodes, 3) float64 N: the loads a reduced model of the nominal problem predicts this
+        sample from: :attr:`loads` over the sample's factor on E (stresses scale with E, so a
+        body of E / s under loads / s deforms alike, but for its springs and prescribed nodes)."""
+        factor = 1.0 if self.parameters is None else float(self.parameters.youngs_modulus)
+        return self.loads / factor
+
+    def solve_keywords(self) -> dict:
+        """The keywords of :meth:`tissuecast.fem.Solver.solve` besides the surface loads:
+        ``body_loads`` (with a gravity change) and ``prescribed`` ``(ids, values)`` (with an
+        indentation); none for a sample loaded by its surface field alone."""
+        out = {} if self.body is None else {"body_loads": self.body}
+        if len(self.prescribed_ids):
+            out["prescribed"] = (self.prescribed_ids, self.prescribed_values)
+        return out
+
+    @property
+    def loads(self) -> np.ndarray:
+        """(n_nodes, 3) float64 N, all external loads: the surface loads plus the body loads
+        (what a reduced model predicts the solution from)."""
+        return self.surface + (0.0 if self.body is None else self.body)

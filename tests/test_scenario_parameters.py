@@ -1,0 +1,135 @@
+"""Uncertain parameters drawn per sample: their distributions, the surface distance that sets
+the attached extent, and what they do to the solve (E and the springs scaled together equal
+the loads scaled down; the attached band held at zero; the density on the body loads)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mesh_factories import box_grid
+from scipy import stats
+
+from tissuecast.config import Config, UncertainConfig, with_overrides
+from tissuecast.errors import ConfigError
+from tissuecast.fem import Solver
+from tissuecast.scenario import build_scenario
+from tissuecast.scenario.parameters import UncertainParameters, attached_distance, parameter_rng
+
+BOX = box_grid(2, 2, 4, (5.0, 5.0, 5.0))  # 10 x 10 x 20 mm
+BOTTOM = np.flatnonzero(np.isclose(BOX.points[:, 2], 0.0))
+
+
+def _parameters(**ranges) -> UncertainParameters:
+    m = 10
+    return UncertainParameters(UncertainConfig(**ranges), np.full(m, 0.021), np.full(m, 0.45),
+                               np.array([-1] * 5 + [0] * 5), 1)
+
+
+def test_draws_are_reproducible_independent_of_the_other_ranges_and_follow_their_laws():
+    full = _parameters(youngs_modulus=(0.5, 2.0), poisson_ratio=(0.40, 0.49), density=(0.9, 1.1),
+                       spring_normal=(0.25, 4.0), attached_margin=(-5.0, 5.0), region_youngs_modulus=(1.0, 3.0))
+    only_e = _parameters(youngs_modulus=(0.5, 2.0))
+    draws = [full.draw(parameter_rng(s)) for s in range(3000)]
+    again = [full.draw(parameter_rng(s)) for s in range(5)]
+    assert draws[:5] == again
+    assert [only_e.draw(parameter_rng(s)).youngs_modulus for s in range(50)] == [d.youngs_modulus for d in draws[:50]]
+    e = np.array([d.youngs_modulus for d in draws])
+    nu = np.array([d.poisson_ratio for d in draws])
+    margin = np.array([d.attached_margin for d in draws])
+    # log-uniform factors (as likely halved as doubled), uniform nu and margin: KS tests
+    assert stats.kstest(np.log(e), stats.uniform(np.log(0.5), np.log(4.0)).cdf).pvalue > 0.01
+    assert stats.kstest(nu, stats.uniform(0.40, 0.09).cdf).pvalue > 0.01
+    assert stats.kstest(margin, stats.uniform(-5.0, 10.0).cdf).pvalue > 0.01
+    assert 0.9 <= min(d.density for d in draws) and max(d.density for d in draws) <= 1.1
+    # unset ranges keep the nominal values
+    d = only_e.draw(parameter_rng(3))
+    assert (np.isnan(d.poisson_ratio) and d.density == 1.0 and d.spring_normal == 1.0 and d.attached_margin == 0.0
+            and d.region_youngs_modulus == (1.0,))
+    # element constants: the global factor everywhere, the region's on its elements only
+    e_el, nu_el = full.element_constants(draws[0])
+    np.testing.assert_allclose(e_el[:5], 0.021 * draws[0].youngs_modulus)
+    np.testing.assert_allclose(e_el[5:], 0.021 * draws[0].youngs_modulus * draws[0].region_youngs_modulus[0])
+    np.testing.assert_allclose(nu_el, draws[0].poisson_ratio)
+
+
+def test_the_signed_surface_distance_from_the_attached_rim():
+    d = attached_distance(BOX, BOTTOM)
+    side = np.flatnonzero(np.isclose(BOX.points[:, 0], 0.0) & (BOX.points[:, 2] > 0))
+    np.testing.assert_allclose(d[side], BOX.points[side, 2])  # up the side along the vertical edges
+    rim = BOTTOM[(BOX.points[BOTTOM, 0] % 10 == 0) | (BOX.points[BOTTOM, 1] % 10 == 0)]
+    np.testing.assert_allclose(d[rim], -5.0)  # one edge below the first free vertex
+    centre = BOTTOM[np.all(np.isclose(BOX.points[BOTTOM, :2], 5.0), axis=1)]
+    np.testing.assert_allclose(d[centre], -10.0)
+    assert np.isnan(d[np.setdiff1d(np.arange(BOX.n_vertices), BOX.surface_vertices)]).all()
+
+
+def _box_config(tmp_path, gravity: bool = False, **uncertain) -> Config:
+    from tissuecast.mesh import write_mesh
+
+    path = tmp_path / "box.vtu"
+    write_mesh(path, BOX)
+    scenario = {"pins": False, "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
+                "springs": {"rule": "surface", "normal_stiffness": 0.002, "tangential_stiffness": 0.001},
+                "gravity": {"enabled": gravity}, "uncertain": uncertain}
+    return with_overrides(Config(), mesh={"path": str(path)}, solver={"order": 1},
+                          forces={"loading": "traction", "n_basis": 6}, scenario=scenario)
+
+
+def _scenario(cfg):
+    from tissuecast.mesh import read_mesh
+
+    return build_scenario(read_mesh(cfg.mesh.path), cfg, np.zeros(0, dtype=np.int64))
+
+
+def test_E_and_springs_scaled_together_deform_like_the_loads_scaled_down(tmp_path):
+    """Stresses scale with E and spring forces with k: the body of 2 E on 2 k springs under
+    loads f moves as the nominal one under f / 2 (exactly, up to the solver's tolerance)."""
+    nominal = _scenario(_box_config(tmp_path))
+    cfg = _box_config(tmp_path, youngs_modulus=[2.0, 2.0], spring_normal=[2.0, 2.0], spring_tangential=[2.0, 2.0])
+    stiff = _scenario(cfg)
+    x = stiff.sample(5, alpha=1.5)
+    assert x.parameters.youngs_modulus == 2.0 and x.materials is not None and x.springs is not None
+    np.testing.assert_allclose(x.springs.stiffness, 2.0 * nominal.springs.stiffness, rtol=1e-12)
+    tight = with_overrides(cfg, solver={"force_tolerance": 1e-8, "displacement_tolerance": 1e-8}).solver
+    solver = Solver(nominal.problem(cfg), tight)
+    u_stiff = solver.with_parameters(*x.solver_parameters).solve(x.surface, **x.solve_keywords()).displacement
+    u_half = solver.solve(x.surface / 2.0).displacement
+    assert np.abs(u_half).max() > 0.5  # mm: large enough to be nonlinear
+    np.testing.assert_allclose(u_stiff, u_half, atol=1e-6 * np.abs(u_half).max())
+    # the view left the solver itself as it was
+    np.testing.assert_allclose(solver.solve(x.surface / 2.0).displacement, u_half, rtol=0, atol=0)
+
+
+def test_the_attached_extent_and_the_density_follow_the_draw(tmp_path):
+    cfg = _box_config(tmp_path, attached_margin=[-5.0, 5.0])
+    sc = _scenario(cfg)
+    d = sc.uncertain.distance
+    np.testing.assert_array_equal(sc.attached, np.flatnonzero(d <= -5.0))  # the smallest extent is static
+    for seed in range(20):
+        x = sc.sample(seed, alpha=0.05)
+        m = x.parameters.attached_margin
+        held = np.union1d(sc.attached, x.prescribed_ids)
+        np.testing.assert_array_equal(held, np.flatnonzero(d <= m))
+        assert not x.prescribed_values.any()
+    grown = sc.sample(int(np.argmax([sc.sample(s, 0.05).parameters.attached_margin for s in range(20)])), alpha=0.05)
+    u = Solver(sc.problem(cfg), cfg.solver).solve(grown.surface, **grown.solve_keywords()).displacement
+    assert not u[grown.prescribed_ids].any() and np.abs(u).max() > 0.1
+    gravity = _box_config(tmp_path, gravity=True, density=[1.5, 1.5])
+    plain = _box_config(tmp_path, gravity=True)
+    a, b = _scenario(gravity).sample(3, 0.05), _scenario(plain).sample(3, 0.05)
+    np.testing.assert_allclose(a.body, 1.5 * b.body, rtol=1e-15)
+
+
+@pytest.mark.parametrize(
+    "uncertain, scenario, text",
+    [({"spring_normal": [0.5, 2.0]}, {}, "scenario.uncertain.spring_normal varies something this scenario lacks"),
+     ({"density": [0.5, 2.0]}, {}, "set scenario.gravity.enabled"),
+     ({"attached_margin": [-5.0, 5.0]}, {}, "set scenario.attached.rule"),
+     ({"youngs_modulus": [2.0, 0.5]}, {}, "scenario.uncertain.youngs_modulus must be [min, max]"),
+     ({"youngs_modulus": [0.5, 100.0]}, {}, "are factors on material.youngs_modulus"),
+     ({"measured": ["E"]}, {}, "scenario.uncertain.measured names ['E']"),
+     ({"measured": ["poisson_ratio"]}, {}, "which scenario.uncertain does not draw")],
+)
+def test_bad_uncertain_ranges_are_refused_naming_the_key(uncertain, scenario, text):
+    with pytest.raises(ConfigError, match=text.replace("[", r"\[").replace("]", r"\]")):
+        with_overrides(Config(), scenario={"uncertain": uncertain, **scenario})
