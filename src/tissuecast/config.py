@@ -514,20 +514,7 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
 
 def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, MeshConfig):
-        from .mesh.labelmap import label_map_format
-
-        kind = label_map_format(obj.path) if obj.path else None
-        if (obj.label or obj.segment) and kind is None:
-            raise ConfigError(f"{prefix}label and {prefix}segment apply only when {prefix}path names a label map "
-                              f"(.nii, .nii.gz, .nrrd, .seg.nrrd), got path {obj.path!r}")
-        if obj.segment and kind != "segmentation":
-            raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
-                              f"{obj.path!r} is not one: use {prefix}label")
-        if obj.max_vertices:
-            _check_budget_source(obj, prefix, kind)
-        if kind is not None and obj.units != "mm":
-            raise ConfigError(f"{prefix}units applies to mesh files; a label map is read in its own physical units (mm), "
-                              f"remove {prefix}units = {obj.units!r}")
+        _check_mesh_source(obj, prefix)
     if isinstance(obj, DatasetConfig):
         if len(obj.split) != 3 or any(s < 0 for s in obj.split) or sum(obj.split) <= 0:
             raise ConfigError(f"{prefix}split must be three non-negative numbers (train, valid, test-1), got {list(obj.split)}")
@@ -554,14 +541,7 @@ def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, SolverConfig) and obj.min_increment > obj.initial_increment:
         raise ConfigError(f"{prefix}min_increment ({obj.min_increment}) must not exceed initial_increment ({obj.initial_increment})")
     if isinstance(obj, RegionConfig):
-        _check_vector(f"{prefix}direction", obj.direction)
-        _check_vector(f"{prefix}point", obj.point, nonzero=False)
-        _check_place_rules(obj, prefix)
-        if obj.rule == "ids" and not obj.ids:
-            raise ConfigError(f"{prefix}rule = 'ids' needs {prefix}ids, a list of 0-based vertex ids")
-        if obj.rule == "tag" and not obj.tag:
-            raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
-                              "(`tissuecast mesh info FILE` lists them)")
+        _check_region(obj, prefix)
     if isinstance(obj, TargetConfig):
         _check_targets(obj, prefix)
     if isinstance(obj, GravityConfig):
@@ -605,6 +585,18 @@ def _cross_checks(obj: Any, prefix: str) -> None:
         _check_scenario(obj)
 
 
+def _check_region(obj: "RegionConfig", prefix: str) -> None:
+    """A surface region's rule has the keys it needs, and no key of another rule."""
+    _check_vector(f"{prefix}direction", obj.direction)
+    _check_vector(f"{prefix}point", obj.point, nonzero=False)
+    _check_place_rules(obj, prefix)
+    if obj.rule == "ids" and not obj.ids:
+        raise ConfigError(f"{prefix}rule = 'ids' needs {prefix}ids, a list of 0-based vertex ids")
+    if obj.rule == "tag" and not obj.tag:
+        raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
+                          "(`tissuecast mesh info FILE` lists them)")
+
+
 def _check_place_rules(obj: "RegionConfig", prefix: str) -> None:
     """The keys of the region rules that carry over to other meshes (markups, extreme, label)."""
     from .mesh.labelmap import label_map_format
@@ -622,6 +614,24 @@ def _check_place_rules(obj: "RegionConfig", prefix: str) -> None:
     if obj.rule == "label" and label_map_format(obj.label_map) is None:
         raise ConfigError(f"{prefix}rule = 'label' needs {prefix}label_map, a label map (.nii, .nii.gz, .nrrd, "
                           f".seg.nrrd), got {obj.label_map!r}")
+
+
+def _check_mesh_source(obj: "MeshConfig", prefix: str) -> None:
+    """The keys of ``[mesh]`` that depend on what ``path`` names (label map, surface, volume mesh)."""
+    from .mesh.labelmap import label_map_format
+
+    kind = label_map_format(obj.path) if obj.path else None
+    if (obj.label or obj.segment) and kind is None:
+        raise ConfigError(f"{prefix}label and {prefix}segment apply only when {prefix}path names a label map "
+                          f"(.nii, .nii.gz, .nrrd, .seg.nrrd), got path {obj.path!r}")
+    if obj.segment and kind != "segmentation":
+        raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
+                          f"{obj.path!r} is not one: use {prefix}label")
+    if obj.max_vertices:
+        _check_budget_source(obj, prefix, kind)
+    if kind is not None and obj.units != "mm":
+        raise ConfigError(f"{prefix}units applies to mesh files; a label map is read in its own physical units (mm), "
+                          f"remove {prefix}units = {obj.units!r}")
 
 
 def _check_budget_source(obj: "MeshConfig", prefix: str, kind: str | None) -> None:
