@@ -103,7 +103,8 @@ def _print_report(args, labelmap, mask, mesh, sizing, fidelity, cost) -> None:
     if sizing["attempts"]:
         asked = (f"budget {sizing['max_vertices']} vertices" if sizing["max_vertices"]
                  else f"tolerance {sizing['tolerance_mm']:g} mm")
-        how += f" ({asked}; {len(sizing['attempts'])} meshing attempts)"
+        n = len(sizing["attempts"])
+        how += f" ({asked}; {n} meshing attempt{'' if n == 1 else 's'})"
     print(f"mesh               {mesh.n_vertices} vertices, {mesh.n_tets} tetrahedra {how}, LPS coordinates "
           "(the scan's frame)")
     print(f"volume             mesh {fidelity.mesh_volume:.1f} mm^3, voxels {fidelity.label_volume:.1f} mm^3 "
