@@ -36,7 +36,7 @@ class RunEstimate:
         unknowns: displacement unknowns with quadratic tetrahedra, 3 (vertices + edges).
         seconds: expected wall-clock time on the reference machine, s.
         exponent: b of the fitted power law t ~ n^b.
-        extrapolated: the mesh lies outside the vertex range of the measured runs.
+        extrapolated: the mesh lies more than 5 % outside the vertex range of the measured runs.
     """
 
     n_vertices: int
