@@ -254,3 +254,39 @@ def test_broken_mesh_files_give_one_error_line_on_every_command(tmp_path):
     for kind in ("empty", "truncated", "random"):
         _broken(mesh_npz, kind, good_npz)
         _one_error_line(_run(["predict", "model", "--markers", "d.csv"], tmp_path), "mesh.npz")
+
+
+@pytest.mark.parametrize("mode", ["appended", "binary", "ascii"])
+def test_a_slicer_vtu_in_ras_is_read_by_meshio_after_its_string_array_and_converted(tmp_path, mode):
+    """As 3D Slicer saves a model: VTK's XML writer, RAS coordinates, SPACE = "RAS" in the field data."""
+    from vtkmodules.util.numpy_support import numpy_to_vtk, numpy_to_vtkIdTypeArray
+    from vtkmodules.vtkCommonCore import vtkPoints, vtkStringArray
+    from vtkmodules.vtkCommonDataModel import vtkCellArray, vtkUnstructuredGrid
+    from vtkmodules.vtkIOXML import vtkXMLUnstructuredGridWriter
+
+    m = phantom()
+    ras = m.points * [-1.0, -1.0, 1.0]
+    grid = vtkUnstructuredGrid()
+    points = vtkPoints()
+    points.SetData(numpy_to_vtk(np.ascontiguousarray(ras), deep=True))
+    grid.SetPoints(points)
+    cells = vtkCellArray()
+    cells.SetData(numpy_to_vtkIdTypeArray(np.arange(0, 4 * m.n_tets + 1, 4, dtype=np.int64), deep=True),
+                  numpy_to_vtkIdTypeArray(np.ascontiguousarray(m.tets.ravel()), deep=True))
+    grid.SetCells(10, cells)
+    space = vtkStringArray()
+    space.SetName("SPACE")
+    space.InsertNextValue("RAS")
+    grid.GetFieldData().AddArray(space)
+    writer = vtkXMLUnstructuredGridWriter()
+    writer.SetInputData(grid)
+    writer.SetFileName(str(tmp_path / "slicer.vtu"))
+    {"appended": writer.SetDataModeToAppended, "binary": writer.SetDataModeToBinary,
+     "ascii": writer.SetDataModeToAscii}[mode]()
+    writer.SetCompressorTypeToZLib()
+    assert writer.Write()
+    with pytest.raises(SystemExit):
+        meshio.read(tmp_path / "slicer.vtu")  # what a meshio script meets with Slicer's files
+    back = read_mesh(tmp_path / "slicer.vtu")  # tissuecast: the string array set aside, RAS -> LPS
+    np.testing.assert_allclose(back.points, m.points, atol=1e-12)
+    np.testing.assert_array_equal(back.tets, m.tets)
