@@ -235,3 +235,18 @@ def test_study_markers_are_nested_prefixes(ds):
     assert len(set(m6.tolist())) == 6
     if d3 == d6:
         np.testing.assert_array_equal(m6[:3], m3)
+
+
+def test_report_vtu_folder_is_read_by_meshio_pyvista_and_vtk(tmp_path, model, ds, evaluation):
+    pytest.importorskip("pyvista")
+    from test_mesh_file_readers import read_everywhere
+
+    from tissuecast.evaluate.report import write_report
+
+    write_report(tmp_path / "rep", model, ds, evaluation, renders=2)
+    files = sorted((tmp_path / "rep" / "vtu").glob("*.vtu"))
+    assert len(files) == 2
+    for path in files:
+        seen = read_everywhere(path, model.mesh.points, ("benchmark_displacement", "predicted_displacement",
+                                                         "vertex_error", "ridge_displacement"))
+        np.testing.assert_allclose(seen["pyvista"].point_data["vertex_error"], seen["meshio"].point_data["vertex_error"])

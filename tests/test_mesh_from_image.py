@@ -222,8 +222,10 @@ def test_cli_from_image_writes_a_slicer_model_in_lps(tmp_path, small_ellipsoid, 
     assert main(["mesh", "from-image", str(path), str(out), "--size", "2"]) == 0
     text = capsys.readouterr().out
     assert "LPS coordinates" in text and "Hausdorff" in text
-    assert read_model_space(out) == "LPS"
-    mesh = read_mesh(out)  # read back through meshio's fallback to VTK (the SPACE string array)
+    assert read_model_space(out) is None  # meshio-readable: no SPACE array; Slicer takes LPS
+    assert main(["mesh", "from-image", str(path), str(tmp_path / "s.vtu"), "--size", "2", "--space-array"]) == 0
+    assert read_model_space(tmp_path / "s.vtu") == "LPS"  # where Slicer reads it
+    mesh = read_mesh(tmp_path / "s.vtu")  # meshio, after the SPACE string array is set aside
     assert abs(mesh.volume - read_label_map(path).volume) / read_label_map(path).volume < 0.02
     assert main(["mesh", "from-image", str(path), str(tmp_path / "x.vtu"), "--label", "9"]) == 2
     assert "label 9 is empty" in capsys.readouterr().err

@@ -145,8 +145,11 @@ def test_model_files_state_lps_and_ras_files_are_read_as_lps(tmp_path):
     from tissuecast.slicer.models import read_model_space, write_model
 
     mesh = box_mesh()
-    for suffix in (".vtk", ".vtu", ".vtp"):
+    for suffix in (".vtk", ".vtp"):
         assert read_model_space(write_model(tmp_path / f"m{suffix}", mesh)) == "LPS"
+    # a .vtu states no frame by default (meshio could not read it; Slicer takes LPS), unless asked
+    assert read_model_space(write_model(tmp_path / "m.vtu", mesh)) is None
+    assert read_model_space(write_model(tmp_path / "s.vtu", mesh, space_array=True)) == "LPS"
     raw = (tmp_path / "m.vtk").read_bytes()
     assert b"SPACE=LPS" in raw.split(b"\n")[1]  # the header line Slicer reads
     (tmp_path / "r.vtk").write_bytes(raw.replace(b"SPACE=LPS", b"SPACE=RAS", 1))  # as Slicer saves in RAS

@@ -35,6 +35,7 @@ __all__ = [
     "ServeConfig",
     "ScenarioConfig",
     "RegionConfig",
+    "ANATOMICAL_DIRECTIONS",
     "SpringConfig",
     "GravityConfig",
     "IndentationConfig",
@@ -70,6 +71,7 @@ class MeshConfig:
     keep_largest: bool = _f(False, doc="label map: keep the largest face-connected piece of the label instead of refusing several")
     fill_cavities: bool = _f(False, doc="label map: fill background enclosed by the label instead of refusing it")
     smoothing_iterations: int = _f(30, lo=0, hi=1000, doc="label map: Taubin (non-shrinking) smoothing passes of the marching-cubes surface")
+    max_vertices: int = _f(0, lo=0, doc="label map or closed surface: at most this many vertices, the edge length searched (surface_mesh_size unused); 0 = no budget")
 
 
 #: Fixed-vertex placement rules (see :func:`tissuecast.scenario.pins.select_fixed_vertices`).
@@ -265,7 +267,10 @@ class ServeConfig:
 
 # ------------------------------------------------------------------- scenario
 #: Rules selecting a region of the outer surface (see :mod:`tissuecast.scenario.regions`).
-REGION_RULES = ("none", "surface", "ids", "tag", "normal", "distance")
+REGION_RULES = ("none", "surface", "ids", "tag", "normal", "distance", "markups", "extreme", "label")
+#: Anatomical directions a region rule may name (``toward``), as LPS unit vectors.
+ANATOMICAL_DIRECTIONS = {"left": (1.0, 0.0, 0.0), "right": (-1.0, 0.0, 0.0), "posterior": (0.0, 1.0, 0.0),
+                         "anterior": (0.0, -1.0, 0.0), "superior": (0.0, 0.0, 1.0), "inferior": (0.0, 0.0, -1.0)}
 
 #: Surroundings' stiffness per unit area (N/mm^3 = MPa/mm) of the default elastic support:
 #: tissue of modulus E = 0.021 MPa over a length of about L = 10 mm, k = E / L.
@@ -286,14 +291,20 @@ SOFT_TISSUE_MODULUS_SPAN = (1.0e-4, 1.0)
 class RegionConfig:
     """A set of outer-surface vertices chosen by one rule (e.g. where the tissue is attached)."""
 
-    rule: str = _f("none", choices=REGION_RULES, doc="outer-surface vertices: surface = all; ids = in `ids`; tag = a mesh-file region; normal = within `angle` of `direction`; distance = near `point`")
+    rule: str = _f("none", choices=REGION_RULES, doc="surface = all; ids; tag = a mesh-file region; normal; distance; markups = Slicer points; extreme = farthest along a direction; label (see docs)")
     ids: tuple[int, ...] = _f((), lo=0, doc="rule 'ids': 0-based vertex ids")
     tag: str = _f("", doc="rule 'tag': name of a point-data array, point set, cell set or cell-data array of the mesh file")
     tag_value: int = _f(-1, doc="rule 'tag' on a point-data or cell-data array: the value marking the region; -1 = any non-zero value")
     direction: tuple[float, ...] = _f((0.0, 0.0, -1.0), doc="rule 'normal': direction (mesh coordinates) the region's outward normals point to")
     angle: float = _f(45.0, lo=0.0, hi=180.0, doc="rule 'normal': largest angle in degrees between a vertex's outward normal and `direction`")
     point: tuple[float, ...] = _f((0.0, 0.0, 0.0), doc="rule 'distance': centre, mm (mesh coordinates)")
-    distance: float = _f(10.0, lo=0.0, lo_open=True, doc="rule 'distance': radius, mm")
+    distance: float = _f(10.0, lo=0.0, lo_open=True, doc="rules 'distance', 'markups', 'extreme': radius around the point, mm")
+    toward: str = _f("", choices=("",) + tuple(ANATOMICAL_DIRECTIONS), doc="rules 'normal', 'extreme': an anatomical direction instead of `direction` (LPS: left +x, posterior +y, superior +z); empty = `direction`")
+    markups: str = _f("", doc="rule 'markups': 3D Slicer markups file (.mrk.json, .fcsv) in the mesh's frame (LPS or RAS, as it says); points snap to the surface")
+    markup_label: str = _f("", doc="rule 'markups': only the points with this label (or the list of this name); empty = every point of the file")
+    snap: float = _f(20.0, lo=0.0, lo_open=True, doc="rule 'markups': farthest a point may lie from the outer surface, mm")
+    label_map: str = _f("", doc="rule 'label': label map (.nii, .nii.gz, .nrrd, .seg.nrrd) in the mesh's frame; the surface vertices in, or one voxel from, the label")
+    label: int = _f(0, lo=0, doc="rule 'label': voxel value of the label; 0 = the only non-zero value of the map")
 
 
 @dataclass(frozen=True)
@@ -524,18 +535,7 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
 
 def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, MeshConfig):
-        from .mesh.labelmap import label_map_format
-
-        kind = label_map_format(obj.path) if obj.path else None
-        if (obj.label or obj.segment) and kind is None:
-            raise ConfigError(f"{prefix}label and {prefix}segment apply only when {prefix}path names a label map "
-                              f"(.nii, .nii.gz, .nrrd, .seg.nrrd), got path {obj.path!r}")
-        if obj.segment and kind != "segmentation":
-            raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
-                              f"{obj.path!r} is not one: use {prefix}label")
-        if kind is not None and obj.units != "mm":
-            raise ConfigError(f"{prefix}units applies to mesh files; a label map is read in its own physical units (mm), "
-                              f"remove {prefix}units = {obj.units!r}")
+        _check_mesh_source(obj, prefix)
     if isinstance(obj, DatasetConfig):
         if len(obj.split) != 3 or any(s < 0 for s in obj.split) or sum(obj.split) <= 0:
             raise ConfigError(f"{prefix}split must be three non-negative numbers (train, valid, test-1), got {list(obj.split)}")
@@ -562,13 +562,7 @@ def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, SolverConfig) and obj.min_increment > obj.initial_increment:
         raise ConfigError(f"{prefix}min_increment ({obj.min_increment}) must not exceed initial_increment ({obj.initial_increment})")
     if isinstance(obj, RegionConfig):
-        _check_vector(f"{prefix}direction", obj.direction)
-        _check_vector(f"{prefix}point", obj.point, nonzero=False)
-        if obj.rule == "ids" and not obj.ids:
-            raise ConfigError(f"{prefix}rule = 'ids' needs {prefix}ids, a list of 0-based vertex ids")
-        if obj.rule == "tag" and not obj.tag:
-            raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
-                              "(`tissuecast mesh info FILE` lists them)")
+        _check_region(obj, prefix)
     if isinstance(obj, TargetConfig):
         _check_targets(obj, prefix)
     if isinstance(obj, GravityConfig):
@@ -610,6 +604,68 @@ def _cross_checks(obj: Any, prefix: str) -> None:
             raise ConfigError(f"{prefix}regions repeat a name ({names}); give each region its own name")
     if isinstance(obj, Config):
         _check_scenario(obj)
+
+
+def _check_region(obj: "RegionConfig", prefix: str) -> None:
+    """A surface region's rule has the keys it needs, and no key of another rule."""
+    _check_vector(f"{prefix}direction", obj.direction)
+    _check_vector(f"{prefix}point", obj.point, nonzero=False)
+    _check_place_rules(obj, prefix)
+    if obj.rule == "ids" and not obj.ids:
+        raise ConfigError(f"{prefix}rule = 'ids' needs {prefix}ids, a list of 0-based vertex ids")
+    if obj.rule == "tag" and not obj.tag:
+        raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
+                          "(`tissuecast mesh info FILE` lists them)")
+
+
+def _check_place_rules(obj: "RegionConfig", prefix: str) -> None:
+    """The keys of the region rules that carry over to other meshes (markups, extreme, label)."""
+    from .mesh.labelmap import label_map_format
+
+    if obj.toward and obj.rule not in ("normal", "extreme"):
+        raise ConfigError(f"{prefix}toward applies to rules 'normal' and 'extreme', not {obj.rule!r}; remove it")
+    for keys, rule in ((("markups", "markup_label"), "markups"), (("label_map", "label"), "label")):
+        given = [k for k in keys if getattr(obj, k)]
+        if given and obj.rule != rule:
+            raise ConfigError(f"{prefix}{given[0]} applies to rule = '{rule}', not {obj.rule!r}; set "
+                              f"{prefix}rule = '{rule}' or remove it")
+    if obj.rule == "markups" and not obj.markups.lower().endswith((".mrk.json", ".fcsv")):
+        raise ConfigError(f"{prefix}rule = 'markups' needs {prefix}markups, a 3D Slicer markups file (.mrk.json or "
+                          f".fcsv), got {obj.markups!r}")
+    if obj.rule == "label" and label_map_format(obj.label_map) is None:
+        raise ConfigError(f"{prefix}rule = 'label' needs {prefix}label_map, a label map (.nii, .nii.gz, .nrrd, "
+                          f".seg.nrrd), got {obj.label_map!r}")
+
+
+def _check_mesh_source(obj: "MeshConfig", prefix: str) -> None:
+    """The keys of ``[mesh]`` that depend on what ``path`` names (label map, surface, volume mesh)."""
+    from .mesh.labelmap import label_map_format
+
+    kind = label_map_format(obj.path) if obj.path else None
+    if (obj.label or obj.segment) and kind is None:
+        raise ConfigError(f"{prefix}label and {prefix}segment apply only when {prefix}path names a label map "
+                          f"(.nii, .nii.gz, .nrrd, .seg.nrrd), got path {obj.path!r}")
+    if obj.segment and kind != "segmentation":
+        raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
+                          f"{obj.path!r} is not one: use {prefix}label")
+    if obj.max_vertices:
+        _check_budget_source(obj, prefix, kind)
+    if kind is not None and obj.units != "mm":
+        raise ConfigError(f"{prefix}units applies to mesh files; a label map is read in its own physical units (mm), "
+                          f"remove {prefix}units = {obj.units!r}")
+
+
+def _check_budget_source(obj: "MeshConfig", prefix: str, kind: str | None) -> None:
+    """``mesh.max_vertices`` remeshes label maps and closed surfaces only."""
+    from .mesh.mesher import SURFACE_FORMATS
+
+    if obj.max_vertices < 4:
+        raise ConfigError(f"{prefix}max_vertices = {obj.max_vertices} is too small; a tetrahedral mesh needs at "
+                          "least 4 vertices (0 = no budget)")
+    if kind is None and Path(obj.path).suffix.lower() not in SURFACE_FORMATS:
+        what = f"{obj.path!r} is a volume mesh, used as it is" if obj.path else "the built-in phantom is fixed"
+        raise ConfigError(f"{prefix}max_vertices applies when {prefix}path names a label map or a closed surface "
+                          f"(.stl .obj .ply .off .face), which are meshed; {what}: remove {prefix}max_vertices")
 
 
 def _check_uncertain(obj: "UncertainConfig", prefix: str) -> None:

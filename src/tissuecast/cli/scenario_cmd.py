@@ -36,7 +36,7 @@ def register(sub) -> None:
 def run_preview(args) -> int:
     from ..dataset.sample_plan import sample_seed
     from ..scenario import scenario_from_config, scenario_rng
-    from ..scenario.preview import example_deformations, render_preview, write_preview_vtu
+    from ..scenario.preview import example_deformations, render_preview, scenario_places, write_preview_vtu
 
     cfg = load_config(args.config)
     mesh, markers, fixed, sc = scenario_from_config(cfg)
@@ -46,9 +46,12 @@ def run_preview(args) -> int:
     if prefix.parent != Path("."):
         prefix.parent.mkdir(parents=True, exist_ok=True)
     summary = sc.summary()
+    places = scenario_places(sc)
     doc = {"ids_are_0_based": True, "units": {"length": "mm", "force": "N", "density": "t/mm^3"},
            "scenario": summary, "markers": markers.tolist(), "pinned": sc.pinned.tolist(),
            "attached": sc.attached.tolist(),
+           "places": {name: {"vertices": ids.tolist(), "lps_mm": mesh.points[ids].tolist()} for name, ids in places.items()},
+           "access": [] if sc.sites is None else sc.sites.access.tolist(),
            "examples": [{"sample": i, **d.record(), "indent_vertices": [] if d.indentation is None
                          else d.indentation.vertices.tolist()} for i, d in enumerate(draws)]}
     deformations = []
@@ -64,11 +67,15 @@ def run_preview(args) -> int:
     path.write_text(json.dumps(doc, indent=2, default=float) + "\n", encoding="utf-8")
     written.append(path)
     if not args.no_png:
-        written.append(render_preview(prefix.with_name(prefix.name + ".png"), sc, draws, deformations))
+        written.append(render_preview(prefix.with_name(prefix.name + ".png"), sc, draws, deformations, places=places))
     print(f"scenario '{summary['name']}' on {mesh.n_vertices} vertices ({cfg.mesh.path or 'built-in phantom'}); "
           "ids 0-based")
     print(f"  pinned vertices   {len(sc.pinned)}")
-    print(f"  attached region   {len(sc.attached)} surface vertices (rule {cfg.scenario.attached.rule})")
+    print(f"  attached region   {len(sc.attached)} surface vertices (rule {cfg.scenario.attached.rule})"
+          + _place_text(mesh, places.get("attached")))
+    if sc.sites is not None:
+        print(f"  surgical access   {len(sc.sites.access)} surface vertices (rule {cfg.scenario.indentation.access.rule})"
+              + _place_text(mesh, places.get("access")) + f", {len(sc.sites.centres)} eligible patch centres")
     if sc.springs is not None:
         s = cfg.scenario.springs
         print(f"  elastic support   {len(sc.spring_region)} surface vertices, {len(sc.springs)} nodal springs, "
@@ -92,6 +99,13 @@ def run_preview(args) -> int:
     for p in written:
         print(f"wrote {p}")
     return 0
+
+
+def _place_text(mesh, ids) -> str:
+    """``" at vertex 12 (LPS 1.0, 2.0, 3.0 mm)"`` for the places a rule found; empty without."""
+    if ids is None or not len(ids):
+        return ""
+    return " at " + "; ".join(f"vertex {int(i)} (LPS {', '.join(f'{x:.1f}' for x in mesh.points[i])} mm)" for i in ids[:4])
 
 
 def _unit(v) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""``tissuecast study {architecture,markers,pca} CONFIG|STORE``: the paper's parametric studies (CSV + PNG)."""
+"""``tissuecast study {architecture,markers,pca} CONFIG|STORE``: the paper's parametric studies (CSV + PNG);
+``tissuecast study mismatch CONFIG --model LABEL=DIR ...``: what a mismatch between simulator and patient costs."""
 
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ def register(sub) -> None:
                        description="Train on the store's train split and measure test-1 accuracy; writes study_NAME.csv "
                                    "and study_NAME.png into --out (default: the run's report folder), which "
                                    "`tissuecast evaluate` then includes in the report.")
-    p.add_argument("study", choices=("architecture", "markers", "pca"), help="which study")
+    p.add_argument("study", choices=("architecture", "markers", "pca", "mismatch"), help="which study")
     p.add_argument("source", nargs="?", help="TOML config file or data-set store directory")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
     p.add_argument("--out", help="output folder (default: the report folder of the config)")
@@ -37,10 +38,73 @@ def register(sub) -> None:
     p.add_argument("--counts", default=_COUNTS, help=f"markers: numbers of markers (default {_COUNTS})")
     p.add_argument("--max-components", type=int, default=PCA_MAX_COMPONENTS,
                    help=f"pca: largest n_w (default {PCA_MAX_COMPONENTS})")
+    p.add_argument("--model", action="append", default=[], metavar="LABEL=DIR",
+                   help="mismatch: a model folder to evaluate, with its label (repeat: e.g. nominal=runs/a/model "
+                        "uncertain=runs/b/model)")
+    p.add_argument("--sets", default="", help="mismatch: comma-separated set names (default: every set the scenario has)")
+    p.add_argument("--samples", type=int, default=None, help="mismatch: samples per set (default 100)")
+    p.add_argument("--refined-samples", type=int, default=None,
+                   help="mismatch: samples of the discretisation set, solved on the refined mesh (default 8)")
+    p.add_argument("--alpha", type=float, default=0.0,
+                   help="mismatch: force magnitude of the sets, N (default: the first model's training store's)")
     p.set_defaults(func=run)
 
 
+def _models(specs: list[str]) -> dict:
+    """``{label: DeformationModel}`` from ``LABEL=DIR`` arguments."""
+    from ..errors import ConfigError
+    from ..surrogate import DeformationModel
+
+    if not specs:
+        raise ConfigError("study mismatch needs at least one --model LABEL=DIR (e.g. --model uncertain=runs/x/model)")
+    out = {}
+    for spec in specs:
+        label, sep, folder = spec.partition("=")
+        if not sep or not label or not folder:
+            raise ConfigError(f"--model {spec!r}: give LABEL=DIR, e.g. nominal=runs/embedded/model")
+        out[label] = DeformationModel.load(folder)
+    return out
+
+
+def _mismatch(args) -> int:
+    from ..config import load_config
+    from ..errors import ConfigError
+    from ..evaluate import mismatch as mm
+    from ..evaluate.mismatch_report import format_mismatch, mismatch_figure, write_mismatch
+    from ..evaluate.pipeline import run_paths
+
+    if not args.source or not Path(args.source).is_file():
+        raise ConfigError("study mismatch takes the scenario's TOML config (CONFIG), e.g. configs/embedded.toml")
+    cfg = load_config(args.source)
+    models = _models(args.model)
+    first = next(iter(models.values()))
+    alpha = args.alpha or (mm.store_alpha(first.dataset_path) if first.dataset_path else 0.0)
+    if alpha <= 0:
+        raise ConfigError("study mismatch: the first model records no training store with a calibrated alpha; "
+                          "give --alpha (N)")
+    out = Path(args.out) if args.out else run_paths(cfg).report
+    samples = args.samples or mm.DEFAULT_SAMPLES
+    refined = args.refined_samples or mm.DISCRETISATION_SAMPLES
+    sets = [s.strip() for s in args.sets.split(",") if s.strip()]
+    print(f"mismatch study: {len(models)} model(s), {samples} samples a set ({refined} on the refined mesh), "
+          f"alpha {alpha:.4g} N; sets kept in {out / 'mismatch'} (a second run resumes them)", flush=True)
+    rows = mm.mismatch_study(cfg, models, out / "mismatch", alpha=alpha, sets=sets, samples=samples,
+                             refined_samples=refined, progress=True,
+                             on_row=lambda r: print(f"  {r['set']} / {r['model']}: Offset_max {r['mlp_offset_max']:.3g} mm "
+                                                    f"(rigid {r['rigid_offset_max']:.3g}), relative "
+                                                    f"{100 * r['relative']:.3g} %", flush=True))
+    meta = {"alpha": alpha, "samples": samples, "refined_samples": refined, "models": {k: m.describe()["markers"]
+                                                                                        for k, m in models.items()}}
+    json_path, csv_path = write_mismatch(out, rows, meta)
+    png = mismatch_figure(rows, out / "study_mismatch.png")
+    print(format_mismatch(rows))
+    print(f"wrote {json_path}, {csv_path} and {png}")
+    return 0
+
+
 def run(args) -> int:
+    if args.study == "mismatch":
+        return _mismatch(args)
     from ..dataset import open_dataset
     from ..evaluate import figures, studies
     from ..evaluate.pipeline import resolve_source, run_paths

@@ -28,6 +28,11 @@ Rule (documented in the store's ``calibration`` attribute):
   zero displacement, aimed at ``FIRST_AIM`` of the target. (The dimensional estimate assumes
   a body hanging on pins, and with the other loads present a first round at 1 % of the target
   would measure only them.) Without LBO forces nothing is calibrated (alpha = 0).
+* With uncertain parameters (``[scenario.uncertain]``) the pilots are solved at the nominal
+  parameters: the loads are as large whatever the tissue's stiffness, so alpha is set for the
+  nominal tissue (the record says ``parameters: nominal``), and the samples then deform more or
+  less with their drawn parameters. Such pilots are not the samples (those draw their own
+  parameters), so they are solved again with the others.
 * If ``dataset.alpha`` > 0 in the config, it is used as is and no pilots are solved.
 * From the second round on, each pilot's solve starts from its own solution of the previous
   round (see :func:`calibrate_pilots`); the answers are the same within the solver
@@ -107,14 +112,15 @@ def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, lis
     rounds: list = []
     scenario = recipe.scenario()
     zero = warm_zero(cfg.solver, scenario)
+    nominal = scenario.uncertain is not None  # the loads' size is set at the nominal tissue
 
     def pilot_max(alpha: float) -> np.ndarray:
         # each pilot starts from its solution of the previous round (if it converged)
         prev = {r.index: r.nodal for r in last if r.status == SampleStatus.DONE and r.nodal is not None}
         phase = f"calibration round {len(rounds) + 1} (at most {MAX_ROUNDS}), alpha {alpha:.4g} N"
         rounds.append(alpha)
-        tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i)) if i in prev or zero is None
-                 else Task(i, int(seeds[i]), float(betas[i]), alpha, zero, int(InitialGuess.ZERO))
+        tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i), nominal=nominal) if i in prev or zero is None
+                 else Task(i, int(seeds[i]), float(betas[i]), alpha, zero, int(InitialGuess.ZERO), nominal=nominal)
                  for i in pilots]
         last[:] = sorted(ex.run(tasks, phase, unit="pilot"), key=lambda r: r.index)
         return np.array([r.max_displacement for r in last])
@@ -122,6 +128,9 @@ def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, lis
     alpha0 = _first_alpha(cfg, recipe, scenario, [(int(seeds[i]), float(betas[i])) for i in pilots])
     record = calibrate_alpha(pilot_max, alpha0, cfg.forces.target_max_displacement, quantile=ds.calibration_quantile)
     record["pilots"] = pilots
+    if nominal:  # the pilots' solves lack their samples' drawn parameters: solved again as samples
+        record["parameters"] = "nominal (the samples draw [scenario.uncertain])"
+        return record, []
     return record, [r for r in last if r.alpha == record["alpha"]]
 
 

@@ -121,6 +121,8 @@ class Task:
     ``batch_failure``: why the sample's try from the reduced model's prediction failed in a
     batch (:mod:`.batch`); non-empty, :func:`solve_task` records it as attempt 1 and goes on
     with the attempts from zero (only the cautious ones if it was a SolveTimeout).
+    ``nominal``: solve at the scenario's nominal parameters, none drawn (the force calibration's
+    pilots of a scenario with uncertain parameters: the loads' size is set at the nominal tissue).
     """
 
     index: int
@@ -131,6 +133,7 @@ class Task:
     guess_code: int = field(default=int(InitialGuess.PREVIOUS_ROUND), compare=False)
     budget: float = field(default=0.0, compare=False)
     batch_failure: str = field(default="", compare=False)
+    nominal: bool = field(default=False, compare=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -263,7 +266,7 @@ class SampleContext:
         """Everything the sample of ``task`` is solved with and recorded by, from its seed
         (:meth:`tissuecast.scenario.Scenario.sample`: its force field, LBO weights, loads on
         every element node, prescribed displacements and scenario draws)."""
-        return self.scenario.sample(task.seed, task.alpha, task.beta)
+        return self.scenario.sample(task.seed, task.alpha, task.beta, nominal=task.nominal)
 
 
 _CONTEXTS: dict[str, SampleContext] = {}

@@ -15,19 +15,18 @@ __all__ = ["write_vtu", "render_comparison"]
 def write_vtu(path: Path, mesh, point_data: dict) -> Path:
     """Write the tetrahedral mesh (undeformed coordinates, mm) with point data to a .vtu file.
 
+    The same file as :func:`tissuecast.mesh.write_mesh` writes (the one mesh writer), point
+    data as float64.
+
     Args:
         path: output file.
         mesh: the :class:`~tissuecast.mesh.TetMesh`.
         point_data: name -> (n,) or (n, 3) arrays (displacements in mm, errors in mm).
     """
-    import meshio
+    from ..mesh.io import write_mesh
 
-    meshio.Mesh(
-        np.asarray(mesh.points, dtype=np.float64),
-        [("tetra", np.asarray(mesh.tets, dtype=np.int64))],
-        point_data={k: np.asarray(v, dtype=np.float64) for k, v in point_data.items()},
-    ).write(str(path))
-    return path
+    data = {k: np.asarray(v, dtype=np.float64) for k, v in point_data.items()}
+    return write_mesh(path, mesh, point_data=data)[0]
 
 
 def _pyvista():

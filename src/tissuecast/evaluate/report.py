@@ -36,6 +36,7 @@ from .headline import HEADLINE_METHODS, beta_table, headline_rows, headline_set,
 from .render import render_comparison, write_vtu
 from .tables import (COLUMNS, DEFORMATION_HEAD, SET_HEAD, deformation_rows, format_evaluation, model_description,
                      paper_table, set_rows)
+from .mismatch_report import mismatch_section
 from .trust_report import trust_evaluation, uncertainty_section
 from .viewer import pick_samples, write_viewer
 from ..scenario.describe import scenario_lines
@@ -215,6 +216,9 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = EvaluateC
     figs = "".join(f"<h3>{html.escape(cap)}</h3><img src='{p.name}' alt='{html.escape(cap)}'>"
                    for cap, p in _figures(folder, model, evaluation, studies_folder))
     parts.append(_fold("Figures", figs))
+    mismatch = mismatch_section(Path(studies_folder) if studies_folder else folder, folder)
+    if mismatch:
+        parts.insert(4, mismatch)
     if renders:
         parts.append(_render_section(folder, model, dataset, evaluation, renders))
     page = (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>"

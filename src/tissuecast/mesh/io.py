@@ -14,9 +14,10 @@ extension          handled by
 =================  =========================================================
 
 Coordinates are LPS (tissuecast's frame, see :mod:`tissuecast.frames`); a .vtk/.vtu file
-that states ``SPACE=RAS`` as 3D Slicer writes it is converted to LPS on reading. Files with a
-``SPACE`` string array (3D Slicer's and tissuecast's models) are read with VTK when meshio
-cannot.
+that states ``SPACE=RAS`` where 3D Slicer writes it (the legacy header line; the ``SPACE``
+string array of a .vtu file's field data) is converted to LPS on reading. How tissuecast
+states the frame in the files it writes, so that meshio, VTK and 3D Slicer all read them:
+docs/files.md.
 
 Reading keeps only tetrahedra (10-node tets are reduced to their 4 corners), drops vertices
 that belong to no tetrahedron (logged; the remaining vertices keep their relative order, so
@@ -32,9 +33,13 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import MeshError, MeshFormatError
+from .mesher import SURFACE_FORMATS
+from .meshio_read import read_with_meshio
 from .tetmesh import TetMesh
+from .vtk_space import file_space
 
-__all__ = ["read_mesh", "write_mesh", "write_point_set", "UNITS", "VOLUME_FORMATS", "SURFACE_FORMATS"]
+__all__ = ["read_mesh", "write_mesh", "write_point_set", "UNITS", "VOLUME_FORMATS", "SURFACE_FORMATS", "LEGACY_VTK_HEADER",
+           "write_tetrahedra"]
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +50,11 @@ VOLUME_FORMATS = {
     ".vtu": "vtu", ".vtk": "vtk", ".msh": "gmsh", ".inp": "abaqus", ".mesh": "medit", ".xdmf": "xdmf",
     ".node": "tetgen", ".ele": "tetgen",
 }
-#: closed-surface extensions, tetrahedralised on read
-SURFACE_FORMATS = {".stl": "stl", ".obj": "obj", ".ply": "ply", ".off": "off", ".face": "tetgen"}
+#: the header line of the legacy .vtk files tissuecast writes: 3D Slicer reads the frame from it
+LEGACY_VTK_HEADER = "tissuecast output. SPACE=LPS"
+# a .vtu field-data block with the string array SPACE = "LPS" (characters and a NUL, as VTK writes it)
+_SPACE_FIELD_DATA = ('<FieldData>\n<Array type="String" Name="SPACE" NumberOfTuples="1" format="ascii">\n'
+                     + " ".join(str(c) for c in b"LPS\0") + "\n</Array>\n</FieldData>\n").encode("ascii")
 
 
 def _extension(path: Path) -> str:
@@ -78,87 +86,11 @@ def _check_scale(points: np.ndarray, units: str, path: Path) -> None:
             )
 
 
-def _meshio_read(path: Path, fmt: str, tolerant: bool = True):
-    import meshio
-
-    # meshio.read() prints and calls sys.exit() on some read failures; call the format's
-    # reader directly where meshio exposes it.
-    reader = getattr(getattr(meshio, "_helpers", None), "reader_map", {}).get(fmt)
-    try:
-        with np.errstate(over="ignore"):  # meshio's STL sniffing multiplies a uint32
-            return reader(str(path)) if reader else meshio.read(path, file_format=fmt)
-    except (Exception, SystemExit) as exc:  # meshio raises many kinds (ReadError, ValueError...)
-        if tolerant and fmt == "abaqus" and "Element type not available" in str(exc):
-            m = _read_inp_tolerant(path)
-            if m is not None:
-                return m
-        if tolerant and fmt in ("vtu", "vtk"):  # e.g. a SPACE string array (3D Slicer models): meshio cannot read it
-            m = _read_with_vtk(path)
-            if m is not None:
-                return m
-        why = str(exc).strip() or "the file is corrupt or not in this format"
-        raise MeshFormatError(f"could not read '{path}' as {fmt} ({type(exc).__name__}: {why})") from exc
-
-
-def _read_with_vtk(path: Path):
-    """A .vtu/.vtk file meshio refuses, read with VTK if it is installed (None otherwise)."""
-    import meshio
-
-    try:
-        from ..slicer.models import read_model
-    except ImportError:
-        return None
-    try:
-        points, tets = read_model(path)
-    except Exception:  # noqa: BLE001 - VTK failed too: report meshio's error
-        return None
-    return meshio.Mesh(points, [("tetra", tets)])
-
-
-def _file_space(path: Path, ext: str) -> str:
-    """The coordinate system a .vtk/.vtu file states (3D Slicer's SPACE tag); LPS when none."""
-    if ext == ".vtk":
-        with open(path, "rb") as fh:
-            fh.readline()
-            header = fh.readline()
-        return "RAS" if b"SPACE=RAS" in header else "LPS"
-    if ext == ".vtu":
-        with open(path, "rb") as fh:
-            head = fh.read(1 << 16)
-        if b'Name="SPACE"' in head:
-            try:
-                from ..slicer.models import read_model_space
-            except ImportError:
-                return "LPS"
-            return read_model_space(path) or "LPS"
-    return "LPS"
-
-
-def _read_inp_tolerant(path: Path):
-    """Abaqus/CalculiX deck whose *ELEMENT blocks meshio does not know (e.g. gmsh's CPS6
-    second-order triangles): drop those blocks (logged) and read the rest."""
-    import re
-    import tempfile
-
-    from meshio.abaqus._abaqus import abaqus_to_meshio_type
-
-    out, dropped, skipping = [], set(), False
-    for line in path.read_text(encoding="utf-8", errors="replace").splitlines(keepends=True):
-        if line.startswith("*") and not line.startswith("**"):
-            skipping = False
-            m = re.match(r"\*\s*element\b.*?\btype\s*=\s*([A-Za-z0-9_]+)", line, flags=re.IGNORECASE)
-            if m and m.group(1).upper() not in abaqus_to_meshio_type:
-                dropped.add(m.group(1).upper())
-                skipping = True
-        if not skipping:
-            out.append(line)
-    if not dropped:
-        return None
-    log.info("'%s': ignoring element blocks of unsupported types %s", path, ", ".join(sorted(dropped)))
-    with tempfile.TemporaryDirectory() as tmp:
-        filtered = Path(tmp) / path.name
-        filtered.write_text("".join(out), encoding="utf-8")
-        return _meshio_read(filtered, "abaqus", tolerant=False)
+def _points_from_meshio(m, path: Path) -> np.ndarray:
+    points = np.asarray(m.points, dtype=np.float64)
+    if points.ndim != 2 or len(points) == 0:
+        raise MeshFormatError(f"'{path}' holds no vertices; the file is empty, truncated or of another format")
+    return points
 
 
 def _tets_from_meshio(m, path: Path) -> np.ndarray:
@@ -196,7 +128,8 @@ def _compact(points: np.ndarray, tets: np.ndarray, path: Path) -> tuple[np.ndarr
     return points[used], renum[tets]
 
 
-def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = None) -> TetMesh:
+def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = None,
+              max_vertices: int | None = None) -> TetMesh:
     """Read a tetrahedral mesh (or a closed surface, which is tetrahedralised).
 
     Args:
@@ -205,6 +138,9 @@ def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = 
             converted to mm.
         mesh_size: target edge length in mm when tetrahedralising a surface file; default
             ``MeshConfig.surface_mesh_size`` (3 mm). Ignored for volume meshes.
+        max_vertices: a surface file is meshed with at most this many vertices, the edge
+            length searched (:func:`~tissuecast.mesh.sizing.mesh_to_budget`; ``mesh_size``
+            unused); refused for volume meshes, which are read as they are.
 
     Returns:
         The mesh, coordinates in mm, 0-based ids.
@@ -220,7 +156,10 @@ def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = 
     if not path.is_file():
         raise MeshFormatError(f"mesh file '{path}' does not exist")
     if ext in SURFACE_FORMATS:
-        return _read_surface(path, ext, factor, units, mesh_size)
+        return _read_surface(path, ext, factor, units, mesh_size, max_vertices)
+    if max_vertices:
+        raise MeshError(f"'{path}' is a volume mesh, read as it is; a vertex budget (max_vertices) applies to "
+                        "closed surfaces and label maps, which are meshed")
     if ext in (".node", ".ele"):
         from .tetgen import read_tetgen
 
@@ -228,11 +167,11 @@ def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = 
         if attributes.size:
             log.info("'%s': ignoring %d region attribute(s) per tetrahedron", path, attributes.shape[1])
     else:
-        m = _meshio_read(path, VOLUME_FORMATS[ext])
-        points, tets = np.asarray(m.points, dtype=np.float64), _tets_from_meshio(m, path)
+        m = read_with_meshio(path, VOLUME_FORMATS[ext])
+        points, tets = _points_from_meshio(m, path), _tets_from_meshio(m, path)
         if points.shape[1] != 3:
             raise MeshFormatError(f"'{path}' has {points.shape[1]}-D points; 3-D coordinates are needed")
-        if _file_space(path, ext) == "RAS":  # a 3D Slicer model saved in RAS: tissuecast works in LPS
+        if file_space(path) == "RAS":  # a 3D Slicer model saved in RAS: tissuecast works in LPS
             log.info("'%s' states SPACE=RAS; converted to LPS", path)
             points = points * np.array([-1.0, -1.0, 1.0])
     points, tets = _compact(points, tets, path)
@@ -244,14 +183,15 @@ def read_mesh(path: str | Path, units: str = "mm", *, mesh_size: float | None = 
         raise type(exc)(f"'{path}': {exc}") from exc
 
 
-def _read_surface(path: Path, ext: str, factor: float, units: str, mesh_size: float | None) -> TetMesh:
+def _read_surface(path: Path, ext: str, factor: float, units: str, mesh_size: float | None,
+                  max_vertices: int | None) -> TetMesh:
     if ext == ".face":
         from .tetgen import read_tetgen_surface
 
         points, tri = read_tetgen_surface(path)
     else:
-        m = _meshio_read(path, SURFACE_FORMATS[ext])
-        points, tri = np.asarray(m.points, dtype=np.float64)[:, :3], _triangles_from_meshio(m, path)
+        m = read_with_meshio(path, SURFACE_FORMATS[ext])
+        points, tri = _points_from_meshio(m, path)[:, :3], _triangles_from_meshio(m, path)
     if not np.isfinite(points).all():
         raise MeshError(f"'{path}' has vertices with non-finite coordinates; fix the surface file")
     points = points * factor
@@ -263,6 +203,11 @@ def _read_surface(path: Path, ext: str, factor: float, units: str, mesh_size: fl
     from .mesher import tetrahedralize_surface
 
     try:
+        if max_vertices:
+            from .sizing import mesh_to_budget, surface_volume
+
+            return mesh_to_budget(lambda size: tetrahedralize_surface(points, tri, size), max_vertices,
+                                  surface_volume(points, tri)).mesh
         return tetrahedralize_surface(points, tri, mesh_size)
     except MeshError as exc:
         raise MeshError(f"'{path}': {exc}") from exc
@@ -278,8 +223,14 @@ def _check_data(data: dict | None, size: int, what: str) -> dict:
     return out
 
 
-def write_mesh(path: str | Path, mesh: TetMesh, point_data: dict | None = None, cell_data: dict | None = None) -> list[Path]:
+def write_mesh(path: str | Path, mesh: TetMesh, point_data: dict | None = None, cell_data: dict | None = None, *,
+               space_array: bool = False) -> list[Path]:
     """Write a mesh; the format follows the extension (see the module docstring).
+
+    Coordinates are written as they are (LPS mm). A ``.vtk`` file (legacy format 4.2, what
+    3D Slicer writes) states ``SPACE=LPS`` in its header line, where Slicer reads the frame;
+    a ``.vtu`` file states nothing by default (Slicer then takes LPS, its default, with a
+    warning), because meshio cannot read a file holding Slicer's ``SPACE`` string array.
 
     Args:
         path: output file. ``.node``/``.ele`` write the TetGen trio (1-based ids);
@@ -289,6 +240,9 @@ def write_mesh(path: str | Path, mesh: TetMesh, point_data: dict | None = None, 
             (mm) or ``{"error": e}``; kept by .vtu .vtk .msh .xdmf (ParaView, Slicer).
             Pass the deformed mesh (``mesh.deformed(u)``) to write deformed coordinates.
         cell_data: name -> (m,) or (m, k) array per tetrahedron.
+        space_array: ``.vtu`` only: add the field-data string array ``SPACE = "LPS"`` that
+            3D Slicer reads (it then loads the file without a warning; meshio cannot read
+            such a file, VTK and pyvista can).
 
     Returns:
         The files written.
@@ -297,6 +251,7 @@ def write_mesh(path: str | Path, mesh: TetMesh, point_data: dict | None = None, 
 
     path = Path(path)
     ext = _extension(path)
+    _check_space_array(path, space_array)
     pdata = _check_data(point_data, mesh.n_vertices, "point_data")
     cdata = _check_data(cell_data, mesh.n_tets, "cell_data")
     if ext in (".node", ".ele", ".face"):
@@ -311,16 +266,64 @@ def write_mesh(path: str | Path, mesh: TetMesh, point_data: dict | None = None, 
         tri = renum[mesh.surface_triangles].astype(np.int32)
         meshio.write(path, meshio.Mesh(mesh.points[verts], [("triangle", tri)]), file_format=SURFACE_FORMATS[ext])
         return [path]
-    out = meshio.Mesh(
-        mesh.points,
-        [("tetra", mesh.tets)],
-        point_data=pdata,
-        cell_data={k: [v] for k, v in cdata.items()},
-    )
-    kwargs = {"binary": True} if ext == ".vtk" else {}
-    meshio.write(path, out, file_format=VOLUME_FORMATS[ext], **kwargs)
+    return write_tetrahedra(path, mesh.points, mesh.tets, pdata, cdata, space_array=space_array)
+
+
+def write_tetrahedra(path: str | Path, points: np.ndarray, tets: np.ndarray, point_data: dict | None = None,
+                     cell_data: dict | None = None, *, space_array: bool = False) -> list[Path]:
+    """Write tetrahedra as they are (no checks of the cells, e.g. a deformed mesh) to a volume format.
+
+    Args:
+        path: ``.vtu .vtk .msh .inp .mesh .xdmf`` (see :func:`write_mesh` for .vtk/.vtu and ``space_array``).
+        points: (n, 3) float, mm.
+        tets: (m, 4) int, 0-based.
+        point_data, cell_data: as in :func:`write_mesh`.
+
+    Returns:
+        The files written (``.xdmf`` adds its ``.h5`` file).
+    """
+    import meshio
+
+    path = Path(path)
+    ext = _extension(path)
+    if ext not in VOLUME_FORMATS or ext in (".node", ".ele"):
+        raise MeshFormatError(f"write_tetrahedra writes {' '.join(sorted(set(VOLUME_FORMATS) - {'.node', '.ele'}))}, "
+                              f"got '{path.name}'; use write_mesh")
+    _check_space_array(path, space_array)
+    points = np.asarray(points, dtype=np.float64)
+    tets = np.asarray(tets, dtype=np.int64)
+    out = meshio.Mesh(points, [("tetra", tets)], point_data=_check_data(point_data, len(points), "point_data"),
+                      cell_data={k: [v] for k, v in _check_data(cell_data, len(tets), "cell_data").items()})
+    if ext in (".vtk", ".vtu"):
+        _write_vtk_file(path, out, space_array)
+        return [path]
+    meshio.write(path, out, file_format=VOLUME_FORMATS[ext])
     heavy = path.with_suffix(".h5")  # XDMF keeps its arrays in a side file
     return [path, heavy] if ext == ".xdmf" and heavy.is_file() else [path]
+
+
+def _check_space_array(path: Path, space_array: bool) -> None:
+    if space_array and path.suffix.lower() != ".vtu":
+        raise MeshFormatError(f"space_array applies to .vtu files (a .vtk file states SPACE=LPS in its header); "
+                              f"got '{path.name}'")
+
+
+def _write_vtk_file(path: Path, out, space_array: bool) -> None:
+    """A meshio mesh as .vtk (legacy 4.2, ``SPACE=LPS`` header) or .vtu (optionally with ``SPACE``)."""
+    import meshio
+
+    if path.suffix.lower() == ".vtk":
+        meshio.vtk.write(str(path), out, fmt_version="4.2", binary=True)
+        version, _, rest = path.read_bytes().split(b"\n", 2)  # line 2 is the free-text header
+        path.write_bytes(b"\n".join([version, LEGACY_VTK_HEADER.encode("ascii"), rest]))
+        return
+    meshio.vtu.write(str(path), out)
+    if space_array:
+        tag = b"<UnstructuredGrid>\n"
+        data = path.read_bytes()
+        if tag not in data:  # pragma: no cover - meshio always writes this line
+            raise MeshFormatError(f"could not add the SPACE array to '{path}': no <UnstructuredGrid> line")
+        path.write_bytes(data.replace(tag, tag + _SPACE_FIELD_DATA, 1))
 
 
 def write_point_set(path: str | Path, points: np.ndarray, point_data: dict | None = None) -> Path:

@@ -23,10 +23,12 @@ from scipy.sparse.csgraph import connected_components
 from ..errors import MeshError, require
 from .tetmesh import TetMesh
 
-__all__ = ["merge_duplicate_points", "check_closed_surface", "orient_surface", "tetrahedralize_surface"]
+__all__ = ["SURFACE_FORMATS", "merge_duplicate_points", "check_closed_surface", "orient_surface", "tetrahedralize_surface"]
 
 log = logging.getLogger(__name__)
 
+#: closed-surface file extensions (tetrahedralised on reading) and their meshio format names
+SURFACE_FORMATS = {".stl": "stl", ".obj": "obj", ".ply": "ply", ".off": "off", ".face": "tetgen"}
 _REPAIR = ("it must be a closed manifold surface (watertight, every edge shared by exactly two triangles); "
            "repair it (e.g. MeshLab, PyMeshFix) first")
 #: A triangle smaller than this share of the largest one's area counts as zero-area (degenerate).

@@ -112,7 +112,8 @@ def read_mesh_tags(path: str | Path) -> MeshTags:
     Raises:
         MeshFormatError: missing or unreadable file.
     """
-    from .io import SURFACE_FORMATS, VOLUME_FORMATS, _extension, _meshio_read, _tets_from_meshio
+    from .io import SURFACE_FORMATS, VOLUME_FORMATS, _extension, _tets_from_meshio
+    from .meshio_read import read_with_meshio
 
     path = Path(path)
     ext = _extension(path)
@@ -126,7 +127,7 @@ def read_mesh_tags(path: str | Path) -> MeshTags:
         _, tets, attributes = read_tetgen(path)
         data = {f"tetgen:attribute{'' if k == 0 else k}": attributes[:, k] for k in range(attributes.shape[1])}
         return MeshTags(tet_data=data, cell_data={k: [(tets, v)] for k, v in data.items()})
-    m = _meshio_read(path, VOLUME_FORMATS[ext])
+    m = read_with_meshio(path, VOLUME_FORMATS[ext])
     tets = _tets_from_meshio(m, path)
     used = np.zeros(len(m.points), dtype=bool)
     used[tets.ravel()] = True

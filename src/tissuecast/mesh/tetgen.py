@@ -39,7 +39,9 @@ def _table(path: Path) -> tuple[list[str], np.ndarray]:
     try:
         count = int(header[0])
     except ValueError as exc:
-        raise MeshFormatError(f"TetGen file '{path}': bad header line {' '.join(header)!r}") from exc
+        shown = " ".join(header)
+        shown = ascii(shown[:40] + ("..." if len(shown) > 40 else ""))
+        raise MeshFormatError(f"TetGen file '{path}': bad header line {shown}; the file is corrupt or not a TetGen file") from exc
     rows = rows[:count]
     if len(rows) < count or len({len(r) for r in rows}) > 1:
         raise MeshFormatError(

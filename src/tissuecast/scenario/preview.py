@@ -19,7 +19,8 @@ import numpy as np
 from ..errors import require
 from .scenario import Scenario, ScenarioDraw
 
-__all__ = ["SUPPORT_CODES", "preview_arrays", "write_preview_vtu", "render_preview", "example_deformations"]
+__all__ = ["SUPPORT_CODES", "preview_arrays", "write_preview_vtu", "render_preview", "example_deformations",
+           "scenario_places"]
 
 #: Without a fixed ``dataset.alpha``, the example LBO fields are scaled so that their median
 #: linear (small-strain) peak is this share of ``forces.target_max_displacement``: the
@@ -38,7 +39,8 @@ def preview_arrays(sc: Scenario, draws: list[ScenarioDraw]) -> tuple[dict, dict]
         ``spring_normal_stiffness`` (n,) N/mm^3 (0 off the spring region),
         ``indentation_example`` (n,) int (k = vertex of example k's patch, 1-based; 0 none),
         ``indentation_displacement`` (n, 3) mm and ``body_force_example`` (n, 3) N/mm^3 of
-        the first example; cell data ``material_region`` (m,) int (-1 = the default material)
+        the first example, ``indentation_access`` (n,) int (1 = in the surgical access region
+        where patch centres may be drawn); cell data ``material_region`` (m,) int (-1 = the default material)
         and, with material regions, ``youngs_modulus`` (m,) MPa and ``poisson_ratio`` (m,).
     """
     mesh = sc.mesh
@@ -60,14 +62,31 @@ def preview_arrays(sc: Scenario, draws: list[ScenarioDraw]) -> tuple[dict, dict]
     body = np.zeros((n, 3))
     if draws and draws[0].body_force is not None:
         body[:] = draws[0].body_force
+    access = np.zeros(n, dtype=np.int32)
+    if sc.sites is not None:
+        access[sc.sites.access] = 1
     point = {"support": support, "spring_normal_stiffness": stiffness, "indentation_example": example,
-             "indentation_displacement": push, "body_force_example": body}
+             "indentation_displacement": push, "body_force_example": body, "indentation_access": access}
     if sc.materials is not None:
         cell = {"youngs_modulus": sc.materials.youngs_modulus, "poisson_ratio": sc.materials.poisson_ratio,
                 "material_region": sc.materials.region.astype(np.int32)}
     else:
         cell = {"material_region": np.full(mesh.n_tets, -1, dtype=np.int32)}
     return point, cell
+
+
+def scenario_places(sc: Scenario) -> dict[str, np.ndarray]:
+    """The places the scenario's region rules found on its mesh: ``"attached"``, ``"springs"`` and
+    ``"access"`` (the indentation's surgical access, when on) -> (k,) vertex ids of a ``markups``
+    rule's snapped points or an ``extreme`` rule's vertex (:func:`~.regions.region_anchors`);
+    rules without a single place are left out."""
+    from .regions import region_anchors
+
+    rules = {"attached": (sc.config.attached, "scenario.attached"), "springs": (sc.config.springs, "scenario.springs")}
+    if sc.sites is not None:
+        rules["access"] = (sc.config.indentation.access, "scenario.indentation.access")
+    places = {name: region_anchors(sc.mesh, rule, key) for name, (rule, key) in rules.items()}
+    return {name: ids for name, ids in places.items() if ids.size}
 
 
 def example_deformations(sc: Scenario, config, seeds) -> list[tuple[str, np.ndarray]]:
@@ -132,7 +151,7 @@ def write_preview_vtu(path, sc: Scenario, draws: list[ScenarioDraw], extra_point
 
 
 def render_preview(path, sc: Scenario, draws: list[ScenarioDraw], deformations: list | None = None,
-                   window=(1400, 900)) -> Path:
+                   window=(1400, 900), places: dict | None = None) -> Path:
     """Render the scenario (and optional example deformations) to a PNG.
 
     Args:
@@ -143,6 +162,9 @@ def render_preview(path, sc: Scenario, draws: list[ScenarioDraw], deformations: 
         deformations: optional list of ``(title, displacement (n, 3) mm)`` drawn as extra panels,
             coloured by displacement magnitude.
         window: image size in pixels.
+        places: name -> (k,) vertex ids of the places the config's rules found (a markups
+            point's or an extreme rule's vertex, :func:`~.regions.region_anchors`), drawn as
+            labelled spheres; the access region is drawn as gold dots.
     """
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     pv = require("pyvista", "viz", "The scenario preview")
@@ -164,6 +186,7 @@ def render_preview(path, sc: Scenario, draws: list[ScenarioDraw], deformations: 
                opacity=0.55, show_edges=True, edge_color="grey", line_width=0.3, show_scalar_bar=False)
     if len(sc.pinned):
         p.add_points(mesh.points[sc.pinned], color="royalblue", point_size=14, render_points_as_spheres=True)
+    _draw_places(p, mesh, sc, places or {})
     for k, d in enumerate(draws):
         ind = d.indentation
         if ind is None:
@@ -187,6 +210,8 @@ def render_preview(path, sc: Scenario, draws: list[ScenarioDraw], deformations: 
                        color="orange", opacity=0.6)
     legend = [("elastic support (springs)", "lightskyblue"), ("attached region", "crimson"),
               ("pinned vertices", "royalblue"), ("indentation examples I", "green")]
+    if sc.sites is not None:
+        legend.append(("surgical access", "gold"))
     if sc.gravity is not None:
         legend += [("gravity at imaging", "black"), ("gravity in surgery: nominal, examples", "darkorange")]
     p.add_legend(legend, bcolor=None, loc="upper left", size=(0.38, 0.2))
@@ -207,3 +232,15 @@ def render_preview(path, sc: Scenario, draws: list[ScenarioDraw], deformations: 
     p.screenshot(str(path))
     p.close()
     return Path(path)
+
+
+def _draw_places(p, mesh, sc: Scenario, places: dict) -> None:
+    """The access region (gold dots) and the places rules found (magenta spheres with their names)."""
+    if sc.sites is not None and len(sc.sites.access) < len(mesh.surface_vertices):
+        p.add_points(mesh.points[sc.sites.access], color="gold", point_size=6, render_points_as_spheres=True)
+    for name, ids in places.items():
+        ids = np.asarray(ids, dtype=np.int64)
+        if ids.size:
+            p.add_point_labels(mesh.points[ids], [name] * len(ids), font_size=11, text_color="darkmagenta",
+                               point_color="magenta", point_size=16, render_points_as_spheres=True,
+                               shape_opacity=0.5, always_visible=True)

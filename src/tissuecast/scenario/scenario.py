@@ -148,13 +148,14 @@ class Scenario:
         return build_problem(self.mesh, config, self.supported, order=self.order, springs=self.springs,
                              materials=field, can_swing=self.can_swing)
 
-    def sample(self, seed: int, alpha: float, beta: float = float("nan")) -> SampleInputs:
+    def sample(self, seed: int, alpha: float, beta: float = float("nan"), *, nominal: bool = False) -> SampleInputs:
         """Everything one sample is solved with and recorded by, from its seed alone.
 
         Args:
             seed: the sample's seed (``samples/seed`` of a data set).
             alpha: the surface force field's magnitude, N.
             beta: the LBO share of a test-2 sample; NaN for an LBO sample.
+            nominal: keep the nominal parameters (draw no uncertain parameter).
 
         Returns:
             The sample's :class:`~.sample_inputs.SampleInputs`: its surface force field
@@ -163,14 +164,16 @@ class Scenario:
             displacements they give.
         """
         forces, weights = self.surface_forces.field(seed, alpha, beta)
-        return self.inputs_for(seed, forces, weights)
+        return self.inputs_for(seed, forces, weights, nominal=nominal)
 
-    def inputs_for(self, seed: int, forces: np.ndarray, weights: np.ndarray | None = None) -> SampleInputs:
+    def inputs_for(self, seed: int, forces: np.ndarray, weights: np.ndarray | None = None, *,
+                   nominal: bool = False) -> SampleInputs:
         """A sample's inputs with a given surface force field ``forces`` ((n, 3) N, e.g. a data
-        set's stored one) and the draws of its ``seed`` (:meth:`sample` draws the field too)."""
+        set's stored one) and the draws of its ``seed`` (:meth:`sample` draws the field too);
+        ``nominal``: no uncertain parameter drawn."""
         forces = np.asarray(forces, dtype=np.float64)
         weights = np.zeros((0, 3)) if weights is None else weights
-        draw = self.draw_for(seed)
+        draw = self.draw_for(seed, nominal=nominal)
         surface, body = self.sample_loads(draw, forces)
         ids, values = self.prescribed(draw)
         inputs = SampleInputs(forces, weights, surface, body if draw.body_force is not None else None, ids, values, draw)
@@ -262,16 +265,17 @@ class Scenario:
                        spring_tangential_part=self.uncertain.spring_parts[1])
         return {k: np.asarray(v) for k, v in out.items()}
 
-    def draw_for(self, seed: int) -> ScenarioDraw:
+    def draw_for(self, seed: int, *, nominal: bool = False) -> ScenarioDraw:
         """Every draw of the sample with seed ``seed``: :meth:`draw` from :func:`scenario_rng`,
         the indentation dropped when the contact draw (:func:`contact_rng`, only with
         ``indentation.probability`` < 1) says the instrument is away, the uncertain parameters
-        (:func:`~.parameters.parameter_rng`) and the instruments' poses (:meth:`instrument_poses`)."""
+        (:func:`~.parameters.parameter_rng`; none with ``nominal``) and the instruments' poses
+        (:meth:`instrument_poses`)."""
         draw = self.draw(scenario_rng(seed))
         if draw.indentation is not None and self.config.indentation.probability < 1.0:
             if contact_rng(seed).random() >= self.config.indentation.probability:
                 draw = dataclasses.replace(draw, indentation=None)
-        if self.uncertain is not None:
+        if self.uncertain is not None and not nominal:
             draw = dataclasses.replace(draw, parameters=self.uncertain.draw(parameter_rng(seed)))
         if self.config.instruments:
             draw = dataclasses.replace(draw, instruments=self.instrument_poses(draw))

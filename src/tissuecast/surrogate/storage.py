@@ -186,11 +186,15 @@ def read_metadata(folder) -> dict:
 def _npz(path: Path, keys) -> dict:
     if not path.is_file():
         raise ModelError(f"model file {str(path)!r} is missing; the model folder is incomplete")
+    import zipfile
+
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in keys}
-    except (KeyError, ValueError, OSError) as exc:
-        raise ModelError(f"model file {str(path)!r} is unreadable or incomplete: {exc}") from exc
+    except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:  # empty, truncated, random bytes
+        cause = "not a NumPy .npz archive" if "pickle" in str(exc) else f"{type(exc).__name__}: {exc}"  # never unpickled
+        raise ModelError(f"model file {str(path)!r} is unreadable or incomplete ({cause}); the model folder is "
+                         "corrupt: save or copy it again") from exc
 
 
 def _weights(folder: Path, meta: dict) -> list[MLPWeights]:

@@ -1,0 +1,304 @@
+"""What a mismatch between the simulator and the patient costs: the mismatch study.
+
+Every model is trained on one simulator. :func:`mismatch_study` simulates named test sets in
+which one thing differs from the nominal scenario, as it may in the operating room, and
+evaluates every given model on each, side by side: the learned model, rigid registration from
+the markers and ridge (test-1 metrics of :mod:`.evaluation`), the error at the targets (TRE,
+share of their displacement corrected), the 90 % bounds' coverage and the alarm's rate.
+
+The sets (:func:`mismatch_sets`, those the scenario has the parts for):
+
+* ``nominal`` -- the nominal parameters;
+* ``E x0.5``, ``E x2``, ``E x4`` -- every element's Young's modulus scaled;
+* ``nu 0.40``, ``nu 0.49`` -- Poisson's ratio;
+* ``springs x0.25``, ``springs x4`` -- the elastic support's stiffness (normal and tangential);
+* ``attached +5 mm``, ``attached -5 mm``, ``attached +10 mm`` -- the attached region grown or
+  shrunk along the surface (:mod:`tissuecast.scenario.parameters`);
+* ``gravity 45 deg off`` -- the surgery's gravity direction 45 degrees from the nominal one;
+* ``inclusion 3x E`` -- a sphere of a third of the body's smallest extent at its centre, three
+  times as stiff;
+* ``discretisation`` -- the nominal samples solved again on the uniformly refined mesh with
+  quadratic elements (:mod:`tissuecast.scenario.refined`), read on the model's vertices: the
+  truth's own discretisation error.
+
+A set is a data set (:func:`tissuecast.dataset.simulate`, resumable) of the config with no
+uncertain parameter drawn but the set's one fixed, every sample in test-1, the force
+magnitude fixed to ``alpha`` (the training store's calibrated one: the same loads), the
+model's markers and fixed vertices, and a study seed of its own (so no set shares a sample
+with the training data, and every set shares its samples' loads with the others). A set is
+*in range* when the config's ``[scenario.uncertain]`` ranges (or its gravity cone) cover its
+value: a model trained with them has seen such data.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..config import UNCERTAIN_PARAMETERS, Config, with_overrides
+
+__all__ = ["MismatchSet", "mismatch_sets", "set_config", "ArraySet", "discretisation_set", "evaluate_on_set",
+           "store_alpha", "mismatch_study", "DEFAULT_SAMPLES", "DISCRETISATION_SAMPLES", "STUDY_SEED_OFFSET"]
+
+log = logging.getLogger(__name__)
+
+#: Samples per set by default, and of the (costly) discretisation set.
+DEFAULT_SAMPLES = 100
+DISCRETISATION_SAMPLES = 8
+#: The sets' data-set seed is the config's plus this.
+STUDY_SEED_OFFSET = 7919
+
+
+@dataclass(frozen=True)
+class MismatchSet:
+    """One perturbed test set.
+
+    Attributes:
+        name: e.g. ``"E x0.5"``.
+        what: one line saying what differs.
+        uncertain: ``[scenario.uncertain]`` fixed values of the set (``{name: [v, v]}``).
+        scenario: other ``[scenario]`` overrides (gravity direction, an inclusion).
+        in_range: whether the config's uncertain ranges cover it (None for the nominal set).
+        refined: the discretisation reference (solved on the refined mesh, not simulated).
+    """
+
+    name: str
+    what: str
+    uncertain: dict = dataclasses.field(default_factory=dict)
+    scenario: dict = dataclasses.field(default_factory=dict)
+    in_range: bool | None = None
+    refined: bool = False
+
+
+def _covers(bounds: tuple, value: float) -> bool:
+    return bool(bounds) and float(bounds[0]) - 1e-12 <= value <= float(bounds[1]) + 1e-12
+
+
+def _rotated(direction, degrees: float) -> list[float]:
+    """``direction`` turned by ``degrees`` about an axis normal to it."""
+    d = np.asarray(direction, dtype=np.float64)
+    d /= np.linalg.norm(d)
+    helper = np.eye(3)[int(np.argmin(np.abs(d)))]
+    axis = np.cross(d, helper)
+    axis /= np.linalg.norm(axis)
+    t = np.radians(degrees)
+    return (np.cos(t) * d + np.sin(t) * np.cross(axis, d)).tolist()
+
+
+def _inclusion(mesh) -> dict:
+    """A sphere at the body's centre of a third of its smallest extent, 3x as stiff (overrides
+    filled in by :func:`mismatch_sets` with E)."""
+    centre = np.asarray(mesh.points, dtype=np.float64).mean(axis=0)
+    return {"name": "inclusion", "rule": "distance", "point": centre.tolist(), "distance": float(min(mesh.extent)) / 3.0}
+
+
+def mismatch_sets(config: Config, mesh) -> list[MismatchSet]:
+    """The sets (module notes) the scenario of ``config`` has the parts for, nominal first."""
+    sc, u = config.scenario, config.scenario.uncertain
+    out = [MismatchSet("nominal", "the nominal parameters")]
+    for f in (0.5, 2.0, 4.0):
+        out.append(MismatchSet(f"E x{f:g}", f"Young's modulus x{f:g} everywhere", {"youngs_modulus": [f, f]},
+                               in_range=_covers(u.youngs_modulus, f)))
+    for nu in (0.40, 0.49):
+        out.append(MismatchSet(f"nu {nu:.2f}", f"Poisson's ratio {nu:.2f}", {"poisson_ratio": [nu, nu]},
+                               in_range=_covers(u.poisson_ratio, nu)))
+    if sc.springs.rule != "none":
+        for f in (0.25, 4.0):
+            out.append(MismatchSet(f"springs x{f:g}", f"the surroundings' stiffness x{f:g}",
+                                   {"spring_normal": [f, f], "spring_tangential": [f, f]},
+                                   in_range=_covers(u.spring_normal, f) and _covers(u.spring_tangential, f)))
+    if sc.attached.rule != "none":
+        for m in (5.0, -5.0, 10.0):
+            out.append(MismatchSet(f"attached {m:+g} mm", f"the attached region {'grown' if m > 0 else 'shrunk'} by "
+                                   f"{abs(m):g} mm along the surface", {"attached_margin": [m, m]},
+                                   in_range=_covers(u.attached_margin, m)))
+    if sc.gravity.enabled:
+        out.append(MismatchSet("gravity 45 deg off", "gravity during surgery 45 degrees from the nominal direction",
+                               scenario={"gravity": {"surgery_direction": _rotated(sc.gravity.surgery_direction, 45.0),
+                                                     "cone_angle": 0.0}},
+                               in_range=sc.gravity.cone_angle >= 45.0))
+    regions = [dataclasses.asdict(r) for r in sc.materials.regions]
+    inclusion = {**_inclusion(mesh), "youngs_modulus": 3.0 * config.material.youngs_modulus,
+                 "poisson_ratio": config.material.poisson_ratio}
+    out.append(MismatchSet("inclusion 3x E", "a stiffer inclusion (3x E) at the body's centre",
+                           scenario={"materials": {"regions": regions + [inclusion]}}, in_range=False))
+    out.append(MismatchSet("discretisation", "the nominal samples on the refined mesh, quadratic elements",
+                           refined=True, in_range=None))
+    return out
+
+
+def set_config(config: Config, mset: MismatchSet, *, alpha: float, samples: int, markers, fixed, store) -> Config:
+    """The data-set config of one set (module notes)."""
+    none = {name: [] for name in UNCERTAIN_PARAMETERS}
+    scenario = {"uncertain": {**none, **mset.uncertain, "measured": []}, **mset.scenario}
+    ds = {"store": str(store), "n_samples": samples, "n_test2": 0, "split": [0.0, 0.0, 1.0], "alpha": float(alpha),
+          "seed": config.dataset.seed + STUDY_SEED_OFFSET, "predictor_samples": max(2, min(24, samples // 4))}
+    mk = {"ids": [int(i) for i in markers]}
+    if config.scenario.pins:
+        mk["fixed_ids"] = [int(i) for i in fixed]
+    return with_overrides(config, scenario=scenario, dataset=ds, markers=mk)
+
+
+class ArraySet:
+    """Fields given as arrays, read like a data set's test-1 (what :func:`.evaluation.evaluate_model` needs).
+
+    Args:
+        displacements: (N, n, 3) float mm.
+        mesh: the mesh.  scenario: the scenario record (dict) or None.
+    """
+
+    def __init__(self, displacements: np.ndarray, mesh, scenario=None):
+        self.displacements = np.asarray(displacements)
+        self.mesh = mesh
+        self.scenario = scenario
+        self.beta = np.full(len(self.displacements), np.nan)
+
+    def select(self, split=None, status: str | None = "done") -> np.ndarray:
+        """Every sample is test-1 and done."""
+        return np.arange(len(self.displacements)) if split in (None, "test1") else np.zeros(0, dtype=np.int64)
+
+
+def discretisation_set(config: Config, nominal_store, folder: Path, samples: int, *, progress=None) -> np.ndarray:
+    """The first ``samples`` samples of the nominal set solved on the refined mesh with quadratic
+    elements, read on the coarse vertices: (k, n, 3) float64 mm (k <= samples: a sample the
+    refined solve does not converge is left out and logged). Each is saved in ``folder`` as
+    it comes and reused when the study is run again."""
+    from ..dataset import open_dataset
+    from ..errors import ConvergenceError
+    from ..fem import Solver
+    from ..mesh.refine import refine_uniformly
+    from ..scenario import restore_scenario
+    from ..scenario.refined import refined_sample
+
+    ds = open_dataset(nominal_store)
+    cfg = ds.config
+    scenario = restore_scenario(ds.mesh, cfg, ds.scenario_arrays, ds.basis)
+    refined = refine_uniformly(ds.mesh)
+    solver_cfg = dataclasses.replace(cfg.solver, order=2)
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for k in ds.select("test1", status="done")[:samples]:
+        path = folder / f"sample_{int(k):05d}.npy"
+        if not path.is_file():
+            inputs = scenario.sample(int(ds.seed[k]), float(ds.alpha[k]))
+            fine = refined_sample(scenario, cfg, refined, inputs)
+            guess = refined.from_coarse(np.asarray(ds.displacements[k], dtype=np.float64))
+            try:
+                res = Solver(fine.problem, solver_cfg).solve(fine.surface, initial_guess=guess, **fine.keywords)
+            except ConvergenceError as exc:
+                log.warning("discretisation: sample %d did not converge on the refined mesh (%s); left out", k, exc)
+                continue
+            np.save(path, refined.coarse_values(res.displacement))
+        out.append(np.load(path))
+        if progress is not None:
+            progress(len(out))
+    return np.asarray(out)
+
+
+def evaluate_on_set(model, dataset, targets) -> dict:
+    """One model on one set: the test-1 figures of :func:`.evaluation.evaluate_model` (learned
+    model, rigid, ridge, TRE) and, with a trust layer, the 90 % bounds' coverage and the alarm's rate."""
+    from .evaluation import evaluate_model
+    from .trust_report import bound_figures
+
+    result = evaluate_model(model, dataset, splits=("test1",), targets=targets).sets["test1"]
+    row = {"count": int(result.indices.size), "peak_median": float(np.median(result.max_displacement)),
+           "nonrigid_median": float(np.median(result.nonrigid))}
+    for m in ("mlp", "rigid", "ridge"):
+        s = result.summary(m)
+        row[f"{m}_offset_max"] = float(s.offset_max)
+        row[f"{m}_offset_mean"] = float(s.offset_mean)
+        t = result.target_summary(m)
+        if t is not None:
+            row[f"{m}_tre_mean"] = float(t.tre_mean)
+            row[f"{m}_tre_p95"] = float(t.tre_p95)
+            row[f"{m}_corrected"] = float(t.share_corrected_mean)
+    row["relative"] = row["mlp_offset_max"] / max(row["peak_median"], 1e-300)
+    row["gain_over_rigid"] = row["rigid_offset_max"] / max(row["mlp_offset_max"], 1e-300)
+    if model.has_trust:
+        idx = dataset.select("test1", status="done")
+        figures = bound_figures(model.trusted_, np.asarray(dataset.displacements[idx], dtype=np.float64), levels=(0.9,))
+        row["coverage_90"] = figures["coverage_0.9"]
+        row["alarm_rate"] = figures["alarm_rate"] if figures["alarm_on"] else float("nan")
+    return row
+
+
+def store_alpha(store) -> float:
+    """The calibrated force magnitude alpha (N) of a training store."""
+    from ..dataset import open_dataset
+
+    cal = open_dataset(store).calibration or {}
+    return float(cal.get("alpha", 0.0))
+
+
+def _set_dataset(config: Config, mset: MismatchSet, folder: Path, *, alpha, samples, model, progress, nominal_store):
+    """The set's samples as a data set (simulated, or resumed, in ``folder``) or, for the
+    discretisation set, as an :class:`ArraySet`; None when it has no sample."""
+    from ..dataset import open_dataset, simulate
+
+    if mset.refined:
+        fields = discretisation_set(config, nominal_store, folder / "discretisation", samples)
+        return ArraySet(fields, model.mesh, model.scenario) if len(fields) else None
+    store = folder / f"{_slug(mset.name)}.zarr"
+    cfg = set_config(config, mset, alpha=alpha, samples=samples, markers=model.markers, fixed=model.fixed, store=store)
+    simulate(cfg, store, progress=progress)
+    return open_dataset(store)
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() else "_" for c in name).strip("_").lower()
+
+
+def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=None, samples: int = DEFAULT_SAMPLES,
+                   refined_samples: int = DISCRETISATION_SAMPLES, targets=None, progress: bool = False,
+                   on_row=None) -> list[dict]:
+    """Simulate the mismatch sets and evaluate every model on each (module notes).
+
+    Args:
+        config: the scenario's config (its ``[scenario.uncertain]`` ranges say what is in range).
+        models: ``{label: DeformationModel}`` (e.g. ``{"nominal": ..., "uncertain": ...}``), all on
+            the config's mesh with the same markers.
+        folder: where the sets' stores are kept (resumed when the study is run again).
+        alpha: the force magnitude of every set, N.
+        sets: names of the sets to run (default all of :func:`mismatch_sets`).
+        samples: samples per set; ``refined_samples`` of the discretisation set.
+        targets: where TRE is measured (default: the evaluation's interior rule).
+        progress: progress bars of the simulations.
+        on_row: called with each row as it comes.
+
+    Returns:
+        One row per (set, model): the figures of :func:`evaluate_on_set` with ``set``, ``what``,
+        ``in_range``, ``model`` and ``relative_vs_nominal`` (the relative error over that
+        model's own on the nominal set).
+    """
+    folder = Path(folder)
+    first = next(iter(models.values()))
+    chosen = mismatch_sets(config, first.mesh)
+    if sets:
+        unknown = set(sets) - {s.name for s in chosen}
+        if unknown:
+            from ..errors import ConfigError
+
+            raise ConfigError(f"unknown mismatch set(s) {sorted(unknown)}; choose among {[s.name for s in chosen]}")
+        chosen = [s for s in chosen if s.name in sets or s.name == "nominal"]
+    rows, nominal_relative = [], {}
+    nominal_store = folder / "nominal.zarr"
+    for mset in chosen:
+        ds = _set_dataset(config, mset, folder, alpha=alpha, samples=refined_samples if mset.refined else samples,
+                          model=first, progress=progress, nominal_store=nominal_store)
+        if ds is None:
+            continue
+        for label, model in models.items():
+            row = {"set": mset.name, "what": mset.what, "in_range": mset.in_range, "model": label,
+                   **evaluate_on_set(model, ds, targets)}
+            if mset.name == "nominal":
+                nominal_relative[label] = row["relative"]
+            row["relative_vs_nominal"] = row["relative"] / nominal_relative.get(label, float("nan"))
+            rows.append(row)
+            if on_row is not None:
+                on_row(row)
+    return rows
