@@ -25,7 +25,8 @@ from scipy.stats import rankdata
 from ..errors import ModelError, RegistrationError
 from .metrics import SetSummary, TargetSummary, summarize_offsets, summarize_targets, target_errors
 
-__all__ = ["SetResult", "Evaluation", "evaluate_model", "method_fields", "spearman_rows", "SPLITS", "METHODS",
+__all__ = ["SetResult", "Evaluation", "evaluate_model", "method_fields", "auxiliary_values", "spearman_rows", "SPLITS",
+           "METHODS",
            "PREDICTORS", "METHOD_LABELS"]
 
 #: Samples predicted at once (bounds the memory to chunk x n x 3 floats per method).
@@ -323,7 +324,7 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
         raise ModelError("the model was trained on another mesh than this data set's; evaluate it on its own data set")
     U = dataset.displacements
     beta = np.asarray(dataset.beta, dtype=np.float64)
-    aux = _auxiliary(model, dataset)
+    aux = auxiliary_values(model, dataset)
     sets, by_beta = {}, []
     for name in splits:
         idx = np.asarray(dataset.select(name, status="done"), dtype=np.int64)
@@ -342,9 +343,9 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
                       model_summary=summary, targets=targets)
 
 
-def _auxiliary(model, dataset) -> np.ndarray | None:
-    """(N, n_a) the data set's auxiliary inputs of the model (instrument poses, measured
-    parameters), or None for a markers-only model."""
+def auxiliary_values(model, dataset) -> np.ndarray | None:
+    """(N, n_a) the data set's auxiliary inputs of a model or predictor (``model.auxiliary``:
+    instrument poses, measured parameters), or None for a markers-only one."""
     if not model.auxiliary.width:
         return None
     from ..surrogate.data import dataset_auxiliary

@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import ModelError
 from ..instruments import POSE_FEATURES, POSE_UNITS, InstrumentPose, pose_features
 
-__all__ = ["AuxiliaryInputs", "AuxiliaryValues", "InstrumentInput", "PARAMETER_UNITS"]
+__all__ = ["AuxiliaryInputs", "AuxiliaryValues", "InstrumentInput", "PARAMETER_UNITS", "MARKERS_ONLY"]
 
 #: The unit of each per-sample parameter a data set records (``samples/param_<name>``).
 PARAMETER_UNITS = {"youngs_modulus": "factor", "poisson_ratio": "1", "density": "factor", "spring_normal": "factor",
@@ -191,6 +191,10 @@ class AuxiliaryInputs:
             return cls()
         return cls(tuple(InstrumentInput(i["name"], i.get("device", "")) for i in d.get("instruments", [])),
                    tuple(d.get("parameters", [])))
+
+
+#: The inputs of a markers-only model: none besides the markers.
+MARKERS_ONLY = AuxiliaryInputs()
 
 
 def _pose_columns(value, batch: int, name: str) -> np.ndarray:

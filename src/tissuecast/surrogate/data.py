@@ -10,8 +10,8 @@ from ..errors import ModelError
 from .auxiliary import AuxiliaryInputs, AuxiliaryValues
 from .field_predictor import check_vertex_ids
 
-__all__ = ["TrainingArrays", "dataset_arrays", "dataset_auxiliary", "split_indices", "FitSplits", "fit_splits", "split_calibration",
-           "check_fit_inputs", "flat_fields", "VALIDATION_EVERY", "MIN_SAMPLES", "CALIBRATION_SEED_OFFSET"]
+__all__ = ["TrainingArrays", "dataset_arrays", "dataset_auxiliary", "split_indices", "FitSplits", "fit_splits",
+           "split_calibration", "check_fit_inputs", "flat_fields", "VALIDATION_EVERY", "MIN_SAMPLES", "CALIBRATION_SEED_OFFSET"]
 
 #: Without given validation samples, one training sample in this many validates (at least one).
 VALIDATION_EVERY = 10

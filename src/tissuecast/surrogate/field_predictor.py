@@ -33,7 +33,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 
 from ..errors import ModelError
-from .auxiliary import AuxiliaryInputs
+from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .inputs import marker_batch
 
 __all__ = ["FieldPredictor", "check_vertex_ids"]
@@ -74,7 +74,7 @@ class FieldPredictor(ABC):
     supports_missing_markers: bool = False
     has_uncertainty: bool = False
     has_trust: bool = False
-    auxiliary: AuxiliaryInputs = AuxiliaryInputs()
+    auxiliary: AuxiliaryInputs = MARKERS_ONLY
 
     # ------------------------------------------------------------------ geometry
     @property

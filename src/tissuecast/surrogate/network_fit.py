@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import SurrogateConfig
-from .auxiliary import AuxiliaryInputs
+from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .component_choice import choose_by_validation, components_to_train
 from .head import fit_head, truncated_head
 from .mlp import TrainingSummary, train_mlp
@@ -73,7 +73,7 @@ def train_members(Xt, Yt, Xv, Yv, config: SurrogateConfig,
 
 def fit_network(Ut: np.ndarray, Uv: np.ndarray, markers: np.ndarray, mesh, config: SurrogateConfig,
                 At: np.ndarray | None = None, Av: np.ndarray | None = None,
-                auxiliary: AuxiliaryInputs = AuxiliaryInputs()) -> NetworkFit:
+                auxiliary: AuxiliaryInputs = MARKERS_ONLY) -> NetworkFit:
     """Fit the PCA + (head +) MLP predictor.
 
     Args:

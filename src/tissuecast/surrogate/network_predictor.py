@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ModelError
-from .auxiliary import AuxiliaryInputs
+from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .fastpath import CompiledSurrogate
 from .field_predictor import FieldPredictor, check_vertex_ids
 from .pca import PCABasis
@@ -47,7 +47,7 @@ class NetworkPredictor(FieldPredictor):
     name = "mlp"
 
     def __init__(self, mesh, markers, basis: PCABasis, members: list[MLPWeights], head: QuadraticRegression | None = None,
-                 auxiliary: AuxiliaryInputs = AuxiliaryInputs()):
+                 auxiliary: AuxiliaryInputs = MARKERS_ONLY):
         mk = check_vertex_ids(markers, mesh.n_vertices)
         members = list(members)
         if (not members or members[0].weights[-1].shape[0] != basis.n_components or members[0].n_markers != len(mk)
