@@ -169,3 +169,37 @@ def test_a_measured_parameter_is_an_input_without_a_fallback():
     assert np.isfinite(m.predict(d, auxiliary={"youngs_modulus": factor[te]})).all()
     with pytest.raises(ModelError, match="needs the measured parameters"):
         m.predict(d)
+
+
+def test_cli_predict_reads_the_instrument_pose(tmp_path, capsys):
+    import json
+
+    from tissuecast.cli.main import main
+
+    m = instrument_model()
+    _, U, poses, A = instrument_data()
+    k = next(int(i) for i in SPLITS["test"] if poses[i].contact)
+    m.save(tmp_path / "model")
+    d = m.marker_displacements(U[[k, k]])
+    (tmp_path / "in.json").write_text(json.dumps({"displacements": d.tolist()}))
+    pose = {"tip": poses[k].tip.tolist(), "direction": poses[k].direction.tolist()}
+    ras = {"frame": "RAS", "retractor": {"tip": [-poses[k].tip[0], -poses[k].tip[1], poses[k].tip[2]],
+                                         "direction": [0.0, 0.0, -1.0]}}
+    (tmp_path / "tool.json").write_text(json.dumps([{"retractor": pose}, ras]))
+    args = ["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json"), "--out", str(tmp_path / "u.json")]
+    assert main(args + ["--instrument", str(tmp_path / "tool.json")]) == 0
+    out = capsys.readouterr().out
+    assert f"retractor: in contact, {poses[k].depth:.2f} mm deep" in out
+    u = np.array(json.loads((tmp_path / "u.json").read_text())["displacement"])
+    expected = m.predict(d, auxiliary={"retractor": poses[k]})
+    np.testing.assert_allclose(u, expected, atol=1e-9)  # LPS and RAS files give one pose
+    (tmp_path / "none.json").write_text(json.dumps({"retractor": None}))
+    assert main(args + ["--instrument", str(tmp_path / "none.json")]) == 0
+    assert "retractor: not tracked (markers only)" in capsys.readouterr().out
+    np.testing.assert_allclose(np.array(json.loads((tmp_path / "u.json").read_text())["displacement"]), m.predict(d),
+                               atol=1e-9)
+    (tmp_path / "bad.json").write_text(json.dumps({"spatula": pose}))
+    assert main(args + ["--instrument", str(tmp_path / "bad.json")]) == 2
+    assert "unknown instruments ['spatula']" in capsys.readouterr().err
+    assert main(args + ["--parameter", "youngs_modulus"]) == 2
+    assert "write NAME=VALUE" in capsys.readouterr().err

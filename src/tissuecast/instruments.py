@@ -41,6 +41,10 @@ POSE_FEATURES = ("tip_x", "tip_y", "tip_z", "direction_x", "direction_y", "direc
 POSE_UNITS = ("mm", "mm", "mm", "1", "1", "1", "mm", "1")
 #: Rays closer than this (mm) to their own start count as starting on the surface (no crossing).
 _RAY_EPS = 1e-9
+#: Barycentric slack of a hit (a ray through an edge or vertex meets every triangle there) and
+#: the relative distance within which hits are one crossing.
+_BARY_EPS = 1e-10
+_SAME_CROSSING = 1e-8
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,7 +118,8 @@ class ReferenceSurface:
 
     def crossings(self, start, ray) -> np.ndarray:
         """Distances (k,) mm, ascending, at which ``start + s ray`` (s > 0; ``ray`` (3,) unit)
-        crosses the surface (Moller-Trumbore over every triangle)."""
+        crosses the surface (Moller-Trumbore over every triangle; a ray through an edge or a
+        vertex meets each triangle there at one distance, counted once)."""
         start = np.asarray(start, dtype=np.float64)
         ray = np.asarray(ray, dtype=np.float64)
         h = np.cross(ray, self.edge2)
@@ -126,8 +131,11 @@ class ReferenceSurface:
         q = np.cross(s, self.edge1)
         v = (q @ ray) * inv
         t = np.einsum("ij,ij->i", self.edge2, q) * inv
-        hit = ok & (u >= 0.0) & (v >= 0.0) & (u + v <= 1.0) & (t > _RAY_EPS)
-        return np.sort(t[hit])
+        hit = ok & (u >= -_BARY_EPS) & (v >= -_BARY_EPS) & (u + v <= 1.0 + _BARY_EPS) & (t > _RAY_EPS)
+        t = np.sort(t[hit])
+        if len(t) < 2:
+            return t
+        return t[np.r_[True, np.diff(t) > _SAME_CROSSING * np.maximum(1.0, t[1:])]]
 
     def pose(self, tip, direction) -> InstrumentPose:
         """The pose of a tool tip (3,) mm pushing along ``direction`` (3,) (normalised here):
