@@ -17,7 +17,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from ..config import with_overrides
-    from ..evaluate.pipeline import run_pipeline
+    from ..app.pipeline import run_pipeline
     from .presets import preset_config
     from .run_cmd import report_run
 

@@ -34,7 +34,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from ..dataset import open_dataset
     from ..errors import ModelError
-    from ..evaluate.pipeline import evaluate_and_report
+    from ..app.pipeline import evaluate_and_report
     from ..evaluate.report import format_evaluation
     from ..evaluate.targets import model_targets
     from ..surrogate import DeformationModel

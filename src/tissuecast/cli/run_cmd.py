@@ -16,7 +16,7 @@ def register(sub) -> None:
 
 
 def report_run(result) -> None:
-    """Print the outcome of :func:`~tissuecast.evaluate.pipeline.run_pipeline`."""
+    """Print the outcome of :func:`~tissuecast.app.pipeline.run_pipeline`."""
     from ..evaluate.report import format_evaluation
 
     p = result["paths"]
@@ -44,7 +44,7 @@ def config_or_preset(source: str):
 
 
 def run(args) -> int:
-    from ..evaluate.pipeline import run_pipeline
+    from ..app.pipeline import run_pipeline
 
     cfg = config_or_preset(args.config)
     result = run_pipeline(cfg, simulate=not args.skip_simulate, progress=not args.no_progress, workers=args.workers)

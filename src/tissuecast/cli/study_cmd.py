@@ -71,7 +71,7 @@ def _mismatch(args) -> int:
     from ..errors import ConfigError
     from ..evaluate import mismatch as mm
     from ..evaluate.mismatch_report import format_mismatch, mismatch_figure, write_mismatch
-    from ..evaluate.pipeline import run_paths
+    from ..app.pipeline import run_paths
 
     if not args.source or not Path(args.source).is_file():
         raise ConfigError("study mismatch takes the scenario's TOML config (CONFIG), e.g. configs/embedded.toml")
@@ -107,7 +107,7 @@ def run(args) -> int:
         return _mismatch(args)
     from ..dataset import open_dataset
     from ..evaluate import figures, studies
-    from ..evaluate.pipeline import resolve_source, run_paths
+    from ..app.pipeline import resolve_source, run_paths
 
     cfg, store = resolve_source(args.source, args.store)
     ds = open_dataset(store)

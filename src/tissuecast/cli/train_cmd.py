@@ -39,7 +39,7 @@ def overrides_from_args(args) -> dict:
 
 def run(args) -> int:
     from ..config import with_overrides
-    from ..evaluate.pipeline import resolve_source, run_paths, train_from_store
+    from ..app.pipeline import resolve_source, run_paths, train_from_store
 
     cfg, store = resolve_source(args.source, args.store)
     o = overrides_from_args(args)

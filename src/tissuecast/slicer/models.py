@@ -207,10 +207,11 @@ def read_model_as_slicer(path: str | Path) -> SlicerModel:
     points = ns.vtk_to_numpy(data.GetPoints().GetData()).astype(np.float64)
     if space == "RAS":
         points = points * np.array([-1.0, -1.0, 1.0])
-    cells = data.GetPolys() if hasattr(data, "GetPolys") else data.GetCells()
+    polygons = data.IsA("vtkPolyData")  # a surface (.vtk polydata, .vtp), else an unstructured grid
+    cells = data.GetPolys() if polygons else data.GetCells()
     offsets = ns.vtk_to_numpy(cells.GetOffsetsArray()).astype(np.int64)
     connectivity = ns.vtk_to_numpy(cells.GetConnectivityArray()).astype(np.int64)
-    if hasattr(data, "GetPolys"):
+    if polygons:
         types = np.full(len(offsets) - 1, _VTK_TRIANGLE, dtype=np.int64)
     else:
         types = np.array([data.GetCellType(i) for i in range(data.GetNumberOfCells())], dtype=np.int64)

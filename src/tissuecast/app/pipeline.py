@@ -60,9 +60,9 @@ def evaluate_and_report(model, dataset, folder, *, renders: int = EvaluateConfig
     ``targets``: where TRE is measured (:class:`~.targets.Targets`); default the targets of
     the config the model was trained with (:func:`~.targets.model_targets`).
     """
-    from .evaluation import evaluate_model
-    from .report import write_report
-    from .targets import model_targets
+    from ..evaluate.evaluation import evaluate_model
+    from ..evaluate.report import write_report
+    from ..evaluate.targets import model_targets
 
     evaluation = evaluate_model(model, dataset, targets=targets if targets is not None else model_targets(model))
     index = write_report(folder, model, dataset, evaluation, renders=renders, studies_folder=studies_folder, title=title)
@@ -90,7 +90,7 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
     model, ds = train_from_store(config, paths.store, model_folder=paths.model)
     seconds["train"] = time.perf_counter() - t
     t = time.perf_counter()
-    from .targets import model_targets
+    from ..evaluate.targets import model_targets
 
     evaluation, index = evaluate_and_report(model, ds, paths.report, renders=config.evaluate.renders,
                                             title=f"tissuecast: {config.name}", targets=model_targets(model, config))
