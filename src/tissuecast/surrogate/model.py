@@ -302,8 +302,8 @@ class DeformationModel(FieldPredictor):
         """
         if config is None:
             config = dataset.config
-        scenario = config.scenario if isinstance(config, Config) else dataset.config.scenario
-        arrays = dataset_arrays(dataset, AuxiliaryInputs.from_config(scenario))
+        source = config if isinstance(config, Config) else dataset.config  # the scenario's inputs
+        arrays = dataset_arrays(dataset, None if source is None else AuxiliaryInputs.from_config(source.scenario))
         markers = arrays.markers
         if isinstance(config, Config) and config.markers.ids:
             from ..markers import validate_vertex_ids
