@@ -298,6 +298,7 @@ def _measured(spec, parameters: dict) -> dict[str, float]:
     missing = [p for p in spec.parameters if p not in parameters]
     unknown = sorted(set(parameters) - set(spec.parameters))
     if missing or unknown:
-        raise ConfigError(f"the model reads the measured parameters {list(spec.parameters)}: "
+        reads = f"the measured parameters {list(spec.parameters)}" if spec.parameters else "no measured parameter"
+        raise ConfigError(f"the model reads {reads}: "
                           + (f"give {missing} (--parameter NAME=VALUE)" if missing else f"it does not read {unknown}"))
     return {k: float(v) for k, v in parameters.items()}
