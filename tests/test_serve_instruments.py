@@ -111,3 +111,21 @@ def test_instrument_devices_and_parameters_are_checked():
         assert client.receive().text.startswith("TRANSFORM 'RetractorToReference': an instrument pose needs")
         client.send(pyigtl.TransformMessage(tool, device_name="Spatula"))
         assert "or an instrument (RetractorToReference)" in client.receive().text
+
+
+def test_a_model_reading_a_measured_parameter_needs_it_to_be_served():
+    from tissuecast.surrogate import DeformationModel
+    from tissuecast.surrogate.auxiliary import AuxiliaryInputs, AuxiliaryValues
+
+    from _surrogate_synthetic import MARKERS
+
+    mesh, U, _, _ = instrument_data()
+    spec = AuxiliaryInputs(parameters=("youngs_modulus",))
+    m = DeformationModel(epochs=3, n_components=4, hidden=(8,), calibration_share=0.0)
+    m.fit(U[:60], MARKERS, mesh=mesh, auxiliary=AuxiliaryValues(spec, np.ones((60, 1))))
+    with pytest.raises(ConfigError, match=r"give \['youngs_modulus'\] \(--parameter NAME=VALUE\)"):
+        SurfacePredictor(m)
+    served = SurfacePredictor(m, parameters={"youngs_modulus": 1.0})
+    positions = m.reference_marker_positions
+    np.testing.assert_array_equal(served.predict(positions, 0.0).displacement,
+                                  m.predict(np.zeros((m.n_markers, 3)), auxiliary={"youngs_modulus": 1.0}))

@@ -203,3 +203,56 @@ def test_cli_predict_reads_the_instrument_pose(tmp_path, capsys):
     assert "unknown instruments ['spatula']" in capsys.readouterr().err
     assert main(args + ["--parameter", "youngs_modulus"]) == 2
     assert "write NAME=VALUE" in capsys.readouterr().err
+
+
+def test_the_remaining_checks_fire(tmp_path, capsys):
+    import json
+
+    from tissuecast.cli.main import main
+    from tissuecast.surrogate.data import dataset_auxiliary
+    from tissuecast.surrogate.fallback import InstrumentFallback
+    from tissuecast.surrogate.trusted import TrustedPredictor
+
+    m = instrument_model()
+    _, U, poses, A = instrument_data()
+    d = m.marker_displacements(U[:2])
+    spec = AuxiliaryInputs((InstrumentInput("retractor"),), ("youngs_modulus",))
+    for given, message in (({"retractor": None, "youngs_modulus": np.nan}, "must be finite"),
+                           ({"retractor": None, "youngs_modulus": [1.0, 2.0, 3.0]}, "give one value or 2, got 3"),
+                           ({"retractor": [poses[0]], "youngs_modulus": 1.0}, "give one pose or 2, got 1"),
+                           ({"retractor": [poses[0], "tip"], "youngs_modulus": 1.0}, "must be tissuecast.instruments"),
+                           ("text", "auxiliary inputs must be numbers")):
+        with pytest.raises(ModelError, match=message):
+            spec.batch(given, 2)
+    with pytest.raises(ModelError, match="the trust layer reads 15 marker displacements and 8 auxiliary inputs, got 15"):
+        m.trusted_.layer.assess(d, m.predict(d))
+    with pytest.raises(ModelError, match="the trust layer reads 8 auxiliary inputs, the predictor 0"):
+        TrustedPredictor(m.fallback_, m.trusted_.layer)
+    with pytest.raises(ModelError, match="without its instruments"):
+        InstrumentFallback(m.network_, m.network_)
+    with pytest.raises(ModelError, match="no fallback"):
+        DeformationModel(epochs=2).fit(U[:40], MARKERS, mesh=instrument_data()[0]).export_onnx(tmp_path / "x.onnx",
+                                                                                               fallback=True)
+
+    class NoPoses:
+        instrument_poses, parameters, n_samples = {}, {}, 3
+
+    with pytest.raises(ModelError, match="records no pose of instrument 'retractor'"):
+        dataset_auxiliary(NoPoses(), INPUTS)
+    with pytest.raises(ModelError, match="no value of the measured parameter 'density'"):
+        dataset_auxiliary(NoPoses(), AuxiliaryInputs(parameters=("density",)))
+    # the command line's instrument file
+    m.save(tmp_path / "model")
+    (tmp_path / "in.json").write_text(json.dumps({"displacements": d.tolist()}))
+    args = ["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json"), "--instrument"]
+    for content, message in (({"retractor": [1, 2, 3]}, "give {'tip'"), ({"retractor": {"tip": [0, 0, 0]}}, "got keys"),
+                             ({"frame": "XYZ"}, "frame 'XYZ'"), ([{}, {}, {}], "a list of 2"),
+                             ({"retractor": {"tip": [0, 0, 0], "direction": [0, 0, 0]}}, "non-zero direction")):
+        (tmp_path / "tool.json").write_text(json.dumps(content))
+        assert main(args + [str(tmp_path / "tool.json")]) == 2
+        assert message in capsys.readouterr().err, message
+    plain = DeformationModel(epochs=2, calibration_share=0.0).fit(U[:40], MARKERS, mesh=instrument_data()[0])
+    plain.save(tmp_path / "plain")
+    assert main(["predict", str(tmp_path / "plain"), "--markers", str(tmp_path / "in.json"), "--instrument",
+                 str(tmp_path / "tool.json")]) == 2
+    assert "reads the markers only" in capsys.readouterr().err
