@@ -282,3 +282,13 @@ def test_an_uncertain_store_is_the_same_on_dask_and_after_a_kill(uncertain, tmp_
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
         simulate(cfg, tmp_path / "dask.zarr", progress=False, scheduler=cluster.scheduler_address)
     assert_same_store(tmp_path / "dask.zarr", ref_path)
+
+
+def test_dataset_info_prints_each_loads_share(reference, capsys):
+    from tissuecast.cli.main import main
+
+    _, path, _ = reference
+    assert main(["dataset", "info", str(path), "--load-shares", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "each load alone" in out and "surface field: peak" in out and "gravity change: peak" in out
+    assert "instrument: peak" in out and "% of all loads' peak" in out

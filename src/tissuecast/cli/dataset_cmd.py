@@ -20,6 +20,9 @@ def register(sub) -> None:
     info = dsub.add_parser("info", help="counts by split and status, displacement statistics, timing")
     info.add_argument("store", help="data-set store directory")
     info.add_argument("--json", action="store_true", help="print the figures as JSON")
+    info.add_argument("--load-shares", type=int, default=0, metavar="N",
+                      help="also solve the first N samples with each load alone (surface field, gravity change, "
+                           "instrument) and print each one's share of the peak displacement (N x 4 solves)")
     info.set_defaults(func=run_info)
     ex = dsub.add_parser("export", help="write one sample's deformed mesh (displacement and force point data)")
     ex.add_argument("store", help="data-set store directory")
@@ -99,12 +102,36 @@ def print_summary(s: dict) -> None:
 def run_info(args) -> int:
     from ..dataset import open_dataset
 
-    s = open_dataset(args.store).summary(deformation=True)
+    ds = open_dataset(args.store)
+    s = ds.summary(deformation=True)
+    if args.load_shares > 0:
+        s["load_shares"] = _load_shares(ds, args.load_shares)
     if args.json:
         print(json.dumps(s, indent=2))
-    else:
-        print_summary(s)
+        return 0
+    print_summary(s)
+    if "load_shares" in s:
+        from ..scenario.load_shares import format_load_shares
+
+        print("each load alone (nominal parameters):")
+        for line in format_load_shares(s["load_shares"]):
+            print(f"  {line}")
     return 0
+
+
+def _load_shares(ds, count: int) -> dict:
+    """Each load's share of the peak displacement on the data set's first ``count`` samples."""
+    from ..errors import DatasetError
+    from ..fem.linear import one_blas_thread
+    from ..scenario import restore_scenario
+    from ..scenario.load_shares import load_shares
+
+    alpha = float((ds.calibration or {}).get("alpha", 0.0))
+    if not alpha > 0 and ds.config.scenario.lbo_forces:
+        raise DatasetError("--load-shares needs the store's calibrated force magnitude; simulate the store first")
+    scenario = restore_scenario(ds.mesh, ds.config, ds.scenario_arrays, ds.basis)
+    with one_blas_thread():
+        return load_shares(scenario, ds.config, [int(x) for x in ds.seed[:count]], alpha)
 
 
 def run_export(args) -> int:

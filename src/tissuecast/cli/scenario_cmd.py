@@ -54,12 +54,17 @@ def run_preview(args) -> int:
            "access": [] if sc.sites is None else sc.sites.access.tolist(),
            "examples": [{"sample": i, **d.record(), "indent_vertices": [] if d.indentation is None
                          else d.indentation.vertices.tolist()} for i, d in enumerate(draws)]}
-    deformations = []
+    deformations, shares = [], {}
     if args.deformations:
         from ..fem.linear import one_blas_thread
+        from ..scenario.load_shares import load_shares
+        from ..scenario.preview import example_alpha
 
         with one_blas_thread():  # as the data set's workers solve: faster, same bits everywhere
             deformations = example_deformations(sc, cfg, seeds)
+            alpha = example_alpha(sc, cfg, seeds) if cfg.scenario.lbo_forces else 0.0
+            shares = load_shares(sc, cfg, seeds, alpha) if len(seeds) else {}
+    doc["load_shares"] = shares
     doc["example_peak_displacement_mm"] = [float(np.linalg.norm(u, axis=1).max()) for _, u in deformations]
     extra = {f"displacement_example_{k + 1}": u for k, (_, u) in enumerate(deformations)}
     written = [write_preview_vtu(prefix.with_name(prefix.name + ".vtu"), sc, draws, extra)]
@@ -96,6 +101,12 @@ def run_preview(args) -> int:
     if sc.materials is not None:
         for name, v in sc.materials.draws.items():
             print(f"  material {name}: E {v['youngs_modulus']:.4g} MPa, nu {v['poisson_ratio']:.4g}")
+    if shares:
+        from ..scenario.load_shares import format_load_shares
+
+        print("  each load alone (the examples, nominal parameters):")
+        for line in format_load_shares(shares):
+            print(f"    {line}")
     for p in written:
         print(f"wrote {p}")
     return 0

@@ -20,6 +20,7 @@ from ..errors import require
 from .scenario import Scenario, ScenarioDraw
 
 __all__ = ["SUPPORT_CODES", "preview_arrays", "write_preview_vtu", "render_preview", "example_deformations",
+           "example_alpha",
            "scenario_places"]
 
 #: Without a fixed ``dataset.alpha``, the example LBO fields are scaled so that their median
@@ -89,6 +90,25 @@ def scenario_places(sc: Scenario) -> dict[str, np.ndarray]:
     return {name: ids for name, ids in places.items() if ids.size}
 
 
+def example_alpha(sc: Scenario, config, seeds, solver=None) -> float:
+    """The examples' surface field magnitude, N: ``dataset.alpha``, or if 0 :data:`LINEAR_AIM` of
+    ``forces.target_max_displacement`` by the median linear response of the fields of ``seeds``."""
+    if config.dataset.alpha > 0:
+        return float(config.dataset.alpha)
+    if solver is None:
+        from ..fem import Solver
+
+        solver = Solver(sc.problem(config), config.solver)
+    reference, free = solver.reference_factor(), solver.free_dofs
+    peaks = []
+    for seed in seeds:
+        loads = sc.loads(ScenarioDraw(), sc.surface_forces.field(seed, 1.0)[0], config.forces.loading)
+        u = np.zeros(loads.size)
+        u[free] = reference.solve(loads.ravel()[free])
+        peaks.append(float(np.linalg.norm(u.reshape(-1, 3)[: sc.mesh.n_vertices], axis=1).max()))
+    return LINEAR_AIM * config.forces.target_max_displacement / max(float(np.median(peaks)), 1e-300)
+
+
 def example_deformations(sc: Scenario, config, seeds) -> list[tuple[str, np.ndarray]]:
     """Solve the samples ``seeds`` of the scenario with the built-in solver (one Newton solve each).
 
@@ -115,18 +135,8 @@ def example_deformations(sc: Scenario, config, seeds) -> list[tuple[str, np.ndar
     n = sc.mesh.n_vertices
     fields = [None] * len(seeds)
     if config.scenario.lbo_forces:
-        fields = [sc.surface_forces.field(s, 1.0)[0] for s in seeds]
-        alpha = config.dataset.alpha
-        if not alpha > 0:
-            reference, free = solver.reference_factor(), solver.free_dofs
-            peaks = []
-            for f in fields:
-                loads = sc.loads(ScenarioDraw(), f, config.forces.loading)
-                u = np.zeros(loads.size)
-                u[free] = reference.solve(loads.ravel()[free])
-                peaks.append(float(np.linalg.norm(u.reshape(-1, 3)[:n], axis=1).max()))
-            alpha = LINEAR_AIM * config.forces.target_max_displacement / max(float(np.median(peaks)), 1e-300)
-        fields = [alpha * f for f in fields]
+        alpha = example_alpha(sc, config, seeds, solver)
+        fields = [sc.surface_forces.field(s, alpha)[0] for s in seeds]
     out = []
     for k, (seed, field) in enumerate(zip(seeds, fields)):
         draw = sc.draw(scenario_rng(seed))
