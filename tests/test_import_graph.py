@@ -133,7 +133,7 @@ def test_every_module_imports(name):
 #: The packages of src/tissuecast by layer, bottom first: a package imports only from its own
 #: layer or below. ``root`` is tissuecast/__init__.py (its version is read anywhere).
 LAYERS = (
-    ("errors", "frames", "registration", "root"),
+    ("errors", "frames", "registration", "instruments", "root"),
     ("config",),
     ("mesh", "forces", "slicer"),
     ("fem",),

@@ -112,3 +112,48 @@ def test_cpp_client_reads_the_alarm_status(client_binary):
     _, device, crc_ok, code, subcode, name, text = status[0]
     assert (device, crc_ok, int(code), name) == (STATUS_DEVICE, "1", int(StatusCode.UNKNOWN_ERROR), ALARM_NAME)
     assert int(subcode) & AlarmBits.INCONSISTENT_MARKERS and "markers disagree" in text
+
+
+def test_cpp_client_streams_a_tracked_instrument_and_hears_when_it_is_lost(client_binary):
+    """The retractor's TRANSFORM from the official library: the prediction uses its pose; once its
+    messages stop for serve.instrument_timeout the server predicts from the markers only and
+    says so in a STATUS the library unpacks."""
+    from _instrument_synthetic import SPLITS, instrument_data, instrument_model
+
+    from tissuecast.serve.instruments import LOST_NAME, TRACKED_NAME
+    from tissuecast.serve.status import STATUS_DEVICE, StatusCode
+
+    model = instrument_model()
+    _, U, poses, _ = instrument_data()
+    k = next(int(i) for i in SPLITS["test"] if poses[i].contact)
+    markers = (model.reference_marker_positions + U[k][model.markers]).astype(np.float32).astype(np.float64)
+    tool = np.eye(4)
+    tool[:3, 2], tool[:3, 0], tool[:3, 1] = poses[k].direction, [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]
+    tool[:3, 3] = poses[k].tip
+    tool = tool.astype(np.float32).astype(np.float64)
+    with IGTLServer(model, "127.0.0.1", 0, instrument_timeout=0.3) as server:
+        args = [str(client_binary), *map(str, server.address), "--instrument", "RetractorToReference", "900"]
+        done = subprocess.run(args + [repr(float(v)) for v in tool.ravel()] + [repr(float(v)) for v in markers.ravel()],
+                              capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    heads = [i for i, line in enumerate(lines) if line.startswith(("POLYDATA", "STATUS"))]
+    kinds = [lines[i].split()[0] for i in heads]
+    assert kinds == ["POLYDATA", "STATUS"] * 3, kinds
+    d = markers - model.reference_marker_positions
+    pose = server.predictor.reference_surface.pose_from_transform(tool)
+    expected = [model.predict(d), model.predict(d, auxiliary={"retractor": pose}), model.predict(d)]
+    sv = model.mesh.surface_vertices
+    for j, u in enumerate(expected):
+        start = heads[2 * j]
+        assert lines[start].split()[2] == "1"  # the library's CRC check passed
+        points = np.array([[float(v) for v in line.split()[1:]] for line in lines[start + 1:heads[2 * j + 1]]
+                           if line.startswith("P ")])
+        np.testing.assert_allclose(points, (model.mesh.points + u)[sv], atol=1e-4)
+    assert np.abs(expected[1] - expected[0]).max() > 0.05  # the pose changed the prediction
+    status = [lines[heads[2 * j + 1]].split(" ", 6) for j in range(3)]
+    for (_, device, crc_ok, code, _, name, text), (want_code, want_name) in zip(
+            status, [(StatusCode.TIME_OUT, LOST_NAME), (StatusCode.OK, TRACKED_NAME), (StatusCode.TIME_OUT, LOST_NAME)]):
+        assert (device, crc_ok, int(code), name) == (STATUS_DEVICE, "1", int(want_code), want_name)
+        assert "RetractorToReference" in text
+    assert "markers only" in status[2][6]

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 import typing
 from dataclasses import dataclass, field
@@ -41,6 +42,7 @@ __all__ = [
     "MaterialRegionConfig",
     "MaterialRegionsConfig",
     "UncertainConfig",
+    "InstrumentConfig",
     "load_config",
     "config_from_dict",
     "config_to_dict",
@@ -260,6 +262,7 @@ class ServeConfig:
     client_frame: str = _f("LPS", choices=CLIENT_FRAMES, doc="frame of replies, and of markers without registration: LPS = the model's (scan's), RAS = 3D Slicer's world (OpenIGTLinkIF)")
     tracker_to_client: tuple[float, ...] = _f((), doc="tracker -> client frame registration: a 4x4 matrix row by row (16 numbers, mm); empty = none; a TRANSFORM TrackerToRas replaces it")
     method: str = _f("mlp", choices=SERVE_METHODS, doc="prediction: the learned model (mlp) or the rigid registration of the markers (rigid, the fallback baseline)")
+    instrument_timeout: float = _f(0.5, lo=0.0, lo_open=True, doc="seconds without an instrument's TRANSFORM after which predictions use the markers only (a STATUS says so)")
 
 
 # ------------------------------------------------------------------- scenario
@@ -350,6 +353,7 @@ class IndentationConfig:
     clearance: float = _f(8.0, lo=0.0, doc="patch centres lie at least this far (mm) from supported vertices (pins, attached region)")
     tool: str = _f("flat", choices=("flat", "rounded"), doc="flat = the patch moves together (a rigid punch, singular rim); rounded = a ball tip of tool_radius (Hertz profile)")
     tool_radius: float = _f(5.0, lo=0.0, lo_open=True, doc="tool rounded: radius of the instrument's rounded tip, mm")
+    probability: float = _f(1.0, lo=0.0, hi=1.0, lo_open=True, doc="share of samples the instrument touches (drawn per sample from a stream of its own); the others have no indentation")
     access: AccessConfig = field(default_factory=AccessConfig, metadata={"doc": "the surgical access: the surface region where patch centres may lie (default the whole outer surface)"})
 
 
@@ -402,6 +406,22 @@ class UncertainConfig:
     measured: tuple[str, ...] = _f((), doc="parameters measured before surgery (e.g. 'youngs_modulus' by elastography): model inputs")
 
 
+#: The scenario loads an instrument can be (:class:`InstrumentConfig`): today the indentation.
+INSTRUMENT_LOADS = ("indentation",)
+#: OpenIGTLink device names hold at most 20 bytes (the header's char[20]).
+DEVICE_NAME_BYTES = 20
+
+
+@dataclass(frozen=True)
+class InstrumentConfig:
+    """A tracked instrument: a scenario load whose pose navigation streams, a model input
+    (tissuecast.instruments, docs/scenarios.md)."""
+
+    name: str = _f("retractor", doc="label; the model's inputs are <name>.tip_x ... <name>.contact")
+    load: str = _f("indentation", choices=INSTRUMENT_LOADS, doc="the scenario load the instrument is: its pose in a sample follows from that load's draw")
+    device: str = _f("RetractorToReference", doc="OpenIGTLink device name of its TRANSFORM (tool tip -> tracker frame) for tissuecast serve; not part of the data set")
+
+
 @dataclass(frozen=True)
 class ScenarioConfig:
     """The clinical scenario: how the tissue is held and what loads it per sample.
@@ -420,6 +440,7 @@ class ScenarioConfig:
     indentation: IndentationConfig = field(default_factory=IndentationConfig, metadata={"doc": "one instrument indentation per sample"})
     materials: MaterialRegionsConfig = field(default_factory=MaterialRegionsConfig, metadata={"doc": "per-element materials (e.g. a stiffer tumour)"})
     uncertain: UncertainConfig = field(default_factory=UncertainConfig, metadata={"doc": "parameters drawn per sample: what is unknown in the operating room"})
+    instruments: tuple[InstrumentConfig, ...] = _f((), doc="tracked instruments ([[scenario.instruments]] tables): their poses are recorded per sample and are model inputs")
 
 
 @dataclass(frozen=True)
@@ -720,6 +741,7 @@ def _check_scenario(cfg: "Config") -> None:
         raise ConfigError("scenario has no load: set scenario.lbo_forces = true, scenario.gravity.enabled or "
                           "scenario.indentation.enabled")
     _check_uncertain_needs(cfg)
+    _check_instruments(sc)
     if cfg.material.check_range:
         for k, reg in enumerate(sc.materials.regions):
             key = f"scenario.materials.regions[{k}]"
@@ -737,6 +759,32 @@ def _check_scenario(cfg: "Config") -> None:
                     "the stiffness is per unit area, in N/mm^3 (= MPa/mm): surroundings of modulus E over a "
                     f"length L give E / L, e.g. {DEFAULT_SUPPORT_STIFFNESS} for 0.021 MPa over 10 mm (a value in "
                     "N/m^3 is 1e9 times too large)")
+
+
+_INSTRUMENT_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
+
+
+def _check_instruments(sc: "ScenarioConfig") -> None:
+    """Each instrument has its own name and device, is a load the scenario has, and one load is
+    one instrument."""
+    loads = {"indentation": (sc.indentation.enabled, "scenario.indentation.enabled = true")}
+    for k, inst in enumerate(sc.instruments):
+        key = f"scenario.instruments[{k}]"
+        if not _INSTRUMENT_NAME.fullmatch(inst.name):
+            raise ConfigError(f"{key}.name = {inst.name!r} must start with a letter and hold only letters, digits "
+                              "and '_' (it names the model's inputs, e.g. retractor.tip_x)")
+        if not inst.device or not inst.device.isascii() or len(inst.device) > DEVICE_NAME_BYTES or " " in inst.device:
+            raise ConfigError(f"{key}.device = {inst.device!r} must be 1-{DEVICE_NAME_BYTES} ASCII characters without "
+                              "spaces (an OpenIGTLink device name, e.g. RetractorToReference)")
+        enabled, how = loads[inst.load]
+        if not enabled:
+            raise ConfigError(f"{key}.load = {inst.load!r}, but the scenario has no {inst.load}; set {how}, or remove "
+                              "the instrument")
+    for what in ("name", "load", "device"):
+        values = [getattr(i, what) for i in sc.instruments]
+        if len(set(values)) != len(values):
+            raise ConfigError(f"scenario.instruments repeat a {what} ({values}); each instrument has its own {what}"
+                              + (" (one instrument per load)" if what == "load" else ""))
 
 
 def _check_uncertain_needs(cfg: "Config") -> None:

@@ -14,11 +14,19 @@
 //      server drops the connection.
 // Any STATUS message (the out-of-distribution alarm) is printed where it arrives:
 // "STATUS <device> <crc ok> <code> <subcode> <error name> <message>".
+//
+// Usage: tissuecast_igtl_client HOST PORT --instrument DEVICE WAIT_MS M00 .. M33 X0 Y0 Z0 [...]
+//   a tracked instrument: POINT "Markers" (no instrument yet), then TRANSFORM DEVICE (the tool's
+//   4x4 pose, row by row) and POINT again, then after WAIT_MS milliseconds POINT again; after each
+//   POINT it prints the two replies (POLYDATA, then the STATUS saying whether the instrument is
+//   tracked), as above.
+#include <chrono>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
 #include <list>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "igtlClientSocket.h"
@@ -149,8 +157,49 @@ static int receiveAndPrint(igtl::ClientSocket::Pointer& socket)
   return 1;
 }
 
+static int runInstrument(igtl::ClientSocket::Pointer& socket, int argc, char* argv[])
+{
+  if (argc < 6 + 16 + 3 || (argc - 6 - 16) % 3 != 0)
+  {
+    std::fprintf(stderr, "usage: %s HOST PORT --instrument DEVICE WAIT_MS M00..M33 X0 Y0 Z0 [...]\n", argv[0]);
+    return 2;
+  }
+  float pose[16];
+  for (int i = 0; i < 16; ++i)
+    pose[i] = static_cast<float>(std::atof(argv[6 + i]));
+  std::vector<float> xyz;
+  for (int i = 6 + 16; i < argc; ++i)
+    xyz.push_back(static_cast<float>(std::atof(argv[i])));
+  size_t count = xyz.size() / 3;
+
+  sendPoints(socket, xyz, count, false);  // no instrument yet: markers only
+  receiveAndPrint(socket);
+  receiveAndPrint(socket);
+  sendTransform(socket, argv[4], pose);  // the instrument's pose: no reply
+  sendPoints(socket, xyz, count, false);
+  receiveAndPrint(socket);
+  receiveAndPrint(socket);
+  std::this_thread::sleep_for(std::chrono::milliseconds(std::atoi(argv[5])));  // its messages stop
+  sendPoints(socket, xyz, count, false);
+  receiveAndPrint(socket);
+  receiveAndPrint(socket);
+  socket->CloseSocket();
+  return 0;
+}
+
 int main(int argc, char* argv[])
 {
+  if (argc > 3 && std::strcmp(argv[3], "--instrument") == 0)
+  {
+    igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
+    if (socket->ConnectToServer(argv[1], std::atoi(argv[2])) != 0)
+    {
+      std::fprintf(stderr, "cannot connect to %s:%s\n", argv[1], argv[2]);
+      return 1;
+    }
+    socket->SetReceiveTimeout(10000);
+    return runInstrument(socket, argc, argv);
+  }
   if (argc < 4 + 16 + 3 || (argc - 4 - 16) % 3 != 0)
   {
     std::fprintf(stderr, "usage: %s HOST PORT REGISTRATION_NAME M00..M33 X0 Y0 Z0 [...]\n", argv[0]);

@@ -17,6 +17,11 @@ surrogate.calibration_share > 0) every vertex gets its conformal error bound
 --targets-out writes where the targets (the model config's [evaluate.targets], or the
 points of --targets) are predicted to be: Slicer markups .mrk.json (LPS, one point list per
 sample) or CSV.
+A model trained with tracked instruments ([[scenario.instruments]]) reads their poses from
+--instrument FILE (JSON, model frame LPS mm: {"retractor": {"tip": [x, y, z], "direction":
+[dx, dy, dz]}}, or {"transform": 4x4}, {"contact": false}, null; see
+tissuecast.cli.predict_inputs); an instrument not given is not tracked and the model predicts
+from the markers only. Measured parameters come as --parameter NAME=VALUE.
 """
 
 from __future__ import annotations
@@ -51,6 +56,11 @@ def register(sub) -> None:
     p.add_argument("--ridge", action="store_const", const="ridge", dest="method", help="same as --method ridge")
     p.add_argument("--coverage", type=float, metavar="C",
                    help="nominal coverage of the per-vertex error bounds, in (0, 1) (default: the model's surrogate.coverage)")
+    p.add_argument("--instrument", metavar="FILE",
+                   help="JSON of the tracked instruments' poses (model frame LPS, mm; 'frame': 'RAS' for Slicer's): "
+                        "{name: {tip, direction} | {transform} | {contact: false} | null}, or a list with one per sample")
+    p.add_argument("--parameter", action="append", metavar="NAME=VALUE",
+                   help="a measured parameter of the model (scenario.uncertain.measured), e.g. youngs_modulus=1.3")
     p.add_argument("--false-alarm", type=float, metavar="RATE",
                    help="false-alarm rate of the out-of-distribution alarm, in (0, 1) "
                         "(default: the model's surrogate.false_alarm_rate)")
@@ -196,6 +206,9 @@ def run(args) -> int:
         from ..errors import ModelError
 
         raise ModelError("a marker has only some coordinates given; give x, y and z, or leave all three empty")
+    from .predict_inputs import auxiliary_inputs
+
+    aux = auxiliary_inputs(model, args.instrument, args.parameter, d.shape[0])
     t = time.perf_counter()
     sigma = None
     miss = missing if missing.any() else None
@@ -204,13 +217,13 @@ def run(args) -> int:
 
         raise ModelError(f"--uncertainty comes from the MLP ensemble; drop it or use --method mlp (not {args.method})")
     if args.uncertainty:
-        u, sigma = model.predict_with_uncertainty(d, missing=miss)
+        u, sigma = model.predict_with_uncertainty(d, missing=miss, auxiliary=aux)
     else:
-        u = model.predict(d, missing=miss, method=args.method)
+        u = model.predict(d, missing=miss, method=args.method, auxiliary=aux)
     sec = time.perf_counter() - t
     bound, alarms = None, None
     if model.has_trust and args.method == "mlp" and miss is None:
-        trusted = model.predict_trusted(d, coverage=args.coverage, false_alarm=args.false_alarm)
+        trusted = model.predict_trusted(d, coverage=args.coverage, false_alarm=args.false_alarm, auxiliary=aux)
         bound, alarms, coverage = trusted.error_bound, trusted.alarms, trusted.coverage
     elif args.coverage is not None or args.false_alarm is not None:
         from ..errors import ModelError
@@ -223,7 +236,8 @@ def run(args) -> int:
         miss = f", missing markers {np.flatnonzero(missing[b]).tolist()}" if missing[b].any() else ""
         if bound is not None:
             extra += f", error bound ({100 * coverage:g} %) median {np.median(bound[b]):.3f} / max {bound[b].max():.3f} mm"
-        print(f"sample {b}: max displacement {mag.max():.3f} mm at vertex {int(mag.argmax())}{extra}{miss}")
+        print(f"sample {b}: max displacement {mag.max():.3f} mm at vertex {int(mag.argmax())}{extra}{miss}"
+              f"{_instrument_note(model, aux, b)}")
         if alarms is not None and alarms[b].raised:
             print(f"sample {b}: ALARM: {alarms[b].text}")
     if bound is not None and not np.isfinite(bound).all():
@@ -239,6 +253,19 @@ def run(args) -> int:
     if args.targets_out:
         print(f"wrote {_write_targets(Path(args.targets_out), model, u, args.targets, args.method)}")
     return 0
+
+
+def _instrument_note(model, aux, b: int) -> str:
+    """``", retractor: in contact, 3.1 mm deep"`` ... for sample b of a model with instruments."""
+    notes = []
+    for inst in model.auxiliary.instruments:
+        pose = (aux or {}).get(inst.name)
+        pose = pose[b] if isinstance(pose, list) else pose
+        if pose is None:
+            notes.append(f"{inst.name}: not tracked (markers only)")
+        else:
+            notes.append(f"{inst.name}: " + (f"in contact, {pose.depth:.2f} mm deep" if pose.contact else "away"))
+    return "".join(f", {n}" for n in notes)
 
 
 def _write_targets(path: Path, model, u: np.ndarray, points: str | None, method: str) -> Path:

@@ -7,7 +7,11 @@ TRANSFORM messages ``Marker0``..``Marker{n_d-1}``; the server answers with POLYD
 Frames: replies are in the model's (scan's) LPS frame, or RAS with ``--client-frame RAS``
 (3D Slicer's OpenIGTLinkIF); a registration TRANSFORM ``TrackerToRas``, ``ReferenceToRas``
 or ``TrackerToImage`` (or ``serve.tracker_to_client`` in the config) makes the server read
-markers in the tracker frame and answer in the target frame. Errors come back as STRING
+markers in the tracker frame and answer in the target frame. A model trained with tracked
+instruments reads each one's TRANSFORM (device ``RetractorToReference`` or as the config's
+``[[scenario.instruments]]`` names it; tool tip = translation, push direction = third column,
+mapped like the markers); when its messages stop for ``serve.instrument_timeout`` seconds the
+server predicts from the markers only and says so in a STATUS. Errors come back as STRING
 ``ERROR``. See :mod:`tissuecast.serve` for the full protocol.
 """
 
@@ -45,6 +49,11 @@ def register(sub) -> None:
     p.add_argument("--method", choices=SERVE_METHODS,
                    help=f"prediction (default {d.method}): the learned model, or rigid registration of the markers "
                         "(the navigation systems' baseline, a fallback)")
+    p.add_argument("--instrument-timeout", type=float, dest="instrument_timeout",
+                   help=f"seconds without an instrument's TRANSFORM before predicting from the markers only "
+                        f"(default {d.instrument_timeout:g})")
+    p.add_argument("--parameter", action="append", metavar="NAME=VALUE",
+                   help="a measured parameter the model reads (scenario.uncertain.measured), e.g. youngs_modulus=1.3")
     p.add_argument("--no-uncertainty", action="store_true", help="do not send ensemble uncertainty")
     p.set_defaults(func=run)
 
@@ -55,15 +64,19 @@ def run(args) -> int:
 
     cfg = load_config(args.config)
     overrides = {k: getattr(args, k) for k in ("host", "full_field", "transform_mode", "max_marker_offset", "client_frame",
-                                                 "method")
+                                                 "method", "instrument_timeout")
                  if getattr(args, k) is not None}
     if args.port:  # 0 (any free port) is allowed here but not in a config file
         overrides["port"] = args.port
     serve = with_overrides(cfg, serve=overrides).serve
     port = 0 if args.port == 0 else serve.port
     model = load_model_folder(args.model)  # a DeformationModel or a SubModelSet folder
+    from .predict_inputs import parse_parameters
+
+    devices = {i.name: i.device for i in cfg.scenario.instruments if i.name in {x.name for x in model.auxiliary.instruments}}
     predictor = SurfacePredictor(model, max_marker_offset=serve.max_marker_offset,
-                                 use_uncertainty=not args.no_uncertainty, method=serve.method)
+                                 use_uncertainty=not args.no_uncertainty, method=serve.method, devices=devices,
+                                 parameters=parse_parameters(args.parameter))
     try:
         server = IGTLServer.from_config(predictor, serve, port=port)
     except OSError as exc:  # address in use, unknown host, no permission for ports < 1024
@@ -75,6 +88,9 @@ def run(args) -> int:
           f"TRANSFORM Marker0..Marker{n_d - 1} ({serve.transform_mode} mode); registration: TRANSFORM "
           "TrackerToRas / ReferenceToRas / TrackerToImage", flush=True)
     print(f"  frames: {server.frames.describe()}", flush=True)
+    for device, name in predictor.instrument_devices.items():
+        print(f"  instrument {name!r}: TRANSFORM {device} (tool tip, push direction = third column); markers only "
+              f"after {serve.instrument_timeout:g} s without it (STATUS InstrumentLost)", flush=True)
     if serve.method != "mlp":
         print(f"  method: {serve.method} (the learned model is not used)", flush=True)
     print(f"  output: POLYDATA TissueSurface ({len(predictor.surface_ids)} points, "

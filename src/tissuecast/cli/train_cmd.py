@@ -67,5 +67,10 @@ def run(args) -> int:
     for k, m in enumerate(tr["members"]):
         print(f"  member {k}: {m['epochs_run']} epochs (best {m['best_epoch']}), {m['seconds']:.1f} s, "
               f"best validation loss {m['best_valid_loss']:.3g}")
+    if model.auxiliary.width:
+        print(f"  auxiliary inputs: {', '.join(f'{n} [{u}]' for n, u in zip(model.auxiliary.names, model.auxiliary.units))}")
+    if "fallback" in tr:
+        fb = tr["fallback"]
+        print(f"  fallback without the instruments (tracking lost): n_w = {fb['n_components']}, MLP {fb['mlp_seconds']:.1f} s")
     print(f"  total {tr['seconds']:.1f} s (PCA rule {tr['pca_seconds']:.1f} s, MLP {tr['mlp_seconds']:.1f} s)")
     return 0

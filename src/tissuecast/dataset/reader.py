@@ -13,7 +13,8 @@ from ..config import Config, config_from_dict
 from ..errors import DatasetError
 from .sample_plan import SPLIT_CODES, SPLIT_NAMES
 from .codes import STATUS_NAMES, InitialGuess, SampleStatus
-from .schema import DRAWS, PARAMETERS, check_schema, open_store_root, read_lbo_basis, read_scenario_arrays
+from .schema import (DRAWS, INSTRUMENT_PREFIX, PARAMETERS, POSE_PARTS, check_schema, open_store_root, read_lbo_basis,
+                     read_scenario_arrays)
 from .store import StoreWriter
 from .worker import Recipe
 
@@ -154,6 +155,19 @@ class Dataset:
         scenario draws none."""
         samples = self._root["samples"]
         return {name[len("param_"):]: self._array(f"samples/{name}") for name in PARAMETERS if name in samples}
+
+    @cached_property
+    def instrument_poses(self) -> dict[str, dict[str, np.ndarray]]:
+        """Each tracked instrument's per-sample pose, by instrument name
+        (``samples/instrument_<name>_*``, :mod:`tissuecast.instruments`): ``tip`` and
+        ``direction`` (N, 3) (mm, mesh frame; unit; NaN when away or pending), ``depth`` (N,) mm,
+        ``contact`` (N,) int8 (1 touching, 0 away, -1 pending); empty without instruments."""
+        samples = self._root["samples"]
+        suffix = "_contact"
+        names = sorted(k[len(INSTRUMENT_PREFIX):-len(suffix)] for k in samples.array_keys()
+                       if k.startswith(INSTRUMENT_PREFIX) and k.endswith(suffix))
+        return {name: {part: self._array(f"samples/{INSTRUMENT_PREFIX}{name}_{part}") for part in POSE_PARTS}
+                for name in names}
 
     @cached_property
     def split_codes(self) -> np.ndarray:

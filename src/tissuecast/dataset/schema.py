@@ -66,6 +66,12 @@ vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
                             mm the attached region's growth along the surface (negative: shrink)
                             (with [scenario.uncertain]; a function of the seed:
                             scenario.parameters.parameter_rng)
+      samples/instrument_<name>_tip, samples/instrument_<name>_direction (N, 3) float64 the
+                            tracked instrument's tip (mm, mesh frame) and unit push direction
+                            (NaN: away from the tissue, or pending); samples/instrument_<name>_depth
+                            (N,) float64 mm below the reference surface (0 when away);
+                            samples/instrument_<name>_contact (N,) int8 1 touching, 0 away, -1
+                            pending (with [[scenario.instruments]]; tissuecast.instruments)
       scenario/attached_distance (n_v,) float64 mm signed distance along the surface from the
                             nominal attached region's rim (with an uncertain attached margin;
                             scenario/attached is then the region at its smallest extent)
@@ -102,8 +108,8 @@ import numpy as np
 from ..errors import DatasetError, require
 from .codes import InitialGuess, SampleStatus
 
-__all__ = ["SCHEMA", "SCHEMA_VERSION", "SCALARS", "DRAWS", "PARAMETERS", "check_schema", "open_root", "open_store_root",
-           "read_lbo_basis", "read_scenario_arrays"]
+__all__ = ["SCHEMA", "SCHEMA_VERSION", "SCALARS", "DRAWS", "PARAMETERS", "INSTRUMENT_PREFIX", "POSE_PARTS",
+           "instrument_arrays", "check_schema", "open_root", "open_store_root", "read_lbo_basis", "read_scenario_arrays"]
 
 SCHEMA = "tissuecast.dataset"
 SCHEMA_VERSION = 1
@@ -139,6 +145,18 @@ DRAWS = {
 #: them (``[scenario.uncertain]``): name -> (trailing shape, dtype, fill value).
 PARAMETERS = {f"param_{name}": ((), "float64", np.nan) for name in
               ("youngs_modulus", "poisson_ratio", "density", "spring_normal", "spring_tangential", "attached_margin")}
+
+
+#: Per-sample poses of a tracked instrument (``samples/instrument_<name>_<part>``), in stores
+#: whose scenario declares instruments: part -> (trailing shape, dtype, fill value).
+INSTRUMENT_PREFIX = "instrument_"
+POSE_PARTS = {"tip": ((3,), "float64", np.nan), "direction": ((3,), "float64", np.nan), "depth": ((), "float64", np.nan),
+              "contact": ((), "int8", -1)}
+
+
+def instrument_arrays(name: str) -> dict:
+    """The per-sample pose arrays of instrument ``name``: array name -> (trailing shape, dtype, fill)."""
+    return {f"{INSTRUMENT_PREFIX}{name}_{part}": spec for part, spec in POSE_PARTS.items()}
 
 
 def zarr_module():

@@ -30,8 +30,9 @@ from ..config import Config, DatasetConfig, config_from_dict, config_to_dict, co
 from ..errors import DatasetError
 from .codes import STATUS_NAMES, SampleStatus
 from .sample_plan import SPLIT_NAMES, SamplePlan
-from .schema import (ADDED_LATER, BLOCK, DRAWS, PARAMETERS, SCALARS, SCHEMA, SCHEMA_VERSION, check_schema, compressor,
-                     open_root, open_store_root, read_lbo_basis, read_scenario_arrays, zarr_module)
+from .schema import (ADDED_LATER, BLOCK, DRAWS, INSTRUMENT_PREFIX, PARAMETERS, SCALARS, SCHEMA, SCHEMA_VERSION,
+                     check_schema, compressor, instrument_arrays, open_root, open_store_root, read_lbo_basis,
+                     read_scenario_arrays, zarr_module)
 from .worker import SampleResult
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "STATUS_NAMES", "StoreWriter", "package_versions", "check_schema",
@@ -70,7 +71,8 @@ class StoreWriter:
                 n = self.samples["status"].shape[0]
                 self.samples.create_array(name, shape=(n,), dtype=dtype, chunks=(min(BLOCK, n),), fill_value=fill,
                                           compressors=compressor(), dimension_names=("sample",))
-        self._draws = tuple(name for name in {**DRAWS, **PARAMETERS} if name in self.samples)
+        self._draws = tuple(name for name in {**DRAWS, **PARAMETERS} if name in self.samples) + tuple(
+            sorted(name for name in self.samples.array_keys() if name.startswith(INSTRUMENT_PREFIX)))
         self._arrays = {name: self.samples[name] for name in (*SCALARS, "displacements", "forces", "weights",
                                                               *self._draws)}
         self._mem = {name: np.array(self._arrays[name][...]) for name in (*SCALARS, "weights", *self._draws)}
@@ -329,6 +331,8 @@ def _create_sample_arrays(root, plan: SamplePlan, scenario) -> None:
         s.create_array(name, shape=(n,), dtype=dtype, chunks=(min(BLOCK, n),), fill_value=fill,
                        compressors=comp, dimension_names=("sample",))
     tables = ({**DRAWS} if scenario.draws_per_sample else {}) | (PARAMETERS if scenario.uncertain is not None else {})
+    for instrument in scenario.config.instruments:
+        tables |= instrument_arrays(instrument.name)
     for name, (shape, dtype, fill) in tables.items():
         s.create_array(name, shape=(n, *shape), dtype=dtype, chunks=(min(BLOCK, n), *shape),
                        fill_value=fill, compressors=comp, dimension_names=("sample",) + (("axis",) if shape else ()))
@@ -351,6 +355,9 @@ def data_config(cfg: Config) -> dict:
     for sec, keys in _RUNTIME_KEYS.items():
         for k in keys:
             out[sec].pop(k, None)
+    # an instrument's OpenIGTLink device name is for serving: it changes no number of the data set
+    out["scenario"]["instruments"] = [{k: v for k, v in i.items() if k != "device"}
+                                      for i in out["scenario"].get("instruments", [])]
     return out
 
 
@@ -430,6 +437,9 @@ def _draw_values(draw) -> dict:
                    indent_displacement=ind.displacement)
     if draw.parameters is not None:
         out.update({f"param_{k}": v for k, v in draw.parameters.record().items()})
+    for name, pose in draw.instruments:
+        out.update({f"{INSTRUMENT_PREFIX}{name}_tip": pose.tip, f"{INSTRUMENT_PREFIX}{name}_direction": pose.direction,
+                    f"{INSTRUMENT_PREFIX}{name}_depth": pose.depth, f"{INSTRUMENT_PREFIX}{name}_contact": int(pose.contact)})
     return out
 
 

@@ -25,7 +25,8 @@ from scipy.stats import rankdata
 from ..errors import ModelError, RegistrationError
 from .metrics import SetSummary, TargetSummary, summarize_offsets, summarize_targets, target_errors
 
-__all__ = ["SetResult", "Evaluation", "evaluate_model", "method_fields", "spearman_rows", "SPLITS", "METHODS",
+__all__ = ["SetResult", "Evaluation", "evaluate_model", "method_fields", "auxiliary_values", "spearman_rows", "SPLITS",
+           "METHODS",
            "PREDICTORS", "METHOD_LABELS"]
 
 #: Samples predicted at once (bounds the memory to chunk x n x 3 floats per method).
@@ -57,7 +58,7 @@ PREDICTORS = ("mlp", "rigid", "ridge")
 METHOD_LABELS = {"mlp": "MLP", "rigid": "rigid registration", "ridge": "ridge", "pca_floor": "PCA floor"}
 
 
-def method_fields(model, marker_displacements: np.ndarray, methods=PREDICTORS) -> dict:
+def method_fields(model, marker_displacements: np.ndarray, methods=PREDICTORS, auxiliary=None) -> dict:
     """The fields each predictor gives from the same marker displacements.
 
     The one place evaluation calls the model's predictors (``model.predictor(m)``, each a
@@ -67,6 +68,8 @@ def method_fields(model, marker_displacements: np.ndarray, methods=PREDICTORS) -
         model: a fitted DeformationModel.
         marker_displacements: (B, n_d, 3) float, mm.
         methods: names among :data:`PREDICTORS`.
+        auxiliary: (B, n_a) the samples' auxiliary inputs (instrument poses, measured
+            parameters: ``model.auxiliary``) for a model that reads some; the baselines ignore them.
 
     Returns:
         ``{method: (B, n, 3) float64 mm}``; rigid registration is None when the markers cannot
@@ -75,7 +78,7 @@ def method_fields(model, marker_displacements: np.ndarray, methods=PREDICTORS) -
     out = {}
     for m in methods:
         try:
-            out[m] = np.asarray(model.predictor(m).predict(marker_displacements), dtype=np.float64)
+            out[m] = np.asarray(model.predictor(m).predict(marker_displacements, auxiliary=auxiliary), dtype=np.float64)
         except RegistrationError:
             out[m] = None
     return out
@@ -237,13 +240,14 @@ def _offsets(pred: np.ndarray, bench: np.ndarray) -> np.ndarray:
     return np.stack([e.mean(axis=1), e.max(axis=1)], axis=1)
 
 
-def _chunk(model, bench: np.ndarray, targets, unc: bool) -> dict:
-    """Per-sample figures of one chunk of true fields (B, n, 3) mm: offsets and TRE of every
-    method, peak displacement, non-rigid part, and the ensemble's spread against the error."""
+def _chunk(model, bench: np.ndarray, targets, unc: bool, aux: np.ndarray | None = None) -> dict:
+    """Per-sample figures of one chunk of true fields (B, n, 3) mm (auxiliary inputs ``aux``
+    (B, n_a) or None): offsets and TRE of every method, peak displacement, non-rigid part, and
+    the ensemble's spread against the error."""
     from ..registration import nonrigid_part
 
     d = model.marker_displacements(bench)
-    fields = method_fields(model, d)
+    fields = method_fields(model, d, auxiliary=aux)
     fields["pca_floor"] = model.pca_projection(bench)
     out = {m: _offsets(f, bench) if f is not None else np.full((len(bench), 2), np.nan) for m, f in fields.items()}
     out["md"] = np.linalg.norm(bench, axis=2).max(axis=1)
@@ -255,18 +259,19 @@ def _chunk(model, bench: np.ndarray, targets, unc: bool) -> dict:
         for m, f in fields.items():
             out[f"tre_{m}"] = target_errors(targets.displacements(f), true_t) if f is not None else nan
     if unc:
-        sigma = model.predict_with_uncertainty(d)[1]
+        sigma = model.predict_with_uncertainty(d, auxiliary=aux)[1]
         out["ss"] = spearman_rows(sigma, np.linalg.norm(fields["mlp"] - bench, axis=2))
         out["sm"] = sigma.max(axis=1)
     return out
 
 
 def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: str, targets=None,
-                chunk: int = CHUNK) -> SetResult:
+                chunk: int = CHUNK, aux: np.ndarray | None = None) -> SetResult:
     parts: dict = {}
     for s in range(0, idx.size, chunk):
-        for k, v in _chunk(model, np.asarray(U[idx[s:s + chunk]], dtype=np.float64), targets,
-                           model.has_uncertainty).items():
+        rows = idx[s:s + chunk]
+        for k, v in _chunk(model, np.asarray(U[rows], dtype=np.float64), targets, model.has_uncertainty,
+                           None if aux is None else aux[rows]).items():
             parts.setdefault(k, []).append(v)
     cat = lambda k: np.concatenate(parts[k]) if k in parts else np.zeros(0)  # noqa: E731
     tre = {m: cat(f"tre_{m}") for m in METHODS} if targets is not None else {}
@@ -274,18 +279,21 @@ def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: s
                      cat("td"))
 
 
-def _timing(model, U, idx, repeats: int = TIMING_REPEATS) -> dict:
-    """Single-sample prediction time (s): p50 and p99 over repeated calls."""
+def _timing(model, U, idx, repeats: int = TIMING_REPEATS, aux: np.ndarray | None = None) -> dict:
+    """Single-sample prediction time (s): p50 and p99 over repeated calls (with the samples'
+    auxiliary inputs ``aux`` (N, n_a), if any)."""
     if idx.size == 0:
         return {}
-    d = model.marker_displacements(np.asarray(U[idx[: min(TIMING_INPUTS, idx.size)]], dtype=np.float64))
-    for x in d[:TIMING_WARMUP]:
-        model.predict(x)
+    rows = idx[: min(TIMING_INPUTS, idx.size)]
+    d = model.marker_displacements(np.asarray(U[rows], dtype=np.float64))
+    a = [None] * len(rows) if aux is None else aux[rows]
+    for x, ax in zip(d[:TIMING_WARMUP], a):
+        model.predict(x, auxiliary=ax)
     t = np.empty(repeats)
     for i in range(repeats):
-        x = d[i % len(d)]
+        x, ax = d[i % len(d)], a[i % len(d)]
         t0 = time.perf_counter()
-        model.predict(x)
+        model.predict(x, auxiliary=ax)
         t[i] = time.perf_counter() - t0
     return {"p50": float(np.percentile(t, 50)), "p99": float(np.percentile(t, 99)), "repeats": repeats}
 
@@ -316,12 +324,13 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
         raise ModelError("the model was trained on another mesh than this data set's; evaluate it on its own data set")
     U = dataset.displacements
     beta = np.asarray(dataset.beta, dtype=np.float64)
+    aux = auxiliary_values(model, dataset)
     sets, by_beta = {}, []
     for name in splits:
         idx = np.asarray(dataset.select(name, status="done"), dtype=np.int64)
         if idx.size == 0:
             continue
-        sets[name] = _set_result(model, U, idx, beta[idx], name, targets)
+        sets[name] = _set_result(model, U, idx, beta[idx], name, targets, aux=aux)
     if "test2" in sets:
         t2 = sets["test2"]
         for b in np.unique(t2.beta[np.isfinite(t2.beta)]):
@@ -330,5 +339,15 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
     about = model.describe()
     summary = {**{k: about[k] for k in ("n_components", "markers", "ensemble", "hidden", "pca", "training")},
                "scenario": _scenario(model, dataset)}
-    return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=_timing(model, U, timing_idx), model_summary=summary,
-                      targets=targets)
+    return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=_timing(model, U, timing_idx, aux=aux),
+                      model_summary=summary, targets=targets)
+
+
+def auxiliary_values(model, dataset) -> np.ndarray | None:
+    """(N, n_a) the data set's auxiliary inputs of a model or predictor (``model.auxiliary``:
+    instrument poses, measured parameters), or None for a markers-only one."""
+    if not model.auxiliary.width:
+        return None
+    from ..surrogate.data import dataset_auxiliary
+
+    return dataset_auxiliary(dataset, model.auxiliary).values

@@ -156,6 +156,9 @@ class ArraySet:
         self.mesh = mesh
         self.scenario = scenario
         self.beta = np.full(len(self.displacements), np.nan)
+        self.n_samples = len(self.displacements)
+        self.instrument_poses: dict = {}  # none recorded: a model reading instruments is refused clearly
+        self.parameters: dict = {}
 
     def select(self, split=None, status: str | None = "done") -> np.ndarray:
         """Every sample is test-1 and done."""
@@ -220,8 +223,12 @@ def evaluate_on_set(model, dataset, targets) -> dict:
     row["relative"] = row["mlp_offset_max"] / max(row["peak_median"], 1e-300)
     row["gain_over_rigid"] = row["rigid_offset_max"] / max(row["mlp_offset_max"], 1e-300)
     if model.has_trust:
+        from .evaluation import auxiliary_values
+
         idx = dataset.select("test1", status="done")
-        figures = bound_figures(model.trusted_, np.asarray(dataset.displacements[idx], dtype=np.float64), levels=(0.9,))
+        aux = auxiliary_values(model, dataset)
+        figures = bound_figures(model.trusted_, np.asarray(dataset.displacements[idx], dtype=np.float64), levels=(0.9,),
+                                auxiliary=None if aux is None else aux[idx])
         row["coverage_90"] = figures["coverage_0.9"]
         row["alarm_rate"] = figures["alarm_rate"] if figures["alarm_on"] else float("nan")
     return row

@@ -31,7 +31,7 @@ import numpy as np
 
 from ..config import EvaluateConfig
 from . import figures
-from .evaluation import METHOD_LABELS, method_fields
+from .evaluation import METHOD_LABELS, auxiliary_values, method_fields
 from .headline import HEADLINE_METHODS, beta_table, headline_rows, headline_set, html_table, set_title, trust_rows, verdict
 from .render import render_comparison, write_vtu
 from .tables import (COLUMNS, DEFORMATION_HEAD, SET_HEAD, deformation_rows, format_evaluation, model_description,
@@ -96,15 +96,17 @@ def _render_samples(folder: Path, model, dataset, evaluation, count: int) -> lis
     """Render and export up to ``count`` samples (:func:`~.viewer.pick_samples`)."""
     out = []
     (folder / "vtu").mkdir(exist_ok=True)
+    aux = auxiliary_values(model, dataset)
     for label, idx, stem in pick_samples(evaluation, count):
         bench = np.asarray(dataset.displacements[idx], dtype=np.float64)
         d = model.marker_displacements(bench)
-        fields = method_fields(model, d[None], ("mlp", "ridge"))
+        a = None if aux is None else aux[idx]
+        fields = method_fields(model, d[None], ("mlp", "ridge"), auxiliary=None if a is None else a[None])
         pred = fields["mlp"][0]
         data = {"benchmark_displacement": bench, "predicted_displacement": pred,
                 "vertex_error": np.linalg.norm(pred - bench, axis=1), "ridge_displacement": fields["ridge"][0]}
         if model.has_uncertainty:
-            data["uncertainty"] = model.predict_with_uncertainty(d)[1]
+            data["uncertainty"] = model.predict_with_uncertainty(d, auxiliary=a)[1]
         write_vtu(folder / "vtu" / f"{stem}.vtu", model.mesh, data)
         png = folder / f"render_{stem}.png"
         try:

@@ -3,7 +3,9 @@
 Each study trains on the data set's whole 'train' split (no share held out for error bounds
 and alarms), checkpoints on 'valid' and reports test-1 accuracy (mm: Offset_mean / Offset_max,
 and TRE at the config's ``[evaluate.targets]`` with the share of the targets' displacement
-corrected) and training time (s); rows are plain dicts ready for CSV.
+corrected) and training time (s); rows are plain dicts ready for CSV. Models read the auxiliary
+inputs the config's scenario declares (tracked instruments, measured parameters); with tracked
+instruments every row also has the markers-only fallback's figures (``mlp_markers_only_*``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import numpy as np
 from ..config import Config
 from ..errors import MarkerError, ModelError
 from ..surrogate import DeformationModel, choose_n_components
+from ..surrogate.auxiliary import AuxiliaryInputs
 from ..surrogate.data import dataset_arrays, split_indices
 
 __all__ = ["architecture_study", "marker_count_study", "pca_study", "write_rows", "study_markers", "study_targets"]
@@ -48,21 +51,31 @@ def write_rows(path, rows: list[dict]) -> Path:
     return path
 
 
-def _test1(dataset):
+def _arrays(dataset, config: Config):
+    """The training arrays with the auxiliary inputs the config's scenario declares."""
+    return dataset_arrays(dataset, AuxiliaryInputs.from_config(config.scenario))
+
+
+def _test1(dataset, arrays=None):
+    """``(test-1 fields (k, n, 3) mm, their auxiliary inputs (k, n_a) or None)``."""
     idx = split_indices(dataset, "test1")
     if idx.size == 0:
         raise ModelError("the data set has no converged test-1 samples to evaluate the study on")
-    return np.asarray(dataset.displacements[idx], dtype=np.float64)
+    aux = None if arrays is None or arrays.auxiliary is None else arrays.auxiliary.values[idx]
+    return np.asarray(dataset.displacements[idx], dtype=np.float64), aux
 
 
-def _scores(model: DeformationModel, bench: np.ndarray, targets) -> dict:
+def _scores(model: DeformationModel, bench: np.ndarray, targets, aux: np.ndarray | None = None) -> dict:
     """Test-1 figures of a model and its baselines (mm): MLP, rigid registration from the same
     markers, ridge, and the PCA floor of its basis; TRE at the targets and the share of the
-    targets' displacement corrected (mean over samples) of the MLP and rigid registration."""
+    targets' displacement corrected (mean over samples) of the MLP and rigid registration; with
+    tracked instruments (``aux``: the samples' auxiliary inputs), the markers-only fallback's
+    Offset_mean and Offset_max."""
     from .evaluation import method_fields
     from .metrics import summarize_targets, target_errors
 
-    fields = method_fields(model, model.marker_displacements(bench))
+    d = model.marker_displacements(bench)
+    fields = method_fields(model, d, auxiliary=aux)
     err = {m: np.linalg.norm(f - bench, axis=2) if f is not None else np.full(bench.shape[:2], np.nan)
            for m, f in fields.items()}
     ef = np.linalg.norm(model.pca_projection(bench) - bench, axis=2)
@@ -71,6 +84,12 @@ def _scores(model: DeformationModel, bench: np.ndarray, targets) -> dict:
            "rigid_offset_max": float(err["rigid"].max(axis=1).mean()),
            "ridge_offset_mean": float(err["ridge"].mean()), "ridge_offset_max": float(err["ridge"].max(axis=1).mean()),
            "pca_floor_offset_max": float(ef.max(axis=1).mean())}
+    if model.fallback_ is not None:
+        kept = None if aux is None else aux[:, len(model.auxiliary.instrument_columns):]
+        e = np.linalg.norm(model.fallback_.predict(d, auxiliary=kept if model.fallback_.auxiliary.width else None)
+                           - bench, axis=2)
+        row.update(mlp_markers_only_offset_mean=float(e.mean()), mlp_markers_only_offset_max=float(e.max(axis=1).mean()),
+                   mlp_markers_only_share_below_1mm=float(np.mean(e.max(axis=1) < 1.0)))
     true_t = targets.displacements(bench)
     moved = np.linalg.norm(true_t, axis=2).mean(axis=1)
     for m in ("mlp", "rigid", "ridge"):
@@ -116,8 +135,8 @@ def architecture_study(dataset, config: Config, *, widths=ARCHITECTURE_WIDTHS, r
     Returns:
         Rows: n1, n2, repeat, seed, test-1 offsets (MLP, ridge), best epoch, seconds.
     """
-    arrays = dataset_arrays(dataset)
-    bench = _test1(dataset)
+    arrays = _arrays(dataset, config)
+    bench, aux = _test1(dataset, arrays)
     targets = study_targets(dataset, config, arrays.fixed)
     n_w = _n_components(arrays, config)
     rows = []
@@ -129,9 +148,9 @@ def architecture_study(dataset, config: Config, *, widths=ARCHITECTURE_WIDTHS, r
                                      calibration_share=0.0)
                 t0 = time.perf_counter()
                 m.fit(arrays.displacements, arrays.markers, mesh=arrays.mesh, fixed=arrays.fixed,
-                      train_idx=arrays.train_idx, valid_idx=arrays.valid_idx)
+                      train_idx=arrays.train_idx, valid_idx=arrays.valid_idx, auxiliary=arrays.auxiliary)
                 row = {"n1": int(n1), "n2": int(n2), "repeat": r, "seed": seed, "n_components": m.n_components,
-                       **_scores(m, bench, targets), "best_epoch": m.summaries_[0].best_epoch,
+                       **_scores(m, bench, targets, aux), "best_epoch": m.summaries_[0].best_epoch,
                        "epochs_run": m.summaries_[0].epochs_run, "seconds": time.perf_counter() - t0}
                 rows.append(row)
                 if on_row:
@@ -168,8 +187,8 @@ def marker_count_study(dataset, config: Config, *, counts=MARKER_COUNTS, on_row=
     With the validation rule each n_d gets its own n_w (more markers can use more
     components); every row shows the rigid baseline and the PCA floor of its basis.
     """
-    arrays = dataset_arrays(dataset)
-    bench = _test1(dataset)
+    arrays = _arrays(dataset, config)
+    bench, aux = _test1(dataset, arrays)
     targets = study_targets(dataset, config, arrays.fixed)
     n_w = _n_components(arrays, config)
     all_markers, d_min = study_markers(arrays.mesh, max(counts), config, exclude=arrays.fixed)
@@ -178,8 +197,8 @@ def marker_count_study(dataset, config: Config, *, counts=MARKER_COUNTS, on_row=
         m = DeformationModel(config, n_components=n_w, ensemble=1, calibration_share=0.0)
         t0 = time.perf_counter()
         m.fit(arrays.displacements, all_markers[:k], mesh=arrays.mesh, fixed=arrays.fixed,
-              train_idx=arrays.train_idx, valid_idx=arrays.valid_idx)
-        row = {"n_markers": int(k), "d_min": d_min, "n_components": m.n_components, **_scores(m, bench, targets),
+              train_idx=arrays.train_idx, valid_idx=arrays.valid_idx, auxiliary=arrays.auxiliary)
+        row = {"n_markers": int(k), "d_min": d_min, "n_components": m.n_components, **_scores(m, bench, targets, aux),
                "seconds": time.perf_counter() - t0, "markers": " ".join(map(str, all_markers[:k].tolist()))}
         rows.append(row)
         if on_row:

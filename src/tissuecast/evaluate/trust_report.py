@@ -32,14 +32,15 @@ __all__ = ["bound_figures", "trust_evaluation", "reliability_figure", "uncertain
 LEVELS = (0.9, 0.95)
 
 
-def bound_figures(trusted, bench: np.ndarray, levels=LEVELS) -> dict:
+def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> dict:
     """Coverage, sharpness, ranking and alarms of the bounds of a predictor with ``has_trust``
-    on fields ``bench`` (B, n, 3) mm."""
+    on fields ``bench`` (B, n, 3) mm (``auxiliary`` (B, n_a): their auxiliary inputs, for a
+    predictor that reads some)."""
     bench = np.asarray(bench, dtype=np.float64)
     d = trusted.marker_displacements(bench)
     row: dict = {"count": int(len(bench))}
     for c in levels:
-        tp = trusted.predict_trusted(d, coverage=c)
+        tp = trusted.predict_trusted(d, coverage=c, auxiliary=auxiliary)
         e = np.linalg.norm(tp.displacement - bench, axis=2)
         row[f"coverage_{c:g}"] = float(np.mean(e <= tp.error_bound))
         row[f"median_bound_{c:g}"] = float(np.median(tp.error_bound))
@@ -61,24 +62,29 @@ def trust_evaluation(trusted, dataset) -> dict:
         ``{"sets": {name: bound_figures row}, "reliability": {"nominal": [...], "empirical": [...]}}``
         (reliability on test-1; empty sets are skipped).
     """
+    from .evaluation import auxiliary_values
+
     U = dataset.displacements
     beta = np.asarray(dataset.beta, dtype=np.float64)
+    aux = auxiliary_values(trusted, dataset)
+    rows = (lambda idx: None) if aux is None else (lambda idx: aux[idx])  # noqa: E731
     sets: dict = {}
     for split in ("test1", "test2"):
         idx = np.asarray(dataset.select(split, status="done"), dtype=np.int64)
         if idx.size == 0:
             continue
-        sets[split] = bound_figures(trusted, U[idx])
+        sets[split] = bound_figures(trusted, U[idx], auxiliary=rows(idx))
         if split == "test2":
             for b in np.unique(beta[idx][np.isfinite(beta[idx])]):
-                sets[f"test2 beta={b:g}"] = bound_figures(trusted, U[idx[beta[idx] == b]])
+                sub = idx[beta[idx] == b]
+                sets[f"test2 beta={b:g}"] = bound_figures(trusted, U[sub], auxiliary=rows(sub))
     out: dict = {"sets": sets, "reliability": {}}
     idx = np.asarray(dataset.select("test1", status="done"), dtype=np.int64)
     if idx.size:
         bench = np.asarray(U[idx], dtype=np.float64)
         d = trusted.marker_displacements(bench)
-        u = trusted.predict(d)
-        sigma = trusted.layer.normaliser(d.reshape(len(d), -1), u)
+        u = trusted.predict(d, auxiliary=rows(idx))
+        sigma = trusted.layer.normaliser(d.reshape(len(d), -1), u, auxiliary=rows(idx))
         lv, emp = reliability_curve(trusted.layer.conformal, np.linalg.norm(u - bench, axis=2), sigma)
         out["reliability"] = {"nominal": lv.tolist(), "empirical": emp.tolist()}
     return out

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .evaluation import METHOD_LABELS, PREDICTORS, method_fields
+from .evaluation import METHOD_LABELS, PREDICTORS, auxiliary_values, method_fields
 
 __all__ = ["pick_samples", "viewer_payload", "write_viewer", "VIEWER_SAMPLES", "PICKS"]
 
@@ -54,9 +54,11 @@ def viewer_payload(model, dataset, evaluation, count: int = VIEWER_SAMPLES) -> d
     surface, local = np.unique(tri, return_inverse=True)
     targets = evaluation.targets
     samples = []
+    aux = auxiliary_values(model, dataset)
     for label, idx, _ in pick_samples(evaluation, count):
         bench = np.asarray(dataset.displacements[idx], dtype=np.float64)[None]
-        fields = {m: f for m, f in method_fields(model, model.marker_displacements(bench)).items() if f is not None}
+        fields = method_fields(model, model.marker_displacements(bench), auxiliary=None if aux is None else aux[[idx]])
+        fields = {m: f for m, f in fields.items() if f is not None}
         samples.append({
             "label": label,
             "true": _flat(bench[0, surface]),

@@ -25,7 +25,7 @@ from .pins import pins_from_config, select_fixed_vertices
 from .regions import surface_region
 from .resolve import build_scenario, restore_scenario, scenario_from_config, scenario_markers
 from .sample_inputs import SampleInputs, ScenarioDraw
-from .scenario import Scenario, scenario_rng
+from .scenario import Scenario, contact_rng, scenario_rng
 from .surface_forces import SurfaceForces
 from ..fem.rigid_motions import free_rigid_motions
 from ..mesh.surface import lumped_areas, vertex_normals
@@ -42,6 +42,7 @@ __all__ = [
     "restore_scenario",
     "scenario_from_config",
     "scenario_rng",
+    "contact_rng",
     "free_rigid_motions",
     "surface_region",
     "surface_springs",

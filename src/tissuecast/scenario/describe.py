@@ -46,8 +46,11 @@ def _loads(s: dict) -> str:
         rule = i.get("access_rule", "surface")  # stores made before the access region have none
         where = ("the whole outer surface" if rule == "surface"
                  else f"the access region: {i['access_vertices']} surface vertices, rule {rule}")
+        share = f", in {100 * i['probability']:g} % of the samples" if "probability" in i else ""
         parts.append(f"one indentation (patch radius {i['radius_mm']:g} mm, depth {_range(i['depth_mm'])}, "
-                     f"slide {_range(i['slide_mm'])}, centres in {where})")
+                     f"slide {_range(i['slide_mm'])}, centres in {where}{share})")
+    for inst in s.get("instruments", []):
+        parts.append(f"tracked instrument {inst['name']!r} (the {inst['load']}; its pose a model input)")
     return "; ".join(parts) or "none"
 
 

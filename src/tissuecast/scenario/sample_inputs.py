@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..instruments import InstrumentPose
 from .indentation import Indentation
 from .parameters import ParameterDraw
 
@@ -29,17 +30,22 @@ class ScenarioDraw:
         indentation: the sample's indentation, or None.
         parameters: the sample's uncertain parameters (:class:`~.parameters.ParameterDraw`),
             or None when the scenario draws none.
+        instruments: ``(name, pose)`` of every tracked instrument
+            (:class:`~tissuecast.instruments.InstrumentPose`, from the load it is), in the order of
+            ``scenario.instruments``; empty without instruments.
     """
 
     gravity_direction: np.ndarray | None = None
     body_force: np.ndarray | None = None
     indentation: Indentation | None = None
     parameters: ParameterDraw | None = None
+    instruments: tuple[tuple[str, InstrumentPose], ...] = ()
 
     def record(self) -> dict[str, float]:
         """Flat numbers for a data set (NaN where the load is absent): gravity direction x/y/z,
-        indentation centre (vertex id), depth, slide (mm) and displacement x/y/z (mm), and the
-        drawn parameters as ``param_<name>`` (with uncertain parameters)."""
+        indentation centre (vertex id), depth, slide (mm) and displacement x/y/z (mm), the
+        drawn parameters as ``param_<name>`` (with uncertain parameters) and each instrument's
+        pose as ``instrument_<name>_tip_x`` ... ``_contact`` (with instruments)."""
         nan3 = [np.nan] * 3
         g = self.gravity_direction if self.gravity_direction is not None else nan3
         ind = self.indentation
@@ -51,6 +57,10 @@ class ScenarioDraw:
                "indent_x": float(d[0]), "indent_y": float(d[1]), "indent_z": float(d[2])}
         if self.parameters is not None:
             out.update({f"param_{k}": v for k, v in self.parameters.record().items()})
+        for name, pose in self.instruments:
+            out.update({f"instrument_{name}_{a}_{x}": float(v) for a in ("tip", "direction")
+                        for x, v in zip("xyz", getattr(pose, a))})
+            out.update({f"instrument_{name}_depth": pose.depth, f"instrument_{name}_contact": float(pose.contact)})
         return out
 
 

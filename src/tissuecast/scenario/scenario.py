@@ -19,11 +19,13 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from ..config import UNCERTAIN_PARAMETERS, Config, ScenarioConfig
 from ..fem.springs import NodalSprings
+from ..instruments import InstrumentPose, ReferenceSurface
 from ..mesh.tetmesh import TetMesh
 from .gravity import body_loads, cone_direction, gravity_body_force
 from .indentation import IndentationSites, draw_indentation
@@ -32,15 +34,24 @@ from .parameters import UncertainParameters, parameter_rng
 from .sample_inputs import SampleInputs, ScenarioDraw
 from .surface_forces import SurfaceForces
 
-__all__ = ["Scenario", "ScenarioDraw", "SampleInputs", "scenario_rng", "SCENARIO_STREAM"]
+__all__ = ["Scenario", "ScenarioDraw", "SampleInputs", "scenario_rng", "contact_rng", "SCENARIO_STREAM",
+           "CONTACT_STREAM"]
 
 #: Second SeedSequence word of a sample's scenario draws: ``SeedSequence([sample_seed, SCENARIO_STREAM])``.
 SCENARIO_STREAM = 2**63 - 3
+#: Second SeedSequence word of a sample's contact draw (``scenario.indentation.probability`` < 1).
+CONTACT_STREAM = 2**63 - 5
 
 
 def scenario_rng(sample_seed) -> np.random.Generator:
     """The generator of a sample's scenario draws (module notes)."""
     return np.random.default_rng(np.random.SeedSequence([int(sample_seed), SCENARIO_STREAM]))
+
+
+def contact_rng(sample_seed) -> np.random.Generator:
+    """The generator of a sample's contact draw: one uniform number u; the instrument touches
+    the tissue when ``u < scenario.indentation.probability``."""
+    return np.random.default_rng(np.random.SeedSequence([int(sample_seed), CONTACT_STREAM]))
 
 
 @dataclass(frozen=True, eq=False)
@@ -162,9 +173,7 @@ class Scenario:
         ``nominal``: no uncertain parameter drawn."""
         forces = np.asarray(forces, dtype=np.float64)
         weights = np.zeros((0, 3)) if weights is None else weights
-        draw = self.draw(scenario_rng(seed))
-        if self.uncertain is not None and not nominal:
-            draw = dataclasses.replace(draw, parameters=self.uncertain.draw(parameter_rng(seed)))
+        draw = self.draw_for(seed, nominal=nominal)
         surface, body = self.sample_loads(draw, forces)
         ids, values = self.prescribed(draw)
         inputs = SampleInputs(forces, weights, surface, body if draw.body_force is not None else None, ids, values, draw)
@@ -256,6 +265,40 @@ class Scenario:
                        spring_tangential_part=self.uncertain.spring_parts[1])
         return {k: np.asarray(v) for k, v in out.items()}
 
+    def draw_for(self, seed: int, *, nominal: bool = False) -> ScenarioDraw:
+        """Every draw of the sample with seed ``seed``: :meth:`draw` from :func:`scenario_rng`,
+        the indentation dropped when the contact draw (:func:`contact_rng`, only with
+        ``indentation.probability`` < 1) says the instrument is away, the uncertain parameters
+        (:func:`~.parameters.parameter_rng`; none with ``nominal``) and the instruments' poses
+        (:meth:`instrument_poses`)."""
+        draw = self.draw(scenario_rng(seed))
+        if draw.indentation is not None and self.config.indentation.probability < 1.0:
+            if contact_rng(seed).random() >= self.config.indentation.probability:
+                draw = dataclasses.replace(draw, indentation=None)
+        if self.uncertain is not None and not nominal:
+            draw = dataclasses.replace(draw, parameters=self.uncertain.draw(parameter_rng(seed)))
+        if self.config.instruments:
+            draw = dataclasses.replace(draw, instruments=self.instrument_poses(draw))
+        return draw
+
+    @cached_property
+    def reference_surface(self) -> ReferenceSurface:
+        """The mesh's outer surface (the depth and contact of an instrument tip)."""
+        return ReferenceSurface.of(self.mesh)
+
+    def instrument_poses(self, draw: ScenarioDraw) -> tuple[tuple[str, InstrumentPose], ...]:
+        """``(name, pose)`` of each of ``scenario.instruments`` in a draw
+        (:mod:`tissuecast.instruments`): an indentation's tool tip at the patch centre's
+        reference position plus its displacement, pushing along the inward normal; away from
+        the tissue when the draw has no indentation."""
+        out = []
+        for inst in self.config.instruments:  # load "indentation", the only one (config.INSTRUMENT_LOADS)
+            ind = draw.indentation
+            pose = InstrumentPose.away() if ind is None else self.reference_surface.pose(
+                self.mesh.points[ind.centre] + ind.displacement, -ind.normal)
+            out.append((inst.name, pose))
+        return tuple(out)
+
     def draw(self, rng: np.random.Generator) -> ScenarioDraw:
         """A sample's draws: the gravity direction (2 draws), then the indentation (4 draws)."""
         cfg = self.config
@@ -299,6 +342,10 @@ class Scenario:
             out["indentation"] = {"radius_mm": i.radius, "depth_mm": list(i.depth), "slide_mm": list(i.slide),
                                   "sites": len(self.sites.centres), "access_rule": i.access.rule,
                                   "access_vertices": len(self.sites.access)}
+            if i.probability < 1.0:
+                out["indentation"]["probability"] = i.probability
+        if cfg.instruments:
+            out["instruments"] = [{"name": x.name, "load": x.load} for x in cfg.instruments]
         if self.materials is not None:
             out["materials"] = self.materials.draws
         if self.uncertain is not None:

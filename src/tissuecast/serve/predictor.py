@@ -23,6 +23,11 @@ model's LPS frame by default).
   deformed; polygons are the surface triangles with global vertex ids (interior vertices
   carry no cell); point data ``"displacement_mm"`` (vectors) and, for ensembles,
   ``"uncertainty_mm"`` (scalars).
+
+A model with auxiliary inputs (:mod:`tissuecast.surrogate.auxiliary`) gets them with every
+prediction: the tracked instruments' latest poses (:mod:`tissuecast.serve.instruments`; an absent
+one makes the model predict from the markers only) and the measured parameters given when the
+server starts (they do not change during surgery).
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import numpy as np
 
 from ..config import SERVE_METHODS, ServeConfig
 from ..errors import ConfigError, MarkerError, ModelError
+from ..instruments import ReferenceSurface
 from ..surrogate.baselines import RigidRegistrationPredictor
 from ..surrogate.field_predictor import FieldPredictor
 from .client_frames import ClientFrames
@@ -106,12 +112,25 @@ class SurfacePredictor:
             applied to the whole mesh: the navigation systems' baseline, a fallback when the
             learned model is not to be trusted; no uncertainty or bounds are sent), see
             :func:`served_predictor`.
+        devices: ``{instrument name: OpenIGTLink device name}`` replacing the devices the model
+            recorded for its instruments (``scenario.instruments[k].device``).
+        parameters: ``{name: value}`` of the model's measured parameters (their units:
+            ``model.auxiliary``), needed when it reads some.
+
+    Raises:
+        ConfigError: a device name a marker or registration would take, an unknown instrument,
+            or a missing measured parameter.
     """
 
     def __init__(self, model: FieldPredictor, *, max_marker_offset: float = ServeConfig.max_marker_offset,
-                 use_uncertainty: bool = True, method: str = ServeConfig.method):
+                 use_uncertainty: bool = True, method: str = ServeConfig.method, devices: dict | None = None,
+                 parameters: dict | None = None):
         self.model = served_predictor(model, method)
         self.method = method
+        self.auxiliary = self.model.auxiliary
+        self.instrument_devices = _instrument_devices(self.auxiliary, devices or {})
+        self.parameters = _measured(self.auxiliary, parameters or {})
+        self.reference_surface = ReferenceSurface.of(self.model.mesh) if self.auxiliary.instruments else None
         mesh = self.model.mesh
         reference = np.asarray(self.model.reference_marker_positions, dtype=np.float64)
         if reference.ndim != 2 or reference.shape[1] != 3 or not np.isfinite(reference).all():
@@ -173,14 +192,16 @@ class SurfacePredictor:
             )
         return positions, missing
 
-    def _evaluate(self, positions: np.ndarray, missing: np.ndarray | None) -> tuple:
-        """``(displacement, uncertainty, bound, alarm)`` of checked positions (n_d, 3) mm; the
-        bounds and alarm need every marker tracked."""
+    def _evaluate(self, positions: np.ndarray, missing: np.ndarray | None, instruments: dict | None) -> tuple:
+        """``(displacement, uncertainty, bound, alarm)`` of checked positions (n_d, 3) mm and the
+        instruments' poses (``{name: pose or None}``); the bounds and alarm need every marker tracked."""
         d = positions - self.reference
         extra = {} if missing is None else {"missing": missing}
+        if self.auxiliary.width:
+            extra["auxiliary"] = {**self.parameters, **(instruments or {})}
         bound, alarm, mean, uncertainty = None, None, None, None
         if self.has_bounds and missing is None:
-            trusted = self.model.predict_trusted(d)
+            trusted = self.model.predict_trusted(d, auxiliary=extra.get("auxiliary"))
             bound = np.asarray(trusted.error_bound, dtype=np.float64).reshape(self.n_vertices)
             alarm, mean = trusted.alarms, trusted.displacement
         if self.has_uncertainty:
@@ -190,11 +211,13 @@ class SurfacePredictor:
             mean = self.model.predict_from_positions(positions, **extra)
         return mean, uncertainty, bound, alarm
 
-    def predict(self, positions: np.ndarray, timestamp: float) -> Prediction:
-        """Predict the displacement of every vertex from (n_d, 3) marker positions (mm)."""
+    def predict(self, positions: np.ndarray, timestamp: float, instruments: dict | None = None) -> Prediction:
+        """Predict the displacement of every vertex from (n_d, 3) marker positions (mm) and the
+        tracked instruments' poses (``{name: InstrumentPose or None (lost)}``, model frame;
+        an instrument left out is lost)."""
         positions, missing = self.check_positions(positions)
         try:
-            mean, uncertainty, bound, alarm = self._evaluate(positions, missing)
+            mean, uncertainty, bound, alarm = self._evaluate(positions, missing, instruments)
             displacement = np.asarray(mean, dtype=np.float64).reshape(self.n_vertices, 3)
         except ModelError as exc:  # the model refused this input (e.g. too many untracked markers)
             log.warning("model refused the marker input: %s", exc)
@@ -205,6 +228,10 @@ class SurfacePredictor:
         if not np.isfinite(displacement).all():
             raise PredictionError("the model returned non-finite displacements for these marker positions")
         return Prediction(float(timestamp), displacement, uncertainty, bound, alarm)
+
+    def is_instrument(self, device: str) -> bool:
+        """Whether ``device`` is the TRANSFORM device of one of the model's instruments."""
+        return device in self.instrument_devices
 
     def surface_message(self, prediction: Prediction, frames: ClientFrames | None = None) -> memoryview:
         """The packed ``TissueSurface`` POLYDATA message (valid until the next call).
@@ -240,3 +267,38 @@ class SurfacePredictor:
         if self.has_bounds:
             template.values[BOUND_NAME][:] = np.nan if prediction.error_bound is None else prediction.error_bound
         return template.finish(FIELD_DEVICE, prediction.timestamp)
+
+
+def _instrument_devices(spec, devices: dict) -> dict[str, str]:
+    """``{device: instrument name}`` of a model's instruments, ``devices`` ({name: device}) replacing
+    the recorded ones; checked not to be a marker's or a registration's name."""
+    import re
+
+    from .client_frames import REGISTRATION_PATTERN
+
+    names = [i.name for i in spec.instruments]
+    unknown = sorted(set(devices) - set(names))
+    if unknown:
+        raise ConfigError(f"instrument devices given for {unknown}; the model reads instruments {names or 'none'}")
+    out = {}
+    for inst in spec.instruments:
+        device = devices.get(inst.name) or inst.device
+        if not device or re.fullmatch(r"Marker[0-9]+(To[A-Za-z0-9_]+)?", device) or REGISTRATION_PATTERN.fullmatch(device):
+            raise ConfigError(f"instrument {inst.name!r}: device name {device!r} would be read as a marker or a "
+                              "registration (Marker<k>, <From>To<Ras|Lps|Image>); name its TRANSFORM otherwise, e.g. "
+                              "RetractorToReference (scenario.instruments[k].device)")
+        out[device] = inst.name
+    if len(out) != len(names):
+        raise ConfigError(f"instruments {names} need distinct device names, got {sorted(out)}")
+    return out
+
+
+def _measured(spec, parameters: dict) -> dict[str, float]:
+    """The measured parameters a model reads, checked: every one given, none unknown."""
+    missing = [p for p in spec.parameters if p not in parameters]
+    unknown = sorted(set(parameters) - set(spec.parameters))
+    if missing or unknown:
+        reads = f"the measured parameters {list(spec.parameters)}" if spec.parameters else "no measured parameter"
+        raise ConfigError(f"the model reads {reads}: "
+                          + (f"give {missing} (--parameter NAME=VALUE)" if missing else f"it does not read {unknown}"))
+    return {k: float(v) for k, v in parameters.items()}

@@ -27,6 +27,7 @@ from collections import Counter
 from ..config import ServeConfig
 from ..surrogate.field_predictor import FieldPredictor
 from .client_frames import ClientFrames
+from .instruments import InstrumentTracking
 from .predictor import SurfacePredictor
 from .protocol import DEFAULT_MAX_BODY_BYTES, pack_string
 from .session import ERROR_DEVICE, ClientSession
@@ -88,6 +89,8 @@ class IGTLServer:
         frames: the :class:`~tissuecast.serve.client_frames.ClientFrames` shared by all
             connections (None: everything in the model's LPS frame until a registration
             TRANSFORM arrives).
+        instrument_timeout: seconds after its last TRANSFORM a tracked instrument counts as
+            lost (the model then predicts from the markers only; :mod:`.instruments`).
     """
 
     def __init__(
@@ -106,14 +109,17 @@ class IGTLServer:
         messages_per_turn: int = MESSAGES_PER_TURN,
         frames: ClientFrames | None = None,
         method: str = ServeConfig.method,
+        instrument_timeout: float = ServeConfig.instrument_timeout,
     ):
         if isinstance(model, SurfacePredictor):
             self.predictor = model
         else:
             self.predictor = SurfacePredictor(model, max_marker_offset=max_marker_offset, method=method)
         self.frames = frames if frames is not None else ClientFrames()
+        self.instruments = InstrumentTracking(self.predictor.instrument_devices, self.predictor.reference_surface,
+                                              instrument_timeout)
         self._session_options = dict(full_field=full_field, transform_mode=transform_mode, max_body_bytes=max_body_bytes,
-                                     frames=self.frames)
+                                     frames=self.frames, instruments=self.instruments)
         ClientSession(self.predictor, lambda data: None, **self._session_options)  # validate options now
         self.client_timeout = float(client_timeout)
         self.max_output_bytes = int(max_output_bytes)
@@ -137,11 +143,11 @@ class IGTLServer:
     @classmethod
     def from_config(cls, model: FieldPredictor | SurfacePredictor, config: ServeConfig, **options) -> "IGTLServer":
         """A server set up as a ``[serve]`` config section says (host, port, full_field,
-        transform_mode, client_timeout, max_marker_offset, client_frame, tracker_to_client, method);
-        ``options`` (any argument of the constructor) take precedence."""
+        transform_mode, client_timeout, max_marker_offset, client_frame, tracker_to_client, method,
+        instrument_timeout); ``options`` (any argument of the constructor) take precedence."""
         settings = dict(full_field=config.full_field, transform_mode=config.transform_mode,
                         client_timeout=config.client_timeout, max_marker_offset=config.max_marker_offset,
-                        method=config.method)
+                        method=config.method, instrument_timeout=config.instrument_timeout)
         settings.update(options)
         if "frames" not in settings:
             settings["frames"] = ClientFrames(config.client_frame, config.tracker_to_client or None)

@@ -19,6 +19,13 @@ Requests a client may send (any header version 1 or 2; device names are case-sen
   or to the image (the model's LPS frame); later marker positions are mapped by it before
   prediction and replies are sent in the target frame (see :mod:`tissuecast.serve.client_frames`;
   shared by every connection of the server). No reply.
+- ``TRANSFORM "<device>"`` of a tracked instrument the model reads (``RetractorToReference``,
+  ``scenario.instruments[k].device``): the tool's pose in the tracker frame (translation = tool
+  tip, mm; third column = push direction), mapped like the markers; every later prediction
+  uses it until it is ``serve.instrument_timeout`` seconds old (:mod:`tissuecast.serve.instruments`).
+  No reply. When an instrument is lost (or not tracked at the first prediction) the prediction
+  is made from the markers only and followed by a STATUS ``InstrumentLost``; a STATUS
+  ``InstrumentTracked`` follows the first prediction with it again.
 - ``GET_POLYDATA "TissueField"``: the full vertex field of this client's latest prediction
   (``POLYDATA "TissueField"``); ``GET_POLYDATA "TissueSurface"`` (or no device name)
   repeats the latest surface.
@@ -45,6 +52,7 @@ import numpy as np
 from ..config import TRANSFORM_MODES, ServeConfig
 from ..frames import FrameError
 from .client_frames import REGISTRATION_PATTERN, ClientFrames
+from .instruments import LOST_NAME, TRACKED_NAME, InstrumentTracking
 from .predictor import FIELD_DEVICE, SURFACE_DEVICE, Prediction, PredictionError, SurfacePredictor
 from .protocol import (
     DEFAULT_MAX_BODY_BYTES,
@@ -78,6 +86,8 @@ class ClientSession:
         max_body_bytes: bodies announced larger than this close the connection unread.
         frames: the (shared) :class:`ClientFrames`; None = a private one, everything in the
             model's LPS frame.
+        instruments: the (shared) :class:`~.instruments.InstrumentTracking` of the model's
+            instruments; None = a private one with the default timeout.
 
     Attributes:
         close_reason: None while the connection is usable, else why it must be closed.
@@ -93,6 +103,7 @@ class ClientSession:
         transform_mode: str = ServeConfig.transform_mode,
         max_body_bytes: int = DEFAULT_MAX_BODY_BYTES,
         frames: ClientFrames | None = None,
+        instruments: InstrumentTracking | None = None,
     ):
         if transform_mode not in TRANSFORM_MODES:
             raise ValueError(f"transform_mode must be one of {TRANSFORM_MODES}, got {transform_mode!r}")
@@ -102,6 +113,9 @@ class ClientSession:
         self.transform_mode = transform_mode
         self.max_body_bytes = int(max_body_bytes)
         self.frames = frames if frames is not None else ClientFrames()
+        self.instruments = instruments if instruments is not None else InstrumentTracking(
+            predictor.instrument_devices, predictor.reference_surface)
+        self._tracked: dict[str, bool] = {}  # what this connection was last told of each instrument
         self.close_reason: str | None = None
         self.counts: Counter = Counter()
         self.last: Prediction | None = None
@@ -185,6 +199,13 @@ class ClientSession:
             self._error(str(exc), header.timestamp)
 
     def _on_transform(self, header: Header, matrix: np.ndarray) -> None:
+        if self.predictor.is_instrument(header.device_name):
+            try:
+                self.instruments.update(header.device_name, self.frames.tracker_to_model @ matrix)
+            except ValueError as exc:
+                raise ProtocolError(f"TRANSFORM {header.device_name!r}: {exc}") from exc
+            self.counts["instrument_poses"] += 1
+            return
         match = self._marker_re.fullmatch(header.device_name)
         index = int(match.group(1)) if match else -1
         if not 0 <= index < self.predictor.n_markers:
@@ -197,6 +218,8 @@ class ClientSession:
                 f"TRANSFORM device {header.device_name!r} is not a marker ({MARKER_PREFIX}0.."
                 f"{MARKER_PREFIX}{self.predictor.n_markers - 1}, model marker order) and not a registration "
                 "(<From>To<Target>, e.g. TrackerToRas, ReferenceToRas, TrackerToImage)"
+                + (f" or an instrument ({', '.join(self.predictor.instrument_devices)})"
+                   if self.predictor.instrument_devices else "")
             )
         self._positions[index] = matrix[:3, 3]
         self._seen[index] = self._fresh[index] = True
@@ -217,14 +240,32 @@ class ClientSession:
             self._send(self.predictor.surface_message(self.last, self.frames))
 
     def _serve(self, positions: np.ndarray, timestamp: float) -> None:
-        prediction = self.predictor.predict(self.frames.to_model(positions), timestamp)
+        poses = self.instruments.current()
+        prediction = self.predictor.predict(self.frames.to_model(positions), timestamp, instruments=poses)
         self.last = prediction
         self.counts["predictions"] += 1
         self._send(self.predictor.surface_message(prediction, self.frames))
         if self.full_field:
             self._send(self.predictor.field_message(prediction, self.frames))
+        self._send_instrument_status(poses, timestamp)
         if prediction.alarm is not None and (prediction.alarm.raised or self._alarmed):
             self._send_alarm_status(prediction)
+
+    def _send_instrument_status(self, poses: dict, timestamp: float) -> None:
+        """A STATUS for each instrument whose tracking changed since this connection was last told."""
+        from .status import StatusCode, pack_status
+
+        for name, pose in poses.items():
+            tracked = pose is not None
+            if self._tracked.get(name) == tracked:
+                continue
+            self._tracked[name] = tracked
+            self.counts["instrument_tracked" if tracked else "instrument_lost"] += 1
+            if tracked:
+                self.send(pack_status(StatusCode.OK, 0, TRACKED_NAME, self.instruments.tracked_text(name), timestamp))
+            else:
+                log.info("instrument %s lost: predicting from the markers only", name)
+                self.send(pack_status(StatusCode.TIME_OUT, 0, LOST_NAME, self.instruments.lost_text(name), timestamp))
 
     def send(self, data) -> None:
         """Send an extra packed message on this connection (e.g. a STATUS); counted as a reply."""

@@ -94,8 +94,9 @@ class RidgePredictor(FieldPredictor):
     def n_components(self) -> int:
         return self.basis.n_components
 
-    def predict(self, marker_displacements, *, missing=None) -> np.ndarray:
-        """As :meth:`FieldPredictor.predict`; the ridge baseline needs every marker."""
+    def predict(self, marker_displacements, *, missing=None, auxiliary=None) -> np.ndarray:
+        """As :meth:`FieldPredictor.predict`; the ridge baseline needs every marker (and reads
+        no auxiliary inputs: ``auxiliary`` is ignored)."""
         if missing is not None:
             raise ModelError("the ridge baseline cannot predict with missing markers; use method='mlp' or 'rigid'")
         return super().predict(marker_displacements)

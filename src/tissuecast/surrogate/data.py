@@ -7,10 +7,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ModelError
+from .auxiliary import AuxiliaryInputs, AuxiliaryValues
 from .field_predictor import check_vertex_ids
 
-__all__ = ["TrainingArrays", "dataset_arrays", "split_indices", "FitSplits", "fit_splits", "split_calibration",
-           "check_fit_inputs", "flat_fields", "VALIDATION_EVERY", "MIN_SAMPLES", "CALIBRATION_SEED_OFFSET"]
+__all__ = ["TrainingArrays", "dataset_arrays", "dataset_auxiliary", "split_indices", "FitSplits", "fit_splits",
+           "split_calibration", "check_fit_inputs", "flat_fields", "VALIDATION_EVERY", "MIN_SAMPLES", "CALIBRATION_SEED_OFFSET"]
 
 #: Without given validation samples, one training sample in this many validates (at least one).
 VALIDATION_EVERY = 10
@@ -32,6 +33,8 @@ class TrainingArrays:
         markers: (n_d,) int64 0-based marker ids.
         fixed: (k,) int64 0-based fixed vertex ids.
         mesh: the store's TetMesh.
+        auxiliary: every sample's auxiliary inputs (:class:`~.auxiliary.AuxiliaryValues`), or
+            None for a markers-only model.
     """
 
     displacements: np.ndarray
@@ -40,6 +43,7 @@ class TrainingArrays:
     markers: np.ndarray
     fixed: np.ndarray
     mesh: object
+    auxiliary: AuxiliaryValues | None = None
 
 
 def split_indices(dataset, split: str) -> np.ndarray:
@@ -47,8 +51,38 @@ def split_indices(dataset, split: str) -> np.ndarray:
     return np.asarray(dataset.select(split, status="done"), dtype=np.int64)
 
 
-def dataset_arrays(dataset) -> TrainingArrays:
-    """Collect training arrays from a :class:`tissuecast.dataset.Dataset`."""
+def dataset_auxiliary(dataset, inputs: AuxiliaryInputs) -> AuxiliaryValues:
+    """Every sample's auxiliary inputs from a data set: the instruments' stored poses
+    (``Dataset.instrument_poses``, as :func:`tissuecast.instruments.features_from_arrays` turns
+    them into inputs; zeros where away or not solved) and the measured parameters
+    (``Dataset.parameters``).
+
+    Raises:
+        ModelError: the store records no pose of an instrument, or no value of a parameter.
+    """
+    from ..instruments import features_from_arrays
+
+    poses, params = dataset.instrument_poses, dataset.parameters
+    cols = []
+    for inst in inputs.instruments:
+        if inst.name not in poses:
+            raise ModelError(f"the data set records no pose of instrument {inst.name!r} (it has "
+                             f"{sorted(poses) or 'none'}); simulate with [[scenario.instruments]] naming it, or train "
+                             "with a config without it")
+        p = poses[inst.name]
+        cols.append(features_from_arrays(p["tip"], p["direction"], p["depth"], p["contact"] == 1))
+    for name in inputs.parameters:
+        if name not in params:
+            raise ModelError(f"the data set records no value of the measured parameter {name!r} (it draws "
+                             f"{sorted(params) or 'none'}); simulate with scenario.uncertain.{name} drawn")
+        cols.append(np.asarray(params[name], dtype=np.float64)[:, None])
+    values = np.hstack(cols) if cols else np.zeros((dataset.n_samples, 0))
+    return AuxiliaryValues(inputs, values)
+
+
+def dataset_arrays(dataset, inputs: AuxiliaryInputs | None = None) -> TrainingArrays:
+    """Collect training arrays from a :class:`tissuecast.dataset.Dataset`, with the auxiliary
+    inputs ``inputs`` declares (:func:`dataset_auxiliary`; None or empty: markers only)."""
     train = split_indices(dataset, "train")
     valid = split_indices(dataset, "valid")
     if train.size < 2 or valid.size < 1:
@@ -63,6 +97,7 @@ def dataset_arrays(dataset) -> TrainingArrays:
         markers=np.asarray(dataset.markers, dtype=np.int64),
         fixed=np.asarray(dataset.fixed, dtype=np.int64),
         mesh=dataset.mesh,
+        auxiliary=dataset_auxiliary(dataset, inputs) if inputs is not None and inputs.width else None,
     )
 
 

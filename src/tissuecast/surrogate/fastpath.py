@@ -4,7 +4,10 @@ Input standardisation is folded into the first layer, output scaling into the la
 reconstruction is one (n_w, 3 n) product, and the members of an ensemble are stacked (first layers
 concatenated, middle layers block-diagonal, last layers averaged), so one prediction is a
 handful of float64 matmuls. A quadratic head (:mod:`.head`) adds its weights before the
-reconstruction: its standardisation is folded into an affine map and a (q, 3 n_d) projection.
+reconstruction: its standardisation is folded into an affine map and a (q, 3 n_d + n_a) projection.
+
+The input is ``x = [d, a]``: the marker displacements d (3 n_d,) mm, then the model's n_a
+auxiliary inputs (:mod:`.auxiliary`; none for a markers-only model), as the networks read them.
 """
 
 from __future__ import annotations
@@ -25,13 +28,13 @@ __all__ = ["CompiledSurrogate"]
 
 @dataclass(frozen=True, eq=False)
 class _FoldedHead:
-    """A quadratic head with its standardisation folded in: for displacements d (3 n_d,) mm the
-    weights are ``const + d @ lin + (p_a p_b) @ quad`` with ``p = (d - mean) @ proj``."""
+    """A quadratic head with its standardisation folded in: for inputs x (3 n_d + n_a,) the
+    weights are ``const + x @ lin + (p_a p_b) @ quad`` with ``p = (x - mean) @ proj``."""
 
-    lin: np.ndarray  # (3 n_d, n_w)
+    lin: np.ndarray  # (3 n_d + n_a, n_w)
     const: np.ndarray  # (n_w,)
-    mean: np.ndarray  # (3 n_d,)
-    proj: np.ndarray  # (3 n_d, q)
+    mean: np.ndarray  # (3 n_d + n_a,)
+    proj: np.ndarray  # (3 n_d + n_a, q)
     a: np.ndarray  # (q (q + 1) / 2,) the products' first and second directions
     b: np.ndarray
     quad: np.ndarray  # (q (q + 1) / 2, n_w)
@@ -61,6 +64,7 @@ class CompiledSurrogate:
         m0 = members[0]
         self.n_members = len(members)
         self.n_markers = m0.n_markers
+        self.n_auxiliary = m0.n_auxiliary
         self.masked = m0.masked
         xm, xs = m0.x_mean.astype(f8), m0.x_std.astype(f8)
         ys, ym = m0.y_std.astype(f8), m0.y_mean.astype(f8)
@@ -101,12 +105,13 @@ class CompiledSurrogate:
             self.out_b = self.out_b + self.head.const
 
     def _head(self, d: np.ndarray) -> np.ndarray:
-        """The head's weights without its constant, (..., n_w) mm, for displacements (..., 3 n_d)."""
+        """The head's weights without its constant, (..., n_w) mm, for inputs (..., 3 n_d + n_a)."""
         f = self.head
         p = (d - f.mean) @ f.proj
         return d @ f.lin + (p[..., f.a] * p[..., f.b]) @ f.quad
+
     def _hidden(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
-        """Last hidden activations (B, M h_last) for displacements (B, 3 n_d) mm."""
+        """Last hidden activations (B, M h_last) for inputs (B, 3 n_d + n_a)."""
         W, b = self.hidden[0]
         if missing is not None:  # missing marker -> its mean displacement and present = 0
             d = untracked_at_mean(d, missing, self.x_mean)
@@ -121,7 +126,8 @@ class CompiledSurrogate:
         return h
 
     def fields(self, d: np.ndarray, missing: np.ndarray | None = None) -> np.ndarray:
-        """Ensemble-mean fields (B, 3 n) mm from marker displacements (B, 3 n_d) mm.
+        """Ensemble-mean fields (B, 3 n) mm from inputs (B, 3 n_d + n_a) (marker displacements
+        mm, then the auxiliary inputs).
 
         ``missing`` (B, n_d) bool marks untracked markers (masked models only).
         """
@@ -130,14 +136,14 @@ class CompiledSurrogate:
         return self._reconstruct(self._hidden(d, missing), d)
 
     def field(self, d: np.ndarray) -> np.ndarray:
-        """One field (3 n,) mm from one marker-displacement vector (3 n_d,) mm, all markers tracked.
+        """One field (3 n,) mm from one input vector (3 n_d + n_a,), all markers tracked.
 
         1-D products (BLAS gemv) keep the single-sample latency low and steady.
         """
         return self._reconstruct(self._hidden(d, None), d)
 
     def _reconstruct(self, h: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Fields (..., 3 n) mm from last hidden activations (..., M h_last) and the input (..., 3 n_d)."""
+        """Fields (..., 3 n) mm from last hidden activations (..., M h_last) and the input (..., 3 n_d + n_a)."""
         w = h @ self.out_W
         w += self.out_b
         if self.head is not None:

@@ -9,6 +9,12 @@ PCA basis, quadratic head, network ensemble), the baselines (:class:`~.baselines
 facade :class:`~.model.DeformationModel` all implement it, so callers (``serve``, ``evaluate``,
 the CLI) talk to one interface.
 
+A predictor may read **auxiliary inputs** besides the markers (the tracked instruments' poses,
+measured parameters: :mod:`.auxiliary`); it declares them as ``auxiliary`` (an
+:class:`~.auxiliary.AuxiliaryInputs`, empty for the baselines and markers-only models), and
+``predict(..., auxiliary=...)`` takes their values. A predictor without auxiliary inputs
+ignores them.
+
 What a predictor can do beyond :meth:`FieldPredictor.predict` is declared, never probed:
 
 - ``supports_missing_markers``: ``predict(..., missing=...)`` accepts untracked markers;
@@ -27,6 +33,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 
 from ..errors import ModelError
+from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .inputs import marker_batch
 
 __all__ = ["FieldPredictor", "check_vertex_ids"]
@@ -57,6 +64,8 @@ class FieldPredictor(ABC):
         supports_missing_markers: ``predict(..., missing=...)`` accepts untracked markers.
         has_uncertainty: :meth:`predict_with_uncertainty` is available.
         has_trust: :meth:`predict_trusted` is available.
+        auxiliary: the auxiliary inputs it reads (:class:`~.auxiliary.AuxiliaryInputs`; empty:
+            markers only). A predictor with some implements ``_predict_batch(d, missing, a)``.
     """
 
     name: str = "predictor"
@@ -65,6 +74,7 @@ class FieldPredictor(ABC):
     supports_missing_markers: bool = False
     has_uncertainty: bool = False
     has_trust: bool = False
+    auxiliary: AuxiliaryInputs = MARKERS_ONLY
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -92,35 +102,47 @@ class FieldPredictor(ABC):
         """
         return marker_batch(marker_displacements, self.n_markers, missing, self.supports_missing_markers)
 
-    def predict(self, marker_displacements, *, missing=None) -> np.ndarray:
-        """Displacement field from marker displacements.
+    def auxiliary_batch(self, given, batch: int) -> np.ndarray | None:
+        """Checked auxiliary inputs (B, n_a) float64 (:meth:`.auxiliary.AuxiliaryInputs.batch`),
+        or None for a predictor without them (``given`` is then ignored)."""
+        return self.auxiliary.batch(given, batch)
+
+    def predict(self, marker_displacements, *, missing=None, auxiliary=None) -> np.ndarray:
+        """Displacement field from marker displacements (and the auxiliary inputs).
 
         Args:
             marker_displacements: (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) float, mm.
             missing: optional untracked markers (predictors with ``supports_missing_markers``):
                 indices into the marker list, or a bool mask (n_d,) / (B, n_d).
+            auxiliary: the auxiliary inputs of a predictor that reads some (``auxiliary.names``,
+                in ``auxiliary.units``): an array (n_a,) or (B, n_a), or a mapping
+                ``{instrument name: InstrumentPose or None, parameter name: value}``
+                (:meth:`.auxiliary.AuxiliaryInputs.batch`); ignored by predictors without.
 
         Returns:
             (n, 3) float64 mm for one sample, (B, n, 3) for a batch.
         """
         d, miss, single = self.marker_batch(marker_displacements, missing)
-        u = self._predict_batch(d, miss)
+        a = self.auxiliary_batch(auxiliary, d.shape[0])
+        u = self._predict_batch(d, miss) if a is None else self._predict_batch(d, miss, a)
         return u[0] if single else u
 
     @abstractmethod
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
         """Fields (B, n, 3) float64 mm from checked displacements d (B, 3 n_d) mm and the
-        untracked-marker mask (B, n_d) bool or None."""
+        untracked-marker mask (B, n_d) bool or None (predictors with auxiliary inputs take
+        them as a third argument, (B, n_a))."""
 
-    def predict_from_positions(self, positions, *, missing=None) -> np.ndarray:
+    def predict_from_positions(self, positions, *, missing=None, auxiliary=None) -> np.ndarray:
         """As :meth:`predict`, from tracked marker positions (n_d, 3) or (B, n_d, 3) mm in the
         model's (mesh) frame: the reference marker positions are subtracted."""
         p = np.asarray(positions, dtype=np.float64)
         if p.shape[-2:] != (self.n_markers, 3) or p.ndim not in (2, 3):
             raise ModelError(f"marker positions must be ({self.n_markers}, 3) or (B, {self.n_markers}, 3) mm, got {p.shape}")
-        return self.predict(p - self.reference_marker_positions, missing=missing)
+        return self.predict(p - self.reference_marker_positions, missing=missing, auxiliary=auxiliary)
 
-    def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None,
+                                 auxiliary=None) -> tuple[np.ndarray, np.ndarray]:
         """``(u, sigma)``: the field as :meth:`predict` and a per-vertex spread (n,) or (B, n) mm.
 
         Raises:
@@ -128,7 +150,8 @@ class FieldPredictor(ABC):
         """
         raise ModelError(f"the {self.name} predictor gives no uncertainty; use an ensemble model (surrogate.ensemble >= 2)")
 
-    def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None):
+    def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None,
+                        auxiliary=None):
         """The field with per-vertex error bounds and the out-of-distribution alarm
         (:class:`~.trust.TrustedPrediction`).
 
@@ -142,4 +165,5 @@ class FieldPredictor(ABC):
         """Small JSON-able description: name, sizes and capabilities."""
         return {"name": self.name, "n_vertices": self.n_vertices, "markers": np.asarray(self.markers).tolist(),
                 "supports_missing_markers": bool(self.supports_missing_markers),
-                "has_uncertainty": bool(self.has_uncertainty), "has_trust": bool(self.has_trust)}
+                "has_uncertainty": bool(self.has_uncertainty), "has_trust": bool(self.has_trust),
+                **({"auxiliary": self.auxiliary.as_dict()} if self.auxiliary.width else {})}

@@ -1,6 +1,8 @@
 """Training the MLP from marker displacements to PCA weights (torch); the result is :class:`.weights.MLPWeights`.
 
-Inputs are the 3 n_d marker displacements (mm), standardised per component. With marker
+Inputs are the 3 n_d marker displacements (mm) followed by n_a auxiliary inputs (instrument
+poses, measured parameters: :mod:`.auxiliary`; none for the paper's model), standardised per
+component. With marker
 masking enabled the network also gets n_d "present" channels (1 tracked, 0 missing) and a
 missing marker's standardised displacement is set to 0; training then hides one random
 marker in a share ``marker_dropout`` of the samples. Gaussian noise of ``noise_sigma`` mm can
@@ -36,6 +38,10 @@ log = logging.getLogger(__name__)
 #: Smallest marker-displacement scale, as a share of the largest |displacement| (at least 1 mm):
 #: a coordinate that never moves (e.g. a marker next to the pins) is not divided by ~0.
 X_STD_FLOOR = 1e-6
+#: An auxiliary input whose training spread is below this share of its magnitude (at least 1) is
+#: constant in training (e.g. the push direction at one access site): it is scaled by that
+#: magnitude instead, so that a different value at prediction time is not blown up.
+AUX_CONSTANT_SHARE = 1e-6
 #: Smallest PCA-weight scale (mm), absolute plus a share of the largest scale: a component
 #: without variance must not blow up the loss.
 Y_STD_FLOOR_ABS = 1e-9
@@ -70,7 +76,7 @@ class TrainingSummary:
 
 @dataclass(frozen=True, eq=False)
 class _Scaling:
-    """Standardisation of one training run: (3 n_d,) marker mean/scale and (n_w,) weight mean/scale, mm."""
+    """Standardisation of one training run: (3 n_d + n_a,) input mean/scale and (n_w,) weight mean/scale, mm."""
 
     x_mean: np.ndarray
     x_std: np.ndarray
@@ -118,20 +124,22 @@ def _deterministic(torch):
         torch.set_num_threads(threads)
 
 
-def _check_xy(X, Y, name):
+def _check_xy(X, Y, name, n_auxiliary: int = 0):
     X = np.asarray(X, dtype=np.float64)
     Y = np.asarray(Y, dtype=np.float64)
-    if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or X.shape[1] % 3 or X.shape[0] == 0:
-        raise ModelError(f"{name}: need markers (N, 3 n_d) and weights (N, n_w) with N >= 1, got {X.shape} and {Y.shape}")
+    nd3 = X.shape[1] - n_auxiliary if X.ndim == 2 else -1
+    if X.ndim != 2 or Y.ndim != 2 or X.shape[0] != Y.shape[0] or nd3 < 3 or nd3 % 3 or X.shape[0] == 0:
+        raise ModelError(f"{name}: need inputs (N, 3 n_d + {n_auxiliary}) and weights (N, n_w) with N >= 1, "
+                         f"got {X.shape} and {Y.shape}")
     if not (np.isfinite(X).all() and np.isfinite(Y).all()):
         raise ModelError(f"{name} data contain NaN or inf")
     return X, Y
 
 
-def _check_inputs(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig):
+def _check_inputs(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig, n_auxiliary: int = 0):
     """Checked float64 arrays ``(X, Y, Xv, Yv)``; settings the config file would have refused."""
-    X, Y = _check_xy(X_train, Y_train, "training")
-    Xv, Yv = _check_xy(X_valid, Y_valid, "validation")
+    X, Y = _check_xy(X_train, Y_train, "training", n_auxiliary)
+    Xv, Yv = _check_xy(X_valid, Y_valid, "validation", n_auxiliary)
     if Xv.shape[1] != X.shape[1] or Yv.shape[1] != Y.shape[1]:
         raise ModelError(f"validation shapes {Xv.shape}, {Yv.shape} do not match training {X.shape}, {Y.shape}")
     if config.schedule not in SCHEDULES:
@@ -141,9 +149,16 @@ def _check_inputs(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig):
     return X, Y, Xv, Yv
 
 
-def _scaling(X: np.ndarray, Y: np.ndarray, output_scaling: str) -> _Scaling:
-    """Per-component marker standardisation; PCA-weight scaling per component or one global factor."""
-    x_std = np.maximum(X.std(axis=0), X_STD_FLOOR * max(1.0, float(np.abs(X).max())))
+def _scaling(X: np.ndarray, Y: np.ndarray, output_scaling: str, n_auxiliary: int = 0) -> _Scaling:
+    """Per-component input standardisation (markers, then auxiliary inputs: :data:`AUX_CONSTANT_SHARE`);
+    PCA-weight scaling per component or one global factor."""
+    markers = X[:, :X.shape[1] - n_auxiliary]
+    x_std = np.maximum(markers.std(axis=0), X_STD_FLOOR * max(1.0, float(np.abs(markers).max())))
+    if n_auxiliary:
+        aux = X[:, X.shape[1] - n_auxiliary:]
+        size = np.maximum(1.0, np.abs(aux).max(axis=0))
+        spread = aux.std(axis=0)
+        x_std = np.concatenate([x_std, np.where(spread > AUX_CONSTANT_SHARE * size, spread, size)])
     y_std = Y.std(axis=0)
     if output_scaling == "global":
         y_std = np.full_like(y_std, math.sqrt(float(np.mean(y_std**2))))
@@ -151,12 +166,12 @@ def _scaling(X: np.ndarray, Y: np.ndarray, output_scaling: str) -> _Scaling:
     return _Scaling(X.mean(axis=0), x_std, Y.mean(axis=0), y_std)
 
 
-def _tensors(torch, X, Y, Xv, Yv, s: _Scaling, masked: bool) -> _Tensors:
+def _tensors(torch, X, Y, Xv, Yv, s: _Scaling, masked: bool, n_markers: int) -> _Tensors:
     f32 = torch.float32
     xm, xs = torch.as_tensor(s.x_mean, dtype=f32), torch.as_tensor(s.x_std, dtype=f32)
     Xvt = (torch.as_tensor(Xv, dtype=f32) - xm) / xs
     if masked:  # validation with every marker tracked
-        Xvt = masked_input(Xvt, torch.ones(Xvt.shape[0], X.shape[1] // 3), torch)
+        Xvt = masked_input(Xvt, torch.ones(Xvt.shape[0], n_markers), torch)
     return _Tensors(X=torch.as_tensor(X, dtype=f32), Y=torch.as_tensor((Y - s.y_mean) / s.y_std, dtype=f32),
                     x_mean=xm, x_std=xs, X_valid=Xvt, Y_valid=torch.as_tensor((Yv - s.y_mean) / s.y_std, dtype=f32))
 
@@ -171,16 +186,18 @@ def _scheduler(torch, optimizer, c: SurrogateConfig, total_steps: int):
     return None
 
 
-def _batch_input(torch, t: _Tensors, idx, c: SurrogateConfig, gen, masked: bool):
-    """Network input of one mini-batch: tracking noise, standardisation, one marker hidden in a
-    share ``marker_dropout`` of the samples."""
+def _batch_input(torch, t: _Tensors, idx, c: SurrogateConfig, gen, masked: bool, n_markers: int):
+    """Network input of one mini-batch: tracking noise (on the markers), standardisation, one
+    marker hidden in a share ``marker_dropout`` of the samples."""
     xb = t.X[idx]
     if c.noise_sigma > 0:
-        xb = xb + c.noise_sigma * torch.randn(xb.shape, generator=gen)
+        nd3 = 3 * n_markers
+        noise = c.noise_sigma * torch.randn((xb.shape[0], nd3), generator=gen)
+        xb = xb + noise if xb.shape[1] == nd3 else torch.cat([xb[:, :nd3] + noise, xb[:, nd3:]], dim=1)
     xb = (xb - t.x_mean) / t.x_std
     if not masked:
         return xb
-    n_d = xb.shape[1] // 3
+    n_d = n_markers
     present = torch.ones(len(idx), n_d)
     drop = torch.rand(len(idx), generator=gen) < c.marker_dropout
     which = torch.randint(0, n_d, (len(idx),), generator=gen)
@@ -188,7 +205,8 @@ def _batch_input(torch, t: _Tensors, idx, c: SurrogateConfig, gen, masked: bool)
     return masked_input(xb, present, torch)
 
 
-def _train_epoch(torch, net, optimizer, scheduler, t: _Tensors, c: SurrogateConfig, gen, masked: bool) -> float:
+def _train_epoch(torch, net, optimizer, scheduler, t: _Tensors, c: SurrogateConfig, gen, masked: bool,
+                 n_markers: int) -> float:
     """One pass over the shuffled training set; returns the mean training loss."""
     net.train()
     N = t.X.shape[0]
@@ -197,7 +215,7 @@ def _train_epoch(torch, net, optimizer, scheduler, t: _Tensors, c: SurrogateConf
     total = 0.0
     for s in range(math.ceil(N / bs)):
         idx = perm[s * bs:(s + 1) * bs]
-        loss = torch.nn.functional.mse_loss(net(_batch_input(torch, t, idx, c, gen, masked)), t.Y[idx])
+        loss = torch.nn.functional.mse_loss(net(_batch_input(torch, t, idx, c, gen, masked, n_markers)), t.Y[idx])
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -207,7 +225,7 @@ def _train_epoch(torch, net, optimizer, scheduler, t: _Tensors, c: SurrogateConf
     return total / N
 
 
-def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool) -> _Run:
+def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool, n_markers: int) -> _Run:
     """Adam epochs with best-on-validation checkpointing and early stopping after ``patience``."""
     # fused: one kernel updates every parameter (no Python loop over them per step)
     optimizer = torch.optim.Adam(net.parameters(), lr=c.learning_rate, weight_decay=c.weight_decay, fused=True)
@@ -216,7 +234,7 @@ def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool) -> _Run
     run = _Run()
     for epoch in range(1, c.epochs + 1):
         run.epochs = epoch
-        run.train_loss = _train_epoch(torch, net, optimizer, scheduler, t, c, gen, masked)
+        run.train_loss = _train_epoch(torch, net, optimizer, scheduler, t, c, gen, masked, n_markers)
         net.eval()
         with torch.no_grad():
             vloss = float(torch.nn.functional.mse_loss(net(t.X_valid), t.Y_valid))
@@ -231,7 +249,7 @@ def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool) -> _Run
     return run
 
 
-def _weights(torch, net, parameters: list, s: _Scaling, masked: bool) -> MLPWeights:
+def _weights(torch, net, parameters: list, s: _Scaling, masked: bool, n_auxiliary: int) -> MLPWeights:
     """The network with ``parameters`` loaded, as float32 numpy :class:`MLPWeights`."""
     with torch.no_grad():
         for p, b in zip(net.parameters(), parameters):
@@ -242,23 +260,24 @@ def _weights(torch, net, parameters: list, s: _Scaling, masked: bool) -> MLPWeig
         biases=tuple(m.bias.detach().numpy().astype(np.float32).copy() for m in linears),
         x_mean=s.x_mean.astype(np.float32), x_std=s.x_std.astype(np.float32),
         y_mean=s.y_mean.astype(np.float32), y_std=s.y_std.astype(np.float32),
-        masked=masked,
+        masked=masked, n_auxiliary=n_auxiliary,
     )
 
 
 def train_mlp(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig | None = None, *,
-              seed: int | None = None) -> tuple[MLPWeights, TrainingSummary]:
+              seed: int | None = None, n_auxiliary: int = 0) -> tuple[MLPWeights, TrainingSummary]:
     """Train one network.
 
     Args:
-        X_train: (N, 3 n_d) marker displacements, mm.
+        X_train: (N, 3 n_d + n_a) inputs: marker displacements (mm), then n_a auxiliary inputs.
         Y_train: (N, n_w) PCA weights, mm.
-        X_valid: (M, 3 n_d) validation marker displacements, mm (M >= 1).
+        X_valid: (M, 3 n_d + n_a) validation inputs (M >= 1).
         Y_valid: (M, n_w) validation PCA weights, mm.
         config: the hyper-parameters (``hidden``, ``epochs``, ``batch_size``, ``learning_rate``,
             ``patience``, ``schedule``, ``output_scaling``, ``weight_decay``, ``noise_sigma``,
             ``marker_dropout``); None: the defaults.
         seed: seed of this network (default ``config.seed``).
+        n_auxiliary: n_a, the auxiliary inputs at the end of each input row (:mod:`.auxiliary`).
 
     Returns:
         The best-on-validation weights and a :class:`TrainingSummary`.
@@ -266,17 +285,19 @@ def train_mlp(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig | None
     torch = require("torch", "learn", "training the surrogate MLP")
     c = SurrogateConfig() if config is None else config
     seed = c.seed if seed is None else int(seed)
-    X, Y, Xv, Yv = _check_inputs(X_train, Y_train, X_valid, Y_valid, c)
+    n_a = int(n_auxiliary)
+    X, Y, Xv, Yv = _check_inputs(X_train, Y_train, X_valid, Y_valid, c, n_a)
     masked = c.marker_dropout > 0
-    scaling = _scaling(X, Y, c.output_scaling)
+    n_markers = (X.shape[1] - n_a) // 3
+    scaling = _scaling(X, Y, c.output_scaling, n_a)
     t0 = time.perf_counter()
     with _deterministic(torch):
         torch.manual_seed(seed)
         gen = torch.Generator().manual_seed(seed)
-        tensors = _tensors(torch, X, Y, Xv, Yv, scaling, masked)
-        net = build_network(torch, input_width(X.shape[1] // 3, masked), c.hidden, Y.shape[1])
-        run = _fit(torch, net, tensors, c, gen, masked)
-        weights = _weights(torch, net, run.best_parameters, scaling, masked)
+        tensors = _tensors(torch, X, Y, Xv, Yv, scaling, masked, n_markers)
+        net = build_network(torch, input_width(n_markers, masked, n_a), c.hidden, Y.shape[1])
+        run = _fit(torch, net, tensors, c, gen, masked, n_markers)
+        weights = _weights(torch, net, run.best_parameters, scaling, masked, n_a)
     summary = TrainingSummary(
         seed=seed, epochs_run=run.epochs, best_epoch=run.best_epoch, best_valid_loss=run.best_loss,
         final_train_loss=run.train_loss, seconds=time.perf_counter() - t0, stopped_early=run.stopped_early,

@@ -7,7 +7,10 @@ The model is composed of parts that each implement the one predictor protocol
   head, network ensemble), fitted by :func:`~.network_fit.fit_network`;
 - ``ridge_`` and ``rigid_``: the baselines (:mod:`.baselines`);
 - ``trusted_``: the learned predictor wrapped with its calibrated trust layer
-  (:class:`~.trusted.TrustedPredictor`), or None without calibration samples.
+  (:class:`~.trusted.TrustedPredictor`), or None without calibration samples;
+- for a model with tracked instruments as inputs (:mod:`.auxiliary`), ``fallback_`` (and
+  ``fallback_trusted_``): the learned predictor fitted without the instruments, used for a
+  sample whose instrument is absent (:class:`~.fallback.InstrumentFallback`).
 
 Scikit-learn style: the hyper-parameters come from a :class:`~tissuecast.config.SurrogateConfig`
 given to ``__init__``; ``fit`` learns the state (attributes ending in ``_``) and returns
@@ -16,7 +19,9 @@ given to ``__init__``; ``fit`` learns the state (attributes ending in ``_``) and
 the model folder stores (:mod:`.storage`).
 
 Marker displacements are ordered like the markers, vertex-major: ``(d0x, d0y, d0z, d1x, ...)``
-in mm. A displacement field is (n, 3) mm at every mesh vertex (0-based ids).
+in mm. A displacement field is (n, 3) mm at every mesh vertex (0-based ids). Auxiliary inputs
+(the instruments' poses in the model frame LPS, measured parameters) are given as
+``auxiliary=`` (:meth:`DeformationModel.predict`; names and units: ``model.auxiliary``).
 """
 
 from __future__ import annotations
@@ -28,8 +33,10 @@ import numpy as np
 
 from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
 from ..errors import ModelError
+from .auxiliary import AuxiliaryInputs, AuxiliaryValues
 from .baselines import RidgePredictor, RigidRegistrationPredictor
-from .data import check_fit_inputs, dataset_arrays, fit_splits, flat_fields
+from .data import FitSplits, check_fit_inputs, dataset_arrays, fit_splits, flat_fields
+from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .network_fit import ENSEMBLE_SEED_STRIDE, fit_network
 from .network_predictor import NetworkPredictor
@@ -55,6 +62,20 @@ def _surrogate_config(config, overrides: dict) -> SurrogateConfig:
     if overrides:
         config = with_overrides(Config(surrogate=config), surrogate=overrides).surrogate
     return config
+
+
+def _auxiliary_values(auxiliary: AuxiliaryValues | None, n_samples: int,
+                      splits: FitSplits) -> tuple[AuxiliaryInputs, np.ndarray | None]:
+    """``(what the inputs are, values (N, n_a) or None)`` of a fit, checked: one row per sample,
+    finite on the samples the fit uses."""
+    if auxiliary is None or not auxiliary.inputs.width:
+        return AuxiliaryInputs(), None
+    A = auxiliary.values
+    used = np.concatenate([splits.train, splits.valid, splits.calibration])
+    if len(A) != n_samples or not np.isfinite(A[used]).all():
+        raise ModelError(f"auxiliary values must be ({n_samples}, {A.shape[1]}) and finite for the samples fitted on "
+                         "(an instrument away from the tissue is 0, not NaN)")
+    return auxiliary.inputs, A
 
 
 class DeformationModel(FieldPredictor):
@@ -135,6 +156,12 @@ class DeformationModel(FieldPredictor):
         """Whether error bounds and the alarm are calibrated (``surrogate.calibration_share > 0``)."""
         return self.is_fitted and self.trusted_ is not None
 
+    @property
+    def auxiliary(self) -> AuxiliaryInputs:
+        """The auxiliary inputs the model reads besides the markers (:mod:`.auxiliary`: names,
+        units; empty for a markers-only model)."""
+        return self.network_.auxiliary if self.is_fitted else AuxiliaryInputs()
+
     def predictor(self, method: str = "mlp") -> FieldPredictor:
         """The part that predicts for ``method``: ``"mlp"`` (the learned model), ``"rigid"`` (rigid
         registration from the markers) or ``"ridge"`` (the paper's ridge baseline)."""
@@ -149,7 +176,8 @@ class DeformationModel(FieldPredictor):
         return ModelState(config=self.config, network=self.network_, fixed=self.fixed_, pca_choice=self.pca_choice_,
                           pca_curve=self.pca_curve_, trust=None if self.trusted_ is None else self.trusted_.layer,
                           training=self.training_, run_config=self.run_config, dataset_path=self.dataset_path,
-                          scenario=self.scenario, metadata=self.metadata_)
+                          scenario=self.scenario, metadata=self.metadata_, fallback=self.fallback_,
+                          fallback_trust=None if self.fallback_trusted_ is None else self.fallback_trusted_.layer)
 
     @classmethod
     def from_state(cls, state: ModelState) -> "DeformationModel":
@@ -167,7 +195,15 @@ class DeformationModel(FieldPredictor):
         self.ridge_ = RidgePredictor(net.mesh, net.markers, net.basis.truncated(k_ridge), self.config.ridge_ratio)
         self.rigid_ = RigidRegistrationPredictor(net.mesh, net.markers)
         self.trusted_ = None if state.trust is None else TrustedPredictor(net, state.trust)
-        self._by_method = {"mlp": self.network_, "rigid": self.rigid_, "ridge": self.ridge_}
+        self.fallback_ = state.fallback
+        self.fallback_trusted_ = None if state.fallback_trust is None else TrustedPredictor(state.fallback,
+                                                                                              state.fallback_trust)
+        learned, self._trusted = net, self.trusted_
+        if self.fallback_ is not None:
+            learned = InstrumentFallback(net, self.fallback_)
+            if self.trusted_ is not None and self.fallback_trusted_ is not None:
+                self._trusted = InstrumentFallback(self.trusted_, self.fallback_trusted_)
+        self._by_method = {"mlp": learned, "rigid": self.rigid_, "ridge": self.ridge_}
         self.fixed_ = np.asarray(state.fixed, dtype=np.int64).ravel()
         self.pca_choice_ = state.pca_choice
         self.pca_curve_ = state.pca_curve
@@ -177,10 +213,11 @@ class DeformationModel(FieldPredictor):
 
     # ------------------------------------------------------------------ fitting
     def fit(self, displacements, markers, *, mesh, fixed=(), train_idx=None, valid_idx=None,
-            calibration_idx=None) -> "DeformationModel":
+            calibration_idx=None, auxiliary: AuxiliaryValues | None = None) -> "DeformationModel":
         """Fit PCA (training fields only), the MLP (ensemble) and the ridge baseline, then the
         trust layer (error bounds and alarm, :mod:`tissuecast.surrogate.trust`) on the
-        calibration samples.
+        calibration samples. With tracked instruments among the auxiliary inputs, the MLP and
+        its trust layer are fitted a second time without them (the fallback, :mod:`.fallback`).
 
         Args:
             displacements: (N, n, 3) float displacement fields, mm (finite for the used samples).
@@ -193,6 +230,9 @@ class DeformationModel(FieldPredictor):
             calibration_idx: sample indices for calibrating the trust layer, never trained
                 on; default: a seeded ``surrogate.calibration_share`` of the training indices
                 (none when that is 0 or leaves fewer than 8 samples: then no trust layer).
+            auxiliary: every sample's auxiliary inputs (:class:`~.auxiliary.AuxiliaryValues`:
+                instrument poses, measured parameters; finite for the used samples), or None
+                for a markers-only model.
 
         Returns:
             self.
@@ -203,13 +243,13 @@ class DeformationModel(FieldPredictor):
         splits = fit_splits(U.shape[0], train_idx, valid_idx, calibration_idx, seed=c.seed,
                             calibration_share=c.calibration_share)
         Ut, Uv = flat_fields(U, splits)
-        net = fit_network(Ut, Uv, mk, mesh, c)
+        spec, A = _auxiliary_values(auxiliary, U.shape[0], splits)
+        net, trust = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec, A)
+        fallback, fallback_trust = None, None
+        if spec.instruments:
+            kept = A[:, len(spec.instrument_columns):]
+            fallback, fallback_trust = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec.without_instruments(), kept)
         ridge = RidgePredictor.fit(mesh, mk, net.predictor.basis, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
-        trust = None
-        if len(splits.calibration):
-            trust = fit_trust(net.predictor, U, train_idx=splits.train, valid_idx=splits.valid,
-                              calibration_idx=splits.calibration, coverage=c.coverage, false_alarm=c.false_alarm_rate,
-                              fault_score=c.alarm_fault_score, basis=net.predictor.basis, head=net.predictor.head)
         training = {
             "n_train": int(len(splits.train)),
             "n_valid": int(len(splits.valid)),
@@ -221,10 +261,32 @@ class DeformationModel(FieldPredictor):
             "seconds": time.perf_counter() - t0,
             "members": [s.as_dict() for s in net.summaries],
         }
-        self._assemble(ModelState(c, net.predictor, np.asarray(fixed, dtype=np.int64).ravel(),
-                                  {**net.choice, "ridge_components": ridge.n_components}, net.curve, trust, training,
-                                  self.run_config, self.dataset_path, self.scenario))
+        choice = {**net.choice, "ridge_components": ridge.n_components}
+        if fallback is not None:
+            training["fallback"] = {"n_components": int(fallback.predictor.n_components),
+                                    "mlp_seconds": float(sum(s.seconds for s in fallback.summaries)),
+                                    "members": [s.as_dict() for s in fallback.summaries]}
+            choice["fallback"] = {k: v for k, v in fallback.choice.items() if k != "validation_curve"}
+        self._assemble(ModelState(c, net.predictor, np.asarray(fixed, dtype=np.int64).ravel(), choice, net.curve, trust,
+                                  training, self.run_config, self.dataset_path, self.scenario,
+                                  fallback=None if fallback is None else fallback.predictor,
+                                  fallback_trust=fallback_trust))
         return self
+
+    def _fit_learned(self, U, Ut, Uv, mk, mesh, splits: FitSplits, spec: AuxiliaryInputs, A: np.ndarray | None):
+        """``(NetworkFit, trust layer or None)``: the learned predictor reading ``spec`` (values
+        A (N, n_a), or None without) and, with calibration samples, its trust layer."""
+        c = self.config
+        A = A if spec.width else None
+        rows = (None, None) if A is None else (A[splits.train], A[splits.valid])
+        net = fit_network(Ut, Uv, mk, mesh, c, *rows, auxiliary=spec)
+        trust = None
+        if len(splits.calibration):
+            trust = fit_trust(net.predictor, U, train_idx=splits.train, valid_idx=splits.valid,
+                              calibration_idx=splits.calibration, coverage=c.coverage, false_alarm=c.false_alarm_rate,
+                              fault_score=c.alarm_fault_score, basis=net.predictor.basis, head=net.predictor.head,
+                              auxiliary=A)
+        return net, trust
 
     @classmethod
     def from_dataset(cls, dataset, config: Config | SurrogateConfig | None = None, **overrides) -> "DeformationModel":
@@ -234,11 +296,14 @@ class DeformationModel(FieldPredictor):
             dataset: a :class:`tissuecast.dataset.Dataset` (from ``open_dataset``).
             config: settings; default: the data set's own config. Its ``markers.ids``, when
                 given, replace the store's markers (the store holds every vertex's
-                displacement, e.g. for markers planned by ``tissuecast markers plan``).
+                displacement, e.g. for markers planned by ``tissuecast markers plan``). Its
+                scenario's instruments and measured parameters (the data set's own, for a
+                SurrogateConfig) are the model's auxiliary inputs (:mod:`.auxiliary`).
         """
         if config is None:
             config = dataset.config
-        arrays = dataset_arrays(dataset)
+        source = config if isinstance(config, Config) else dataset.config  # the scenario's inputs
+        arrays = dataset_arrays(dataset, None if source is None else AuxiliaryInputs.from_config(source.scenario))
         markers = arrays.markers
         if isinstance(config, Config) and config.markers.ids:
             from ..markers import validate_vertex_ids
@@ -250,12 +315,12 @@ class DeformationModel(FieldPredictor):
         model.scenario = dataset.scenario
         return model.fit(
             arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed,
-            train_idx=arrays.train_idx, valid_idx=arrays.valid_idx,
+            train_idx=arrays.train_idx, valid_idx=arrays.valid_idx, auxiliary=arrays.auxiliary,
         )
 
     # ------------------------------------------------------------------ prediction
-    def predict(self, marker_displacements, *, missing=None, method: str = "mlp") -> np.ndarray:
-        """Displacement field from marker displacements.
+    def predict(self, marker_displacements, *, missing=None, method: str = "mlp", auxiliary=None) -> np.ndarray:
+        """Displacement field from marker displacements (and the auxiliary inputs).
 
         Args:
             marker_displacements: (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) float, mm.
@@ -265,17 +330,24 @@ class DeformationModel(FieldPredictor):
             method: ``"mlp"`` (the learned model, ensemble mean), ``"rigid"`` (rigid
                 registration from the markers: the baseline navigation systems use, and a
                 fallback) or ``"ridge"`` (the paper's ridge baseline; no missing markers).
+            auxiliary: for a model with auxiliary inputs (``model.auxiliary``: names and
+                units), a mapping ``{instrument name: tissuecast.instruments.InstrumentPose (or a
+                list of B), parameter name: value (or B values)}`` or an array (n_a,) / (B, n_a)
+                in ``model.auxiliary.names`` order. Poses are in the model frame (LPS, mm). An
+                instrument left out, None or NaN is absent (tracking lost): the sample is
+                predicted by the fallback fitted without instruments. None = every instrument
+                absent (a model with measured parameters needs them). Rigid and ridge ignore it.
 
         Returns:
             (n, 3) float64 mm for one sample, (B, n, 3) for a batch.
         """
-        return self.predictor(method).predict(marker_displacements, missing=missing)
+        return self.predictor(method).predict(marker_displacements, missing=missing, auxiliary=auxiliary)
 
-    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
-        return self.network_.predict(d, missing=missing)
+    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
+        return self._by_method["mlp"].predict(d, missing=missing, auxiliary=a)
 
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None,
-                        false_alarm: float | None = None) -> TrustedPrediction:
+                        false_alarm: float | None = None, auxiliary=None) -> TrustedPrediction:
         """The MLP's field with per-vertex error bounds and the out-of-distribution alarm
         (:meth:`TrustedPredictor.predict_trusted <.trusted.TrustedPredictor.predict_trusted>`).
 
@@ -283,6 +355,8 @@ class DeformationModel(FieldPredictor):
             marker_displacements: as for :meth:`predict` (every marker tracked), mm.
             coverage: nominal coverage of the bounds (default ``surrogate.coverage``).
             false_alarm: false-alarm rate of the alarm (default ``surrogate.false_alarm_rate``).
+            auxiliary: as for :meth:`predict` (the bounds and the alarm read them too; a sample
+                with an absent instrument gets the fallback's).
 
         Raises:
             ModelError: the model has no trust layer (trained with calibration_share = 0).
@@ -290,15 +364,16 @@ class DeformationModel(FieldPredictor):
         if not self.has_trust:
             raise ModelError("this model has no calibrated error bounds or alarm; re-train it with "
                              f"surrogate.calibration_share > 0 (e.g. {SurrogateConfig.calibration_share:g})")
-        return self.trusted_.predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm)
+        return self._trusted.predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm,
+                                             auxiliary=auxiliary)
 
-    def predict_from_positions(self, positions, *, missing=None, method: str = "mlp") -> np.ndarray:
+    def predict_from_positions(self, positions, *, missing=None, method: str = "mlp", auxiliary=None) -> np.ndarray:
         """Displacement field from tracked marker positions (n_d, 3) or (B, n_d, 3) mm.
 
         The positions must be in the model's (mesh) coordinate frame; the reference
-        (undeformed) marker positions are subtracted. ``method`` as in :meth:`predict`.
+        (undeformed) marker positions are subtracted. ``method`` and ``auxiliary`` as in :meth:`predict`.
         """
-        return self.predictor(method).predict_from_positions(positions, missing=missing)
+        return self.predictor(method).predict_from_positions(positions, missing=missing, auxiliary=auxiliary)
 
     def predict_ridge(self, marker_displacements) -> np.ndarray:
         """The paper's ridge-regression baseline: (n, 3) or (B, n, 3) mm, same inputs as :meth:`predict`.
@@ -318,11 +393,14 @@ class DeformationModel(FieldPredictor):
         """
         return self.predictor("rigid").predict(marker_displacements, missing=missing)
 
-    def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None,
+                                 auxiliary=None) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble mean field and per-vertex uncertainty
         (:meth:`NetworkPredictor.predict_with_uncertainty <.network_predictor.NetworkPredictor.predict_with_uncertainty>`):
-        ``(u (n, 3) or (B, n, 3) mm, sigma (n,) or (B, n) mm)``. Needs ``ensemble >= 2``."""
-        return self.predictor("mlp").predict_with_uncertainty(marker_displacements, missing=missing)
+        ``(u (n, 3) or (B, n, 3) mm, sigma (n,) or (B, n) mm)``. Needs ``ensemble >= 2``;
+        ``auxiliary`` as in :meth:`predict`."""
+        return self.predictor("mlp").predict_with_uncertainty(marker_displacements, missing=missing,
+                                                              auxiliary=auxiliary)
 
     def pca_projection(self, fields) -> np.ndarray:
         """Projection of displacement fields on the model's PCA basis: (n, 3) or (B, n, 3) mm
@@ -336,7 +414,10 @@ class DeformationModel(FieldPredictor):
         curves, the training summary)."""
         self._fitted()
         pca = {k: v for k, v in (self.pca_choice_ or {}).items() if k != "validation_curve"}
-        return {**self.network_.describe(), "has_trust": self.has_trust, "pca": pca, "training": self.training_}
+        out = {**self.network_.describe(), "has_trust": self.has_trust, "pca": pca, "training": self.training_}
+        if self.fallback_ is not None:
+            out["fallback"] = self.fallback_.describe()
+        return out
 
     # ------------------------------------------------------------------ persistence
     def save(self, folder, *, onnx: bool = False) -> None:
@@ -352,18 +433,25 @@ class DeformationModel(FieldPredictor):
 
         return cls.from_state(load_model(folder))
 
-    def export_onnx(self, path) -> None:
-        """Write an ONNX graph: input ``markers`` (B, n_d, 3) float32 mm [+ ``present`` (B, n_d)],
-        output ``displacement`` (B, n, 3) float32 mm (PCA reconstruction included)."""
+    def export_onnx(self, path, *, fallback: bool = False) -> None:
+        """Write an ONNX graph: inputs ``markers`` (B, n_d, 3) float32 mm [+ ``auxiliary`` (B, n_a)
+        float32 in ``model.auxiliary.units``] [+ ``present`` (B, n_d)], output ``displacement``
+        (B, n, 3) float32 mm (PCA reconstruction included). ``fallback``: the graph of the
+        fallback without instruments (models with instrument inputs)."""
         from .storage import export_onnx
 
-        self._fitted()
-        export_onnx(self.network_, path)
+        export_onnx(self._learned(fallback), path)
 
-    def torch_module(self):
-        """The equivalent torch module (float32), see :func:`tissuecast.surrogate.network.torch_network`."""
+    def torch_module(self, *, fallback: bool = False):
+        """The equivalent torch module (float32), see :func:`tissuecast.surrogate.network.torch_network`;
+        ``fallback`` as in :meth:`export_onnx`."""
+        return self._learned(fallback).torch_module()
+
+    def _learned(self, fallback: bool) -> NetworkPredictor:
         self._fitted()
-        return self.network_.torch_module()
+        if fallback and self.fallback_ is None:
+            raise ModelError("this model has no fallback: it reads no tracked instrument")
+        return self.fallback_ if fallback else self.network_
 
     def __repr__(self) -> str:
         if not self.is_fitted:

@@ -22,12 +22,14 @@ def build_network(torch, n_in: int, hidden, n_out: int):
 
 
 def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.ndarray, head=None):
-    """A torch module mapping marker displacements to the full displacement field.
+    """A torch module mapping marker displacements (and auxiliary inputs) to the full field.
 
-    Input ``markers`` (B, n_d, 3) float32 mm (and, for masked models, ``present`` (B, n_d)
-    float32 1/0); output (B, n, 3) float32 mm: the ensemble average of the members' PCA
-    weights, plus the quadratic ``head``'s (:mod:`.head`) when given, reconstructed with
-    ``components`` (n_w, 3 n) and ``mean`` (3 n,).
+    Inputs, in this order: ``markers`` (B, n_d, 3) float32 mm; for a model with n_a > 0
+    auxiliary inputs (:mod:`.auxiliary`) ``auxiliary`` (B, n_a) float32 in their units; for
+    masked models ``present`` (B, n_d) float32 1/0 (optional, default all tracked). Output
+    (B, n, 3) float32 mm: the ensemble average of the members' PCA weights, plus the quadratic
+    ``head``'s (:mod:`.head`) when given, reconstructed with ``components`` (n_w, 3 n) and
+    ``mean`` (3 n,).
     """
     torch = require("torch", "learn", "the torch/ONNX surrogate network")
     first = members[0]
@@ -37,6 +39,7 @@ def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.nd
             super().__init__()
             f32 = torch.float32
             self.masked = first.masked
+            self.n_auxiliary = first.n_auxiliary
             self.nets = torch.nn.ModuleList()
             for m in members:
                 net = build_network(torch, m.weights[0].shape[1], m.hidden, m.weights[-1].shape[0])
@@ -62,8 +65,13 @@ def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.nd
                 self.register_buffer("h_a", torch.as_tensor(a, dtype=torch.int64))
                 self.register_buffer("h_b", torch.as_tensor(b, dtype=torch.int64))
 
-        def forward(self, markers, present=None):
-            x = (markers.reshape(markers.shape[0], -1) - self.x_mean) / self.x_std
+        def forward(self, markers, *extra):
+            raw = markers.reshape(markers.shape[0], -1)
+            if self.n_auxiliary:
+                raw = torch.cat([raw, extra[0]], dim=1)
+                extra = extra[1:]
+            present = extra[0] if extra else None
+            x = (raw - self.x_mean) / self.x_std
             if self.masked:
                 if present is None:
                     present = torch.ones(markers.shape[0], markers.shape[1], dtype=markers.dtype)
@@ -73,7 +81,7 @@ def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.nd
                 z = z + net(x)
             w = (z / len(self.nets)) * self.y_std + self.y_mean
             if self.has_head:
-                zh = (markers.reshape(markers.shape[0], -1) - self.h_mean) / self.h_scale
+                zh = (raw - self.h_mean) / self.h_scale
                 w = w + self.h_const + zh @ self.h_lin
                 if self.has_quad:
                     p = zh @ self.h_dirs

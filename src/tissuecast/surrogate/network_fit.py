@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import SurrogateConfig
+from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .component_choice import choose_by_validation, components_to_train
 from .head import fit_head, truncated_head
 from .mlp import TrainingSummary, train_mlp
@@ -51,23 +52,28 @@ class NetworkFit:
     pca_seconds: float
 
 
-def train_members(Xt, Yt, Xv, Yv, config: SurrogateConfig) -> tuple[list[MLPWeights], list[TrainingSummary]]:
+def train_members(Xt, Yt, Xv, Yv, config: SurrogateConfig,
+                  n_auxiliary: int = 0) -> tuple[list[MLPWeights], list[TrainingSummary]]:
     """The ensemble's networks (member k seeded ``seed + ENSEMBLE_SEED_STRIDE k``) and their training summaries.
 
     Args:
-        Xt, Xv: (N_t, 3 n_d), (N_v, 3 n_d) marker displacements, mm.
+        Xt, Xv: (N_t, 3 n_d + n_a), (N_v, 3 n_d + n_a) inputs: marker displacements (mm), then
+            the auxiliary inputs.
         Yt, Yv: (N_t, n_w), (N_v, n_w) target PCA weights, mm.
         config: the surrogate settings (``ensemble``, ``seed`` and the training settings).
+        n_auxiliary: n_a.
     """
     members, summaries = [], []
     for k in range(config.ensemble):
-        w, s = train_mlp(Xt, Yt, Xv, Yv, config, seed=config.seed + ENSEMBLE_SEED_STRIDE * k)
+        w, s = train_mlp(Xt, Yt, Xv, Yv, config, seed=config.seed + ENSEMBLE_SEED_STRIDE * k, n_auxiliary=n_auxiliary)
         members.append(w)
         summaries.append(s)
     return members, summaries
 
 
-def fit_network(Ut: np.ndarray, Uv: np.ndarray, markers: np.ndarray, mesh, config: SurrogateConfig) -> NetworkFit:
+def fit_network(Ut: np.ndarray, Uv: np.ndarray, markers: np.ndarray, mesh, config: SurrogateConfig,
+                At: np.ndarray | None = None, Av: np.ndarray | None = None,
+                auxiliary: AuxiliaryInputs = MARKERS_ONLY) -> NetworkFit:
     """Fit the PCA + (head +) MLP predictor.
 
     Args:
@@ -76,6 +82,9 @@ def fit_network(Ut: np.ndarray, Uv: np.ndarray, markers: np.ndarray, mesh, confi
         markers: (n_d,) int64 0-based marker ids.
         mesh: the :class:`TetMesh` with n vertices.
         config: the surrogate settings.
+        At, Av: (N_t, n_a), (N_v, n_a) auxiliary inputs of the samples (``auxiliary.names``,
+            finite), read by the head and the networks after the markers; None without.
+        auxiliary: what they are (:class:`~.auxiliary.AuxiliaryInputs`).
     """
     c = config
     t0 = time.perf_counter()
@@ -84,6 +93,8 @@ def fit_network(Ut: np.ndarray, Uv: np.ndarray, markers: np.ndarray, mesh, confi
     basis = fit_pca(Ut, n_w)
     cols = marker_columns(markers)
     Xt, Xv = Ut[:, cols], Uv[:, cols]
+    if auxiliary.width:
+        Xt, Xv = np.hstack([Xt, At]), np.hstack([Xv, Av])
     Yt, Yv = basis.transform(Ut), basis.transform(Uv)
     head, head_info = None, {"dims": None}
     if c.head == "quadratic" and c.marker_dropout == 0:
@@ -93,11 +104,12 @@ def fit_network(Ut: np.ndarray, Uv: np.ndarray, markers: np.ndarray, mesh, confi
     head_t = None if head is None else head.predict(Xt)
     head_v = None if head is None else head.predict(Xv)
     members, summaries = train_members(Xt, Yt if head is None else Yt - head_t, Xv,
-                                       Yv if head is None else Yv - head_v, c)
+                                       Yv if head is None else Yv - head_v, c, auxiliary.width)
     choice = {"rule": rule, "n_components": n_w, "head": head_info}
     if not c.n_components and c.pca_rule == "validation":
         n_w, curve_v = choose_by_validation(members, basis, Xv, Uv, head_v)
         basis, members = basis.truncated(n_w), [m.truncated(n_w) for m in members]
         head = truncated_head(head, n_w)
         choice.update(n_components=n_w, trained_components=int(curve_v["n_components"][-1]), validation_curve=curve_v)
-    return NetworkFit(NetworkPredictor(mesh, markers, basis, members, head), choice, curve, summaries, t_pca - t0)
+    return NetworkFit(NetworkPredictor(mesh, markers, basis, members, head, auxiliary), choice, curve, summaries,
+                      t_pca - t0)

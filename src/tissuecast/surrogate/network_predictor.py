@@ -1,8 +1,10 @@
 """The learned predictor: PCA basis, quadratic head and network ensemble, composed.
 
-A prediction is ``decode(head(d) + mean over members of network_k(d))``: the networks
-(:class:`~.weights.MLPWeights`) and the optional quadratic head (:mod:`.head`) map the marker
-displacements d (3 n_d,) mm to the PCA weights (n_w,) mm, and the PCA basis
+A prediction is ``decode(head(x) + mean over members of network_k(x))``: the networks
+(:class:`~.weights.MLPWeights`) and the optional quadratic head (:mod:`.head`) map the input
+x = [d, a], the marker displacements d (3 n_d,) mm and the model's auxiliary inputs a (n_a,)
+(:mod:`.auxiliary`: instrument poses, measured parameters; none for a markers-only model), to
+the PCA weights (n_w,) mm, and the PCA basis
 (:class:`~.pca.PCABasis`) decodes them into the field (3 n,) mm. The precompiled numpy
 forward pass (:class:`~.fastpath.CompiledSurrogate`) evaluates the whole chain; the torch
 module (:func:`~.network.torch_network`) is its float32 twin for ONNX.
@@ -15,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ModelError
+from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .fastpath import CompiledSurrogate
 from .field_predictor import FieldPredictor, check_vertex_ids
 from .pca import PCABasis
@@ -34,20 +37,25 @@ class NetworkPredictor(FieldPredictor):
         members: M >= 1 trained networks predicting the n_w weights (residual of the head).
         head: optional quadratic head (:mod:`.head`) the networks correct; None without one
             (and always None for networks trained with marker masking).
+        auxiliary: the auxiliary inputs the networks and the head read after the markers
+            (:class:`~.auxiliary.AuxiliaryInputs`; default none).
 
     Raises:
-        ModelError: the parts do not fit together (components, markers, masking).
+        ModelError: the parts do not fit together (components, markers, masking, inputs).
     """
 
     name = "mlp"
 
-    def __init__(self, mesh, markers, basis: PCABasis, members: list[MLPWeights], head: QuadraticRegression | None = None):
+    def __init__(self, mesh, markers, basis: PCABasis, members: list[MLPWeights], head: QuadraticRegression | None = None,
+                 auxiliary: AuxiliaryInputs = MARKERS_ONLY):
         mk = check_vertex_ids(markers, mesh.n_vertices)
         members = list(members)
-        if not members or members[0].weights[-1].shape[0] != basis.n_components or members[0].n_markers != len(mk):
-            raise ModelError("network and PCA basis/markers do not fit together; the model folder is inconsistent")
-        if head is not None and (head.coef.shape[1] != basis.n_components or head.mean.size != 3 * len(mk)
-                                 or members[0].masked):
+        if (not members or members[0].weights[-1].shape[0] != basis.n_components or members[0].n_markers != len(mk)
+                or members[0].n_auxiliary != auxiliary.width):
+            raise ModelError("network and PCA basis/markers/auxiliary inputs do not fit together; the model folder is "
+                             "inconsistent")
+        if head is not None and (head.coef.shape[1] != basis.n_components
+                                 or head.mean.size != 3 * len(mk) + auxiliary.width or members[0].masked):
             raise ModelError("the quadratic head does not fit the network, PCA basis or markers; "
                              "the model folder is inconsistent")
         if basis.n_features != 3 * mesh.n_vertices:
@@ -57,6 +65,7 @@ class NetworkPredictor(FieldPredictor):
         self.basis = basis
         self.members = members
         self.head = head
+        self.auxiliary = auxiliary
         self.compiled = CompiledSurrogate(members, basis, head)
 
     # ------------------------------------------------------------------ description
@@ -89,15 +98,26 @@ class NetworkPredictor(FieldPredictor):
                 "head": None if self.head is None else {"kind": "quadratic", "dims": int(len(self.head.directions))}}
 
     # ------------------------------------------------------------------ prediction
-    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
-        return self.compiled.fields(d, missing).reshape(d.shape[0], -1, 3)
+    def inputs(self, d: np.ndarray, a: np.ndarray | None) -> np.ndarray:
+        """The learned parts' input x (B, 3 n_d + n_a): checked displacements d (B, 3 n_d) mm and
+        auxiliary inputs a (B, n_a) (every instrument present), or d itself without them."""
+        if a is None:
+            return d
+        if self.auxiliary.absent(a).any():
+            raise ModelError("this network reads the instruments' poses and cannot predict with an instrument absent "
+                             "(NaN); predict with the model, whose fallback reads the markers only")
+        return np.hstack([d, a])
 
-    def member_weights(self, marker_displacements, *, missing=None) -> np.ndarray:
+    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
+        return self.compiled.fields(self.inputs(d, a), missing).reshape(d.shape[0], -1, 3)
+
+    def member_weights(self, marker_displacements, *, missing=None, auxiliary=None) -> np.ndarray:
         """PCA weights of every member (M, B, n_w) mm (the head's added), inputs as :meth:`predict` (batch)."""
         d, miss, _ = self.marker_batch(marker_displacements, missing)
-        return self.compiled.member_weights(d, miss)
+        return self.compiled.member_weights(self.inputs(d, self.auxiliary_batch(auxiliary, d.shape[0])), miss)
 
-    def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None,
+                                 auxiliary=None) -> tuple[np.ndarray, np.ndarray]:
         """Ensemble mean field and per-vertex uncertainty.
 
         Returns:
@@ -108,7 +128,7 @@ class NetworkPredictor(FieldPredictor):
         d, miss, single = self.marker_batch(marker_displacements, missing)
         if not self.has_uncertainty:
             raise ModelError("uncertainty needs an ensemble; fit with surrogate.ensemble >= 2")
-        W = self.compiled.member_weights(d, miss)  # (M, B, n_w)
+        W = self.compiled.member_weights(self.inputs(d, self.auxiliary_batch(auxiliary, d.shape[0])), miss)  # (M, B, n_w)
         C = self.basis.components
         u = (W.mean(axis=0) @ C + self.basis.mean).reshape(d.shape[0], -1, 3)
         dev = ((W - W.mean(axis=0)) @ C).reshape(W.shape[0], d.shape[0], -1, 3)

@@ -1,6 +1,8 @@
 """Out-of-distribution scores of a marker input, from what is observable during surgery.
 
-Three scores per input d (n_d, 3) mm:
+Three scores per input d (n_d, 3) mm (for a model with auxiliary inputs a, :mod:`.auxiliary`,
+the input is x = [d, a]: the distance is taken over all of it, and every marker is predicted
+from the other markers and a, so an instrument pose that disagrees with the markers shows):
 
 - **distance** from the training inputs: the mean Euclidean distance to the ``k`` nearest
   training inputs after whitening (the training inputs' principal axes scaled to unit
@@ -111,8 +113,8 @@ class MarkerConsistency:
     :meth:`faults` tests the same residuals for a bias on one marker (module docstring).
 
     Attributes:
-        regressions: n_d maps from the other markers' (3 n_d - 3) displacements to this
-            marker's (3,), mm.
+        regressions: n_d maps from the other markers' (3 n_d - 3) displacements (and the n_a
+            auxiliary inputs after them) to this marker's (3,), mm.
         scale: (n_d,) root-mean-square residual distance of each marker on validation samples, mm.
         mean: (3 n_d,) mean validation residual vector, mm.
         precision: (3 n_d, 3 n_d) inverse of the (shrunk) validation residual covariance, 1/mm^2.
@@ -134,9 +136,10 @@ class MarkerConsistency:
             object.__setattr__(self, "_fault_maps", (LF, np.linalg.inv(gram)))
 
     def residual_vectors(self, X) -> np.ndarray:
-        """(B, 3 n_d) predicted minus observed displacement of every marker, mm."""
+        """(B, 3 n_d) predicted minus observed displacement of every marker, mm, from inputs
+        X (B, 3 n_d + n_a)."""
         X = np.asarray(X, dtype=np.float64)
-        out = np.empty_like(X)
+        out = np.empty((len(X), 3 * len(self.regressions)))
         for j, reg in enumerate(self.regressions):
             cols = np.s_[3 * j:3 * j + 3]
             out[:, cols] = reg.predict(np.delete(X, cols, axis=1)) - X[:, cols]
@@ -173,15 +176,16 @@ def _mahalanobis(R: np.ndarray, precision: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(np.einsum("bi,ij,bj->b", R, precision, R), 0.0))
 
 
-def fit_marker_consistency(X_train, X_valid) -> MarkerConsistency | None:
-    """Fit on training inputs (N_t, 3 n_d) mm, residual statistics on validation inputs; None for n_d < 2.
+def fit_marker_consistency(X_train, X_valid, n_auxiliary: int = 0) -> MarkerConsistency | None:
+    """Fit on training inputs (N_t, 3 n_d + n_a) (mm, then the n_a auxiliary inputs), residual
+    statistics on validation inputs; None for n_d < 2.
 
     The covariance is shrunk towards its mean variance with weight ``p / (p + N_v)``
     (p = 3 n_d), so that it stays invertible with few validation samples.
     """
     X_train = np.asarray(X_train, dtype=np.float64)
     X_valid = np.asarray(X_valid, dtype=np.float64)
-    n_d = X_train.shape[1] // 3
+    n_d = (X_train.shape[1] - n_auxiliary) // 3
     if n_d < 2:
         return None
     regs = []
@@ -198,9 +202,11 @@ def fit_marker_consistency(X_train, X_valid) -> MarkerConsistency | None:
     cov = (1.0 - shrink) * cov + shrink * avg * np.eye(p)
     dist = np.linalg.norm(R.reshape(len(R), -1, 3), axis=2)
     scale = np.sqrt((dist**2).mean(axis=0))
-    # F_j by central differences at the training mean (exact for the quadratic regressions)
+    # F_j by central differences at the training mean (exact for the quadratic regressions),
+    # moving one marker coordinate at a time
     center = X_train.mean(axis=0)
-    steps = np.concatenate([center + np.eye(p), center - np.eye(p)])
+    unit = np.eye(p, X_train.shape[1])
+    steps = np.concatenate([center + unit, center - unit])
     diff = draft.residual_vectors(steps)
     sensitivity = ((diff[:p] - diff[p:]) / 2.0).reshape(n_d, 3, p).transpose(0, 2, 1)
     return MarkerConsistency(tuple(regs), np.maximum(scale, _SCALE_FLOOR_REL * max(float(scale.max()), 1e-300)), mean,

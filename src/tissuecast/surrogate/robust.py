@@ -124,16 +124,19 @@ class SubModelSet(FieldPredictor):
         outputs = [o[0] for o in outputs] if single else outputs
         return outputs[0] if len(outputs) == 1 else tuple(outputs)
 
-    def predict(self, marker_displacements, *, missing=None) -> np.ndarray:
+    def predict(self, marker_displacements, *, missing=None, auxiliary=None) -> np.ndarray:
         """(n, 3) or (B, n, 3) mm from marker displacements (as DeformationModel.predict);
-        ``missing``: at most one marker index per sample, or a bool mask."""
+        ``missing``: at most one marker index per sample, or a bool mask. The set reads the
+        markers only (``auxiliary`` is ignored; its models' instruments count as absent)."""
         return self._apply(lambda model, x: model.predict(x), marker_displacements, missing)
 
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
         return self.predict(d.reshape(len(d), -1, 3), missing=missing)
 
-    def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
-        """Ensemble mean (n, 3) mm and per-vertex sigma (n,) mm; every member must be an ensemble."""
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None,
+                                 auxiliary=None) -> tuple[np.ndarray, np.ndarray]:
+        """Ensemble mean (n, 3) mm and per-vertex sigma (n,) mm; every member must be an ensemble
+        (``auxiliary`` is ignored, as in :meth:`predict`)."""
         return self._apply(lambda model, x: model.predict_with_uncertainty(x), marker_displacements, missing)
 
     # ------------------------------------------------------------------ persistence

@@ -38,6 +38,9 @@ class ModelState:
         dataset_path: the store it was trained on, or None.
         scenario: the training data's clinical scenario summary, or None.
         metadata: the ``model.json`` it was read from (None for a model fitted in this process).
+        fallback: for a network with instrument inputs, its fallback without them
+            (:mod:`.fallback`; the same mesh and markers), else None.
+        fallback_trust: the fallback's calibrated trust layer, or None.
     """
 
     config: SurrogateConfig
@@ -51,6 +54,8 @@ class ModelState:
     dataset_path: str | None = None
     scenario: dict | None = None
     metadata: dict | None = field(default=None, repr=False)
+    fallback: NetworkPredictor | None = None
+    fallback_trust: TrustLayer | None = None
 
     @property
     def ridge_components(self) -> int:

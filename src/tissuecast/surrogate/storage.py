@@ -11,6 +11,13 @@ A model folder holds::
                         directions, coef, float64
     trust.npz           optional: error bounds and alarm (tissuecast.surrogate.trust), float64
     model.onnx          optional, from export_onnx
+    fallback/           models with tracked instruments as inputs (tissuecast.surrogate.fallback):
+                        the fallback without them, as weights.safetensors, pca.npz, head.npz,
+                        trust.npz (and model.onnx) above; model.json's "fallback" describes it
+
+``model.json``'s ``auxiliary`` lists the auxiliary inputs (tissuecast.surrogate.auxiliary: the
+instruments with their OpenIGTLink devices, the measured parameters, every input's name and
+unit); folders without it read the markers only.
 
 Arrays are read with ``allow_pickle=False``; torch.load is never used. The folder holds a
 :class:`~.state.ModelState` (``DeformationModel.get_state()`` / ``from_state``): the learned
@@ -30,6 +37,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ModelError, require
 from .network_predictor import NetworkPredictor
+from .auxiliary import AuxiliaryInputs
 from .pca import PCABasis, PCACurve
 from .quadratic import QuadraticRegression
 from .state import ModelState
@@ -40,6 +48,8 @@ __all__ = ["FORMAT", "SCHEMA", "save_model", "load_model", "export_onnx", "read_
 
 FORMAT = "tissuecast-model"
 SCHEMA = 1
+#: Sub-folder of the fallback network of a model with tracked instruments.
+FALLBACK_FOLDER = "fallback"
 
 
 def _versions() -> dict:
@@ -53,12 +63,25 @@ def _versions() -> dict:
     return out
 
 
+def _network_record(net: NetworkPredictor) -> dict:
+    """``model.json``'s description of a network's parts."""
+    m0, head = net.members[0], net.head
+    return {"hidden": list(m0.hidden), "n_layers": len(m0.weights), "masked": bool(m0.masked),
+            "ensemble": len(net.members), "input": "marker displacements (n_d, 3) mm, vertex-major"
+            + (", then the auxiliary inputs" if m0.n_auxiliary else ""),
+            "output": "PCA weights (n_w,) mm", "n_auxiliary": int(m0.n_auxiliary),
+            "head": None if head is None else {"kind": "quadratic", "dims": int(len(head.directions))}}
+
+
 def _metadata(state: ModelState) -> dict:
     """``model.json`` of a model state (its ``files`` without the optional trust and ONNX files)."""
     from ..config import config_to_dict
 
     net = state.network
-    b, m0, head, mesh = net.basis, net.members[0], net.head, net.mesh
+    b, head, mesh = net.basis, net.head, net.mesh
+    record = _network_record(net)
+    if not record["n_auxiliary"]:  # folders of markers-only models read as before
+        del record["n_auxiliary"]
     return {
         "format": FORMAT,
         "schema": SCHEMA,
@@ -73,10 +96,7 @@ def _metadata(state: ModelState) -> dict:
         "fixed": np.asarray(state.fixed, dtype=np.int64).tolist(),
         "reference_marker_positions": net.reference_marker_positions.tolist(),
         "n_components": int(b.n_components),
-        "network": {"hidden": list(m0.hidden), "n_layers": len(m0.weights), "masked": bool(m0.masked),
-                    "ensemble": len(net.members), "input": "marker displacements (n_d, 3) mm, vertex-major",
-                    "output": "PCA weights (n_w,) mm",
-                    "head": None if head is None else {"kind": "quadratic", "dims": int(len(head.directions))}},
+        "network": record,
         "surrogate_config": config_to_dict(state.config),
         "config": state.run_config,
         "dataset_path": state.dataset_path,
@@ -89,13 +109,10 @@ def _metadata(state: ModelState) -> dict:
     }
 
 
-def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
-    """Write a fitted model's state (``DeformationModel.get_state()``) to ``folder`` (created if
-    needed; files overwritten)."""
+def _write_network(net: NetworkPredictor, out: Path) -> None:
+    """A network's weights, PCA basis and head (``weights.safetensors``, ``pca.npz``, ``head.npz``) into ``out``."""
     st = require("safetensors.numpy", "learn", "saving model weights")
-    out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
-    net = state.network
     tensors = {}
     for k, m in enumerate(net.members):
         tensors.update(m.tensors(f"member{k}."))
@@ -103,10 +120,18 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     b = net.basis
     np.savez(out / "pca.npz", mean=b.mean, components=b.components, singular_values=b.singular_values,
              n_samples=np.int64(b.n_samples))
-    np.savez(out / "mesh.npz", points=np.asarray(net.mesh.points, dtype=np.float64),
-             tets=np.asarray(net.mesh.tets, dtype=np.int64))
     if net.head is not None:
         np.savez(out / "head.npz", **net.head.arrays(""))
+
+
+def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
+    """Write a fitted model's state (``DeformationModel.get_state()``) to ``folder`` (created if
+    needed; files overwritten)."""
+    out = Path(folder)
+    net = state.network
+    _write_network(net, out)
+    np.savez(out / "mesh.npz", points=np.asarray(net.mesh.points, dtype=np.float64),
+             tets=np.asarray(net.mesh.tets, dtype=np.int64))
     meta = _metadata(state)
     if state.trust is not None:
         meta["files"]["trust"] = state.trust.save(out)
@@ -114,7 +139,28 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     if onnx:
         export_onnx(net, out / "model.onnx")
         meta["files"]["onnx"] = "model.onnx"
+    if net.auxiliary.width:
+        meta["auxiliary"] = net.auxiliary.as_dict()
+    if state.fallback is not None:
+        meta["fallback"] = _save_fallback(state, out / FALLBACK_FOLDER, onnx)
     (out / "model.json").write_text(json.dumps(meta, indent=2), encoding="utf-8")
+
+
+def _save_fallback(state: ModelState, out: Path, onnx: bool) -> dict:
+    """Write the fallback network (and its trust layer) into ``out``; its ``model.json`` record."""
+    fb = state.fallback
+    _write_network(fb, out)
+    files = {"weights": "weights.safetensors", "pca": "pca.npz", **({"head": "head.npz"} if fb.head is not None else {})}
+    record = {"folder": FALLBACK_FOLDER, "n_components": int(fb.n_components), "network": _network_record(fb),
+              "auxiliary": fb.auxiliary.as_dict()}
+    if state.fallback_trust is not None:
+        files["trust"] = state.fallback_trust.save(out)
+        record["trust"] = state.fallback_trust.summary()
+    if onnx:
+        export_onnx(fb, out / "model.onnx")
+        files["onnx"] = "model.onnx"
+    record["files"] = files
+    return record
 
 
 def read_metadata(folder) -> dict:
@@ -161,25 +207,51 @@ def _weights(folder: Path, meta: dict) -> list[MLPWeights]:
         tensors = st.load_file(str(wpath))
     except Exception as exc:  # safetensors raises its own error types
         raise ModelError(f"model weights {str(wpath)!r} are unreadable: {exc}") from exc
-    return [MLPWeights.from_tensors(tensors, f"member{k}.", net["n_layers"], net["masked"]) for k in range(net["ensemble"])]
+    return [MLPWeights.from_tensors(tensors, f"member{k}.", net["n_layers"], net["masked"], net.get("n_auxiliary", 0))
+            for k in range(net["ensemble"])]
+
+
+def _network_parts(folder: Path, meta: dict, mesh, auxiliary: AuxiliaryInputs) -> NetworkPredictor:
+    """A network of a (sub-)folder whose record ``meta`` has ``network`` and ``files``."""
+    members = _weights(folder, meta)
+    p = _npz(folder / meta["files"]["pca"], ["mean", "components", "singular_values", "n_samples"])
+    basis = PCABasis(mean=p["mean"], components=p["components"], singular_values=p["singular_values"],
+                     n_samples=int(p["n_samples"]))
+    if basis.n_features != 3 * mesh.n_vertices:
+        raise ModelError(f"the PCA basis in {str(folder)!r} does not match the model's mesh; the folder is corrupt")
+    head = None
+    if meta["files"].get("head"):
+        head = QuadraticRegression.from_arrays(_npz(folder / meta["files"]["head"], ["mean", "scale", "directions", "coef"]), "")
+    return NetworkPredictor(mesh, meta["markers"], basis, members, head, auxiliary)
 
 
 def _network(folder: Path, meta: dict) -> NetworkPredictor:
     """The learned predictor of a model folder, its mesh checked against the metadata."""
     from ..mesh import TetMesh
 
-    members = _weights(folder, meta)
-    p = _npz(folder / meta["files"]["pca"], ["mean", "components", "singular_values", "n_samples"])
-    basis = PCABasis(mean=p["mean"], components=p["components"], singular_values=p["singular_values"],
-                     n_samples=int(p["n_samples"]))
     m = _npz(folder / meta["files"]["mesh"], ["points", "tets"])
     mesh = TetMesh(m["points"], m["tets"])
-    if mesh.fingerprint() != meta["mesh_fingerprint"] or basis.n_features != 3 * mesh.n_vertices:
+    if mesh.fingerprint() != meta["mesh_fingerprint"]:
         raise ModelError(f"the mesh in {str(folder)!r} does not match the model's metadata; the folder is corrupt")
-    head = None
-    if meta["files"].get("head"):
-        head = QuadraticRegression.from_arrays(_npz(folder / meta["files"]["head"], ["mean", "scale", "directions", "coef"]), "")
-    return NetworkPredictor(mesh, meta["markers"], basis, members, head)
+    return _network_parts(folder, meta, mesh, AuxiliaryInputs.from_dict(meta.get("auxiliary")))
+
+
+def _trust(path: Path) -> TrustLayer:
+    if not path.is_file():
+        raise ModelError(f"model file {str(path)!r} is missing; the model folder is incomplete")
+    return TrustLayer.load(path)
+
+
+def _fallback(folder: Path, meta: dict, network: NetworkPredictor) -> tuple[NetworkPredictor | None, TrustLayer | None]:
+    """The fallback network (and its trust layer) of a model folder, or ``(None, None)``."""
+    record = meta.get("fallback")
+    if not record:
+        return None, None
+    sub = folder / record.get("folder", FALLBACK_FOLDER)
+    parts = {"network": record["network"], "files": record["files"], "markers": meta["markers"]}
+    net = _network_parts(sub, parts, network.mesh, AuxiliaryInputs.from_dict(record.get("auxiliary")))
+    trust = _trust(sub / record["files"]["trust"]) if record["files"].get("trust") else None
+    return net, trust
 
 
 def load_model(folder) -> ModelState:
@@ -190,23 +262,22 @@ def load_model(folder) -> ModelState:
     meta = read_metadata(folder)
     network = _network(folder, meta)
     curve = PCACurve.from_dict(meta["pca_curve"]) if meta.get("pca_curve") else None
-    trust = None
-    if meta["files"].get("trust"):
-        tpath = folder / meta["files"]["trust"]
-        if not tpath.is_file():
-            raise ModelError(f"model file {str(tpath)!r} is missing; the model folder is incomplete")
-        trust = TrustLayer.load(tpath)
+    trust = _trust(folder / meta["files"]["trust"]) if meta["files"].get("trust") else None
+    fallback, fallback_trust = _fallback(folder, meta, network)
     return ModelState(
         config=config_from_dict({"surrogate": meta["surrogate_config"]}).surrogate, network=network,
         fixed=np.asarray(meta["fixed"], dtype=np.int64),
         pca_choice=meta.get("pca_choice") or {"rule": "paper" if curve else "unrecorded",
                                               "n_components": network.n_components},
         pca_curve=curve, trust=trust, training=meta.get("training") or None, run_config=meta.get("config"),
-        dataset_path=meta.get("dataset_path"), scenario=meta.get("scenario"), metadata=meta)
+        dataset_path=meta.get("dataset_path"), scenario=meta.get("scenario"), metadata=meta, fallback=fallback,
+        fallback_trust=fallback_trust)
 
 
 def export_onnx(network: NetworkPredictor, path) -> None:
-    """Export the learned predictor's full marker -> field network to ONNX (opset 17, dynamic batch)."""
+    """Export the learned predictor's full marker -> field network to ONNX (opset 17, dynamic
+    batch): inputs ``markers`` (B, n_d, 3) mm, ``auxiliary`` (B, n_a) with auxiliary inputs,
+    ``present`` (B, n_d) for masked models; output ``displacement`` (B, n, 3) mm."""
     torch = require("torch", "learn", "ONNX export")
     require("onnx", "learn", "ONNX export")
     net = network.torch_module()
@@ -214,6 +285,10 @@ def export_onnx(network: NetworkPredictor, path) -> None:
     args = (torch.zeros(1, n_d, 3),)
     names = ["markers"]
     axes = {"markers": {0: "batch"}, "displacement": {0: "batch"}}
+    if network.auxiliary.width:
+        args = args + (torch.zeros(1, network.auxiliary.width),)
+        names.append("auxiliary")
+        axes["auxiliary"] = {0: "batch"}
     if network.supports_missing_markers:
         args = args + (torch.ones(1, n_d),)
         names.append("present")

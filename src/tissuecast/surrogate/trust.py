@@ -28,6 +28,11 @@ error model's predicted Offset_max (ranks samples), h_i the disagreement of the 
 predictors at the vertex (ranks vertices within a sample). Bounds are the normaliser times
 the per-vertex conformal quantile. :class:`~.trusted.TrustedPredictor` wraps a predictor and
 its layer.
+
+For a predictor with auxiliary inputs (instrument poses, measured parameters: :mod:`.auxiliary`)
+every part reads the input x = [d, a] (the second predictor, the input distance, the consistency
+regressions, the input error regression; the markers' miss and peak read d), so the bounds and
+the alarm see the instrument too; the methods take the auxiliary values as ``auxiliary=``.
 """
 
 from __future__ import annotations
@@ -155,6 +160,7 @@ class TrustLayer:
         error_input: regression of the log Offset_max on the marker input (the error model's
             last feature), or None (trust files written before it).
         flat: the normaliser is the error model's g alone (models with a quadratic head).
+        n_auxiliary: n_a, the auxiliary inputs read after the markers (0: markers only).
     """
 
     markers: np.ndarray
@@ -167,20 +173,42 @@ class TrustLayer:
     false_alarm: float
     error_input: QuadraticRegression | None = None
     flat: bool = False
+    n_auxiliary: int = 0
+
+    def inputs(self, marker_displacements, auxiliary=None, batch: int | None = None) -> np.ndarray:
+        """The layer's input x (B, 3 n_d + n_a): marker displacements (B, 3 n_d) or (B, n_d, 3) mm
+        and, for a layer with auxiliary inputs, ``auxiliary`` (B, n_a) after them (or already
+        part of ``marker_displacements``, (B, 3 n_d + n_a)).
+
+        Raises:
+            ModelError: a width other than the layer's.
+        """
+        d = np.asarray(marker_displacements, dtype=np.float64)
+        d = d.reshape(len(d) if batch is None else batch, -1)
+        if auxiliary is not None:
+            d = np.hstack([d, np.asarray(auxiliary, dtype=np.float64).reshape(len(d), -1)])
+        width = 3 * len(self.markers) + self.n_auxiliary
+        if d.shape[1] != width:
+            raise ModelError(f"the trust layer reads {3 * len(self.markers)} marker displacements"
+                             f"{f' and {self.n_auxiliary} auxiliary inputs' if self.n_auxiliary else ''}, got {d.shape[1]} "
+                             "values per sample")
+        return d
 
     # ---------------------------------------------------------------- normaliser
     def features(self, d: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """What the error model reads from inputs d (B, 3 n_d) mm and predictions u (B, n, 3) mm.
+        """What the error model reads from inputs x (B, 3 n_d + n_a) (:meth:`inputs`) and
+        predictions u (B, n, 3) mm.
 
         Returns:
             ``(features (B, F), disagreement h (B, n) mm, distance scores (B,))``.
         """
         B = len(d)
+        markers = d[:, :3 * len(self.markers)].reshape(B, -1, 3)
         second = self.basis.inverse_transform(self.second.predict(d)).reshape(B, -1, 3)
         h = np.linalg.norm(u - second, axis=2)
-        miss = np.linalg.norm(u[:, self.markers, :] - d.reshape(B, -1, 3), axis=2).max(axis=1)
+        miss = np.linalg.norm(u[:, self.markers, :] - markers, axis=2).max(axis=1)
         dist = self.ood.distance(d)
-        peak = np.linalg.norm(d.reshape(B, -1, 3), axis=2).max(axis=1)
+        peak = np.linalg.norm(markers, axis=2).max(axis=1)
         cols = [floored_log(h.max(axis=1)), floored_log(h.mean(axis=1)), floored_log(miss), floored_log(dist),
                 np.log1p(peak)]
         if self.error_input is not None:
@@ -195,15 +223,16 @@ class TrustLayer:
         shape = (LAMBDA + h / np.maximum(h.max(axis=1, keepdims=True), LOG_FLOOR)) / (LAMBDA + 1.0)
         return g[:, None] * shape
 
-    def normaliser(self, marker_displacements, displacement) -> np.ndarray:
-        """(B, n) normaliser sigma (mm) of predictions (B, n, 3) mm from inputs (B, 3 n_d) mm."""
-        d = np.asarray(marker_displacements, dtype=np.float64).reshape(len(displacement), -1)
+    def normaliser(self, marker_displacements, displacement, *, auxiliary=None) -> np.ndarray:
+        """(B, n) normaliser sigma (mm) of predictions (B, n, 3) mm from inputs (B, 3 n_d) mm
+        (and ``auxiliary`` (B, n_a), :meth:`inputs`)."""
+        d = self.inputs(marker_displacements, auxiliary, len(displacement))
         feats, h, _ = self.features(d, np.asarray(displacement, dtype=np.float64))
         return self.sigma(feats, h)
 
     # ---------------------------------------------------------------- bounds and alarms
     def assess(self, marker_displacements, displacement, *, coverage: float | None = None,
-               false_alarm: float | None = None) -> tuple[np.ndarray, list[Alarm]]:
+               false_alarm: float | None = None, auxiliary=None) -> tuple[np.ndarray, list[Alarm]]:
         """Error bounds and alarms of a batch of predictions.
 
         Args:
@@ -211,12 +240,13 @@ class TrustLayer:
             displacement: (B, n, 3) mm, the network's predictions for them.
             coverage: nominal coverage (default: :attr:`coverage`).
             false_alarm: false-alarm rate (default: :attr:`false_alarm`).
+            auxiliary: (B, n_a) the auxiliary inputs of a layer that reads some (:meth:`inputs`).
 
         Returns:
             ``(bounds (B, n) mm, alarms: B Alarm)``.
         """
         u = np.asarray(displacement, dtype=np.float64)
-        d = np.asarray(marker_displacements, dtype=np.float64).reshape(len(u), -1)
+        d = self.inputs(marker_displacements, auxiliary, len(u))
         feats, h, dist = self.features(d, u)
         bounds = self.conformal.bounds(self.sigma(feats, h), self.coverage if coverage is None else coverage)
         thr = self.ood.thresholds(self.false_alarm if false_alarm is None else false_alarm)
@@ -236,13 +266,14 @@ class TrustLayer:
                                 float(f_score[b]), float(thr[2])))
         return bounds, alarms
 
-    def alarm_scores(self, marker_displacements) -> np.ndarray:
-        """(B, 3) [distance, consistency, fault] scores of inputs (B, 3 n_d) or (B, n_d, 3) mm (NaN where absent)."""
-        d = np.asarray(marker_displacements, dtype=np.float64)
-        return self.ood.scores(d.reshape(len(d), -1))
+    def alarm_scores(self, marker_displacements, *, auxiliary=None) -> np.ndarray:
+        """(B, 3) [distance, consistency, fault] scores of inputs (B, 3 n_d) or (B, n_d, 3) mm (and
+        ``auxiliary`` (B, n_a), :meth:`inputs`; NaN where absent)."""
+        return self.ood.scores(self.inputs(marker_displacements, auxiliary))
 
     # ---------------------------------------------------------------- calibration
-    def calibrate(self, marker_displacements, displacements, truths, *, chunk: int = PREDICT_CHUNK) -> "TrustLayer":
+    def calibrate(self, marker_displacements, displacements, truths, *, chunk: int = PREDICT_CHUNK,
+                  auxiliary=None) -> "TrustLayer":
         """This layer calibrated on triples the predictor was not fitted on (held-out samples
         today; out-of-fold predictions would do as well): the conformal scores of the bounds
         and the alarm scores of the inputs. Earlier calibration is replaced.
@@ -252,16 +283,17 @@ class TrustLayer:
             displacements: (m, n, 3) mm, the predictor's fields for them.
             truths: (m, n, 3) mm, the true (simulated) fields.
             chunk: samples assessed at once.
+            auxiliary: (m, n_a) the auxiliary inputs of a layer that reads some (:meth:`inputs`).
 
         Raises:
             ModelError: shapes that do not match, or non-finite errors or normalisers.
         """
         u = np.asarray(displacements, dtype=np.float64)
         truth = np.asarray(truths, dtype=np.float64)
-        d = np.asarray(marker_displacements, dtype=np.float64).reshape(len(u), -1)
-        if u.shape != truth.shape or u.ndim != 3 or d.shape[1] != 3 * len(self.markers):
-            raise ModelError(f"calibration needs inputs (m, {3 * len(self.markers)}) mm and predictions and truths (m, n, 3) "
-                             f"mm of one shape, got {d.shape}, {u.shape} and {truth.shape}")
+        if u.shape != truth.shape or u.ndim != 3:
+            raise ModelError(f"calibration needs inputs (m, {3 * len(self.markers) + self.n_auxiliary}) and predictions "
+                             f"and truths (m, n, 3) mm of one shape, got {u.shape} and {truth.shape}")
+        d = self.inputs(marker_displacements, auxiliary, len(u))
         feats, hs, errors = [], [], []
         for s in range(0, len(u), chunk):
             f, h, _ = self.features(d[s:s + chunk], u[s:s + chunk])
@@ -287,6 +319,7 @@ class TrustLayer:
         if self.error_input is not None:
             out.update(self.error_input.arrays("error_input."))
         out["flat"] = np.bool_(self.flat)
+        out["n_auxiliary"] = np.int64(self.n_auxiliary)
         cons = self.ood.consistency
         out["ood.consistency.count"] = np.int64(0 if cons is None else len(cons.regressions))
         if cons is not None:
@@ -322,7 +355,8 @@ class TrustLayer:
                                  bool(a["ood.use_fault"]) if "ood.use_fault" in a else False),
                    coverage=float(a["coverage"]), false_alarm=float(a["false_alarm"]),
                    error_input=QuadraticRegression.from_arrays(a, "error_input.") if "error_input.coef" in a else None,
-                   flat=bool(a["flat"]) if "flat" in a else False)
+                   flat=bool(a["flat"]) if "flat" in a else False,
+                   n_auxiliary=int(a["n_auxiliary"]) if "n_auxiliary" in a else 0)
 
     def save(self, folder) -> str:
         """Write ``trust.npz`` into a model folder; returns the file name."""
@@ -349,4 +383,4 @@ class TrustLayer:
                 "consistency": self.ood.consistency is not None,
                 "fault_score": self.ood.consistency is not None and self.ood.consistency.sensitivity is not None,
                 "fault_score_in_alarm": self.ood.use_fault,
-                "flat_normaliser": self.flat}
+                "flat_normaliser": self.flat, "auxiliary_inputs": self.n_auxiliary}

@@ -39,38 +39,44 @@ ERROR_INPUT_DIMS = (0, 6)
 _ERROR_INPUT_RIDGE = 1e-3
 
 
-def held_out_predictions(predictor: FieldPredictor, displacements, idx, chunk: int = PREDICT_CHUNK):
-    """The predictor's fields for samples ``idx`` from their own marker displacements.
+def held_out_predictions(predictor: FieldPredictor, displacements, idx, chunk: int = PREDICT_CHUNK, auxiliary=None):
+    """The predictor's fields for samples ``idx`` from their own marker displacements (and
+    auxiliary inputs).
 
     Args:
         predictor: any :class:`FieldPredictor` on the fields' mesh.
         displacements: (N, n, 3) fields, mm.
         idx: (m,) sample indices.
         chunk: samples predicted at once.
+        auxiliary: (N, n_a) every sample's auxiliary inputs (:mod:`.auxiliary`), for a
+            predictor that reads some; None without.
 
     Returns:
-        ``(inputs (m, 3 n_d) mm, predictions (m, n, 3) mm, truths (m, n, 3) mm)``, float64.
+        ``(inputs (m, 3 n_d + n_a), predictions (m, n, 3) mm, truths (m, n, 3) mm)``, float64:
+        the inputs are the marker displacements (mm) followed by the auxiliary inputs.
     """
     inputs, predictions, truths = [], [], []
     for s in range(0, len(idx), chunk):
-        bench = np.asarray(displacements[idx[s:s + chunk]], dtype=np.float64)
+        rows = np.asarray(idx[s:s + chunk])
+        bench = np.asarray(displacements[rows], dtype=np.float64)
         d = bench[:, predictor.markers, :].reshape(len(bench), -1)
-        predictions.append(predictor.predict(d.reshape(len(bench), -1, 3)))
-        inputs.append(d)
+        a = None if auxiliary is None else np.asarray(auxiliary, dtype=np.float64)[rows]
+        predictions.append(predictor.predict(d.reshape(len(bench), -1, 3), auxiliary=a))
+        inputs.append(d if a is None else np.hstack([d, a]))
         truths.append(bench)
     return np.vstack(inputs), np.concatenate(predictions), np.concatenate(truths)
 
 
 def _assessed_samples(predictor: FieldPredictor, draft: TrustLayer, U, idx: np.ndarray,
-                      chunk: int) -> tuple[np.ndarray, ...]:
+                      chunk: int, auxiliary=None) -> tuple[np.ndarray, ...]:
     """The predictor's fields of samples ``idx`` assessed by ``draft``, ``chunk`` samples at a time.
 
     Returns:
-        ``(features (B, F), vertex errors (B, n) mm, inputs (B, 3 n_d) mm)``.
+        ``(features (B, F), vertex errors (B, n) mm, inputs (B, 3 n_d + n_a))``.
     """
     feats, errs, inputs = [], [], []
     for s in range(0, len(idx), chunk):
-        d, u, bench = held_out_predictions(predictor, U, idx[s:s + chunk], chunk)
+        d, u, bench = held_out_predictions(predictor, U, idx[s:s + chunk], chunk, auxiliary)
         feats.append(draft.features(d, u)[0])
         errs.append(np.linalg.norm(u - bench, axis=2))
         inputs.append(d)
@@ -84,21 +90,23 @@ def _error_model(features: np.ndarray, errors: np.ndarray) -> np.ndarray:
     return np.linalg.solve(G, F.T @ floored_log(errors.max(axis=1)))
 
 
-def _second_predictor(Ut: np.ndarray, cols: np.ndarray, basis: PCABasis | None,
+def _second_predictor(Ut: np.ndarray, Xt: np.ndarray, basis: PCABasis | None,
                       head: QuadraticRegression | None) -> tuple[PCABasis, QuadraticRegression, PCABasis]:
     """``(second basis, second regression, basis of the input error regression)``: the given head
-    on the given basis, or a quadratic regression on :data:`SECOND_COMPONENTS` of the training fields."""
+    on the given basis, or a quadratic regression of :data:`SECOND_COMPONENTS` of the training
+    fields on the inputs ``Xt`` (N_t, 3 n_d + n_a)."""
     if head is not None:  # the networks' correction of their head (ranks samples; within a sample the conformal quantiles do)
         if basis is None:
             raise ModelError("a head as second predictor needs the PCA basis it predicts the weights of")
         return basis, head, basis
     own = fit_pca(Ut, min(SECOND_COMPONENTS, len(Ut) - 1, Ut.shape[1]))
-    return own, fit_quadratic(Ut[:, cols], own.transform(Ut)), own if basis is None else basis
+    return own, fit_quadratic(Xt, own.transform(Ut)), own if basis is None else basis
 
 
 def fit_trust_layer(predictor: FieldPredictor, displacements, *, train_idx, valid_idx, coverage: float,
                     false_alarm: float, fault_score: bool = False, basis: PCABasis | None = None,
-                    head: QuadraticRegression | None = None, chunk: int = PREDICT_CHUNK) -> TrustLayer:
+                    head: QuadraticRegression | None = None, chunk: int = PREDICT_CHUNK,
+                    auxiliary=None) -> TrustLayer:
     """The trust layer of a fitted predictor, not calibrated yet (:meth:`TrustLayer.calibrate`).
 
     Args:
@@ -115,27 +123,33 @@ def fit_trust_layer(predictor: FieldPredictor, displacements, *, train_idx, vali
         head: the predictor's quadratic head on ``basis``, if it has one: it is then the second
             predictor and the normaliser is flat (module docstring of :mod:`.trust`).
         chunk: samples predicted at once.
+        auxiliary: (N, n_a) every sample's auxiliary inputs, for a predictor that reads some
+            (:mod:`.auxiliary`): every part of the layer then reads them after the markers.
     """
     sets = [np.asarray(i, dtype=np.int64) for i in (train_idx, valid_idx)]
     U, mk = displacements, predictor.markers
     cols = marker_columns(mk)
+    A = None if auxiliary is None else np.asarray(auxiliary, dtype=np.float64)
+    n_a = 0 if A is None else A.shape[1]
     Ut = np.asarray(U[sets[0]], dtype=np.float64).reshape(len(sets[0]), -1)
-    second_basis, second, error_basis = _second_predictor(Ut, cols, basis, head)
-    Xt = Ut[:, cols]
+    Xt = Ut[:, cols] if A is None else np.hstack([Ut[:, cols], A[sets[0]]])
+    second_basis, second, error_basis = _second_predictor(Ut, Xt, basis, head)
     distance = fit_input_distance(Xt)
     Xv = np.asarray(U[sets[1]], dtype=np.float64).reshape(len(sets[1]), -1)[:, cols]
-    consistency = fit_marker_consistency(Xt, Xv)
+    Xv = Xv if A is None else np.hstack([Xv, A[sets[1]]])
+    consistency = fit_marker_consistency(Xt, Xv, n_a)
     ood0 = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0))
     empty = VertexConformal(np.zeros((0, U.shape[1])))
     draft = TrustLayer(mk, second_basis, second, np.zeros(1 + len(FEATURE_NAMES)), empty, ood0, coverage, false_alarm,
-                       flat=head is not None)
-    fv, ev, dv = _assessed_samples(predictor, draft, U, sets[1], chunk)
+                       flat=head is not None, n_auxiliary=n_a)
+    fv, ev, dv = _assessed_samples(predictor, draft, U, sets[1], chunk, A)
     q = len(head.directions) if head is not None else min(12, Xt.shape[1])
     error_input = _input_error_regression(error_basis, q, Ut, Xt, dv, ev)
     if error_input is not None:
         fv = np.hstack([fv, error_input.predict(dv)])
     return TrustLayer(mk, second_basis, second, _error_model(fv, ev), empty,
-                      scale_ood(distance, consistency, dv, fault_score), coverage, false_alarm, error_input, head is not None)
+                      scale_ood(distance, consistency, dv, fault_score), coverage, false_alarm, error_input, head is not None,
+                      n_a)
 
 
 def _check_splits(sets: list[np.ndarray]) -> None:
@@ -156,7 +170,7 @@ def _warn_if_too_few(m: int, coverage: float, false_alarm: float) -> None:
 
 def fit_trust(predictor: FieldPredictor, displacements, *, train_idx, valid_idx, calibration_idx, coverage: float,
               false_alarm: float, fault_score: bool = False, basis: PCABasis | None = None,
-              head: QuadraticRegression | None = None, chunk: int = PREDICT_CHUNK) -> TrustLayer:
+              head: QuadraticRegression | None = None, chunk: int = PREDICT_CHUNK, auxiliary=None) -> TrustLayer:
     """:func:`fit_trust_layer`, calibrated on the held-out ``calibration_idx`` samples (split conformal).
 
     Args:
@@ -170,8 +184,9 @@ def fit_trust(predictor: FieldPredictor, displacements, *, train_idx, valid_idx,
     sets = [np.asarray(i, dtype=np.int64) for i in (train_idx, valid_idx, calibration_idx)]
     _check_splits(sets)
     draft = fit_trust_layer(predictor, displacements, train_idx=sets[0], valid_idx=sets[1], coverage=coverage,
-                            false_alarm=false_alarm, fault_score=fault_score, basis=basis, head=head, chunk=chunk)
-    layer = draft.calibrate(*held_out_predictions(predictor, displacements, sets[2], chunk), chunk=chunk)
+                            false_alarm=false_alarm, fault_score=fault_score, basis=basis, head=head, chunk=chunk,
+                            auxiliary=auxiliary)
+    layer = draft.calibrate(*held_out_predictions(predictor, displacements, sets[2], chunk, auxiliary), chunk=chunk)
     _warn_if_too_few(len(sets[2]), coverage, false_alarm)
     return layer
 

@@ -39,25 +39,29 @@ class TrustedPredictor(FieldPredictor):
         if not np.array_equal(np.asarray(layer.markers), predictor.markers):
             raise ModelError(f"the trust layer is for markers {np.asarray(layer.markers).tolist()}, the predictor uses "
                              f"{predictor.markers.tolist()}; calibrate the layer for this predictor")
+        if layer.n_auxiliary != predictor.auxiliary.width:
+            raise ModelError(f"the trust layer reads {layer.n_auxiliary} auxiliary inputs, the predictor "
+                             f"{predictor.auxiliary.width}; calibrate the layer for this predictor")
         self.predictor = predictor
         self.layer = layer
 
     @classmethod
     def fit(cls, predictor: FieldPredictor, displacements, *, train_idx, valid_idx, calibration_idx, coverage: float,
             false_alarm: float, fault_score: bool = False, basis: PCABasis | None = None,
-            head: QuadraticRegression | None = None, chunk: int = PREDICT_CHUNK) -> "TrustedPredictor":
+            head: QuadraticRegression | None = None, chunk: int = PREDICT_CHUNK, auxiliary=None) -> "TrustedPredictor":
         """Fit and calibrate the layer of a fitted ``predictor`` (:func:`.trust_fit.fit_trust`;
         arguments as there) and wrap it."""
         layer = fit_trust(predictor, displacements, train_idx=train_idx, valid_idx=valid_idx,
                           calibration_idx=calibration_idx, coverage=coverage, false_alarm=false_alarm,
-                          fault_score=fault_score, basis=basis, head=head, chunk=chunk)
+                          fault_score=fault_score, basis=basis, head=head, chunk=chunk, auxiliary=auxiliary)
         return cls(predictor, layer)
 
-    def calibrate(self, marker_displacements, displacements, truths) -> "TrustedPredictor":
+    def calibrate(self, marker_displacements, displacements, truths, *, auxiliary=None) -> "TrustedPredictor":
         """The same predictor with its layer recalibrated on (input (m, n_d, 3), prediction
         (m, n, 3), truth (m, n, 3)) triples, mm, that the predictor was not fitted on
-        (:meth:`TrustLayer.calibrate`)."""
-        return TrustedPredictor(self.predictor, self.layer.calibrate(marker_displacements, displacements, truths))
+        (:meth:`TrustLayer.calibrate`; ``auxiliary`` (m, n_a) for a predictor with auxiliary inputs)."""
+        return TrustedPredictor(self.predictor, self.layer.calibrate(marker_displacements, displacements, truths,
+                                                                     auxiliary=auxiliary))
 
     # ------------------------------------------------------------------ the wrapped predictor
     @property
@@ -80,14 +84,19 @@ class TrustedPredictor(FieldPredictor):
     def has_uncertainty(self) -> bool:
         return self.predictor.has_uncertainty
 
-    def predict(self, marker_displacements, *, missing=None) -> np.ndarray:
-        return self.predictor.predict(marker_displacements, missing=missing)
+    @property
+    def auxiliary(self):
+        return self.predictor.auxiliary
 
-    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
-        return self.predictor.predict(d, missing=missing)
+    def predict(self, marker_displacements, *, missing=None, auxiliary=None) -> np.ndarray:
+        return self.predictor.predict(marker_displacements, missing=missing, auxiliary=auxiliary)
 
-    def predict_with_uncertainty(self, marker_displacements, *, missing=None) -> tuple[np.ndarray, np.ndarray]:
-        return self.predictor.predict_with_uncertainty(marker_displacements, missing=missing)
+    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
+        return self.predictor.predict(d, missing=missing, auxiliary=a)
+
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None,
+                                 auxiliary=None) -> tuple[np.ndarray, np.ndarray]:
+        return self.predictor.predict_with_uncertainty(marker_displacements, missing=missing, auxiliary=auxiliary)
 
     # ------------------------------------------------------------------ bounds and alarm
     @property
@@ -101,21 +110,24 @@ class TrustedPredictor(FieldPredictor):
         return self.layer.conformal.n_calibration
 
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None,
-                        false_alarm: float | None = None) -> TrustedPrediction:
+                        false_alarm: float | None = None, auxiliary=None) -> TrustedPrediction:
         """The predictor's field with per-vertex error bounds and the out-of-distribution alarm.
 
         Args:
             marker_displacements: as for :meth:`predict` (every marker tracked), mm.
             coverage: nominal coverage of the bounds (default: the layer's).
             false_alarm: false-alarm rate of the alarm (default: the layer's).
+            auxiliary: the predictor's auxiliary inputs, as for :meth:`predict` (the bounds and
+                the alarm read them too).
 
         Returns:
             A :class:`~tissuecast.surrogate.trust.TrustedPrediction`: displacement (n, 3) or
             (B, n, 3) mm, error_bound (n,) or (B, n) mm, and one Alarm or a list of B.
         """
         d, _, single = self.marker_batch(marker_displacements)
-        u = self.predictor.predict(d)
-        bounds, alarms = self.layer.assess(d, u, coverage=coverage, false_alarm=false_alarm)
+        a = self.auxiliary_batch(auxiliary, d.shape[0])
+        u = self.predictor.predict(d, auxiliary=a)
+        bounds, alarms = self.layer.assess(d, u, coverage=coverage, false_alarm=false_alarm, auxiliary=a)
         if single:
             return TrustedPrediction(u[0], bounds[0], coverage or self.layer.coverage, alarms[0])
         return TrustedPrediction(u, bounds, coverage or self.layer.coverage, alarms)

@@ -24,11 +24,13 @@ class MLPWeights:
     Attributes:
         weights: per layer (out, in) float32; the last layer outputs n_w scaled weights.
         biases: per layer (out,) float32.
-        x_mean: (3 n_d,) float32 mm, marker-displacement mean (training set).
-        x_std: (3 n_d,) float32 mm, marker-displacement scale.
+        x_mean: (3 n_d + n_a,) float32 input mean (training set): marker displacements (mm),
+            then the auxiliary inputs (:mod:`.auxiliary`) in their units.
+        x_std: (3 n_d + n_a,) float32 input scale.
         y_mean: (n_w,) float32 mm, PCA-weight mean.
         y_std: (n_w,) float32 mm, PCA-weight scale.
-        masked: whether the input carries n_d marker-present channels after the 3 n_d values.
+        masked: whether the input carries n_d marker-present channels (:mod:`.encoding`).
+        n_auxiliary: n_a, the auxiliary inputs after the 3 n_d marker displacements.
     """
 
     weights: tuple
@@ -38,28 +40,31 @@ class MLPWeights:
     y_mean: np.ndarray
     y_std: np.ndarray
     masked: bool = False
+    n_auxiliary: int = 0
 
     @property
     def n_markers(self) -> int:
-        return self.x_mean.size // 3
+        return (self.x_mean.size - self.n_auxiliary) // 3
 
     @property
     def hidden(self) -> tuple[int, ...]:
         return tuple(int(w.shape[0]) for w in self.weights[:-1])
 
-    def features(self, marker_displacements: np.ndarray, present: np.ndarray | None = None) -> np.ndarray:
-        """Network input (B, 3 n_d [+ n_d]) (:mod:`.encoding`) from displacements (B, 3 n_d) mm
-        (finite) and present (B, n_d) bool or 1/0 (default: every marker tracked)."""
-        x = (np.asarray(marker_displacements, dtype=np.float64) - self.x_mean) / self.x_std
+    def features(self, inputs: np.ndarray, present: np.ndarray | None = None) -> np.ndarray:
+        """Network input (B, 3 n_d + n_a [+ n_d]) (:mod:`.encoding`) from inputs (B, 3 n_d + n_a)
+        (displacements mm, then the auxiliary inputs; finite) and present (B, n_d) bool or 1/0
+        (default: every marker tracked)."""
+        x = (np.asarray(inputs, dtype=np.float64) - self.x_mean) / self.x_std
         if not self.masked:
             return x
         if present is None:
             present = np.ones((x.shape[0], self.n_markers))
         return masked_input(x, np.asarray(present, dtype=np.float64))
 
-    def predict_weights(self, marker_displacements, present=None) -> np.ndarray:
-        """PCA weights (B, n_w) mm; float64 reference implementation of the forward pass."""
-        h = self.features(marker_displacements, present)
+    def predict_weights(self, inputs, present=None) -> np.ndarray:
+        """PCA weights (B, n_w) mm from inputs (B, 3 n_d + n_a); float64 reference implementation
+        of the forward pass."""
+        h = self.features(inputs, present)
         last = len(self.weights) - 1
         for i, (W, b) in enumerate(zip(self.weights, self.biases)):
             h = h @ W.T.astype(np.float64) + b
@@ -76,7 +81,7 @@ class MLPWeights:
         return MLPWeights(weights=(*self.weights[:-1], self.weights[-1][:k].copy()),
                           biases=(*self.biases[:-1], self.biases[-1][:k].copy()),
                           x_mean=self.x_mean, x_std=self.x_std, y_mean=self.y_mean[:k].copy(),
-                          y_std=self.y_std[:k].copy(), masked=self.masked)
+                          y_std=self.y_std[:k].copy(), masked=self.masked, n_auxiliary=self.n_auxiliary)
 
     def tensors(self, prefix: str) -> dict[str, np.ndarray]:
         """Flat name -> array dict for safetensors/npz storage."""
@@ -88,7 +93,7 @@ class MLPWeights:
         return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
 
     @classmethod
-    def from_tensors(cls, t: dict, prefix: str, n_layers: int, masked: bool) -> "MLPWeights":
+    def from_tensors(cls, t: dict, prefix: str, n_layers: int, masked: bool, n_auxiliary: int = 0) -> "MLPWeights":
         try:
             return cls(
                 weights=tuple(np.asarray(t[f"{prefix}layer{i}.weight"], np.float32) for i in range(n_layers)),
@@ -98,6 +103,7 @@ class MLPWeights:
                 y_mean=np.asarray(t[f"{prefix}y_mean"], np.float32),
                 y_std=np.asarray(t[f"{prefix}y_std"], np.float32),
                 masked=bool(masked),
+                n_auxiliary=int(n_auxiliary),
             )
         except KeyError as exc:
             raise ModelError(f"model weights file lacks tensor {exc}; the model folder is incomplete or corrupt") from exc
