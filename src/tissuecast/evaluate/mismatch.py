@@ -148,28 +148,33 @@ class ArraySet:
 
     Args:
         displacements: (N, n, 3) float mm.
-        mesh: the mesh.  scenario: the scenario record (dict) or None.
+        mesh: the mesh.
+        record: the scenario's record (dict), or None when not known.
+        instrument_poses: the samples' instrument poses (as :attr:`~tissuecast.dataset.Dataset.instrument_poses`).
+        parameters: the samples' drawn parameters (as :attr:`~tissuecast.dataset.Dataset.parameters`).
     """
 
-    def __init__(self, displacements: np.ndarray, mesh, scenario=None):
+    def __init__(self, displacements: np.ndarray, mesh, record: dict | None, instrument_poses: dict | None = None,
+                 parameters: dict | None = None):
         self.displacements = np.asarray(displacements)
         self.mesh = mesh
-        self.scenario = scenario
+        self.scenario = record
         self.beta = np.full(len(self.displacements), np.nan)
         self.n_samples = len(self.displacements)
-        self.instrument_poses: dict = {}  # none recorded: a model reading instruments is refused clearly
-        self.parameters: dict = {}
+        self.instrument_poses = instrument_poses or {}
+        self.parameters = parameters or {}
 
     def select(self, split=None, status: str | None = "done") -> np.ndarray:
         """Every sample is test-1 and done."""
         return np.arange(len(self.displacements)) if split in (None, "test1") else np.zeros(0, dtype=np.int64)
 
 
-def discretisation_set(config: Config, nominal_store, folder: Path, samples: int, *, progress=None) -> np.ndarray:
+def discretisation_set(config: Config, nominal_store, folder: Path, samples: int, *, progress=None) -> ArraySet:
     """The first ``samples`` samples of the nominal set solved on the refined mesh with quadratic
-    elements, read on the coarse vertices: (k, n, 3) float64 mm (k <= samples: a sample the
-    refined solve does not converge is left out and logged). Each is saved in ``folder`` as
-    it comes and reused when the study is run again."""
+    elements, read on the coarse vertices, with their instrument poses and parameters: an
+    :class:`ArraySet` of k <= ``samples`` fields (a sample the refined solve does not converge
+    is left out and logged). Each is saved in ``folder`` as it comes and reused when the study
+    is run again."""
     from ..dataset import open_dataset
     from ..errors import ConvergenceError
     from ..fem import Solver
@@ -183,7 +188,7 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
     refined = refine_uniformly(ds.mesh)
     solver_cfg = dataclasses.replace(cfg.solver, order=2)
     folder.mkdir(parents=True, exist_ok=True)
-    out = []
+    out, kept = [], []
     for k in ds.select("test1", status="done")[:samples]:
         path = folder / f"sample_{int(k):05d}.npy"
         if not path.is_file():
@@ -197,9 +202,12 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
                 continue
             np.save(path, refined.coarse_values(res.displacement))
         out.append(np.load(path))
+        kept.append(int(k))
         if progress is not None:
             progress(len(out))
-    return np.asarray(out)
+    poses = {name: {part: v[kept] for part, v in pose.items()} for name, pose in ds.instrument_poses.items()}
+    return ArraySet(np.asarray(out).reshape(len(out), ds.mesh.n_vertices, 3), ds.mesh, ds.scenario, poses,
+                    {name: v[kept] for name, v in ds.parameters.items()})
 
 
 def evaluate_on_set(model, dataset, targets) -> dict:
@@ -249,7 +257,7 @@ def _set_dataset(config: Config, mset: MismatchSet, folder: Path, *, alpha, samp
 
     if mset.refined:
         fields = discretisation_set(config, nominal_store, folder / "discretisation", samples)
-        return ArraySet(fields, model.mesh, model.scenario) if len(fields) else None
+        return fields if fields.n_samples else None
     store = folder / f"{_slug(mset.name)}.zarr"
     cfg = set_config(config, mset, alpha=alpha, samples=samples, markers=model.markers, fixed=model.fixed, store=store)
     simulate(cfg, store, progress=progress)
