@@ -29,12 +29,15 @@ import numpy as np
 from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
 from ..errors import ModelError
 from .baselines import RidgePredictor, RigidRegistrationPredictor
+from .cross_calibration import cross_calibrated_layer
 from .data import check_fit_inputs, dataset_arrays, fit_splits, flat_fields
 from .field_predictor import FieldPredictor
+from .inputs import marker_batch
 from .network_fit import ENSEMBLE_SEED_STRIDE, fit_network
 from .network_predictor import NetworkPredictor
 from .ridge import marker_columns
-from .state import ModelState, training_summaries
+from .gate import GateVerdict, InputGate
+from .state import ModelState, gate_of, training_summaries
 from .trust import TrustedPrediction
 from .trust_fit import fit_trust
 from .trusted import TrustedPredictor
@@ -132,7 +135,7 @@ class DeformationModel(FieldPredictor):
 
     @property
     def has_trust(self) -> bool:
-        """Whether error bounds and the alarm are calibrated (``surrogate.calibration_share > 0``)."""
+        """Whether error bounds and the alarm are calibrated (``surrogate.calibration`` not ``"none"``)."""
         return self.is_fitted and self.trusted_ is not None
 
     def predictor(self, method: str = "mlp") -> FieldPredictor:
@@ -149,7 +152,7 @@ class DeformationModel(FieldPredictor):
         return ModelState(config=self.config, network=self.network_, fixed=self.fixed_, pca_choice=self.pca_choice_,
                           pca_curve=self.pca_curve_, trust=None if self.trusted_ is None else self.trusted_.layer,
                           training=self.training_, run_config=self.run_config, dataset_path=self.dataset_path,
-                          scenario=self.scenario, metadata=self.metadata_)
+                          scenario=self.scenario, metadata=self.metadata_, gate=self.input_gate)
 
     @classmethod
     def from_state(cls, state: ModelState) -> "DeformationModel":
@@ -167,6 +170,10 @@ class DeformationModel(FieldPredictor):
         self.ridge_ = RidgePredictor(net.mesh, net.markers, net.basis.truncated(k_ridge), self.config.ridge_ratio)
         self.rigid_ = RigidRegistrationPredictor(net.mesh, net.markers)
         self.trusted_ = None if state.trust is None else TrustedPredictor(net, state.trust)
+        self.input_gate = gate_of(state)
+        for part in (net, self.ridge_, self.rigid_, self.trusted_):
+            if part is not None:
+                part.input_gate = self.input_gate
         self._by_method = {"mlp": self.network_, "rigid": self.rigid_, "ridge": self.ridge_}
         self.fixed_ = np.asarray(state.fixed, dtype=np.int64).ravel()
         self.pca_choice_ = state.pca_choice
@@ -191,8 +198,11 @@ class DeformationModel(FieldPredictor):
             valid_idx: sample indices for validation (checkpoint/early stopping); default: a
                 seeded 10 % of the training indices.
             calibration_idx: sample indices for calibrating the trust layer, never trained
-                on; default: a seeded ``surrogate.calibration_share`` of the training indices
-                (none when that is 0 or leaves fewer than 8 samples: then no trust layer).
+                on (split conformal on them, whatever ``surrogate.calibration`` says); default:
+                by ``surrogate.calibration``: ``"cross-validation"`` trains on every training
+                sample and calibrates on out-of-fold predictions (:mod:`.cross_calibration`),
+                ``"split"`` holds a seeded ``calibration_share`` of the training indices out
+                (none when that is 0 or leaves fewer than 8 samples), ``"none"``: no trust layer.
 
         Returns:
             self.
@@ -201,19 +211,16 @@ class DeformationModel(FieldPredictor):
         c = self.config
         U, mk = check_fit_inputs(displacements, markers, mesh)
         splits = fit_splits(U.shape[0], train_idx, valid_idx, calibration_idx, seed=c.seed,
-                            calibration_share=c.calibration_share)
+                            calibration_share=c.calibration_share if c.calibration == "split" else 0.0)
         Ut, Uv = flat_fields(U, splits)
         net = fit_network(Ut, Uv, mk, mesh, c)
         ridge = RidgePredictor.fit(mesh, mk, net.predictor.basis, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
-        trust = None
-        if len(splits.calibration):
-            trust = fit_trust(net.predictor, U, train_idx=splits.train, valid_idx=splits.valid,
-                              calibration_idx=splits.calibration, coverage=c.coverage, false_alarm=c.false_alarm_rate,
-                              fault_score=c.alarm_fault_score, basis=net.predictor.basis, head=net.predictor.head)
+        trust, calibration = self._fit_trust(net.predictor, U, splits, mesh, explicit=calibration_idx is not None)
         training = {
             "n_train": int(len(splits.train)),
             "n_valid": int(len(splits.valid)),
-            "n_calibration": int(len(splits.calibration)),
+            "n_calibration": int(trust.conformal.n_calibration) if trust is not None else 0,
+            "calibration": calibration,
             "n_components": int(net.predictor.n_components),
             "pca_rule": net.choice["rule"],
             "pca_seconds": net.pca_seconds,
@@ -221,10 +228,27 @@ class DeformationModel(FieldPredictor):
             "seconds": time.perf_counter() - t0,
             "members": [s.as_dict() for s in net.summaries],
         }
+        seen = np.concatenate([splits.train, splits.valid, splits.calibration])
+        gate = InputGate.from_inputs(mk, mesh.points[mk], U[seen][:, mk])
         self._assemble(ModelState(c, net.predictor, np.asarray(fixed, dtype=np.int64).ravel(),
                                   {**net.choice, "ridge_components": ridge.n_components}, net.curve, trust, training,
-                                  self.run_config, self.dataset_path, self.scenario))
+                                  self.run_config, self.dataset_path, self.scenario, gate=gate))
         return self
+
+    def _fit_trust(self, predictor: NetworkPredictor, U, splits, mesh, *, explicit: bool) -> tuple:
+        """``(trust layer or None, record)``: split conformal on the held-out calibration samples
+        (given ones, or ``calibration = "split"``'s share), cross-validated calibration
+        (:mod:`.cross_calibration`), or none."""
+        c = self.config
+        if len(splits.calibration):
+            layer = fit_trust(predictor, U, train_idx=splits.train, valid_idx=splits.valid,
+                              calibration_idx=splits.calibration, coverage=c.coverage, false_alarm=c.false_alarm_rate,
+                              fault_score=c.alarm_fault_score, basis=predictor.basis, head=predictor.head)
+            return layer, {"method": "split", "n_calibration": int(len(splits.calibration))}
+        if c.calibration == "cross-validation" and not explicit:
+            return cross_calibrated_layer(predictor, U, splits.train, splits.valid, mesh, c, basis=predictor.basis,
+                                          head=predictor.head)
+        return None, {"method": "none"}
 
     @classmethod
     def from_dataset(cls, dataset, config: Config | SurrogateConfig | None = None, **overrides) -> "DeformationModel":
@@ -285,12 +309,22 @@ class DeformationModel(FieldPredictor):
             false_alarm: false-alarm rate of the alarm (default ``surrogate.false_alarm_rate``).
 
         Raises:
-            ModelError: the model has no trust layer (trained with calibration_share = 0).
+            ModelError: the model has no trust layer (trained with calibration = "none", or too few samples).
         """
         if not self.has_trust:
             raise ModelError("this model has no calibrated error bounds or alarm; re-train it with "
-                             f"surrogate.calibration_share > 0 (e.g. {SurrogateConfig.calibration_share:g})")
+                             f"surrogate.calibration = {SurrogateConfig.calibration!r} (the default) or 'split'")
         return self.trusted_.predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm)
+
+    def check_input(self, marker_displacements, *, missing=None) -> GateVerdict | list[GateVerdict]:
+        """The input gate's verdict (:mod:`.gate`) without predicting: one :class:`~.gate.GateVerdict`
+        for one sample, a list for a batch (same layouts as :meth:`predict`, mm). ``predict`` and
+        the other predict methods raise :class:`~tissuecast.errors.InputRejected` where it refuses."""
+        self._fitted()
+        d, miss, single = marker_batch(marker_displacements, self.n_markers, missing, self.supports_missing_markers,
+                                       check_finite=False)
+        verdicts = self.input_gate.inspect(d, miss)
+        return verdicts[0] if single else verdicts
 
     def predict_from_positions(self, positions, *, missing=None, method: str = "mlp") -> np.ndarray:
         """Displacement field from tracked marker positions (n_d, 3) or (B, n_d, 3) mm.

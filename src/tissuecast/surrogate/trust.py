@@ -17,7 +17,8 @@ The layer is fitted in two steps (:mod:`.trust_fit`), for any field predictor:
 - **calibration** (:meth:`TrustLayer.calibrate`) from any (input, prediction, truth) triples
   the predictor was not trained on: the split-conformal scores of the bounds
   (:mod:`.conformal`) and of the alarm. Today these are samples held out from the training
-  split (``surrogate.calibration_share``); a layer calibrated on nothing has infinite bounds
+  split (``surrogate.calibration = "split"``) or out-of-fold scores of the training split
+  (``"cross-validation"``, :mod:`.cross_calibration`); a layer calibrated on nothing has infinite bounds
   and an alarm that never fires.
 
 For a model with a quadratic head the normaliser is g alone (``flat``): the per-vertex conformal
@@ -39,12 +40,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ModelError
-from .conformal import VertexConformal, fit_vertex_conformal
+from .conformal import VertexConformal, normalised_errors
 from .ood import InputDistance, MarkerConsistency, OODScores
 from .pca import PCABasis
 from .quadratic import QuadraticRegression
 
-__all__ = ["TrustLayer", "Alarm", "TrustedPrediction", "FEATURE_NAMES", "FILE", "PREDICT_CHUNK"]
+__all__ = ["TrustLayer", "Alarm", "TrustedPrediction", "CalibrationScores", "FEATURE_NAMES", "FILE", "PREDICT_CHUNK"]
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +131,29 @@ class TrustedPrediction:
     error_bound: np.ndarray
     coverage: float
     alarms: object = field(default=None)
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationScores:
+    """What calibrates a trust layer, per calibration sample.
+
+    Attributes:
+        vertex: (m, n) normalised vertex errors ``e / sigma`` (the conformal scores of the bounds).
+        alarm: (m,) combined alarm scores of the inputs (:meth:`~.ood.OODScores.combined`).
+    """
+
+    vertex: np.ndarray
+    alarm: np.ndarray
+
+    @property
+    def n_samples(self) -> int:
+        return int(len(self.alarm))
+
+    @classmethod
+    def pooled(cls, parts) -> "CalibrationScores":
+        """The scores of several disjoint sets of samples (the folds of a cross-validation) as one."""
+        parts = list(parts)
+        return cls(np.vstack([p.vertex for p in parts]), np.concatenate([p.alarm for p in parts]))
 
 
 def floored_log(x) -> np.ndarray:
@@ -242,10 +266,13 @@ class TrustLayer:
         return self.ood.scores(d.reshape(len(d), -1))
 
     # ---------------------------------------------------------------- calibration
-    def calibrate(self, marker_displacements, displacements, truths, *, chunk: int = PREDICT_CHUNK) -> "TrustLayer":
-        """This layer calibrated on triples the predictor was not fitted on (held-out samples
-        today; out-of-fold predictions would do as well): the conformal scores of the bounds
-        and the alarm scores of the inputs. Earlier calibration is replaced.
+    def calibration_scores(self, marker_displacements, displacements, truths, *,
+                           chunk: int = PREDICT_CHUNK) -> "CalibrationScores":
+        """The scores that calibrate a layer, of (input, prediction, truth) triples the predictor
+        of *this* layer was not fitted on: each vertex's normalised error ``e / sigma`` and each
+        input's alarm score, both computed by this layer (:meth:`with_calibration` turns them
+        into bounds and a threshold, for this layer or, pooled over the folds of a
+        cross-validation, for the layer of the model fitted on every fold).
 
         Args:
             marker_displacements: (m, 3 n_d) or (m, n_d, 3) mm, the inputs.
@@ -268,8 +295,27 @@ class TrustLayer:
             feats.append(f)
             hs.append(h)
             errors.append(np.linalg.norm(u[s:s + chunk] - truth[s:s + chunk], axis=2))
-        conformal = fit_vertex_conformal(np.vstack(errors), self.sigma(np.vstack(feats), np.vstack(hs)))
-        return dataclasses.replace(self, conformal=conformal, ood=self.ood.calibrated(d))
+        vertex = normalised_errors(np.vstack(errors), self.sigma(np.vstack(feats), np.vstack(hs)))
+        return CalibrationScores(vertex, self.ood.combined(self.ood.scores(d)))
+
+    def with_calibration(self, scores: "CalibrationScores") -> "TrustLayer":
+        """This layer calibrated by ``scores`` (:meth:`calibration_scores`): the per-vertex
+        conformal quantiles of the bounds and the alarm threshold. Earlier calibration is replaced."""
+        if scores.vertex.shape[1] != self.basis.n_features // 3:
+            raise ModelError(f"calibration scores are for {scores.vertex.shape[1]} vertices, this layer predicts "
+                             f"{self.basis.n_features // 3}")
+        ood = OODScores(self.ood.distance, self.ood.consistency, self.ood.scale, np.sort(scores.alarm), self.ood.use_fault)
+        return dataclasses.replace(self, conformal=VertexConformal(np.sort(scores.vertex, axis=0)), ood=ood)
+
+    def calibrate(self, marker_displacements, displacements, truths, *, chunk: int = PREDICT_CHUNK) -> "TrustLayer":
+        """This layer calibrated on triples its predictor was not fitted on (split conformal):
+        :meth:`with_calibration` of :meth:`calibration_scores` (arguments as there). Earlier
+        calibration is replaced.
+
+        Raises:
+            ModelError: shapes that do not match, or non-finite errors or normalisers.
+        """
+        return self.with_calibration(self.calibration_scores(marker_displacements, displacements, truths, chunk=chunk))
 
     # ---------------------------------------------------------------- storage
     def arrays(self) -> dict:

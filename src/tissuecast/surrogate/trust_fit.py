@@ -24,7 +24,7 @@ from .ridge import marker_columns
 from .trust import FEATURE_NAMES, PREDICT_CHUNK, TrustLayer, floored_log
 
 __all__ = ["fit_trust_layer", "fit_trust", "held_out_predictions", "SECOND_COMPONENTS", "ERROR_FOLDS",
-           "ERROR_INPUT_DIMS"]
+           "ERROR_INPUT_DIMS", "warn_if_too_few"]
 
 # the trust layer's messages keep the logger name they had before fitting moved here (log filters)
 log = logging.getLogger("tissuecast.surrogate.trust")
@@ -146,11 +146,14 @@ def _check_splits(sets: list[np.ndarray]) -> None:
                          f"{len(sets[1])} and {len(sets[2])}; raise surrogate.calibration_share or use a larger data set")
 
 
-def _warn_if_too_few(m: int, coverage: float, false_alarm: float) -> None:
+def warn_if_too_few(m: int, coverage: float, false_alarm: float) -> None:
+    """Log a warning where ``m`` calibration samples give infinite bounds at ``coverage`` or an
+    alarm that cannot fire at ``false_alarm``."""
     for what, level in (("error bounds at coverage", coverage), ("alarm at false-alarm rate", 1.0 - false_alarm)):
         if m < min_calibration_samples(level):
-            log.warning("%d calibration samples are too few for finite %s %g (needs %d): raise "
-                        "surrogate.calibration_share or use a larger data set", m, what,
+            log.warning("%d calibration samples are too few for finite %s %g (needs %d): use surrogate.calibration = "
+                        "'cross-validation' (every training sample calibrates), a larger calibration_share or a larger "
+                        "data set", m, what,
                         coverage if "bounds" in what else false_alarm, min_calibration_samples(level))
 
 
@@ -172,7 +175,7 @@ def fit_trust(predictor: FieldPredictor, displacements, *, train_idx, valid_idx,
     draft = fit_trust_layer(predictor, displacements, train_idx=sets[0], valid_idx=sets[1], coverage=coverage,
                             false_alarm=false_alarm, fault_score=fault_score, basis=basis, head=head, chunk=chunk)
     layer = draft.calibrate(*held_out_predictions(predictor, displacements, sets[2], chunk), chunk=chunk)
-    _warn_if_too_few(len(sets[2]), coverage, false_alarm)
+    warn_if_too_few(len(sets[2]), coverage, false_alarm)
     return layer
 
 
