@@ -173,7 +173,8 @@ class ClientSession:
             content = message_content(header, body)
             kind = header.message_type
             if kind == "POINT":
-                positions = decode_points(header, content, allow_missing=self.predictor.supports_missing)
+                positions = decode_points(header, content, allow_missing=self.predictor.supports_missing,
+                                          check_finite=self.predictor.gate is None)
                 self._serve(positions, header.timestamp)
             elif kind == "TRANSFORM":
                 self._on_transform(header, decode_transform(header, content))

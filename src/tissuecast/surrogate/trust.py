@@ -135,25 +135,31 @@ class TrustedPrediction:
 
 @dataclass(frozen=True, eq=False)
 class CalibrationScores:
-    """What calibrates a trust layer, per calibration sample.
+    """What calibrates a trust layer, per calibration sample, as the layer that scored them saw it.
 
     Attributes:
-        vertex: (m, n) normalised vertex errors ``e / sigma`` (the conformal scores of the bounds).
-        alarm: (m,) combined alarm scores of the inputs (:meth:`~.ood.OODScores.combined`).
+        features: (m, F) error-model features (:meth:`TrustLayer.features`).
+        disagreement: (m, n) disagreement map h, mm (None for a flat normaliser).
+        errors: (m, n) true vertex errors of the predictions, mm.
+        alarm: (m, 3) raw alarm scores [distance, consistency, fault] (NaN where absent).
     """
 
-    vertex: np.ndarray
+    features: np.ndarray
+    disagreement: np.ndarray | None
+    errors: np.ndarray
     alarm: np.ndarray
 
     @property
     def n_samples(self) -> int:
-        return int(len(self.alarm))
+        return int(len(self.errors))
 
     @classmethod
     def pooled(cls, parts) -> "CalibrationScores":
         """The scores of several disjoint sets of samples (the folds of a cross-validation) as one."""
         parts = list(parts)
-        return cls(np.vstack([p.vertex for p in parts]), np.concatenate([p.alarm for p in parts]))
+        h = None if parts[0].disagreement is None else np.vstack([p.disagreement for p in parts])
+        return cls(np.vstack([p.features for p in parts]), h, np.vstack([p.errors for p in parts]),
+                   np.vstack([p.alarm for p in parts]))
 
 
 def floored_log(x) -> np.ndarray:
@@ -268,10 +274,10 @@ class TrustLayer:
     # ---------------------------------------------------------------- calibration
     def calibration_scores(self, marker_displacements, displacements, truths, *,
                            chunk: int = PREDICT_CHUNK) -> "CalibrationScores":
-        """The scores that calibrate a layer, of (input, prediction, truth) triples the predictor
-        of *this* layer was not fitted on: each vertex's normalised error ``e / sigma`` and each
-        input's alarm score, both computed by this layer (:meth:`with_calibration` turns them
-        into bounds and a threshold, for this layer or, pooled over the folds of a
+        """What calibrates a layer, from (input, prediction, truth) triples the predictor of
+        *this* layer was not fitted on, as this layer sees them: the error-model features, the
+        disagreement map, the vertex errors and the raw alarm scores (:meth:`with_calibration`
+        turns them into bounds and a threshold, for this layer or, pooled over the folds of a
         cross-validation, for the layer of the model fitted on every fold).
 
         Args:
@@ -295,17 +301,25 @@ class TrustLayer:
             feats.append(f)
             hs.append(h)
             errors.append(np.linalg.norm(u[s:s + chunk] - truth[s:s + chunk], axis=2))
-        vertex = normalised_errors(np.vstack(errors), self.sigma(np.vstack(feats), np.vstack(hs)))
-        return CalibrationScores(vertex, self.ood.combined(self.ood.scores(d)))
+        return CalibrationScores(np.vstack(feats), None if self.flat else np.vstack(hs), np.vstack(errors),
+                                 self.ood.scores(d))
 
     def with_calibration(self, scores: "CalibrationScores") -> "TrustLayer":
         """This layer calibrated by ``scores`` (:meth:`calibration_scores`): the per-vertex
-        conformal quantiles of the bounds and the alarm threshold. Earlier calibration is replaced."""
-        if scores.vertex.shape[1] != self.basis.n_features // 3:
-            raise ModelError(f"calibration scores are for {scores.vertex.shape[1]} vertices, this layer predicts "
-                             f"{self.basis.n_features // 3}")
-        ood = OODScores(self.ood.distance, self.ood.consistency, self.ood.scale, np.sort(scores.alarm), self.ood.use_fault)
-        return dataclasses.replace(self, conformal=VertexConformal(np.sort(scores.vertex, axis=0)), ood=ood)
+        conformal scores ``e / sigma`` (sigma by this layer's error model) and the alarm threshold
+        (the alarm scores combined on this layer's scales). Earlier calibration is replaced.
+
+        Raises:
+            ModelError: scores for another number of vertices, non-finite errors or normalisers.
+        """
+        n = self.basis.n_features // 3
+        if scores.errors.shape[1] != n:
+            raise ModelError(f"calibration scores are for {scores.errors.shape[1]} vertices, this layer predicts {n}")
+        h = scores.disagreement if scores.disagreement is not None else np.ones_like(scores.errors)
+        vertex = normalised_errors(scores.errors, self.sigma(scores.features, h))
+        ood = OODScores(self.ood.distance, self.ood.consistency, self.ood.scale, np.sort(self.ood.combined(scores.alarm)),
+                        self.ood.use_fault)
+        return dataclasses.replace(self, conformal=VertexConformal(np.sort(vertex, axis=0)), ood=ood)
 
     def calibrate(self, marker_displacements, displacements, truths, *, chunk: int = PREDICT_CHUNK) -> "TrustLayer":
         """This layer calibrated on triples its predictor was not fitted on (split conformal):

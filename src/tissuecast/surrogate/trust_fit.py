@@ -24,7 +24,7 @@ from .ridge import marker_columns
 from .trust import FEATURE_NAMES, PREDICT_CHUNK, TrustLayer, floored_log
 
 __all__ = ["fit_trust_layer", "fit_trust", "held_out_predictions", "SECOND_COMPONENTS", "ERROR_FOLDS",
-           "ERROR_INPUT_DIMS", "warn_if_too_few"]
+           "ERROR_INPUT_DIMS", "warn_if_too_few", "fit_error_model"]
 
 # the trust layer's messages keep the logger name they had before fitting moved here (log filters)
 log = logging.getLogger("tissuecast.surrogate.trust")
@@ -77,8 +77,9 @@ def _assessed_samples(predictor: FieldPredictor, draft: TrustLayer, U, idx: np.n
     return np.vstack(feats), np.vstack(errs), np.vstack(inputs)
 
 
-def _error_model(features: np.ndarray, errors: np.ndarray) -> np.ndarray:
-    """Ridge regression of log Offset_max on [1, features]: (1 + F,) coefficients (intercept not penalised)."""
+def fit_error_model(features: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """Ridge regression of log Offset_max on [1, features]: (1 + F,) coefficients (intercept not penalised),
+    from features (B, F) and vertex errors (B, n) mm."""
     F = np.hstack([np.ones((len(features), 1)), features])
     G = F.T @ F + _ERROR_MODEL_RIDGE * len(F) * np.diag(np.r_[0.0, np.ones(features.shape[1])])
     return np.linalg.solve(G, F.T @ floored_log(errors.max(axis=1)))
@@ -134,7 +135,7 @@ def fit_trust_layer(predictor: FieldPredictor, displacements, *, train_idx, vali
     error_input = _input_error_regression(error_basis, q, Ut, Xt, dv, ev)
     if error_input is not None:
         fv = np.hstack([fv, error_input.predict(dv)])
-    return TrustLayer(mk, second_basis, second, _error_model(fv, ev), empty,
+    return TrustLayer(mk, second_basis, second, fit_error_model(fv, ev), empty,
                       scale_ood(distance, consistency, dv, fault_score), coverage, false_alarm, error_input, head is not None)
 
 
