@@ -16,9 +16,9 @@ from tissuecast.surrogate.data import MIN_SAMPLES
 from _surrogate_synthetic import MARKERS
 from _trust_synthetic import SPLITS, trust_data, trust_model
 
-TRAIN, VALID = np.arange(0, 300), np.arange(600, 700)
-SETTINGS = dict(epochs=20, patience=0, batch_size=64, learning_rate=3e-3, n_components=8, hidden=(32,), head="none",
-                calibration_folds=3)
+TRAIN, VALID = np.arange(0, 600), np.arange(600, 800)
+SETTINGS = dict(epochs=300, patience=30, batch_size=64, learning_rate=3e-3, n_components=8, hidden=(32,), head="none",
+                calibration_folds=5)
 
 
 @functools.lru_cache(maxsize=None)
@@ -53,7 +53,7 @@ def test_the_model_gives_up_no_training_sample():
     d = U[SPLITS["test"]][:, MARKERS]
     np.testing.assert_array_equal(cv.predict(d), none.predict(d))  # the same network, bit for bit
     record = cv.training_["calibration"]
-    assert record["method"] == "cross-validation" and record["folds"] == 3 and record["n_calibration"] == len(TRAIN)
+    assert record["method"] == "cross-validation" and record["folds"] == 5 and record["n_calibration"] == len(TRAIN)
     assert cv.trusted_.n_calibration == len(TRAIN)
     tp = cv.predict_trusted(d)
     assert np.isfinite(tp.error_bound).all() and np.isfinite(tp.alarms[0].distance_threshold)
@@ -63,12 +63,12 @@ def test_each_training_sample_is_scored_once_by_a_model_that_never_saw_it():
     mesh, U, _ = trust_data()
     config = fitted("none").config
     folds = cross_calibration_scores(U, TRAIN, VALID, MARKERS, mesh, config)
-    assert folds.scores.n_samples == len(TRAIN) and len(folds.seconds) == 3
+    assert folds.scores.n_samples == len(TRAIN) and len(folds.seconds) == 5
     # scored in fold order: the errors are those of fold k's model on fold k's samples
-    order = np.concatenate([TRAIN[folds.folds == k] for k in range(3)])
+    order = np.concatenate([TRAIN[folds.folds == k] for k in range(5)])
     assert len(set(order.tolist())) == len(TRAIN)
-    means = [folds.scores.errors[np.flatnonzero(np.repeat(np.arange(3), np.bincount(folds.folds)) == k)].max(axis=1).mean()
-             for k in range(3)]
+    means = [folds.scores.errors[np.flatnonzero(np.repeat(np.arange(5), np.bincount(folds.folds)) == k)].max(axis=1).mean()
+             for k in range(5)]
     np.testing.assert_allclose(means, folds.fold_errors, rtol=1e-12)
     # the input distance of an out-of-fold sample is to the other folds' inputs, never to itself: the
     # final layer, which holds every training input, puts the same inputs closer (one neighbour at 0)
@@ -91,10 +91,12 @@ def test_split_calibration_is_the_held_out_conformal_quantile():
 
 
 def test_cross_validated_bounds_cover_held_out_samples():
+    # trained to convergence (early stopping), so that the fold models are like the model; they
+    # train on 4/5 of the samples and err a little more: the bounds are conservative by that much
     model = fitted("cross-validation")
     _, U, _ = trust_data()
     te = SPLITS["test"]
     tp = model.predict_trusted(U[te][:, MARKERS])
     covered = np.mean(np.linalg.norm(tp.displacement - U[te], axis=2) <= tp.error_bound)
-    assert 0.85 <= covered <= 0.995
-    assert np.mean([a.raised for a in tp.alarms]) <= 0.05
+    assert 0.87 <= covered <= 0.97
+    assert np.mean([a.raised for a in tp.alarms]) <= 0.03
