@@ -184,7 +184,6 @@ def pooled_layer(draft: TrustLayer, scores: CalibrationScores) -> TrustLayer:
         scores: the pooled out-of-fold scores.
     """
     ood = draft.ood.rescaled(scores.alarm)
-    if scores.features.shape[1] != len(draft.error_model) - 1:
-        return dataclasses.replace(draft, ood=ood).with_calibration(scores)
-    beta = fit_error_model(scores.features, scores.errors)
-    return dataclasses.replace(draft, error_model=beta, ood=ood).with_calibration(scores)
+    same = scores.features.shape[1] == len(draft.error_model) - 1
+    beta = fit_error_model(scores.features, scores.errors) if same else draft.error_model
+    return dataclasses.replace(draft, error_model=beta, ood=ood, method="cross-validation").with_calibration(scores)

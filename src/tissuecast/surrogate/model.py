@@ -312,8 +312,9 @@ class DeformationModel(FieldPredictor):
             ModelError: the model has no trust layer (trained with calibration = "none", or too few samples).
         """
         if not self.has_trust:
-            raise ModelError("this model has no calibrated error bounds or alarm; re-train it with "
-                             f"surrogate.calibration = {SurrogateConfig.calibration!r} (the default) or 'split'")
+            raise ModelError("this model has no calibrated error bounds or alarm; re-train it with surrogate.calibration = "
+                             "'cross-validation' (out-of-fold, no samples held out) or 'split' with calibration_share > 0 "
+                             f"(e.g. {SurrogateConfig.calibration_share:g})")
         return self.trusted_.predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm)
 
     def check_input(self, marker_displacements, *, missing=None) -> GateVerdict | list[GateVerdict]:

@@ -185,6 +185,8 @@ class TrustLayer:
         error_input: regression of the log Offset_max on the marker input (the error model's
             last feature), or None (trust files written before it).
         flat: the normaliser is the error model's g alone (models with a quadratic head).
+        method: how it was calibrated: ``"split"`` (held-out samples) or ``"cross-validation"``
+            (out-of-fold predictions of the training split, :mod:`.cross_calibration`).
     """
 
     markers: np.ndarray
@@ -197,6 +199,7 @@ class TrustLayer:
     false_alarm: float
     error_input: QuadraticRegression | None = None
     flat: bool = False
+    method: str = "split"
 
     # ---------------------------------------------------------------- normaliser
     def features(self, d: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -347,6 +350,7 @@ class TrustLayer:
         if self.error_input is not None:
             out.update(self.error_input.arrays("error_input."))
         out["flat"] = np.bool_(self.flat)
+        out["calibration_method"] = np.str_(self.method)
         cons = self.ood.consistency
         out["ood.consistency.count"] = np.int64(0 if cons is None else len(cons.regressions))
         if cons is not None:
@@ -382,7 +386,8 @@ class TrustLayer:
                                  bool(a["ood.use_fault"]) if "ood.use_fault" in a else False),
                    coverage=float(a["coverage"]), false_alarm=float(a["false_alarm"]),
                    error_input=QuadraticRegression.from_arrays(a, "error_input.") if "error_input.coef" in a else None,
-                   flat=bool(a["flat"]) if "flat" in a else False)
+                   flat=bool(a["flat"]) if "flat" in a else False,
+                   method=str(a["calibration_method"]) if "calibration_method" in a else "split")
 
     def save(self, folder) -> str:
         """Write ``trust.npz`` into a model folder; returns the file name."""
@@ -409,4 +414,4 @@ class TrustLayer:
                 "consistency": self.ood.consistency is not None,
                 "fault_score": self.ood.consistency is not None and self.ood.consistency.sensitivity is not None,
                 "fault_score_in_alarm": self.ood.use_fault,
-                "flat_normaliser": self.flat}
+                "flat_normaliser": self.flat, "calibration": self.method}
