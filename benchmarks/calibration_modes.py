@@ -88,6 +88,8 @@ def main(argv=None) -> int:
     p.add_argument("--modes", nargs="+", default=["split", "cross-validation"], choices=["split", "cross-validation"])
     p.add_argument("--fold-ensemble", type=int, default=0, help="networks per fold model (0: the model's ensemble)")
     p.add_argument("--folds", type=int, default=5, help="folds of the cross-validation")
+    p.add_argument("--calibration-share", type=float, default=0.125,
+                   help="split: share of the training split held out (default 0.125, the library default)")
     p.add_argument("--save", metavar="PREFIX", help="save each model to PREFIX-<mode>")
     p.add_argument("--json", help="write the rows to this file")
     args = p.parse_args(argv)
@@ -98,7 +100,8 @@ def main(argv=None) -> int:
     for mode in args.modes:
         t0 = time.perf_counter()
         model = DeformationModel.from_dataset(ds, calibration=mode, calibration_folds=args.folds,
-                                              calibration_fold_ensemble=args.fold_ensemble)
+                                              calibration_fold_ensemble=args.fold_ensemble,
+                                              calibration_share=args.calibration_share)
         seconds = time.perf_counter() - t0
         if args.save:
             model.save(f"{args.save}-{mode}")
