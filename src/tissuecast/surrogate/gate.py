@@ -169,7 +169,9 @@ class InputGate:
     def _stretch_verdict(self, bad: np.ndarray, dist: np.ndarray) -> GateVerdict:
         counts = np.bincount(self._pairs[bad].ravel(), minlength=len(self.markers))
         j = int(counts.argmax())
-        p = int(np.flatnonzero(bad & ((self._pairs[:, 0] == j) | (self._pairs[:, 1] == j)))[0])
+        lengths = np.linalg.norm(self.reference[self._pairs[:, 0]] - self.reference[self._pairs[:, 1]], axis=1)
+        mine = np.flatnonzero(bad & ((self._pairs[:, 0] == j) | (self._pairs[:, 1] == j)))
+        p = int(mine[np.argmax(np.abs(np.log(np.maximum(dist[mine], 1e-12) / lengths[mine])))])  # its worst pair
         k = int(self._pairs[p, 1] if self._pairs[p, 0] == j else self._pairs[p, 0])
         length = np.linalg.norm(self.reference[j] - self.reference[k])
         lo, hi = self.stretch[p]
