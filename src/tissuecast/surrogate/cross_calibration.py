@@ -39,13 +39,14 @@ from ..errors import ModelError
 from .data import CALIBRATION_SEED_OFFSET, MIN_SAMPLES
 from .network_fit import fit_network
 from .field_predictor import FieldPredictor
+from .network_predictor import NetworkPredictor
 from .pca import PCABasis
 from .quadratic import QuadraticRegression
 from .trust import PREDICT_CHUNK, CalibrationScores, TrustLayer
-from .trust_fit import fit_error_model, fit_trust_layer, held_out_predictions, warn_if_too_few
+from .trust_fit import fit_error_model, fit_trust, fit_trust_layer, held_out_predictions, warn_if_too_few
 
 __all__ = ["FoldCalibration", "calibration_folds", "cross_calibration_scores", "cross_calibrated_layer", "fold_config",
-           "pooled_layer"]
+           "pooled_layer", "fit_model_trust"]
 
 log = logging.getLogger(__name__)
 
@@ -187,3 +188,25 @@ def pooled_layer(draft: TrustLayer, scores: CalibrationScores) -> TrustLayer:
     same = scores.features.shape[1] == len(draft.error_model) - 1
     beta = fit_error_model(scores.features, scores.errors) if same else draft.error_model
     return dataclasses.replace(draft, error_model=beta, ood=ood, method="cross-validation").with_calibration(scores)
+
+
+def fit_model_trust(predictor: NetworkPredictor, U, splits, mesh, config: SurrogateConfig, *,
+                    explicit: bool) -> tuple[TrustLayer | None, dict]:
+    """The trust layer of a model's fitted learned predictor and the record of its calibration:
+    split conformal on the held-out ``splits.calibration`` samples (given ones, ``explicit``, or
+    ``calibration = "split"``'s share), cross-validated calibration (:func:`cross_calibrated_layer`)
+    with ``calibration = "cross-validation"`` and no given samples, or none.
+
+    Returns:
+        ``(layer or None, record)``.
+    """
+    c = config
+    if len(splits.calibration):
+        layer = fit_trust(predictor, U, train_idx=splits.train, valid_idx=splits.valid,
+                          calibration_idx=splits.calibration, coverage=c.coverage, false_alarm=c.false_alarm_rate,
+                          fault_score=c.alarm_fault_score, basis=predictor.basis, head=predictor.head)
+        return layer, {"method": "split", "n_calibration": int(len(splits.calibration))}
+    if c.calibration == "cross-validation" and not explicit:
+        return cross_calibrated_layer(predictor, U, splits.train, splits.valid, mesh, c, basis=predictor.basis,
+                                      head=predictor.head)
+    return None, {"method": "none"}

@@ -29,7 +29,7 @@ import numpy as np
 from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
 from ..errors import ModelError
 from .baselines import RidgePredictor, RigidRegistrationPredictor
-from .cross_calibration import cross_calibrated_layer
+from .cross_calibration import fit_model_trust
 from .data import check_fit_inputs, dataset_arrays, fit_splits, flat_fields
 from .field_predictor import FieldPredictor
 from .inputs import marker_batch
@@ -39,7 +39,6 @@ from .ridge import marker_columns
 from .gate import GateVerdict, InputGate
 from .state import ModelState, gate_of, training_summaries
 from .trust import TrustedPrediction
-from .trust_fit import fit_trust
 from .trusted import TrustedPredictor
 
 __all__ = ["DeformationModel", "ENSEMBLE_SEED_STRIDE", "METHODS"]
@@ -215,7 +214,7 @@ class DeformationModel(FieldPredictor):
         Ut, Uv = flat_fields(U, splits)
         net = fit_network(Ut, Uv, mk, mesh, c)
         ridge = RidgePredictor.fit(mesh, mk, net.predictor.basis, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
-        trust, calibration = self._fit_trust(net.predictor, U, splits, mesh, explicit=calibration_idx is not None)
+        trust, calibration = fit_model_trust(net.predictor, U, splits, mesh, c, explicit=calibration_idx is not None)
         training = {
             "n_train": int(len(splits.train)),
             "n_valid": int(len(splits.valid)),
@@ -234,21 +233,6 @@ class DeformationModel(FieldPredictor):
                                   {**net.choice, "ridge_components": ridge.n_components}, net.curve, trust, training,
                                   self.run_config, self.dataset_path, self.scenario, gate=gate))
         return self
-
-    def _fit_trust(self, predictor: NetworkPredictor, U, splits, mesh, *, explicit: bool) -> tuple:
-        """``(trust layer or None, record)``: split conformal on the held-out calibration samples
-        (given ones, or ``calibration = "split"``'s share), cross-validated calibration
-        (:mod:`.cross_calibration`), or none."""
-        c = self.config
-        if len(splits.calibration):
-            layer = fit_trust(predictor, U, train_idx=splits.train, valid_idx=splits.valid,
-                              calibration_idx=splits.calibration, coverage=c.coverage, false_alarm=c.false_alarm_rate,
-                              fault_score=c.alarm_fault_score, basis=predictor.basis, head=predictor.head)
-            return layer, {"method": "split", "n_calibration": int(len(splits.calibration))}
-        if c.calibration == "cross-validation" and not explicit:
-            return cross_calibrated_layer(predictor, U, splits.train, splits.valid, mesh, c, basis=predictor.basis,
-                                          head=predictor.head)
-        return None, {"method": "none"}
 
     @classmethod
     def from_dataset(cls, dataset, config: Config | SurrogateConfig | None = None, **overrides) -> "DeformationModel":

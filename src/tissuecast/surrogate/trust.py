@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ModelError
+from .calibration_scores import CalibrationScores
 from .conformal import VertexConformal, normalised_errors
 from .ood import InputDistance, MarkerConsistency, OODScores
 from .pca import PCABasis
@@ -131,35 +132,6 @@ class TrustedPrediction:
     error_bound: np.ndarray
     coverage: float
     alarms: object = field(default=None)
-
-
-@dataclass(frozen=True, eq=False)
-class CalibrationScores:
-    """What calibrates a trust layer, per calibration sample, as the layer that scored them saw it.
-
-    Attributes:
-        features: (m, F) error-model features (:meth:`TrustLayer.features`).
-        disagreement: (m, n) disagreement map h, mm (None for a flat normaliser).
-        errors: (m, n) true vertex errors of the predictions, mm.
-        alarm: (m, 3) raw alarm scores [distance, consistency, fault] (NaN where absent).
-    """
-
-    features: np.ndarray
-    disagreement: np.ndarray | None
-    errors: np.ndarray
-    alarm: np.ndarray
-
-    @property
-    def n_samples(self) -> int:
-        return int(len(self.errors))
-
-    @classmethod
-    def pooled(cls, parts) -> "CalibrationScores":
-        """The scores of several disjoint sets of samples (the folds of a cross-validation) as one."""
-        parts = list(parts)
-        h = None if parts[0].disagreement is None else np.vstack([p.disagreement for p in parts])
-        return cls(np.vstack([p.features for p in parts]), h, np.vstack([p.errors for p in parts]),
-                   np.vstack([p.alarm for p in parts]))
 
 
 def floored_log(x) -> np.ndarray:
