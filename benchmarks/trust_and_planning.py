@@ -98,7 +98,7 @@ def part_planning(ds, args, out: dict) -> None:
         row = {"n_markers": k}
         plan = plans[k]
         for name, mk in (("kcenter", kc[:k]), ("planned", plan.markers)):
-            m = DeformationModel(ds.config, ensemble=1, calibration_share=0.0, **head_override(args)).fit(
+            m = DeformationModel(ds.config, ensemble=1, calibration="none", **head_override(args)).fit(
                 U, mk, mesh=a.mesh, fixed=a.fixed, train_idx=a.train_idx, valid_idx=a.valid_idx)
             d = bench[:, mk, :]
             row[f"{name}_mlp"] = float(offsets_max(m.predict(d), bench).mean())
@@ -175,7 +175,7 @@ def trust_model(ds, args):
 
         markers = study_markers(a.mesh, args.markers, ds.config, exclude=a.fixed)[0]
     t0 = time.perf_counter()
-    share = {"calibration_share": args.calibration_share} if args.calibration_share is not None else {}
+    share = {"calibration": "split", "calibration_share": args.calibration_share} if args.calibration_share is not None else {}
     if getattr(args, "alarm_fault_score", False):
         share["alarm_fault_score"] = True
     model = DeformationModel(ds.config, ensemble=args.ensemble, **head_override(args), **share).fit(

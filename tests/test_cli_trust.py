@@ -72,7 +72,16 @@ def test_train_with_planned_markers_then_predict_with_bounds_and_alarm(store, ca
     swapped = d[1].copy()
     ref = ds.mesh.points[ids]
     swapped[[0, 2]] = (ref[[2, 0]] + d[1][[2, 0]]) - ref[[0, 2]]
-    (tmp_path / "in.json").write_text(json.dumps({"displacements": [d[0].tolist(), swapped.tolist()]}))
+    (tmp_path / "swap.json").write_text(json.dumps({"displacements": [d[0].tolist(), swapped.tolist()]}))
+    # swapped markers: refused by the input gate (markers at distances the body cannot take), exit 2
+    assert main(["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "swap.json")]) == 2
+    assert "sample 1: marker input refused: marker" in capsys.readouterr().err
+    slipped = d[1].copy()  # one marker 1.5 mm off: within the gate's limits (0.5 mm simulated), the alarm's job
+    slipped[0] += [1.5, 0.0, 0.0]
+    from tissuecast.surrogate import DeformationModel
+
+    assert not DeformationModel.load(tmp_path / "model").check_input(slipped).refused
+    (tmp_path / "in.json").write_text(json.dumps({"displacements": [d[0].tolist(), slipped.tolist()]}))
     assert main(["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json"), "--out",
                  str(tmp_path / "out.csv"), "--coverage", "0.9", "--false-alarm", "0.2"]) == 0
     out = capsys.readouterr().out  # 12 calibration samples: enough for 90 % bounds and a 20 % false-alarm rate

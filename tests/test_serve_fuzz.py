@@ -28,6 +28,7 @@ from serve_support import small_model
 from tissuecast.serve import IGTLClient, IGTLServer
 from tissuecast.serve.polydata import decode_polydata
 from tissuecast.serve.protocol import HEADER_SIZE, decode_string, message_content, parse_header
+from tissuecast.serve.status import decode_status
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -48,6 +49,10 @@ def parse_stream(data: bytes) -> list:
         content = message_content(header, body)
         if header.message_type == "STRING":
             out.append(("STRING", header.device_name, decode_string(header, content)))
+        elif header.message_type == "STATUS":  # the input gate's refusals and all-clears (serve/status.py)
+            status = decode_status(content)
+            assert status.error_name in ("InputRefused", "") and header.device_name == "TissueStatus"
+            out.append(("STATUS", header.device_name, status.status_message))
         else:
             assert header.message_type == "POLYDATA"
             out.append(("POLYDATA", header.device_name, decode_polydata(content)))
@@ -139,7 +144,7 @@ def check_surface(poly, model, positions):
 def test_fuzz_ten_thousand_messages():
     model = small_model("single")
     fuzz = Fuzzer(model, seed=20261122)
-    counts = {"framed": 0, "breaking": 0, "errors": 0, "valid": 0}
+    counts = {"framed": 0, "breaking": 0, "errors": 0, "valid": 0, "status": 0}
     with IGTLServer(model, "127.0.0.1", 0, client_timeout=1.0, max_body_bytes=1 << 16) as server:
         # 1) pipelined framed messages on long-lived connections: exactly one reply each
         for _ in range(7):
@@ -158,6 +163,9 @@ def test_fuzz_ten_thousand_messages():
                     counts["framed"] += len(batch)
                     for positions in expect:
                         reply = client.receive()
+                        while reply.header.message_type == "STATUS":  # the input gate's refusals and all-clears
+                            counts["status"] += 1
+                            reply = client.receive()
                         if positions is None:
                             assert reply.is_error, reply.header
                             counts["errors"] += 1
@@ -175,7 +183,7 @@ def test_fuzz_ten_thousand_messages():
                 while chunk := sock.recv(1 << 16):
                     data += chunk
             for kind, device, _ in parse_stream(bytes(data)):
-                assert (kind, device) in {("STRING", "ERROR"), ("POLYDATA", "TissueSurface")}
+                assert (kind, device) in {("STRING", "ERROR"), ("POLYDATA", "TissueSurface"), ("STATUS", "TissueStatus")}
             counts["breaking"] += len(batch)
         total = counts["framed"] + counts["breaking"]
         assert total >= 10_000

@@ -154,10 +154,13 @@ def test_bad_input_gets_error_replies_and_connection_survives(server, model):
         assert "expected 4 marker positions" in client.receive().text
         bad = motion(model, 1)
         bad[1, 0] = np.inf
-        client.send_positions(bad)
-        assert "NaN or infinite" in client.receive().text
+        client.send_positions(bad)  # refused by the model's input gate: STATUS InputRefused, then the error
+        status = client.receive()
+        assert status.header.message_type == "STATUS" and status.status.error_name == "InputRefused"
+        assert "marker 1 (input index 1" in status.text and "NaN or inf" in client.receive().text
         client.send_positions(motion(model, 1) + 500.0)
-        assert "from its reference position" in client.receive().text
+        assert client.receive().status.error_name == "InputRefused"
+        assert "more than 3 x the largest simulated displacement" in client.receive().text
         client.send(pyigtl.TransformMessage(np.eye(4), device_name="Needle"))
         assert "not a marker" in client.receive().text
         client.send(pyigtl.TransformMessage(np.eye(4), device_name="Marker4"))  # only 0..3 exist

@@ -51,9 +51,10 @@ def test_alarm_status_reaches_a_pyigtl_client_and_serving_goes_on(model):
         client = pyigtl.OpenIGTLinkClient("127.0.0.1", srv.address[1])
         try:
             positions = _positions(model, 5)
-            swapped = positions.copy()
-            swapped[[0, 3]] = swapped[[3, 0]]
-            client.send_message(pyigtl.PointMessage(swapped.astype(np.float32), device_name="Markers"))
+            slipped = positions.copy()  # one marker 3 mm off: within the input gate's limits, caught by the alarm
+            slipped[0] += [3.0, 0.0, 0.0]
+            assert not model.check_input(slipped - model.reference_marker_positions).refused
+            client.send_message(pyigtl.PointMessage(slipped.astype(np.float32), device_name="Markers"))
             status = client.wait_for_message(STATUS_DEVICE, timeout=10)
             assert isinstance(status, StatusMessage)
             assert status.code == StatusCode.UNKNOWN_ERROR and status.error_name == ALARM_NAME

@@ -256,3 +256,24 @@ def test_the_remaining_checks_fire(tmp_path, capsys):
     assert main(["predict", str(tmp_path / "plain"), "--markers", str(tmp_path / "in.json"), "--instrument",
                  str(tmp_path / "tool.json")]) == 2
     assert "reads the markers only" in capsys.readouterr().err
+
+
+def test_cross_validated_calibration_reads_the_instrument_in_every_fold():
+    mesh, U, _, A = instrument_data()
+    m = DeformationModel(epochs=60, patience=0, batch_size=64, n_components=16, hidden=(64, 32),
+                         calibration="cross-validation", calibration_folds=4)
+    m.fit(U, MARKERS, mesh=mesh, fixed=[0, 1, 2], train_idx=SPLITS["train"], valid_idx=SPLITS["valid"],
+          auxiliary=AuxiliaryValues(INPUTS, A))
+    assert m.training_["calibration"]["method"] == "cross-validation"
+    assert m.trusted_.layer.method == "cross-validation" and m.trusted_.layer.n_auxiliary == 8
+    assert m.fallback_trusted_.layer.n_auxiliary == 0
+    te = SPLITS["test"]
+    d = m.marker_displacements(U[te])
+    tp = m.predict_trusted(d, auxiliary=A[te])
+    coverage = np.mean(np.linalg.norm(tp.displacement - U[te], axis=2) <= tp.error_bound)
+    assert 0.8 <= coverage <= 0.99, coverage
+    # without the pose: the markers-only fallback's own cross-validated bounds
+    lost = m.predict_trusted(d, auxiliary={"retractor": None})
+    coverage = np.mean(np.linalg.norm(lost.displacement - U[te], axis=2) <= lost.error_bound)
+    assert 0.8 <= coverage <= 0.99, coverage
+    assert m.fallback_trusted_.layer.method == "cross-validation"

@@ -183,6 +183,8 @@ OUTPUT_SCALINGS = ("global", "component")
 
 #: How the surrogate maps markers to PCA weights (see :mod:`tissuecast.surrogate.head`).
 HEADS = ("quadratic", "none")
+#: How the error bounds and the alarm are calibrated (see :mod:`tissuecast.surrogate.cross_calibration`).
+CALIBRATIONS = ("cross-validation", "split", "none")
 
 
 @dataclass(frozen=True)
@@ -209,7 +211,10 @@ class SurrogateConfig:
     weight_decay: float = _f(0.0, lo=0.0, doc="Adam weight decay")
     marker_dropout: float = _f(0.0, lo=0.0, hi=1.0, doc="share of training samples with one marker hidden; > 0 enables missing-marker input")
     ensemble: int = _f(1, lo=1, hi=64, doc="networks trained with different seeds (>= 2 gives uncertainty)")
-    calibration_share: float = _f(0.125, lo=0.0, hi=0.5, hi_open=True, doc="share of the training split held out (seeded) to calibrate error bounds and the out-of-distribution alarm; 0 = neither")
+    calibration: str = _f("split", choices=CALIBRATIONS, doc="error bounds and alarm calibrated on out-of-fold predictions (cross-validation), on calibration_share held out (split), or none")
+    calibration_folds: int = _f(5, lo=2, hi=50, doc="calibration = 'cross-validation': folds of the training split (one more model trained per fold)")
+    calibration_fold_ensemble: int = _f(0, lo=0, hi=64, doc="calibration = 'cross-validation': networks per fold model; 0 = surrogate.ensemble")
+    calibration_share: float = _f(0.125, lo=0.0, hi=0.5, hi_open=True, doc="calibration = 'split': share of the training split held out (seeded) to calibrate bounds and alarm; 0 = neither")
     coverage: float = _f(0.9, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="nominal coverage of the per-vertex error bounds: each vertex's error is below its bound with at least this probability")
     false_alarm_rate: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="share of in-distribution inputs allowed to raise the out-of-distribution alarm")
     alarm_fault_score: bool = _f(False, doc="the alarm also tests for one displaced marker: catches it sooner with many markers, catches fewer of the other faults at the same false-alarm rate")

@@ -21,6 +21,7 @@ __all__ = [
     "SolverSetupError",
     "DatasetError",
     "ModelError",
+    "InputRejected",
     "RegistrationError",
     "DependencyError",
 ]
@@ -95,6 +96,22 @@ class DatasetError(TissuecastError, ValueError):
 
 class ModelError(TissuecastError, ValueError):
     """A surrogate model is unfitted, incompatible, or given input of the wrong shape."""
+
+
+class InputRejected(ModelError):
+    """Marker input no simulation could have produced (non-finite, displaced far beyond every
+    simulated sample, or markers at distances the body cannot take): refused by the input gate
+    (:mod:`tissuecast.surrogate.gate`).
+
+    Attributes:
+        reason: ``"non-finite"``, ``"displacement"`` or ``"stretch"``.
+        marker: index of the marker named (0-based, input order).  vertex: its vertex id (0-based).
+        sample: index of the refused sample in the batch.
+    """
+
+    def __init__(self, message: str, *, reason: str = "", marker: int = -1, vertex: int = -1, sample: int = 0):
+        super().__init__(message)
+        self.reason, self.marker, self.vertex, self.sample = reason, int(marker), int(vertex), int(sample)
 
 
 class RegistrationError(TissuecastError, ValueError):

@@ -10,8 +10,11 @@ mark it as not tracked (models trained with marker_dropout > 0).
 Output: .vtu (undeformed mesh + displacement point data; one file per sample for batches),
 .vtk (deformed mesh) or .vtp (deformed outer surface) as 3D Slicer models in LPS with
 ``displacement_mm`` point data, .csv (sample, vertex, ux, uy, uz[, sigma][, error_bound])
-or .json. Vertex ids are 0-based. With a calibrated model (trained with
-surrogate.calibration_share > 0) every vertex gets its conformal error bound
+or .json. Vertex ids are 0-based. Marker input no simulation could have produced (a marker
+not a finite number, displaced far beyond its largest simulated displacement, or markers at
+distances the body cannot take) is refused with one error line naming the marker, exit
+status 2. With a calibrated model (surrogate.calibration 'cross-validation', the default, or
+'split') every vertex gets its conformal error bound
 (``error_bound_mm`` point data / column: the error is below it with probability
 --coverage) and each sample's out-of-distribution alarm is printed.
 --targets-out writes where the targets (the model config's [evaluate.targets], or the
@@ -205,7 +208,11 @@ def run(args) -> int:
     if partial.any():
         from ..errors import ModelError
 
-        raise ModelError("a marker has only some coordinates given; give x, y and z, or leave all three empty")
+        b, j = np.argwhere(partial)[0]
+        raise ModelError(f"sample {b}: marker {j} (input index {j}, vertex {int(model.markers[j])}) has only some "
+                         "coordinates given; give x, y and z, or leave all three empty")
+    if not model.predictor(args.method).supports_missing_markers:
+        missing[:] = False  # a lost marker: the input gate refuses it, naming the marker
     from .predict_inputs import auxiliary_inputs
 
     aux = auxiliary_inputs(model, args.instrument, args.parameter, d.shape[0])
@@ -228,8 +235,8 @@ def run(args) -> int:
     elif args.coverage is not None or args.false_alarm is not None:
         from ..errors import ModelError
 
-        raise ModelError("--coverage and --false-alarm need a calibrated model (trained with "
-                         "surrogate.calibration_share > 0), --method mlp and every marker tracked")
+        raise ModelError("--coverage and --false-alarm need a calibrated model (trained with surrogate.calibration "
+                         "'cross-validation' or 'split'), --method mlp and every marker tracked")
     for b in range(u.shape[0]):
         mag = np.linalg.norm(u[b], axis=1)
         extra = f", max uncertainty {sigma[b].max():.3f} mm" if sigma is not None else ""
@@ -242,10 +249,11 @@ def run(args) -> int:
             print(f"sample {b}: ALARM: {alarms[b].text}")
     if bound is not None and not np.isfinite(bound).all():
         print(f"note: the bounds are infinite: {model.trusted_.n_calibration} calibration samples are too few "
-              f"for {100 * coverage:g} % coverage; use a lower --coverage or re-train with a larger calibration_share")
+              f"for {100 * coverage:g} % coverage; use a lower --coverage or re-train with surrogate.calibration = "
+              "'cross-validation'")
     if alarms is not None and not np.isfinite(alarms[0].distance_threshold):
         print("note: the alarm is off: too few calibration samples for this false-alarm rate; use a larger "
-              "--false-alarm or re-train with a larger calibration_share")
+              "--false-alarm or re-train with surrogate.calibration = 'cross-validation'")
     print(f"predicted {u.shape[0]} sample(s) of {u.shape[1]} vertices in {sec * 1e3:.2f} ms")
     if args.out:
         for f in _write(Path(args.out), model, u, sigma, bound):

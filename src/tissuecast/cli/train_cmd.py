@@ -53,8 +53,10 @@ def run(args) -> int:
         return 0
     print(f"model saved to {out}")
     print(f"  {model!r}")
+    cal = tr.get("calibration") or {}
+    how = {"cross-validation": f"out-of-fold, {cal.get('folds')} folds, ", "split": "held out, "}.get(cal.get("method"), "")
     print(f"  training samples {tr['n_train']}, validation {tr['n_valid']}, calibration {tr.get('n_calibration', 0)} "
-          f"(error bounds and alarm{'' if model.has_trust else ': none'}), PCA components n_w = {tr['n_components']} "
+          f"({how}error bounds and alarm{'' if model.has_trust else ': none'}), PCA components n_w = {tr['n_components']} "
           f"(rule: {tr.get('pca_rule', '?')})")
     q = ((model.pca_choice_ or {}).get("head") or {}).get("dims")
     if q is not None:

@@ -105,7 +105,7 @@ def headline_rows(evaluation) -> list[list[str]]:
 def trust_rows(trust: dict | None, model_has_ensemble: bool = False) -> list[list[str]]:
     """Rows ``[quantity, value, what it means]`` of the calibrated bounds and the alarm."""
     if not trust or not trust.get("sets"):
-        why = ("not calibrated: the model was trained with surrogate.calibration_share = 0"
+        why = ("not calibrated: the model was trained with surrogate.calibration = 'none' or calibration_share = 0"
                + ("; only the ensemble's spread is there, which is not in calibrated mm" if model_has_ensemble else ""))
         return [["90 % error bounds, alarm", DASH, why]]
     sets = trust["sets"]

@@ -145,7 +145,7 @@ def architecture_study(dataset, config: Config, *, widths=ARCHITECTURE_WIDTHS, r
             for r in range(repeats):
                 seed = config.surrogate.seed + r
                 m = DeformationModel(config, hidden=(int(n1), int(n2)), seed=seed, n_components=n_w, ensemble=1,
-                                     calibration_share=0.0)
+                                     calibration="none")
                 t0 = time.perf_counter()
                 m.fit(arrays.displacements, arrays.markers, mesh=arrays.mesh, fixed=arrays.fixed,
                       train_idx=arrays.train_idx, valid_idx=arrays.valid_idx, auxiliary=arrays.auxiliary)
@@ -194,7 +194,7 @@ def marker_count_study(dataset, config: Config, *, counts=MARKER_COUNTS, on_row=
     all_markers, d_min = study_markers(arrays.mesh, max(counts), config, exclude=arrays.fixed)
     rows = []
     for k in counts:
-        m = DeformationModel(config, n_components=n_w, ensemble=1, calibration_share=0.0)
+        m = DeformationModel(config, n_components=n_w, ensemble=1, calibration="none")
         t0 = time.perf_counter()
         m.fit(arrays.displacements, all_markers[:k], mesh=arrays.mesh, fixed=arrays.fixed,
               train_idx=arrays.train_idx, valid_idx=arrays.valid_idx, auxiliary=arrays.auxiliary)

@@ -140,6 +140,15 @@ def _spread_html(evaluation) -> str:
             + "</details>")
 
 
+def _calibration_words(layer) -> str:
+    """How the layer was calibrated, for people."""
+    m = layer.conformal.n_calibration
+    if layer.method == "cross-validation":
+        return (f"conformal, calibrated on the out-of-fold predictions of all {m} training samples: each scored by a model "
+                "trained on the other folds, the model itself trained on every one of them")
+    return f"split-conformal, calibrated on {m} samples held out from training"
+
+
 def uncertainty_section(trusted, evaluation, result: dict | None, folder: Path) -> str:
     """HTML of the report's "how sure" section: the calibrated error bounds and the alarm, with the
     ensemble's spread as a detail; writes ``trust.json`` and ``reliability.png`` (calibrated models).
@@ -154,12 +163,13 @@ def uncertainty_section(trusted, evaluation, result: dict | None, folder: Path) 
     parts = ["<details><summary><h2>How sure: error bounds and alarm</h2></summary>"]
     if result is None:
         parts.append("<p>This model has no calibrated error bounds and no out-of-distribution alarm: it was trained with "
-                     "<code>surrogate.calibration_share = 0</code>. Re-train with a share above 0 to get both.</p>")
+                     "<code>surrogate.calibration = \"none\"</code> (or <code>calibration_share = 0</code>). Re-train "
+                     "with <code>calibration = \"cross-validation\"</code> to get both without holding samples out.</p>")
     else:
         Path(folder, "trust.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
         t = trusted.layer
         parts.append(f"<p>Every vertex gets an error bound: the error stays below it with the nominal probability "
-                     f"(split-conformal, calibrated on {t.conformal.n_calibration} samples held out from training). "
+                     f"({_calibration_words(t)}). "
                      f"Covered: the share of vertices whose error is within their bound; it should match the nominal "
                      f"level on test-1 (test-2's force fields were never trained on). The alarm flags inputs unlike the "
                      f"training data, at {fmt_share(t.false_alarm)} false alarms.</p>")

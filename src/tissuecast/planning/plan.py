@@ -81,7 +81,7 @@ def validation_error(arrays, markers, config=None) -> float:
     (no calibration hold-out, one network)."""
     from ..surrogate import DeformationModel
 
-    m = DeformationModel(config, ensemble=1, calibration_share=0.0).fit(
+    m = DeformationModel(config, ensemble=1, calibration="none").fit(
         arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed,
         train_idx=arrays.train_idx, valid_idx=arrays.valid_idx)
     bench = np.asarray(arrays.displacements[arrays.valid_idx], dtype=np.float64)

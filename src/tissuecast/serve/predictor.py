@@ -45,7 +45,8 @@ from ..surrogate.field_predictor import FieldPredictor
 from .client_frames import ClientFrames
 from .polydata import PolyDataTemplate
 
-__all__ = ["Prediction", "SurfacePredictor", "served_predictor", "SURFACE_DEVICE", "FIELD_DEVICE", "PredictionError"]
+__all__ = ["Prediction", "SurfacePredictor", "served_predictor", "SURFACE_DEVICE", "FIELD_DEVICE", "PredictionError",
+           "InputRefused"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,18 @@ DISPLACEMENT_NAME = "displacement_mm"
 
 class PredictionError(MarkerError):
     """Marker positions that cannot be served (wrong count, implausible, model failure)."""
+
+
+class InputRefused(PredictionError):
+    """Marker positions the model's input gate refuses (:mod:`tissuecast.surrogate.gate`).
+
+    Attributes:
+        verdict: the gate's :class:`~tissuecast.surrogate.gate.GateVerdict` (reason, marker, vertex).
+    """
+
+    def __init__(self, verdict):
+        super().__init__(verdict.message)
+        self.verdict = verdict
 
 
 def served_predictor(model: FieldPredictor, method: str = ServeConfig.method) -> FieldPredictor:
@@ -131,6 +144,7 @@ class SurfacePredictor:
         self.instrument_devices = _instrument_devices(self.auxiliary, devices or {})
         self.parameters = _measured(self.auxiliary, parameters or {})
         self.reference_surface = ReferenceSurface.of(self.model.mesh) if self.auxiliary.instruments else None
+        self.gate = model.input_gate  # the model's, whichever method serves
         mesh = self.model.mesh
         reference = np.asarray(self.model.reference_marker_positions, dtype=np.float64)
         if reference.ndim != 2 or reference.shape[1] != 3 or not np.isfinite(reference).all():
@@ -164,6 +178,8 @@ class SurfacePredictor:
             their reference position.
 
         Raises:
+            InputRefused: the model's input gate refuses the markers (non-finite, displaced far
+                beyond the simulations, or at distances the body cannot take).
             PredictionError: wrong count, non-finite values, or a marker too far from its
                 reference position.
         """
@@ -173,6 +189,12 @@ class SurfacePredictor:
             raise PredictionError(f"expected {self.n_markers} marker positions (x, y, z in mm), got {count}")
         missing = None
         finite = np.isfinite(positions)
+        if self.gate is not None:
+            untracked = np.isnan(positions).all(axis=1) if self.supports_missing else None
+            verdict = self.gate.inspect((positions - self.reference).reshape(1, -1),
+                                        None if untracked is None else untracked[None])[0]
+            if verdict.refused:
+                raise InputRefused(verdict)
         if not finite.all():
             untracked = np.isnan(positions).all(axis=1)
             if not (self.supports_missing and (finite.all(axis=1) | untracked).all() and not untracked.all()):

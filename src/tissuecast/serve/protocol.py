@@ -181,11 +181,13 @@ def _unpack(message: MessageBase, header: Header, content) -> MessageBase:
     return message
 
 
-def decode_points(header: Header, content, *, allow_missing: bool = False) -> np.ndarray:
+def decode_points(header: Header, content, *, allow_missing: bool = False, check_finite: bool = True) -> np.ndarray:
     """Positions of a POINT message.
 
     Args:
         allow_missing: accept points whose three coordinates are all NaN (untracked markers).
+        check_finite: refuse non-finite coordinates here (False: the caller's input gate does,
+            naming the marker).
 
     Returns:
         (p, 3) float64, mm, in the message's order.
@@ -201,7 +203,7 @@ def decode_points(header: Header, content, *, allow_missing: bool = False) -> np
         )
     positions = np.frombuffer(content, dtype=_POINT_ELEMENT)["xyz"].astype(np.float64)
     finite = np.isfinite(positions).all(axis=1)
-    if not finite.all() and not (allow_missing and np.isnan(positions[~finite]).all()):
+    if check_finite and not finite.all() and not (allow_missing and np.isnan(positions[~finite]).all()):
         raise ProtocolError(
             f"POINT message {header.device_name!r} holds NaN or infinite coordinates "
             f"(points {np.flatnonzero(~finite).tolist()})"

@@ -33,7 +33,11 @@ Requests a client may send (any header version 1 or 2; device names are case-sen
 With ``full_field=True`` every prediction is answered by both messages, surface first.
 With a calibrated model, a prediction that raises the out-of-distribution alarm is followed
 by a ``STATUS "TissueStatus"`` message (:mod:`tissuecast.serve.status`); the first clean
-prediction after an alarm is followed by a STATUS ``OK``.
+prediction after an alarm is followed by a STATUS ``OK``. Marker positions the model's input
+gate refuses (:mod:`tissuecast.surrogate.gate`: a non-finite marker, one displaced far beyond
+the simulations, markers at distances the body cannot take) get no mesh: a STATUS
+``InputRefused`` naming the marker, then the ``STRING "ERROR"`` below; the next accepted
+prediction is followed by a STATUS ``OK``.
 Anything else gets a ``STRING "ERROR"`` reply whose text says what was wrong; the
 connection stays open unless the byte stream can no longer be trusted (oversized body,
 unknown header version, garbage header), in which case the error is sent and the session
@@ -53,7 +57,7 @@ from ..config import TRANSFORM_MODES, ServeConfig
 from ..frames import FrameError
 from .client_frames import REGISTRATION_PATTERN, ClientFrames
 from .instruments import LOST_NAME, TRACKED_NAME, InstrumentTracking
-from .predictor import FIELD_DEVICE, SURFACE_DEVICE, Prediction, PredictionError, SurfacePredictor
+from .predictor import FIELD_DEVICE, SURFACE_DEVICE, InputRefused, Prediction, PredictionError, SurfacePredictor
 from .protocol import (
     DEFAULT_MAX_BODY_BYTES,
     HEADER_SIZE,
@@ -183,7 +187,8 @@ class ClientSession:
             content = message_content(header, body)
             kind = header.message_type
             if kind == "POINT":
-                positions = decode_points(header, content, allow_missing=self.predictor.supports_missing)
+                positions = decode_points(header, content, allow_missing=self.predictor.supports_missing,
+                                          check_finite=self.predictor.gate is None)
                 self._serve(positions, header.timestamp)
             elif kind == "TRANSFORM":
                 self._on_transform(header, decode_transform(header, content))
@@ -195,6 +200,8 @@ class ClientSession:
                     f"accepts POINT, TRANSFORM {MARKER_PREFIX}0..{MARKER_PREFIX}{self.predictor.n_markers - 1} "
                     f"and GET_POLYDATA {FIELD_DEVICE}/{SURFACE_DEVICE}"
                 )
+        except InputRefused as exc:
+            self._refused(exc, header.timestamp)
         except (ProtocolError, PredictionError, FrameError) as exc:
             self._error(str(exc), header.timestamp)
 
@@ -250,6 +257,12 @@ class ClientSession:
         self._send_instrument_status(poses, timestamp)
         if prediction.alarm is not None and (prediction.alarm.raised or self._alarmed):
             self._send_alarm_status(prediction)
+        elif self._alarmed:  # a refusal before, a model without alarm now: clear it
+            from .status import StatusCode, pack_status
+
+            self._alarmed = False
+            self.counts["alarms_cleared"] += 1
+            self.send(pack_status(StatusCode.OK, 0, "", "marker input accepted", prediction.timestamp))
 
     def _send_instrument_status(self, poses: dict, timestamp: float) -> None:
         """A STATUS for each instrument whose tracking changed since this connection was last told."""
@@ -283,6 +296,16 @@ class ClientSession:
             self.send(pack_status(StatusCode.UNKNOWN_ERROR, int(bits), ALARM_NAME, alarm.text, prediction.timestamp))
         else:
             self.send(pack_status(StatusCode.OK, 0, "", alarm.text, prediction.timestamp))
+
+    def _refused(self, exc: InputRefused, timestamp: float) -> None:
+        """Markers the input gate refuses: no mesh; a STATUS ``InputRefused`` (subcode: why) and
+        the ``STRING "ERROR"`` every rejected request gets; the next prediction sends STATUS OK."""
+        from .status import REFUSED_NAME, StatusCode, pack_status, refusal_bits
+
+        self.counts["refused"] += 1
+        self._alarmed = True
+        self.send(pack_status(StatusCode.UNKNOWN_ERROR, refusal_bits(exc.verdict.reason), REFUSED_NAME, str(exc), timestamp))
+        self._error(str(exc), timestamp)
 
     # ------------------------------------------------------------------ replies
     def _send(self, data) -> None:

@@ -8,7 +8,9 @@ all big-endian. tissuecast sends, on device :data:`STATUS_DEVICE`, one STATUS af
 POLYDATA reply of a prediction that raised the alarm (code :attr:`StatusCode.UNKNOWN_ERROR`,
 the protocol's generic error, name :data:`ALARM_NAME`, subcode a bitmask of
 :class:`AlarmBits`, text the alarm's one-line explanation), and one STATUS ``OK`` when a
-later prediction no longer raises it. The server keeps serving either way.
+later prediction no longer raises it. Marker input the model's input gate refuses gets no mesh
+but a STATUS with name :data:`REFUSED_NAME` (subcode :class:`RefusalBits`, text naming the
+marker). The server keeps serving either way.
 
 pyigtl 0.3.4 has no STATUS class: :class:`StatusMessage` is one (a ``pyigtl.MessageBase``),
 and :func:`register_status_message` teaches ``pyigtl.OpenIGTLinkClient`` to receive it.
@@ -21,11 +23,12 @@ from enum import IntEnum, IntFlag
 
 from .protocol import ProtocolError, pyigtl
 
-__all__ = ["StatusCode", "AlarmBits", "StatusMessage", "pack_status", "decode_status", "register_status_message",
-           "STATUS_DEVICE", "ALARM_NAME"]
+__all__ = ["StatusCode", "AlarmBits", "RefusalBits", "StatusMessage", "pack_status", "decode_status",
+           "register_status_message", "refusal_bits", "STATUS_DEVICE", "ALARM_NAME", "REFUSED_NAME"]
 
 STATUS_DEVICE = "TissueStatus"
 ALARM_NAME = "OutOfDistribution"
+REFUSED_NAME = "InputRefused"
 _FIXED = struct.Struct("> H q 20s")
 
 
@@ -59,6 +62,20 @@ class AlarmBits(IntFlag):
 
     FAR_FROM_TRAINING = 1  # the marker input lies far from every simulated deformation
     INCONSISTENT_MARKERS = 2  # a marker is far from where the others place it
+
+
+class RefusalBits(IntFlag):
+    """Subcode bits of an ``InputRefused`` STATUS (the input gate, :mod:`tissuecast.surrogate.gate`)."""
+
+    NON_FINITE = 4  # a marker's position is NaN or infinite
+    BEYOND_SIMULATED = 8  # a marker displaced far beyond its largest simulated displacement
+    IMPOSSIBLE_GEOMETRY = 16  # two markers at a distance the body cannot take (swapped, mislabelled)
+
+
+def refusal_bits(reason: str) -> int:
+    """The :class:`RefusalBits` of a gate refusal's reason (``"non-finite"``, ``"displacement"``, ``"stretch"``)."""
+    return int({"non-finite": RefusalBits.NON_FINITE, "displacement": RefusalBits.BEYOND_SIMULATED,
+                "stretch": RefusalBits.IMPOSSIBLE_GEOMETRY}.get(reason, 0))
 
 
 class StatusMessage(pyigtl.MessageBase):

@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import ModelError
 
 __all__ = ["conformal_rank", "conformal_quantile", "min_calibration_samples", "VertexConformal", "fit_vertex_conformal",
-           "reliability_curve"]
+           "normalised_errors", "reliability_curve"]
 
 
 def conformal_rank(m: int, coverage: float) -> int:
@@ -84,8 +84,8 @@ class VertexConformal:
         return np.asarray(sigma, dtype=np.float64) * self.quantiles(coverage)
 
 
-def fit_vertex_conformal(errors, sigma) -> VertexConformal:
-    """Calibrate from calibration errors (m, n) mm and normalisers (m, n) > 0.
+def normalised_errors(errors, sigma) -> np.ndarray:
+    """(m, n) nonconformity scores ``e / sigma`` from calibration errors (m, n) mm and normalisers (m, n) > 0.
 
     Raises:
         ModelError: shapes differ, non-finite values, or a normaliser <= 0.
@@ -96,7 +96,16 @@ def fit_vertex_conformal(errors, sigma) -> VertexConformal:
         raise ModelError(f"calibration errors and normalisers must both be (m, n), got {e.shape} and {s.shape}")
     if not (np.isfinite(e).all() and np.isfinite(s).all()) or (s <= 0).any():
         raise ModelError("calibration errors must be finite and normalisers finite and positive")
-    return VertexConformal(np.sort(e / s, axis=0))
+    return e / s
+
+
+def fit_vertex_conformal(errors, sigma) -> VertexConformal:
+    """Calibrate from calibration errors (m, n) mm and normalisers (m, n) > 0.
+
+    Raises:
+        ModelError: shapes differ, non-finite values, or a normaliser <= 0.
+    """
+    return VertexConformal(np.sort(normalised_errors(errors, sigma), axis=0))
 
 
 def reliability_curve(conformal: VertexConformal, errors, sigma, levels=None) -> tuple[np.ndarray, np.ndarray]:

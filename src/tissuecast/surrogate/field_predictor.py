@@ -75,6 +75,9 @@ class FieldPredictor(ABC):
     has_uncertainty: bool = False
     has_trust: bool = False
     auxiliary: AuxiliaryInputs = MARKERS_ONLY
+    #: the :class:`~.gate.InputGate` that refuses implausible input, or None (predictors built
+    #: outside a model; a :class:`~.model.DeformationModel` sets it on itself and its parts)
+    input_gate = None
 
     # ------------------------------------------------------------------ geometry
     @property
@@ -98,9 +101,11 @@ class FieldPredictor(ABC):
     def marker_batch(self, marker_displacements, missing=None) -> tuple[np.ndarray, np.ndarray | None, bool]:
         """Checked input: ``(d (B, 3 n_d) float64, missing (B, n_d) bool or None, single sample?)``.
 
-        Accepts (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) mm (:func:`.inputs.marker_batch`).
+        Accepts (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) mm (:func:`.inputs.marker_batch`);
+        the :attr:`input_gate`, where set, refuses implausible input
+        (:class:`~tissuecast.errors.InputRejected`).
         """
-        return marker_batch(marker_displacements, self.n_markers, missing, self.supports_missing_markers)
+        return marker_batch(marker_displacements, self.n_markers, missing, self.supports_missing_markers, self.input_gate)
 
     def auxiliary_batch(self, given, batch: int) -> np.ndarray | None:
         """Checked auxiliary inputs (B, n_a) float64 (:meth:`.auxiliary.AuxiliaryInputs.batch`),
@@ -159,7 +164,8 @@ class FieldPredictor(ABC):
             ModelError: this predictor is not calibrated (``has_trust`` is False).
         """
         raise ModelError(f"the {self.name} predictor has no calibrated error bounds or alarm; wrap it in a "
-                         "TrustedPredictor (tissuecast.surrogate.trusted) or train with surrogate.calibration_share > 0")
+                         "TrustedPredictor (tissuecast.surrogate.trusted) or train with surrogate.calibration = "
+                         "'cross-validation' or 'split'")
 
     def describe(self) -> dict:
         """Small JSON-able description: name, sizes and capabilities."""

@@ -9,8 +9,8 @@ from ..errors import ModelError
 __all__ = ["marker_batch", "missing_mask"]
 
 
-def marker_batch(marker_displacements, n_d: int, missing=None,
-                 masked: bool = False) -> tuple[np.ndarray, np.ndarray | None, bool]:
+def marker_batch(marker_displacements, n_d: int, missing=None, masked: bool = False,
+                 gate=None, *, check_finite: bool = True) -> tuple[np.ndarray, np.ndarray | None, bool]:
     """Check and reshape marker displacements.
 
     Args:
@@ -18,6 +18,9 @@ def marker_batch(marker_displacements, n_d: int, missing=None,
         n_d: number of markers of the model.
         missing: untracked markers: indices into the marker list, or bool (n_d,) / (B, n_d).
         masked: whether the model accepts missing markers.
+        gate: the model's :class:`~.gate.InputGate`, or None; it refuses implausible tracked
+            markers (non-finite ones included) with :class:`~tissuecast.errors.InputRejected`.
+        check_finite: refuse NaN/inf in tracked markers (False: leave them to the caller).
 
     Returns:
         ``(d (B, 3 n_d) float64 with missing entries zeroed, missing (B, n_d) bool or None, single)``.
@@ -25,6 +28,7 @@ def marker_batch(marker_displacements, n_d: int, missing=None,
     Raises:
         ModelError: wrong shape, NaN/inf in tracked markers, missing markers for a model
             trained without masking, or every marker missing.
+        InputRejected: the gate refused the input.
     """
     try:
         d = np.asarray(marker_displacements, dtype=np.float64)
@@ -54,8 +58,10 @@ def marker_batch(marker_displacements, n_d: int, missing=None,
             )
         elif miss.all(axis=1).any():
             raise ModelError("at least one marker must be tracked in every sample")
+    if gate is not None:
+        gate.enforce(d, miss)
     check = d if miss is None else np.where(np.repeat(miss, 3, axis=1), 0.0, d)
-    if not np.isfinite(check).all():
+    if check_finite and not np.isfinite(check).all():
         raise ModelError("marker displacements contain NaN or inf; mark untracked markers with missing=[...]")
     if miss is not None:
         d = check

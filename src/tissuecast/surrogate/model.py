@@ -35,15 +35,17 @@ from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
 from ..errors import ModelError
 from .auxiliary import AuxiliaryInputs, AuxiliaryValues
 from .baselines import RidgePredictor, RigidRegistrationPredictor
+from .cross_calibration import fit_model_trust
 from .data import FitSplits, check_fit_inputs, dataset_arrays, fit_splits, flat_fields
 from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
+from .inputs import marker_batch
 from .network_fit import ENSEMBLE_SEED_STRIDE, fit_network
 from .network_predictor import NetworkPredictor
 from .ridge import marker_columns
-from .state import ModelState, training_summaries
+from .gate import GateVerdict, InputGate
+from .state import ModelState, gate_of, training_summaries
 from .trust import TrustedPrediction
-from .trust_fit import fit_trust
 from .trusted import TrustedPredictor
 
 __all__ = ["DeformationModel", "ENSEMBLE_SEED_STRIDE", "METHODS"]
@@ -153,7 +155,7 @@ class DeformationModel(FieldPredictor):
 
     @property
     def has_trust(self) -> bool:
-        """Whether error bounds and the alarm are calibrated (``surrogate.calibration_share > 0``)."""
+        """Whether error bounds and the alarm are calibrated (``surrogate.calibration`` not ``"none"``)."""
         return self.is_fitted and self.trusted_ is not None
 
     @property
@@ -177,7 +179,8 @@ class DeformationModel(FieldPredictor):
                           pca_curve=self.pca_curve_, trust=None if self.trusted_ is None else self.trusted_.layer,
                           training=self.training_, run_config=self.run_config, dataset_path=self.dataset_path,
                           scenario=self.scenario, metadata=self.metadata_, fallback=self.fallback_,
-                          fallback_trust=None if self.fallback_trusted_ is None else self.fallback_trusted_.layer)
+                          fallback_trust=None if self.fallback_trusted_ is None else self.fallback_trusted_.layer,
+                          gate=self.input_gate)
 
     @classmethod
     def from_state(cls, state: ModelState) -> "DeformationModel":
@@ -198,11 +201,18 @@ class DeformationModel(FieldPredictor):
         self.fallback_ = state.fallback
         self.fallback_trusted_ = None if state.fallback_trust is None else TrustedPredictor(state.fallback,
                                                                                               state.fallback_trust)
+        self.input_gate = gate_of(state)
+        for part in (net, self.ridge_, self.rigid_, self.trusted_, self.fallback_, self.fallback_trusted_):
+            if part is not None:
+                part.input_gate = self.input_gate
         learned, self._trusted = net, self.trusted_
         if self.fallback_ is not None:
             learned = InstrumentFallback(net, self.fallback_)
             if self.trusted_ is not None and self.fallback_trusted_ is not None:
                 self._trusted = InstrumentFallback(self.trusted_, self.fallback_trusted_)
+        for wrapper in (learned, self._trusted):
+            if wrapper is not None:
+                wrapper.input_gate = self.input_gate
         self._by_method = {"mlp": learned, "rigid": self.rigid_, "ridge": self.ridge_}
         self.fixed_ = np.asarray(state.fixed, dtype=np.int64).ravel()
         self.pca_choice_ = state.pca_choice
@@ -228,8 +238,11 @@ class DeformationModel(FieldPredictor):
             valid_idx: sample indices for validation (checkpoint/early stopping); default: a
                 seeded 10 % of the training indices.
             calibration_idx: sample indices for calibrating the trust layer, never trained
-                on; default: a seeded ``surrogate.calibration_share`` of the training indices
-                (none when that is 0 or leaves fewer than 8 samples: then no trust layer).
+                on (split conformal on them, whatever ``surrogate.calibration`` says); default:
+                by ``surrogate.calibration``: ``"cross-validation"`` trains on every training
+                sample and calibrates on out-of-fold predictions (:mod:`.cross_calibration`),
+                ``"split"`` holds a seeded ``calibration_share`` of the training indices out
+                (none when that is 0 or leaves fewer than 8 samples), ``"none"``: no trust layer.
             auxiliary: every sample's auxiliary inputs (:class:`~.auxiliary.AuxiliaryValues`:
                 instrument poses, measured parameters; finite for the used samples), or None
                 for a markers-only model.
@@ -241,19 +254,22 @@ class DeformationModel(FieldPredictor):
         c = self.config
         U, mk = check_fit_inputs(displacements, markers, mesh)
         splits = fit_splits(U.shape[0], train_idx, valid_idx, calibration_idx, seed=c.seed,
-                            calibration_share=c.calibration_share)
+                            calibration_share=c.calibration_share if c.calibration == "split" else 0.0)
         Ut, Uv = flat_fields(U, splits)
         spec, A = _auxiliary_values(auxiliary, U.shape[0], splits)
-        net, trust = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec, A)
+        explicit = calibration_idx is not None
+        net, trust, calibration = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec, A, explicit)
         fallback, fallback_trust = None, None
         if spec.instruments:
             kept = A[:, len(spec.instrument_columns):]
-            fallback, fallback_trust = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec.without_instruments(), kept)
+            fallback, fallback_trust, _ = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec.without_instruments(), kept,
+                                                            explicit)
         ridge = RidgePredictor.fit(mesh, mk, net.predictor.basis, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
         training = {
             "n_train": int(len(splits.train)),
             "n_valid": int(len(splits.valid)),
-            "n_calibration": int(len(splits.calibration)),
+            "n_calibration": int(trust.conformal.n_calibration) if trust is not None else 0,
+            "calibration": calibration,
             "n_components": int(net.predictor.n_components),
             "pca_rule": net.choice["rule"],
             "pca_seconds": net.pca_seconds,
@@ -267,26 +283,25 @@ class DeformationModel(FieldPredictor):
                                     "mlp_seconds": float(sum(s.seconds for s in fallback.summaries)),
                                     "members": [s.as_dict() for s in fallback.summaries]}
             choice["fallback"] = {k: v for k, v in fallback.choice.items() if k != "validation_curve"}
+        seen = np.concatenate([splits.train, splits.valid, splits.calibration])
+        gate = InputGate.from_inputs(mk, mesh.points[mk], U[seen][:, mk])
         self._assemble(ModelState(c, net.predictor, np.asarray(fixed, dtype=np.int64).ravel(), choice, net.curve, trust,
                                   training, self.run_config, self.dataset_path, self.scenario,
                                   fallback=None if fallback is None else fallback.predictor,
-                                  fallback_trust=fallback_trust))
+                                  fallback_trust=fallback_trust, gate=gate))
         return self
 
-    def _fit_learned(self, U, Ut, Uv, mk, mesh, splits: FitSplits, spec: AuxiliaryInputs, A: np.ndarray | None):
-        """``(NetworkFit, trust layer or None)``: the learned predictor reading ``spec`` (values
-        A (N, n_a), or None without) and, with calibration samples, its trust layer."""
+    def _fit_learned(self, U, Ut, Uv, mk, mesh, splits: FitSplits, spec: AuxiliaryInputs, A: np.ndarray | None,
+                     explicit: bool):
+        """``(NetworkFit, trust layer or None, calibration record)``: the learned predictor reading
+        ``spec`` (values A (N, n_a), or None without) and its trust layer
+        (:func:`~.cross_calibration.fit_model_trust`; ``explicit``: calibration samples were given)."""
         c = self.config
         A = A if spec.width else None
         rows = (None, None) if A is None else (A[splits.train], A[splits.valid])
         net = fit_network(Ut, Uv, mk, mesh, c, *rows, auxiliary=spec)
-        trust = None
-        if len(splits.calibration):
-            trust = fit_trust(net.predictor, U, train_idx=splits.train, valid_idx=splits.valid,
-                              calibration_idx=splits.calibration, coverage=c.coverage, false_alarm=c.false_alarm_rate,
-                              fault_score=c.alarm_fault_score, basis=net.predictor.basis, head=net.predictor.head,
-                              auxiliary=A)
-        return net, trust
+        trust, record = fit_model_trust(net.predictor, U, splits, mesh, c, explicit=explicit, auxiliary=A)
+        return net, trust, record
 
     @classmethod
     def from_dataset(cls, dataset, config: Config | SurrogateConfig | None = None, **overrides) -> "DeformationModel":
@@ -359,13 +374,24 @@ class DeformationModel(FieldPredictor):
                 with an absent instrument gets the fallback's).
 
         Raises:
-            ModelError: the model has no trust layer (trained with calibration_share = 0).
+            ModelError: the model has no trust layer (trained with calibration = "none", or too few samples).
         """
         if not self.has_trust:
-            raise ModelError("this model has no calibrated error bounds or alarm; re-train it with "
-                             f"surrogate.calibration_share > 0 (e.g. {SurrogateConfig.calibration_share:g})")
+            raise ModelError("this model has no calibrated error bounds or alarm; re-train it with surrogate.calibration = "
+                             "'cross-validation' (out-of-fold, no samples held out) or 'split' with calibration_share > 0 "
+                             f"(e.g. {SurrogateConfig.calibration_share:g})")
         return self._trusted.predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm,
                                              auxiliary=auxiliary)
+
+    def check_input(self, marker_displacements, *, missing=None) -> GateVerdict | list[GateVerdict]:
+        """The input gate's verdict (:mod:`.gate`) without predicting: one :class:`~.gate.GateVerdict`
+        for one sample, a list for a batch (same layouts as :meth:`predict`, mm). ``predict`` and
+        the other predict methods raise :class:`~tissuecast.errors.InputRejected` where it refuses."""
+        self._fitted()
+        d, miss, single = marker_batch(marker_displacements, self.n_markers, missing, self.supports_missing_markers,
+                                       check_finite=False)
+        verdicts = self.input_gate.inspect(d, miss)
+        return verdicts[0] if single else verdicts
 
     def predict_from_positions(self, positions, *, missing=None, method: str = "mlp", auxiliary=None) -> np.ndarray:
         """Displacement field from tracked marker positions (n_d, 3) or (B, n_d, 3) mm.

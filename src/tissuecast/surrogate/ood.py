@@ -280,6 +280,13 @@ class OODScores:
         return OODScores(self.distance, self.consistency, self.scale,
                          np.sort(self.combined(self.scores(X_calibration))), self.use_fault)
 
+    def rescaled(self, scores) -> "OODScores":
+        """These scores (not calibrated) with their scales the medians of (B, 3) raw scores
+        (:meth:`scores` of inputs like the clean ones: out-of-fold training inputs)."""
+        sv = np.asarray(scores, dtype=np.float64)
+        scale = np.where(np.isnan(sv[0]), 1.0, np.maximum(np.median(sv, axis=0), _TINY_SCORE))
+        return OODScores(self.distance, self.consistency, scale, np.zeros(0), self.use_fault)
+
     def p_values(self, scores) -> np.ndarray:
         """(B,) conformal p-values ``(1 + #{calibration >= alarm score}) / (m + 1)``."""
         c = self.combined(scores)

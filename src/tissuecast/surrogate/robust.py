@@ -47,6 +47,7 @@ class SubModelSet(FieldPredictor):
                 raise ModelError(f"sub-model {i} must use markers {np.delete(markers, i).tolist()} on the same mesh, "
                                  f"got markers {sub.markers.tolist()} on {sub.n_vertices} vertices")
         self.full, self.subs = full, list(subs)
+        self.input_gate = full.input_gate  # the full model's input gate checks the tracked markers
 
     @classmethod
     def fit(cls, displacements, markers, *, mesh, fixed=(), train_idx=None, valid_idx=None, config=None,

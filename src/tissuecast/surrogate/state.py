@@ -13,12 +13,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import SurrogateConfig
+from .gate import InputGate
 from .mlp import TrainingSummary
 from .network_predictor import NetworkPredictor
 from .pca import PCACurve
 from .trust import TrustLayer
 
-__all__ = ["ModelState", "training_summaries"]
+__all__ = ["ModelState", "training_summaries", "gate_of"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,6 +42,7 @@ class ModelState:
         fallback: for a network with instrument inputs, its fallback without them
             (:mod:`.fallback`; the same mesh and markers), else None.
         fallback_trust: the fallback's calibrated trust layer, or None.
+        gate: the input gate's ranges, or None (derived by :func:`gate_of`).
     """
 
     config: SurrogateConfig
@@ -56,6 +58,7 @@ class ModelState:
     metadata: dict | None = field(default=None, repr=False)
     fallback: NetworkPredictor | None = None
     fallback_trust: TrustLayer | None = None
+    gate: InputGate | None = None
 
     @property
     def ridge_components(self) -> int:
@@ -67,3 +70,18 @@ def training_summaries(training: dict | None) -> list[TrainingSummary]:
     """The members' :class:`TrainingSummary` objects from a training record (``model.json``)."""
     return [TrainingSummary(**{k: (tuple(map(tuple, v)) if k == "valid_history" else v) for k, v in s.items()})
             for s in (training or {}).get("members", [])]
+
+
+def gate_of(state: ModelState) -> InputGate:
+    """The state's input gate; for a state without one (a folder written before the gate), its
+    ranges derived from the trust layer's training inputs (the input distance's whitened
+    reference, mapped back to mm) where there is one, else estimated from the PCA basis
+    (:meth:`InputGate.from_pca`)."""
+    if state.gate is not None:
+        return state.gate
+    net = state.network
+    if state.trust is not None:
+        dist = state.trust.ood.distance
+        X = dist.reference @ np.linalg.pinv(dist.whitening) + dist.mean
+        return InputGate.from_inputs(net.markers, net.reference_marker_positions, X, source="trust-file")
+    return InputGate.from_pca(net.markers, net.reference_marker_positions, net.basis)

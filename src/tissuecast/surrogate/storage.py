@@ -3,7 +3,9 @@
 A model folder holds::
 
     model.json          format, schema, versions, units, markers, fixed vertices,
-                        reference marker positions, mesh fingerprint, config, scenario (supports, loads), training summary
+                        reference marker positions, mesh fingerprint, config, scenario (supports, loads), training summary,
+                        input gate (each marker's largest simulated displacement and each marker pair's
+                        simulated stretch range, tissuecast.surrogate.gate; absent in older folders: derived)
     weights.safetensors member{k}.layer{i}.weight/bias and standardisation, float32
     pca.npz             mean (p,), components (n_w, p), singular_values (n_w,), float64
     mesh.npz            points (n, 3) mm, tets (m, 4) 0-based
@@ -36,6 +38,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ModelError, require
+from .gate import InputGate
 from .network_predictor import NetworkPredictor
 from .auxiliary import AuxiliaryInputs
 from .pca import PCABasis, PCACurve
@@ -104,6 +107,7 @@ def _metadata(state: ModelState) -> dict:
         "pca_curve": None if state.pca_curve is None else state.pca_curve.as_dict(),
         "pca_choice": state.pca_choice,
         "training": state.training,
+        "input_gate": None if state.gate is None else state.gate.as_dict(),
         "files": {"weights": "weights.safetensors", "pca": "pca.npz", "mesh": "mesh.npz",
                   **({"head": "head.npz"} if head is not None else {})},
     }
@@ -271,7 +275,18 @@ def load_model(folder) -> ModelState:
                                               "n_components": network.n_components},
         pca_curve=curve, trust=trust, training=meta.get("training") or None, run_config=meta.get("config"),
         dataset_path=meta.get("dataset_path"), scenario=meta.get("scenario"), metadata=meta, fallback=fallback,
-        fallback_trust=fallback_trust)
+        fallback_trust=fallback_trust, gate=_gate(network, meta))
+
+
+def _gate(network: NetworkPredictor, meta: dict) -> InputGate | None:
+    """The stored input gate, or None for folders written before it (then derived: :func:`.state.gate_of`)."""
+    doc = meta.get("input_gate")
+    if not doc:
+        return None
+    try:
+        return InputGate.from_dict(network.markers, network.reference_marker_positions, doc)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelError(f"the input gate in model.json is incomplete: {exc}; the folder is corrupt") from exc
 
 
 def export_onnx(network: NetworkPredictor, path) -> None:

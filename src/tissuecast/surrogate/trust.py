@@ -17,7 +17,8 @@ The layer is fitted in two steps (:mod:`.trust_fit`), for any field predictor:
 - **calibration** (:meth:`TrustLayer.calibrate`) from any (input, prediction, truth) triples
   the predictor was not trained on: the split-conformal scores of the bounds
   (:mod:`.conformal`) and of the alarm. Today these are samples held out from the training
-  split (``surrogate.calibration_share``); a layer calibrated on nothing has infinite bounds
+  split (``surrogate.calibration = "split"``) or out-of-fold scores of the training split
+  (``"cross-validation"``, :mod:`.cross_calibration`); a layer calibrated on nothing has infinite bounds
   and an alarm that never fires.
 
 For a model with a quadratic head the normaliser is g alone (``flat``): the per-vertex conformal
@@ -44,12 +45,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ModelError
-from .conformal import VertexConformal, fit_vertex_conformal
+from .calibration_scores import CalibrationScores
+from .conformal import VertexConformal, normalised_errors
 from .ood import InputDistance, MarkerConsistency, OODScores
 from .pca import PCABasis
 from .quadratic import QuadraticRegression
 
-__all__ = ["TrustLayer", "Alarm", "TrustedPrediction", "FEATURE_NAMES", "FILE", "PREDICT_CHUNK"]
+__all__ = ["TrustLayer", "Alarm", "TrustedPrediction", "CalibrationScores", "FEATURE_NAMES", "FILE", "PREDICT_CHUNK"]
 
 log = logging.getLogger(__name__)
 
@@ -161,6 +163,8 @@ class TrustLayer:
             last feature), or None (trust files written before it).
         flat: the normaliser is the error model's g alone (models with a quadratic head).
         n_auxiliary: n_a, the auxiliary inputs read after the markers (0: markers only).
+        method: how it was calibrated: ``"split"`` (held-out samples) or ``"cross-validation"``
+            (out-of-fold predictions of the training split, :mod:`.cross_calibration`).
     """
 
     markers: np.ndarray
@@ -174,6 +178,7 @@ class TrustLayer:
     error_input: QuadraticRegression | None = None
     flat: bool = False
     n_auxiliary: int = 0
+    method: str = "split"
 
     def inputs(self, marker_displacements, auxiliary=None, batch: int | None = None) -> np.ndarray:
         """The layer's input x (B, 3 n_d + n_a): marker displacements (B, 3 n_d) or (B, n_d, 3) mm
@@ -272,11 +277,13 @@ class TrustLayer:
         return self.ood.scores(self.inputs(marker_displacements, auxiliary))
 
     # ---------------------------------------------------------------- calibration
-    def calibrate(self, marker_displacements, displacements, truths, *, chunk: int = PREDICT_CHUNK,
-                  auxiliary=None) -> "TrustLayer":
-        """This layer calibrated on triples the predictor was not fitted on (held-out samples
-        today; out-of-fold predictions would do as well): the conformal scores of the bounds
-        and the alarm scores of the inputs. Earlier calibration is replaced.
+    def calibration_scores(self, marker_displacements, displacements, truths, *,
+                           chunk: int = PREDICT_CHUNK, auxiliary=None) -> "CalibrationScores":
+        """What calibrates a layer, from (input, prediction, truth) triples the predictor of
+        *this* layer was not fitted on, as this layer sees them: the error-model features, the
+        disagreement map, the vertex errors and the raw alarm scores (:meth:`with_calibration`
+        turns them into bounds and a threshold, for this layer or, pooled over the folds of a
+        cross-validation, for the layer of the model fitted on every fold).
 
         Args:
             marker_displacements: (m, 3 n_d) or (m, n_d, 3) mm, the inputs.
@@ -300,8 +307,37 @@ class TrustLayer:
             feats.append(f)
             hs.append(h)
             errors.append(np.linalg.norm(u[s:s + chunk] - truth[s:s + chunk], axis=2))
-        conformal = fit_vertex_conformal(np.vstack(errors), self.sigma(np.vstack(feats), np.vstack(hs)))
-        return dataclasses.replace(self, conformal=conformal, ood=self.ood.calibrated(d))
+        return CalibrationScores(np.vstack(feats), None if self.flat else np.vstack(hs), np.vstack(errors),
+                                 self.ood.scores(d))
+
+    def with_calibration(self, scores: "CalibrationScores") -> "TrustLayer":
+        """This layer calibrated by ``scores`` (:meth:`calibration_scores`): the per-vertex
+        conformal scores ``e / sigma`` (sigma by this layer's error model) and the alarm threshold
+        (the alarm scores combined on this layer's scales). Earlier calibration is replaced.
+
+        Raises:
+            ModelError: scores for another number of vertices, non-finite errors or normalisers.
+        """
+        n = self.basis.n_features // 3
+        if scores.errors.shape[1] != n:
+            raise ModelError(f"calibration scores are for {scores.errors.shape[1]} vertices, this layer predicts {n}")
+        h = scores.disagreement if scores.disagreement is not None else np.ones_like(scores.errors)
+        vertex = normalised_errors(scores.errors, self.sigma(scores.features, h))
+        ood = OODScores(self.ood.distance, self.ood.consistency, self.ood.scale, np.sort(self.ood.combined(scores.alarm)),
+                        self.ood.use_fault)
+        return dataclasses.replace(self, conformal=VertexConformal(np.sort(vertex, axis=0)), ood=ood)
+
+    def calibrate(self, marker_displacements, displacements, truths, *, chunk: int = PREDICT_CHUNK,
+                  auxiliary=None) -> "TrustLayer":
+        """This layer calibrated on triples its predictor was not fitted on (split conformal):
+        :meth:`with_calibration` of :meth:`calibration_scores` (arguments as there). Earlier
+        calibration is replaced.
+
+        Raises:
+            ModelError: shapes that do not match, or non-finite errors or normalisers.
+        """
+        return self.with_calibration(self.calibration_scores(marker_displacements, displacements, truths, chunk=chunk,
+                                                             auxiliary=auxiliary))
 
     # ---------------------------------------------------------------- storage
     def arrays(self) -> dict:
@@ -320,6 +356,7 @@ class TrustLayer:
             out.update(self.error_input.arrays("error_input."))
         out["flat"] = np.bool_(self.flat)
         out["n_auxiliary"] = np.int64(self.n_auxiliary)
+        out["calibration_method"] = np.str_(self.method)
         cons = self.ood.consistency
         out["ood.consistency.count"] = np.int64(0 if cons is None else len(cons.regressions))
         if cons is not None:
@@ -356,7 +393,8 @@ class TrustLayer:
                    coverage=float(a["coverage"]), false_alarm=float(a["false_alarm"]),
                    error_input=QuadraticRegression.from_arrays(a, "error_input.") if "error_input.coef" in a else None,
                    flat=bool(a["flat"]) if "flat" in a else False,
-                   n_auxiliary=int(a["n_auxiliary"]) if "n_auxiliary" in a else 0)
+                   n_auxiliary=int(a["n_auxiliary"]) if "n_auxiliary" in a else 0,
+                   method=str(a["calibration_method"]) if "calibration_method" in a else "split")
 
     def save(self, folder) -> str:
         """Write ``trust.npz`` into a model folder; returns the file name."""
@@ -383,4 +421,5 @@ class TrustLayer:
                 "consistency": self.ood.consistency is not None,
                 "fault_score": self.ood.consistency is not None and self.ood.consistency.sensitivity is not None,
                 "fault_score_in_alarm": self.ood.use_fault,
-                "flat_normaliser": self.flat, "auxiliary_inputs": self.n_auxiliary}
+                "flat_normaliser": self.flat, "auxiliary_inputs": self.n_auxiliary,
+                "calibration": self.method}

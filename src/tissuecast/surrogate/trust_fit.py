@@ -24,7 +24,7 @@ from .ridge import marker_columns
 from .trust import FEATURE_NAMES, PREDICT_CHUNK, TrustLayer, floored_log
 
 __all__ = ["fit_trust_layer", "fit_trust", "held_out_predictions", "SECOND_COMPONENTS", "ERROR_FOLDS",
-           "ERROR_INPUT_DIMS"]
+           "ERROR_INPUT_DIMS", "warn_if_too_few", "fit_error_model"]
 
 # the trust layer's messages keep the logger name they had before fitting moved here (log filters)
 log = logging.getLogger("tissuecast.surrogate.trust")
@@ -83,8 +83,9 @@ def _assessed_samples(predictor: FieldPredictor, draft: TrustLayer, U, idx: np.n
     return np.vstack(feats), np.vstack(errs), np.vstack(inputs)
 
 
-def _error_model(features: np.ndarray, errors: np.ndarray) -> np.ndarray:
-    """Ridge regression of log Offset_max on [1, features]: (1 + F,) coefficients (intercept not penalised)."""
+def fit_error_model(features: np.ndarray, errors: np.ndarray) -> np.ndarray:
+    """Ridge regression of log Offset_max on [1, features]: (1 + F,) coefficients (intercept not penalised),
+    from features (B, F) and vertex errors (B, n) mm."""
     F = np.hstack([np.ones((len(features), 1)), features])
     G = F.T @ F + _ERROR_MODEL_RIDGE * len(F) * np.diag(np.r_[0.0, np.ones(features.shape[1])])
     return np.linalg.solve(G, F.T @ floored_log(errors.max(axis=1)))
@@ -147,7 +148,7 @@ def fit_trust_layer(predictor: FieldPredictor, displacements, *, train_idx, vali
     error_input = _input_error_regression(error_basis, q, Ut, Xt, dv, ev)
     if error_input is not None:
         fv = np.hstack([fv, error_input.predict(dv)])
-    return TrustLayer(mk, second_basis, second, _error_model(fv, ev), empty,
+    return TrustLayer(mk, second_basis, second, fit_error_model(fv, ev), empty,
                       scale_ood(distance, consistency, dv, fault_score), coverage, false_alarm, error_input, head is not None,
                       n_a)
 
@@ -160,11 +161,14 @@ def _check_splits(sets: list[np.ndarray]) -> None:
                          f"{len(sets[1])} and {len(sets[2])}; raise surrogate.calibration_share or use a larger data set")
 
 
-def _warn_if_too_few(m: int, coverage: float, false_alarm: float) -> None:
+def warn_if_too_few(m: int, coverage: float, false_alarm: float) -> None:
+    """Log a warning where ``m`` calibration samples give infinite bounds at ``coverage`` or an
+    alarm that cannot fire at ``false_alarm``."""
     for what, level in (("error bounds at coverage", coverage), ("alarm at false-alarm rate", 1.0 - false_alarm)):
         if m < min_calibration_samples(level):
-            log.warning("%d calibration samples are too few for finite %s %g (needs %d): raise "
-                        "surrogate.calibration_share or use a larger data set", m, what,
+            log.warning("%d calibration samples are too few for finite %s %g (needs %d): use surrogate.calibration = "
+                        "'cross-validation' (every training sample calibrates), a larger calibration_share or a larger "
+                        "data set", m, what,
                         coverage if "bounds" in what else false_alarm, min_calibration_samples(level))
 
 
@@ -187,7 +191,7 @@ def fit_trust(predictor: FieldPredictor, displacements, *, train_idx, valid_idx,
                             false_alarm=false_alarm, fault_score=fault_score, basis=basis, head=head, chunk=chunk,
                             auxiliary=auxiliary)
     layer = draft.calibrate(*held_out_predictions(predictor, displacements, sets[2], chunk, auxiliary), chunk=chunk)
-    _warn_if_too_few(len(sets[2]), coverage, false_alarm)
+    warn_if_too_few(len(sets[2]), coverage, false_alarm)
     return layer
 
 
