@@ -53,6 +53,7 @@ from ..config import Config, SolverConfig
 from ..errors import DatasetError
 from .codes import InitialGuess, SampleStatus
 from .mechanism_check import MECHANISM_RATIO, check_supports
+from .phase_stats import eta_text, work_seconds
 from .worker import Recipe, SampleContext, Task
 
 if TYPE_CHECKING:
@@ -74,6 +75,11 @@ LINEAR_ALPHA_DIGITS = 6
 FAILURE_DIVISOR = 4.0  # after a round with failures and no lower bound, alpha is divided by this
 #: Pilots whose linear answers check the pins before the calibration (:mod:`.mechanism_check`).
 SUPPORT_PILOTS = 4
+#: The calibration's ETA counts on this many rounds (most calibrations take 2-3) ...
+EXPECTED_ROUNDS = 3
+#: ... and on later rounds' pilots taking this share of the first round's (they start from
+#: their previous round's solutions: 0.5-0.75 measured on the phantom and a brain mesh).
+LATER_ROUND_SHARE = 0.6
 
 
 def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, list]:
@@ -116,13 +122,30 @@ def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, lis
         tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i)) if i in prev or zero is None
                  else Task(i, int(seeds[i]), float(betas[i]), alpha, zero, int(InitialGuess.ZERO))
                  for i in pilots]
-        last[:] = sorted(ex.run(tasks, phase, unit="pilot"), key=lambda r: r.index)
+        outlook = calibration_outlook(len(rounds), len(pilots), ex.workers)
+        last[:] = sorted(ex.run(tasks, phase, unit="pilot", outlook=outlook), key=lambda r: r.index)
         return np.array([r.max_displacement for r in last])
 
     alpha0 = _first_alpha(cfg, recipe, scenario, [(int(seeds[i]), float(betas[i])) for i in pilots])
     record = calibrate_alpha(pilot_max, alpha0, cfg.forces.target_max_displacement, quantile=ds.calibration_quantile)
     record["pilots"] = pilots
     return record, [r for r in last if r.alpha == record["alpha"]]
+
+
+def calibration_outlook(round_: int, pilots: int, workers: int):
+    """The progress lines' outlook of calibration round ``round_`` (1-based): the calibration's
+    ETA as a whole, from the round's ETA and the median worker seconds of its pilots so far,
+    taking ``EXPECTED_ROUNDS`` rounds whose later pilots take ``LATER_ROUND_SHARE`` of the
+    time (they start from their previous round's solutions)."""
+
+    def outlook(eta: float, median: float | None) -> str:
+        later = max(EXPECTED_ROUNDS - round_, 0)
+        if median is None or not later:
+            return f"; calibration ETA {eta_text(eta)}" + ("" if later else " (if this round is the last)")
+        rest = later * work_seconds(pilots, LATER_ROUND_SHARE * median, workers)
+        return f"; calibration ETA {eta_text(eta + rest)} (if it takes {EXPECTED_ROUNDS} rounds)"
+
+    return outlook
 
 
 def _first_alpha(cfg: Config, recipe: Recipe, scenario: "Scenario", pilots: list) -> float:
