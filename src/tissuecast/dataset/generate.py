@@ -27,6 +27,7 @@ from .batch import Batch, chunk_batches, pending_batches
 from .calibrate import calibrate_pilots
 from .codes import SampleStatus
 from .executors import make_executor, sigterm_as_interrupt
+from .mechanism_check import check_thin_body
 from .phase_stats import PREDICTED_SHARE, eta_text, whole_set_eta
 from .reader import open_dataset, recipe_from_store
 from .reduced_predictor import build_reduced, keep_snapshots
@@ -83,6 +84,7 @@ def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
     _, markers, _, scenario = scenario_setup(cfg)
     if path.exists():
         return StoreWriter.resume(path, config=cfg, markers=markers, scenario=scenario)
+    check_thin_body(scenario, cfg.markers)  # before the store is made: a refused run leaves nothing behind
     return StoreWriter.create(path, config=cfg, markers=markers, plan=make_plan(cfg), scenario=scenario)
 
 
