@@ -47,6 +47,8 @@ _BARRIER = None  # this local worker's pool-wide barrier (LocalExecutor.update)
 UPDATE_TIMEOUT = 600.0
 #: Seconds the parent waits for each terminated worker process to end when stopping.
 STOP_TIMEOUT = 10.0
+#: The parent waits on its workers this long at a time (a stop signal acts in between).
+POLL_SECONDS = 0.2
 
 
 def default_workers() -> int:
@@ -58,25 +60,71 @@ class _Terminated(KeyboardInterrupt):
     """SIGTERM received while a data set is being made (see :func:`sigterm_as_interrupt`)."""
 
 
-def _raise_terminated(signum, frame) -> None:
-    raise _Terminated()
+class _StopSignals:
+    """SIGTERM and SIGINT handlers that stop a run at a safe point (see :func:`sigterm_as_interrupt`).
+
+    Outside :meth:`deferred` a signal acts at once, as the previous handler would (SIGTERM with
+    its default action raises :class:`_Terminated` instead of ending the process). Inside it
+    (the parent waiting on its workers, holding the pool's locks in between) the signal is
+    only recorded and acts when the block is left, so that no lock of the pool stays taken by
+    an exception raised in the middle of acquiring it."""
+
+    def __init__(self) -> None:
+        self.previous: dict = {}
+        self.depth = 0
+        self.pending: list = []
+
+    def handle(self, signum, frame) -> None:
+        if self.depth:
+            self.pending.append((signum, frame))
+            return
+        self.act(signum, frame)
+
+    def act(self, signum, frame) -> None:
+        previous = self.previous.get(signum, signal.SIG_DFL)
+        if callable(previous):
+            previous(signum, frame)  # e.g. the CLI's SIGTERM handler, Python's KeyboardInterrupt
+        elif previous == signal.SIG_DFL:
+            raise _Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+    @contextlib.contextmanager
+    def deferred(self):
+        """A block in which the signals wait (see the class notes)."""
+        self.depth += 1
+        try:
+            yield
+        finally:
+            self.depth -= 1
+            if not self.depth and self.pending:
+                signum, frame = self.pending.pop(0)
+                self.pending.clear()
+                self.act(signum, frame)
+
+
+_SIGNALS = _StopSignals()
 
 
 @contextlib.contextmanager
 def sigterm_as_interrupt():
     """Within the block, SIGTERM (``kill``, ``timeout``) raises a KeyboardInterrupt in the main
     thread, so that a run stops as after Ctrl+C: the executor stops its workers and releases
-    its locks, the finished samples are saved (module notes). Only where SIGTERM still has its
-    default action and in the main thread; the previous handler is restored after."""
-    main = threading.current_thread() is threading.main_thread()
-    if not main or signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+    its locks, the finished samples are saved (module notes); both signals wait for a safe
+    point while the parent waits on its workers (:class:`_StopSignals`). Only in the main
+    thread, for signals not ignored; the previous handlers are restored after."""
+    if threading.current_thread() is not threading.main_thread() or _SIGNALS.previous:
         yield
         return
-    signal.signal(signal.SIGTERM, _raise_terminated)
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        previous = signal.getsignal(signum)
+        if previous not in (signal.SIG_IGN, None):
+            _SIGNALS.previous[signum] = previous
+            signal.signal(signum, _SIGNALS.handle)
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        for signum, previous in _SIGNALS.previous.items():
+            signal.signal(signum, previous)
+        _SIGNALS.previous.clear()
 
 
 def _watch_parent(parent: int) -> None:
@@ -157,10 +205,11 @@ class LocalExecutor:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if self._pool is not None:
-            if exc_type is not None:  # stopped or failed: the solves in flight are not waited for
-                self._stop_workers()
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
+            with _SIGNALS.deferred():  # a second Ctrl+C does not break the clean-up
+                if exc_type is not None:  # stopped or failed: the solves in flight are not waited for
+                    self._stop_workers()
+                self._pool.shutdown(wait=True, cancel_futures=True)
+                self._pool = None
 
     def _stop_workers(self) -> None:
         """Terminate the worker processes (they only compute; the parent alone writes) and
@@ -196,10 +245,11 @@ class LocalExecutor:
         futures: set = set()
         try:
             while True:
-                _fill(futures, source, lambda t: self._pool.submit(_run, t), WINDOW_PER_WORKER * self.workers)
-                if not futures:
-                    return
-                finished, _ = cf.wait(futures, return_when=cf.FIRST_COMPLETED)
+                with _SIGNALS.deferred():  # a stop acts between waits, not inside the pool's locks
+                    _fill(futures, source, lambda t: self._pool.submit(_run, t), WINDOW_PER_WORKER * self.workers)
+                    if not futures:
+                        return
+                    finished, _ = cf.wait(futures, timeout=POLL_SECONDS, return_when=cf.FIRST_COMPLETED)
                 for f in sorted(finished, key=id):
                     futures.discard(f)
                     try:
