@@ -82,6 +82,36 @@ def test_resume_after_kill_is_bit_identical(reference, tmp_path, kill_at):
     assert_same_store(store, ref_path)
 
 
+@pytest.mark.parametrize("how", ["SIGTERM", "Ctrl+C"])
+def test_a_stopped_run_exits_cleanly_and_resumes_bit_identically(reference, tmp_path, how):
+    """SIGTERM (kill, timeout) to the run, or SIGINT to its whole process group (Ctrl+C in a
+    terminal): the run stops its workers and exits with 143 / 130, without tracebacks or leaked
+    semaphores, and the same command completes the store bit for bit."""
+    cfg, ref_path, _ = reference
+    cfg_file = write_config(cfg, tmp_path / "cfg.toml")
+    store = tmp_path / "stopped.zarr"
+    cmd = [sys.executable, "-m", "tissuecast.cli.main", "-q", "simulate", str(cfg_file), "--store", str(store),
+           "--no-progress"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while done_count(store) < 30 and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert proc.poll() is None, f"the run ended before it could be stopped: {proc.stderr.read()[-500:]}"
+    if how == "SIGTERM":
+        os.kill(proc.pid, signal.SIGTERM)
+    else:
+        os.killpg(proc.pid, signal.SIGINT)
+    stderr = proc.communicate(timeout=60)[1]
+    assert proc.returncode == (143 if how == "SIGTERM" else 130), stderr
+    assert "leaked" not in stderr and "Traceback" not in stderr, stderr
+    assert ("terminated (SIGTERM)" if how == "SIGTERM" else "interrupted") in stderr
+    assert 30 <= done_count(store) < N_LBO + N_TEST2
+    rerun = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr
+    assert "leaked" not in rerun.stderr
+    assert_same_store(store, ref_path)
+
+
 def test_predictor_starts_later_samples_near_their_solution(reference):
     cfg, path, _ = reference
     ds = open_dataset(path)

@@ -12,7 +12,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
+import threading
 
 from .. import __version__
 from ..errors import TissuecastError
@@ -21,6 +23,8 @@ from ..errors import TissuecastError
 #: and of one interrupted by Ctrl+C (128 + SIGINT, the shells' convention).
 EXIT_ERROR = 2
 EXIT_INTERRUPTED = 130
+#: Exit status of a run stopped by SIGTERM (``kill``, ``timeout``, a scheduler): 128 + SIGTERM.
+EXIT_TERMINATED = 143
 
 # subcommand name -> module in tissuecast.cli (imported lazily so `tissuecast --help` is fast)
 COMMANDS: dict[str, str] = {
@@ -74,6 +78,7 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 0 if args.command is None else EXIT_ERROR
+    _stop_on_sigterm()
     try:
         return int(args.func(args) or 0)
     except (TissuecastError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
@@ -81,12 +86,28 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_ERROR
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as exc:
+        print("terminated (SIGTERM)" if isinstance(exc, Terminated) else "interrupted", file=sys.stderr)
+        return EXIT_TERMINATED if isinstance(exc, Terminated) else EXIT_INTERRUPTED
     except BrokenPipeError:  # e.g. `tissuecast markers ... | head`
         sys.stderr.close()
         return 0
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received: raised in the main thread so that the run stops as after Ctrl+C
+    (worker processes stopped, finished samples saved, no leaked semaphores)."""
+
+
+def _raise_terminated(signum, frame) -> None:
+    raise Terminated()
+
+
+def _stop_on_sigterm() -> None:
+    """Turn SIGTERM into :class:`Terminated` (a KeyboardInterrupt) in the main thread, so a
+    ``kill`` or ``timeout`` unwinds the run like Ctrl+C instead of ending the process at once."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _raise_terminated)
 
 
 class _StderrHandler(logging.StreamHandler):

@@ -64,7 +64,7 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
     solver = ctx.solver(0)
     if ctx.reduced is None or not hasattr(solver, "solve_batch"):
         return [solve_task(recipe, t) for t in tasks]
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     inputs = [ctx.inputs(t) for t in tasks]
     keywords = [x.solve_keywords() for x in inputs]
     guesses = [ctx.reduced.predict(x.predictor_loads) for x in inputs]
@@ -83,6 +83,7 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
     except (ArithmeticError, np.linalg.LinAlgError):  # a numerical breakdown stops the whole lockstep
         return [solve_task(recipe, t) for t in tasks]
     prep = (time.perf_counter() - t0) / max(len(tasks), 1)  # inputs, predictions and the batch, per sample
+    prep_cpu = (time.process_time() - c0) / max(len(tasks), 1)
     out: dict[int, SampleResult] = {}
     for k, res in zip(together, outcomes):
         t, forces, weights = tasks[k], inputs[k].forces, inputs[k].weights
@@ -93,7 +94,7 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
                                   int(res.iterations), int(res.factorizations), prep, 1.0, 1,
                                   predicted=InitialGuess.REDUCED_MODEL,
                                   nodal=None if nodal is None else np.asarray(nodal, dtype=np.float64),
-                                  draw=inputs[k].draw)
+                                  draw=inputs[k].draw, cpu_seconds=prep_cpu)
             continue
         what = res if isinstance(res, ConvergenceError) else f"not converged at load fraction {res.load_fraction:.4g}"
         reason = f"attempt 1 from the prediction, in a batch of {len(together)}: {type(res).__name__}: {what}"
@@ -103,6 +104,7 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
         out[k] = dataclasses.replace(alone, increments=alone.increments + counts[0],
                                      iterations=alone.iterations + counts[1],
                                      factorizations=alone.factorizations + counts[2], seconds=alone.seconds + prep,
+                                     cpu_seconds=alone.cpu_seconds + prep_cpu,
                                      load_fraction=max(alone.load_fraction, float(getattr(res, "load_fraction", 0.0))))
     for k, t in enumerate(tasks):
         if k not in out:  # no prediction: alone, as without batches

@@ -9,8 +9,9 @@ Rule (documented in the store's ``calibration`` attribute):
   nonlinear FEM at force magnitude alpha. A pilot that fails to converge counts as +inf.
 * alpha solves ``q(alpha) = forces.target_max_displacement`` to a relative tolerance of
   ``RTOL`` (2 %): start from a deliberately small dimensional estimate (about 1 % of the
-  target: a nearly linear, cheap solve); extrapolate linearly to half the target (the
-  response of a body held by a few pinned vertices softens strongly); then iterate
+  target: a nearly linear, cheap solve); extrapolate linearly to half the target from far
+  below it (the response of a body held by a few pinned vertices softens strongly), straight
+  to the target from within ``FAR_BELOW`` of it or from above; then iterate
   ``alpha <- alpha (target / q)^(1 / s)`` where the response exponent ``s`` comes from the
   last two rounds (secant in log-log, clipped to [0.5, 3]). Rounds that overshoot (q above
   the target, or failures) bound alpha from above; the next alpha never leaves the bracket
@@ -33,6 +34,11 @@ Rule (documented in the store's ``calibration`` attribute):
   nominal tissue (the record says ``parameters: nominal``), and the samples then deform more or
   less with their drawn parameters. Such pilots are not the samples (those draw their own
   parameters), so they are solved again with the others.
+* Confidence: the record also gives the interval of the order statistics of the last
+  round's pilot maxima that holds the quantile of the whole data set's maxima (at that alpha)
+  with probability at least ``INTERVAL_CONFIDENCE`` (distribution-free: the number of pilots
+  below the true quantile is binomial; ``quantile_interval``, None where the pilots are too
+  few to bound that side), so what the number of pilots buys is stated.
 * If ``dataset.alpha`` > 0 in the config, it is used as is and no pilots are solved.
 * From the second round on, each pilot's solve starts from its own solution of the previous
   round (see :func:`calibrate_pilots`); the answers are the same within the solver
@@ -58,19 +64,25 @@ from ..config import Config, SolverConfig
 from ..errors import DatasetError
 from .codes import InitialGuess, SampleStatus
 from .mechanism_check import MECHANISM_RATIO, check_supports
+from .phase_stats import eta_text, work_seconds
+from .quantiles import interval_text, quantile_interval
+from .quantiles import sample_quantile as _quantile
 from .worker import Recipe, SampleContext, Task
 
 if TYPE_CHECKING:
     from ..scenario import Scenario
 
-__all__ = ["calibrate_pilots", "calibrate_alpha", "initial_alpha", "linear_alpha", "warm_zero", "RTOL", "MAX_ROUNDS",
-           "FIRST_AIM", "SUPPORT_PILOTS"]
+__all__ = ["calibrate_pilots", "calibrate_alpha", "initial_alpha", "linear_alpha", "warm_zero", "quantile_interval",
+           "calibration_outlook", "RTOL", "MAX_ROUNDS", "FIRST_AIM", "FAR_BELOW", "SUPPORT_PILOTS"]
 
 log = logging.getLogger(__name__)
 
 RTOL = 0.02
 MAX_ROUNDS = 10
-FIRST_AIM = 0.5  # a first extrapolation from far below the target aims at this share of it
+FIRST_AIM = 0.5  # a first extrapolation from far below the target aims at this share of it ...
+FAR_BELOW = 0.25  # ... "far below": a quantile under this share of the target
+#: Confidence of the stated interval of the quantile (module notes).
+INTERVAL_CONFIDENCE = 0.8
 #: The response exponent ``s`` of q ~ alpha^s is clipped to this range (a body held by a few
 #: pins softens, but not without bound).
 EXPONENT_MIN, EXPONENT_MAX = 0.5, 3.0
@@ -79,6 +91,11 @@ LINEAR_ALPHA_DIGITS = 6
 FAILURE_DIVISOR = 4.0  # after a round with failures and no lower bound, alpha is divided by this
 #: Pilots whose linear answers check the pins before the calibration (:mod:`.mechanism_check`).
 SUPPORT_PILOTS = 4
+#: The calibration's ETA counts on this many rounds (most calibrations take 2-3) ...
+EXPECTED_ROUNDS = 3
+#: ... and on later rounds' pilots taking this share of the first round's (they start from
+#: their previous round's solutions: 0.5-0.75 measured on the phantom and a brain mesh).
+LATER_ROUND_SHARE = 0.6
 
 
 def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, list]:
@@ -122,7 +139,8 @@ def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, lis
         tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i), nominal=nominal) if i in prev or zero is None
                  else Task(i, int(seeds[i]), float(betas[i]), alpha, zero, int(InitialGuess.ZERO), nominal=nominal)
                  for i in pilots]
-        last[:] = sorted(ex.run(tasks, phase, unit="pilot"), key=lambda r: r.index)
+        outlook = calibration_outlook(len(rounds), len(pilots), ex.workers)
+        last[:] = sorted(ex.run(tasks, phase, unit="pilot", outlook=outlook), key=lambda r: r.index)
         return np.array([r.max_displacement for r in last])
 
     alpha0 = _first_alpha(cfg, recipe, scenario, [(int(seeds[i]), float(betas[i])) for i in pilots])
@@ -132,6 +150,22 @@ def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, lis
         record["parameters"] = "nominal (the samples draw [scenario.uncertain])"
         return record, []
     return record, [r for r in last if r.alpha == record["alpha"]]
+
+
+def calibration_outlook(round_: int, pilots: int, workers: int):
+    """The progress lines' outlook of calibration round ``round_`` (1-based): the calibration's
+    ETA as a whole, from the round's ETA and the median worker seconds of its pilots so far,
+    taking ``EXPECTED_ROUNDS`` rounds whose later pilots take ``LATER_ROUND_SHARE`` of the
+    time (they start from their previous round's solutions)."""
+
+    def outlook(eta: float, median: float | None) -> str:
+        later = max(EXPECTED_ROUNDS - round_, 0)
+        if median is None or not later:
+            return f"; calibration ETA {eta_text(eta)}" + ("" if later else " (if this round is the last)")
+        rest = later * work_seconds(pilots, LATER_ROUND_SHARE * median, workers)
+        return f"; calibration ETA {eta_text(eta + rest)} (if it takes {EXPECTED_ROUNDS} rounds)"
+
+    return outlook
 
 
 def _first_alpha(cfg: Config, recipe: Recipe, scenario: "Scenario", pilots: list) -> float:
@@ -234,16 +268,6 @@ def linear_alpha(recipe: Recipe, pilots: list, target: float, quantile: float = 
     return float(f"{aim * target / q:.{LINEAR_ALPHA_DIGITS}g}")
 
 
-def _quantile(values: np.ndarray, q: float) -> float:
-    """Linearly interpolated quantile (numpy's default) where inf (a failure) may occur."""
-    v = np.sort(np.asarray(values, dtype=np.float64))
-    pos = q * (len(v) - 1)
-    i, j = int(math.floor(pos)), int(math.ceil(pos))
-    if not math.isfinite(v[j]):
-        return math.inf
-    return float(v[i] + (pos - i) * (v[j] - v[i]))
-
-
 def calibrate_alpha(
     pilot_max: Callable[[float], np.ndarray],
     alpha0: float,
@@ -311,13 +335,13 @@ def _bracket(lo, hi, alpha: float, q: float, target: float):
 def _next_alpha(alpha: float, q: float, target: float, lo, ref) -> float:
     """The next trial alpha: after a failure, the geometric mean with the lower bound (or a
     quarter); with two rounds, the power law through them; from one round, linear
-    extrapolation (from far below only to ``FIRST_AIM`` of the target)."""
+    extrapolation (from below ``FAR_BELOW`` of the target only to ``FIRST_AIM`` of it)."""
     if not math.isfinite(q):
         return math.sqrt(lo[0] * alpha) if lo is not None else alpha / FAILURE_DIVISOR
     if ref is not None and ref[0] != alpha and math.isfinite(ref[1]) and 0 < ref[1] != q:
         s = min(max(math.log(q / ref[1]) / math.log(alpha / ref[0]), EXPONENT_MIN), EXPONENT_MAX)
         return alpha * (target / q) ** (1.0 / s)
-    aim = FIRST_AIM * target if q < FIRST_AIM * target else target
+    aim = FIRST_AIM * target if q < FAR_BELOW * target else target
     return alpha * aim / q
 
 
@@ -329,10 +353,18 @@ def _record(rounds: list, best, target: float, quantile: float, rtol: float) -> 
             f"(last {rounds[-1]['alpha']:.3g} N); check the material, fixed vertices and solver settings")
     converged = abs(best[1] / target - 1.0) <= rtol
     limited = bool(not converged and any(r["quantile_value"] is None for r in rounds))
+    chosen = next(r for r in rounds if r["alpha"] == best[0])
+    maxima = [math.inf if m is None else m for m in chosen["pilot_max"]]
+    interval = quantile_interval(maxima, quantile, INTERVAL_CONFIDENCE)
+    log.info("q%.0f of the %d pilots' maxima at alpha %.6g N: %.3f mm; with %.0f %% confidence the whole data set's "
+             "q%.0f lies in %s", 100 * quantile, len(maxima), best[0], best[1], 100 * INTERVAL_CONFIDENCE,
+             100 * quantile, interval_text(interval))
     if not converged:
         log.warning("force calibration did not reach %.1f mm (%s); using alpha = %.6g N (q = %.2f mm)", target,
                     "pilot samples fail to converge at larger forces" if limited else f"{len(rounds)} rounds",
                     best[0], best[1])
     return {"rule": f"q{quantile:g} of pilot per-sample max displacement = target (failures count as +inf)",
             "alpha": best[0], "quantile": quantile, "target": target, "quantile_value": best[1], "rtol": rtol,
-            "converged": bool(converged), "limited_by_failures": limited, "rounds": rounds}
+            "converged": bool(converged), "limited_by_failures": limited, "rounds": rounds,
+            "quantile_interval": list(interval), "interval_confidence": INTERVAL_CONFIDENCE}
+

@@ -10,14 +10,22 @@ where it ran: local workers are spawned with ``OMP/OPENBLAS/MKL_NUM_THREADS=1``,
 worker (Dask's too, whatever its environment says) also limits the BLAS libraries it has
 loaded to one thread at run time (threadpoolctl) before its first solve.
 A local worker also exits by itself when its parent process dies (``kill -9``).
+
+Stopping: local workers ignore SIGINT (Ctrl+C reaches the whole process group, but only the
+parent decides); when the parent leaves the executor by an exception (Ctrl+C, SIGTERM turned
+into one by the CLI, an error), it stops the workers at once and waits for them, so that the
+pool's queues and locks are released before the process exits (no leaked semaphores) and the
+samples the parent has written stay in the store for the next run to continue from.
 """
 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import logging
 import multiprocessing
 import os
+import signal
 import threading
 import time
 from typing import Iterable, Iterator
@@ -26,7 +34,8 @@ from ..errors import DatasetError, require
 from .batch import Batch, solve_item
 from .worker import Recipe, SampleResult, Task, context_for
 
-__all__ = ["LocalExecutor", "DaskExecutor", "make_executor", "default_workers", "single_threaded_blas"]
+__all__ = ["LocalExecutor", "DaskExecutor", "make_executor", "default_workers", "single_threaded_blas",
+           "sigterm_as_interrupt"]
 
 log = logging.getLogger(__name__)
 
@@ -36,11 +45,86 @@ _RECIPE: Recipe | None = None
 _BARRIER = None  # this local worker's pool-wide barrier (LocalExecutor.update)
 #: Seconds a local worker waits for the others while the pool takes a new recipe.
 UPDATE_TIMEOUT = 600.0
+#: Seconds the parent waits for each terminated worker process to end when stopping.
+STOP_TIMEOUT = 10.0
+#: The parent waits on its workers this long at a time (a stop signal acts in between).
+POLL_SECONDS = 0.2
 
 
 def default_workers() -> int:
     """Automatic number of local workers: min(2, CPU count)."""
     return max(1, min(2, os.cpu_count() or 1))
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM received while a data set is being made (see :func:`sigterm_as_interrupt`)."""
+
+
+class _StopSignals:
+    """SIGTERM and SIGINT handlers that stop a run at a safe point (see :func:`sigterm_as_interrupt`).
+
+    Outside :meth:`deferred` a signal acts at once, as the previous handler would (SIGTERM with
+    its default action raises :class:`_Terminated` instead of ending the process). Inside it
+    (the parent waiting on its workers, holding the pool's locks in between) the signal is
+    only recorded and acts when the block is left, so that no lock of the pool stays taken by
+    an exception raised in the middle of acquiring it."""
+
+    def __init__(self) -> None:
+        self.previous: dict = {}
+        self.depth = 0
+        self.pending: list = []
+
+    def handle(self, signum, frame) -> None:
+        if self.depth:
+            self.pending.append((signum, frame))
+            return
+        self.act(signum, frame)
+
+    def act(self, signum, frame) -> None:
+        previous = self.previous.get(signum, signal.SIG_DFL)
+        if callable(previous):
+            previous(signum, frame)  # e.g. the CLI's SIGTERM handler, Python's KeyboardInterrupt
+        elif previous == signal.SIG_DFL:
+            raise _Terminated() if signum == signal.SIGTERM else KeyboardInterrupt()
+
+    @contextlib.contextmanager
+    def deferred(self):
+        """A block in which the signals wait (see the class notes)."""
+        self.depth += 1
+        try:
+            yield
+        finally:
+            self.depth -= 1
+            if not self.depth and self.pending:
+                signum, frame = self.pending.pop(0)
+                self.pending.clear()
+                self.act(signum, frame)
+
+
+_SIGNALS = _StopSignals()
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt():
+    """Within the block, SIGTERM (``kill``, ``timeout``) raises a KeyboardInterrupt in the main
+    thread, so that a run stops as after Ctrl+C: the executor stops its workers and releases
+    its locks, the finished samples are saved (module notes); both signals wait for a safe
+    point while the parent waits on its workers (:class:`_StopSignals`). Only in the main
+    thread, for signals not ignored; the previous handlers are restored after."""
+    if threading.current_thread() is not threading.main_thread() or _SIGNALS.previous:
+        yield
+        return
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        previous = signal.getsignal(signum)
+        if previous not in (signal.SIG_IGN, None):
+            _SIGNALS.previous[signum] = previous
+            signal.signal(signum, _SIGNALS.handle)
+    try:
+        yield
+    finally:
+        for signum, previous in _SIGNALS.previous.items():
+            signal.signal(signum, previous)
+        _SIGNALS.previous.clear()
 
 
 def _watch_parent(parent: int) -> None:
@@ -71,6 +155,7 @@ def single_threaded_blas() -> None:
 def _init_worker(recipe: Recipe, parent: int, barrier) -> None:
     global _RECIPE, _BARRIER
     _RECIPE, _BARRIER = recipe, barrier
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl+C is the parent's to handle (module notes)
     threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     single_threaded_blas()
     context_for(recipe)  # build mesh, problem and solver once per process
@@ -120,9 +205,21 @@ class LocalExecutor:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         if self._pool is not None:
-            # on an error, do not wait for the solves in flight (their workers stop after them)
-            self._pool.shutdown(wait=exc_type is None, cancel_futures=True)
-            self._pool = None
+            with _SIGNALS.deferred():  # a second Ctrl+C does not break the clean-up
+                if exc_type is not None:  # stopped or failed: the solves in flight are not waited for
+                    self._stop_workers()
+                self._pool.shutdown(wait=True, cancel_futures=True)
+                self._pool = None
+
+    def _stop_workers(self) -> None:
+        """Terminate the worker processes (they only compute; the parent alone writes) and
+        wait until they are gone."""
+        processes = list((getattr(self._pool, "_processes", None) or {}).values())
+        for p in processes:
+            if p.is_alive():
+                p.terminate()
+        for p in processes:
+            p.join(STOP_TIMEOUT)
 
     def update(self, recipe: Recipe) -> None:
         """Give every worker ``recipe`` instead of the current one (call with no work in flight).
@@ -148,10 +245,11 @@ class LocalExecutor:
         futures: set = set()
         try:
             while True:
-                _fill(futures, source, lambda t: self._pool.submit(_run, t), WINDOW_PER_WORKER * self.workers)
-                if not futures:
-                    return
-                finished, _ = cf.wait(futures, return_when=cf.FIRST_COMPLETED)
+                with _SIGNALS.deferred():  # a stop acts between waits, not inside the pool's locks
+                    _fill(futures, source, lambda t: self._pool.submit(_run, t), WINDOW_PER_WORKER * self.workers)
+                    if not futures:
+                        return
+                    finished, _ = cf.wait(futures, timeout=POLL_SECONDS, return_when=cf.FIRST_COMPLETED)
                 for f in sorted(finished, key=id):
                     futures.discard(f)
                     try:
@@ -161,9 +259,13 @@ class LocalExecutor:
                             "a worker process stopped abruptly (killed, or out of memory: try fewer --workers); the "
                             "samples finished so far are saved: run the same command again to continue") from exc
                     yield result
-        finally:
+        except GeneratorExit:  # the caller stopped early without an error: drop the queued items
             for f in futures:
                 f.cancel()
+            raise
+        # on an exception (Ctrl+C, SIGTERM) nothing is cancelled here: __exit__ stops the
+        # workers and the pool fails the outstanding futures itself (cancelling them first
+        # races with that in Python 3.11 and can leave the pool's manager thread dead)
 
     def describe(self) -> str:
         return f"{self.workers} local worker process{'es' if self.workers != 1 else ''}"

@@ -26,7 +26,9 @@ from ..config import Config, load_config
 from .batch import Batch, chunk_batches, pending_batches
 from .calibrate import calibrate_pilots
 from .codes import SampleStatus
-from .executors import make_executor
+from .executors import make_executor, sigterm_as_interrupt
+from .mechanism_check import check_thin_body
+from .phase_stats import PREDICTED_SHARE, eta_text, whole_set_eta
 from .reader import open_dataset, recipe_from_store
 from .reduced_predictor import build_reduced, keep_snapshots
 from .sample_plan import generation_order, make_plan
@@ -82,6 +84,7 @@ def _open_or_create(cfg: Config, path: Path) -> StoreWriter:
     _, markers, _, scenario = scenario_setup(cfg)
     if path.exists():
         return StoreWriter.resume(path, config=cfg, markers=markers, scenario=scenario)
+    check_thin_body(scenario, cfg.markers)  # before the store is made: a refused run leaves nothing behind
     return StoreWriter.create(path, config=cfg, markers=markers, plan=make_plan(cfg), scenario=scenario)
 
 
@@ -106,6 +109,8 @@ class SimulationRun:
     seconds: float = 0.0  # wall-clock time of the call
     slow: tuple = ()  # (phase, sample, seconds, x median) of samples slower than SLOW_FACTOR x the median
     stopped: tuple = ()  # (phase, sample) of samples whose solver attempts were stopped by the time budget
+    phases: tuple = ()  # the counts of every phase (PhaseStats.as_dict(): calibration rounds, basis, samples)
+    parent_seconds: dict = field(default_factory=dict)  # what the parent process did alone, s (e.g. "reduced_fit")
 
     @property
     def solved(self) -> int:
@@ -128,6 +133,8 @@ class SimulationRun:
         run["sample_phase_samples_per_minute"] = 60.0 * self.samples.samples / phase if phase > 0 else 0.0
         run["slow_samples"] = [{"phase": p, "sample": i, "seconds": s, "times_median": x} for p, i, s, x in self.slow]
         run["stopped_by_budget"] = [{"phase": p, "sample": i} for p, i in self.stopped]
+        run["phases"] = list(self.phases)
+        run["parent_seconds"] = dict(self.parent_seconds)
         return run
 
 
@@ -157,9 +164,16 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
     t0 = time.monotonic()
     run = SimulationRun()
     if len(writer.pending()) or writer.calibration is None:
-        run = _run_phases(writer, cfg, progress=progress, solver_factory=solver_factory,
-                          scheduler=cfg.dataset.scheduler if scheduler is None else scheduler,
-                          workers=cfg.dataset.workers if workers is None else workers)
+        with sigterm_as_interrupt():
+            try:
+                run = _run_phases(writer, cfg, progress=progress, solver_factory=solver_factory,
+                                  scheduler=cfg.dataset.scheduler if scheduler is None else scheduler,
+                                  workers=cfg.dataset.workers if workers is None else workers)
+            except KeyboardInterrupt:
+                log.warning("stopped: %d of %d samples are in the store; run the same command again to continue "
+                            "(the result is the same as without the stop)", int((writer.status != 0).sum()),
+                            len(writer.status))
+                raise
     run = dataclasses.replace(run, seconds=time.monotonic() - t0)
     summary = open_dataset(path).summary()
     summary["run"] = run.as_dict()
@@ -172,6 +186,7 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
     every pending sample; the workers take the reduced model once it exists."""
     recipe = recipe_from_store(writer, solver_factory)
     ds = cfg.dataset
+    parent: dict = {}
     with make_executor(recipe, scheduler=scheduler, workers=workers) as pool:
         ex = Supervisor(pool, ds.time_budget, ds.time_budget_min, progress)
         executor = ex.executor.describe()
@@ -179,7 +194,7 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
         calibration = _calibration_phase(writer, ex, cfg, recipe) if writer.calibration is None else Phase()
         predictor = Phase()
         if ds.predictor == "reduced" and writer.reduced is None and len(writer.pending()):
-            predictor = _predictor_phase(writer, ex, cfg, recipe)
+            predictor = _predictor_phase(writer, ex, cfg, recipe, parent)
             if predictor.built:  # the same workers (and their solvers), now with the reduced model
                 ex.executor.update(recipe_from_store(writer, solver_factory))
         if writer.batches is not None:  # fixed in the store: they decide, whatever the config says now
@@ -189,14 +204,18 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
                                       cfg.solver.order)
         batched = size > 1 and writer.reduced is not None
         samples = _solve_pending(writer, ex, size if batched else 1)
-    return SimulationRun(executor, calibration, predictor, samples, slow=tuple(ex.slow), stopped=tuple(ex.stopped))
+    return SimulationRun(executor, calibration, predictor, samples, slow=tuple(ex.slow), stopped=tuple(ex.stopped),
+                         phases=tuple(s.as_dict() for s in ex.phases), parent_seconds=parent)
 
 
 def _calibration_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Phase:
     """Calibrate alpha, keep the last round's pilots as samples, then record the calibration."""
     tc = time.monotonic()
+    rounds_before = len(ex.phases)
     record, reusable = calibrate_pilots(writer, ex, cfg, recipe)
     seconds = time.monotonic() - tc
+    if len(ex.phases) > rounds_before:
+        whole_set_outlook(writer, cfg, ex, seconds, len(ex.phases) - rounds_before, len(reusable))
     written = 0
     for r in reusable:  # pilot solves at the final alpha are the samples themselves
         if writer.status[r.index] == SampleStatus.PENDING:
@@ -210,10 +229,30 @@ def _calibration_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> 
     return Phase(samples=written, seconds=seconds)
 
 
-def _predictor_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> Phase:
-    """Solve the basis samples and fit the reduced model (:func:`.reduced_predictor.build_reduced`)."""
+def whole_set_outlook(writer: StoreWriter, cfg: Config, ex: Supervisor, seconds: float, rounds: int,
+                      kept: int) -> None:
+    """Log, at the calibration's end (``seconds`` long, ``rounds`` rounds, ``kept`` pilots kept
+    as samples), the ETA of the whole data set (:func:`.phase_stats.whole_set_eta` from the
+    last round's median pilot)."""
+    median = ex.phases[-1].median_seconds
+    if median is None:
+        return
+    n_pending = len(writer.pending()) - kept  # the kept pilots are written after this
+    basis = 0
+    if cfg.dataset.predictor == "reduced" and writer.reduced is None:
+        basis = max(min(cfg.dataset.predictor_samples, int(writer.root.attrs["n_lbo"])) - kept, 0)
+    rest = max(n_pending - basis, 0)
+    eta = whole_set_eta(median, basis, rest, ex.workers)
+    log.info("calibration done in %s (%d rounds); ETA for the whole set %s: %d reduced-model basis samples and %d "
+             "more samples, counting %.0f %% of the last round's median pilot (%.2f s) for a sample from the reduced "
+             "model's prediction", eta_text(seconds), rounds, eta_text(eta), basis, rest, 100 * PREDICTED_SHARE, median)
+
+
+def _predictor_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe, parent: dict) -> Phase:
+    """Solve the basis samples and fit the reduced model (:func:`.reduced_predictor.build_reduced`;
+    the parent's own seconds go into ``parent``)."""
     tr = time.monotonic()
-    solved, built = build_reduced(writer, ex, cfg, recipe)
+    solved, built = build_reduced(writer, ex, cfg, recipe, parent)
     seconds = time.monotonic() - tr
     if built:
         log.info("reduced model: %d modes, %d elements (ECSW error %.3g), built in %.1f s",

@@ -13,19 +13,35 @@ first, deliberately small force ``alpha0`` (meant to move the body about 1 % of 
 :func:`.calibrate.initial_alpha`). If that already moves the body beyond the target, the
 supports leave a near-mechanism and the data set is refused with the options to use
 (measured ratios on several anatomies: ``docs/solver.md``).
+
+:func:`check_thin_body` sees a thin shell before anything is solved, from the shape alone:
+its sphericity ``pi^(1/3) (6 V)^(2/3) / A`` (1 for a ball; 0.8-0.95 for the phantom, a dome and
+brain hemispheres; 0.47 for a 8 x 8 x 120 mm bar; 0.18 for a bent tube of 0.8 mm wall) is below
+``THIN_SPHERICITY``. Held by pins alone, such a wall hinges about them and its solves stall
+(a thin-walled aorta: pilots of over 1000 Newton iterations) while its linear answers may pass
+the check above; a vessel is held by its ends and its surroundings (``configs/vessel.toml``).
+With the compact pins of the paper's set-up the data set is refused before the store is made;
+with pins the user chose (spread, or given ids) a warning says the same.
 """
 
 from __future__ import annotations
+
+import logging
+import math
 
 import numpy as np
 
 from ..errors import DatasetError
 
-__all__ = ["linear_peak", "check_supports", "MECHANISM_RATIO"]
+__all__ = ["linear_peak", "check_supports", "check_thin_body", "sphericity", "MECHANISM_RATIO", "THIN_SPHERICITY"]
+
+log = logging.getLogger(__name__)
 
 #: The supports are refused when the linear response at ``alpha0`` exceeds this multiple of
 #: the target displacement (``alpha0`` aims at 1 % of it: a 100-fold excess).
 MECHANISM_RATIO = 1.0
+#: A body whose sphericity is below this is a thin shell (module notes).
+THIN_SPHERICITY = 0.3
 
 
 def linear_peak(problem, forces: list) -> float:
@@ -86,3 +102,36 @@ def check_supports(problem, forces: list, alpha0: float, target: float) -> float
             "would stall; spread the pins (markers.fixed_rule = \"spread\", or markers.fixed_ids far apart), or hold "
             "it by a surface region instead ([scenario.attached] or [scenario.springs], with scenario.pins = false)")
     return peak
+
+
+def sphericity(mesh) -> float:
+    """``pi^(1/3) (6 V)^(2/3) / A`` of a tetrahedral mesh (V its volume, A its boundary's area):
+    1 for a ball, small for a thin wall (about its thickness over its extent)."""
+    return float(math.pi ** (1.0 / 3.0) * (6.0 * mesh.volume) ** (2.0 / 3.0) / mesh.surface_area)
+
+
+def check_thin_body(scenario, markers_config) -> float:
+    """Refuse (compact pins, the default) or warn about (pins the user chose) a thin shell held
+    by pins alone (see the module notes); returns the sphericity.
+
+    Args:
+        scenario: the resolved :class:`~tissuecast.scenario.Scenario`.
+        markers_config: the config's :class:`~tissuecast.config.MarkerConfig` (how the pins were chosen).
+
+    Raises:
+        DatasetError: a thin shell held by the compact pins alone.
+    """
+    psi = sphericity(scenario.mesh)
+    if psi >= THIN_SPHERICITY or not scenario.can_swing or not len(scenario.pinned):
+        return psi
+    wall = 2.0 * scenario.mesh.volume / scenario.mesh.surface_area
+    text = (f"the body is a thin shell (sphericity {psi:.2f}, below {THIN_SPHERICITY:g}: a wall about {wall:.2g} mm "
+            "thick; a solid organ has 0.7-0.95) held by pins alone: pins cannot hold a thin wall, it swings and bends "
+            "about them like a hinge and the solves stall. Hold it as a vessel is held, by its ends and its "
+            "surroundings: configs/vessel.toml ([scenario] pins = false, [scenario.attached] the vertices of both "
+            "open ends by rule \"tag\" or \"ids\", [scenario.springs] rule = \"surface\", [forces] loading = "
+            "\"traction\", n_basis = 6, target_max_displacement = 3; docs/scaling.md)")
+    if markers_config.fixed_rule == "compact" and not markers_config.fixed_ids:
+        raise DatasetError(text)
+    log.warning("%s", text)
+    return psi

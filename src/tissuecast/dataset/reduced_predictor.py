@@ -56,13 +56,15 @@ def keep_snapshots(writer: StoreWriter, cfg: Config, results) -> None:
             writer.write_snapshot(int(hit[0]), r.nodal)
 
 
-def build_reduced(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple[int, bool]:
+def build_reduced(writer: StoreWriter, ex, cfg: Config, recipe: Recipe, parent: dict | None = None) -> tuple[int, bool]:
     """Solve the basis samples (from zero) that have no stored snapshot, then fit and store
     the reduced model.
 
     Args:
         writer: the store.  ex: a :class:`~.supervise.Supervisor` of an executor holding ``recipe``.
             cfg: the data set's config.
+        parent: optional dict that receives the parent process's own seconds: ``interim_model``
+            (the interim model's fit and predictions) and ``reduced_fit`` (the model's fit).
 
     Returns:
         ``(samples, built)``: the samples solved and written here, and whether the model was
@@ -70,8 +72,9 @@ def build_reduced(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple
     """
     from ..fem.reduced import ReducedModel
 
+    parent = {} if parent is None else parent
     problem = recipe.problem()
-    solved, complete = _solve_basis_samples(writer, ex, cfg, recipe, problem)
+    solved, complete = _solve_basis_samples(writer, ex, cfg, recipe, problem, parent)
     if not complete:
         log.warning("the solver returns no nodal displacements; data set solved without a predictor")
         return solved, False
@@ -80,14 +83,17 @@ def build_reduced(writer: StoreWriter, ex, cfg: Config, recipe: Recipe) -> tuple
     if len(snaps) < MIN_SNAPSHOTS:
         log.warning("fewer than %d basis samples converged; data set solved without a predictor", MIN_SNAPSHOTS)
         return solved, False
+    t0 = time.perf_counter()
     model = ReducedModel.fit(problem, snaps, tolerance=cfg.dataset.predictor_tolerance)
+    parent["reduced_fit"] = time.perf_counter() - t0
     writer.set_reduced(model.basis, model.elements, model.weights, {
         "modes": model.n_modes, "elements": int(len(model.elements)), "fit_error": float(model.fit_error),
         "snapshots": len(snaps)})
     return solved, True
 
 
-def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, recipe: Recipe, problem) -> tuple[int, bool]:
+def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, recipe: Recipe, problem,
+                         parent: dict) -> tuple[int, bool]:
     """Solve the basis samples without a stored snapshot (failed ones are not retried) and
     store them. Returns the number written and False if the solver gives no nodal
     displacements (then it stops there)."""
@@ -99,7 +105,9 @@ def _solve_basis_samples(writer: StoreWriter, ex, cfg: Config, recipe: Recipe, p
     alpha = float(writer.calibration["alpha"])
     seeds, betas = writer.read("samples/seed"), writer.read("samples/beta")
     tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha) for i in todo]
+    t0 = time.perf_counter()
     tasks = _interim_guesses(writer, cfg, recipe, problem, tasks, _pilot_rows(writer, rows, have))
+    parent["interim_model"] = time.perf_counter() - t0
     log.info("solving %d samples for the reduced model (%d from an interim model's predictions, the rest from zero)",
              len(tasks), sum(t.guess is not None for t in tasks))
     written = 0

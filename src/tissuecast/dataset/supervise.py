@@ -11,10 +11,15 @@ samples, the pending samples) runs its tasks through a :class:`Supervisor`:
   and, if those stall or fail too, is recorded failed with the reason (:mod:`.worker`).
   Samples within their budget are not affected, so stores stay bit-identical; a sample that
   was stopped depends on the machine's speed (its reason says so).
-* **Progress**: a tqdm bar per phase on a terminal, else a log line every
-  ``LOG_SECONDS``: what the phase is (``calibration round 2 (at most 10)``), samples done,
-  samples/s, the ETA, and the slow samples so far; every finished sample slower than
-  ``SLOW_FACTOR`` x the running median is logged as a warning at once.
+* **Progress**: a tqdm bar per phase on a terminal, else a log line at the phase's first
+  result and then every ``LOG_SECONDS``: what the phase is (``calibration round 2 (at most
+  10)``), samples done, samples/s, the ETA, and the slow samples so far; every finished
+  sample slower than ``SLOW_FACTOR`` x the running median is logged as a warning at once.
+  Until a few results have come in, the ETA is the running median of the worker seconds
+  times the waves of tasks left on the workers (a rate needs more results). A phase may add
+  an outlook to each line (the calibration's ETA as a whole, :mod:`.calibrate`).
+* **Counts**: each phase's results are summed into a :class:`~.phase_stats.PhaseStats`
+  (:attr:`Supervisor.phases`): where the run's time went.
 
 The executor pulls tasks lazily (a bounded window per worker), so a budget reflects the
 median at the time the task is handed out.
@@ -31,6 +36,7 @@ from typing import Iterable, Iterator
 
 from .batch import Batch
 from .codes import SampleStatus
+from .phase_stats import PhaseStats, eta_text, work_seconds
 from .worker import SampleResult, Task
 
 __all__ = ["Supervisor", "SampleClock", "SLOW_FACTOR", "SLOW_MIN_SECONDS", "MEDIAN_MIN_SAMPLES", "LOG_SECONDS"]
@@ -65,8 +71,13 @@ class SampleClock:
     @property
     def median(self) -> float | None:
         """Median seconds of the samples so far (None before ``MEDIAN_MIN_SAMPLES``)."""
+        return self.median_so_far if len(self._seconds) >= MEDIAN_MIN_SAMPLES else None
+
+    @property
+    def median_so_far(self) -> float | None:
+        """Median seconds of every sample so far, however few (None before the first)."""
         s = self._seconds
-        if len(s) < MEDIAN_MIN_SAMPLES:
+        if not s:
             return None
         m = len(s) // 2
         return s[m] if len(s) % 2 else 0.5 * (s[m - 1] + s[m])
@@ -104,9 +115,15 @@ class Supervisor:
         self.slow: list[tuple[str, int, float, float]] = []  # (phase, sample, seconds, x median)
         self.stopped: list[tuple[str, int]] = []  # (phase, sample) of samples stopped by a budget
         self.last_median: float | None = None  # of the last phase: the next one's budget until it has its own
+        self.phases: list[PhaseStats] = []  # the counts of every phase run so far
+
+    @property
+    def workers(self) -> int:
+        """Tasks the executor solves at once (its worker processes; 1 if it does not say)."""
+        return max(int(getattr(self.executor, "workers", 1) or 1), 1)
 
     def run(self, tasks: Iterable[Task | Batch], phase: str, total: int | None = None, done: int = 0,
-            unit: str = "sample") -> Iterator[SampleResult]:
+            unit: str = "sample", outlook=None) -> Iterator[SampleResult]:
         """Solve ``tasks`` (each given the budget of the moment it is handed out); yield the
         results as they complete.
 
@@ -115,14 +132,18 @@ class Supervisor:
                 come one by one all the same).  phase: what the phase is, for the messages.
             total, done: the bar's total and starting count (default: the tasks, 0).
             unit: what a task is, for the messages ("sample", "pilot").
+            outlook: optional ``f(eta_seconds, median_seconds) -> str`` whose text ends each
+                progress line (e.g. the whole calibration's ETA).
         """
         tasks = list(tasks)
         clock = SampleClock(self.factor, self.floor, self.last_median)
         n = sum(len(t.tasks) if isinstance(t, Batch) else 1 for t in tasks)
-        bar = _Bar(phase, n + done if total is None else total, done, unit, self.progress)
+        stats = PhaseStats(phase, unit)
+        bar = _Bar(phase, n + done if total is None else total, done, unit, self.progress, self.workers, outlook)
         stamped = (_with_budget(t, clock.budget()) for t in tasks)
         try:
             for r in (r for results in self.executor.imap_unordered(stamped) for r in results):
+                stats.add(r)
                 ratio = clock.add(r.index, r.seconds)
                 if ratio is not None:
                     self.slow.append((phase, r.index, r.seconds, ratio))
@@ -135,6 +156,7 @@ class Supervisor:
         finally:
             bar.close(clock)
             self.last_median = clock.median if clock.median is not None else self.last_median
+            self.phases.append(stats.close(clock.median_so_far))
 
 
 def _with_budget(item: Task | Batch, budget: float) -> Task | Batch:
@@ -152,10 +174,11 @@ def _outcome(r: SampleResult) -> str:
 class _Bar:
     """tqdm bar on a terminal, plain log lines otherwise."""
 
-    def __init__(self, phase: str, total: int, done: int, unit: str, enabled: bool) -> None:
+    def __init__(self, phase: str, total: int, done: int, unit: str, enabled: bool, workers: int = 1,
+                 outlook=None) -> None:
         self.phase, self.total, self.count, self.start, self.unit = phase, total, done, done, unit
         self.t0 = self.last = time.monotonic()
-        self.enabled = enabled
+        self.enabled, self.workers, self.outlook = enabled, workers, outlook
         self.failed = 0
         self.bar = None
         if enabled and total and sys.stderr.isatty():
@@ -163,20 +186,32 @@ class _Bar:
 
             self.bar = tqdm(total=total, initial=done, unit=unit, desc=phase, dynamic_ncols=True)
 
+    def eta(self, clock: SampleClock, now: float) -> float:
+        """Seconds left in the phase: by the rate once every worker has returned a few
+        results, before that by the median worker seconds and the waves of tasks left."""
+        got = self.count - self.start
+        left = self.total - self.count
+        if got >= 3 * self.workers:
+            return left * (now - self.t0) / got
+        median = clock.median_so_far
+        return float("inf") if median is None else work_seconds(left, median, self.workers)
+
     def update(self, r: SampleResult, clock: SampleClock) -> None:
         self.count += 1
         self.failed += int(r.status != SampleStatus.DONE)
+        now = time.monotonic()
+        eta = self.eta(clock, now)
+        more = self.outlook(eta, clock.median_so_far) if self.outlook is not None else ""
         if self.bar is not None:
             self.bar.update(1)
-            self.bar.set_postfix(failed=self.failed, slow=len(clock.slow), refresh=False)
+            self.bar.set_postfix_str(f"failed={self.failed}, slow={len(clock.slow)}{more}", refresh=False)
             return
-        now = time.monotonic()
-        if self.enabled and (now - self.last > LOG_SECONDS or self.count == self.total):
+        first = self.count == self.start + 1
+        if self.enabled and (first or now - self.last > LOG_SECONDS or self.count == self.total):
             self.last = now
             rate = (self.count - self.start) / max(now - self.t0, 1e-9)
-            eta = (self.total - self.count) / rate if rate > 0 else float("inf")
-            log.info("%s: %d/%d %ss (%d failed), %.2f %ss/s, ETA %.0f s%s", self.phase, self.count, self.total,
-                     self.unit, self.failed, rate, self.unit, eta, _slow_text(clock))
+            log.info("%s: %d/%d %ss (%d failed), %.2f %ss/s, ETA %s%s%s", self.phase, self.count, self.total,
+                     self.unit, self.failed, rate, self.unit, eta_text(eta), more, _slow_text(clock))
 
     def close(self, clock: SampleClock) -> None:
         if self.bar is not None:

@@ -157,6 +157,8 @@ class SampleResult:
             started from the prediction of an interim model of the calibration pilots).
         nodal: (n_nodes, 3) float64 mm at every element node (P2: mid-edge nodes too), or
             None; the reduced model is built from these.
+        cpu_seconds: CPU time of the worker process spent on the sample, s (its share of a
+            batch's); not stored (``seconds``, the wall-clock time, is), reported per phase.
     """
 
     index: int
@@ -177,6 +179,7 @@ class SampleResult:
     predicted: InitialGuess = InitialGuess.ZERO
     nodal: np.ndarray | None = None
     draw: object = None
+    cpu_seconds: float = 0.0
 
     @property
     def max_displacement(self) -> float:
@@ -329,7 +332,7 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     inputs = ctx.inputs(task)
     loads, extra = inputs.surface, inputs.solve_keywords()
     forces, weights, draw = inputs.forces, inputs.weights, inputs.draw
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     totals = np.zeros(3, dtype=np.int64)
     reasons = [task.batch_failure] if task.batch_failure else []
     load_fraction = 0.0
@@ -367,8 +370,10 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
         return SampleResult(task.index, SampleStatus.DONE, np.asarray(res.displacement, dtype=np.float32),
                             forces.astype(np.float32), weights, task.alpha, task.beta, task.seed, *map(int, totals),
                             time.perf_counter() - t0, 1.0, attempt + 1, predicted=predicted,
-                            nodal=None if nodal is None else np.asarray(nodal, dtype=np.float64), draw=draw)
+                            nodal=None if nodal is None else np.asarray(nodal, dtype=np.float64), draw=draw,
+                            cpu_seconds=time.process_time() - c0)
     log.debug("sample %d failed: %s", task.index, reasons[-1])
     return SampleResult(task.index, SampleStatus.FAILED, None, forces.astype(np.float32), weights, task.alpha,
                         task.beta, task.seed, *map(int, totals), time.perf_counter() - t0, load_fraction,
-                        ctx.config.solver.retries + 1, "; ".join(reasons), predicted=predicted, draw=draw)
+                        ctx.config.solver.retries + 1, "; ".join(reasons), predicted=predicted, draw=draw,
+                        cpu_seconds=time.process_time() - c0)

@@ -107,7 +107,8 @@ def _fixed_candidates(mesh: TetMesh, count: int, exclude: np.ndarray, min_depth,
             f"the mesh has no interior vertices (all {mesh.n_vertices} lie on its surface: a wall or body one "
             "element thick), so no fixed vertices can be chosen inside it; hold it by a surface region instead "
             "([scenario.attached] or [scenario.springs], with scenario.pins = false), give surface vertex ids in "
-            "markers.fixed_ids, or remesh with at least two elements through its thinnest part"
+            "markers.fixed_ids, or remesh with at least two elements through its thinnest part (a vessel: "
+            "configs/vessel.toml holds one by its ends and springs)"
         )
     depth = surface_depth(mesh, interior)
     limit = depth_fraction * float(depth.max()) if min_depth is None else float(min_depth)
