@@ -29,8 +29,10 @@ import numpy as np
 from ..config import Config, SurrogateConfig, config_to_dict, with_overrides
 from ..errors import ModelError
 from .baselines import RidgePredictor, RigidRegistrationPredictor
+from .decoder import global_part
 from .data import check_fit_inputs, dataset_arrays, fit_splits, flat_fields
 from .field_predictor import FieldPredictor
+from .head import truncated_head
 from .network_fit import ENSEMBLE_SEED_STRIDE, fit_network
 from .network_predictor import NetworkPredictor
 from .ridge import marker_columns
@@ -163,8 +165,9 @@ class DeformationModel(FieldPredictor):
         """Set the fitted parts from ``state``; the baselines are rebuilt from the network's basis."""
         net = state.network
         self.network_: NetworkPredictor = net
-        k_ridge = min(state.ridge_components, net.n_components)
-        self.ridge_ = RidgePredictor(net.mesh, net.markers, net.basis.truncated(k_ridge), self.config.ridge_ratio)
+        pca = global_part(net.basis)
+        k_ridge = min(state.ridge_components, pca.n_components)
+        self.ridge_ = RidgePredictor(net.mesh, net.markers, pca.truncated(k_ridge), self.config.ridge_ratio)
         self.rigid_ = RigidRegistrationPredictor(net.mesh, net.markers)
         self.trusted_ = None if state.trust is None else TrustedPredictor(net, state.trust)
         self._by_method = {"mlp": self.network_, "rigid": self.rigid_, "ridge": self.ridge_}
@@ -204,12 +207,14 @@ class DeformationModel(FieldPredictor):
                             calibration_share=c.calibration_share)
         Ut, Uv = flat_fields(U, splits)
         net = fit_network(Ut, Uv, mk, mesh, c)
-        ridge = RidgePredictor.fit(mesh, mk, net.predictor.basis, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
+        pca = global_part(net.predictor.basis)  # the baselines and the trust layer's second predictor work in it
+        ridge = RidgePredictor.fit(mesh, mk, pca, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
         trust = None
         if len(splits.calibration):
             trust = fit_trust(net.predictor, U, train_idx=splits.train, valid_idx=splits.valid,
                               calibration_idx=splits.calibration, coverage=c.coverage, false_alarm=c.false_alarm_rate,
-                              fault_score=c.alarm_fault_score, basis=net.predictor.basis, head=net.predictor.head)
+                              fault_score=c.alarm_fault_score, basis=pca,
+                              head=truncated_head(net.predictor.head, pca.n_components))
         training = {
             "n_train": int(len(splits.train)),
             "n_valid": int(len(splits.valid)),

@@ -9,6 +9,9 @@ A model folder holds::
     mesh.npz            points (n, 3) mm, tets (m, 4) 0-based
     head.npz            optional: the quadratic head (tissuecast.surrogate.head): mean, scale,
                         directions, coef, float64
+    decoder.npz         optional (surrogate.decoder = "local"): the local components of the decoder
+                        (tissuecast.surrogate.decoder) as sparse rows indptr, indices, data and their
+                        singular_values; pca.npz then holds its global part
     trust.npz           optional: error bounds and alarm (tissuecast.surrogate.trust), float64
     model.onnx          optional, from export_onnx
 
@@ -29,6 +32,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ModelError, require
+from .decoder import LocalBasis, global_part
 from .network_predictor import NetworkPredictor
 from .pca import PCABasis, PCACurve
 from .quadratic import QuadraticRegression
@@ -73,6 +77,7 @@ def _metadata(state: ModelState) -> dict:
         "fixed": np.asarray(state.fixed, dtype=np.int64).tolist(),
         "reference_marker_positions": net.reference_marker_positions.tolist(),
         "n_components": int(b.n_components),
+        "decoder": _decoder_summary(b),
         "network": {"hidden": list(m0.hidden), "n_layers": len(m0.weights), "masked": bool(m0.masked),
                     "ensemble": len(net.members), "input": "marker displacements (n_d, 3) mm, vertex-major",
                     "output": "PCA weights (n_w,) mm",
@@ -85,8 +90,16 @@ def _metadata(state: ModelState) -> dict:
         "pca_choice": state.pca_choice,
         "training": state.training,
         "files": {"weights": "weights.safetensors", "pca": "pca.npz", "mesh": "mesh.npz",
-                  **({"head": "head.npz"} if head is not None else {})},
+                  **({"head": "head.npz"} if head is not None else {}),
+                  **({"decoder": "decoder.npz"} if isinstance(b, LocalBasis) else {})},
     }
+
+
+def _decoder_summary(basis) -> dict:
+    """``model.json``'s record of the decoder: its kind and coefficient counts."""
+    if isinstance(basis, LocalBasis):
+        return {"kind": "local", "global_components": basis.n_global, "local_components": basis.n_local}
+    return {"kind": "pca", "global_components": int(basis.n_components), "local_components": 0}
 
 
 def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
@@ -100,9 +113,11 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     for k, m in enumerate(net.members):
         tensors.update(m.tensors(f"member{k}."))
     st.save_file(tensors, str(out / "weights.safetensors"), metadata={"format": FORMAT, "schema": str(SCHEMA)})
-    b = net.basis
+    b = global_part(net.basis)
     np.savez(out / "pca.npz", mean=b.mean, components=b.components, singular_values=b.singular_values,
              n_samples=np.int64(b.n_samples))
+    if isinstance(net.basis, LocalBasis):
+        np.savez(out / "decoder.npz", **net.basis.arrays())
     np.savez(out / "mesh.npz", points=np.asarray(net.mesh.points, dtype=np.float64),
              tets=np.asarray(net.mesh.tets, dtype=np.int64))
     if net.head is not None:
@@ -176,6 +191,9 @@ def _network(folder: Path, meta: dict) -> NetworkPredictor:
     mesh = TetMesh(m["points"], m["tets"])
     if mesh.fingerprint() != meta["mesh_fingerprint"] or basis.n_features != 3 * mesh.n_vertices:
         raise ModelError(f"the mesh in {str(folder)!r} does not match the model's metadata; the folder is corrupt")
+    if meta["files"].get("decoder"):  # folders without it (all before the local decoder) decode with the PCA basis
+        basis = LocalBasis.from_arrays(basis, _npz(folder / meta["files"]["decoder"],
+                                                   ["indptr", "indices", "data", "singular_values"]))
     head = None
     if meta["files"].get("head"):
         head = QuadraticRegression.from_arrays(_npz(folder / meta["files"]["head"], ["mean", "scale", "directions", "coef"]), "")
