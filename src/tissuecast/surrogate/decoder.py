@@ -31,7 +31,8 @@ from ..config import DECODERS, SurrogateConfig
 from ..errors import ModelError
 from .pca import PCABasis, fit_pca
 
-__all__ = ["DECODERS", "LocalBasis", "fit_decoder", "fit_local_basis", "vertex_regions", "global_part"]
+__all__ = ["DECODERS", "LocalBasis", "fit_decoder", "fit_local_basis", "vertex_regions", "global_part",
+           "describe_decoder"]
 
 
 def vertex_regions(points: np.ndarray, count: int) -> np.ndarray:
@@ -206,3 +207,10 @@ def fit_decoder(Ut: np.ndarray, n_global: int, mesh, config: SurrogateConfig) ->
         return pca
     labels = vertex_regions(mesh.points, config.decoder_regions)
     return fit_local_basis(Ut, pca, labels, config.decoder_components)
+
+
+def describe_decoder(basis: PCABasis | LocalBasis) -> dict:
+    """A decoder's kind and coefficient counts (``model.json``, ``describe()``)."""
+    if isinstance(basis, LocalBasis):
+        return {"kind": "local", "global_components": basis.n_global, "local_components": basis.n_local}
+    return {"kind": "pca", "global_components": int(basis.n_components), "local_components": 0}

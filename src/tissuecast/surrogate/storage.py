@@ -32,7 +32,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ModelError, require
-from .decoder import LocalBasis, global_part
+from .decoder import LocalBasis, describe_decoder, global_part
 from .network_predictor import NetworkPredictor
 from .pca import PCABasis, PCACurve
 from .quadratic import QuadraticRegression
@@ -77,7 +77,7 @@ def _metadata(state: ModelState) -> dict:
         "fixed": np.asarray(state.fixed, dtype=np.int64).tolist(),
         "reference_marker_positions": net.reference_marker_positions.tolist(),
         "n_components": int(b.n_components),
-        "decoder": _decoder_summary(b),
+        "decoder": describe_decoder(b),
         "network": {"hidden": list(m0.hidden), "n_layers": len(m0.weights), "masked": bool(m0.masked),
                     "ensemble": len(net.members), "input": "marker displacements (n_d, 3) mm, vertex-major",
                     "output": "PCA weights (n_w,) mm",
@@ -93,13 +93,6 @@ def _metadata(state: ModelState) -> dict:
                   **({"head": "head.npz"} if head is not None else {}),
                   **({"decoder": "decoder.npz"} if isinstance(b, LocalBasis) else {})},
     }
-
-
-def _decoder_summary(basis) -> dict:
-    """``model.json``'s record of the decoder: its kind and coefficient counts."""
-    if isinstance(basis, LocalBasis):
-        return {"kind": "local", "global_components": basis.n_global, "local_components": basis.n_local}
-    return {"kind": "pca", "global_components": int(basis.n_components), "local_components": 0}
 
 
 def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
