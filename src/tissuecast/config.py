@@ -197,7 +197,7 @@ class SurrogateConfig:
     hidden: tuple[int, ...] = _f((128, 64), doc="hidden layer widths")
     head: str = _f("quadratic", choices=HEADS, doc="'quadratic' = a regression on linear and quadratic marker features predicts, the networks learn its residual; 'none' = networks alone")
     head_dims: int = _f(0, lo=0, hi=60, doc="quadratic head: input directions whose products are features; 0 = chosen on validation")
-    decoder: str = _f("pca", choices=DECODERS, doc="'pca' = the global PCA basis decodes the predicted weights; 'local' = the global basis plus local components of its residual, fitted region by region (docs/surrogate.md)")
+    decoder: str = _f("pca", choices=DECODERS, doc="'pca' = the PCA basis decodes the predicted weights; 'local' = the PCA basis plus region-wise components of its residual")
     decoder_regions: int = _f(8, lo=1, hi=100000, doc="decoder 'local': regions of nearby vertices the mesh is cut into, each with its own residual components")
     decoder_components: int = _f(384, lo=1, hi=5000, doc="decoder 'local': local components kept over all regions (largest singular values of the residual first)")
     epochs: int = _f(2500, lo=1, doc="maximum training epochs")
