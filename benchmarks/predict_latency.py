@@ -6,9 +6,13 @@ torch module and an onnxruntime session, plus the ridge baseline.
 Prints p50/p99 per single prediction (us) and batch throughput (samples/s), with ratios.
 
     python benchmarks/predict_latency.py [MODEL_FOLDER] [--repeats 5000] [--batch 1000]
+        [--versus OTHER_FOLDER]
 
 Without a model folder a model of the paper's size (the phantom, 5 markers, n_w 27,
 [128, 64]) is built from random weights: latency does not depend on training.
+``--versus`` times another model's ``predict`` (e.g. the same store with another decoder,
+``surrogate.decoder``) call by call alternately with the first one's, so that both see the
+same machine load, and prints the two p50/p99 and their ratio.
 """
 
 from __future__ import annotations
@@ -61,6 +65,37 @@ def timings(fn, inputs, repeats: int) -> np.ndarray:
     return out
 
 
+def paired_timings(fns, inputs, repeats: int) -> np.ndarray:
+    """(len(fns), repeats) wall times (s): the functions called alternately on the same inputs."""
+    for x in inputs[:50]:
+        for fn in fns:
+            fn(x)
+    out = np.empty((len(fns), repeats))
+    for i in range(repeats):
+        x = inputs[i % len(inputs)]
+        for j, fn in enumerate(fns):
+            t = time.perf_counter()
+            fn(x)
+            out[j, i] = time.perf_counter() - t
+    return out
+
+
+def versus(model, other_folder: str, singles, repeats: int) -> None:
+    """Print both models' single-sample ``predict`` latency, timed alternately."""
+    from tissuecast.surrogate import DeformationModel
+
+    other = DeformationModel.load(other_folder)
+    if other.n_markers != model.n_markers:
+        raise SystemExit(f"--versus: the models read {model.n_markers} and {other.n_markers} markers")
+    t = paired_timings([model.predict, other.predict], singles, repeats) * 1e6
+    p50, p99 = np.percentile(t, 50, axis=1), np.percentile(t, 99, axis=1)
+    print(f"side by side, alternating calls ({repeats} each):")
+    for name, m, a, b in (("first", model, p50[0], p99[0]), ("versus", other, p50[1], p99[1])):
+        dec = m.describe()["decoder"]["kind"]
+        print(f"  {name:7s} {m.n_components:4d} coefficients, decoder {dec:6s} p50 {a:8.1f} us  p99 {b:8.1f} us")
+    print(f"  versus / first: p50 {p50[1] / p50[0]:.2f}x, p99 {p99[1] / p99[0]:.2f}x")
+
+
 def _torch_and_onnx(model, singles, batch, add) -> tuple[float | None, float | None]:
     """Time the torch module and the ONNX graph (one thread each) where installed; returns their
     batch throughputs (samples/s, None where not installed)."""
@@ -108,6 +143,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeats", type=int, default=5000)
     ap.add_argument("--batch", type=int, default=1000)
     ap.add_argument("--ensemble", type=int, default=1, help="members of the random model")
+    ap.add_argument("--versus", help="another model folder, timed alternately with the first")
     args = ap.parse_args(argv)
 
     from tissuecast.surrogate import DeformationModel
@@ -150,6 +186,8 @@ def main(argv=None) -> int:
         print(f"  torch        {torch_thr:12,.0f} samples/s   ({torch_thr / np_thr:.2f}x numpy)")
     if ort_thr:
         print(f"  onnxruntime  {ort_thr:12,.0f} samples/s   ({ort_thr / np_thr:.2f}x numpy)")
+    if args.versus:
+        versus(model, args.versus, singles, args.repeats)
     return 0
 
 

@@ -277,3 +277,21 @@ def test_cross_validated_calibration_reads_the_instrument_in_every_fold():
     coverage = np.mean(np.linalg.norm(lost.displacement - U[te], axis=2) <= lost.error_bound)
     assert 0.8 <= coverage <= 0.99, coverage
     assert m.fallback_trusted_.layer.method == "cross-validation"
+
+
+def test_a_local_decoder_with_the_instrument_round_trips_with_its_fallback(tmp_path):
+    mesh, U, _, A = instrument_data()
+    m = DeformationModel(epochs=40, patience=0, batch_size=64, n_components=16, hidden=(64, 32), decoder="local",
+                         decoder_regions=4, decoder_components=24)
+    m.fit(U, MARKERS, mesh=mesh, fixed=[0, 1, 2], train_idx=SPLITS["train"], valid_idx=SPLITS["valid"],
+          calibration_idx=SPLITS["calibration"], auxiliary=AuxiliaryValues(INPUTS, A))
+    assert m.network_.n_components == 16 + 24 and m.fallback_.n_components == 16 + 24
+    m.save(tmp_path / "m")
+    assert (tmp_path / "m" / "decoder.npz").is_file() and (tmp_path / "m" / "fallback" / "decoder.npz").is_file()
+    back = DeformationModel.load(tmp_path / "m")
+    te = SPLITS["test"][:9]
+    d = m.marker_displacements(U[te])
+    np.testing.assert_array_equal(back.predict(d, auxiliary=A[te]), m.predict(d, auxiliary=A[te]))
+    np.testing.assert_array_equal(back.predict(d, auxiliary={"retractor": None}), m.fallback_.predict(d))
+    np.testing.assert_allclose(back.predict_trusted(d, auxiliary=A[te]).error_bound,  # scores kept as float32
+                               m.predict_trusted(d, auxiliary=A[te]).error_bound, rtol=1e-6)

@@ -185,6 +185,8 @@ OUTPUT_SCALINGS = ("global", "component")
 HEADS = ("quadratic", "none")
 #: How the error bounds and the alarm are calibrated (see :mod:`tissuecast.surrogate.cross_calibration`).
 CALIBRATIONS = ("cross-validation", "split", "none")
+#: How the predicted coefficients become the field (see :mod:`tissuecast.surrogate.decoder`).
+DECODERS = ("pca", "local")
 
 
 @dataclass(frozen=True)
@@ -199,6 +201,9 @@ class SurrogateConfig:
     hidden: tuple[int, ...] = _f((128, 64), doc="hidden layer widths")
     head: str = _f("quadratic", choices=HEADS, doc="'quadratic' = a regression on linear and quadratic marker features predicts, the networks learn its residual; 'none' = networks alone")
     head_dims: int = _f(0, lo=0, hi=60, doc="quadratic head: input directions whose products are features; 0 = chosen on validation")
+    decoder: str = _f("pca", choices=DECODERS, doc="'pca' = the PCA basis decodes the predicted weights; 'local' = the PCA basis plus region-wise components of its residual")
+    decoder_regions: int = _f(8, lo=1, hi=100000, doc="decoder 'local': regions of nearby vertices the mesh is cut into, each with its own residual components")
+    decoder_components: int = _f(384, lo=1, hi=5000, doc="decoder 'local': local components kept over all regions (largest singular values of the residual first)")
     epochs: int = _f(2500, lo=1, doc="maximum training epochs")
     batch_size: int = _f(128, lo=1, doc="mini-batch size")
     learning_rate: float = _f(3e-3, lo=0.0, lo_open=True, hi=1.0, doc="Adam (peak) learning rate")

@@ -214,7 +214,7 @@ class LocalExecutor:
     def _stop_workers(self) -> None:
         """Terminate the worker processes (they only compute; the parent alone writes) and
         wait until they are gone."""
-        processes = list((getattr(self._pool, "_processes", None) or {}).values())
+        processes = list((self._pool._processes or {}).values())  # no public handle before Python 3.14
         for p in processes:
             if p.is_alive():
                 p.terminate()
@@ -287,6 +287,13 @@ class DaskExecutor:
         self.recipe, self.address = recipe, address
         self._client = None
         self._recipe_future = None  # the recipe scattered to the workers (on __enter__)
+
+    @property
+    def workers(self) -> int:
+        """Tasks the cluster solves at once (its workers' threads, summed; 1 before connecting)."""
+        if self._client is None:
+            return 1
+        return max(sum(self._client.nthreads().values()), 1)
 
     def __enter__(self) -> "DaskExecutor":
         distributed = require("distributed", "data", "running simulations on a Dask cluster")

@@ -92,7 +92,7 @@ class PhaseStats:
         """Count one :class:`~.worker.SampleResult`."""
         self.tasks += 1
         self.worker_seconds += float(r.seconds)
-        self.cpu_seconds += float(getattr(r, "cpu_seconds", 0.0))
+        self.cpu_seconds += float(r.cpu_seconds)
         self.iterations += int(r.iterations)
         self.factorizations += int(r.factorizations)
         self.max_seconds = max(self.max_seconds, float(r.seconds))

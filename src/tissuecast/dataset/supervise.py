@@ -119,8 +119,8 @@ class Supervisor:
 
     @property
     def workers(self) -> int:
-        """Tasks the executor solves at once (its worker processes; 1 if it does not say)."""
-        return max(int(getattr(self.executor, "workers", 1) or 1), 1)
+        """Tasks the executor solves at once (its worker processes or cluster threads)."""
+        return max(int(self.executor.workers), 1)
 
     def run(self, tasks: Iterable[Task | Batch], phase: str, total: int | None = None, done: int = 0,
             unit: str = "sample", outlook=None) -> Iterator[SampleResult]:

@@ -38,6 +38,8 @@ from ..config import SurrogateConfig
 from ..errors import ModelError
 from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .data import CALIBRATION_SEED_OFFSET, MIN_SAMPLES
+from .decoder import global_part
+from .head import truncated_head
 from .network_fit import fit_network
 from .field_predictor import FieldPredictor
 from .network_predictor import NetworkPredictor
@@ -47,7 +49,7 @@ from .trust import PREDICT_CHUNK, CalibrationScores, TrustLayer
 from .trust_fit import fit_error_model, fit_trust, fit_trust_layer, held_out_predictions, warn_if_too_few
 
 __all__ = ["FoldCalibration", "calibration_folds", "cross_calibration_scores", "cross_calibrated_layer", "fold_config",
-           "pooled_layer", "fit_model_trust"]
+           "pooled_layer", "fit_model_trust", "second_parts"]
 
 log = logging.getLogger(__name__)
 
@@ -131,9 +133,10 @@ def cross_calibration_scores(U, train_idx, valid_idx, markers, mesh, config: Sur
         net = fit_network(np.asarray(U[fit_idx], dtype=np.float64).reshape(len(fit_idx), -1), Uv, markers, mesh, fc,
                           *rows, auxiliary=spec)
         predictor = net.predictor
+        basis, head = second_parts(predictor)
         layer = fit_trust_layer(predictor, U, train_idx=fit_idx, valid_idx=valid, coverage=c.coverage,
-                                false_alarm=c.false_alarm_rate, fault_score=c.alarm_fault_score, basis=predictor.basis,
-                                head=predictor.head, chunk=chunk, auxiliary=auxiliary)
+                                false_alarm=c.false_alarm_rate, fault_score=c.alarm_fault_score, basis=basis,
+                                head=head, chunk=chunk, auxiliary=auxiliary)
         d, u, truth = held_out_predictions(predictor, U, held, chunk, auxiliary)
         parts.append(layer.calibration_scores(d, u, truth, chunk=chunk))
         errors.append(float(np.linalg.norm(u - truth, axis=2).max(axis=1).mean()))
@@ -200,6 +203,14 @@ def pooled_layer(draft: TrustLayer, scores: CalibrationScores) -> TrustLayer:
     return dataclasses.replace(draft, error_model=beta, ood=ood, method="cross-validation").with_calibration(scores)
 
 
+def second_parts(predictor: NetworkPredictor) -> tuple[PCABasis, QuadraticRegression | None]:
+    """The trust layer's second predictor from a network: its global PCA basis (the whole basis
+    for ``surrogate.decoder = "pca"``, the global part of a local decoder) and its quadratic head
+    on that basis, or None."""
+    pca = global_part(predictor.basis)
+    return pca, truncated_head(predictor.head, pca.n_components)
+
+
 def fit_model_trust(predictor: NetworkPredictor, U, splits, mesh, config: SurrogateConfig, *, explicit: bool,
                     auxiliary: np.ndarray | None = None) -> tuple[TrustLayer | None, dict]:
     """The trust layer of a model's fitted learned predictor and the record of its calibration:
@@ -213,12 +224,13 @@ def fit_model_trust(predictor: NetworkPredictor, U, splits, mesh, config: Surrog
         ``(layer or None, record)``.
     """
     c = config
+    basis, head = second_parts(predictor)
     if len(splits.calibration):
         layer = fit_trust(predictor, U, train_idx=splits.train, valid_idx=splits.valid,
                           calibration_idx=splits.calibration, coverage=c.coverage, false_alarm=c.false_alarm_rate,
-                          fault_score=c.alarm_fault_score, basis=predictor.basis, head=predictor.head, auxiliary=auxiliary)
+                          fault_score=c.alarm_fault_score, basis=basis, head=head, auxiliary=auxiliary)
         return layer, {"method": "split", "n_calibration": int(len(splits.calibration))}
     if c.calibration == "cross-validation" and not explicit:
-        return cross_calibrated_layer(predictor, U, splits.train, splits.valid, mesh, c, basis=predictor.basis,
-                                      head=predictor.head, auxiliary=auxiliary, spec=predictor.auxiliary)
+        return cross_calibrated_layer(predictor, U, splits.train, splits.valid, mesh, c, basis=basis, head=head,
+                                      auxiliary=auxiliary, spec=predictor.auxiliary)
     return None, {"method": "none"}

@@ -37,6 +37,7 @@ from .auxiliary import AuxiliaryInputs, AuxiliaryValues
 from .baselines import RidgePredictor, RigidRegistrationPredictor
 from .cross_calibration import fit_model_trust
 from .data import FitSplits, check_fit_inputs, dataset_arrays, fit_splits, flat_fields
+from .decoder import global_part
 from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .inputs import marker_batch
@@ -194,8 +195,9 @@ class DeformationModel(FieldPredictor):
         """Set the fitted parts from ``state``; the baselines are rebuilt from the network's basis."""
         net = state.network
         self.network_: NetworkPredictor = net
-        k_ridge = min(state.ridge_components, net.n_components)
-        self.ridge_ = RidgePredictor(net.mesh, net.markers, net.basis.truncated(k_ridge), self.config.ridge_ratio)
+        pca = global_part(net.basis)
+        k_ridge = min(state.ridge_components, pca.n_components)
+        self.ridge_ = RidgePredictor(net.mesh, net.markers, pca.truncated(k_ridge), self.config.ridge_ratio)
         self.rigid_ = RigidRegistrationPredictor(net.mesh, net.markers)
         self.trusted_ = None if state.trust is None else TrustedPredictor(net, state.trust)
         self.fallback_ = state.fallback
@@ -264,7 +266,8 @@ class DeformationModel(FieldPredictor):
             kept = A[:, len(spec.instrument_columns):]
             fallback, fallback_trust, _ = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec.without_instruments(), kept,
                                                             explicit)
-        ridge = RidgePredictor.fit(mesh, mk, net.predictor.basis, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
+        pca = global_part(net.predictor.basis)  # the baselines and the trust layer's second predictor work in it
+        ridge = RidgePredictor.fit(mesh, mk, pca, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
         training = {
             "n_train": int(len(splits.train)),
             "n_valid": int(len(splits.valid)),

@@ -17,10 +17,11 @@ import numpy as np
 from ..config import SurrogateConfig
 from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .component_choice import choose_by_validation, components_to_train
+from .decoder import fit_decoder
 from .head import fit_head, truncated_head
 from .mlp import TrainingSummary, train_mlp
 from .network_predictor import NetworkPredictor
-from .pca import PCACurve, fit_pca
+from .pca import PCACurve
 from .ridge import marker_columns
 from .weights import MLPWeights
 
@@ -90,7 +91,7 @@ def fit_network(Ut: np.ndarray, Uv: np.ndarray, markers: np.ndarray, mesh, confi
     t0 = time.perf_counter()
     n_w, rule, curve = components_to_train(c, Ut)
     t_pca = time.perf_counter()
-    basis = fit_pca(Ut, n_w)
+    basis = fit_decoder(Ut, n_w, mesh, c)
     cols = marker_columns(markers)
     Xt, Xv = Ut[:, cols], Uv[:, cols]
     if auxiliary.width:

@@ -5,7 +5,8 @@ A prediction is ``decode(head(x) + mean over members of network_k(x))``: the net
 x = [d, a], the marker displacements d (3 n_d,) mm and the model's auxiliary inputs a (n_a,)
 (:mod:`.auxiliary`: instrument poses, measured parameters; none for a markers-only model), to
 the PCA weights (n_w,) mm, and the PCA basis
-(:class:`~.pca.PCABasis`) decodes them into the field (3 n,) mm. The precompiled numpy
+(:class:`~.pca.PCABasis`) decodes them into the field (3 n,) mm (with ``surrogate.decoder =
+"local"`` the global basis plus local components, :mod:`.decoder`). The precompiled numpy
 forward pass (:class:`~.fastpath.CompiledSurrogate`) evaluates the whole chain; the torch
 module (:func:`~.network.torch_network`) is its float32 twin for ONNX.
 
@@ -18,6 +19,7 @@ import numpy as np
 
 from ..errors import ModelError
 from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
+from .decoder import LocalBasis, describe_decoder
 from .fastpath import CompiledSurrogate
 from .field_predictor import FieldPredictor, check_vertex_ids
 from .pca import PCABasis
@@ -33,7 +35,8 @@ class NetworkPredictor(FieldPredictor):
     Args:
         mesh: the :class:`~tissuecast.mesh.TetMesh` (n vertices, mm).
         markers: (n_d,) 0-based marker vertex ids, in input order.
-        basis: the PCA basis with n_w components (decodes weights into fields).
+        basis: the decoder of the n_w coefficients into fields: a PCA basis, or a
+            :class:`~.decoder.LocalBasis` (``surrogate.decoder``).
         members: M >= 1 trained networks predicting the n_w weights (residual of the head).
         head: optional quadratic head (:mod:`.head`) the networks correct; None without one
             (and always None for networks trained with marker masking).
@@ -46,8 +49,8 @@ class NetworkPredictor(FieldPredictor):
 
     name = "mlp"
 
-    def __init__(self, mesh, markers, basis: PCABasis, members: list[MLPWeights], head: QuadraticRegression | None = None,
-                 auxiliary: AuxiliaryInputs = MARKERS_ONLY):
+    def __init__(self, mesh, markers, basis: PCABasis | LocalBasis, members: list[MLPWeights],
+                 head: QuadraticRegression | None = None, auxiliary: AuxiliaryInputs = MARKERS_ONLY):
         mk = check_vertex_ids(markers, mesh.n_vertices)
         members = list(members)
         if (not members or members[0].weights[-1].shape[0] != basis.n_components or members[0].n_markers != len(mk)
@@ -93,7 +96,8 @@ class NetworkPredictor(FieldPredictor):
         return self.ensemble_size >= 2
 
     def describe(self) -> dict:
-        return {**super().describe(), "n_components": self.n_components, "hidden": list(self.hidden),
+        return {**super().describe(), "n_components": self.n_components, "decoder": describe_decoder(self.basis),
+                "hidden": list(self.hidden),
                 "ensemble": self.ensemble_size,
                 "head": None if self.head is None else {"kind": "quadratic", "dims": int(len(self.head.directions))}}
 
@@ -136,9 +140,9 @@ class NetworkPredictor(FieldPredictor):
         return (u[0], sigma[0]) if single else (u, sigma)
 
     def pca_projection(self, fields) -> np.ndarray:
-        """Projection of displacement fields on the PCA basis: (n, 3) or (B, n, 3) mm -> same
-        shape. No prediction of this model can come closer to a field than this (the PCA
-        truncation floor)."""
+        """Projection of displacement fields on the decoder (the PCA basis, or the local one):
+        (n, 3) or (B, n, 3) mm -> same shape. No prediction of this model can come closer to a
+        field than this (the decoder's floor)."""
         f = np.asarray(fields, dtype=np.float64)
         flat = f.reshape(-1, self.basis.n_features)
         return self.basis.inverse_transform(self.basis.transform(flat)).reshape(f.shape)

@@ -11,6 +11,9 @@ A model folder holds::
     mesh.npz            points (n, 3) mm, tets (m, 4) 0-based
     head.npz            optional: the quadratic head (tissuecast.surrogate.head): mean, scale,
                         directions, coef, float64
+    decoder.npz         optional (surrogate.decoder = "local"): the local components of the decoder
+                        (tissuecast.surrogate.decoder) as sparse rows indptr, indices, data and their
+                        singular_values; pca.npz then holds its global part
     trust.npz           optional: error bounds and alarm (tissuecast.surrogate.trust), float64
     model.onnx          optional, from export_onnx
     fallback/           models with tracked instruments as inputs (tissuecast.surrogate.fallback):
@@ -38,6 +41,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ModelError, require
+from .decoder import LocalBasis, describe_decoder, global_part
 from .gate import InputGate
 from .network_predictor import NetworkPredictor
 from .auxiliary import AuxiliaryInputs
@@ -99,6 +103,7 @@ def _metadata(state: ModelState) -> dict:
         "fixed": np.asarray(state.fixed, dtype=np.int64).tolist(),
         "reference_marker_positions": net.reference_marker_positions.tolist(),
         "n_components": int(b.n_components),
+        "decoder": describe_decoder(b),
         "network": record,
         "surrogate_config": config_to_dict(state.config),
         "config": state.run_config,
@@ -109,21 +114,25 @@ def _metadata(state: ModelState) -> dict:
         "training": state.training,
         "input_gate": None if state.gate is None else state.gate.as_dict(),
         "files": {"weights": "weights.safetensors", "pca": "pca.npz", "mesh": "mesh.npz",
-                  **({"head": "head.npz"} if head is not None else {})},
+                  **({"head": "head.npz"} if head is not None else {}),
+                  **({"decoder": "decoder.npz"} if isinstance(b, LocalBasis) else {})},
     }
 
 
 def _write_network(net: NetworkPredictor, out: Path) -> None:
-    """A network's weights, PCA basis and head (``weights.safetensors``, ``pca.npz``, ``head.npz``) into ``out``."""
+    """A network's weights, PCA basis, local decoder and head (``weights.safetensors``, ``pca.npz``,
+    ``decoder.npz``, ``head.npz``) into ``out``."""
     st = require("safetensors.numpy", "learn", "saving model weights")
     out.mkdir(parents=True, exist_ok=True)
     tensors = {}
     for k, m in enumerate(net.members):
         tensors.update(m.tensors(f"member{k}."))
     st.save_file(tensors, str(out / "weights.safetensors"), metadata={"format": FORMAT, "schema": str(SCHEMA)})
-    b = net.basis
+    b = global_part(net.basis)
     np.savez(out / "pca.npz", mean=b.mean, components=b.components, singular_values=b.singular_values,
              n_samples=np.int64(b.n_samples))
+    if isinstance(net.basis, LocalBasis):
+        np.savez(out / "decoder.npz", **net.basis.arrays())
     if net.head is not None:
         np.savez(out / "head.npz", **net.head.arrays(""))
 
@@ -154,7 +163,8 @@ def _save_fallback(state: ModelState, out: Path, onnx: bool) -> dict:
     """Write the fallback network (and its trust layer) into ``out``; its ``model.json`` record."""
     fb = state.fallback
     _write_network(fb, out)
-    files = {"weights": "weights.safetensors", "pca": "pca.npz", **({"head": "head.npz"} if fb.head is not None else {})}
+    files = {"weights": "weights.safetensors", "pca": "pca.npz", **({"head": "head.npz"} if fb.head is not None else {}),
+             **({"decoder": "decoder.npz"} if isinstance(fb.basis, LocalBasis) else {})}
     record = {"folder": FALLBACK_FOLDER, "n_components": int(fb.n_components), "network": _network_record(fb),
               "auxiliary": fb.auxiliary.as_dict()}
     if state.fallback_trust is not None:
@@ -223,6 +233,9 @@ def _network_parts(folder: Path, meta: dict, mesh, auxiliary: AuxiliaryInputs) -
                      n_samples=int(p["n_samples"]))
     if basis.n_features != 3 * mesh.n_vertices:
         raise ModelError(f"the PCA basis in {str(folder)!r} does not match the model's mesh; the folder is corrupt")
+    if meta["files"].get("decoder"):  # folders without it (all before the local decoder) decode with the PCA basis
+        basis = LocalBasis.from_arrays(basis, _npz(folder / meta["files"]["decoder"],
+                                                   ["indptr", "indices", "data", "singular_values"]))
     head = None
     if meta["files"].get("head"):
         head = QuadraticRegression.from_arrays(_npz(folder / meta["files"]["head"], ["mean", "scale", "directions", "coef"]), "")
