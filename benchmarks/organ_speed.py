@@ -93,7 +93,7 @@ def build_config(mesh_name: str, preset: str, mesh_path, folder: Path, args):
 def run_one(mesh_name: str, preset: str, args, meshes: dict) -> dict:
     """Run the pipeline on one (mesh, preset); returns what :func:`report` prints."""
     from tissuecast.errors import TissuecastError
-    from tissuecast.evaluate.pipeline import run_pipeline
+    from tissuecast.app.pipeline import run_pipeline
 
     folder = Path(tempfile.mkdtemp(prefix=f"tc-organ-{mesh_name}-{preset}-", dir=args.folder or None))
     mesh_path, describe = meshes[mesh_name]
