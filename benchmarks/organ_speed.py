@@ -35,6 +35,8 @@ preset's own do not fit the mesh) and ``vessel`` (``configs/vessel.toml``; vesse
 the vessel, ``paper`` is expected to stop within its first minute with the message that the
 body is a thin shell; the time to that message is printed.
 
+The brain meshes need nilearn (``pip install nilearn``; not a tissuecast dependency).
+
 Usage (the paper-size timings, one command; a quiet 2-core machine)::
 
     python benchmarks/organ_speed.py --meshes brain,brain-fsaverage,phantom,tumour --presets paper,embedded
