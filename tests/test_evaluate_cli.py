@@ -105,23 +105,6 @@ def test_run_pipeline_skip_simulate(run, capsys):
     assert list((folder / "run" / "report" / "vtu").glob("*.vtu"))
 
 
-def test_packaged_presets_match_repository_configs():
-    from pathlib import Path
-
-    import tissuecast
-    from tissuecast.cli.presets import preset_config
-
-    repo = Path(__file__).resolve().parents[1] / "configs"
-    pkg = Path(tissuecast.__file__).parent / "configs"
-    names = sorted(p.stem for p in repo.glob("*.toml"))
-    assert names == sorted(p.stem for p in pkg.glob("*.toml")) and {"paper", "quick", "embedded"} <= set(names)
-    for name in names:
-        assert (repo / f"{name}.toml").read_text() == (pkg / f"{name}.toml").read_text()
-        assert preset_config(name).name == name
-    with pytest.raises(ConfigError, match="use one of embedded, paper, quick"):
-        preset_config("nope")
-
-
 def test_run_takes_a_config_file_or_a_preset_name(tmp_path, monkeypatch):
     from tissuecast.cli.run_cmd import config_or_preset
 
