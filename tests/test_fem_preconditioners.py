@@ -13,7 +13,7 @@ from tissuecast.config import SolverConfig
 from tissuecast.errors import SolverSetupError
 from tissuecast.fem import NeoHookean, Problem, Solver
 from tissuecast.fem.linear import NotPositiveDefinite, make_linear_solver
-from tissuecast.fem.preconditioners import PMultigrid, vertex_interpolation
+from tissuecast.fem.linear.multigrid import PMultigrid, vertex_interpolation
 
 MAT = NeoHookean(0.021, 0.45)
 

@@ -2,7 +2,7 @@
 
 A sparse Cholesky factor of a 3D quadratic-tetrahedron stiffness fills in like ``n^(4/3)``
 (nested dissection) and costs ``~n^2`` flops to make, so on patient-size meshes the direct
-backends of :mod:`.linear` dominate every solve. :class:`PMultigrid` replaces the factor by
+backends of :mod:`.direct` dominate every solve. :class:`PMultigrid` replaces the factor by
 one symmetric two-level cycle for the same matrix ``K`` (free dofs of a P2 problem):
 
 1. pre-smoothing: ``degree`` steps of Chebyshev acceleration of the Jacobi iteration
@@ -31,9 +31,9 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
-from ..errors import SolverSetupError
-from ..mesh.tetmesh import TET_EDGES
-from .linear_base import LinearSolver, NotPositiveDefinite
+from ...errors import SolverSetupError
+from ...mesh.tetmesh import TET_EDGES
+from .base import LinearSolver, NotPositiveDefinite
 
 __all__ = ["PMultigrid", "vertex_interpolation", "CHEBYSHEV_RATIO", "SPECTRAL_MARGIN", "POWER_ITERATIONS"]
 

@@ -1,4 +1,4 @@
-"""The interface of the linear backends (:mod:`.linear`, :mod:`.preconditioners`): a solver
+"""The interface of the linear backends (:mod:`.direct`, :mod:`.multigrid`): a solver
 that factorises a matrix of one fixed sparsity pattern and solves with it, and the error a
 Cholesky backend raises on a matrix that is not positive definite."""
 
@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from .assembly import Assembler
+    from ..assembly import Assembler
 
 __all__ = ["NotPositiveDefinite", "LinearSolver"]
 
