@@ -100,3 +100,22 @@ def test_auto_picks_p_multigrid_by_size_and_order(block):
     assert pick(SolverConfig(multigrid_dofs=1), p1) != "p-multigrid"
     with pytest.raises(SolverSetupError, match="needs quadratic elements"):
         make_linear_solver("p-multigrid", p1)
+
+
+def test_the_registry_lists_every_backend_the_config_can_name(block):
+    """fem.linear.BACKENDS is the one list: the config's linear_solver choices are it plus
+    "auto", each name builds its own class, and an unknown name lists them all."""
+    from tissuecast.fem.linear import BACKENDS, available_backends
+
+    choices = {f.name: f for f in dataclasses.fields(SolverConfig)}["linear_solver"].metadata["choices"]
+    assert set(choices) == set(BACKENDS) | {"auto"}
+    assert [b.name for b in BACKENDS.values() if not b.direct] == ["p-multigrid"]
+    assert set(available_backends()) <= {b.name for b in BACKENDS.values() if b.direct} and "superlu" in available_backends()
+    asm = block[3].assembler
+    for name in ["p-multigrid", *available_backends()]:
+        lin = make_linear_solver(name, asm, SolverConfig())
+        assert lin.name == name and lin.exact == BACKENDS[name].direct
+    assert isinstance(make_linear_solver("p-multigrid", asm), PMultigrid)
+    with pytest.raises(SolverSetupError, match="unknown linear solver 'lu'; choose one of 'auto', 'cholmod', 'pardiso', "
+                                               "'superlu', 'p-multigrid'"):
+        make_linear_solver("lu", asm)
