@@ -239,7 +239,7 @@ def test_study_markers_are_nested_prefixes(ds):
 
 def test_report_vtu_folder_is_read_by_meshio_pyvista_and_vtk(tmp_path, model, ds, evaluation):
     pytest.importorskip("pyvista")
-    from test_mesh_file_readers import read_everywhere
+    from file_readers import read_everywhere
 
     from tissuecast.evaluate.report import write_report
 

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from file_readers import read_everywhere, vtk_read
+
 from tissuecast.cli.main import main
 from tissuecast.mesh import phantom, read_mesh, write_mesh
 
@@ -19,56 +21,7 @@ meshio = pytest.importorskip("meshio")
 pv = pytest.importorskip("pyvista")
 pytest.importorskip("vtkmodules")
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _vtk_read(path: Path):
-    """points (n, 3) and point-data names of a file read with VTK's own reader for its kind."""
-    from vtkmodules.util.numpy_support import vtk_to_numpy
-    from vtkmodules.vtkIOLegacy import vtkUnstructuredGridReader
-    from vtkmodules.vtkIOXML import vtkXMLPolyDataReader, vtkXMLUnstructuredGridReader
-
-    reader = {".vtu": vtkXMLUnstructuredGridReader, ".vtp": vtkXMLPolyDataReader,
-              ".vtk": vtkUnstructuredGridReader}[path.suffix.lower()]()
-    reader.SetFileName(str(path))
-    if path.suffix.lower() == ".vtk":
-        reader.ReadAllScalarsOn()
-        reader.ReadAllVectorsOn()
-        reader.ReadAllFieldsOn()
-    reader.Update()
-    data = reader.GetOutput()
-    pd = data.GetPointData()
-    return vtk_to_numpy(data.GetPoints().GetData()), {pd.GetArrayName(i) for i in range(pd.GetNumberOfArrays())}
-
-
-def read_everywhere(path: Path, points: np.ndarray, point_data: tuple = ()) -> dict:
-    """Read ``path`` with every tool that reads its kind; each must give ``points`` (LPS mm) and
-    the point data named. Returns what each tool saw (for the .vtu/.vtk/.vtp: the frame Slicer reads)."""
-    path = Path(path)
-    suffix = path.suffix.lower()
-    seen = {}
-    if suffix != ".vtp":  # meshio has no .vtp reader
-        m = meshio.read(path)
-        np.testing.assert_allclose(m.points, points, atol=1e-6)
-        assert set(point_data) <= set(m.point_data), (path, sorted(m.point_data))
-        seen["meshio"] = m
-    # pyvista.read takes .inp for AVS UCD and reads meshio's XDMF with VTK's XDMF2 reader: both
-    # fail; pyvista.read_meshio is its way for them (docs/files.md)
-    grid = pv.read_meshio(path) if suffix in (".inp", ".xdmf") else pv.read(path)
-    np.testing.assert_allclose(grid.points, points, atol=1e-5)
-    assert set(point_data) <= set(grid.point_data.keys()), (path, grid.point_data.keys())
-    seen["pyvista"] = grid
-    if suffix in (".vtu", ".vtk", ".vtp"):
-        from tissuecast.slicer.models import read_model_as_slicer
-
-        vtk_points, names = _vtk_read(path)
-        np.testing.assert_allclose(vtk_points, points, atol=1e-5)
-        assert set(point_data) <= names
-        slicer = read_model_as_slicer(path)  # vtkMRMLModelStorageNode's reading: no frame stated = LPS
-        assert slicer.stated_space in ("LPS", None) and (slicer.stated_space == "LPS" or suffix == ".vtu")
-        np.testing.assert_allclose(slicer.points, points, atol=1e-5)  # so it overlays the scan in Slicer
-        seen["slicer"] = slicer
-    return seen
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -103,7 +56,7 @@ def test_space_array_vtu_is_read_by_vtk_pyvista_slicer_and_tissuecast_not_meshio
 
     assert read_model_as_slicer(tmp_path / "s.vtu").stated_space == "LPS"
     assert pv.read(tmp_path / "s.vtu").field_data["SPACE"][0] == "LPS"
-    np.testing.assert_array_equal(_vtk_read(tmp_path / "s.vtu")[0], m.points)
+    np.testing.assert_array_equal(vtk_read(tmp_path / "s.vtu")[0], m.points)
     np.testing.assert_array_equal(read_mesh(tmp_path / "s.vtu").points, m.points)
     with pytest.raises(SystemExit):  # meshio's documented limit: it cannot read string arrays (docs/files.md)
         meshio.read(tmp_path / "s.vtu")
@@ -144,13 +97,13 @@ def test_predict_outputs(tmp_path, suffix):
 
 @pytest.fixture(scope="module")
 def store(tmp_path_factory):
-    from test_dataset_helpers import small_config
+    from dataset_helpers import small_config
 
     from tissuecast.dataset import simulate
 
     folder = tmp_path_factory.mktemp("store")
     cfg = small_config(folder, alpha=20.0)
-    simulate(cfg, folder / "ds.zarr", progress=False, solver_factory="test_dataset_helpers:fake_solver_factory",
+    simulate(cfg, folder / "ds.zarr", progress=False, solver_factory="dataset_helpers:fake_solver_factory",
              workers=1)
     return folder / "ds.zarr"
 
@@ -231,7 +184,7 @@ def test_broken_mesh_files_give_one_error_line_in_process(tmp_path, capsys, suff
 
 def test_broken_mesh_files_give_one_error_line_on_every_command(tmp_path):
     """In a fresh process (VTK and meshio print below Python's stderr when let), per command."""
-    from test_dataset_helpers import small_config, write_config
+    from dataset_helpers import small_config, write_config
 
     good = write_mesh(tmp_path / "good.vtu", phantom())[0].read_bytes()
     for kind in ("empty", "truncated", "random"):

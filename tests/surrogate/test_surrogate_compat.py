@@ -18,7 +18,7 @@ import pytest
 
 from tissuecast.surrogate import DeformationModel
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 sys.path.insert(0, str(DATA))
 
 from make_schema1_models import KINDS, data, inputs, outputs  # noqa: E402

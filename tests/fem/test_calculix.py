@@ -16,7 +16,8 @@ from scipy.optimize import brentq, fsolve
 from tissuecast.errors import ConvergenceError, DependencyError, MeshFormatError, SolverSetupError
 from tissuecast.fem import calculix as cx
 from tissuecast.fem.material import NeoHookean
-from tissuecast.mesh import TetMesh
+
+from mesh_factories import box_mesh
 
 needs_ccx = pytest.mark.skipif(shutil.which("ccx") is None, reason="ccx (apt-get install calculix-ccx) not installed")
 MAT = NeoHookean(0.021, 0.45)
@@ -24,16 +25,6 @@ MAT = NeoHookean(0.021, 0.45)
 #: fixed vertices [1129, 615, 646]) to ~27 mm.
 PHANTOM_SEED = 14
 PHANTOM_RMS_FORCE = 0.0042
-
-
-def box_mesh(nx: int, ny: int, nz: int, size=(10.0, 10.0, 10.0)) -> TetMesh:
-    """A box [0, size] split into nx*ny*nz cubes of 6 tetrahedra each (Kuhn split)."""
-    axes = [np.linspace(0.0, s, k + 1) for s, k in zip(size, (nx, ny, nz))]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    idx = np.arange(len(grid)).reshape(nx + 1, ny + 1, nz + 1)
-    corner = np.stack([idx[a : a + nx, b : b + ny, c : c + nz].ravel() for a in (0, 1) for b in (0, 1) for c in (0, 1)], 1)
-    kuhn = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]])
-    return TetMesh(grid, corner[:, kuhn].reshape(-1, 4))
 
 
 def _section(text: str, keyword: str) -> list[str]:

@@ -13,7 +13,7 @@ from tissuecast.instruments import InstrumentPose, ReferenceSurface, features_fr
 from tissuecast.scenario import scenario_from_config, scenario_rng
 
 from _surrogate_synthetic import box_mesh
-from test_dataset_helpers import small_config
+from dataset_helpers import small_config
 
 SCENARIO = {"name": "embedded", "pins": False,
             "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},

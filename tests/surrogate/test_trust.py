@@ -52,7 +52,7 @@ def test_bounds_cover_at_the_nominal_rate_on_held_out_samples(model, test_fields
 
 def _alarm_only(model):
     """The model's network and trust layer without the input gate (which refuses the grossest of
-    these faults before the alarm sees them: tests/test_gate.py), to measure the alarm itself."""
+    these faults before the alarm sees them: tests/surrogate/test_gate.py), to measure the alarm itself."""
     from tissuecast.surrogate.network_predictor import NetworkPredictor
     from tissuecast.surrogate.trusted import TrustedPredictor
 

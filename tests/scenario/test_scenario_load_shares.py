@@ -8,7 +8,7 @@ from tissuecast.config import with_overrides
 from tissuecast.scenario import scenario_from_config
 from tissuecast.scenario.load_shares import format_load_shares, load_shares
 
-from test_dataset_helpers import small_config
+from dataset_helpers import small_config
 
 SCENARIO = {"pins": False, "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
             "springs": {"rule": "surface"}, "gravity": {"enabled": True},

@@ -14,9 +14,9 @@ from tissuecast.config import with_overrides
 from tissuecast.dataset import SampleStatus, open_dataset, simulate
 from tissuecast.errors import DatasetError
 
-from test_dataset_helpers import small_config, store_arrays, store_attrs
+from dataset_helpers import small_config, store_arrays, store_attrs
 
-FAKE = "test_dataset_helpers:fake_solver_factory"
+FAKE = "dataset_helpers:fake_solver_factory"
 
 
 @pytest.fixture(scope="module")
@@ -178,9 +178,9 @@ def test_a_worker_that_dies_gives_one_clear_error_and_the_store_resumes(made, tm
     monkeypatch.setenv("TISSUECAST_TEST_DIE", str(flag))  # inherited by the spawned worker
     path = tmp_path / "died.zarr"
     with pytest.raises(DatasetError, match="worker process stopped abruptly.*run the same command again"):
-        simulate(cfg, path, progress=False, solver_factory="test_dataset_helpers:dying_solver_factory", workers=1)
+        simulate(cfg, path, progress=False, solver_factory="dataset_helpers:dying_solver_factory", workers=1)
     assert not flag.exists() and open_dataset(path).summary()["totals"]["pending"] > 0
-    simulate(cfg, path, progress=False, solver_factory="test_dataset_helpers:dying_solver_factory", workers=1)
+    simulate(cfg, path, progress=False, solver_factory="dataset_helpers:dying_solver_factory", workers=1)
     ref, got = store_arrays(ref_path), store_arrays(path)
     for name in ("samples/status", "samples/displacements", "samples/forces", "samples/alpha"):
         assert got[name] == ref[name], name
@@ -273,12 +273,12 @@ def test_stalled_samples_are_stopped_retried_cautiously_and_recorded(tmp_path):
     stopped by the time budget, go on with the cautious retry only, and are recorded failed
     with both reasons; a stalled sample handed out before a median existed runs to its end
     and is reported slow. Every other sample is done as usual."""
-    from test_dataset_helpers import STALL_BAND
+    from dataset_helpers import STALL_BAND
 
     cfg = with_overrides(small_config(tmp_path, n_samples=24, n_test2=0, alpha=10.0, workers=2),
                          dataset={"time_budget_min": 0.3})
     summary = simulate(cfg, tmp_path / "stall.zarr", progress=False,
-                       solver_factory="test_dataset_helpers:stalling_solver_factory")
+                       solver_factory="dataset_helpers:stalling_solver_factory")
     ds = open_dataset(tmp_path / "stall.zarr")
     peak = np.abs(ds.forces.astype(np.float64)).max(axis=(1, 2))
     stalling = set(np.flatnonzero((peak > STALL_BAND[0]) & (peak <= STALL_BAND[1])).tolist())

@@ -90,7 +90,7 @@ def test_make_phantom_script_reproduces_the_shipped_mesh(tmp_path):
     from pathlib import Path
 
     pytest.importorskip("gmsh")
-    script = Path(__file__).resolve().parents[1] / "scripts" / "make_phantom.py"
+    script = Path(__file__).resolve().parents[2] / "scripts" / "make_phantom.py"
     mod = runpy.run_path(str(script))
     assert mod["main"]([str(tmp_path / "p.npz")]) == 0
     data = np.load(tmp_path / "p.npz", allow_pickle=False)

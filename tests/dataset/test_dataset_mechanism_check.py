@@ -14,7 +14,7 @@ from tissuecast.fem import NeoHookean, Problem, Solver
 from tissuecast.mesh import write_mesh
 from tissuecast.mesh.shapes import slender_rod
 
-from test_dataset_helpers import small_config
+from dataset_helpers import small_config
 
 
 def test_linear_peak_is_the_small_load_limit_of_the_nonlinear_solve():

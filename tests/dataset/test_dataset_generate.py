@@ -16,7 +16,7 @@ import zarr
 from tissuecast.config import with_overrides
 from tissuecast.dataset import InitialGuess, SampleStatus, open_dataset, simulate
 
-from test_dataset_helpers import assert_same_store, done_count, small_config, write_config
+from dataset_helpers import assert_same_store, done_count, small_config, write_config
 
 N_LBO, N_TEST2, N_BASIS = 120, 9, 16
 
@@ -334,11 +334,11 @@ def test_samples_failing_in_a_batch_go_on_alone_and_are_recorded(reference, tmp_
     """A sample whose try from the prediction fails in its batch is solved alone from zero
     (GUESS_FAILED, the batch's reason kept) and, failing that too, recorded failed after its
     cautious retries with every reason; the other samples of the batch are unaffected."""
-    from test_dataset_helpers import _fingerprint
+    from dataset_helpers import _fingerprint
 
     cfg, ref_path, _ = reference
     store = tmp_path / "flaky.zarr"
-    simulate(cfg, store, progress=False, solver_factory="test_dataset_helpers:batch_failing_solver_factory")
+    simulate(cfg, store, progress=False, solver_factory="dataset_helpers:batch_failing_solver_factory")
     ref, ds = open_dataset(ref_path), open_dataset(store)
     batch_of = zarr.open_group(str(store), mode="r")["samples/batch"][...]
     sizes = np.bincount(batch_of[batch_of >= 0])

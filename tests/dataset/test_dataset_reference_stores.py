@@ -12,7 +12,7 @@ compared to a relative 1e-6 (another BLAS may change last bits) and the integer 
 (seeds, splits, statuses, solver counts, initial guesses, batches, draws) exactly.
 
 Rebuild the references (only on purpose) with
-``python tests/test_dataset_reference_stores.py PAPER.zarr EMBEDDED.zarr``.
+``python tests/dataset/test_dataset_reference_stores.py PAPER.zarr EMBEDDED.zarr``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 REFERENCE = DATA / "reference_stores.npz"
 NAMES = ("paper", "embedded")
 #: Per-sample records compared exactly.

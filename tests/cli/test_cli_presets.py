@@ -13,7 +13,7 @@ from tissuecast.cli.presets import preset_config, preset_names
 from tissuecast.config import load_config
 from tissuecast.errors import ConfigError
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 REPO_CONFIGS = ROOT / "configs"
 PACKAGE_CONFIGS = ROOT / "src" / "tissuecast" / "configs"
 

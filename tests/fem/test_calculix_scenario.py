@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 from scipy.optimize import brentq
-from test_calculix import box_mesh, uniaxial_closed_form
+from mesh_factories import box_mesh
+from test_calculix import uniaxial_closed_form
 
 from tissuecast.errors import SolverSetupError
 from tissuecast.fem import calculix as cx

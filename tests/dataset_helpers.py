@@ -1,7 +1,8 @@
-"""Shared helpers of the data-set tests (no tests here): a small mesh, configs, a fake solver.
+"""Shared helpers of the data-set tests: a small mesh, configs, a fake solver.
 
 Worker processes are spawned, so anything they import (the fake solver factory) must live in
-an importable module: pytest puts this folder on ``sys.path``, which spawned children inherit.
+an importable module: ``tests/conftest.py`` puts this folder on ``sys.path``, which spawned
+children inherit.
 """
 
 from __future__ import annotations

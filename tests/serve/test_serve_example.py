@@ -12,7 +12,7 @@ from serve_support import small_model
 
 pytestmark = pytest.mark.timeout(120)
 
-EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "stream_trajectory.py"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "stream_trajectory.py"
 
 
 def load_example():

@@ -12,7 +12,7 @@ import shutil
 
 import numpy as np
 import pytest
-from test_calculix import box_mesh
+from mesh_factories import box_mesh
 
 from tissuecast.config import Config, with_overrides
 from tissuecast.errors import ConvergenceError

@@ -20,7 +20,7 @@ from tissuecast.config import with_overrides
 from tissuecast.dataset import InitialGuess, open_dataset, simulate
 from tissuecast.scenario import scenario_from_config, scenario_rng
 
-from test_dataset_helpers import assert_same_store, done_count, small_config, write_config
+from dataset_helpers import assert_same_store, done_count, small_config, write_config
 
 N_LBO, N_TEST2, N_BASIS = 72, 4, 8
 

@@ -16,7 +16,7 @@ from tissuecast.mesh.refine import refine_uniformly
 from tissuecast.scenario import scenario_from_config
 from tissuecast.scenario.refined import refined_sample
 
-from test_dataset_helpers import small_config, write_config
+from dataset_helpers import small_config, write_config
 
 SCENARIO = {"name": "embedded", "pins": False,
             "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},

@@ -18,7 +18,7 @@ import pytest
 from _browser import HeadlessChromium, chromium_executable
 from _surrogate_synthetic import FakeDataset
 
-ARTIFACTS = Path(__file__).resolve().parents[1] / "test-artifacts"
+ARTIFACTS = Path(__file__).resolve().parents[2] / "test-artifacts"
 VIEWER = "document.getElementById('tc-viewer')"
 
 

@@ -7,11 +7,11 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 
-from test_calculix import box_mesh
+from mesh_factories import box_mesh
 
 from tissuecast.mesh import write_mesh
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks" / "scenario_solve_time.py"
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "scenario_solve_time.py"
 
 COMMON = """
 [mesh]

@@ -27,7 +27,7 @@ from tissuecast.serve import IGTLServer
 
 pytestmark = pytest.mark.timeout(120)
 
-SOURCE = Path(__file__).parent / "igtl_client" / "tissuecast_igtl_client.cxx"
+SOURCE = Path(__file__).resolve().parents[1] / "igtl_client" / "tissuecast_igtl_client.cxx"
 INCLUDE = Path("/usr/include/openigtlink")
 LIBRARY = "OpenIGTLink"
 
