@@ -46,8 +46,8 @@ _BUCKETS = [
     ("tangent assembly", lambda f, n: f.endswith("assembly.py") and n == "tangent"),
     ("residual/energy assembly",
      lambda f, n: f.endswith("assembly.py") and n in ("energy_and_force", "internal_force", "energy")),
-    ("factorisation", lambda f, n: f.endswith("linear.py") and n == "factorize"),
-    ("triangular solves", lambda f, n: f.endswith("linear.py") and n == "solve"),
+    ("factorisation", lambda f, n: f.replace("\\", "/").endswith("fem/linear/direct.py") and n == "factorize"),
+    ("triangular solves", lambda f, n: f.replace("\\", "/").endswith("fem/linear/direct.py") and n == "solve"),
     ("reduced-model prediction", lambda f, n: f.endswith("reduced.py") and n == "predict"),
 ]
 

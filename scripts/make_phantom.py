@@ -3,7 +3,7 @@
 The surface is tissuecast's own analytic shape (:func:`tissuecast.mesh.phantom.phantom_surface`);
 gmsh (extra ``mesh``) fills it with tetrahedra. gmsh output can change between gmsh versions
 and platforms, which is why the result is shipped rather than generated at run time; after
-regenerating, update the expected counts and fingerprint in tests/test_mesh_phantom.py.
+regenerating, update the expected counts and fingerprint in tests/mesh/test_mesh_phantom.py.
 
 Usage: python scripts/make_phantom.py [OUT.npz]
 """

@@ -43,3 +43,13 @@ def regular_tet(edge: float = 1.0) -> TetMesh:
     """A regular tetrahedron with the given edge length (mm)."""
     p = np.array([[1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]], dtype=np.float64)
     return TetMesh(p * edge / (2.0 * np.sqrt(2.0)), np.array([[0, 1, 2, 3]]))
+
+
+def box_mesh(nx: int, ny: int, nz: int, size=(10.0, 10.0, 10.0)) -> TetMesh:
+    """A box [0, size] split into nx*ny*nz cubes of 6 tetrahedra each (Kuhn split)."""
+    axes = [np.linspace(0.0, s, k + 1) for s, k in zip(size, (nx, ny, nz))]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    idx = np.arange(len(grid)).reshape(nx + 1, ny + 1, nz + 1)
+    corner = np.stack([idx[a : a + nx, b : b + ny, c : c + nz].ravel() for a in (0, 1) for b in (0, 1) for c in (0, 1)], 1)
+    kuhn = np.array([[0, 1, 3, 7], [0, 1, 5, 7], [0, 2, 3, 7], [0, 2, 6, 7], [0, 4, 5, 7], [0, 4, 6, 7]])
+    return TetMesh(grid, corner[:, kuhn].reshape(-1, 4))

@@ -58,7 +58,7 @@ PENDING = {
     ("fem/calculix/_backend.py", "getattr(problem, 'prescribed', None)"),
     ("fem/calculix/_backend.py", "from ._deck import _as_prescribed"),
     ("fem/kernels.py", "assembler._scatter"),
-    ("fem/linear.py", "a._upper"),
+    ("fem/linear/direct.py", "a._upper"),
     ("mesh/tags.py", "from .io import _extension"),
     ("mesh/tags.py", "from .io import _tets_from_meshio"),
 }

@@ -2,7 +2,7 @@
 
 Run once at commit 43d0509 (before the model was composed of its parts), with that commit's
 ``src`` first on ``PYTHONPATH``:  ``python tests/data/make_schema1_models.py``.
-``tests/test_surrogate_compat.py`` loads the folders with today's code and checks that every
+``tests/surrogate/test_surrogate_compat.py`` loads the folders with today's code and checks that every
 output is what the code that wrote them gave. Uses only the public API, so it also runs today.
 """
 

@@ -1,5 +1,5 @@
 // A small OpenIGTLink client built with the official OpenIGTLink C++ library (Debian
-// libopenigtlink-dev), used by tests/test_serve_cpp_client.py to check the tissuecast server
+// libopenigtlink-dev), used by tests/serve/test_serve_cpp_client.py to check the tissuecast server
 // against software nobody here wrote.
 //
 // Usage: tissuecast_igtl_client HOST PORT REGISTRATION_NAME M00 .. M33 X0 Y0 Z0 [X1 Y1 Z1 ...]

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["converged", "correction_estimate", "reference_force", "RESIDUAL_ALONE", "CORRECTION_ROUNDOFF",
+__all__ = ["IncrementFailed", "converged", "correction_estimate", "reference_force", "RESIDUAL_ALONE", "CORRECTION_ROUNDOFF",
            "SLOW_CONTRACTION"]
 
 #: A residual below this share of the force tolerance is converged without the correction
@@ -23,6 +23,11 @@ CORRECTION_ROUNDOFF = 1e-12
 #: Corrections contracting by more than this ratio per iteration are not converging
 #: linearly, and ``rho / (1 - rho)`` would blow up: the raw correction is tested instead.
 SLOW_CONTRACTION = 0.95
+
+
+class IncrementFailed(Exception):
+    """An increment did not converge (internal control flow: it is retried smaller)."""
+
 
 
 def correction_estimate(cmax: float, previous: float | None) -> float:

@@ -8,7 +8,7 @@ scatter into the CSR data), never materialise the ``(m, 30, 30)`` element matric
 each element stiffness from its upper block triangle, and take 3x3 determinants and inverses
 by cofactors (timings in ``docs/solver.md``; ``benchmarks/dataset_throughput.py`` prints the
 effect on a data set). Both give the same
-numbers to round-off (``tests/test_fem_kernels.py``); they differ in the last bits, so a data
+numbers to round-off (``tests/fem/test_fem_kernels.py``); they differ in the last bits, so a data
 set is reproducible bit for bit with the same backend (its store records the numba version).
 
 The formulas are those of :mod:`.material` (stress and the structured tangent) and

@@ -1,19 +1,52 @@
-"""One nonlinear solve: its state and its load-stepped Newton iterations.
+"""Nonlinear equilibrium by Newton iterations with automatic load incrementation: one solve.
+
+The dead-load problem is conservative: equilibrium is a stationary point of the potential
+energy ``Pi(u) = sum_e W(F) dV - f . u``, so the solver minimises ``Pi`` with Newton steps
+and an energy line search. Per load increment (``lambda`` from 0 to 1; forces and
+prescribed displacements scale with ``lambda``):
+
+1. Predictor: the initial guess (first increment) or a linear extrapolation of the last
+   converged increment; rejected if it inverts an element.
+2. Direction ``d = -K^-1 r`` (``r``: internal minus external forces on the free dofs).
+   Strategy ``"krylov"`` (default) assembles the tangent ``K`` at every iteration and solves
+   with it by conjugate gradients preconditioned by the last factorisation, co-rotated by
+   the rigid rotation applied since (``R K_old^-1 R^T``), to a relative residual of
+   ``krylov_tolerance`` in at most ``krylov_iterations`` steps, deflated by the rigid
+   rotations about the constrained nodes' centroid and the search directions of the solve's
+   earlier iterations (``krylov_recycle``); only when that fails is ``K`` factorised.
+   ``"newton"`` factorises at every iteration; ``"quasi-newton"`` reuses the last
+   factorisation as it is while the residual falls by ``refactor_ratio`` per iteration. A
+   tangent that is not positive definite is shifted, ``K + tau diag(K)``. A solve with an
+   initial guess (``reference_preconditioner``) is preconditioned by the stiffness at zero
+   displacement, factorised once per Solver and co-rotated by the guess's best-fit rotation.
+3. Line search on ``Pi`` (Armijo, quadratic backtracking), rejecting any step that makes
+   ``J <= 0`` at a quadrature point; with ``rotation_aware`` the step's rigid rotation about
+   the constrained nodes' centroid is applied as a finite rotation.
+4. Convergence (Abaqus-like; both must hold): the largest residual component
+   ``<= force_tolerance * q`` (``q`` the mean magnitude of the applied nodal forces and
+   support reactions) and the largest correction, scaled by ``rho / (1 - rho)`` when the
+   corrections contract slowly, ``<= displacement_tolerance *`` the largest displacement of
+   the increment.
+5. Increment control: an increment converged within ``grow_iterations`` iterations makes the
+   next one 1.5x larger; a failed one is retried with a quarter of the load step; below
+   ``min_increment`` or after ``max_increments`` attempts
+   :class:`~tissuecast.errors.ConvergenceError` is raised with the load fraction reached.
 
 A :class:`SolveRun` is made by :class:`~tissuecast.fem.solver.Solver` for every solve and
 holds everything that lives for that solve only: the external loads and prescribed values
-(also those of dofs that only this solve holds, e.g. an indenting patch), the initial guess,
-the counters, the shift of the last indefinite tangent, the rigid rotation
-applied since the active factorisation was made, the recycled Krylov directions, the active
-factorisation and whether it is still valid, and its own numeric factor (borrowed from the
-Solver on the first factorisation and given back when the run ends). The Solver keeps only
-per-mesh things (assembler, constrained dofs, symbolic analysis, reference factorisation), so
-one Solver serves any number of runs, one by one or in lockstep.
+(also those of dofs that only this solve holds, e.g. an indenting patch), the initial guess
+and the increment state; its search directions (step 2: the counters, the shift of the last
+indefinite tangent, the rigid rotation applied since the active factorisation was made, the
+recycled Krylov directions, the active factorisation and its own numeric factor) come from
+:class:`~tissuecast.fem.directions.SearchDirections`, which it derives from. The Solver keeps
+only per-mesh things (assembler, constrained dofs, symbolic analysis, reference
+factorisation), so one Solver serves any number of runs, one by one or in lockstep.
 
 :meth:`SolveRun.steps` is a generator of preconditioner applications (see
 :func:`.krylov.corotated_solve`) that returns the :class:`~tissuecast.fem.result.SolveResult`;
-the Solver drives it. The convergence test is :func:`.convergence.converged`. The algorithm is
-described in :mod:`tissuecast.fem.solver` and, with its history, in ``docs/solver.md``.
+the Solver drives it. The line search is :mod:`.linesearch`, the convergence test
+:func:`.convergence.converged`. Design, measurements and the history of what was tried:
+``docs/solver.md``.
 
 Dofs held by this solve only (``held``: free in the Solver's pattern) are eliminated inside the
 solve, so the sparsity pattern and its symbolic factorisation stay shared: their rows and
@@ -28,22 +61,21 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import ConvergenceError
-from .convergence import RESIDUAL_ALONE, converged, correction_estimate, reference_force
-from .krylov import N_ROTATIONS, corotated_solve, deflated_cg, deflation_space, recycle, rigid_rotations
-from .linear import NotPositiveDefinite
+from .convergence import RESIDUAL_ALONE, IncrementFailed, converged, correction_estimate, reference_force
+from .directions import SearchDirections
 from .linesearch import line_search, residual, step_path
-from .result import SolveResult
+from .result import SolveCounts, SolveResult
 
 if TYPE_CHECKING:
     from .solver import Solver
 
-__all__ = ["SolveRun", "SolveCounts", "best_rotation"]
+__all__ = ["SolveRun", "SolveCounts", "IncrementFailed", "best_rotation"]
 
 log = logging.getLogger(__name__)
 
@@ -53,38 +85,10 @@ INCREMENT_GROWTH = 1.5
 CUTBACK = 0.25
 #: A load fraction this close to 1 is 1 (no sliver of an increment left over by round-off).
 LOAD_SNAP = 1e-9
-#: First shift ``tau`` of an indefinite tangent, ``K + tau diag(K)``: a mild regularisation.
-SHIFT_FIRST = 1e-3
-#: A new ladder starts at this share of the last shift that worked in the solve.
-SHIFT_RESTART = 0.5
-#: Growth of the shift per failed factorisation.
-SHIFT_GROWTH = 4.0
-#: Beyond this shift the tangent has little left of K: the projected stiffness is used.
-SHIFT_LAST = 10.0
-#: With an approximate preconditioner just made from the current tangent, conjugate gradients
-#: may take this many times ``krylov_iterations`` steps before settling for their iterate.
-FRESH_STEPS_FACTOR = 4
 #: Guards divisions by norms that may be exactly zero.
 _TINY = 1e-300
 #: Held dofs within this share of their largest target value are where they should be: no lift.
 LIFT_ROUNDOFF = 1e-12
-
-
-class IncrementFailed(Exception):
-    """An increment did not converge (internal control flow: it is retried smaller)."""
-
-
-@dataclass
-class SolveCounts:
-    """What one solve did (see :class:`~tissuecast.fem.result.SolveResult`)."""
-
-    iterations: int = 0  # Newton iterations, all increments (cut-back ones included)
-    factorizations: int = 0  # numeric factorisations, shifted attempts included
-    solves: int = 0  # preconditioner applications (triangular solves)
-    shifted: int = 0  # factorisations of a shifted tangent K + tau diag(K)
-    projected: int = 0  # factorisations of the projected (positive-definite) stiffness
-    krylov_steps: int = 0  # conjugate-gradient steps
-    residual_history: list = field(default_factory=list)  # largest residual component (N) per iteration
 
 
 @dataclass
@@ -113,7 +117,7 @@ def best_rotation(nodes: np.ndarray, u: np.ndarray) -> np.ndarray:
     return a @ np.diag([1.0, 1.0, d]) @ bt
 
 
-class SolveRun:
+class SolveRun(SearchDirections):
     """One solve of a :class:`~tissuecast.fem.solver.Solver`: its state and iterations.
 
     Args:
@@ -130,34 +134,20 @@ class SolveRun:
             are left out, see :meth:`~.solver.Solver.solve`).
 
     Attributes:
-        counts: :class:`SolveCounts`.
-        tau: shift of the last indefinite tangent that factorised (0 after a plain one).
-        rotation: (3, 3) rigid rotation applied since the active factorisation was made.
-        recycled: (n_free, j) Krylov directions kept from earlier iterations, or None.
-        active: the factorisation the preconditioner uses now (None before the first).
-        factor_valid: whether ``active`` may still be used (False after a failed increment).
-        linear: this run's own numeric factor, borrowed from the Solver on first need.
+        fext, counted, guess, prescribed: as given (``prescribed`` the problem's by default).
+        Those of :class:`~tissuecast.fem.directions.SearchDirections` (``counts``, ``tau``,
+        ``rotation``, ``recycled``, ``active``, ``factor_valid``, ``linear``, the held dofs).
     """
 
     def __init__(self, solver: "Solver", fext: np.ndarray, guess: np.ndarray | None = None,
                  prescribed: np.ndarray | None = None, held: tuple | None = None,
                  counted: np.ndarray | None = None) -> None:
         self.t0 = time.perf_counter()
-        self.solver = solver
-        self.config = solver.config
-        self.assembler = solver.assembler
+        super().__init__(solver, held)
         self.fext = fext
         self.counted = counted
         self.guess = guess
         self.prescribed = solver.prescribed_values if prescribed is None else prescribed
-        self.counts = SolveCounts()
-        self.tau = 0.0
-        self.rotation = np.eye(3)
-        self.recycled: np.ndarray | None = None
-        self.active = None
-        self.factor_valid = False
-        self.linear = None
-        self._held_setup(held)
         cfg = self.config
         if guess is not None and cfg.strategy == "krylov" and cfg.reference_preconditioner:
             reference = solver.reference_factor()
@@ -165,34 +155,6 @@ class SolveRun:
                 self.active, self.factor_valid = reference, True
                 if solver.problem.can_swing:
                     self.rotation = best_rotation(solver.problem.nodes, guess)
-
-    def _held_setup(self, held) -> None:
-        """The solve's own held dofs: global ids, values, positions in the free vector, the CSR
-        entries that couple them, and the constrained nodes / dofs with them."""
-        sv = self.solver
-        nodes = np.zeros(0, dtype=np.int64) if held is None else np.asarray(held[0], dtype=np.int64)
-        values = np.zeros((0, 3)) if held is None else np.asarray(held[1], dtype=np.float64).reshape(-1, 3)
-        self.held_dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
-        self.held_values = values.ravel()
-        position = np.full(self.assembler.n_dofs, -1, dtype=np.int64)
-        position[sv.free_dofs] = np.arange(len(sv.free_dofs))
-        self.held = position[self.held_dofs]
-        if np.any(self.held < 0):
-            raise ValueError("held nodes must be free in the Solver's problem")  # Problem.solve_constraints checks
-        self._coupling = self.assembler.coupling_entries(self.held) if len(self.held) else None
-        self.cnodes = np.concatenate([sv.constrained_nodes, nodes])
-        self.cdofs = np.concatenate([sv.constrained_dofs, self.held_dofs])
-
-    def _tangent(self, u: np.ndarray, project: bool = False) -> np.ndarray:
-        """CSR data (nnz,) of the tangent at ``u`` (3 n_nodes,) with the held dofs eliminated."""
-        _, data, _ = self.assembler.tangent(u.reshape(-1, 3), project=project)
-        return self._eliminate(data)
-
-    def _eliminate(self, data: np.ndarray) -> np.ndarray:
-        """Zero (in place) the entries coupling the held dofs; their diagonal stays."""
-        if self._coupling is not None:
-            data[self._coupling] = 0.0
-        return data
 
     def _residual(self, fint: np.ndarray, fext: np.ndarray) -> np.ndarray:
         return residual(fint, fext, self.solver.free_dofs, self.held)
@@ -405,118 +367,3 @@ class SolveRun:
         track.need_factor = cfg.strategy == "newton" or (
             cfg.strategy == "quasi-newton" and (ratio > cfg.refactor_ratio or track.reuses >= cfg.max_quasi_newton))
 
-    # ------------------------------------------------------------------ linear algebra
-    def _precondition(self, v: np.ndarray):
-        """``R K^-1 R^T v`` with the active factorisation (a generator, see
-        :func:`.krylov.corotated_solve`), zero at the held dofs (the factorisation may be the
-        shared reference one, which does not eliminate them)."""
-        if len(self.held):
-            v = v.copy()
-            v[self.held] = 0.0
-        z = yield from corotated_solve(self.active, self.rotation, v)
-        if len(self.held):
-            z[self.held] = 0.0
-        self.counts.solves += 1
-        return z
-
-    def krylov_direction(self, u: np.ndarray, r: np.ndarray):
-        """-K^-1 r for the tangent K at u (a generator): :meth:`krylov_solve` with ``b = -r``."""
-        d, data = yield from self.krylov_solve(u, -r)
-        return d, data
-
-    def krylov_solve(self, u: np.ndarray, b: np.ndarray, data: np.ndarray | None = None, fresh: bool = False):
-        """K^-1 b for the tangent K at u by deflated preconditioned conjugate gradients
-        (a generator, :mod:`.krylov`).
-
-        Args:
-            u: (3 n_nodes,) mm, current displacements.  b: (n_free,) N, right-hand side
-                (zero at the held dofs).
-            data: the tangent's CSR data with the held dofs eliminated, if already assembled.
-            fresh: the preconditioner was just made from this tangent but is an approximate
-                inverse (:attr:`.linear.LinearSolver.exact` False): up to
-                ``FRESH_STEPS_FACTOR`` times more steps, and the iterate so far if the
-                tolerance is still not met.
-
-        Returns:
-            ``(x, None)`` when the relative residual fell below ``krylov_tolerance`` within
-            ``krylov_iterations`` steps (or negative curvature was met after some progress:
-            the iterate so far is still a descent direction), else ``(None, K data)`` so that
-            the caller factorises the tangent already assembled.
-        """
-        cfg = self.config
-        sv = self.solver
-        if data is None:
-            data = self._tangent(u)
-        k = self.assembler.matrix(data)
-        space = None
-        if cfg.krylov_recycle:
-            if sv.problem.can_swing:
-                spin = rigid_rotations(sv.problem.nodes + u.reshape(-1, 3), sv.constrained_nodes, sv.free_dofs,
-                                       self.held)
-            else:
-                spin = np.zeros((len(sv.free_dofs), 0))
-            space, self.recycled = deflation_space(k, spin, self.recycled)
-        steps_cap = cfg.krylov_iterations * (FRESH_STEPS_FACTOR if fresh else 1)
-        x, steps, found = yield from deflated_cg(k, b, space, self._precondition, cfg.krylov_tolerance, steps_cap,
-                                                 best_effort=fresh)
-        self.counts.krylov_steps += steps
-        self.recycled = recycle(found, space, cfg.krylov_recycle, self.recycled,
-                                N_ROTATIONS if sv.problem.can_swing else 0)
-        return (x, None) if x is not None else (None, data)
-
-    def factorize(self, u: np.ndarray, data: np.ndarray | None = None) -> None:
-        """Factorise the tangent K at u (CSR values ``data`` if already assembled) into this
-        run's own factor; if K is not positive definite, ``K + tau diag(K)`` with the smallest
-        working ``tau`` of the ladder ``max(SHIFT_FIRST, SHIFT_RESTART * last) * SHIFT_GROWTH^k``
-        up to ``SHIFT_LAST``; past that, the projected stiffness (material tangent clamped to
-        its positive-definite part at each quadrature point).
-
-        Raises:
-            IncrementFailed: not even the projected stiffness factorises.
-        """
-        if data is None:
-            data = self._tangent(u)
-        if self.linear is None:
-            self.linear = self.solver.borrow_factor()
-        self.active = self.linear
-        self.counts.factorizations += 1
-        try:
-            self.linear.factorize(data)
-            self.tau = 0.0
-            return
-        except NotPositiveDefinite:
-            log.debug("tangent not positive definite")
-        if self._factorize_shifted(data):
-            return
-        data = self._tangent(u, project=True)
-        self.counts.factorizations += 1
-        try:
-            self.linear.factorize(data)
-            self.counts.projected += 1
-        except NotPositiveDefinite:
-            raise IncrementFailed("projected tangent stiffness could not be factorised") from None
-
-    def _factorize_shifted(self, data: np.ndarray) -> bool:
-        """Climb the shift ladder; True once a shifted tangent factorised."""
-        idx = self.assembler.diagonal_index
-        diag = data[idx]
-        tau = max(SHIFT_RESTART * self.tau, SHIFT_FIRST)
-        while tau <= SHIFT_LAST:
-            shifted = data.copy()
-            shifted[idx] += tau * diag
-            self.counts.factorizations += 1
-            try:
-                self.linear.factorize(shifted)
-            except NotPositiveDefinite:
-                tau *= SHIFT_GROWTH
-                continue
-            self.tau = tau
-            self.counts.shifted += 1
-            return True
-        return False
-
-    def _give_back_factor(self) -> None:
-        if self.linear is not None:
-            self.solver.give_back_factor(self.linear)
-            self.linear = self.active = None
-            self.factor_valid = False

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["SolveResult"]
+__all__ = ["SolveResult", "SolveCounts"]
 
 
 @dataclass(frozen=True)
@@ -53,3 +53,16 @@ class SolveResult:
     def reaction(self) -> np.ndarray:
         """(n, 3) float, N: support reactions at the mesh vertices."""
         return self.nodal_reaction[: len(self.displacement)]
+
+
+@dataclass
+class SolveCounts:
+    """What one solve did (see :class:`~tissuecast.fem.result.SolveResult`)."""
+
+    iterations: int = 0  # Newton iterations, all increments (cut-back ones included)
+    factorizations: int = 0  # numeric factorisations, shifted attempts included
+    solves: int = 0  # preconditioner applications (triangular solves)
+    shifted: int = 0  # factorisations of a shifted tangent K + tau diag(K)
+    projected: int = 0  # factorisations of the projected (positive-definite) stiffness
+    krylov_steps: int = 0  # conjugate-gradient steps
+    residual_history: list = field(default_factory=list)  # largest residual component (N) per iteration

@@ -1,45 +1,17 @@
-"""Nonlinear equilibrium by Newton iterations with automatic load incrementation.
+"""The nonlinear solver of one problem: the per-mesh set-up and the driving of its solves.
 
-The dead-load problem is conservative: equilibrium is a stationary point of the potential
-energy ``Pi(u) = sum_e W(F) dV - f . u``, so the solver minimises ``Pi`` with Newton steps
-and an energy line search. Per load increment (``lambda`` from 0 to 1; forces and
-prescribed displacements scale with ``lambda``):
-
-1. Predictor: the initial guess (first increment) or a linear extrapolation of the last
-   converged increment; rejected if it inverts an element.
-2. Direction ``d = -K^-1 r`` (``r``: internal minus external forces on the free dofs).
-   Strategy ``"krylov"`` (default) assembles the tangent ``K`` at every iteration and solves
-   with it by conjugate gradients preconditioned by the last factorisation, co-rotated by
-   the rigid rotation applied since (``R K_old^-1 R^T``), to a relative residual of
-   ``krylov_tolerance`` in at most ``krylov_iterations`` steps, deflated by the rigid
-   rotations about the constrained nodes' centroid and the search directions of the solve's
-   earlier iterations (``krylov_recycle``); only when that fails is ``K`` factorised.
-   ``"newton"`` factorises at every iteration; ``"quasi-newton"`` reuses the last
-   factorisation as it is while the residual falls by ``refactor_ratio`` per iteration. A
-   tangent that is not positive definite is shifted, ``K + tau diag(K)``. A solve with an
-   initial guess (``reference_preconditioner``) is preconditioned by the stiffness at zero
-   displacement, factorised once per Solver and co-rotated by the guess's best-fit rotation.
-3. Line search on ``Pi`` (Armijo, quadratic backtracking), rejecting any step that makes
-   ``J <= 0`` at a quadrature point; with ``rotation_aware`` the step's rigid rotation about
-   the constrained nodes' centroid is applied as a finite rotation.
-4. Convergence (Abaqus-like; both must hold): the largest residual component
-   ``<= force_tolerance * q`` (``q`` the mean magnitude of the applied nodal forces and
-   support reactions) and the largest correction, scaled by ``rho / (1 - rho)`` when the
-   corrections contract slowly, ``<= displacement_tolerance *`` the largest displacement of
-   the increment.
-5. Increment control: an increment converged within ``grow_iterations`` iterations makes the
-   next one 1.5x larger; a failed one is retried with a quarter of the load step; below
-   ``min_increment`` or after ``max_increments`` attempts
-   :class:`~tissuecast.errors.ConvergenceError` is raised with the load fraction reached.
-
-A :class:`Solver` holds the per-mesh set-up; each solve runs in its own
-:class:`~tissuecast.fem.newton.SolveRun` (the per-solve state and the iterations), so the
-result of a solve depends only on the problem, the forces, the initial guess and the
-configuration (nothing is carried from one solve to the next), and data sets are
-reproducible bit for bit. :meth:`Solver.solve_batch` solves several force fields in
-lockstep and gathers their preconditioner solves with the shared reference factorisation
-into multi-right-hand-side solves; each sample's numbers then differ from its single solve
-by round-off and depend only on the batch.
+A :class:`Solver` holds the per-mesh set-up (assembler, constrained dofs, the linear-solver
+backend with its symbolic analysis, :mod:`.linear`; the reference factorisation at zero
+displacement, a pool of numeric factors). Each solve runs in its own
+:class:`~tissuecast.fem.newton.SolveRun` (load-stepped Newton iterations with an energy line
+search, described in :mod:`tissuecast.fem.newton`; their search directions in
+:mod:`tissuecast.fem.directions`), a generator of preconditioner applications that this module
+drives: the result of a solve depends only on the problem, the forces, the initial guess and
+the configuration (nothing is carried from one solve to the next), and data sets are
+reproducible bit for bit. :meth:`Solver.solve_batch` solves several force fields in lockstep
+and gathers their preconditioner solves with the shared reference factorisation into
+multi-right-hand-side solves; each sample's numbers then differ from its single solve by
+round-off and depend only on the batch.
 
 Design, measurements and the history of what was tried: ``docs/solver.md``.
 """

@@ -1,0 +1,132 @@
+"""The mismatch study: its sets, their configs, the refined-mesh reference, and a small run of
+the whole study (two models, a few sets) through the CLI."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tissuecast.config import with_overrides
+from tissuecast.dataset import open_dataset, simulate
+from tissuecast.evaluate.mismatch import mismatch_sets, set_config
+from tissuecast.fem import Solver
+from tissuecast.mesh.refine import refine_uniformly
+from tissuecast.scenario import scenario_from_config
+from tissuecast.scenario.refined import refined_sample
+
+from dataset_helpers import small_config, write_config
+
+SCENARIO = {"name": "embedded", "pins": False,
+            "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
+            "springs": {"rule": "surface"}, "gravity": {"enabled": True},
+            "indentation": {"enabled": True, "radius": 11.0, "depth": [0.5, 1.5], "slide": [0.0, 0.5],
+                            "tool": "rounded", "tool_radius": 20.0}}
+UNCERTAIN = {"youngs_modulus": [0.5, 2.0], "spring_normal": [0.25, 4.0], "spring_tangential": [0.25, 4.0],
+             "attached_margin": [-5.0, 5.0]}
+
+
+def _config(folder, uncertain=True, **dataset):
+    ds = {"n_samples": 60, "n_test2": 0, "alpha": 0.0, "calibration_samples": 2, "predictor_samples": 8,
+          "split": [6.0, 2.0, 2.0]}
+    ds.update(dataset)
+    cfg = with_overrides(small_config(folder, **ds), forces={"loading": "traction", "target_max_displacement": 4.0},
+                         scenario=SCENARIO, surrogate={"epochs": 60, "patience": 0, "calibration_share": 0.2})
+    return with_overrides(cfg, scenario={"uncertain": UNCERTAIN if uncertain else {}})
+
+
+def test_the_sets_their_ranges_and_their_configs(tmp_path):
+    cfg = _config(tmp_path)
+    mesh, markers, fixed, _ = scenario_from_config(cfg)
+    sets = {s.name: s for s in mismatch_sets(cfg, mesh)}
+    assert list(sets)[0] == "nominal" and "discretisation" in sets and sets["discretisation"].refined
+    assert sets["E x0.5"].in_range and sets["E x2"].in_range and not sets["E x4"].in_range
+    assert sets["springs x0.25"].in_range and sets["attached +5 mm"].in_range and not sets["attached +10 mm"].in_range
+    assert not sets["nu 0.40"].in_range  # the config draws no nu
+    assert not sets["gravity 45 deg off"].in_range and not sets["inclusion 3x E"].in_range
+    one = set_config(cfg, sets["springs x4"], alpha=1.5, samples=12, markers=markers, fixed=fixed, store=tmp_path / "s")
+    u = one.scenario.uncertain
+    assert u.spring_normal == (4.0, 4.0) and u.spring_tangential == (4.0, 4.0) and u.youngs_modulus == ()
+    assert one.dataset.alpha == 1.5 and one.dataset.split == (0.0, 0.0, 1.0) and one.dataset.n_test2 == 0
+    assert one.dataset.seed != cfg.dataset.seed and one.markers.ids == tuple(int(m) for m in markers)
+    g = set_config(cfg, sets["gravity 45 deg off"], alpha=1.5, samples=12, markers=markers, fixed=fixed, store="s")
+    d0, d1 = np.asarray(cfg.scenario.gravity.surgery_direction), np.asarray(g.scenario.gravity.surgery_direction)
+    assert np.degrees(np.arccos(d0 @ d1 / np.linalg.norm(d0) / np.linalg.norm(d1))) == pytest.approx(45.0)
+    inc = set_config(cfg, sets["inclusion 3x E"], alpha=1.5, samples=12, markers=markers, fixed=fixed, store="s")
+    assert inc.scenario.materials.regions[-1].youngs_modulus == pytest.approx(3 * cfg.material.youngs_modulus)
+    with pytest.raises(Exception, match="outside soft tissue"):
+        with_overrides(cfg, material={"youngs_modulus": 30.0})
+
+
+def test_the_refined_sample_carries_the_same_loads_and_converges(tmp_path):
+    cfg = with_overrides(_config(tmp_path, uncertain=False), solver={"order": 2})
+    mesh, _, _, sc = scenario_from_config(cfg)
+    refined = refine_uniformly(mesh)
+    x = sc.sample(3, alpha=1.0)
+    fine = refined_sample(sc, cfg, refined, x)
+    # the same total traction and body force (held by springs alone: no load lost to a support),
+    # the supports refined, the instrument at the same tip
+    free = with_overrides(cfg, scenario={"attached": {"rule": "none"}, "indentation": {"enabled": False}})
+    free_sc = scenario_from_config(free)[3]
+    xf = free_sc.sample(3, alpha=1.0)
+    ff = refined_sample(free_sc, free, refined, xf)
+    np.testing.assert_allclose(ff.surface.sum(axis=0), xf.surface.sum(axis=0), rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(ff.keywords["body_loads"].sum(axis=0), xf.body.sum(axis=0), rtol=1e-10)
+    held = fine.problem.fixed
+    assert np.isin(sc.attached, held).all() and len(held) > 2 * len(sc.attached)  # + midpoints between them
+    assert np.allclose(refined.mesh.points[held, 2], 0.0)
+    ids, values = fine.keywords["prescribed"]
+    assert len(ids) >= len(x.prescribed_ids)
+    centre = x.draw.indentation.centre
+    np.testing.assert_allclose(values[list(ids).index(centre)], x.draw.indentation.displacement, atol=1e-12)
+    u_fine = Solver(fine.problem, cfg.solver).solve(fine.surface, **fine.keywords).displacement[: mesh.n_vertices]
+    u_p2 = Solver(sc.problem(cfg), cfg.solver).solve(x.surface, **x.solve_keywords()).displacement
+    cfg1 = with_overrides(cfg, solver={"order": 1})
+    sc1 = scenario_from_config(cfg1)[3]
+    x1 = sc1.sample(3, alpha=1.0)
+    u_p1 = Solver(sc1.problem(cfg1), cfg1.solver).solve(x1.surface, **x1.solve_keywords()).displacement
+    far = np.linalg.norm(mesh.points - mesh.points[centre], axis=1) > 12.0  # away from the contact's rim
+    err_p2, err_p1 = (np.abs(u - u_fine)[far].max() for u in (u_p2, u_p1))
+    assert err_p2 < 0.5 * err_p1
+
+
+def test_a_small_mismatch_study_through_the_cli(tmp_path):
+    from tissuecast.cli.main import main
+
+    models = {}
+    for label, unc in (("nominal", False), ("uncertain", True)):
+        (tmp_path / label).mkdir()
+        cfg = _config(tmp_path / label, uncertain=unc)
+        cfg = with_overrides(cfg, dataset={"store": str(tmp_path / label / "data.zarr")},
+                             output=str(tmp_path / label))
+        path = write_config(cfg, tmp_path / f"{label}.toml")
+        simulate(cfg, progress=False)
+        assert main(["-q", "train", str(path), "--out", str(tmp_path / label / "model")]) == 0
+        models[label] = tmp_path / label / "model"
+    out = tmp_path / "study"
+    code = main(["-q", "study", "mismatch", str(tmp_path / "uncertain.toml"), "--out", str(out),
+                 "--model", f"nominal={models['nominal']}", "--model", f"uncertain={models['uncertain']}",
+                 "--sets", "E x2,attached -5 mm,discretisation", "--samples", "6", "--refined-samples", "2"])
+    assert code == 0
+    data = json.loads((out / "study_mismatch.json").read_text())
+    rows = {(r["set"], r["model"]): r for r in data["rows"]}
+    assert set(rows) == {(s, m) for s in ("nominal", "E x2", "attached -5 mm", "discretisation")
+                         for m in ("nominal", "uncertain")}
+    assert rows[("nominal", "uncertain")]["relative_vs_nominal"] == pytest.approx(1.0)
+    assert rows[("E x2", "nominal")]["in_range"] is True and rows[("E x2", "nominal")]["count"] == 6
+    assert (out / "study_mismatch.png").is_file() and (out / "study_mismatch.csv").is_file()
+    # the sets are data sets with the set's parameter fixed, the trained alpha, the models' markers
+    e2 = open_dataset(out / "mismatch" / "e_x2.zarr")
+    assert (e2.parameters["youngs_modulus"] == 2.0).all()
+    # the sets' loads are the first model's training loads; with uncertain parameters alpha is
+    # calibrated at the nominal parameters, so both training stores have the same
+    nominal_alpha = open_dataset(tmp_path / "nominal" / "data.zarr").calibration["alpha"]
+    assert e2.calibration["alpha"] == nominal_alpha
+    assert open_dataset(tmp_path / "uncertain" / "data.zarr").calibration["alpha"] == pytest.approx(nominal_alpha)
+    # the report shows the study when it is in the studies folder
+    from tissuecast.evaluate.mismatch_report import mismatch_section
+
+    (tmp_path / "report_folder").mkdir()
+    section = mismatch_section(out, tmp_path / "report_folder")
+    assert "What a mismatch costs" in section and "E x2" in section
