@@ -119,8 +119,12 @@ def test_run_figures_of_a_first_call(made):
     run = summary["run"]
     assert list(run) == ["solved", "executor", "calibration_seconds", "sample_phase_seconds", "sample_phase_samples",
                          "parent_io_seconds", "seconds", "samples_per_minute", "sample_phase_samples_per_minute",
-                         "slow_samples", "stopped_by_budget"]
+                         "slow_samples", "stopped_by_budget", "phases", "parent_seconds"]
     assert run["slow_samples"] == [] and run["stopped_by_budget"] == []  # the fake solver takes microseconds
+    # the phases' counts add up to the samples solved (pilots re-solved as samples counted in both)
+    assert sum(p["tasks"] for p in run["phases"] if p["phase"] == "simulate") == run["sample_phase_samples"]
+    failed = sum(p["failed"] for p in run["phases"] if p["phase"] == "simulate")
+    assert failed == summary["totals"]["failed"], (run["phases"], summary["totals"])
     assert run["solved"] == summary["n_samples"] == 13  # a new store: every sample solved in this call
     assert 0 < run["sample_phase_samples"] <= run["solved"]
     assert run["samples_per_minute"] == pytest.approx(60.0 * 13 / run["seconds"])

@@ -96,14 +96,16 @@ def test_cpp_client_point_and_transform_in_polydata_out_and_malformed_messages(c
 
 
 def test_cpp_client_reads_the_alarm_status(client_binary):
-    """Two swapped markers: the surface reply, then a STATUS alarm, both unpacked by the library."""
+    """One marker 3 mm off (within the input gate's limits, the alarm's job): the surface reply,
+    then a STATUS alarm, both unpacked by the library."""
     from _trust_synthetic import SPLITS, trust_data, trust_model
 
     from tissuecast.serve.status import ALARM_NAME, STATUS_DEVICE, AlarmBits, StatusCode
 
     model = trust_model()
     positions = model.reference_marker_positions + trust_data()[1][SPLITS["test"][5]][model.markers]
-    positions[[0, 3]] = positions[[3, 0]]
+    positions[0] += [3.0, 0.0, 0.0]
+    assert not model.check_input(positions - model.reference_marker_positions).refused
     with IGTLServer(model, "127.0.0.1", 0) as server:
         lines = _run(client_binary, server.address, "TrackerToImage", np.eye(4), positions)
     assert lines[0].startswith("POLYDATA TissueSurface 1 ")
