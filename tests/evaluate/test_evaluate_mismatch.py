@@ -130,3 +130,13 @@ def test_a_small_mismatch_study_through_the_cli(tmp_path):
     (tmp_path / "report_folder").mkdir()
     section = mismatch_section(out, tmp_path / "report_folder")
     assert "What a mismatch costs" in section and "E x2" in section
+
+
+def test_every_default_set_has_its_own_folder():
+    from tissuecast.evaluate.mismatch import set_folder_name
+
+    names = ["nominal", "E x0.5", "E x2", "E x4", "nu 0.40", "nu 0.49", "springs x0.25", "springs x4", "attached +5 mm",
+             "attached -5 mm", "attached +10 mm", "gravity 45 deg off", "inclusion 3x E", "discretisation"]
+    folders = [set_folder_name(n) for n in names]
+    assert len(set(folders)) == len(names), folders
+    assert set_folder_name("attached -5 mm") == "attached_minus5_mm" and set_folder_name("E x0.5") == "e_x0p5"

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..config import UNCERTAIN_PARAMETERS, Config, with_overrides
 
-__all__ = ["MismatchSet", "mismatch_sets", "set_config", "ArraySet", "discretisation_set", "evaluate_on_set",
+__all__ = ["MismatchSet", "mismatch_sets", "set_config", "ArraySet", "discretisation_set", "evaluate_on_set", "set_folder_name",
            "store_alpha", "mismatch_study", "DEFAULT_SAMPLES", "DISCRETISATION_SAMPLES", "STUDY_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
@@ -258,14 +258,17 @@ def _set_dataset(config: Config, mset: MismatchSet, folder: Path, *, alpha, samp
     if mset.refined:
         fields = discretisation_set(config, nominal_store, folder / "discretisation", samples)
         return fields if fields.n_samples else None
-    store = folder / f"{_slug(mset.name)}.zarr"
+    store = folder / f"{set_folder_name(mset.name)}.zarr"
     cfg = set_config(config, mset, alpha=alpha, samples=samples, markers=model.markers, fixed=model.fixed, store=store)
     simulate(cfg, store, progress=progress)
     return open_dataset(store)
 
 
-def _slug(name: str) -> str:
-    return "".join(c if c.isalnum() else "_" for c in name).strip("_").lower()
+def set_folder_name(name: str) -> str:
+    """A set's store folder name: ``"attached +5 mm"`` -> ``"attached_plus5_mm"`` (signs and
+    decimal points spelled out, so that no two sets share a folder)."""
+    spelled = name.replace("+", "plus").replace("-", "minus").replace(".", "p")
+    return "".join(c if c.isalnum() else "_" for c in spelled).strip("_").lower()
 
 
 def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=None, samples: int = DEFAULT_SAMPLES,
