@@ -158,6 +158,23 @@ def test_config_show_cli(tmp_path, capsys):
     assert load_config(path).markers.count == 9
 
 
+def test_what_a_path_names_is_checked_at_the_edge_with_one_error_naming_the_key(tmp_path, capsys):
+    """config.py checks values; the CLI's loader asks the domain what each path names."""
+    from tissuecast.evaluate.targets import targets_from_config
+    from tissuecast.mesh import phantom
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[mesh]\npath = "roi.vtu"\nlabel = 2\n')
+    assert load_config(bad).mesh.label == 2  # a value like any other, for the library
+    assert main(["config", "show", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: mesh.label and mesh.segment apply only when mesh.path names a label map")
+    assert err.count("\n") == 1  # one line
+    targets = config_from_dict({"evaluate": {"targets": {"rule": "label", "path": "tumour.vtu"}}}).evaluate.targets
+    with pytest.raises(ConfigError, match="evaluate.targets.path = 'tumour.vtu' is not a label map"):
+        targets_from_config(targets, phantom())  # and where the targets are made
+
+
 # ------------------------------------------------------------------------- scenario
 EMBEDDED = {"pins": False, "attached": {"rule": "normal", "direction": [0, -1, 0], "angle": 30.0},
             "springs": {"rule": "surface", "tangential_stiffness": 0.001},
@@ -309,8 +326,10 @@ def test_a_stiff_material_is_accepted_when_the_range_check_is_off():
     ],
 )
 def test_bad_targets_raise_config_error_naming_the_key(targets, key, text):
-    with pytest.raises(ConfigError) as err:
-        config_from_dict({"evaluate": {"targets": targets}})
+    from tissuecast.app import check_config
+
+    with pytest.raises(ConfigError) as err:  # values at loading, what a path names at the edge
+        check_config(config_from_dict({"evaluate": {"targets": targets}}))
     msg = str(err.value)
     assert key in msg and text in msg
 
