@@ -121,7 +121,7 @@ def run(args) -> int:
         forces = np.zeros_like(forces)
     inputs = scenario.inputs_for(seed, forces)
     draw, params = inputs.draw, inputs.parameters
-    problem = scenario.problem(cfg)
+    problem = scenario.problem()
     changes = {k: v for k, v in zip(("materials", "springs"), inputs.solver_parameters) if v is not None}
     problem = dataclasses.replace(problem, **changes) if changes else problem
     order, material = problem.order, problem.material
