@@ -140,6 +140,24 @@ def test_file_errors(tmp_path):
         load_config(tmp_path / "bad.toml")
 
 
+def test_dataset_keys_are_either_content_or_run_settings():
+    """Each [dataset] key is in exactly one group; the store compares the content only."""
+    from tissuecast.config import DatasetConfig, DatasetContent, RunSettings
+    from tissuecast.dataset import data_config
+
+    content = {f.name for f in dataclasses.fields(DatasetContent)}
+    run = {f.name for f in dataclasses.fields(RunSettings)}
+    assert not content & run and content | run == {f.name for f in dataclasses.fields(DatasetConfig)}
+    cfg = with_overrides(Config(), dataset={"seed": 7, "split": [6, 2, 2], "workers": 3, "store": "x.zarr",
+                                            "time_budget": 0.0})
+    assert cfg.dataset.content().seed == 7 and cfg.dataset.content().split == (6.0, 2.0, 2.0)
+    assert cfg.dataset.run_settings() == RunSettings("x.zarr", 3, "", 0.0, 60.0)
+    assert data_config(cfg)["dataset"] == config_to_dict(cfg.dataset.content())
+    assert data_config(cfg) == data_config(with_overrides(Config(), dataset={"seed": 7, "split": [6, 2, 2]},
+                                                          mesh={"path": "moved.vtu"}))
+    assert data_config(cfg) != data_config(with_overrides(cfg, dataset={"batch_size": 4}))
+
+
 def test_config_is_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         Config().markers.count = 3  # type: ignore[misc]

@@ -29,6 +29,8 @@ __all__ = [
     "SolverConfig",
     "ForceConfig",
     "DatasetConfig",
+    "DatasetContent",
+    "RunSettings",
     "SurrogateConfig",
     "EvaluateConfig",
     "TargetConfig",
@@ -152,8 +154,43 @@ class ForceConfig:
 
 
 @dataclass(frozen=True)
+class DatasetContent:
+    """The ``[dataset]`` settings that decide a store's content (its samples and their numbers):
+    a store resumes only with the same values (batch settings excepted once its batches are
+    fixed). Read from a section with :meth:`DatasetConfig.content`."""
+
+    n_samples: int
+    split: tuple[float, ...]
+    n_test2: int
+    seed: int
+    alpha: float
+    calibration_samples: int
+    calibration_quantile: float
+    predictor: str
+    predictor_samples: int
+    predictor_tolerance: float
+    batch_size: int
+    batch_memory: float
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """The ``[dataset]`` settings of how one run goes (where the store is, who solves, when a
+    slow attempt stops): they change no number of a store and may differ when it resumes.
+    Read from a section with :meth:`DatasetConfig.run_settings`."""
+
+    store: str
+    workers: int
+    scheduler: str
+    time_budget: float
+    time_budget_min: float
+
+
+@dataclass(frozen=True)
 class DatasetConfig:
-    """Data-set generation."""
+    """Data-set generation: one TOML section, two groups of keys. The keys of
+    :class:`DatasetContent` decide the store's content; those of :class:`RunSettings` only how
+    a run goes (:meth:`content`, :meth:`run_settings`)."""
 
     store: str = _f("dataset.zarr", doc="path of the store")
     n_samples: int = _f(2000, lo=1, doc="number of LBO samples (train + valid + test-1)")
@@ -172,6 +209,14 @@ class DatasetConfig:
     batch_memory: float = _f(4.0, lo=0.0, lo_open=True, doc="GiB a worker's batch may hold: batch_size is cut so that its samples' tangents fit (large meshes)")
     time_budget: float = _f(10.0, lo=0.0, doc="a solver attempt running longer than this many times the running median of its phase's samples is stopped (the sample goes on with its cautious retries, else is recorded failed); 0 = no budget")
     time_budget_min: float = _f(60.0, lo=0.0, doc="the time budget is at least this many seconds (machine hiccups never stop a sample)")
+
+    def content(self) -> DatasetContent:
+        """The settings that decide the store's content."""
+        return DatasetContent(**{f.name: getattr(self, f.name) for f in dataclasses.fields(DatasetContent)})
+
+    def run_settings(self) -> RunSettings:
+        """The settings of how a run goes (they may change between runs on one store)."""
+        return RunSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(RunSettings)})
 
 
 #: Rules choosing the number of PCA components (see :class:`SurrogateConfig`).
