@@ -56,7 +56,7 @@ def _answers(ds, k: int, scenario, refined, cache: Path) -> dict:
         cfg2 = with_overrides(cfg, solver={"order": 2})
         sc2 = restore_scenario(ds.mesh, cfg2, ds.scenario_arrays, ds.basis)
         x2 = sc2.sample(int(ds.seed[k]), float(ds.alpha[k]))
-        problem = sc2.problem(cfg2)
+        problem = sc2.problem()
         changes = {key: v for key, v in zip(("materials", "springs"), x2.solver_parameters) if v is not None}
         out["p2"] = _solve(dataclasses.replace(problem, **changes) if changes else problem, p2_cfg, x2.surface,
                            x2.solve_keywords(), guess=out["data"])

@@ -136,7 +136,7 @@ def calibrate(solver, loads, low: float, high: float, tries: int = 6):
 
 def run_case(mesh, name: str, seed: int, peak_range, workdir=None, lumping: str = "hrz") -> dict:
     sc, cfg, loads = case_problem(mesh, name, seed, lumping)
-    problem = sc.problem(cfg)
+    problem = sc.problem()
     solver = Solver(problem, cfg.solver)
     scale, ours, seconds, landed = calibrate(solver, loads, *peak_range)
     surface, extra = loads(scale)

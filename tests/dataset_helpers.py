@@ -151,7 +151,7 @@ def batch_failing_solver_factory(scenario, cfg):
                 raise ConvergenceError("made to fail alone too", 0.25)
             return super().solve(forces, initial_guess=initial_guess, time_limit=time_limit)
 
-    problem = scenario.problem(cfg)
+    problem = scenario.problem()
     return lambda solver_cfg: FlakyBatches(problem, solver_cfg)
 
 

@@ -140,6 +140,24 @@ def test_file_errors(tmp_path):
         load_config(tmp_path / "bad.toml")
 
 
+def test_dataset_keys_are_either_content_or_run_settings():
+    """Each [dataset] key is in exactly one group; the store compares the content only."""
+    from tissuecast.config import DatasetConfig, DatasetContent, RunSettings
+    from tissuecast.dataset import data_config
+
+    content = {f.name for f in dataclasses.fields(DatasetContent)}
+    run = {f.name for f in dataclasses.fields(RunSettings)}
+    assert not content & run and content | run == {f.name for f in dataclasses.fields(DatasetConfig)}
+    cfg = with_overrides(Config(), dataset={"seed": 7, "split": [6, 2, 2], "workers": 3, "store": "x.zarr",
+                                            "time_budget": 0.0})
+    assert cfg.dataset.content().seed == 7 and cfg.dataset.content().split == (6.0, 2.0, 2.0)
+    assert cfg.dataset.run_settings() == RunSettings("x.zarr", 3, "", 0.0, 60.0)
+    assert data_config(cfg)["dataset"] == config_to_dict(cfg.dataset.content())
+    assert data_config(cfg) == data_config(with_overrides(Config(), dataset={"seed": 7, "split": [6, 2, 2]},
+                                                          mesh={"path": "moved.vtu"}))
+    assert data_config(cfg) != data_config(with_overrides(cfg, dataset={"batch_size": 4}))
+
+
 def test_config_is_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         Config().markers.count = 3  # type: ignore[misc]
@@ -156,6 +174,23 @@ def test_config_show_cli(tmp_path, capsys):
     path = tmp_path / "shown.toml"
     path.write_text(out)
     assert load_config(path).markers.count == 9
+
+
+def test_what_a_path_names_is_checked_at_the_edge_with_one_error_naming_the_key(tmp_path, capsys):
+    """config.py checks values; the CLI's loader asks the domain what each path names."""
+    from tissuecast.evaluate.targets import targets_from_config
+    from tissuecast.mesh import phantom
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[mesh]\npath = "roi.vtu"\nlabel = 2\n')
+    assert load_config(bad).mesh.label == 2  # a value like any other, for the library
+    assert main(["config", "show", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: mesh.label and mesh.segment apply only when mesh.path names a label map")
+    assert err.count("\n") == 1  # one line
+    targets = config_from_dict({"evaluate": {"targets": {"rule": "label", "path": "tumour.vtu"}}}).evaluate.targets
+    with pytest.raises(ConfigError, match="evaluate.targets.path = 'tumour.vtu' is not a label map"):
+        targets_from_config(targets, phantom())  # and where the targets are made
 
 
 # ------------------------------------------------------------------------- scenario
@@ -309,8 +344,10 @@ def test_a_stiff_material_is_accepted_when_the_range_check_is_off():
     ],
 )
 def test_bad_targets_raise_config_error_naming_the_key(targets, key, text):
-    with pytest.raises(ConfigError) as err:
-        config_from_dict({"evaluate": {"targets": targets}})
+    from tissuecast.app import check_config
+
+    with pytest.raises(ConfigError) as err:  # values at loading, what a path names at the edge
+        check_config(config_from_dict({"evaluate": {"targets": targets}}))
     msg = str(err.value)
     assert key in msg and text in msg
 

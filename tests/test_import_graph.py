@@ -144,10 +144,9 @@ LAYERS = (
     ("app",),
     ("cli",),
 )
-#: Upward imports left to close (issue 30 part 3, configuration at the edge), with their reason.
-KNOWN_UPWARD = {
-    ("config", "mesh"): "config's cross-checks ask the mesh package whether a path is a label map",
-}
+#: Upward imports left to close, with their reason (none: config's checks that need the mesh
+#: package moved to the edge, issue 30 part 3).
+KNOWN_UPWARD: dict = {}
 
 
 def _package(module: str) -> str:

@@ -29,6 +29,8 @@ __all__ = [
     "SolverConfig",
     "ForceConfig",
     "DatasetConfig",
+    "DatasetContent",
+    "RunSettings",
     "SurrogateConfig",
     "EvaluateConfig",
     "TargetConfig",
@@ -152,8 +154,43 @@ class ForceConfig:
 
 
 @dataclass(frozen=True)
+class DatasetContent:
+    """The ``[dataset]`` settings that decide a store's content (its samples and their numbers):
+    a store resumes only with the same values (batch settings excepted once its batches are
+    fixed). Read from a section with :meth:`DatasetConfig.content`."""
+
+    n_samples: int
+    split: tuple[float, ...]
+    n_test2: int
+    seed: int
+    alpha: float
+    calibration_samples: int
+    calibration_quantile: float
+    predictor: str
+    predictor_samples: int
+    predictor_tolerance: float
+    batch_size: int
+    batch_memory: float
+
+
+@dataclass(frozen=True)
+class RunSettings:
+    """The ``[dataset]`` settings of how one run goes (where the store is, who solves, when a
+    slow attempt stops): they change no number of a store and may differ when it resumes.
+    Read from a section with :meth:`DatasetConfig.run_settings`."""
+
+    store: str
+    workers: int
+    scheduler: str
+    time_budget: float
+    time_budget_min: float
+
+
+@dataclass(frozen=True)
 class DatasetConfig:
-    """Data-set generation."""
+    """Data-set generation: one TOML section, two groups of keys. The keys of
+    :class:`DatasetContent` decide the store's content; those of :class:`RunSettings` only how
+    a run goes (:meth:`content`, :meth:`run_settings`)."""
 
     store: str = _f("dataset.zarr", doc="path of the store")
     n_samples: int = _f(2000, lo=1, doc="number of LBO samples (train + valid + test-1)")
@@ -172,6 +209,14 @@ class DatasetConfig:
     batch_memory: float = _f(4.0, lo=0.0, lo_open=True, doc="GiB a worker's batch may hold: batch_size is cut so that its samples' tangents fit (large meshes)")
     time_budget: float = _f(10.0, lo=0.0, doc="a solver attempt running longer than this many times the running median of its phase's samples is stopped (the sample goes on with its cautious retries, else is recorded failed); 0 = no budget")
     time_budget_min: float = _f(60.0, lo=0.0, doc="the time budget is at least this many seconds (machine hiccups never stop a sample)")
+
+    def content(self) -> DatasetContent:
+        """The settings that decide the store's content."""
+        return DatasetContent(**{f.name: getattr(self, f.name) for f in dataclasses.fields(DatasetContent)})
+
+    def run_settings(self) -> RunSettings:
+        """The settings of how a run goes (they may change between runs on one store)."""
+        return RunSettings(**{f.name: getattr(self, f.name) for f in dataclasses.fields(RunSettings)})
 
 
 #: Rules choosing the number of PCA components (see :class:`SurrogateConfig`).
@@ -545,7 +590,7 @@ def _build(cls: type, data: Any, prefix: str) -> Any:
 
 def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, MeshConfig):
-        _check_mesh_source(obj, prefix)
+        _check_mesh_budget(obj, prefix)
     if isinstance(obj, DatasetConfig):
         if len(obj.split) != 3 or any(s < 0 for s in obj.split) or sum(obj.split) <= 0:
             raise ConfigError(f"{prefix}split must be three non-negative numbers (train, valid, test-1), got {list(obj.split)}")
@@ -629,9 +674,11 @@ def _check_region(obj: "RegionConfig", prefix: str) -> None:
 
 
 def _check_place_rules(obj: "RegionConfig", prefix: str) -> None:
-    """The keys of the region rules that carry over to other meshes (markups, extreme, label)."""
-    from .mesh.labelmap import label_map_format
+    """The keys of the region rules that carry over to other meshes (markups, extreme, label).
 
+    Whether ``label_map`` names a label map is asked where label maps are known:
+    :func:`tissuecast.scenario.regions.check_region_source`, at the edge.
+    """
     if obj.toward and obj.rule not in ("normal", "extreme"):
         raise ConfigError(f"{prefix}toward applies to rules 'normal' and 'extreme', not {obj.rule!r}; remove it")
     for keys, rule in ((("markups", "markup_label"), "markups"), (("label_map", "label"), "label")):
@@ -642,40 +689,14 @@ def _check_place_rules(obj: "RegionConfig", prefix: str) -> None:
     if obj.rule == "markups" and not obj.markups.lower().endswith((".mrk.json", ".fcsv")):
         raise ConfigError(f"{prefix}rule = 'markups' needs {prefix}markups, a 3D Slicer markups file (.mrk.json or "
                           f".fcsv), got {obj.markups!r}")
-    if obj.rule == "label" and label_map_format(obj.label_map) is None:
-        raise ConfigError(f"{prefix}rule = 'label' needs {prefix}label_map, a label map (.nii, .nii.gz, .nrrd, "
-                          f".seg.nrrd), got {obj.label_map!r}")
 
 
-def _check_mesh_source(obj: "MeshConfig", prefix: str) -> None:
-    """The keys of ``[mesh]`` that depend on what ``path`` names (label map, surface, volume mesh)."""
-    from .mesh.labelmap import label_map_format
-
-    kind = label_map_format(obj.path) if obj.path else None
-    if (obj.label or obj.segment) and kind is None:
-        raise ConfigError(f"{prefix}label and {prefix}segment apply only when {prefix}path names a label map "
-                          f"(.nii, .nii.gz, .nrrd, .seg.nrrd), got path {obj.path!r}")
-    if obj.segment and kind != "segmentation":
-        raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
-                          f"{obj.path!r} is not one: use {prefix}label")
-    if obj.max_vertices:
-        _check_budget_source(obj, prefix, kind)
-    if kind is not None and obj.units != "mm":
-        raise ConfigError(f"{prefix}units applies to mesh files; a label map is read in its own physical units (mm), "
-                          f"remove {prefix}units = {obj.units!r}")
-
-
-def _check_budget_source(obj: "MeshConfig", prefix: str, kind: str | None) -> None:
-    """``mesh.max_vertices`` remeshes label maps and closed surfaces only."""
-    from .mesh.mesher import SURFACE_FORMATS
-
-    if obj.max_vertices < 4:
+def _check_mesh_budget(obj: "MeshConfig", prefix: str) -> None:
+    """``mesh.max_vertices``: 0 (no budget) or at least 4. Whether ``path`` names something
+    that is meshed is asked where mesh files are known: :func:`tissuecast.mesh.source.check_mesh_source`."""
+    if obj.max_vertices and obj.max_vertices < 4:
         raise ConfigError(f"{prefix}max_vertices = {obj.max_vertices} is too small; a tetrahedral mesh needs at "
                           "least 4 vertices (0 = no budget)")
-    if kind is None and Path(obj.path).suffix.lower() not in SURFACE_FORMATS:
-        what = f"{obj.path!r} is a volume mesh, used as it is" if obj.path else "the built-in phantom is fixed"
-        raise ConfigError(f"{prefix}max_vertices applies when {prefix}path names a label map or a closed surface "
-                          f"(.stl .obj .ply .off .face), which are meshed; {what}: remove {prefix}max_vertices")
 
 
 def _check_uncertain(obj: "UncertainConfig", prefix: str) -> None:
@@ -707,9 +728,11 @@ def _check_modulus(key: str, value: float, switch: str) -> None:
 
 
 def _check_targets(t: "TargetConfig", prefix: str) -> None:
-    """Each target rule has the keys it needs, and only those (a key of another rule is a slip)."""
-    from .mesh.labelmap import label_map_format
+    """Each target rule has the keys it needs, and only those (a key of another rule is a slip).
 
+    Whether ``path`` names a label map (rule 'label') is asked where label maps are known:
+    :func:`tissuecast.evaluate.targets.check_target_source`, at the edge.
+    """
     points_suffixes = (".csv", ".mrk.json", ".fcsv")
     if t.rule == "tag" and not t.tag:
         raise ConfigError(f"{prefix}rule = 'tag' needs {prefix}tag, the name of a region of the mesh file "
@@ -717,9 +740,6 @@ def _check_targets(t: "TargetConfig", prefix: str) -> None:
     if t.rule in ("label", "points") and not t.path:
         what = "a label map (.nii, .nii.gz, .nrrd, .seg.nrrd)" if t.rule == "label" else "a CSV or Slicer markups file"
         raise ConfigError(f"{prefix}rule = {t.rule!r} needs {prefix}path, {what}")
-    if t.rule == "label" and label_map_format(t.path) is None:
-        raise ConfigError(f"{prefix}path = {t.path!r} is not a label map; rule 'label' reads .nii, .nii.gz, .nrrd or "
-                          ".seg.nrrd")
     if t.rule == "points" and not t.path.lower().endswith(points_suffixes):
         raise ConfigError(f"{prefix}path = {t.path!r}: rule 'points' reads " + ", ".join(points_suffixes))
     if t.segment and not t.path.lower().endswith(".seg.nrrd"):

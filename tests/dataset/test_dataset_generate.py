@@ -130,9 +130,10 @@ def test_predictor_starts_later_samples_near_their_solution(reference):
     # ... and reaches the same equilibrium: re-solve some of them from zero
     from tissuecast.dataset.generate import setup_from_config
     from tissuecast.fem import Solver, build_problem
+    from tissuecast.scenario.resolve import base_material
 
     mesh, _, fixed = setup_from_config(cfg)
-    solver = Solver(build_problem(mesh, cfg, fixed), cfg.solver)
+    solver = Solver(build_problem(mesh, base_material(cfg), fixed, order=cfg.solver.order), cfg.solver)
     for i in np.flatnonzero(warm)[:5]:
         cold = solver.solve(ds.forces[i].astype(np.float64)).displacement
         peak = np.abs(cold).max()
@@ -152,6 +153,7 @@ def test_basis_samples_start_from_an_interim_model_of_the_pilots(tmp_path):
     from tissuecast.dataset.store import StoreWriter
     from tissuecast.dataset.worker import Task
     from tissuecast.fem import Solver, build_problem
+    from tissuecast.scenario.resolve import base_material
 
     cfg = small_config(tmp_path, n_samples=24, n_test2=0, alpha=0.0, calibration_samples=MIN_INTERIM)
     cfg = with_overrides(cfg, dataset={"predictor_samples": 14}, forces={"target_max_displacement": 4.0})
@@ -163,7 +165,7 @@ def test_basis_samples_start_from_an_interim_model_of_the_pilots(tmp_path):
     assert (ds.predicted[interim] == InitialGuess.INTERIM_MODEL).all()
     assert ds.summary()["predictor"]["from_interim_model"]["samples"] == len(interim)
     mesh, _, fixed = setup_from_config(cfg)
-    solver = Solver(build_problem(mesh, cfg, fixed), cfg.solver)
+    solver = Solver(build_problem(mesh, base_material(cfg), fixed, order=cfg.solver.order), cfg.solver)
     cold = [solver.solve(ds.forces[i].astype(np.float64)) for i in interim]
     assert ds.iterations[interim].sum() < 0.8 * sum(c.iterations for c in cold)
     for i, c in zip(interim, cold):
@@ -221,9 +223,10 @@ def test_calibration_pilots_start_from_their_previous_round(reference):
     assert len(rounds) >= 2
     from tissuecast.dataset.generate import setup_from_config
     from tissuecast.fem import Solver, build_problem
+    from tissuecast.scenario.resolve import base_material
 
     mesh, _, fixed = setup_from_config(cfg)
-    solver = Solver(build_problem(mesh, cfg, fixed), cfg.solver)
+    solver = Solver(build_problem(mesh, base_material(cfg), fixed, order=cfg.solver.order), cfg.solver)
     for i in (0, 1):  # the last round's pilots are samples 0 and 1, at the same equilibrium as from zero
         assert ds.predicted[i] == InitialGuess.PREVIOUS_ROUND
         cold = solver.solve(ds.forces[i].astype(np.float64))

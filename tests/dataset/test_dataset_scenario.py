@@ -268,7 +268,7 @@ def test_a_store_records_each_samples_drawn_parameters_and_solves_with_them(unce
 
     i = int(np.argmax(np.abs(np.log(params["youngs_modulus"][:24]))))
     x = sc.sample(int(ds.seed[i]), float(ds.alpha[i]))
-    solver = Solver(sc.problem(cfg), cfg.solver)
+    solver = Solver(sc.problem(), cfg.solver)
     own = solver.with_parameters(*x.solver_parameters).solve(x.surface, **x.solve_keywords()).displacement
     nominal = solver.solve(x.surface, **x.solve_keywords()).displacement
     stored = ds.displacements[i].astype(np.float64)

@@ -141,6 +141,8 @@ def test_rerun_is_a_no_op_and_other_config_is_refused(made, tmp_path):
     before = store_arrays(path)
     again = simulate(cfg, path, progress=False, solver_factory=FAKE, workers=1)  # runtime keys may change
     assert again["run"]["solved"] == 0
+    run = with_overrides(cfg, dataset={"time_budget": 3.0, "time_budget_min": 1.0, "workers": 1})  # RunSettings
+    assert simulate(run, path, progress=False, solver_factory=FAKE)["run"]["solved"] == 0
     assert store_arrays(path) == before
     for override in ({"dataset": {"n_samples": 11}}, {"material": {"youngs_modulus": 0.03}},
                      {"forces": {"n_basis": 9}}, {"dataset": {"seed": 8}}):

@@ -81,11 +81,11 @@ def test_the_refined_sample_carries_the_same_loads_and_converges(tmp_path):
     centre = x.draw.indentation.centre
     np.testing.assert_allclose(values[list(ids).index(centre)], x.draw.indentation.displacement, atol=1e-12)
     u_fine = Solver(fine.problem, cfg.solver).solve(fine.surface, **fine.keywords).displacement[: mesh.n_vertices]
-    u_p2 = Solver(sc.problem(cfg), cfg.solver).solve(x.surface, **x.solve_keywords()).displacement
+    u_p2 = Solver(sc.problem(), cfg.solver).solve(x.surface, **x.solve_keywords()).displacement
     cfg1 = with_overrides(cfg, solver={"order": 1})
     sc1 = scenario_from_config(cfg1)[3]
     x1 = sc1.sample(3, alpha=1.0)
-    u_p1 = Solver(sc1.problem(cfg1), cfg1.solver).solve(x1.surface, **x1.solve_keywords()).displacement
+    u_p1 = Solver(sc1.problem(), cfg1.solver).solve(x1.surface, **x1.solve_keywords()).displacement
     far = np.linalg.norm(mesh.points - mesh.points[centre], axis=1) > 12.0  # away from the contact's rim
     err_p2, err_p1 = (np.abs(u - u_fine)[far].max() for u in (u_p2, u_p1))
     assert err_p2 < 0.5 * err_p1

@@ -64,7 +64,7 @@ def _case(name: str, seed: int = 5):
         field = lbo_field(basis, w, scale * rms / field_scale(basis), MESH.n_points)
     if draw.body_force is not None:
         draw = ScenarioDraw(draw.gravity_direction, scale * gravity * draw.body_force, draw.indentation)
-    return (sc.problem(cfg), *sc.solve_inputs(draw, field, loading))
+    return (sc.problem(), *sc.solve_inputs(draw, field, loading))
 
 
 @pytest.mark.calculix
@@ -167,7 +167,7 @@ def test_export_inp_deck_of_a_scenario_sample_is_what_our_solver_solves(tmp_path
     sc = build_scenario(MESH, cfg, np.zeros(0, dtype=np.int64))
     draw = sc.draw(scenario_rng(7))
     surface, extra = sc.solve_inputs(draw, _example_forces(MESH, cfg, 7, 0.05), "traction")
-    ours = Solver(sc.problem(cfg), cfg.solver).solve(surface, **extra)
+    ours = Solver(sc.problem(), cfg.solver).solve(surface, **extra)
     u = cx.read_displacements(cx.run_ccx(deck).dat, MESH.n_points)
     peak = np.linalg.norm(u, axis=1).max()
     assert peak > 3.0

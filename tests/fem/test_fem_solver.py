@@ -352,18 +352,20 @@ def test_line_search_lengthens_a_newton_step_that_is_too_short():
     np.testing.assert_allclose(x, exact, rtol=1e-12)
 
 
-def test_build_problem_takes_material_and_order_from_the_config(beam):
-    from tissuecast.config import Config, with_overrides
-    from tissuecast.fem import build_problem
+def test_build_problem_takes_the_material_and_order_and_refuses_a_config(beam):
+    from tissuecast.config import Config
+    from tissuecast.fem import NeoHookean, build_problem
 
     mesh, fixed, _ = beam
-    cfg = with_overrides(Config(), material={"youngs_modulus": 0.03, "poisson_ratio": 0.4}, solver={"order": 1})
-    problem = build_problem(mesh, cfg, fixed)
+    problem = build_problem(mesh, NeoHookean(0.03, 0.4), fixed, order=1)
     assert problem.order == 1 and problem.material.youngs_modulus == 0.03 and problem.material.poisson_ratio == 0.4
     np.testing.assert_array_equal(problem.fixed, fixed)
-    assert build_problem(mesh, cfg, fixed, order=2).order == 2
+    assert build_problem(mesh, NeoHookean(0.03, 0.4), fixed).order == 2
     with pytest.raises(SolverSetupError, match="at least 3"):
-        build_problem(mesh, cfg, fixed[:2])
+        build_problem(mesh, NeoHookean(), fixed[:2])
+    with pytest.raises(SolverSetupError, match=r"takes the material as a NeoHookean \(MPa\), got Config; from a run "
+                                               r"config: NeoHookean\(cfg.material.youngs_modulus"):
+        build_problem(mesh, Config(), fixed)
 
 
 def test_convergence_test_by_hand():

@@ -203,12 +203,17 @@ def test_config_mesh_path_may_name_a_label_map(tmp_path, small_ellipsoid):
     cfg = config_from_dict({"mesh": {"path": str(path), "label": 5, "surface_mesh_size": 2.0}})
     mesh = mesh_from_config(cfg.mesh)
     assert abs(label_map_fidelity(mesh, read_label_map(path)).volume_error) < 0.02
+    from tissuecast.app import check_config
+
+    # what a path names is asked at the edge (check_config) and where the mesh is made
     with pytest.raises(ConfigError, match="mesh.label and mesh.segment apply only when mesh.path names a label map"):
-        config_from_dict({"mesh": {"path": "roi.vtu", "label": 2}})
+        check_config(config_from_dict({"mesh": {"path": "roi.vtu", "label": 2}}))
+    with pytest.raises(ConfigError, match="mesh.label and mesh.segment apply only when mesh.path names a label map"):
+        mesh_from_config(config_from_dict({"mesh": {"path": "roi.vtu", "label": 2}}).mesh)
     with pytest.raises(ConfigError, match="mesh.segment names a segment of a 3D Slicer segmentation"):
-        config_from_dict({"mesh": {"path": "roi.nii.gz", "segment": "liver"}})
+        check_config(config_from_dict({"mesh": {"path": "roi.nii.gz", "segment": "liver"}}))
     with pytest.raises(ConfigError, match="mesh.units applies to mesh files"):
-        config_from_dict({"mesh": {"path": "roi.nrrd", "units": "cm"}})
+        check_config(config_from_dict({"mesh": {"path": "roi.nrrd", "units": "cm"}}))
 
 
 def test_cli_from_image_writes_a_slicer_model_in_lps(tmp_path, small_ellipsoid, capsys):

@@ -139,8 +139,10 @@ def test_config_max_vertices_meshes_a_label_map_within_the_budget(tmp_path, elli
     ({"path": "roi.stl", "max_vertices": -1}, "mesh.max_vertices = -1 is out of range"),
 ])
 def test_max_vertices_config_errors_name_the_key(mesh, text):
-    with pytest.raises(ConfigError, match=text):
-        config_from_dict({"mesh": mesh})
+    from tissuecast.app import check_config
+
+    with pytest.raises(ConfigError, match=text):  # a value at loading, what the path names at the edge
+        check_config(config_from_dict({"mesh": mesh}))
     assert config_from_dict({"mesh": {"path": "roi.nii.gz", "max_vertices": 500}}).mesh.max_vertices == 500
 
 

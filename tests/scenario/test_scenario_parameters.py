@@ -91,7 +91,7 @@ def test_E_and_springs_scaled_together_deform_like_the_loads_scaled_down(tmp_pat
     assert x.parameters.youngs_modulus == 2.0 and x.materials is not None and x.springs is not None
     np.testing.assert_allclose(x.springs.stiffness, 2.0 * nominal.springs.stiffness, rtol=1e-12)
     tight = with_overrides(cfg, solver={"force_tolerance": 1e-8, "displacement_tolerance": 1e-8}).solver
-    solver = Solver(nominal.problem(cfg), tight)
+    solver = Solver(nominal.problem(), tight)
     u_stiff = solver.with_parameters(*x.solver_parameters).solve(x.surface, **x.solve_keywords()).displacement
     u_half = solver.solve(x.surface / 2.0).displacement
     assert np.abs(u_half).max() > 0.5  # mm: large enough to be nonlinear
@@ -112,7 +112,7 @@ def test_the_attached_extent_and_the_density_follow_the_draw(tmp_path):
         np.testing.assert_array_equal(held, np.flatnonzero(d <= m))
         assert not x.prescribed_values.any()
     grown = sc.sample(int(np.argmax([sc.sample(s, 0.05).parameters.attached_margin for s in range(20)])), alpha=0.05)
-    u = Solver(sc.problem(cfg), cfg.solver).solve(grown.surface, **grown.solve_keywords()).displacement
+    u = Solver(sc.problem(), cfg.solver).solve(grown.surface, **grown.solve_keywords()).displacement
     assert not u[grown.prescribed_ids].any() and np.abs(u).max() > 0.1
     gravity = _box_config(tmp_path, gravity=True, density=[1.5, 1.5])
     plain = _box_config(tmp_path, gravity=True)

@@ -123,8 +123,17 @@ def test_label_rule_selects_the_face_resting_on_a_segmented_structure(tmp_path, 
     ({"rule": "markups", "markups": "a.mrk.json", "snap": 0.0}, "scenario.attached.snap = 0.0 is out of range"),
 ])
 def test_new_region_keys_are_validated_naming_the_key(section, text):
+    from tissuecast.app import check_config
+
     with pytest.raises(ConfigError, match=text.replace("(", r"\(").replace(")", r"\)")):
-        config_from_dict({"scenario": {"attached": section}})
+        check_config(config_from_dict({"scenario": {"attached": section}}))
+
+
+def test_a_label_rule_without_a_label_map_is_refused_where_the_region_is_chosen():
+    # config.py checks values only; the file kind is asked by the scenario package
+    rule = config_from_dict({"scenario": {"attached": {"rule": "label", "label_map": "bone.vtu"}}}).scenario.attached
+    with pytest.raises(ConfigError, match="scenario.attached.rule = 'label' needs scenario.attached.label_map"):
+        surface_region(BOX, rule, "scenario.attached")
 
 
 def test_access_keys_are_validated_under_their_own_key():

@@ -75,7 +75,14 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
     Returns:
         ``{"paths": RunPaths, "dataset": summary, "model": DeformationModel, "evaluation": Evaluation,
         "report": Path, "seconds": {stage: s}}``.
+
+    Raises:
+        ConfigError: a path of the config that does not name what its key reads
+            (:func:`~tissuecast.app.configuration.check_config`), before anything runs.
     """
+    from .configuration import check_config
+
+    check_config(config)
     paths = run_paths(config)
     paths.output.mkdir(parents=True, exist_ok=True)
     seconds = {}
@@ -104,11 +111,11 @@ def resolve_source(source=None, store=None) -> tuple[Config, Path]:
     A directory is taken as a data-set store (its own config is used); a file as a TOML
     config whose ``dataset.store`` (or ``store``) is the store; None means the defaults.
     """
-    from ..config import load_config
+    from .configuration import load_run_config
 
     if source is not None and Path(source).is_dir():
         from ..dataset import open_dataset
 
         return open_dataset(source).config, Path(store or source)
-    cfg = load_config(source)
+    cfg = load_run_config(source)
     return cfg, Path(store or cfg.dataset.store)

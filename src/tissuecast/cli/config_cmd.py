@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..config import config_to_toml, load_config
+from ..config import config_to_toml
 
 
 def register(sub) -> None:
@@ -15,6 +15,8 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    cfg = load_config(args.file)
+    from ..app.configuration import load_run_config
+
+    cfg = load_run_config(args.file)
     print(config_to_toml(cfg, comments=not args.no_comments), end="")
     return 0

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import load_config, with_overrides
+from ..config import with_overrides
 from ..errors import ConfigError
 
 #: RMS surface nodal force (N) of the example field written when no --forces file is given
@@ -93,8 +93,9 @@ def _from_config(args):
     from ..mesh.tags import mesh_file_tags
     from ..scenario import build_scenario, scenario_markers
     from .mesh_cmd import PHANTOM_WORD, load_mesh_argument
+    from ..app.configuration import load_run_config
 
-    cfg = load_config(args.config)
+    cfg = load_run_config(args.config)
     if args.order is not None:
         cfg = with_overrides(cfg, solver={"order": args.order})
     mesh = load_mesh_argument(args.mesh, units=cfg.mesh.units, mesh_size=cfg.mesh.surface_mesh_size, mesh_config=cfg.mesh)
@@ -120,7 +121,7 @@ def run(args) -> int:
         forces = np.zeros_like(forces)
     inputs = scenario.inputs_for(seed, forces)
     draw, params = inputs.draw, inputs.parameters
-    problem = scenario.problem(cfg)
+    problem = scenario.problem()
     changes = {k: v for k, v in zip(("materials", "springs"), inputs.solver_parameters) if v is not None}
     problem = dataclasses.replace(problem, **changes) if changes else problem
     order, material = problem.order, problem.material

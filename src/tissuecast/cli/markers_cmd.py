@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import __version__
-from ..config import FIXED_RULES, MarkerConfig, load_config, with_overrides
+from ..config import FIXED_RULES, MarkerConfig, with_overrides
 from ..errors import require
 from ..mesh import TetMesh
 from ..mesh.io import UNITS, write_point_set
@@ -58,7 +58,9 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    cfg = load_config(args.config)
+    from ..app.configuration import load_run_config
+
+    cfg = load_run_config(args.config)
     given = {"count": args.count, "start": args.start, "min_distance": args.min_distance, "ids": args.ids,
              "fixed_count": args.fixed_count, "fixed_ids": args.fixed_ids, "fixed_rule": args.fixed_rule,
              "fixed_spacing": args.fixed_spacing}

@@ -15,6 +15,7 @@ def preset_config(name: str):
     """The packaged preset ``tissuecast/configs/NAME.toml`` as a Config."""
     from importlib import resources
 
+    from ..app.configuration import check_config
     from ..config import ConfigError, config_from_dict
 
     import tomllib
@@ -22,4 +23,4 @@ def preset_config(name: str):
     res = resources.files("tissuecast") / "configs" / f"{name}.toml"
     if not res.is_file():
         raise ConfigError(f"no packaged preset {name!r}; use one of {', '.join(preset_names())}")
-    return config_from_dict(tomllib.loads(res.read_text(encoding="utf-8")))
+    return check_config(config_from_dict(tomllib.loads(res.read_text(encoding="utf-8"))))

@@ -35,12 +35,12 @@ def config_or_preset(source: str):
     """The config file ``source``, or the packaged preset of that name when no such file exists."""
     from pathlib import Path
 
-    from ..config import load_config
+    from ..app.configuration import load_run_config
     from .presets import preset_config, preset_names
 
     if not Path(source).is_file() and source in preset_names():
         return preset_config(source)
-    return load_config(source)
+    return load_run_config(source)
 
 
 def run(args) -> int:

@@ -14,8 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import load_config
-
 
 def register(sub) -> None:
     p = sub.add_parser("scenario", help="show the clinical scenario of a config (supports, loads, materials)")
@@ -37,8 +35,9 @@ def run_preview(args) -> int:
     from ..dataset.sample_plan import sample_seed
     from ..scenario import scenario_from_config, scenario_rng
     from ..scenario.preview import example_deformations, render_preview, scenario_places, write_preview_vtu
+    from ..app.configuration import load_run_config
 
-    cfg = load_config(args.config)
+    cfg = load_run_config(args.config)
     mesh, markers, fixed, sc = scenario_from_config(cfg)
     seeds = [sample_seed(cfg.dataset.seed, i) for i in range(max(0, args.examples))]
     draws = [sc.draw(scenario_rng(s)) for s in seeds]

@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import sys
 
-from ..config import CLIENT_FRAMES, SERVE_METHODS, TRANSFORM_MODES, ServeConfig, load_config, with_overrides
+from ..config import CLIENT_FRAMES, SERVE_METHODS, TRANSFORM_MODES, ServeConfig, with_overrides
 from ..errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -61,8 +61,9 @@ def register(sub) -> None:
 def run(args) -> int:
     from ..serve import IGTLServer, SurfacePredictor
     from ..surrogate.robust import load_model_folder
+    from ..app.configuration import load_run_config
 
-    cfg = load_config(args.config)
+    cfg = load_run_config(args.config)
     overrides = {k: getattr(args, k) for k in ("host", "full_field", "transform_mode", "max_marker_offset", "client_frame",
                                                  "method", "instrument_timeout")
                  if getattr(args, k) is not None}

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from ..config import load_config, with_overrides
+from ..config import with_overrides
 
 
 def register(sub) -> None:
@@ -28,7 +28,9 @@ def run(args) -> int:
     from ..dataset import simulate
     from .dataset_cmd import print_summary
 
-    cfg = load_config(args.config)
+    from ..app.configuration import load_run_config
+
+    cfg = load_run_config(args.config)
     overrides = {}
     if args.samples is not None:
         overrides["n_samples"] = args.samples

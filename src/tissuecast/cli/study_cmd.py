@@ -67,7 +67,7 @@ def _models(specs: list[str]) -> dict:
 
 
 def _mismatch(args) -> int:
-    from ..config import load_config
+    from ..app.configuration import load_run_config
     from ..errors import ConfigError
     from ..evaluate import mismatch as mm
     from ..evaluate.mismatch_report import format_mismatch, mismatch_figure, write_mismatch
@@ -75,7 +75,7 @@ def _mismatch(args) -> int:
 
     if not args.source or not Path(args.source).is_file():
         raise ConfigError("study mismatch takes the scenario's TOML config (CONFIG), e.g. configs/embedded.toml")
-    cfg = load_config(args.source)
+    cfg = load_run_config(args.source)
     models = _models(args.model)
     first = next(iter(models.values()))
     alpha = args.alpha or (mm.store_alpha(first.dataset_path) if first.dataset_path else 0.0)

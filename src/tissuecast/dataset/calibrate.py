@@ -187,7 +187,7 @@ def _check_pins(cfg: Config, scenario: "Scenario", pilots: list, alpha0: float) 
     from ..fem import build_problem
 
     forces = [scenario.surface_forces.field(seed, alpha0, beta)[0] for seed, beta in pilots]
-    peak = check_supports(build_problem(scenario.mesh, cfg, scenario.supported, order=1), forces, alpha0,
+    peak = check_supports(build_problem(scenario.mesh, scenario.material, scenario.supported, order=1), forces, alpha0,
                           cfg.forces.target_max_displacement)
     log.info("supports: the first pilots' linear answers at alpha %.3g N peak at %.3g mm (refused above %.3g mm)",
              alpha0, peak, MECHANISM_RATIO * cfg.forces.target_max_displacement)

@@ -342,19 +342,18 @@ def _create_sample_arrays(root, plan: SamplePlan, scenario) -> None:
 
 
 # ---------------------------------------------------------------- compatibility of a store
-#: config keys that do not change a data set's numbers (may differ when resuming); the mesh
-#: file may move: its content is checked by fingerprint instead
-_RUNTIME_KEYS = {"dataset": ("store", "workers", "scheduler", "time_budget", "time_budget_min"), "mesh": ("path",)}
 _DATA_SECTIONS = ("mesh", "markers", "material", "solver", "forces", "dataset", "scenario")
 
 
 def data_config(cfg: Config) -> dict:
-    """The part of a config that determines a data set's contents (nested dict)."""
+    """The part of a config that determines a data set's contents (nested dict): of
+    ``[dataset]`` its :class:`~tissuecast.config.DatasetContent` (run settings may differ when
+    resuming); of ``[mesh]`` all but ``path`` (the file may move: its content is checked by
+    fingerprint instead, :func:`_check_mesh`)."""
     d = config_to_dict(cfg)
     out = {sec: dict(d[sec]) for sec in _DATA_SECTIONS}
-    for sec, keys in _RUNTIME_KEYS.items():
-        for k in keys:
-            out[sec].pop(k, None)
+    out["dataset"] = config_to_dict(cfg.dataset.content())
+    out["mesh"].pop("path")
     # an instrument's OpenIGTLink device name is for serving: it changes no number of the data set
     out["scenario"]["instruments"] = [{k: v for k, v in i.items() if k != "device"}
                                       for i in out["scenario"].get("instruments", [])]

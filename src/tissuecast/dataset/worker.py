@@ -106,7 +106,7 @@ class Recipe:
 
     def problem(self):
         """The data set's :class:`~tissuecast.fem.Problem` (its scenario's)."""
-        return self.scenario().problem(self.config)
+        return self.scenario().problem()
 
 
 @dataclass(frozen=True)
@@ -217,7 +217,8 @@ def fem_solver_factory(scenario: "Scenario", cfg: Config) -> Callable[[SolverCon
     Args:
         scenario: the data set's :class:`~tissuecast.scenario.Scenario` (mesh, supports,
             springs, material regions).
-        cfg: the data set's config (material, element order).
+        cfg: the data set's config (what a replacement factory may read; the default reads
+            the material and element order from the scenario).
 
     Returns a function mapping solver settings to a reusable ``Solver`` with
     ``.solve(loads (n_nodes, 3) N, initial_guess=None, prescribed=None, body_loads=None,
@@ -228,7 +229,7 @@ def fem_solver_factory(scenario: "Scenario", cfg: Config) -> Callable[[SolverCon
     """
     from ..fem import Solver
 
-    problem = scenario.problem(cfg)
+    problem = scenario.problem()
     return lambda solver_cfg: Solver(problem, solver_cfg)
 
 

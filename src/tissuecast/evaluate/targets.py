@@ -38,11 +38,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, MeshError
+from ..mesh.labelmap import label_map_format
 from ..mesh.locate import contains_points, locate_points
 from .target_files import read_target_points
 
 __all__ = ["Targets", "interior_targets", "vertex_targets", "point_targets", "label_targets", "read_target_points",
-           "targets_from_config", "model_targets", "farthest_points", "DEPTH_FRACTION"]
+           "targets_from_config", "check_target_source", "model_targets", "farthest_points", "DEPTH_FRACTION"]
 
 #: Default least depth of interior targets, as a share of the deepest vertex's distance to the surface.
 DEPTH_FRACTION = 0.5
@@ -166,6 +167,21 @@ def label_targets(mesh, label_map, count: int = 10, name: str = "label") -> Targ
                     "mesh)", pts[order])
 
 
+def check_target_source(config, prefix: str = "evaluate.targets.") -> None:
+    """Refuse rule ``label`` when ``path`` is not a label map file (by its name).
+
+    Args:
+        config: the ``[evaluate.targets]`` section (:class:`~tissuecast.config.TargetConfig`).
+        prefix: its config key with a trailing dot, for messages.
+
+    Raises:
+        ConfigError: naming ``{prefix}path`` and the file kinds rule 'label' reads.
+    """
+    if config.rule == "label" and config.path and label_map_format(config.path) is None:
+        raise ConfigError(f"{prefix}path = {config.path!r} is not a label map; rule 'label' reads .nii, .nii.gz, "
+                          ".nrrd or .seg.nrrd")
+
+
 def targets_from_config(config, mesh, *, mesh_path: str = "", exclude=()) -> Targets:
     """The targets a ``[evaluate.targets]`` section (:class:`~tissuecast.config.TargetConfig`) names.
 
@@ -174,7 +190,11 @@ def targets_from_config(config, mesh, *, mesh_path: str = "", exclude=()) -> Tar
         mesh: the model's mesh.
         mesh_path: the mesh file the model was built from (rule 'tag' reads its regions).
         exclude: vertex ids the supports hold (never interior targets).
+
+    Raises:
+        ConfigError: a ``path`` that is missing or not of the rule's kind (:func:`check_target_source`).
     """
+    check_target_source(config)
     rule = config.rule
     if rule == "interior":
         return interior_targets(mesh, config.count, config.depth, exclude)

@@ -3,7 +3,7 @@
 Public API::
 
     problem = Problem(mesh, NeoHookean(0.021, 0.45), fixed=[...], order=2)
-    problem = build_problem(mesh, cfg, fixed)  # the same from a run Config (material, solver.order)
+    problem = build_problem(mesh, NeoHookean(0.021, 0.45), fixed, order=1, springs=...)  # with springs, regions
     result = solve(problem, forces)            # forces (n, 3) N -> result.displacement (n, 3) mm
     solver = Solver(problem, cfg.solver)       # reusable: per-mesh work done once
     result = solver.solve(forces, initial_guess=None)

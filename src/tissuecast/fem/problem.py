@@ -293,24 +293,29 @@ def check_forces(problem: Problem, forces) -> np.ndarray:
     return f.copy()
 
 
-def build_problem(mesh: TetMesh, config, fixed, *, order: int | None = None, springs: NodalSprings | None = None,
+def build_problem(mesh: TetMesh, material: NeoHookean, fixed, *, order: int = 2, springs: NodalSprings | None = None,
                   materials: NeoHookeanField | None = None, can_swing: bool | None = None) -> Problem:
-    """The finite-element problem a run configuration describes on ``mesh``.
+    """The finite-element problem of a material, supports and element order on ``mesh``.
+
+    A run configuration is translated by its callers (``[material]`` gives
+    ``NeoHookean(youngs_modulus, poisson_ratio)``, ``solver.order`` the order; a scenario's
+    :meth:`~tissuecast.scenario.Scenario.problem` does both).
 
     Args:
         mesh: the tetrahedral mesh (mm).
-        config: a :class:`~tissuecast.config.Config`: ``material`` gives the neo-Hookean
-            constants (MPa), ``solver.order`` the element order.
+        material: the neo-Hookean constants (MPa) of every element without its own.
         fixed: (k,) int, 0-based ids of the vertices fixed in all components (e.g. from
             :func:`tissuecast.markers.markers_and_fixed`, or a scenario's pins and attached
             region).
-        order: element order overriding ``config.solver.order`` (1 or 2).
+        order: element order (1 or 2).
         springs, materials, can_swing: as :class:`Problem` (a scenario's elastic support and
             material regions: :meth:`tissuecast.scenario.Scenario.problem`).
 
     Raises:
-        SolverSetupError: as :class:`Problem`.
+        SolverSetupError: ``material`` is not a :class:`NeoHookean` (e.g. a whole run
+            configuration), or as :class:`Problem`.
     """
-    material = NeoHookean(youngs_modulus=config.material.youngs_modulus, poisson_ratio=config.material.poisson_ratio)
-    return Problem(mesh, material, fixed, order=config.solver.order if order is None else order, springs=springs,
-                   materials=materials, can_swing=can_swing)
+    if not isinstance(material, NeoHookean):
+        raise SolverSetupError(f"build_problem takes the material as a NeoHookean (MPa), got {type(material).__name__}; "
+                               "from a run config: NeoHookean(cfg.material.youngs_modulus, cfg.material.poisson_ratio)")
+    return Problem(mesh, material, fixed, order=order, springs=springs, materials=materials, can_swing=can_swing)

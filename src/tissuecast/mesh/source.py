@@ -2,9 +2,43 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+from ..errors import ConfigError
+from .labelmap import label_map_format
+from .mesher import SURFACE_FORMATS
 from .tetmesh import TetMesh
 
-__all__ = ["mesh_from_config", "label_map_mesh_to_budget"]
+__all__ = ["mesh_from_config", "check_mesh_source", "label_map_mesh_to_budget"]
+
+
+def check_mesh_source(mesh_config, prefix: str = "mesh.") -> None:
+    """Refuse ``[mesh]`` keys that do not apply to what ``path`` names (label map, surface, volume mesh).
+
+    Args:
+        mesh_config: the ``[mesh]`` section (:class:`~tissuecast.config.MeshConfig`).
+        prefix: its config key with a trailing dot, for messages.
+
+    Raises:
+        ConfigError: naming the key and the fix (``label``/``segment`` without a label map,
+            ``segment`` without a segmentation, ``max_vertices`` on a mesh that is not meshed,
+            ``units`` on a label map).
+    """
+    obj = mesh_config
+    kind = label_map_format(obj.path) if obj.path else None
+    if (obj.label or obj.segment) and kind is None:
+        raise ConfigError(f"{prefix}label and {prefix}segment apply only when {prefix}path names a label map "
+                          f"(.nii, .nii.gz, .nrrd, .seg.nrrd), got path {obj.path!r}")
+    if obj.segment and kind != "segmentation":
+        raise ConfigError(f"{prefix}segment names a segment of a 3D Slicer segmentation (.seg.nrrd); "
+                          f"{obj.path!r} is not one: use {prefix}label")
+    if obj.max_vertices and kind is None and Path(obj.path).suffix.lower() not in SURFACE_FORMATS:
+        what = f"{obj.path!r} is a volume mesh, used as it is" if obj.path else "the built-in phantom is fixed"
+        raise ConfigError(f"{prefix}max_vertices applies when {prefix}path names a label map or a closed surface "
+                          f"(.stl .obj .ply .off .face), which are meshed; {what}: remove {prefix}max_vertices")
+    if kind is not None and obj.units != "mm":
+        raise ConfigError(f"{prefix}units applies to mesh files; a label map is read in its own physical units (mm), "
+                          f"remove {prefix}units = {obj.units!r}")
 
 
 def mesh_from_config(mesh_config, path: str | None = None) -> TetMesh:
@@ -22,12 +56,17 @@ def mesh_from_config(mesh_config, path: str | None = None) -> TetMesh:
 
     Returns:
         The mesh, mm, 0-based ids.
+
+    Raises:
+        ConfigError: a ``[mesh]`` key that does not apply to ``mesh_config.path``
+            (:func:`check_mesh_source`; not asked when ``path`` replaces it).
     """
     from .io import read_mesh
-    from .labelmap import label_map_format
     from .phantom import phantom
 
-    path = mesh_config.path if path is None else path
+    if path is None:
+        check_mesh_source(mesh_config)
+        path = mesh_config.path
     if not path:
         return phantom()
     if label_map_format(path) is not None:

@@ -11,7 +11,7 @@ Public API::
     inputs = sc.sample(sample_seed, alpha, beta)   # SampleInputs: everything one sample needs
     inputs.surface, inputs.solve_keywords()        # (n_nodes, 3) N; body_loads, prescribed
     inputs.forces, inputs.weights, inputs.draw     # what a data set records
-    problem = sc.problem(config)                   # supports, springs, material regions
+    problem = sc.problem()                         # supports, springs, material regions
     sc.springs                                     # NodalSprings: (s,) nodes, (s, 3, 3) N/mm
 
 Units: mm, N, MPa, t/mm^3; ids 0-based.

@@ -50,7 +50,7 @@ def load_shares(scenario, config, seeds, alpha: float) -> dict:
     from ..errors import ConvergenceError
     from ..fem import Solver
 
-    solver = Solver(scenario.problem(config), config.solver)
+    solver = Solver(scenario.problem(), config.solver)
     peaks: dict[str, list] = {}
     for seed in seeds:
         inputs = scenario.sample(int(seed), float(alpha), nominal=True)

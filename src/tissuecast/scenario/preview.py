@@ -98,7 +98,7 @@ def example_alpha(sc: Scenario, config, seeds, solver=None) -> float:
     if solver is None:
         from ..fem import Solver
 
-        solver = Solver(sc.problem(config), config.solver)
+        solver = Solver(sc.problem(), config.solver)
     reference, free = solver.reference_factor(), solver.free_dofs
     peaks = []
     for seed in seeds:
@@ -130,7 +130,7 @@ def example_deformations(sc: Scenario, config, seeds) -> list[tuple[str, np.ndar
     from ..fem import Solver
     from .scenario import scenario_rng
 
-    problem = sc.problem(config)
+    problem = sc.problem()
     solver = Solver(problem, config.solver)
     n = sc.mesh.n_vertices
     fields = [None] * len(seeds)

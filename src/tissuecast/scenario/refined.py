@@ -142,7 +142,7 @@ def refined_sample(scenario: Scenario, config: Config, refined: RefinedMesh, inp
     held_nodes = held_nodes_of(fine, order, supported)
     free_surface = fine.surface_vertices[~np.isin(fine.surface_vertices, supported)]
     ids, values = _indentation(scenario, refined, inputs, free_surface)
-    problem = Problem(fine, scenario.problem(config).material, supported, order=order,
+    problem = Problem(fine, scenario.material, supported, order=order,
                       springs=_springs(scenario, refined, inputs, order, held_nodes),
                       materials=_materials(scenario, config, inputs, refined), can_swing=scenario.can_swing)
     surface = _surface_loads(scenario, refined, inputs, order)

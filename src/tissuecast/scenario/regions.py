@@ -25,11 +25,27 @@ import numpy as np
 
 from ..config import ANATOMICAL_DIRECTIONS, RegionConfig
 from ..errors import ConfigError, MeshError
+from ..mesh.labelmap import label_map_format
 from ..mesh.tags import MeshTags
 from ..mesh.tetmesh import TetMesh
 from ..mesh.surface import vertex_normals
 
-__all__ = ["surface_region", "region_anchors", "rule_direction"]
+__all__ = ["surface_region", "region_anchors", "rule_direction", "check_region_source"]
+
+
+def check_region_source(rule: RegionConfig, key: str) -> None:
+    """Refuse a ``label`` rule whose ``label_map`` is not a label map file (by its name).
+
+    Args:
+        rule: the region's settings.
+        key: its config key, for messages (e.g. ``"scenario.attached"``).
+
+    Raises:
+        ConfigError: naming ``{key}.label_map`` and the file kinds it reads.
+    """
+    if rule.rule == "label" and label_map_format(rule.label_map) is None:
+        raise ConfigError(f"{key}.rule = 'label' needs {key}.label_map, a label map (.nii, .nii.gz, .nrrd, "
+                          f".seg.nrrd), got {rule.label_map!r}")
 
 
 def surface_region(mesh: TetMesh, rule: RegionConfig, key: str, tags: MeshTags | None = None,
@@ -47,8 +63,10 @@ def surface_region(mesh: TetMesh, rule: RegionConfig, key: str, tags: MeshTags |
         (k,) int64 sorted 0-based vertex ids on the outer surface; empty for rule ``none``.
 
     Raises:
-        ConfigError: ids out of range, an unknown tag, or a rule that selects no surface vertex.
+        ConfigError: ids out of range, an unknown tag, a ``label`` rule without a label map
+            (:func:`check_region_source`), or a rule that selects no surface vertex.
     """
+    check_region_source(rule, key)
     surface = mesh.surface_vertices
     if rule.rule == "none":
         return np.zeros(0, dtype=np.int64)

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..config import UNCERTAIN_PARAMETERS, Config, ScenarioConfig
 from ..errors import ConfigError
+from ..fem.material import NeoHookean
 from ..fem.rigid_motions import free_rigid_motions
 from ..fem.springs import NodalSprings
 from ..forces import LBOBasis
@@ -30,7 +31,7 @@ from .regions import surface_region
 from .scenario import Scenario, held_nodes_of
 from .surface_forces import SurfaceForces
 
-__all__ = ["build_scenario", "restore_scenario", "scenario_markers", "scenario_from_config"]
+__all__ = ["build_scenario", "restore_scenario", "scenario_markers", "scenario_from_config", "base_material"]
 
 
 def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshTags | None = None,
@@ -89,8 +90,13 @@ def build_scenario(mesh: TetMesh, config: Config, fixed: np.ndarray, tags: MeshT
     gravity = (sc.gravity.density, sc.gravity.acceleration) if sc.gravity.enabled else None
     forces = _surface_forces(mesh, config, pinned, attached, basis)
     uncertain = _uncertain(mesh, config, materials, distance, spring_parts)
-    return Scenario(sc, mesh, order, pinned, attached, region, springs, materials, normals, sites, gravity, forces,
-                    uncertain)
+    return Scenario(sc, mesh, order, base_material(config), pinned, attached, region, springs, materials, normals, sites,
+                    gravity, forces, uncertain)
+
+
+def base_material(config: Config) -> NeoHookean:
+    """The neo-Hookean constants of ``config.material`` (MPa): every element without a region of its own."""
+    return NeoHookean(youngs_modulus=config.material.youngs_modulus, poisson_ratio=config.material.poisson_ratio)
 
 
 def _attached_extents(nominal: np.ndarray, distance: np.ndarray | None, margin: tuple) -> tuple[np.ndarray, np.ndarray]:
@@ -175,8 +181,9 @@ def restore_scenario(mesh: TetMesh, config: Config, arrays: dict, basis: LBOBasi
     if "spring_normal_part" in arrays:
         parts = (np.asarray(arrays["spring_normal_part"]), np.asarray(arrays["spring_tangential_part"]))
     uncertain = _uncertain(mesh, config, materials, distance, parts)
-    return Scenario(sc, mesh, order, pinned, attached, np.asarray(arrays["spring_region"], dtype=np.int64), springs,
-                    materials, normals, sites, gravity, forces, uncertain)
+    return Scenario(sc, mesh, order, base_material(config), pinned, attached,
+                    np.asarray(arrays["spring_region"], dtype=np.int64), springs, materials, normals, sites, gravity,
+                    forces, uncertain)
 
 
 def scenario_markers(mesh: TetMesh, config: Config, tags: MeshTags | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -23,7 +23,8 @@ from functools import cached_property
 
 import numpy as np
 
-from ..config import UNCERTAIN_PARAMETERS, Config, ScenarioConfig
+from ..config import UNCERTAIN_PARAMETERS, ScenarioConfig
+from ..fem.material import NeoHookean
 from ..fem.springs import NodalSprings
 from ..instruments import InstrumentPose, ReferenceSurface
 from ..mesh.tetmesh import TetMesh
@@ -62,6 +63,8 @@ class Scenario:
         config: the scenario settings.
         mesh: the mesh (mm).
         order: element order (1 or 2).
+        material: the neo-Hookean constants of ``[material]`` (MPa): every element without a
+            material region of its own.
         pinned: (p,) int64 pinned vertices (empty without ``pins``).
         attached: (a,) int64 surface vertices of the attached region (all components fixed).
         spring_region: (s,) int64 surface vertices of the elastic support's region.
@@ -78,6 +81,7 @@ class Scenario:
     config: ScenarioConfig
     mesh: TetMesh
     order: int
+    material: NeoHookean
     pinned: np.ndarray
     attached: np.ndarray
     spring_region: np.ndarray
@@ -136,17 +140,22 @@ class Scenario:
         body); False with springs or an attached region."""
         return self.springs is None and len(self.attached) == 0
 
-    def problem(self, config: Config):
+    def problem(self, material: NeoHookean | None = None):
         """The finite-element problem (:class:`~tissuecast.fem.Problem`): the supported vertices
-        fixed, the springs, the material regions; ``config`` gives the material and order."""
+        fixed, the springs, the material regions, the scenario's element order.
+
+        Args:
+            material: the constants of elements without a region of their own; None = the
+                scenario's :attr:`material`.
+        """
         from ..fem import build_problem
         from ..fem.material import NeoHookeanField
 
         field = None
         if self.materials is not None:
             field = NeoHookeanField(self.materials.youngs_modulus, self.materials.poisson_ratio)
-        return build_problem(self.mesh, config, self.supported, order=self.order, springs=self.springs,
-                             materials=field, can_swing=self.can_swing)
+        return build_problem(self.mesh, self.material if material is None else material, self.supported,
+                             order=self.order, springs=self.springs, materials=field, can_swing=self.can_swing)
 
     def sample(self, seed: int, alpha: float, beta: float = float("nan"), *, nominal: bool = False) -> SampleInputs:
         """Everything one sample is solved with and recorded by, from its seed alone.
