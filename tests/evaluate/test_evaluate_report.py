@@ -250,3 +250,31 @@ def test_report_vtu_folder_is_read_by_meshio_pyvista_and_vtk(tmp_path, model, ds
         seen = read_everywhere(path, model.mesh.points, ("benchmark_displacement", "predicted_displacement",
                                                          "vertex_error", "ridge_displacement"))
         np.testing.assert_allclose(seen["pyvista"].point_data["vertex_error"], seen["meshio"].point_data["vertex_error"])
+
+
+def test_a_sample_the_gate_refuses_is_evaluated_and_counted(model, ds, tmp_path):
+    """A simulated sample outside what the model was trained on (its field 25x a simulated one) is
+    refused by the input gate in use, but an evaluation predicts it (the gate suspended) and
+    reports the refused share; the gate is on again afterwards."""
+    import copy
+
+    from tissuecast.errors import InputRejected
+
+    bent = copy.copy(ds)
+    bent.displacements = ds.displacements.copy()
+    k = int(ds.select("test1")[0])
+    bent.displacements[k] *= 25.0
+    d = model.marker_displacements(np.asarray(bent.displacements[k], dtype=np.float64))
+    assert model.check_input(d).refused
+    ev = evaluate_model(model, bent, splits=("test1",))
+    t1 = ev.sets["test1"]
+    assert t1.refused.sum() == 1 and t1.refused[list(t1.indices).index(k)]
+    assert ev.as_dict()["sets"]["test1"]["gate_refused"] == pytest.approx(1 / t1.indices.size)
+    assert np.isfinite(t1.offsets["mlp"]).all()
+    with pytest.raises(InputRejected):
+        model.predict(d)
+    from tissuecast.evaluate.report import write_report
+
+    assert write_report(tmp_path / "rep", model, bent, ev, renders=0).is_file()
+    with pytest.raises(InputRejected):
+        model.predict(d)

@@ -105,6 +105,9 @@ class SetResult:
         tre: {method: (k, 3) float64 [mean, p95, max] of the target errors per sample, mm}
             (NaN rows where a method could not predict).
         target_displacement: (k,) mean true displacement of the targets per sample, mm.
+        refused: (k,) bool, the samples whose markers the model's input gate refuses
+            (predicted all the same, the gate suspended: :meth:`DeformationModel.gate_suspended
+            <tissuecast.surrogate.DeformationModel.gate_suspended>`); empty where not checked.
     """
 
     name: str
@@ -117,6 +120,12 @@ class SetResult:
     sigma_max: np.ndarray = field(default_factory=lambda: np.zeros(0))
     tre: dict = field(default_factory=dict)
     target_displacement: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    refused: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+
+    @property
+    def refused_share(self) -> float:
+        """Share of the set's samples the input gate refuses (NaN where not checked)."""
+        return float(np.mean(self.refused)) if self.refused.size else float("nan")
 
     def summary(self, method: str) -> SetSummary:
         """Offsets of ``method`` (one of :data:`METHODS`) summarised over the set."""
@@ -163,7 +172,7 @@ class SetResult:
         return SetResult(name, self.indices[keep], self.beta[keep], {k: v[keep] for k, v in self.offsets.items()},
                          self.max_displacement[keep], self.nonrigid[keep], pick(self.sigma_spearman),
                          pick(self.sigma_max), {k: v[keep] for k, v in self.tre.items()},
-                         pick(self.target_displacement))
+                         pick(self.target_displacement), pick(self.refused))
 
     def deformation(self) -> dict:
         """Size of the deformations (mm): peak displacement and non-rigid part, median / p90 /
@@ -184,6 +193,8 @@ class SetResult:
         if self.tre:
             d["targets"] = {m: self.target_summary(m).as_dict() for m in self.tre}
         d["deformation"] = self.deformation()
+        if self.refused.size:
+            d["gate_refused"] = self.refused_share
         if self.sigma_spearman.size:
             d["uncertainty"] = {
                 "vertex_spearman_mean": float(self.sigma_spearman.mean()),
@@ -275,8 +286,10 @@ def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: s
             parts.setdefault(k, []).append(v)
     cat = lambda k: np.concatenate(parts[k]) if k in parts else np.zeros(0)  # noqa: E731
     tre = {m: cat(f"tre_{m}") for m in METHODS} if targets is not None else {}
+    d = model.marker_displacements(np.asarray(U[idx], dtype=np.float64))
+    refused = np.array([v.refused for v in model.check_input(d)], dtype=bool)
     return SetResult(name, idx, beta, {m: cat(m) for m in METHODS}, cat("md"), cat("nr"), cat("ss"), cat("sm"), tre,
-                     cat("td"))
+                     cat("td"), refused)
 
 
 def _timing(model, U, idx, repeats: int = TIMING_REPEATS, aux: np.ndarray | None = None) -> dict:
@@ -326,11 +339,12 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
     beta = np.asarray(dataset.beta, dtype=np.float64)
     aux = auxiliary_values(model, dataset)
     sets, by_beta = {}, []
-    for name in splits:
-        idx = np.asarray(dataset.select(name, status="done"), dtype=np.int64)
-        if idx.size == 0:
-            continue
-        sets[name] = _set_result(model, U, idx, beta[idx], name, targets, aux=aux)
+    with model.gate_suspended():  # simulated samples: the gate's verdicts are reported, not obeyed
+        for name in splits:
+            idx = np.asarray(dataset.select(name, status="done"), dtype=np.int64)
+            if idx.size == 0:
+                continue
+            sets[name] = _set_result(model, U, idx, beta[idx], name, targets, aux=aux)
     if "test2" in sets:
         t2 = sets["test2"]
         for b in np.unique(t2.beta[np.isfinite(t2.beta)]):
@@ -339,8 +353,9 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
     about = model.describe()
     summary = {**{k: about[k] for k in ("n_components", "markers", "ensemble", "hidden", "pca", "training")},
                "scenario": _scenario(model, dataset)}
-    return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=_timing(model, U, timing_idx, aux=aux),
-                      model_summary=summary, targets=targets)
+    with model.gate_suspended():
+        seconds = _timing(model, U, timing_idx, aux=aux)
+    return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=seconds, model_summary=summary, targets=targets)
 
 
 def auxiliary_values(model, dataset) -> np.ndarray | None:

@@ -218,7 +218,7 @@ def evaluate_on_set(model, dataset, targets) -> dict:
 
     result = evaluate_model(model, dataset, splits=("test1",), targets=targets).sets["test1"]
     row = {"count": int(result.indices.size), "peak_median": float(np.median(result.max_displacement)),
-           "nonrigid_median": float(np.median(result.nonrigid))}
+           "nonrigid_median": float(np.median(result.nonrigid)), "gate_refused": result.refused_share}
     for m in ("mlp", "rigid", "ridge"):
         s = result.summary(m)
         row[f"{m}_offset_max"] = float(s.offset_max)
@@ -235,10 +235,13 @@ def evaluate_on_set(model, dataset, targets) -> dict:
 
         idx = dataset.select("test1", status="done")
         aux = auxiliary_values(model, dataset)
-        figures = bound_figures(model.trusted_, np.asarray(dataset.displacements[idx], dtype=np.float64), levels=(0.9,),
-                                auxiliary=None if aux is None else aux[idx])
+        with model.gate_suspended():
+            figures = bound_figures(model.trusted_, np.asarray(dataset.displacements[idx], dtype=np.float64),
+                                    levels=(0.9,), auxiliary=None if aux is None else aux[idx])
         row["coverage_90"] = figures["coverage_0.9"]
         row["alarm_rate"] = figures["alarm_rate"] if figures["alarm_on"] else float("nan")
+        if figures["alarm_on"]:  # what the user sees: a refusal (the gate) or an alarm
+            row["flagged_rate"] = float(np.mean(result.refused | figures["alarms"]))
     return row
 
 

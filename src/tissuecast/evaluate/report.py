@@ -208,7 +208,11 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = EvaluateC
         studies_folder: folder holding ``study_markers.csv`` / ``study_architecture.csv``
             (default: ``folder``); found studies are plotted.
     """
-    folder = Path(folder)
+    with model.gate_suspended():  # the data set's simulated samples: the gate's verdicts are in the evaluation
+        return _write_report(Path(folder), model, dataset, evaluation, renders, studies_folder, title)
+
+
+def _write_report(folder: Path, model, dataset, evaluation, renders: int, studies_folder, title: str) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     _write_tables(folder, evaluation)
     trust = trust_evaluation(model.trusted_, dataset) if model.has_trust else None

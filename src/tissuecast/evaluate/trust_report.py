@@ -35,7 +35,7 @@ LEVELS = (0.9, 0.95)
 def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> dict:
     """Coverage, sharpness, ranking and alarms of the bounds of a predictor with ``has_trust``
     on fields ``bench`` (B, n, 3) mm (``auxiliary`` (B, n_a): their auxiliary inputs, for a
-    predictor that reads some)."""
+    predictor that reads some); ``alarms`` (B,) bool: which samples raised the alarm."""
     bench = np.asarray(bench, dtype=np.float64)
     d = trusted.marker_displacements(bench)
     row: dict = {"count": int(len(bench))}
@@ -49,7 +49,8 @@ def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> 
             row["sample_spearman"] = (float(spearmanr(tp.error_bound.max(axis=1), e.max(axis=1))[0]) if len(e) > 2
                                       else float("nan"))
             row["vertex_spearman"] = float(spearman_rows(tp.error_bound, e).mean())
-            row["alarm_rate"] = float(np.mean([a.raised for a in tp.alarms]))
+            row["alarms"] = np.array([a.raised for a in tp.alarms], dtype=bool)
+            row["alarm_rate"] = float(np.mean(row["alarms"]))
             row["alarm_on"] = bool(np.isfinite(tp.alarms[0].distance_threshold))  # off: too few calibration samples
     return row
 
@@ -74,10 +75,12 @@ def trust_evaluation(trusted, dataset) -> dict:
         if idx.size == 0:
             continue
         sets[split] = bound_figures(trusted, U[idx], auxiliary=rows(idx))
+        sets[split].pop("alarms", None)
         if split == "test2":
             for b in np.unique(beta[idx][np.isfinite(beta[idx])]):
                 sub = idx[beta[idx] == b]
                 sets[f"test2 beta={b:g}"] = bound_figures(trusted, U[sub], auxiliary=rows(sub))
+                sets[f"test2 beta={b:g}"].pop("alarms", None)
     out: dict = {"sets": sets, "reliability": {}}
     idx = np.asarray(dataset.select("test1", status="done"), dtype=np.int64)
     if idx.size:

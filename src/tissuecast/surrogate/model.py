@@ -27,6 +27,7 @@ in mm. A displacement field is (n, 3) mm at every mesh vertex (0-based ids). Aux
 from __future__ import annotations
 
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -181,7 +182,7 @@ class DeformationModel(FieldPredictor):
                           training=self.training_, run_config=self.run_config, dataset_path=self.dataset_path,
                           scenario=self.scenario, metadata=self.metadata_, fallback=self.fallback_,
                           fallback_trust=None if self.fallback_trusted_ is None else self.fallback_trusted_.layer,
-                          gate=self.input_gate)
+                          gate=self.gate_)
 
     @classmethod
     def from_state(cls, state: ModelState) -> "DeformationModel":
@@ -203,19 +204,14 @@ class DeformationModel(FieldPredictor):
         self.fallback_ = state.fallback
         self.fallback_trusted_ = None if state.fallback_trust is None else TrustedPredictor(state.fallback,
                                                                                               state.fallback_trust)
-        self.input_gate = gate_of(state)
-        for part in (net, self.ridge_, self.rigid_, self.trusted_, self.fallback_, self.fallback_trusted_):
-            if part is not None:
-                part.input_gate = self.input_gate
         learned, self._trusted = net, self.trusted_
         if self.fallback_ is not None:
             learned = InstrumentFallback(net, self.fallback_)
             if self.trusted_ is not None and self.fallback_trusted_ is not None:
                 self._trusted = InstrumentFallback(self.trusted_, self.fallback_trusted_)
-        for wrapper in (learned, self._trusted):
-            if wrapper is not None:
-                wrapper.input_gate = self.input_gate
         self._by_method = {"mlp": learned, "rigid": self.rigid_, "ridge": self.ridge_}
+        self.gate_ = gate_of(state)
+        self._use_gate(self.gate_)
         self.fixed_ = np.asarray(state.fixed, dtype=np.int64).ravel()
         self.pca_choice_ = state.pca_choice
         self.pca_curve_ = state.pca_curve
@@ -386,6 +382,27 @@ class DeformationModel(FieldPredictor):
         return self._trusted.predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm,
                                              auxiliary=auxiliary)
 
+    def _use_gate(self, gate) -> None:
+        """``gate`` (or None: none) refuses input for the model and every part it predicts with."""
+        self.input_gate = gate
+        parts = (self.network_, self.ridge_, self.rigid_, self.trusted_, self.fallback_, self.fallback_trusted_,
+                 self._trusted, *self._by_method.values())
+        for part in parts:
+            if part is not None:
+                part.input_gate = gate
+
+    @contextmanager
+    def gate_suspended(self):
+        """A block in which the input gate refuses nothing: for evaluating simulated samples,
+        which reports the gate's verdicts (:meth:`check_input`) beside the errors instead of
+        stopping at the first refusal. The gate is back on when the block ends."""
+        self._fitted()
+        self._use_gate(None)
+        try:
+            yield self
+        finally:
+            self._use_gate(self.gate_)
+
     def check_input(self, marker_displacements, *, missing=None) -> GateVerdict | list[GateVerdict]:
         """The input gate's verdict (:mod:`.gate`) without predicting: one :class:`~.gate.GateVerdict`
         for one sample, a list for a batch (same layouts as :meth:`predict`, mm). ``predict`` and
@@ -393,7 +410,7 @@ class DeformationModel(FieldPredictor):
         self._fitted()
         d, miss, single = marker_batch(marker_displacements, self.n_markers, missing, self.supports_missing_markers,
                                        check_finite=False)
-        verdicts = self.input_gate.inspect(d, miss)
+        verdicts = self.gate_.inspect(d, miss)
         return verdicts[0] if single else verdicts
 
     def predict_from_positions(self, positions, *, missing=None, method: str = "mlp", auxiliary=None) -> np.ndarray:
