@@ -69,8 +69,11 @@ def test_registration_transform_maps_tracker_markers_and_answers_in_its_target(m
     seen = apply_transform(np.linalg.inv(model_to_client) @ to_client, tracker)  # markers in the model frame
     with IGTLServer(model, "127.0.0.1", 0) as server, IGTLClient(*server.address) as client, \
             IGTLClient(*server.address) as navigation:
-        # before any registration the tracker positions are far from the model: refused
-        assert "from its reference position" in (client.send_positions(tracker), client.receive())[1].text
+        # before any registration the tracker positions are far from the model: refused (the input
+        # gate: displaced many times the largest simulated displacement)
+        client.send_positions(tracker)
+        refusal, error = client.receive(), client.receive()  # STATUS InputRefused, then the error reply
+        assert refusal.header.message_type == "STATUS" and "marker input refused" in error.text
         send_registration(navigation, name, to_client)  # e.g. Slicer's registration on its own connection
         deadline = time.monotonic() + 10.0  # a registration has no reply: wait until the server took it
         while server.frames.source != name and time.monotonic() < deadline:
