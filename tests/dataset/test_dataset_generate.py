@@ -570,3 +570,21 @@ def test_a_new_store_plans_batches_of_the_size_that_fits(reference, tmp_path):
     small = with_overrides(cfg, dataset={"batch_memory": 2.5 * per_sample / 2.0**30, "n_samples": 30, "n_test2": 0})
     simulate(small, tmp_path / "s.zarr", progress=False)
     assert zarr.open_group(str(tmp_path / "s.zarr"), mode="r").attrs["batches"]["size"] == 2
+
+
+def test_the_remaining_samples_eta_counts_the_basis_samples_median(caplog):
+    """After the reduced model's basis samples: the pending samples at their median worker
+    seconds, in whole waves over the workers (101 samples, 2 workers, 1.5 s: 51 waves, 76.5 s)."""
+    from types import SimpleNamespace
+
+    from tissuecast.dataset.generate import remaining_outlook
+
+    writer = SimpleNamespace(pending=lambda: list(range(101)))
+    ex = SimpleNamespace(phases=[SimpleNamespace(median_seconds=1.5)], workers=2)
+    with caplog.at_level("INFO", logger="tissuecast.dataset.generate"):
+        remaining_outlook(writer, ex)
+    assert "ETA for the 101 remaining samples 76 s" in caplog.text and "(1.50 s of worker time)" in caplog.text
+    caplog.clear()
+    remaining_outlook(SimpleNamespace(pending=lambda: []), ex)  # nothing left: nothing said
+    remaining_outlook(writer, SimpleNamespace(phases=[SimpleNamespace(median_seconds=None)], workers=2))
+    assert caplog.text == ""

@@ -28,7 +28,7 @@ from .calibrate import calibrate_pilots
 from .codes import SampleStatus
 from .executors import make_executor, sigterm_as_interrupt
 from .mechanism_check import check_thin_body
-from .phase_stats import PREDICTED_SHARE, eta_text, whole_set_eta
+from .phase_stats import PREDICTED_SHARE, eta_text, whole_set_eta, work_seconds
 from .reader import open_dataset, recipe_from_store
 from .reduced_predictor import build_reduced, keep_snapshots
 from .sample_plan import generation_order, make_plan
@@ -197,6 +197,7 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
             predictor = _predictor_phase(writer, ex, cfg, recipe, parent)
             if predictor.built:  # the same workers (and their solvers), now with the reduced model
                 ex.executor.update(recipe_from_store(writer, solver_factory))
+                remaining_outlook(writer, ex)
         if writer.batches is not None:  # fixed in the store: they decide, whatever the config says now
             size = int(writer.batches["size"])
         else:
@@ -246,6 +247,19 @@ def whole_set_outlook(writer: StoreWriter, cfg: Config, ex: Supervisor, seconds:
     log.info("calibration done in %s (%d rounds); ETA for the whole set %s: %d reduced-model basis samples and %d "
              "more samples, counting %.0f %% of the last round's median pilot (%.2f s) for a sample from the reduced "
              "model's prediction", eta_text(seconds), rounds, eta_text(eta), basis, rest, 100 * PREDICTED_SHARE, median)
+
+
+def remaining_outlook(writer: StoreWriter, ex: Supervisor) -> None:
+    """Log, once the reduced model's basis samples are solved, the ETA of the pending samples at
+    the basis samples' median (worker seconds; :func:`.phase_stats.work_seconds`): a closer guide
+    than the calibration's estimate, whose last-round pilots start from their previous round's
+    solutions (the comparison on several meshes: docs/scaling.md)."""
+    median = ex.phases[-1].median_seconds if ex.phases else None
+    pending = len(writer.pending())
+    if median is None or not pending:
+        return
+    log.info("reduced-model basis samples solved: ETA for the %d remaining samples %s, counting their median "
+             "(%.2f s of worker time) for each", pending, eta_text(work_seconds(pending, median, ex.workers)), median)
 
 
 def _predictor_phase(writer: StoreWriter, ex, cfg: Config, recipe: Recipe, parent: dict) -> Phase:
