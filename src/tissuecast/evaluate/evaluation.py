@@ -253,14 +253,15 @@ def _offsets(pred: np.ndarray, bench: np.ndarray) -> np.ndarray:
 
 def _chunk(model, bench: np.ndarray, targets, unc: bool, aux: np.ndarray | None = None) -> dict:
     """Per-sample figures of one chunk of true fields (B, n, 3) mm (auxiliary inputs ``aux``
-    (B, n_a) or None): offsets and TRE of every method, peak displacement, non-rigid part, and
-    the ensemble's spread against the error."""
+    (B, n_a) or None): offsets and TRE of every method, peak displacement, non-rigid part, the
+    input gate's refusals, and the ensemble's spread against the error."""
     from ..registration import nonrigid_part
 
     d = model.marker_displacements(bench)
+    out = {"rf": np.array([v.refused for v in model.check_input(d)], dtype=bool)}
     fields = method_fields(model, d, auxiliary=aux)
     fields["pca_floor"] = model.pca_projection(bench)
-    out = {m: _offsets(f, bench) if f is not None else np.full((len(bench), 2), np.nan) for m, f in fields.items()}
+    out.update({m: _offsets(f, bench) if f is not None else np.full((len(bench), 2), np.nan) for m, f in fields.items()})
     out["md"] = np.linalg.norm(bench, axis=2).max(axis=1)
     out["nr"] = nonrigid_part(model.mesh.points, bench)
     if targets is not None:
@@ -286,10 +287,8 @@ def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: s
             parts.setdefault(k, []).append(v)
     cat = lambda k: np.concatenate(parts[k]) if k in parts else np.zeros(0)  # noqa: E731
     tre = {m: cat(f"tre_{m}") for m in METHODS} if targets is not None else {}
-    d = model.marker_displacements(np.asarray(U[idx], dtype=np.float64))
-    refused = np.array([v.refused for v in model.check_input(d)], dtype=bool)
     return SetResult(name, idx, beta, {m: cat(m) for m in METHODS}, cat("md"), cat("nr"), cat("ss"), cat("sm"), tre,
-                     cat("td"), refused)
+                     cat("td"), cat("rf"))
 
 
 def _timing(model, U, idx, repeats: int = TIMING_REPEATS, aux: np.ndarray | None = None) -> dict:
