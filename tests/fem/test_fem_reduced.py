@@ -17,7 +17,7 @@ MAT = NeoHookean(0.021, 0.45)
 
 
 def _bar(order):
-    """A 4 x 1 x 1 cm bar (P1 or P2) clamped at x = 0, with its end loads."""
+    """A 40 x 10 x 10 mm bar (P1 or P2) clamped at x = 0, with its end loads."""
     mesh = box_grid(4, 2, 2, size=(10.0, 5.0, 5.0))
     fixed = np.flatnonzero(mesh.points[:, 0] == 0.0)
     end = np.flatnonzero(mesh.points[:, 0] == mesh.points[:, 0].max())
@@ -133,3 +133,65 @@ def test_reference_preconditioner_saves_factorisations_from_a_guess():
     assert ref.factorizations < plain.factorizations
     peak = np.abs(cold.displacement).max()
     assert np.abs(ref.displacement - cold.displacement).max() <= 2e-3 * peak
+
+
+def _bar_snapshots(problem, end, n=8):
+    solver = Solver(problem)
+    rng = np.random.default_rng(5)
+    directions = rng.standard_normal((n, 3)) * [0.3, 1.0, 1.0]
+    return np.stack([solver.solve(_forces(problem, end, d, 0.01)).nodal_displacement for d in directions])
+
+
+def test_with_springs_is_the_model_of_the_problem_with_those_springs():
+    from tissuecast.fem.springs import NodalSprings
+
+    problem, end = _bar(1)
+    model = ReducedModel.fit(problem, _bar_snapshots(problem, end), tolerance=0.01)
+    f = _forces(problem, end, [0.1, 0.6, -0.8], 0.01)
+    before = model.predict(f)
+    k = np.zeros((len(end), 3, 3))
+    k[:, [0, 1, 2], [0, 1, 2]] = [0.002, 0.004, 0.004]  # N/mm on the loaded end
+    springs = NodalSprings(end, k)
+    held = ReducedModel(Problem(problem.mesh, MAT, problem.fixed, order=1, springs=springs),
+                        model.basis, model.elements, model.weights)
+    view = model.with_springs(springs)
+    expected = held.predict(f)
+    assert np.abs(view.predict(f) - expected).max() <= 1e-9 * np.abs(expected).max()
+    assert np.abs(expected).max() < 0.9 * np.abs(before).max()  # the springs hold the end back
+    np.testing.assert_array_equal(model.predict(f), before)  # the model itself is unchanged
+    np.testing.assert_array_equal(model.with_springs(None).predict(f), before)  # no springs: as the problem's (none)
+
+
+def test_a_samples_reduced_guess_scales_loads_and_springs_with_its_modulus_and_holds_its_extra_vertices():
+    """A body s times stiffer on springs of c times the nominal stiffness deforms under loads L
+    as the nominal body under L / s on springs c / s times the nominal (exact for the
+    neo-Hookean energy)."""
+    from tissuecast.fem.springs import NodalSprings
+    from tissuecast.scenario.parameters import ParameterDraw
+    from tissuecast.scenario.sample_inputs import SampleInputs, ScenarioDraw
+
+    problem, end = _bar(1)
+    k = np.zeros((len(end), 3, 3))
+    k[:, [0, 1, 2], [0, 1, 2]] = 0.003
+    nominal_springs = NodalSprings(end, k)
+    problem = Problem(problem.mesh, MAT, problem.fixed, order=1, springs=nominal_springs)
+    model = ReducedModel.fit(problem, _bar_snapshots(problem, end), tolerance=0.01)
+    s, c = 2.5, 0.4
+    f = _forces(problem, end, [0.1, 0.6, -0.8], 0.01 * s)
+    stiff = Problem(problem.mesh, NeoHookean(0.021 * s, 0.45), problem.fixed, order=1,
+                    springs=NodalSprings(end, k * c))
+    expected = ReducedModel(stiff, model.basis, model.elements, model.weights).predict(f)
+
+    def inputs(held=()):
+        return SampleInputs(f, np.zeros((0, 3)), f, None, np.zeros(0, np.int64), np.zeros((0, 3)), ScenarioDraw(),
+                            parameters=ParameterDraw(youngs_modulus=s, spring_normal=c, spring_tangential=c),
+                            springs=NodalSprings(end, k * c),
+                            extra_held=np.asarray(held, dtype=np.int64))
+
+    guess = inputs().reduced_guess(model)
+    assert np.abs(guess - expected).max() <= 1e-8 * np.abs(expected).max()
+    naive = model.predict(f / s)  # the loads scaled, the springs not: the body on springs s times the nominal
+    assert np.abs(naive - expected).max() > 1e-3 * np.abs(expected).max()
+    middle = np.flatnonzero(np.isclose(problem.mesh.points[:, 0], 20.0))
+    held = inputs(middle).reduced_guess(model)
+    assert np.abs(held[middle]).max() < 0.1 * np.abs(guess[middle]).max()

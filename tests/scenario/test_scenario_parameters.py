@@ -133,3 +133,30 @@ def test_the_attached_extent_and_the_density_follow_the_draw(tmp_path):
 def test_bad_uncertain_ranges_are_refused_naming_the_key(uncertain, scenario, text):
     with pytest.raises(ConfigError, match=text.replace("[", r"\[").replace("]", r"\]")):
         with_overrides(Config(), scenario={"uncertain": uncertain, **scenario})
+
+
+def test_springs_scaled_alike_on_tilted_faces_stay_symmetric(tmp_path):
+    """Normal and tangential parts scaled by (nearly) the same factor cancel off the diagonal;
+    the sample's springs must still be exactly symmetric (a data set stopped on such a draw)."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    from tissuecast.mesh import write_mesh
+    from tissuecast.scenario.parameters import ParameterDraw
+
+    tilted = dataclasses.replace(BOX, points=BOX.points @ Rotation.from_euler("xyz", [0.3, 0.5, 0.7]).as_matrix().T)
+    path = tmp_path / "tilted.vtu"
+    write_mesh(path, tilted)
+    down = Rotation.from_euler("xyz", [0.3, 0.5, 0.7]).apply([0.0, 0.0, -1.0])
+    scenario = {"pins": False, "attached": {"rule": "normal", "direction": list(down), "angle": 30.0},
+                "springs": {"rule": "surface", "normal_stiffness": 0.002, "tangential_stiffness": 0.002},
+                "uncertain": {"spring_normal": [0.25, 4.0], "spring_tangential": [0.25, 4.0]}}
+    cfg = with_overrides(Config(), mesh={"path": str(path)}, solver={"order": 1},
+                         forces={"loading": "traction", "n_basis": 6}, scenario=scenario)
+    s = _scenario(cfg)
+    for a, b in ((1.7, 1.7), (1.7, 1.7 * (1 + 1e-12)), (0.3, 2.9)):
+        k = s.uncertain.springs(s.springs, ParameterDraw(spring_normal=a, spring_tangential=b)).stiffness
+        np.testing.assert_array_equal(k, np.swapaxes(k, 1, 2))
+        normal, tangential = s.uncertain.spring_parts
+        np.testing.assert_allclose(k, a * normal + b * tangential, rtol=0, atol=1e-15 * np.abs(k).max())

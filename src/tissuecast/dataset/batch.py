@@ -67,7 +67,7 @@ def solve_batch_tasks(recipe: Recipe, tasks: list[Task]) -> list[SampleResult]:
     t0, c0 = time.perf_counter(), time.process_time()
     inputs = [ctx.inputs(t) for t in tasks]
     keywords = [x.solve_keywords() for x in inputs]
-    guesses = [ctx.reduced.predict(x.predictor_loads) for x in inputs]
+    guesses = [x.reduced_guess(ctx.reduced) for x in inputs]
     together = [k for k, g in enumerate(guesses) if g is not None]
     budget = min((tasks[k].budget for k in together), default=0.0)
     try:

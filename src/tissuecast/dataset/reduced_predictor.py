@@ -151,7 +151,7 @@ def _interim_guesses(writer: StoreWriter, cfg: Config, recipe: Recipe, problem, 
         return tasks
     out = []
     for task in tasks:
-        guess = model.predict(ctx.inputs(task).loads)
+        guess = ctx.inputs(task).reduced_guess(model)
         out.append(task if guess is None else dataclasses.replace(task, guess=guess,
                                                                   guess_code=int(InitialGuess.INTERIM_MODEL)))
     log.info("interim reduced model of %d pilot solutions (%d modes, %d elements): %d of %d basis samples predicted "

@@ -297,7 +297,7 @@ def _counts(res) -> tuple[int, int, int]:
     return int(getattr(res, "increments", 0)), int(getattr(res, "iterations", 0)), int(getattr(res, "factorizations", 0))
 
 
-def _tries(ctx: SampleContext, task: Task, loads: np.ndarray) -> tuple[list, InitialGuess]:
+def _tries(ctx: SampleContext, task: Task, inputs: "SampleInputs") -> tuple[list, InitialGuess]:
     """The solver attempts of a sample, in order, as ``(retry level, initial guess or None)``,
     and the initial-guess code they start with: the task's guess or else the reduced model's
     prediction first (if any), then the usual attempts from zero."""
@@ -308,7 +308,7 @@ def _tries(ctx: SampleContext, task: Task, loads: np.ndarray) -> tuple[list, Ini
         return [(0, np.asarray(task.guess, dtype=np.float64))] + tries, InitialGuess(task.guess_code)
     if ctx.reduced is None:
         return tries, InitialGuess.ZERO
-    guess = ctx.reduced.predict(loads)
+    guess = inputs.reduced_guess(ctx.reduced)
     if guess is None:
         return tries, InitialGuess.GUESS_FAILED
     return [(0, guess)] + tries, InitialGuess.REDUCED_MODEL
@@ -337,7 +337,7 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
     totals = np.zeros(3, dtype=np.int64)
     reasons = [task.batch_failure] if task.batch_failure else []
     load_fraction = 0.0
-    tries, predicted = _tries(ctx, task, inputs.predictor_loads)
+    tries, predicted = _tries(ctx, task, inputs)
     limit = {"time_limit": task.budget} if task.budget > 0 else {}
     stopped_at = 0 if "SolveTimeout" in task.batch_failure else -1  # retry level of the last attempt stopped by the time budget
     for attempt, guess in tries:

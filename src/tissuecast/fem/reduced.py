@@ -42,6 +42,7 @@ history of the predictor: ``docs/solver.md``.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import time
@@ -53,6 +54,7 @@ from scipy.linalg import cho_factor, cho_solve
 from ..errors import SolverSetupError
 from .assembly import Assembler
 from .problem import Problem, check_forces
+from .springs import NodalSprings
 
 __all__ = ["ReducedModel", "ecsw_weights"]
 
@@ -216,10 +218,30 @@ class ReducedModel:
         self.fit_error: float | None = None  # ECSW force error of fit(), if fitted here
         self.last_iterations, self.last_seconds = 0, 0.0  # of the last predict()
         self._h0 = None  # reduced stiffness at zero displacement (the linear start), on first use
+        self._h0_elastic = None  # its sampled elements' part
 
     @property
     def n_modes(self) -> int:
         return self.basis.shape[1]
+
+    def with_springs(self, springs: NodalSprings | None) -> "ReducedModel":
+        """This model with other springs to ground in place of the problem's: a sample's own
+        stiffnesses, or more nodes held by stiff springs. The basis, the sampled elements and
+        their reduced stiffness are shared; only the springs' ``V^T K_s V`` is new.
+
+        Args:
+            springs: the springs of the view (node ids of the problem's element nodes), or
+                None for none.
+        """
+        ks = np.zeros((self.n_modes, self.n_modes))
+        if springs is not None and len(springs):
+            ks = self.basis.T @ (springs.matrix(self.problem.free_mask) @ self.basis)
+            ks = 0.5 * (ks + ks.T)
+        h0 = self._elastic_h0()
+        out = copy.copy(self)
+        out._sub = dataclasses.replace(self._sub, springs=ks)
+        out._h0 = h0 + ks
+        return out
 
     # ------------------------------------------------------------------ building
     @classmethod
@@ -340,13 +362,20 @@ class ReducedModel:
         reduced stiffness at zero displacement ``H0`` is built on first use."""
         sub = self._sub
         if self._h0 is None:
-            asm = sub.assembler
-            _, data, _ = asm.tangent(self._state(np.zeros(self.n_modes)))
-            self._h0 = sub.basis.T @ (asm.matrix(data) @ sub.basis) + sub.springs
+            self._h0 = self._elastic_h0() + sub.springs
         try:
             return np.linalg.solve(self._h0, fr)
         except np.linalg.LinAlgError:
             return np.zeros(self.n_modes)
+
+    def _elastic_h0(self) -> np.ndarray:
+        """(r, r) reduced stiffness of the sampled elements at zero displacement, N/mm (built
+        once, shared by the views of :meth:`with_springs`)."""
+        if self._h0_elastic is None:
+            sub = self._sub
+            _, data, _ = sub.assembler.tangent(self._state(np.zeros(self.n_modes)))
+            self._h0_elastic = sub.basis.T @ (sub.assembler.matrix(data) @ sub.basis)
+        return self._h0_elastic
 
     def _newton(self, q_lin: np.ndarray, fr_full: np.ndarray, max_iterations: int, tolerance: float,
                 first_increment: float):

@@ -152,11 +152,16 @@ class UncertainParameters:
         return e, nu
 
     def springs(self, nominal: NodalSprings | None, draw: ParameterDraw) -> NodalSprings | None:
-        """The sample's springs: the nominal ones with their normal and tangential parts scaled."""
+        """The sample's springs: the nominal ones with their normal and tangential parts scaled.
+
+        The sum is made exactly symmetric: the parts are symmetric only to the last bit, and
+        where the two factors nearly cancel off the diagonal (similar factors on a stiffness
+        that is about isotropic) that last bit is the whole entry."""
         if nominal is None or self.spring_parts is None:
             return nominal
         normal, tangential = self.spring_parts
-        return NodalSprings(nominal.nodes, draw.spring_normal * normal + draw.spring_tangential * tangential)
+        k = draw.spring_normal * normal + draw.spring_tangential * tangential
+        return NodalSprings(nominal.nodes, 0.5 * (k + np.swapaxes(k, 1, 2)))
 
     def extra_held(self, draw: ParameterDraw, base: np.ndarray) -> np.ndarray:
         """(k,) int64 vertices the sample's attached extent holds beyond the static ``base`` ones."""

@@ -9,7 +9,7 @@ record, so that the solver and the data set receive it from this one object.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -17,7 +17,12 @@ from ..instruments import InstrumentPose
 from .indentation import Indentation
 from .parameters import ParameterDraw
 
-__all__ = ["SampleInputs", "ScenarioDraw"]
+__all__ = ["SampleInputs", "ScenarioDraw", "HOLD_STIFFNESS_LENGTH"]
+
+#: mm: a vertex the reduced model's guess holds (:meth:`SampleInputs.reduced_guess`) sits on a
+#: spring of this length times the nominal modulus in every direction (with E = 0.021 MPa,
+#: 2.1 N/mm: ~30x a 3 mm element's own stiffness E h).
+HOLD_STIFFNESS_LENGTH = 100.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,6 +96,8 @@ class SampleInputs:
             of every element, or None for the problem's own.
         springs: the sample's :class:`~tissuecast.fem.springs.NodalSprings` (the problem's
             nodes, scaled stiffnesses), or None for the problem's own.
+        extra_held: (k,) int64 vertices the sample holds at zero beyond the static supports
+            (its attached region's larger extent; also among ``prescribed_ids``).
     """
 
     forces: np.ndarray
@@ -103,6 +110,7 @@ class SampleInputs:
     parameters: object = None
     materials: object = None
     springs: object = None
+    extra_held: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
 
     @property
     def solver_parameters(self) -> tuple:
@@ -110,13 +118,23 @@ class SampleInputs:
         for the problem's own)."""
         return self.materials, self.springs
 
-    @property
-    def predictor_loads(self) -> np.ndarray:
-        """(n_nodes, 3) float64 N: the loads a reduced model of the nominal problem predicts this
-        sample from: :attr:`loads` over the sample's factor on E (stresses scale with E, so a
-        body of E / s under loads / s deforms alike, but for its springs and prescribed nodes)."""
-        factor = 1.0 if self.parameters is None else float(self.parameters.youngs_modulus)
-        return self.loads / factor
+    def reduced_guess(self, reduced) -> np.ndarray | None:
+        """The reduced model's prediction of this sample (an initial guess for the full solve):
+        (n_nodes, 3) mm, or None when the reduced problem does not converge.
+
+        ``reduced`` (:class:`~tissuecast.fem.reduced.ReducedModel`) models the nominal problem.
+        With drawn parameters it predicts the sample as a body of the nominal E under the
+        loads and springs over the sample's factor s on E (stresses scale with E: a body of
+        E / s under loads / s on springs k / s deforms alike), with the vertices of a larger
+        attached extent held by stiff springs (:data:`HOLD_STIFFNESS_LENGTH` times the modulus,
+        N/mm). Poisson's ratio and the prescribed indentation stay the nominal model's: the
+        full solve imposes them.
+        """
+        if self.parameters is None:
+            return reduced.predict(self.loads)
+        s = float(self.parameters.youngs_modulus)
+        base = self.springs if self.springs is not None else reduced.problem.springs
+        return reduced.with_springs(_guess_springs(base, self.extra_held, s, reduced.problem)).predict(self.loads / s)
 
     def solve_keywords(self) -> dict:
         """The keywords of :meth:`tissuecast.fem.Solver.solve` besides the surface loads:
@@ -132,3 +150,20 @@ class SampleInputs:
         """(n_nodes, 3) float64 N, all external loads: the surface loads plus the body loads
         (what a reduced model predicts the solution from)."""
         return self.surface + (0.0 if self.body is None else self.body)
+
+
+def _guess_springs(base, held: np.ndarray, factor: float, problem):
+    """The reduced guess's springs: ``base`` (NodalSprings or None) over ``factor``, plus the
+    stiff hold of the ``held`` vertices (also over ``factor``)."""
+    from ..fem.springs import NodalSprings
+
+    nodes = np.zeros(0, dtype=np.int64) if base is None else base.nodes
+    held = np.asarray(held, dtype=np.int64)
+    every = np.union1d(nodes, held)
+    k = np.zeros((len(every), 3, 3))
+    if base is not None:
+        k[np.searchsorted(every, nodes)] += base.stiffness
+    if len(held):
+        modulus = float(np.asarray(problem.element_material.youngs_modulus).mean())
+        k[np.searchsorted(every, held)] += HOLD_STIFFNESS_LENGTH * modulus * np.eye(3)
+    return NodalSprings(every, k / factor) if len(every) else None

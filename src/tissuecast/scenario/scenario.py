@@ -204,7 +204,7 @@ class Scenario:
         if c.spring_normal or c.spring_tangential:
             springs = u.springs(self.springs, p)
         return dataclasses.replace(inputs, body=body, prescribed_ids=ids, prescribed_values=values, parameters=p,
-                                   materials=materials, springs=springs)
+                                   materials=materials, springs=springs, extra_held=np.asarray(extra, dtype=np.int64))
 
     def sample_loads(self, draw: "ScenarioDraw", vertex_forces: np.ndarray | None = None,
                      loading: str | None = None) -> tuple[np.ndarray, np.ndarray]:
