@@ -78,16 +78,19 @@ class MeshConfig:
 
 #: Fixed-vertex placement rules (see :func:`tissuecast.scenario.pins.select_fixed_vertices`).
 FIXED_RULES = ("compact", "spread")
+#: How the markers a model reads are chosen (``markers.rule``).
+MARKER_RULES = ("k-center", "planned")
 
 
 @dataclass(frozen=True)
 class MarkerConfig:
-    """Fiducial markers (revised k-center clustering) and fixed vertices."""
+    """Fiducial markers (revised k-center clustering, or planned from the simulations) and fixed vertices."""
 
     count: int = _f(5, lo=1, hi=200, doc="number of fiducial markers n_d")
     start: int = _f(96, lo=0, doc="0-based start vertex v0 (paper: 97 1-based)")
     min_distance: float = _f(10.0, lo=0.0, doc="d_min in mm")
-    ids: tuple[int, ...] = _f((), doc="user-given 0-based marker ids (overrides count/start)")
+    ids: tuple[int, ...] = _f((), doc="user-given 0-based marker ids (overrides count/start and rule)")
+    rule: str = _f("k-center", choices=MARKER_RULES, doc="'k-center' = the paper's rule (count, start, min_distance); 'planned' = count surface markers planned from the simulations before training")
     fixed_count: int = _f(3, lo=1, hi=50, doc="number of fixed (pinned) vertices")
     fixed_ids: tuple[int, ...] = _f((), doc="user-given 0-based fixed vertex ids")
     fixed_depth_fraction: float = _f(0.5, lo=0.0, hi=1.0, doc="fixed vertices lie at least this share of the largest depth below the surface")

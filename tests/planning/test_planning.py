@@ -101,3 +101,42 @@ def test_plan_markers_on_a_data_set_count_and_target():
     assert unreachable.count == 3 and unreachable.target_reached is False
     with pytest.raises(MarkerError, match="either"):
         plan_markers(ds, 3, target_mm=1.0)
+
+
+def test_the_planned_rule_trains_on_markers_planned_from_the_simulations(tmp_path, monkeypatch):
+    """``markers.rule = "planned"``: the run plans ``markers.count`` surface markers at least
+    ``markers.min_distance`` apart on the store's train/valid fields and trains with them; the
+    plan is saved beside the model; given ids win."""
+    import json
+
+    from tissuecast.app import pipeline
+    from tissuecast.config import Config, with_overrides
+
+    ds = FakeDataset(n=200, n_test2=0)
+    monkeypatch.setattr("tissuecast.dataset.open_dataset", lambda store: ds)
+    cfg = with_overrides(Config(), markers={"rule": "planned", "count": 4, "min_distance": 2.0},
+                         surrogate={"epochs": 30, "calibration": "none"})
+    expected = plan_markers(ds, 4, region="surface", min_distance=2.0)
+    assert not np.array_equal(np.sort(expected.markers), np.sort(ds.markers[:4]))  # not the store's own markers
+    model, _ = pipeline.train_from_store(cfg, "unused.zarr", model_folder=tmp_path / "model", onnx=False)
+    np.testing.assert_array_equal(model.markers, expected.markers)
+    saved = json.loads((tmp_path / "model" / pipeline.PLAN_FILE).read_text())
+    assert saved["markers"] == expected.markers.tolist() and saved["min_distance_mm"] == 2.0
+    points = ds.mesh.points[model.markers]
+    assert np.linalg.norm(points[:, None] - points[None], axis=2)[np.triu_indices(4, 1)].min() > 2.0
+    given = with_overrides(cfg, markers={"ids": [10, 20, 30]})
+    model, _ = pipeline.train_from_store(given, "unused.zarr", model_folder=tmp_path / "given", onnx=False)
+    np.testing.assert_array_equal(model.markers, [10, 20, 30])
+    assert not (tmp_path / "given" / pipeline.PLAN_FILE).exists()
+
+
+def test_the_markers_command_says_a_planned_rule_plans_at_training(tmp_path, capsys):
+    from pathlib import Path
+
+    from tissuecast.cli.main import main
+
+    preset = Path(__file__).resolve().parents[2] / "configs" / "embedded.toml"
+    assert main(["markers", "phantom", "--config", str(preset), "--out", str(tmp_path / "mk")]) == 0
+    assert "markers.rule = 'planned'" in capsys.readouterr().out
+    assert main(["markers", "phantom", "--out", str(tmp_path / "paper")]) == 0
+    assert "planned" not in capsys.readouterr().out

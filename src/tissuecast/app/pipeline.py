@@ -7,15 +7,20 @@ Paths: ``config.output`` holds ``model/`` and the report folder ``config.evaluat
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from pathlib import Path
 
 from ..config import Config, EvaluateConfig
 
-__all__ = ["RunPaths", "run_paths", "train_from_store", "evaluate_and_report", "run_pipeline", "resolve_source"]
+__all__ = ["RunPaths", "run_paths", "train_from_store", "planned_config", "evaluate_and_report", "run_pipeline",
+           "resolve_source", "PLAN_FILE"]
 
 log = logging.getLogger(__name__)
+
+#: The markers' plan (``markers.rule = "planned"``), beside the model: ``tissuecast markers plan``'s JSON.
+PLAN_FILE = "markers_plan.json"
 
 
 class RunPaths:
@@ -47,10 +52,29 @@ def train_from_store(config: Config, store, *, model_folder=None, onnx: bool = T
     from ..surrogate import DeformationModel
 
     ds = open_dataset(store)
+    plan = None
+    if config.markers.rule == "planned" and not config.markers.ids:
+        config, plan = planned_config(config, ds)
     model = DeformationModel.from_dataset(ds, config)
     if model_folder is not None:
         model.save(model_folder, onnx=onnx)
+        if plan is not None:
+            (Path(model_folder) / PLAN_FILE).write_text(json.dumps(plan.as_dict(), indent=2))
     return model, ds
+
+
+def planned_config(config: Config, dataset):
+    """``(config with markers.ids planned, MarkerPlan)``: ``markers.count`` surface markers at
+    least ``markers.min_distance`` apart, planned from the data set's train/valid fields
+    (:func:`tissuecast.planning.plan_markers`; deterministic)."""
+    from ..config import with_overrides
+    from ..planning import plan_markers
+
+    t = time.perf_counter()
+    plan = plan_markers(dataset, config.markers.count, region="surface", min_distance=config.markers.min_distance)
+    log.info("planned %d markers from the simulations in %.1f s (proxy validation mean Offset_max %.2f mm): "
+             "0-based ids %s", plan.count, time.perf_counter() - t, plan.proxy_error, plan.markers.tolist())
+    return with_overrides(config, markers={"ids": [int(i) for i in plan.markers]}), plan
 
 
 def evaluate_and_report(model, dataset, folder, *, renders: int = EvaluateConfig.renders, studies_folder=None,

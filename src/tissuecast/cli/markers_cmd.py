@@ -95,6 +95,10 @@ def run(args) -> int:
     for role, k, i, (x, y, z) in _rows(mesh, markers, fixed):
         where = "surface" if i in surface else "interior"
         print(f"{role:7s} {k + 1:2d} {i:6d} {x:9.3f} {y:9.3f} {z:9.3f}  {where}")
+    if mc.rule == "planned" and not mc.ids:
+        print("note: markers.rule = 'planned': these are the k-center markers the data set records; the model's "
+              "markers are planned from the simulations when it is trained (model/markers_plan.json), or now with "
+              "`tissuecast markers plan STORE`")
     written = [_write_csv(prefix, mesh, markers, fixed, surface), _write_json(prefix, mesh, markers, fixed, params)]
     written.append(_write_vtu(prefix, mesh, markers, fixed))
     written.append(write_markers_markups(prefix.with_name(prefix.name + ".mrk.json"), mesh, markers, fixed))
