@@ -7,7 +7,9 @@ stores (the same scenario with another ``dataset.seed`` and the store's calibrat
 ``split = [1, 0, 0]`` and ``n_test2 = 0``); a size N trains on the first N of the pool. Every
 size validates on the store's 'valid' split and is tested on its 'test-1' split, so the rows
 differ only in the training set. The models read the markers and the scenario's tracked
-instruments' poses (``--markers-only``: the markers alone). Each row: decoder, N, markers, the model's test-1 mean
+instruments' poses (``--markers-only``: the markers alone); the markers are the k-center
+rule's, or with ``--planned`` planned on the store as ``markers.rule = "planned"`` plans them.
+Each row: decoder, N, markers, the model's test-1 mean
 Offset_max, mean Offset_mean, share of samples below 1 mm, the ridge and rigid-registration
 baselines' mean Offset_max, n_w after the validation cut, the fit time, and the solver time the N samples
 cost (the stores' recorded worker seconds per sample).
@@ -73,6 +75,8 @@ def main() -> None:
     p.add_argument("--markers", type=int, nargs="+", default=[10])
     p.add_argument("--variants", nargs="+", default=["pca", "local"], help="decoders (decoder_floor.py's NAME[:key=value...])")
     p.add_argument("--markers-only", action="store_true", help="leave the scenario's tracked instruments out")
+    p.add_argument("--planned", action="store_true", help="markers planned on the store (markers.rule = 'planned') "
+                   "instead of the k-center rule's")
     args = p.parse_args()
     main_ds = open_dataset(args.dataset)
     inputs = AuxiliaryInputs() if args.markers_only else AuxiliaryInputs.from_config(main_ds.config.scenario)
@@ -80,17 +84,24 @@ def main() -> None:
     U, A, train_pool, valid, test, seconds = pool(main_ds, [open_dataset(e) for e in args.extra], inputs)
     bench = U[test]
     mesh, fixed = main_ds.mesh, np.asarray(main_ds.fixed, dtype=np.int64)
-    ranked = study_markers(mesh, max(args.markers), main_ds.config, exclude=fixed)[0]
+    if args.planned:  # as markers.rule = "planned": surface markers, markers.min_distance apart, from 'train'/'valid'
+        from tissuecast.planning import plan_markers
+
+        spacing = main_ds.config.markers.min_distance
+        chosen = {n: plan_markers(main_ds, n, region="surface", min_distance=spacing).markers for n in args.markers}
+    else:
+        ranked = study_markers(mesh, max(args.markers), main_ds.config, exclude=fixed)[0]
+        chosen = {n: ranked[:n] for n in args.markers}
     print(f"{main_ds} + {len(train_pool) - len(dataset_arrays(main_ds).train_idx)} extra training samples; "
           f"valid {len(valid)}, test-1 {len(test)}; solver {np.median(seconds):.2f} s a sample (median worker time); "
-          f"inputs: markers{''.join(' + ' + i.name for i in inputs.instruments)}")
+          f"inputs: {'planned' if args.planned else 'k-center'} markers{''.join(' + ' + i.name for i in inputs.instruments)}")
     print("decoder                 N    n_d  model: Offset_max  Offset_mean  <1 mm   ridge   rigid   n_w   fit s   solve s")
     for n in args.sizes:
         if n > len(train_pool):
             print(f"  N = {n}: only {len(train_pool)} training samples in the pool; skipped")
             continue
         for n_d in args.markers:
-            markers = ranked[:n_d]
+            markers = chosen[n_d]
             for label, o in (parse_variant(v) for v in args.variants):
                 t0 = time.perf_counter()
                 m = DeformationModel(main_ds.config, **{"ensemble": 1, "calibration_share": 0.0, **o}).fit(
