@@ -92,7 +92,10 @@ def test_a_stopped_run_exits_cleanly_and_resumes_bit_identically(reference, tmp_
     store = tmp_path / "stopped.zarr"
     cmd = [sys.executable, "-m", "tissuecast.cli.main", "-q", "simulate", str(cfg_file), "--store", str(store),
            "--no-progress"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    # as from a terminal: SIGINT at its default (a shell without job control starts background
+    # jobs, and so a test run started with `&`, with SIGINT ignored, which children inherit)
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     while done_count(store) < 30 and proc.poll() is None and time.monotonic() < deadline:
         time.sleep(0.02)

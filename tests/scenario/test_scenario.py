@@ -457,6 +457,7 @@ def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
         a, b = (config_to_dict(getattr(c, section)) for c in (emb, paper))
         a.pop("store", None), b.pop("store", None)
         a.pop("count", None), b.pop("count", None)  # 10 markers: 5 leave most of this strain unseen (docs/scenarios.md)
+        a.pop("rule", None), b.pop("rule", None)  # planned: they see where the tissue is attached (docs/uncertainty.md)
         for key in ("calibration", "calibration_folds", "calibration_share"):  # both calibrate bounds and alarm
             a.pop(key, None), b.pop(key, None)
         for key in ("batch_size", "predictor_tolerance"):  # speed settings of the paper preset (32, 0.04)
