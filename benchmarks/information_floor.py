@@ -37,7 +37,8 @@ import numpy as np
 from tissuecast.config import UNCERTAIN_PARAMETERS, load_config
 from tissuecast.dataset import open_dataset
 from tissuecast.surrogate import DeformationModel
-from tissuecast.surrogate.data import split_indices
+from tissuecast.surrogate.auxiliary import AuxiliaryInputs
+from tissuecast.surrogate.data import dataset_auxiliary, split_indices
 
 from decoder_floor import errors
 
@@ -67,14 +68,9 @@ def set_inputs(model, ds, config) -> np.ndarray | None:
     aux = model.auxiliary
     if not aux.width:
         return None
-    from tissuecast.instruments import features_from_arrays
-
     nominal = {"poisson_ratio": config.material.poisson_ratio, "attached_margin": 0.0}
-    poses, params = ds.instrument_poses, ds.parameters
-    cols = []
-    for inst in aux.instruments:
-        p = poses[inst.name]
-        cols.append(features_from_arrays(p["tip"], p["direction"], p["depth"], p["contact"] == 1))
+    params = ds.parameters
+    cols = [dataset_auxiliary(ds, AuxiliaryInputs(instruments=aux.instruments)).values]  # the recorded poses
     for name in aux.parameters:
         v = np.asarray(params[name], dtype=np.float64) if name in params else np.full(ds.n_samples, np.nan)
         cols.append(np.where(np.isnan(v), nominal.get(name, 1.0), v)[:, None])
