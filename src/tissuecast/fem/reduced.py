@@ -30,7 +30,8 @@ as without a predictor).
 
 Linear springs to ground (an elastic support) are exact in the reduced model: their reduced
 stiffness ``V^T K_s V`` is a constant (r, r) matrix added to the sampled elements' energy,
-forces and tangent; :meth:`ReducedModel.with_springs` swaps it for a sample's own springs. Per-element materials are those of the sampled elements. Per-solve
+forces and tangent; :meth:`ReducedModel.with_springs` swaps it for a sample's own springs.
+Per-element materials are those of the sampled elements. Per-solve
 prescribed displacements (an indentation) are not part of the prediction: the reduced model
 predicts the response to the loads, and the full solver moves the prescribed nodes from
 there (its lift, :mod:`.newton`).
