@@ -184,10 +184,33 @@ def test_a_store_with_markers_of_an_earlier_rule_resumes_with_its_own(reference,
     root = zarr.open_group(str(path), mode="r+")
     now = np.asarray(root["markers"][...])
     root["markers"][:] = now[::-1]  # as an earlier rule might have ordered them
-    with caplog.at_level(logging.WARNING, logger="tissuecast.dataset.store"):
+    with caplog.at_level(logging.INFO, logger="tissuecast.dataset.store"):
         simulate(cfg, path, progress=False)
-    assert "keeps its own markers" in caplog.text
+    assert "the store keeps its own" in caplog.text
     np.testing.assert_array_equal(open_dataset(path).markers, now[::-1])
+
+
+def test_a_store_without_pins_resumes_under_other_markers_and_trains_with_the_configs(reference, tmp_path):
+    """Without pins the [markers] settings change no sample: a store resumes under another
+    marker count (with pins it is refused, tests/dataset/test_dataset_store.py) and a model
+    trained from that config has the markers the config chooses, not the store's."""
+    import shutil
+
+    from tissuecast.app.pipeline import train_from_store
+    from tissuecast.markers import markers_from_config
+
+    cfg, ref_path, _ = reference
+    path = tmp_path / "copy.zarr"
+    shutil.copytree(ref_path, path)
+    stored = np.asarray(open_dataset(path).markers)
+    other = with_overrides(cfg, markers={"count": len(stored) + 2, "min_distance": 1.0},
+                           surrogate={"epochs": 5, "patience": 0, "n_components": 4})
+    assert simulate(other, path, progress=False)["run"]["solved"] == 0
+    np.testing.assert_array_equal(open_dataset(path).markers, stored)  # the store keeps its own
+    model, ds = train_from_store(other, path)
+    chosen = markers_from_config(ds.mesh, other.markers, held=ds.scenario_arrays["attached"])
+    assert len(chosen) == len(stored) + 2 and not np.isin(chosen, ds.scenario_arrays["attached"]).any()
+    np.testing.assert_array_equal(model.markers, chosen)
 
 
 def test_a_store_with_springs_of_an_earlier_lumping_goes_on_with_its_own(reference, tmp_path, caplog):

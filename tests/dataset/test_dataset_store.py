@@ -145,7 +145,8 @@ def test_rerun_is_a_no_op_and_other_config_is_refused(made, tmp_path):
     assert simulate(run, path, progress=False, solver_factory=FAKE)["run"]["solved"] == 0
     assert store_arrays(path) == before
     for override in ({"dataset": {"n_samples": 11}}, {"material": {"youngs_modulus": 0.03}},
-                     {"forces": {"n_basis": 9}}, {"dataset": {"seed": 8}}):
+                     {"forces": {"n_basis": 9}}, {"dataset": {"seed": 8}},
+                     {"markers": {"count": 5}}):  # with pins the markers choose the pins
         other = with_overrides(cfg, **override)
         with pytest.raises(DatasetError, match="different configuration.*never overwritten"):
             simulate(other, path, progress=False, solver_factory=FAKE)

@@ -12,10 +12,12 @@ import logging
 import time
 from pathlib import Path
 
-from ..config import Config, EvaluateConfig
+import numpy as np
 
-__all__ = ["RunPaths", "run_paths", "train_from_store", "planned_config", "evaluate_and_report", "run_pipeline",
-           "resolve_source", "PLAN_FILE"]
+from ..config import Config, EvaluateConfig, with_overrides
+
+__all__ = ["RunPaths", "run_paths", "train_from_store", "planned_config", "chosen_markers_config", "evaluate_and_report",
+           "run_pipeline", "resolve_source", "PLAN_FILE"]
 
 log = logging.getLogger(__name__)
 
@@ -55,12 +57,31 @@ def train_from_store(config: Config, store, *, model_folder=None, onnx: bool = T
     plan = None
     if config.markers.rule == "planned" and not config.markers.ids:
         config, plan = planned_config(config, ds)
+    elif not config.markers.ids and not config.scenario.pins:
+        config = chosen_markers_config(config, ds)
     model = DeformationModel.from_dataset(ds, config)
     if model_folder is not None:
         model.save(model_folder, onnx=onnx)
         if plan is not None:
             (Path(model_folder) / PLAN_FILE).write_text(json.dumps(plan.as_dict(), indent=2))
     return model, ds
+
+
+def chosen_markers_config(config: Config, dataset) -> Config:
+    """``config`` with ``markers.ids`` set to the markers its k-center rule chooses on the data
+    set's mesh (avoiding the stored attached region), where they differ from the store's.
+
+    Without pins the markers change no sample, so a store resumes under other ``[markers]``
+    settings (:func:`tissuecast.dataset.data_config`) and keeps the markers it was made with;
+    the model is trained with the ones the config asks for."""
+    from ..markers import markers_from_config
+
+    chosen = markers_from_config(dataset.mesh, config.markers, held=dataset.scenario_arrays["attached"])
+    if np.array_equal(chosen, dataset.markers):
+        return config
+    log.info("the data set was made with markers %s; training with the %d the config chooses (0-based ids %s)",
+             np.asarray(dataset.markers).tolist(), len(chosen), chosen.tolist())
+    return with_overrides(config, markers={"ids": [int(i) for i in chosen]})
 
 
 def planned_config(config: Config, dataset):

@@ -349,9 +349,13 @@ def data_config(cfg: Config) -> dict:
     """The part of a config that determines a data set's contents (nested dict): of
     ``[dataset]`` its :class:`~tissuecast.config.DatasetContent` (run settings may differ when
     resuming); of ``[mesh]`` all but ``path`` (the file may move: its content is checked by
-    fingerprint instead, :func:`_check_mesh`)."""
+    fingerprint instead, :func:`_check_mesh`); ``[markers]`` only where the pins are chosen
+    around the markers (``scenario.pins``): without pins the markers change no sample, so a
+    store resumes (and a model trains on it) with other markers, e.g. planned ones."""
     d = config_to_dict(cfg)
     out = {sec: dict(d[sec]) for sec in _DATA_SECTIONS}
+    if not cfg.scenario.pins:
+        out["markers"] = {}
     out["dataset"] = config_to_dict(cfg.dataset.content())
     out["mesh"].pop("path")
     # an instrument's OpenIGTLink device name is for serving: it changes no number of the data set
@@ -395,10 +399,11 @@ def _check_ids(writer: StoreWriter, cfg: Config, markers: np.ndarray, fixed: np.
             continue
         if what == "markers" and not cfg.scenario.pins:
             # without pins the markers do not enter the simulation (pins are chosen around them):
-            # the store keeps the markers it was made with, and the model is trained on those
-            log.warning("data set %r was made with markers %s, this config chooses %s (e.g. a store from a version "
-                        "whose marker rule did not avoid the attached region); the store keeps its own markers",
-                        str(writer.path), stored_ids.tolist(), np.asarray(now).tolist())
+            # the store keeps the markers it was made with; training takes the config's
+            # (tissuecast.app.pipeline.train_from_store)
+            log.info("data set %r was made with markers %s, this config chooses %s; the store keeps its own, "
+                     "a model trained from this config uses the config's", str(writer.path), stored_ids.tolist(),
+                     np.asarray(now).tolist())
             continue
         raise DatasetError(
             f"data set {str(writer.path)!r} has {what} vertices {stored_ids.tolist()} but this config gives "
