@@ -322,3 +322,43 @@ def test_sample_clock_median_budget_and_slow_samples():
     for i in range(3):
         fast.add(i, 0.01)
     assert fast.budget() == 5.0 and fast.add(3, 0.5) is None  # under a second: never "slow"
+
+
+def test_a_phase_where_nothing_finishes_says_it_is_still_solving(monkeypatch, caplog):
+    """Waits that end with nothing finished (the executor's empty lists) give a line every
+    LOG_SECONDS: what is running, for how long, and the budget that stops a stalled attempt."""
+    import logging
+
+    import tissuecast.dataset.supervise as supervise
+    from tissuecast.dataset.codes import SampleStatus
+    from tissuecast.dataset.supervise import Supervisor
+    from tissuecast.dataset.worker import SampleResult, Task
+
+    def done(i):
+        return SampleResult(i, SampleStatus.DONE, np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32),
+                            np.zeros((1, 3)), 1.0, float("nan"), i, 1, 2, 1, 4.0, 1.0, 1)
+
+    class Stalling:
+        workers = 2
+
+        def imap_unordered(self, items):
+            items = list(items)
+            yield []
+            yield []
+            yield [done(t.index) for t in items[:3]]
+            yield []
+
+    monkeypatch.setattr(supervise, "LOG_SECONDS", -1.0)  # every wait may log
+    with caplog.at_level(logging.INFO, logger="tissuecast.dataset.supervise"):
+        got = list(Supervisor(Stalling(), 10.0, 1.0).run([Task(i, i, float("nan"), 1.0) for i in range(4)], "simulate"))
+    assert [r.index for r in got] == [0, 1, 2]
+    lines = [m for m in caplog.messages if "still solving" in m]
+    assert len(lines) == 3, caplog.messages
+    assert lines[0].startswith("simulate: 0/4 samples (0 failed), still solving (no sample finished in the ")
+    assert "a solver attempt past" not in lines[0]  # no median yet: no budget to state
+    assert "none finished in the last" in lines[2] and "the median sample took 4.0 s" in lines[2]
+    assert "a solver attempt past 40 s is stopped" in lines[2]  # 10 x the median
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="tissuecast.dataset.supervise"):
+        list(Supervisor(Stalling(), 10.0, 1.0, progress=False).run([Task(0, 0, float("nan"), 1.0)], "simulate"))
+    assert not [m for m in caplog.messages if "still solving" in m]  # progress off: quiet

@@ -250,6 +250,8 @@ class LocalExecutor:
                     if not futures:
                         return
                     finished, _ = cf.wait(futures, timeout=POLL_SECONDS, return_when=cf.FIRST_COMPLETED)
+                if not finished:
+                    yield []  # still solving: the caller may say so
                 for f in sorted(finished, key=id):
                     futures.discard(f)
                     try:
@@ -327,7 +329,12 @@ class DaskExecutor:
         _fill(futures, source, submit, window)
         queue = distributed.as_completed(list(futures), loop=self._client.loop)
         try:
-            for f in queue:
+            while not queue.is_empty():
+                if not queue.has_ready():
+                    time.sleep(POLL_SECONDS)
+                    yield []  # still solving: the caller may say so
+                    continue
+                f = next(queue)
                 futures.discard(f)
                 result = f.result()
                 for new in _fill(futures, source, submit, window):

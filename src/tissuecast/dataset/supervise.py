@@ -18,6 +18,9 @@ samples, the pending samples) runs its tasks through a :class:`Supervisor`:
   Until a few results have come in, the ETA is the running median of the worker seconds
   times the waves of tasks left on the workers (a rate needs more results). A phase may add
   an outlook to each line (the calibration's ETA as a whole, :mod:`.calibrate`).
+* **Heartbeat**: while nothing finishes (a slow sample, a batch of hard ones) a line every
+  ``LOG_SECONDS`` says the phase is still solving, how long since the last result, the median
+  and the budget that will stop a stalled attempt: a run never goes quiet.
 * **Counts**: each phase's results are summed into a :class:`~.phase_stats.PhaseStats`
   (:attr:`Supervisor.phases`): where the run's time went.
 
@@ -105,7 +108,8 @@ class Supervisor:
     """Runs tasks on an executor with budgets and progress (see the module notes).
 
     Args:
-        executor: has ``imap_unordered(items) -> lists of results`` pulling work items lazily.
+        executor: has ``imap_unordered(items) -> lists of results`` pulling work items lazily
+            (an empty list where a wait ended with nothing finished).
         factor, floor: ``dataset.time_budget`` and ``dataset.time_budget_min``.
         progress: show a bar on a terminal / log progress lines.
     """
@@ -142,7 +146,7 @@ class Supervisor:
         bar = _Bar(phase, n + done if total is None else total, done, unit, self.progress, self.workers, outlook)
         stamped = (_with_budget(t, clock.budget()) for t in tasks)
         try:
-            for r in (r for results in self.executor.imap_unordered(stamped) for r in results):
+            for r in self._results(stamped, bar, clock):
                 stats.add(r)
                 ratio = clock.add(r.index, r.seconds)
                 if ratio is not None:
@@ -157,6 +161,15 @@ class Supervisor:
             bar.close(clock)
             self.last_median = clock.median if clock.median is not None else self.last_median
             self.phases.append(stats.close(clock.median_so_far))
+
+
+    def _results(self, items, bar: "_Bar", clock: SampleClock) -> Iterator[SampleResult]:
+        """The executor's results one by one; an empty list from the executor (a wait that
+        ended with nothing finished) lets the bar say that the phase is still solving."""
+        for results in self.executor.imap_unordered(items):
+            if not results:
+                bar.waiting(clock)
+            yield from results
 
 
 def _with_budget(item: Task | Batch, budget: float) -> Task | Batch:
@@ -177,7 +190,7 @@ class _Bar:
     def __init__(self, phase: str, total: int, done: int, unit: str, enabled: bool, workers: int = 1,
                  outlook=None) -> None:
         self.phase, self.total, self.count, self.start, self.unit = phase, total, done, done, unit
-        self.t0 = self.last = time.monotonic()
+        self.t0 = self.last = self.finished = time.monotonic()
         self.enabled, self.workers, self.outlook = enabled, workers, outlook
         self.failed = 0
         self.bar = None
@@ -199,7 +212,7 @@ class _Bar:
     def update(self, r: SampleResult, clock: SampleClock) -> None:
         self.count += 1
         self.failed += int(r.status != SampleStatus.DONE)
-        now = time.monotonic()
+        now = self.finished = time.monotonic()
         eta = self.eta(clock, now)
         more = self.outlook(eta, clock.median_so_far) if self.outlook is not None else ""
         if self.bar is not None:
@@ -212,6 +225,27 @@ class _Bar:
             rate = (self.count - self.start) / max(now - self.t0, 1e-9)
             log.info("%s: %d/%d %ss (%d failed), %.2f %ss/s, ETA %s%s%s", self.phase, self.count, self.total,
                      self.unit, self.failed, rate, self.unit, eta_text(eta), more, _slow_text(clock))
+
+    def waiting(self, clock: SampleClock) -> None:
+        """Nothing finished in the last wait: every ``LOG_SECONDS`` without a progress line,
+        say what is running and for how long (on a terminal, in the bar's text)."""
+        now = time.monotonic()
+        if not self.enabled or now - self.last <= LOG_SECONDS:
+            return
+        self.last = now
+        median, budget = clock.median_so_far, clock.budget()
+        if self.count == self.start:
+            quiet = f"no {self.unit} finished in the {now - self.t0:.0f} s since the phase began"
+        else:
+            quiet = f"none finished in the last {now - self.finished:.0f} s"
+        typical = f"; the median {self.unit} took {median:.1f} s" if median is not None else ""
+        limit = (f"; a solver attempt past {budget:.0f} s is stopped and the {self.unit} retried cautiously"
+                 if budget > 0 else "")
+        text = f"still solving ({quiet}{typical}{limit})"
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"failed={self.failed}, {text}")
+            return
+        log.info("%s: %d/%d %ss (%d failed), %s", self.phase, self.count, self.total, self.unit, self.failed, text)
 
     def close(self, clock: SampleClock) -> None:
         if self.bar is not None:
