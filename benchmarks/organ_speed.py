@@ -52,6 +52,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 import tempfile
 import time
@@ -127,7 +128,8 @@ def phase_rows(out: dict) -> list[tuple]:
     run = out["summary"]["run"]
     rows = []
     for p in run["phases"]:
-        name = p["phase"].split(" (at most")[0] + (p["phase"].split("N")[0][-12:] if "alpha" in p["phase"] else "")
+        alpha = re.search(r"alpha ([0-9.eE+-]+) N", p["phase"])
+        name = p["phase"].split(" (at most")[0] + (f" (alpha {alpha.group(1)} N)" if alpha else "")
         rows.append((name[:44], p["tasks"], p["wall_seconds"], p["worker_seconds"], p["cpu_seconds"],
                      p["median_seconds"], p["max_seconds"], p["iterations_mean"], p["factorizations_mean"],
                      p["retried"], p["failed"]))
