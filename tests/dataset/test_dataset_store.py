@@ -362,3 +362,22 @@ def test_a_phase_where_nothing_finishes_says_it_is_still_solving(monkeypatch, ca
     with caplog.at_level(logging.INFO, logger="tissuecast.dataset.supervise"):
         list(Supervisor(Stalling(), 10.0, 1.0, progress=False).run([Task(0, 0, float("nan"), 1.0)], "simulate"))
     assert not [m for m in caplog.messages if "still solving" in m]  # progress off: quiet
+
+
+def test_a_script_without_a_main_guard_gets_one_clear_error(tmp_path):
+    """Workers are spawned and import the script that started them: a script that simulates at
+    its top level breaks the pool; the run says why and how to fix it."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = tmp_path / "no_guard.py"
+    tests = Path(__file__).resolve().parents[1]
+    script.write_text(f"import sys\nsys.path.insert(0, {str(tests)!r})\nfrom pathlib import Path\n"
+                      "from dataset_helpers import small_config\nfrom tissuecast.dataset import simulate\n"
+                      f"simulate(small_config(Path({str(tmp_path)!r})), {str(tmp_path / 's.zarr')!r}, progress=False)\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert out.returncode != 0
+    last = out.stderr.strip().splitlines()[-1]
+    assert last.startswith("tissuecast.errors.DatasetError: the worker processes could not start"), last
+    assert 'if __name__ == "__main__":' in last

@@ -195,3 +195,25 @@ def test_a_samples_reduced_guess_scales_loads_and_springs_with_its_modulus_and_h
     middle = np.flatnonzero(np.isclose(problem.mesh.points[:, 0], 20.0))
     held = inputs(middle).reduced_guess(model)
     assert np.abs(held[middle]).max() < 0.1 * np.abs(guess[middle]).max()
+
+
+def test_a_samples_reduced_guess_carries_its_prescribed_displacements():
+    """A sample's prescribed vertices (an indentation) are pulled to their values in the guess
+    by stiff springs: the guess puts them near the values and the rest of the body follows,
+    where the loads-only prediction leaves them where the loads put them."""
+    from tissuecast.scenario.sample_inputs import SampleInputs, ScenarioDraw
+
+    problem, end = _bar(1)
+    model = ReducedModel.fit(problem, _bar_snapshots(problem, end), tolerance=0.01)
+    f = _forces(problem, end, [0.1, 0.6, -0.8], 0.002)
+    values = np.tile([0.0, 0.0, -3.0], (len(end), 1))  # the loaded end pushed 3 mm down
+    sample = SampleInputs(f, np.zeros((0, 3)), f, None, end.astype(np.int64), values, ScenarioDraw())
+    guess = sample.reduced_guess(model)
+    free = model.predict(f)
+    assert np.abs(guess[end] - values).max() < 0.1 * 3.0, guess[end]
+    assert np.abs(free[end] - values).max() > 1.0  # the loads alone do not put the end there
+    middle = np.flatnonzero(np.isclose(problem.mesh.points[:, 0], 20.0))
+    assert guess[middle, 2].mean() < 0.3 * values[0, 2]  # the body between follows the end down
+    # with no prescribed vertex and no drawn parameter: the plain prediction, bit for bit
+    plain = SampleInputs(f, np.zeros((0, 3)), f, None, np.zeros(0, np.int64), np.zeros((0, 3)), ScenarioDraw())
+    np.testing.assert_array_equal(plain.reduced_guess(model), free)

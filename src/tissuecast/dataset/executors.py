@@ -193,8 +193,16 @@ class LocalExecutor:
             self._pool = cf.ProcessPoolExecutor(
                 self.workers, mp_context=mp, initializer=_init_worker,
                 initargs=(self.recipe, os.getpid(), mp.Barrier(self.workers)))
-            for f in [self._pool.submit(_noop) for _ in range(self.workers)]:
-                f.result()  # all workers are started (and their env fixed) before we restore ours
+            try:
+                for f in [self._pool.submit(_noop) for _ in range(self.workers)]:
+                    f.result()  # all workers are started (and their env fixed) before we restore ours
+            except cf.process.BrokenProcessPool as exc:
+                self._pool.shutdown(wait=True, cancel_futures=True)
+                self._pool = None
+                raise DatasetError(
+                    "the worker processes could not start (their errors are printed above). Worker processes are "
+                    "spawned: they import the script that started them, so a script that runs simulations at its top "
+                    "level must put them under `if __name__ == \"__main__\":`") from exc
         finally:
             for k, v in saved.items():
                 if v is None:

@@ -122,19 +122,27 @@ class SampleInputs:
         """The reduced model's prediction of this sample (an initial guess for the full solve):
         (n_nodes, 3) mm, or None when the reduced problem does not converge.
 
-        ``reduced`` (:class:`~tissuecast.fem.reduced.ReducedModel`) models the nominal problem.
-        With drawn parameters it predicts the sample as a body of the nominal E under the
-        loads and springs over the sample's factor s on E (stresses scale with E: a body of
-        E / s under loads / s on springs k / s deforms alike), with the vertices of a larger
-        attached extent held by stiff springs (:data:`HOLD_STIFFNESS_LENGTH` times the modulus,
-        N/mm). Poisson's ratio and the prescribed indentation stay the nominal model's: the
-        full solve imposes them.
+        ``reduced`` (:class:`~tissuecast.fem.reduced.ReducedModel`) models the nominal problem,
+        loads only. The sample's prescribed vertices (an indentation's patch, a larger attached
+        extent held at zero) are pulled toward their values by stiff springs
+        (:data:`HOLD_STIFFNESS_LENGTH` times the modulus, N/mm, with the spring's force toward
+        the value as a load), so the guess carries the dent the full solve imposes. With drawn
+        parameters it predicts the sample as a body of the nominal E under the loads and springs
+        over the sample's factor s on E (stresses scale with E: a body of E / s under loads / s
+        on springs k / s deforms alike). Poisson's ratio stays the nominal model's: the full
+        solve imposes it.
         """
-        if self.parameters is None:
+        s = 1.0 if self.parameters is None else float(self.parameters.youngs_modulus)
+        held = np.union1d(np.asarray(self.prescribed_ids, dtype=np.int64), np.asarray(self.extra_held, dtype=np.int64))
+        if self.parameters is None and not len(held):
             return reduced.predict(self.loads)
-        s = float(self.parameters.youngs_modulus)
         base = self.springs if self.springs is not None else reduced.problem.springs
-        return reduced.with_springs(_guess_springs(base, self.extra_held, s, reduced.problem)).predict(self.loads / s)
+        values = np.zeros((len(held), 3))
+        if len(self.prescribed_ids):
+            values[np.searchsorted(held, self.prescribed_ids)] = self.prescribed_values
+        loads = self.loads.copy()
+        np.add.at(loads, held, hold_stiffness(reduced.problem) * values)  # the held springs' pull toward the values
+        return reduced.with_springs(_guess_springs(base, held, s, reduced.problem)).predict(loads / s)
 
     def solve_keywords(self) -> dict:
         """The keywords of :meth:`tissuecast.fem.Solver.solve` besides the surface loads:
@@ -154,7 +162,7 @@ class SampleInputs:
 
 def _guess_springs(base, held: np.ndarray, factor: float, problem):
     """The reduced guess's springs: ``base`` (NodalSprings or None) over ``factor``, plus the
-    stiff hold of the ``held`` vertices (also over ``factor``)."""
+    stiff hold of the ``held`` vertices (also over ``factor``; P2: vertex ids are node ids)."""
     from ..fem.springs import NodalSprings
 
     nodes = np.zeros(0, dtype=np.int64) if base is None else base.nodes
@@ -164,6 +172,11 @@ def _guess_springs(base, held: np.ndarray, factor: float, problem):
     if base is not None:
         k[np.searchsorted(every, nodes)] += base.stiffness
     if len(held):
-        modulus = float(np.asarray(problem.element_material.youngs_modulus).mean())
-        k[np.searchsorted(every, held)] += HOLD_STIFFNESS_LENGTH * modulus * np.eye(3)
+        k[np.searchsorted(every, held)] += hold_stiffness(problem) * np.eye(3)
     return NodalSprings(every, k / factor) if len(every) else None
+
+
+def hold_stiffness(problem) -> float:
+    """N/mm of the springs that hold a vertex at its value in a reduced guess:
+    :data:`HOLD_STIFFNESS_LENGTH` times the problem's mean Young's modulus."""
+    return HOLD_STIFFNESS_LENGTH * float(np.asarray(problem.element_material.youngs_modulus).mean())
