@@ -328,6 +328,7 @@ def test_a_phase_where_nothing_finishes_says_it_is_still_solving(monkeypatch, ca
     """Waits that end with nothing finished (the executor's empty lists) give a line every
     LOG_SECONDS: what is running, for how long, and the budget that stops a stalled attempt."""
     import logging
+    import time
 
     import tissuecast.dataset.supervise as supervise
     from tissuecast.dataset.codes import SampleStatus
@@ -362,6 +363,27 @@ def test_a_phase_where_nothing_finishes_says_it_is_still_solving(monkeypatch, ca
     with caplog.at_level(logging.INFO, logger="tissuecast.dataset.supervise"):
         list(Supervisor(Stalling(), 10.0, 1.0, progress=False).run([Task(0, 0, float("nan"), 1.0)], "simulate"))
     assert not [m for m in caplog.messages if "still solving" in m]  # progress off: quiet
+
+    class Busy:  # results keep coming: an empty wait right after one says nothing
+        workers = 2
+
+        def imap_unordered(self, items):
+            items = list(items)
+            yield [done(items[0].index)]  # the phase's first line
+            time.sleep(0.15)
+            yield [done(items[1].index)]  # no line: the last was 0.15 s ago
+            time.sleep(0.1)
+            yield []  # 0.25 s since the last line but 0.1 s since a result: quiet
+            time.sleep(0.3)
+            yield []  # 0.4 s since a result: still solving
+            yield [done(items[2].index)]
+
+    monkeypatch.setattr(supervise, "LOG_SECONDS", 0.2)
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="tissuecast.dataset.supervise"):
+        list(Supervisor(Busy(), 10.0, 1.0).run([Task(i, i, float("nan"), 1.0) for i in range(3)], "simulate"))
+    lines = [m for m in caplog.messages if "still solving" in m]
+    assert len(lines) == 1 and "none finished in the last" in lines[0], caplog.messages  # only after the pause
 
 
 def test_a_script_without_a_main_guard_gets_one_clear_error(tmp_path):

@@ -227,10 +227,11 @@ class _Bar:
                      self.unit, self.failed, rate, self.unit, eta_text(eta), more, _slow_text(clock))
 
     def waiting(self, clock: SampleClock) -> None:
-        """Nothing finished in the last wait: every ``LOG_SECONDS`` without a progress line,
-        say what is running and for how long (on a terminal, in the bar's text)."""
+        """Nothing finished in the last wait: once ``LOG_SECONDS`` have passed without a result
+        and without a progress line, say what is running and for how long (on a terminal, in
+        the bar's text)."""
         now = time.monotonic()
-        if not self.enabled or now - self.last <= LOG_SECONDS:
+        if not self.enabled or now - max(self.last, self.finished) <= LOG_SECONDS:
             return
         self.last = now
         median, budget = clock.median_so_far, clock.budget()
