@@ -178,6 +178,22 @@ def _take_recipe(recipe: Recipe) -> None:
     _BARRIER.wait(UPDATE_TIMEOUT)
 
 
+_NO_MAIN_GUARD = ("Worker processes are spawned: they import the script that started them, so a script that runs "
+                  "simulations at its top level must put them under `if __name__ == \"__main__\":`")
+
+
+def refuse_in_starting_worker() -> None:
+    """Raise DatasetError in a spawned worker that is still importing the script that started it
+    (a script without a main guard runs its simulations again there); called before anything
+    is opened, so the worker exits at once and the parent's pool reports it.
+
+    Raises:
+        DatasetError: naming the fix.
+    """
+    if getattr(multiprocessing.current_process(), "_inheriting", False):
+        raise DatasetError(_NO_MAIN_GUARD)
+
+
 class LocalExecutor:
     """A pool of ``workers`` spawned processes, each holding one reusable solver."""
 
@@ -186,6 +202,7 @@ class LocalExecutor:
         self._pool: cf.ProcessPoolExecutor | None = None
 
     def __enter__(self) -> "LocalExecutor":
+        refuse_in_starting_worker()
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
         os.environ.update({k: "1" for k in _THREAD_VARS})  # inherited by the spawned workers only
         try:
@@ -199,10 +216,8 @@ class LocalExecutor:
             except cf.process.BrokenProcessPool as exc:
                 self._pool.shutdown(wait=True, cancel_futures=True)
                 self._pool = None
-                raise DatasetError(
-                    "the worker processes could not start (their errors are printed above). Worker processes are "
-                    "spawned: they import the script that started them, so a script that runs simulations at its top "
-                    "level must put them under `if __name__ == \"__main__\":`") from exc
+                raise DatasetError(f"the worker processes could not start (their errors are printed above). "
+                                   f"{_NO_MAIN_GUARD}") from exc
         finally:
             for k, v in saved.items():
                 if v is None:

@@ -26,7 +26,7 @@ from ..config import Config, load_config
 from .batch import Batch, chunk_batches, pending_batches
 from .calibrate import calibrate_pilots
 from .codes import SampleStatus
-from .executors import make_executor, sigterm_as_interrupt
+from .executors import make_executor, refuse_in_starting_worker, sigterm_as_interrupt
 from .mechanism_check import check_thin_body
 from .phase_stats import PREDICTED_SHARE, eta_text, whole_set_eta, work_seconds
 from .reader import open_dataset, recipe_from_store
@@ -156,8 +156,10 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
         (:meth:`SimulationRun.as_dict`: samples solved, seconds, samples per minute, executor).
 
     Raises:
-        DatasetError: the store belongs to another config or mesh, or is of an unknown schema.
+        DatasetError: the store belongs to another config or mesh, or is of an unknown schema;
+            or the call runs in a worker still importing a script without a main guard.
     """
+    refuse_in_starting_worker()  # before the store is opened: its I/O threads would keep the worker alive
     cfg = config if isinstance(config, Config) else load_config(config)
     path = Path(store_path or cfg.dataset.store)
     writer = _open_or_create(cfg, path)
