@@ -184,8 +184,8 @@ _NO_MAIN_GUARD = ("Worker processes are spawned: they import the script that sta
 
 def refuse_in_starting_worker() -> None:
     """Raise DatasetError in a spawned worker that is still importing the script that started it
-    (a script without a main guard runs its simulations again there); called before anything
-    is opened, so the worker exits at once and the parent's pool reports it.
+    (a script without a main guard runs its simulations again there): the worker prints why and
+    exits. :func:`~.generate.simulate` calls it first, before the store is opened.
 
     Raises:
         DatasetError: naming the fix.
@@ -202,7 +202,6 @@ class LocalExecutor:
         self._pool: cf.ProcessPoolExecutor | None = None
 
     def __enter__(self) -> "LocalExecutor":
-        refuse_in_starting_worker()
         saved = {k: os.environ.get(k) for k in _THREAD_VARS}
         os.environ.update({k: "1" for k in _THREAD_VARS})  # inherited by the spawned workers only
         try:

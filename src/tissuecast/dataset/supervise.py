@@ -162,7 +162,6 @@ class Supervisor:
             self.last_median = clock.median if clock.median is not None else self.last_median
             self.phases.append(stats.close(clock.median_so_far))
 
-
     def _results(self, items, bar: "_Bar", clock: SampleClock) -> Iterator[SampleResult]:
         """The executor's results one by one; an empty list from the executor (a wait that
         ended with nothing finished) lets the bar say that the phase is still solving."""

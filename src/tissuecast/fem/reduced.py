@@ -32,9 +32,10 @@ Linear springs to ground (an elastic support) are exact in the reduced model: th
 stiffness ``V^T K_s V`` is a constant (r, r) matrix added to the sampled elements' energy,
 forces and tangent; :meth:`ReducedModel.with_springs` swaps it for a sample's own springs.
 Per-element materials are those of the sampled elements. Per-solve
-prescribed displacements (an indentation) are not part of the prediction: the reduced model
-predicts the response to the loads, and the full solver moves the prescribed nodes from
-there (its lift, :mod:`.newton`).
+prescribed displacements (an indentation) are not part of the model: it predicts the response
+to loads and springs, so a data set's guess pulls the prescribed vertices to their values with
+stiff springs (:meth:`tissuecast.scenario.SampleInputs.reduced_guess`), and the full solver
+imposes them exactly (its lift, :mod:`.newton`).
 
 Galerkin solutions are only roughly right (a linear subspace represents the swing of the body
 about its pins only roughly) but well inside Newton's quadratic basin. Measurements and the
