@@ -88,7 +88,6 @@ def planned_config(config: Config, dataset):
     """``(config with markers.ids planned, MarkerPlan)``: ``markers.count`` surface markers at
     least ``markers.min_distance`` apart, planned from the data set's train/valid fields
     (:func:`tissuecast.planning.plan_markers`; deterministic)."""
-    from ..config import with_overrides
     from ..planning import plan_markers
 
     t = time.perf_counter()
