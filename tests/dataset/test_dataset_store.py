@@ -370,15 +370,15 @@ def test_a_phase_where_nothing_finishes_says_it_is_still_solving(monkeypatch, ca
         def imap_unordered(self, items):
             items = list(items)
             yield [done(items[0].index)]  # the phase's first line
-            time.sleep(0.15)
-            yield [done(items[1].index)]  # no line: the last was 0.15 s ago
-            time.sleep(0.1)
-            yield []  # 0.25 s since the last line but 0.1 s since a result: quiet
+            time.sleep(0.6)
+            yield [done(items[1].index)]  # no line: the last was 0.6 s ago
             time.sleep(0.3)
-            yield []  # 0.4 s since a result: still solving
+            yield []  # 0.9 s since the last line but 0.3 s since a result: quiet
+            time.sleep(1.0)
+            yield []  # 1.3 s since a result: still solving
             yield [done(items[2].index)]
 
-    monkeypatch.setattr(supervise, "LOG_SECONDS", 0.2)
+    monkeypatch.setattr(supervise, "LOG_SECONDS", 0.8)  # margins of 0.2 s and more for a loaded machine
     caplog.clear()
     with caplog.at_level(logging.INFO, logger="tissuecast.dataset.supervise"):
         list(Supervisor(Busy(), 10.0, 1.0).run([Task(i, i, float("nan"), 1.0) for i in range(3)], "simulate"))
