@@ -77,7 +77,7 @@ def build_config(mesh_name: str, preset: str, mesh_path, folder: Path, args):
     from tissuecast.config import load_config, with_overrides
 
     if preset == "vessel":
-        cfg = load_config(Path(__file__).resolve().parents[1] / "configs" / "vessel.toml")
+        cfg = load_config(args.vessel_config or Path(__file__).resolve().parents[1] / "configs" / "vessel.toml")
     else:
         cfg = preset_config(preset)
     over = {"mesh": {"path": str(mesh_path)}} if mesh_path else {}
@@ -199,6 +199,7 @@ def main(argv=None) -> int:
     ap.add_argument("--test2", type=int, default=0, help="test-2 samples with --samples")
     ap.add_argument("--pilots", type=int, default=0, help="calibration pilots (0: the preset's)")
     ap.add_argument("--basis", type=int, default=0, help="reduced-model basis samples (0: the preset's)")
+    ap.add_argument("--vessel-config", default="", help="preset vessel: this config instead of configs/vessel.toml")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--brain-size", type=float, default=7.5, help="brain: gmsh size, mm (7.5: ~3500 vertices)")
     ap.add_argument("--fsaverage-size", type=float, default=7.4, help="brain-fsaverage: mesh size, mm")

@@ -245,10 +245,12 @@ def whole_set_outlook(writer: StoreWriter, cfg: Config, ex: Supervisor, seconds:
     if cfg.dataset.predictor == "reduced" and writer.reduced is None:
         basis = max(min(cfg.dataset.predictor_samples, int(writer.root.attrs["n_lbo"])) - kept, 0)
     rest = max(n_pending - basis, 0)
-    eta = whole_set_eta(median, basis, rest, ex.workers)
-    log.info("calibration done in %s (%d rounds); ETA for the whole set %s: %d reduced-model basis samples and %d "
-             "more samples, counting %.0f %% of the last round's median pilot (%.2f s) for a sample from the reduced "
-             "model's prediction", eta_text(seconds), rounds, eta_text(eta), basis, rest, 100 * PREDICTED_SHARE, median)
+    low, high = whole_set_eta(median, basis, rest, ex.workers)
+    closer = " (a closer estimate follows the basis samples)" if basis else ""
+    log.info("calibration done in %s (%d rounds); ETA for the whole set %s to %s: %d reduced-model basis samples and "
+             "%d more samples, each %g-%gx the last round's median pilot (%.2f s of worker time; the range measured "
+             "on four meshes)%s", eta_text(seconds), rounds, eta_text(low), eta_text(high), basis, rest,
+             *PREDICTED_SHARE, median, closer)
 
 
 def remaining_outlook(writer: StoreWriter, ex: Supervisor) -> None:

@@ -22,10 +22,12 @@ from .codes import SampleStatus
 
 __all__ = ["PhaseStats", "failure_kind", "work_seconds", "eta_text", "whole_set_eta", "PREDICTED_SHARE"]
 
-#: A sample solved from the reduced model's prediction (in a batch) takes about this share of
-#: the worker seconds of a calibration pilot of the last round (measured: 0.46 on a 3465-vertex
-#: brain mesh, the paper preset); a basis sample, from the interim model's prediction, about one.
-PREDICTED_SHARE = 0.5
+#: A sample solved from the reduced model's prediction (in a batch) takes between these shares of
+#: the worker seconds of a calibration pilot of the last round, which starts from its previous
+#: round's solution (measured: 0.68 on a 3465-vertex brain mesh with the paper preset, 2.4 on the
+#: phantom and 3.3 on the brain with the embedded preset, 3.9 on a thin-walled vessel;
+#: docs/scaling.md); a basis sample, from the interim model's prediction, between 1 and the upper one.
+PREDICTED_SHARE = (0.5, 4.0)
 
 _NUMBER = re.compile(r"[-+]?\d+(\.\d+)?([eE][-+]?\d+)?")
 _ATTEMPT = re.compile(r"\d+[^:]*: (.*)", re.S)  # "N from the prediction, ...: <what>" of an attempt
@@ -50,12 +52,15 @@ def work_seconds(tasks: int, median: float, workers: int) -> float:
     return waves * float(median)
 
 
-def whole_set_eta(median: float, basis: int, samples: int, workers: int) -> float:
-    """Seconds the rest of a data set takes after its calibration: ``basis`` reduced-model basis
-    samples at ``median`` (the last calibration round's median pilot, worker seconds) and
-    ``samples`` more at ``PREDICTED_SHARE`` of it, on ``workers`` workers (the reduced model's
-    fit in the parent not counted)."""
-    return work_seconds(basis, median, workers) + work_seconds(samples, PREDICTED_SHARE * median, workers)
+def whole_set_eta(median: float, basis: int, samples: int, workers: int) -> tuple[float, float]:
+    """The range of seconds the rest of a data set takes after its calibration, (low, high):
+    ``basis`` reduced-model basis samples at 1 to ``PREDICTED_SHARE[1]`` times ``median`` (the
+    last calibration round's median pilot, worker seconds) and ``samples`` more at
+    ``PREDICTED_SHARE`` of it, on ``workers`` workers (the reduced model's fit in the parent not
+    counted)."""
+    low, high = PREDICTED_SHARE
+    return (work_seconds(basis, median, workers) + work_seconds(samples, low * median, workers),
+            work_seconds(basis, high * median, workers) + work_seconds(samples, high * median, workers))
 
 
 def eta_text(seconds: float) -> str:
