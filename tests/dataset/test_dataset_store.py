@@ -386,9 +386,12 @@ def test_a_phase_where_nothing_finishes_says_it_is_still_solving(monkeypatch, ca
     assert len(lines) == 1 and "none finished in the last" in lines[0], caplog.messages  # only after the pause
 
 
-def test_a_script_without_a_main_guard_gets_one_clear_error(tmp_path):
+@pytest.mark.parametrize("n_basis", [8, 100])
+def test_a_script_without_a_main_guard_gets_one_clear_error(tmp_path, n_basis):
     """Workers are spawned and import the script that started them: a script that simulates at
-    its top level breaks the pool; the run says why and how to fix it."""
+    its top level breaks the pool; the run says why and how to fix it. With 100 basis vectors
+    the recipe (about 150 kB) is larger than a pipe's buffer: it once went with the spawn data,
+    and the parent waited forever to write it to a worker that had died."""
     import subprocess
     import sys
     from pathlib import Path
@@ -396,10 +399,13 @@ def test_a_script_without_a_main_guard_gets_one_clear_error(tmp_path):
     script = tmp_path / "no_guard.py"
     tests = Path(__file__).resolve().parents[1]
     script.write_text(f"import sys\nsys.path.insert(0, {str(tests)!r})\nfrom pathlib import Path\n"
-                      "from dataset_helpers import small_config\nfrom tissuecast.dataset import simulate\n"
-                      f"simulate(small_config(Path({str(tmp_path)!r})), {str(tmp_path / 's.zarr')!r}, progress=False)\n")
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+                      "from dataset_helpers import small_config\nfrom tissuecast.config import with_overrides\n"
+                      "from tissuecast.dataset import simulate\n"
+                      f"cfg = with_overrides(small_config(Path({str(tmp_path)!r})), forces={{'n_basis': {n_basis}}})\n"
+                      f"simulate(cfg, {str(tmp_path / 's.zarr')!r}, progress=False)\n")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
     assert out.returncode != 0
     last = out.stderr.strip().splitlines()[-1]
     assert last.startswith("tissuecast.errors.DatasetError: the worker processes could not start"), last
     assert 'if __name__ == "__main__":' in last
+    assert "leaked" not in out.stderr

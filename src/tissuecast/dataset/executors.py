@@ -152,26 +152,22 @@ def single_threaded_blas() -> None:
         _BLAS_LIMIT = one_blas_thread()
 
 
-def _init_worker(recipe: Recipe, parent: int, barrier) -> None:
-    global _RECIPE, _BARRIER
-    _RECIPE, _BARRIER = recipe, barrier
+def _init_worker(parent: int, barrier) -> None:
+    global _BARRIER
+    _BARRIER = barrier
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl+C is the parent's to handle (module notes)
     threading.Thread(target=_watch_parent, args=(parent,), daemon=True).start()
     single_threaded_blas()
-    context_for(recipe)  # build mesh, problem and solver once per process
 
 
 def _run(item: Task | Batch) -> list[SampleResult]:
     return solve_item(_RECIPE, item)
 
 
-def _noop() -> int:
-    return os.getpid()
-
-
 def _take_recipe(recipe: Recipe) -> None:
-    """Make ``recipe`` this worker's (its context built or upgraded now), then wait until every
-    worker of the pool holds one of these calls, so that each takes exactly one."""
+    """Make ``recipe`` this worker's (its context built or upgraded now: mesh, problem and
+    solver once per process), then wait until every worker of the pool holds one of these
+    calls, so that each takes exactly one."""
     global _RECIPE
     _RECIPE = recipe
     context_for(recipe)
@@ -206,13 +202,16 @@ class LocalExecutor:
         os.environ.update({k: "1" for k in _THREAD_VARS})  # inherited by the spawned workers only
         try:
             mp = multiprocessing.get_context("spawn")
+            # The recipe (megabytes: mesh, basis, scenario) goes through the task queue, not
+            # the spawn pipe: the parent writes a new process's start-up data whole and
+            # holds the pipe's other end until it is written, so a worker that dies before
+            # reading it (a script without a main guard) would leave that write waiting forever.
             self._pool = cf.ProcessPoolExecutor(
-                self.workers, mp_context=mp, initializer=_init_worker,
-                initargs=(self.recipe, os.getpid(), mp.Barrier(self.workers)))
+                self.workers, mp_context=mp, initializer=_init_worker, initargs=(os.getpid(), mp.Barrier(self.workers)))
             try:
-                for f in [self._pool.submit(_noop) for _ in range(self.workers)]:
+                for f in [self._pool.submit(_take_recipe, self.recipe) for _ in range(self.workers)]:
                     f.result()  # all workers are started (and their env fixed) before we restore ours
-            except cf.process.BrokenProcessPool as exc:
+            except (cf.process.BrokenProcessPool, threading.BrokenBarrierError) as exc:
                 self._pool.shutdown(wait=True, cancel_futures=True)
                 self._pool = None
                 raise DatasetError(f"the worker processes could not start (their errors are printed above). "
