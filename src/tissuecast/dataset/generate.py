@@ -246,7 +246,7 @@ def whole_set_outlook(writer: StoreWriter, cfg: Config, ex: Supervisor, seconds:
         basis = max(min(cfg.dataset.predictor_samples, int(writer.root.attrs["n_lbo"])) - kept, 0)
     rest = max(n_pending - basis, 0)
     low, high = whole_set_eta(median, basis, rest, ex.workers)
-    closer = " (a closer estimate follows the basis samples)" if basis else ""
+    closer = "; a closer estimate follows the basis samples" if basis else ""
     log.info("calibration done in %s (%d rounds); ETA for the whole set %s to %s: %d reduced-model basis samples and "
              "%d more samples, each %g-%gx the last round's median pilot (%.2f s of worker time; the range measured "
              "on four meshes)%s", eta_text(seconds), rounds, eta_text(low), eta_text(high), basis, rest,
