@@ -107,6 +107,23 @@ def test_calibration_reaches_target_on_nonlinear_response():
     assert len(rec["rounds"]) == len(calls) <= 6
 
 
+def test_calibration_takes_the_local_exponent_where_the_response_bends():
+    """A response that softens sharply near the target (a thin wall, q = 16.5 a (1 + (a/0.19)^4)
+    mm): after an overshoot and an undershoot the next round measures the exponent against the
+    nearer of the two (the overshoot), not against the first round far below; 4 rounds instead
+    of 5, and no second overshoot (whose pilots are the ones that buckle)."""
+    scales = np.ones(5)
+
+    def pilot(a):
+        return scales * 16.5 * a * (1.0 + (a / 0.19) ** 4)
+
+    rec = calibrate_alpha(pilot, alpha0=0.0907, target=3.0, quantile=0.9)
+    assert rec["converged"]
+    values = [r["quantile_value"] for r in rec["rounds"]]
+    assert len(values) == 4, values
+    assert sum(v > 3.0 * 1.02 for v in values) == 1, values
+
+
 def test_calibration_backs_off_after_failures():
     scales = np.array([1.0, 1.0, 1.2, 0.7])
 

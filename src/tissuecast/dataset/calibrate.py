@@ -12,8 +12,10 @@ Rule (documented in the store's ``calibration`` attribute):
   target: a nearly linear, cheap solve); extrapolate linearly to half the target from far
   below it (the response of a body held by a few pinned vertices softens strongly), straight
   to the target from within ``FAR_BELOW`` of it or from above; then iterate
-  ``alpha <- alpha (target / q)^(1 / s)`` where the response exponent ``s`` comes from the
-  last two rounds (secant in log-log, clipped to [0.5, 3]). Rounds that overshoot (q above
+  ``alpha <- alpha (target / q)^(1 / s)`` where the response exponent ``s`` comes from this
+  round and the nearest (in log alpha) of the bracket's previous end on its side and its end
+  on the other side (secant in log-log, clipped to [0.5, 3]: the local exponent where the
+  response bends, as a thin wall's does near its target). Rounds that overshoot (q above
   the target, or failures) bound alpha from above; the next alpha never leaves the bracket
   (geometric bisection when it would); after a failure with no lower bound, alpha / 4.
   If pilots fail before the target is reached, the bracket closes (within ``RTOL``) on the
@@ -321,14 +323,18 @@ def calibrate_alpha(
 
 def _bracket(lo, hi, alpha: float, q: float, target: float):
     """The bracket ``(lo, hi)`` updated with the round ``(alpha, q)``, and the earlier round
-    ``ref`` the response exponent is measured against (None: none usable)."""
+    ``ref`` the response exponent is measured against (None: none usable): of the bracket's
+    previous end on the same side and its end on the other side, the one nearest ``alpha``
+    (in log alpha), so that the exponent is the local one where the response bends."""
     if math.isfinite(q) and q < target:
         prev_lo, lo = lo, (alpha, q)
-        ref = prev_lo if prev_lo is not None else hi if hi is not None and math.isfinite(hi[1]) else None
+        candidates = [prev_lo, hi if hi is not None and math.isfinite(hi[1]) else None]
     else:
         prev_hi, hi = hi, (alpha, q)
         usable = prev_hi is not None and math.isfinite(q) and math.isfinite(prev_hi[1])
-        ref = lo if lo is not None else prev_hi if usable else None
+        candidates = [lo, prev_hi if usable else None]
+    candidates = [c for c in candidates if c is not None]
+    ref = min(candidates, key=lambda c: abs(math.log(c[0] / alpha)), default=None)
     return lo, hi, ref
 
 
