@@ -48,6 +48,16 @@ def write_config(cfg: Config, path: Path) -> Path:
     return path
 
 
+def worker_failing_solver_factory(scenario, cfg):
+    """The fake solver in the parent process; in a worker process building it fails (a worker
+    that cannot build its solver from the recipe)."""
+    import multiprocessing
+
+    if multiprocessing.parent_process() is not None:
+        raise RuntimeError("this worker cannot build its solver")
+    return fake_solver_factory(scenario, cfg)
+
+
 def fake_solver_factory(scenario, cfg):
     """A deterministic stand-in solver: u = forces * 0.5 mm/N, failing when |f| > 1 N anywhere."""
 

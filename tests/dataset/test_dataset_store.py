@@ -386,6 +386,19 @@ def test_a_phase_where_nothing_finishes_says_it_is_still_solving(monkeypatch, ca
     assert len(lines) == 1 and "none finished in the last" in lines[0], caplog.messages  # only after the pause
 
 
+def test_a_worker_that_cannot_build_its_solver_stops_the_run_with_its_error(tmp_path):
+    """The workers build their solvers from the recipe when the pool starts; a failure there
+    reaches the caller as it is (not as a broken pool), and no worker is left waiting."""
+    import time
+
+    cfg = small_config(tmp_path, alpha=2.0)
+    t0 = time.monotonic()
+    with pytest.raises(RuntimeError, match="this worker cannot build its solver"):
+        simulate(cfg, tmp_path / "s.zarr", progress=False, workers=2,
+                 solver_factory="dataset_helpers:worker_failing_solver_factory")
+    assert time.monotonic() - t0 < 120.0  # not the 600 s a worker would wait at the barrier
+
+
 @pytest.mark.parametrize("n_basis", [8, 100])
 def test_a_script_without_a_main_guard_gets_one_clear_error(tmp_path, n_basis):
     """Workers are spawned and import the script that started them: a script that simulates at

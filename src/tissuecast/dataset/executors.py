@@ -170,7 +170,11 @@ def _take_recipe(recipe: Recipe) -> None:
     calls, so that each takes exactly one."""
     global _RECIPE
     _RECIPE = recipe
-    context_for(recipe)
+    try:
+        context_for(recipe)
+    except BaseException:
+        _BARRIER.abort()  # the others stop waiting for this one (their calls end BrokenBarrierError)
+        raise
     _BARRIER.wait(UPDATE_TIMEOUT)
 
 
@@ -208,14 +212,20 @@ class LocalExecutor:
             # reading it (a script without a main guard) would leave that write waiting forever.
             self._pool = cf.ProcessPoolExecutor(
                 self.workers, mp_context=mp, initializer=_init_worker, initargs=(os.getpid(), mp.Barrier(self.workers)))
+            futures = [self._pool.submit(_take_recipe, self.recipe) for _ in range(self.workers)]
             try:
-                for f in [self._pool.submit(_take_recipe, self.recipe) for _ in range(self.workers)]:
-                    f.result()  # all workers are started (and their env fixed) before we restore ours
-            except (cf.process.BrokenProcessPool, threading.BrokenBarrierError) as exc:
-                self._pool.shutdown(wait=True, cancel_futures=True)
-                self._pool = None
+                cf.wait(futures)  # all workers are started (and their env fixed) before we restore ours
+            except BaseException:
+                self._discard()
+                raise
+            errors = [f.exception() for f in futures if f.exception() is not None]
+            if errors:
+                self._discard()
+                own = [e for e in errors if not isinstance(e, (cf.process.BrokenProcessPool, threading.BrokenBarrierError))]
+                if own:  # a worker could not build its solver from the recipe: that error, as it is
+                    raise own[0]
                 raise DatasetError(f"the worker processes could not start (their errors are printed above). "
-                                   f"{_NO_MAIN_GUARD}") from exc
+                                   f"{_NO_MAIN_GUARD}") from errors[0]
         finally:
             for k, v in saved.items():
                 if v is None:
@@ -231,6 +241,12 @@ class LocalExecutor:
                     self._stop_workers()
                 self._pool.shutdown(wait=True, cancel_futures=True)
                 self._pool = None
+
+    def _discard(self) -> None:
+        """Stop the workers and drop the pool (a start-up that failed)."""
+        self._stop_workers()
+        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._pool = None
 
     def _stop_workers(self) -> None:
         """Terminate the worker processes (they only compute; the parent alone writes) and
