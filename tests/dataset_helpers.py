@@ -49,13 +49,23 @@ def write_config(cfg: Config, path: Path) -> Path:
 
 
 def worker_failing_solver_factory(scenario, cfg):
-    """The fake solver in the parent process; in a worker process building it fails (a worker
-    that cannot build its solver from the recipe)."""
+    """The fake solver, except in the first worker process to build it (the one that creates
+    ``FAIL_MARKER`` in the mesh's folder): there it fails (a worker that cannot build its
+    solver from the recipe while the others can)."""
     import multiprocessing
+    import os
 
     if multiprocessing.parent_process() is not None:
+        marker = Path(cfg.mesh.path).parent / FAIL_MARKER
+        try:
+            os.close(os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+        except FileExistsError:
+            return fake_solver_factory(scenario, cfg)
         raise RuntimeError("this worker cannot build its solver")
     return fake_solver_factory(scenario, cfg)
+
+
+FAIL_MARKER = "first-worker-fails"
 
 
 def fake_solver_factory(scenario, cfg):

@@ -333,7 +333,7 @@ def _bracket(lo, hi, alpha: float, q: float, target: float):
         prev_hi, hi = hi, (alpha, q)
         usable = prev_hi is not None and math.isfinite(q) and math.isfinite(prev_hi[1])
         candidates = [lo, prev_hi if usable else None]
-    candidates = [c for c in candidates if c is not None]
+    candidates = [c for c in candidates if c is not None and c[0] != alpha and 0 < c[1] != q]
     ref = min(candidates, key=lambda c: abs(math.log(c[0] / alpha)), default=None)
     return lo, hi, ref
 

@@ -42,7 +42,7 @@ log = logging.getLogger(__name__)
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "VECLIB_MAXIMUM_THREADS",
                 "NUMEXPR_NUM_THREADS")
 _RECIPE: Recipe | None = None
-_BARRIER = None  # this local worker's pool-wide barrier (LocalExecutor.update)
+_BARRIER = None  # this local worker's pool-wide barrier (LocalExecutor start-up and update)
 #: Seconds a local worker waits for the others while the pool takes a new recipe.
 UPDATE_TIMEOUT = 600.0
 #: Seconds the parent waits for each terminated worker process to end when stopping.
@@ -212,20 +212,8 @@ class LocalExecutor:
             # reading it (a script without a main guard) would leave that write waiting forever.
             self._pool = cf.ProcessPoolExecutor(
                 self.workers, mp_context=mp, initializer=_init_worker, initargs=(os.getpid(), mp.Barrier(self.workers)))
-            futures = [self._pool.submit(_take_recipe, self.recipe) for _ in range(self.workers)]
-            try:
-                cf.wait(futures)  # all workers are started (and their env fixed) before we restore ours
-            except BaseException:
-                self._discard()
-                raise
-            errors = [f.exception() for f in futures if f.exception() is not None]
-            if errors:
-                self._discard()
-                own = [e for e in errors if not isinstance(e, (cf.process.BrokenProcessPool, threading.BrokenBarrierError))]
-                if own:  # a worker could not build its solver from the recipe: that error, as it is
-                    raise own[0]
-                raise DatasetError(f"the worker processes could not start (their errors are printed above). "
-                                   f"{_NO_MAIN_GUARD}") from errors[0]
+            self._take_all(self.recipe, "the worker processes could not start (their errors are printed above). "
+                           + _NO_MAIN_GUARD)
         finally:
             for k, v in saved.items():
                 if v is None:
@@ -241,6 +229,31 @@ class LocalExecutor:
                     self._stop_workers()
                 self._pool.shutdown(wait=True, cancel_futures=True)
                 self._pool = None
+
+    def _take_all(self, recipe: Recipe, broken: str) -> None:
+        """Give every worker ``recipe`` (:func:`_take_recipe`, one call each) and wait for all.
+        A worker's own error (it could not build its solver) is raised as it is; a broken pool,
+        or a worker that waited past ``UPDATE_TIMEOUT`` for the others, raises DatasetError
+        ``broken`` (or says that building took too long). On any error the pool is stopped."""
+        futures = [self._pool.submit(_take_recipe, recipe) for _ in range(self.workers)]
+        try:
+            cf.wait(futures)
+        except BaseException:
+            self._discard()
+            raise
+        errors = [f.exception() for f in futures if f.exception() is not None]
+        if not errors:
+            return
+        self._discard()
+        pool_errors = (cf.process.BrokenProcessPool, threading.BrokenBarrierError)
+        own = [e for e in errors if not isinstance(e, pool_errors)]
+        if own:
+            raise own[0]
+        if not any(isinstance(e, cf.process.BrokenProcessPool) for e in errors):
+            raise DatasetError(f"a worker took more than {UPDATE_TIMEOUT:.0f} s to build its solver from the "
+                               "recipe while the others waited; run the same command again (the samples "
+                               "finished so far are saved), with fewer workers if memory is short") from errors[0]
+        raise DatasetError(broken) from errors[0]
 
     def _discard(self) -> None:
         """Stop the workers and drop the pool (a start-up that failed)."""
@@ -265,13 +278,8 @@ class LocalExecutor:
         predictor changed (:func:`~.worker.context_for`): no new processes, imports or
         factorisations, as a new pool would need.
         """
-        futures = [self._pool.submit(_take_recipe, recipe) for _ in range(self.workers)]
-        try:
-            for f in futures:
-                f.result()
-        except (cf.process.BrokenProcessPool, threading.BrokenBarrierError) as exc:
-            raise DatasetError("a worker process stopped or stalled while taking the reduced model; the samples "
-                               "finished so far are saved: run the same command again to continue") from exc
+        self._take_all(recipe, "a worker process stopped or stalled while taking the reduced model; the samples "
+                               "finished so far are saved: run the same command again to continue")
         self.recipe = recipe
 
     def imap_unordered(self, tasks: Iterable[Task | Batch]) -> Iterator[list[SampleResult]]:

@@ -249,7 +249,7 @@ def whole_set_outlook(writer: StoreWriter, cfg: Config, ex: Supervisor, seconds:
     closer = "; a closer estimate follows the basis samples" if basis else ""
     log.info("calibration done in %s (%d rounds); ETA for the whole set %s to %s: %d reduced-model basis samples and "
              "%d more samples, each %g-%gx the last round's median pilot (%.2f s of worker time; the range measured "
-             "on four meshes)%s", eta_text(seconds), rounds, eta_text(low), eta_text(high), basis, rest,
+             "on four runs of three meshes)%s", eta_text(seconds), rounds, eta_text(low), eta_text(high), basis, rest,
              *PREDICTED_SHARE, median, closer)
 
 

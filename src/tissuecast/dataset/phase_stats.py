@@ -25,7 +25,7 @@ __all__ = ["PhaseStats", "failure_kind", "work_seconds", "eta_text", "whole_set_
 #: A sample solved from the reduced model's prediction (in a batch) takes between these shares of
 #: the worker seconds of a calibration pilot of the last round, which starts from its previous
 #: round's solution (measured: 0.68 on a 3465-vertex brain mesh with the paper preset, 2.4 on the
-#: phantom and 3.3 on the brain with the embedded preset, 3.9 on a thin-walled vessel;
+#: phantom and 3.3 on the brain with the embedded preset, 3.9 on a thin-walled vessel with a soft wall;
 #: docs/scaling.md); a basis sample, from the interim model's prediction, between 1 and the upper one.
 PREDICTED_SHARE = (0.5, 4.0)
 
