@@ -24,7 +24,7 @@ def test_whole_set_eta_is_the_measured_range():
     low, high = whole_set_eta(3.0, 4, 10, 2)
     assert low == pytest.approx(2 * 3.0 + 5 * low_share * 3.0)
     assert high == pytest.approx(2 * high_share * 3.0 + 5 * high_share * 3.0)
-    # the range holds the shares measured on the four meshes (docs/scaling.md): 0.68 .. 3.9
+    # the range holds the shares measured in four runs on three meshes (docs/scaling.md): 0.68 .. 3.9
     for measured in (0.68, 2.4, 3.3, 3.9):
         seconds = work_seconds(10, measured * 3.0, 2)
         assert whole_set_eta(3.0, 0, 10, 2)[0] <= seconds <= whole_set_eta(3.0, 0, 10, 2)[1]

@@ -223,9 +223,13 @@ class LocalExecutor:
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
+        self._close(stop=exc_type is not None)  # stopped or failed: the solves in flight are not waited for
+
+    def _close(self, stop: bool) -> None:
+        """Shut the pool down (``stop``: terminating the workers first) and drop it."""
         if self._pool is not None:
             with _SIGNALS.deferred():  # a second Ctrl+C does not break the clean-up
-                if exc_type is not None:  # stopped or failed: the solves in flight are not waited for
+                if stop:
                     self._stop_workers()
                 self._pool.shutdown(wait=True, cancel_futures=True)
                 self._pool = None
@@ -239,12 +243,12 @@ class LocalExecutor:
         try:
             cf.wait(futures)
         except BaseException:
-            self._discard()
+            self._close(stop=True)
             raise
-        errors = [f.exception() for f in futures if f.exception() is not None]
+        errors = [e for e in (f.exception() for f in futures) if e is not None]
         if not errors:
             return
-        self._discard()
+        self._close(stop=True)
         pool_errors = (cf.process.BrokenProcessPool, threading.BrokenBarrierError)
         own = [e for e in errors if not isinstance(e, pool_errors)]
         if own:
@@ -254,12 +258,6 @@ class LocalExecutor:
                                "recipe while the others waited; run the same command again (the samples "
                                "finished so far are saved), with fewer workers if memory is short") from errors[0]
         raise DatasetError(broken) from errors[0]
-
-    def _discard(self) -> None:
-        """Stop the workers and drop the pool (a start-up that failed)."""
-        self._stop_workers()
-        self._pool.shutdown(wait=True, cancel_futures=True)
-        self._pool = None
 
     def _stop_workers(self) -> None:
         """Terminate the worker processes (they only compute; the parent alone writes) and
