@@ -591,3 +591,62 @@ def test_the_remaining_samples_eta_counts_the_basis_samples_median(caplog):
     remaining_outlook(SimpleNamespace(pending=lambda: []), ex)  # nothing left: nothing said
     remaining_outlook(writer, SimpleNamespace(phases=[SimpleNamespace(median_seconds=None)], workers=2))
     assert caplog.text == ""
+
+
+class _LinearPilots:
+    """A stand-in for the calibration's supervisor: records each round's tasks in the order
+    they are handed out and answers at once, pilot i's peak being ``(1 + i) * alpha`` mm (a
+    linear response), pilot i taking ``1 + i`` s (so the last pilot is the slowest)."""
+
+    workers = 2
+
+    def __init__(self, n_vertices: int):
+        self.n, self.rounds = n_vertices, []
+
+    def run(self, tasks, phase, unit="sample", outlook=None):
+        from tissuecast.dataset.worker import SampleResult
+
+        tasks = list(tasks)
+        self.rounds.append(tasks)
+        out = []
+        for t in tasks:
+            u = np.zeros((self.n, 3), dtype=np.float32)
+            u[0, 0] = (1 + t.index) * t.alpha
+            out.append(SampleResult(t.index, SampleStatus.DONE, u, u, np.zeros((1, 3)), t.alpha, t.beta, t.seed, 1, 1,
+                                    1, 1.0 + t.index, 1.0, 1, nodal=np.full((self.n, 3), 10.0 * t.index + t.alpha)))
+        return out
+
+
+@pytest.mark.parametrize("gravity", [False, True])
+def test_first_round_pilots_start_from_their_linear_answer_where_the_field_is_the_only_load(tmp_path, gravity):
+    """Without pins (an attached face) the first alpha comes from the pilots' linear answers;
+    where the LBO field is a sample's only load, each first-round pilot starts from its own
+    linear answer at that alpha (so their q90 is the first aim, half the target), with gravity
+    from zero; later rounds hand out the previous round's slowest pilots first, each from its
+    own solution of that round."""
+    from tissuecast.dataset import recipe_from_store
+    from tissuecast.dataset.calibrate import FIRST_AIM, calibrate_pilots
+    from tissuecast.dataset.generate import _open_or_create
+    from tissuecast.dataset.quantiles import sample_quantile
+
+    cfg = small_config(tmp_path, alpha=0.0, calibration_samples=4)
+    cfg = with_overrides(cfg, scenario={"name": "held", "pins": False, "attached": {"rule": "normal",
+                                                                                     "direction": [0.0, 0.0, -1.0]},
+                                        "gravity": {"enabled": gravity}})
+    writer = _open_or_create(cfg, tmp_path / "s.zarr")
+    recipe = recipe_from_store(writer)
+    n = recipe.scenario().mesh.n_vertices
+    ex = _LinearPilots(recipe.scenario().n_nodes)
+    record, kept = calibrate_pilots(writer, ex, cfg, recipe)
+    first, second = ex.rounds[0], ex.rounds[1]
+    assert len(ex.rounds) >= 2 and record["converged"] and len(kept) == 4
+    if gravity:
+        assert all(t.guess is None for t in first)
+    else:
+        assert all(t.guess_code == InitialGuess.LINEAR_ANSWER for t in first)
+        peaks = [np.linalg.norm(t.guess[:n], axis=1).max() for t in first]
+        assert sample_quantile(np.array(peaks), 0.9) == pytest.approx(FIRST_AIM * 10.0, rel=1e-5)
+    assert [t.index for t in second] == [3, 2, 1, 0]
+    for t in second:
+        assert t.guess_code == InitialGuess.PREVIOUS_ROUND
+        np.testing.assert_array_equal(t.guess, 10.0 * t.index + first[0].alpha)

@@ -8,7 +8,9 @@ Rule (documented in the store's ``calibration`` attribute):
   interpolation) of the pilots' per-sample maximum vertex displacement, solved with the full
   nonlinear FEM at force magnitude alpha. A pilot that fails to converge counts as +inf.
 * alpha solves ``q(alpha) = forces.target_max_displacement`` to a relative tolerance of
-  ``RTOL`` (2 %): start from a deliberately small dimensional estimate (about 1 % of the
+  ``RTOL`` (5 %: the pilots' quantile is itself no closer to the whole data set's; measured,
+  the data set's q90 of the peak lay 4 % above the pilots' on a vessel and 14 % on a brain
+  hemisphere, ``docs/scaling.md``): start from a deliberately small dimensional estimate (about 1 % of the
   target: a nearly linear, cheap solve); extrapolate linearly to half the target from far
   below it (the response of a body held by a few pinned vertices softens strongly), straight
   to the target from within ``FAR_BELOW`` of it or from above; then iterate
@@ -45,10 +47,15 @@ Rule (documented in the store's ``calibration`` attribute):
 * From the second round on, each pilot's solve starts from its own solution of the previous
   round (see :func:`calibrate_pilots`); the answers are the same within the solver
   tolerances, and the rounds are deterministic, so a repeated calibration gives the same
-  record bit for bit.
+  record bit for bit. A round hands out the previous round's slowest pilots first (a round
+  lasts at least as long as its slowest pilot; each pilot's solve is its own, so the order
+  changes no result).
   Where the body hangs on its pins, the first round's pilots (nearly linear at the small
   first alpha) start from a zero guess, the solver's warm path (one increment with the shared
-  reference preconditioner; :func:`warm_zero`).
+  reference preconditioner; :func:`warm_zero`). Where the LBO field is the only load and the
+  first alpha comes from the linear response (e.g. a vessel held at its ends), each
+  first-round pilot starts from its own linear answer at that alpha (``samples/predicted``
+  LINEAR_ANSWER), which the first alpha's solves computed already.
 
 So a softer material, a larger tumour or a different mesh resolution all land near the
 target: the rule measures the mesh at hand, not a fixed force.
@@ -79,7 +86,7 @@ __all__ = ["calibrate_pilots", "calibrate_alpha", "initial_alpha", "linear_alpha
 
 log = logging.getLogger(__name__)
 
-RTOL = 0.02
+RTOL = 0.05
 MAX_ROUNDS = 10
 FIRST_AIM = 0.5  # a first extrapolation from far below the target aims at this share of it ...
 FAR_BELOW = 0.25  # ... "far below": a quantile under this share of the target
@@ -133,19 +140,35 @@ def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, lis
     zero = warm_zero(cfg.solver, scenario)
     nominal = scenario.uncertain is not None  # the loads' size is set at the nominal tissue
 
+    seconds: dict[int, float] = {}  # each pilot's worker seconds in the last round
+
     def pilot_max(alpha: float) -> np.ndarray:
         # each pilot starts from its solution of the previous round (if it converged)
         prev = {r.index: r.nodal for r in last if r.status == SampleStatus.DONE and r.nodal is not None}
+        # the slowest pilots of the previous round first: a round lasts at least as long as its slowest
+        order = sorted(pilots, key=lambda i: -seconds.get(i, 0.0))
+        seconds.clear()
         phase = f"calibration round {len(rounds) + 1} (at most {MAX_ROUNDS}), alpha {alpha:.4g} N"
         rounds.append(alpha)
-        tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha, prev.get(i), nominal=nominal) if i in prev or zero is None
-                 else Task(i, int(seeds[i]), float(betas[i]), alpha, zero, int(InitialGuess.ZERO), nominal=nominal)
-                 for i in pilots]
+
+        def task(i):
+            if i in prev:
+                return Task(i, int(seeds[i]), float(betas[i]), alpha, prev[i], nominal=nominal)
+            if linear is not None and len(rounds) == 1:
+                return Task(i, int(seeds[i]), float(betas[i]), alpha, alpha * linear[i],
+                            int(InitialGuess.LINEAR_ANSWER), nominal=nominal)
+            if zero is not None:
+                return Task(i, int(seeds[i]), float(betas[i]), alpha, zero, int(InitialGuess.ZERO), nominal=nominal)
+            return Task(i, int(seeds[i]), float(betas[i]), alpha, None, nominal=nominal)
+
+        tasks = [task(i) for i in order]
         outlook = calibration_outlook(len(rounds), len(pilots), ex.workers)
         last[:] = sorted(ex.run(tasks, phase, unit="pilot", outlook=outlook), key=lambda r: r.index)
+        seconds.update((r.index, r.seconds) for r in last)
         return np.array([r.max_displacement for r in last])
 
-    alpha0 = _first_alpha(cfg, recipe, scenario, [(int(seeds[i]), float(betas[i])) for i in pilots])
+    alpha0, answers = _first_alpha(cfg, recipe, scenario, [(int(seeds[i]), float(betas[i])) for i in pilots])
+    linear = None if answers is None else dict(zip(pilots, answers))
     record = calibrate_alpha(pilot_max, alpha0, cfg.forces.target_max_displacement, quantile=ds.calibration_quantile)
     record["pilots"] = pilots
     if nominal:  # the pilots' solves lack their samples' drawn parameters: solved again as samples
@@ -170,17 +193,20 @@ def calibration_outlook(round_: int, pilots: int, workers: int):
     return outlook
 
 
-def _first_alpha(cfg: Config, recipe: Recipe, scenario: "Scenario", pilots: list) -> float:
+def _first_alpha(cfg: Config, recipe: Recipe, scenario: "Scenario", pilots: list) -> tuple[float, list | None]:
     """The calibration's first trial alpha (N): the dimensional estimate where the body hangs
     on its pins (the pins checked for a near-mechanism first), else the linear response's;
-    ``pilots``: their ``(seed, beta)``."""
+    and the pilots' linear answers at unit alpha ((n_nodes, 3) mm each) where the LBO field is
+    a sample's only load (else None); ``pilots``: their ``(seed, beta)``."""
     target = cfg.forces.target_max_displacement
     if not scenario.hangs_on_pins:
-        return linear_alpha(recipe, pilots, target)
+        peaks, answers = linear_answers(recipe, pilots)
+        alpha0 = linear_alpha_of(peaks, target)
+        return alpha0, (None if scenario.draws_per_sample else answers)
     alpha0 = initial_alpha(scenario.surface_forces.basis, scenario.mesh, scenario.supported,
                            cfg.material.youngs_modulus, target)
     _check_pins(cfg, scenario, pilots[:SUPPORT_PILOTS], alpha0)
-    return alpha0
+    return alpha0, None
 
 
 def _check_pins(cfg: Config, scenario: "Scenario", pilots: list, alpha0: float) -> None:
@@ -247,6 +273,26 @@ def linear_alpha(recipe: Recipe, pilots: list, target: float, quantile: float = 
         DatasetError: the stiffness at zero displacement is singular (supports that leave a
             rigid-body motion free) or the fields do not move the body.
     """
+    return linear_alpha_of(linear_answers(recipe, pilots)[0], target, quantile, aim)
+
+
+def linear_alpha_of(peaks: np.ndarray, target: float, quantile: float = 0.9, aim: float = FIRST_AIM) -> float:
+    """alpha (N) putting the ``quantile`` of the linear peaks at unit alpha ``peaks`` (P,) mm/N
+    at ``aim * target``, rounded as :func:`linear_alpha` says."""
+    q = _quantile(np.array(peaks), quantile)
+    if not q > 0.0:
+        raise DatasetError("the pilots' LBO fields do not move the body (zero linear response); check the scenario")
+    return float(f"{aim * target / q:.{LINEAR_ALPHA_DIGITS}g}")
+
+
+def linear_answers(recipe: Recipe, pilots: list) -> tuple[np.ndarray, list]:
+    """The linear answers of the pilots' LBO fields at unit alpha (:func:`linear_alpha`):
+    ``(peaks (P,) mm, answers [(n_nodes, 3) mm at every element node])``; ``pilots``: their
+    ``(seed, beta)``.
+
+    Raises:
+        DatasetError: the stiffness at zero displacement is singular.
+    """
     from ..scenario import ScenarioDraw
 
     ctx = SampleContext(recipe)
@@ -257,17 +303,15 @@ def linear_alpha(recipe: Recipe, pilots: list, target: float, quantile: float = 
                            "body free to move; check the scenario's supports")
     free = solver.free_dofs
     n = ctx.mesh.n_vertices
-    peaks = []
+    peaks, answers = [], []
     for seed, beta in pilots:
         f, _ = ctx.scenario.surface_forces.field(seed, 1.0, beta)
         loads = ctx.scenario.loads(ScenarioDraw(), f)
         u = np.zeros(3 * len(loads))
         u[free] = reference.solve(loads.ravel()[free])
         peaks.append(float(np.linalg.norm(u.reshape(-1, 3)[:n], axis=1).max()))
-    q = _quantile(np.array(peaks), quantile)
-    if not q > 0.0:
-        raise DatasetError("the pilots' LBO fields do not move the body (zero linear response); check the scenario")
-    return float(f"{aim * target / q:.{LINEAR_ALPHA_DIGITS}g}")
+        answers.append(u.reshape(-1, 3))
+    return np.array(peaks), answers
 
 
 def calibrate_alpha(

@@ -33,6 +33,7 @@ class InitialGuess(IntEnum):
     GUESS_FAILED = 2  # the guess did not work (no prediction, or no convergence from it): then zero
     PREVIOUS_ROUND = 3  # a calibration pilot's own solution of the previous calibration round
     INTERIM_MODEL = 4  # a reduced-model basis sample: the prediction of a model of the pilots' solutions
+    LINEAR_ANSWER = 5  # a first-round calibration pilot: its LBO field's linear answer at the round's alpha
 
 
 #: ``{code: label}`` of the sample status, as stored in the ``status_labels`` attribute.

@@ -24,7 +24,7 @@ _STATUS_CODES = {v: k for k, v in STATUS_NAMES.items()}
 #: ``summary()["predictor"]`` key of each initial-guess code
 _PREDICTOR_KEYS = {InitialGuess.ZERO: "from_zero", InitialGuess.REDUCED_MODEL: "predicted",
                    InitialGuess.GUESS_FAILED: "prediction_failed", InitialGuess.PREVIOUS_ROUND: "from_previous_round",
-                   InitialGuess.INTERIM_MODEL: "from_interim_model"}
+                   InitialGuess.INTERIM_MODEL: "from_interim_model", InitialGuess.LINEAR_ANSWER: "from_linear_answer"}
 
 
 def open_dataset(path) -> "Dataset":

@@ -154,7 +154,9 @@ class SampleResult:
             not converge) and the sample was solved from zero, PREVIOUS_ROUND converged from
             the task's guess (a calibration pilot started from its solution of the previous
             round), INTERIM_MODEL from the task's guess too (a reduced-model basis sample
-            started from the prediction of an interim model of the calibration pilots).
+            started from the prediction of an interim model of the calibration pilots),
+            LINEAR_ANSWER from the task's guess too (a first-round calibration pilot started
+            from its own linear answer).
         nodal: (n_nodes, 3) float64 mm at every element node (P2: mid-edge nodes too), or
             None; the reduced model is built from these.
         cpu_seconds: CPU time of the worker process spent on the sample, s (its share of a
@@ -356,6 +358,7 @@ def solve_task(recipe: Recipe, task: Task) -> SampleResult:
             load_fraction = max(load_fraction, float(getattr(exc, "load_fraction", 0.0)))
             start = {InitialGuess.PREVIOUS_ROUND: " from the previous round's solution",
                      InitialGuess.INTERIM_MODEL: " from the interim model's prediction",
+                     InitialGuess.LINEAR_ANSWER: " from its linear answer",
                      InitialGuess.ZERO: " from zero in one increment"}.get(predicted, " from the prediction")
             reasons.append(f"attempt {attempt + 1}{start if guess is not None else ''}: "
                            f"{type(exc).__name__}: {exc}")
