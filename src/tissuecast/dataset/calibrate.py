@@ -287,8 +287,8 @@ def linear_alpha_of(peaks: np.ndarray, target: float, quantile: float = 0.9, aim
 
 def linear_answers(recipe: Recipe, pilots: list) -> tuple[np.ndarray, list]:
     """The linear answers of the pilots' LBO fields at unit alpha (:func:`linear_alpha`):
-    ``(peaks (P,) mm, answers [(n_nodes, 3) mm at every element node])``; ``pilots``: their
-    ``(seed, beta)``.
+    ``(peaks (P,) mm, answers [(n_nodes, 3) mm at every element node, float64 rounded to
+    float32 precision])``; ``pilots``: their ``(seed, beta)``.
 
     Raises:
         DatasetError: the stiffness at zero displacement is singular.
@@ -310,7 +310,9 @@ def linear_answers(recipe: Recipe, pilots: list) -> tuple[np.ndarray, list]:
         u = np.zeros(3 * len(loads))
         u[free] = reference.solve(loads.ravel()[free])
         peaks.append(float(np.linalg.norm(u.reshape(-1, 3)[:n], axis=1).max()))
-        answers.append(u.reshape(-1, 3))
+        # rounded to float32 as alpha is to LINEAR_ALPHA_DIGITS: a guess made in the parent,
+        # whose BLAS threads set the last bits, is then the same in any process
+        answers.append(u.reshape(-1, 3).astype(np.float32).astype(np.float64))
     return np.array(peaks), answers
 
 
