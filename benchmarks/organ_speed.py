@@ -244,7 +244,7 @@ def main(argv=None) -> int:
             continue
         print(f"  {f['run'][0]:16} {f['run'][1]:9} {f['minutes']:6.1f} min, calibration "
               f"{100 * f['calibration_share']:4.1f} %, failed {100 * f['failed_share']:4.1f} %, "
-              f"{_accuracy_text(f["test1"])}")
+              f"{_accuracy_text(f['test1'])}")
     return 0
 
 
