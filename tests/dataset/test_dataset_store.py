@@ -102,7 +102,7 @@ def test_stored_codes_are_the_named_ones(made):
 
     _, path, _ = made
     assert {int(s): s.label for s in SampleStatus} == {0: "pending", 1: "done", 2: "failed"} == STATUS_NAMES
-    assert [int(g) for g in InitialGuess] == [0, 1, 2, 3, 4]
+    assert [int(g) for g in InitialGuess] == [0, 1, 2, 3, 4, 5]
     ds = open_dataset(path)
     assert ds.attrs["status_labels"] == {"0": "pending", "1": "done", "2": "failed"}
     np.testing.assert_array_equal(ds.select(status="failed"), np.flatnonzero(ds.status == SampleStatus.FAILED))
