@@ -8,11 +8,11 @@ Rule (documented in the store's ``calibration`` attribute):
   interpolation) of the pilots' per-sample maximum vertex displacement, solved with the full
   nonlinear FEM at force magnitude alpha. A pilot that fails to converge counts as +inf.
 * alpha solves ``q(alpha) = forces.target_max_displacement`` to a relative tolerance of
-  ``RTOL`` (5 %: the pilots' quantile is itself no closer to the whole data set's; measured,
-  the data set's q90 of the peak lay 4 % above the pilots' on a vessel and 14 % on a brain
-  hemisphere, ``docs/scaling.md``): start from a deliberately small dimensional estimate (about 1 % of the
-  target: a nearly linear, cheap solve); extrapolate linearly to half the target from far
-  below it (the response of a body held by a few pinned vertices softens strongly), straight
+  ``RTOL`` (5 %: the pilots' quantile is itself no closer to the whole data set's, as
+  measured in ``docs/scaling.md``): start from a deliberately small dimensional estimate
+  (about 1 % of the target: a nearly linear, cheap solve); extrapolate linearly to half the
+  target from far below it (the response of a body held by a few pinned vertices softens
+  strongly), straight
   to the target from within ``FAR_BELOW`` of it or from above; then iterate
   ``alpha <- alpha (target / q)^(1 / s)`` where the response exponent ``s`` comes from this
   round and the nearest (in log alpha) of the bracket's previous end on its side and its end
