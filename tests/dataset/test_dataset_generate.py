@@ -47,9 +47,11 @@ def test_reference_run_is_complete_and_calibrated(reference):
     assert summary["totals"]["done"] >= 0.9 * ds.n_samples
     cal = ds.calibration
     assert cal["converged"] and cal["pilots"] == [0, 1]
-    # the rule: the 0.9 quantile of the pilots' max displacement is the target (2 %)
+    # the rule: the 0.9 quantile of the pilots' max displacement is the target (within RTOL)
+    from tissuecast.dataset.calibrate import RTOL
+
     pilot_max = ds.max_displacement[:2].astype(np.float64)
-    assert np.quantile(pilot_max, 0.9) == pytest.approx(4.0, rel=0.021)
+    assert np.quantile(pilot_max, 0.9) == pytest.approx(4.0, rel=RTOL + 1e-3)
     assert np.all(ds.alpha[ds.status > 0] == cal["alpha"])
     # the whole data set lands near the target: median within a factor 2, most samples converge
     st = summary["max_displacement"]
@@ -647,6 +649,8 @@ def test_first_round_pilots_start_from_their_linear_answer_where_the_field_is_th
         peaks = [np.linalg.norm(t.guess[:n], axis=1).max() for t in first]
         assert sample_quantile(np.array(peaks), 0.9) == pytest.approx(FIRST_AIM * 10.0, rel=1e-5)
     assert [t.index for t in second] == [3, 2, 1, 0]
+    # the record keeps the pilots in index order whatever order they were handed out in
+    assert record["rounds"][1]["pilot_max"] == [pytest.approx((1 + i) * second[0].alpha) for i in range(4)]
     for t in second:
         assert t.guess_code == InitialGuess.PREVIOUS_ROUND
         np.testing.assert_array_equal(t.guess, 10.0 * t.index + first[0].alpha)

@@ -85,7 +85,9 @@ def test_calibration_and_deformation_of_the_scenario(reference):
     ds = open_dataset(path)
     cal = ds.calibration
     assert cal["converged"] and cal["pilots"] == [0, 1]
-    assert np.quantile(ds.max_displacement[:2].astype(np.float64), 0.9) == pytest.approx(4.0, rel=0.021)
+    from tissuecast.dataset.calibrate import RTOL
+
+    assert np.quantile(ds.max_displacement[:2].astype(np.float64), 0.9) == pytest.approx(4.0, rel=RTOL + 1e-3)
     # held by its surroundings the box strains: the best rigid fit leaves most of the peak
     share = ds.summary(deformation=True)["nonrigid_share"]
     assert share["median"] > 0.5

@@ -49,7 +49,7 @@ Rule (documented in the store's ``calibration`` attribute):
   tolerances, and the rounds are deterministic, so a repeated calibration gives the same
   record bit for bit. A round hands out the previous round's slowest pilots first (a round
   lasts at least as long as its slowest pilot; each pilot's solve is its own, so the order
-  changes no result).
+  changes no result unless a time budget, set as a task is handed out, stops a solve).
   Where the body hangs on its pins, the first round's pilots (nearly linear at the small
   first alpha) start from a zero guess, the solver's warm path (one increment with the shared
   reference preconditioner; :func:`warm_zero`). Where the LBO field is the only load and the
@@ -259,9 +259,9 @@ def linear_alpha(recipe: Recipe, pilots: list, target: float, quantile: float = 
     (``forces.loading``) but without its other loads, are solved with the stiffness at zero
     displacement (supports, springs, material regions); alpha is set so that the ``quantile``
     of their peak vertex displacements is ``aim * target``, rounded to
-    :data:`LINEAR_ALPHA_DIGITS` significant digits: these solves run in the parent process,
-    whose BLAS may use any number of threads, and the last bits of a multi-threaded
-    factorisation depend on that number; rounded, the first alpha (and so every later bit of
+    :data:`LINEAR_ALPHA_DIGITS` significant digits: these solves run in the parent process, on
+    one BLAS thread as the workers solve (the last bits of a multi-threaded factorisation
+    depend on the number of threads), and rounded, the first alpha (and so every later bit of
     the data set) is the same in any process.
 
     Args:
@@ -293,26 +293,27 @@ def linear_answers(recipe: Recipe, pilots: list) -> tuple[np.ndarray, list]:
     Raises:
         DatasetError: the stiffness at zero displacement is singular.
     """
+    from ..fem.linear import one_blas_thread
     from ..scenario import ScenarioDraw
 
-    ctx = SampleContext(recipe)
-    solver = ctx.solver(0)
-    reference = solver.reference_factor()
-    if reference is None:
-        raise DatasetError("the stiffness at zero displacement is not positive definite: the supports leave the "
-                           "body free to move; check the scenario's supports")
-    free = solver.free_dofs
-    n = ctx.mesh.n_vertices
-    peaks, answers = [], []
-    for seed, beta in pilots:
-        f, _ = ctx.scenario.surface_forces.field(seed, 1.0, beta)
-        loads = ctx.scenario.loads(ScenarioDraw(), f)
-        u = np.zeros(3 * len(loads))
-        u[free] = reference.solve(loads.ravel()[free])
-        peaks.append(float(np.linalg.norm(u.reshape(-1, 3)[:n], axis=1).max()))
-        # rounded to float32 as alpha is to LINEAR_ALPHA_DIGITS: a guess made in the parent,
-        # whose BLAS threads set the last bits, is then the same in any process
-        answers.append(u.reshape(-1, 3).astype(np.float32).astype(np.float64))
+    with one_blas_thread():  # as the workers solve: the same bits in any process of a machine
+        ctx = SampleContext(recipe)
+        solver = ctx.solver(0)
+        reference = solver.reference_factor()
+        if reference is None:
+            raise DatasetError("the stiffness at zero displacement is not positive definite: the supports leave the "
+                               "body free to move; check the scenario's supports")
+        free = solver.free_dofs
+        n = ctx.mesh.n_vertices
+        peaks, answers = [], []
+        for seed, beta in pilots:
+            f, _ = ctx.scenario.surface_forces.field(seed, 1.0, beta)
+            loads = ctx.scenario.loads(ScenarioDraw(), f)
+            u = np.zeros(3 * len(loads))
+            u[free] = reference.solve(loads.ravel()[free])
+            peaks.append(float(np.linalg.norm(u.reshape(-1, 3)[:n], axis=1).max()))
+            # rounded to float32 as alpha is to LINEAR_ALPHA_DIGITS: a last safeguard of the bits
+            answers.append(u.reshape(-1, 3).astype(np.float32).astype(np.float64))
     return np.array(peaks), answers
 
 

@@ -133,7 +133,8 @@ class Dataset:
     def predicted(self) -> np.ndarray:
         """(N,) int8 :class:`~.codes.InitialGuess` of each solve: 0 zero (no reduced model yet),
         1 the reduced model's prediction, 2 the guess did not work (then zero), 3 a calibration
-        pilot's solution of the previous round. All 0 in stores made before the predictor existed."""
+        pilot's solution of the previous round, 4 a basis sample's interim-model prediction, 5 a
+        first-round pilot's own linear answer. All 0 in stores made before the predictor existed."""
         if "predicted" not in self._root["samples"]:
             return np.full(self.n_samples, InitialGuess.ZERO, dtype=np.int8)
         return self._array("samples/predicted")

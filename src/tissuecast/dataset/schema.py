@@ -44,7 +44,9 @@ vertices, n_b LBO basis vectors; vertex ids 0-based; units mm, N, MPa::
       samples/seconds       (N,) float64 wall-clock solve time (the only non-reproducible array)
       samples/predicted     (N,) int8 initial guess (codes.InitialGuess): 0 zero (no reduced
                             model yet), 1 the reduced model's prediction, 2 the guess did not
-                            work (then zero), 3 a calibration pilot's solution of the previous round
+                            work (then zero), 3 a calibration pilot's solution of the previous round,
+                            4 a basis sample's interim-model prediction, 5 a first-round pilot's
+                            own linear answer
       scenario/pinned, scenario/attached, scenario/spring_region   (k,) int64 vertex ids of the
                             pins, the attached region and the elastic support's region
       scenario/spring_nodes (s,) int64 element nodes with a spring (P2: vertices, then mid-edge

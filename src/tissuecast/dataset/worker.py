@@ -114,7 +114,8 @@ class Task:
     """One sample to solve: its index, seed, kind and force magnitude alpha (N).
 
     ``guess``: optional (n_nodes, 3) mm nodal displacements to start from (a calibration
-    pilot's solution of the previous round, or a basis sample's interim prediction), recorded
+    pilot's solution of the previous round or its own linear answer, or a basis sample's
+    interim prediction), recorded
     as ``guess_code``; without it the reduced model predicts, if any.
     ``budget``: wall-clock seconds each solver attempt may run (0 = no limit); an attempt
     stopped by it is followed by the cautious retries only (see :func:`solve_task`).
