@@ -68,6 +68,8 @@ import organ_meshes  # noqa: E402
 TARGET_MINUTES = {("brain", "paper"): 30.0, ("brain", "embedded"): 30.0, ("brain-fsaverage", "paper"): 30.0,
                   ("brain-fsaverage", "embedded"): 30.0, ("phantom", "paper"): 4 + 25 / 60, ("vessel", "vessel"): 10.0}
 CALIBRATION_SHARE, FAILED_SHARE, SLOWEST_RATIO = 0.15, 0.02, 10.0
+#: Runs whose target is "no slower than before" (the README's figure, from another machine).
+SIDE_BY_SIDE = {("phantom", "paper")}
 
 
 def build_config(mesh_name: str, preset: str, mesh_path, folder: Path, args):
@@ -204,6 +206,8 @@ def run_figures(out: dict) -> dict:
                "failures": failures}
     target = TARGET_MINUTES.get(figures["run"])
     verdict = "" if target is None else f" (target {target:.1f} min: {'met' if figures['minutes'] <= target else 'not met'})"
+    if figures["run"] in SIDE_BY_SIDE:  # a figure of another machine: only a run of the old code here compares
+        verdict = f" (the README's {target:.1f} min was measured on another machine: compare with the old code side by side)"
     ratio, pilot = figures["slowest_ratio"], figures["slowest_pilot_ratio"]
     print(f"mesh -> model {figures['minutes']:.1f} min{verdict}; calibration {100 * figures['calibration_share']:.1f} % "
           f"of the run (target <= {100 * CALIBRATION_SHARE:.0f} %); failed {100 * figures['failed_share']:.1f} % "
