@@ -205,9 +205,12 @@ def run_figures(out: dict) -> dict:
                "slowest_pilot_ratio": slowest_pilot / medians[0] if medians else None, "test1": out.get("test1"),
                "failures": failures}
     target = TARGET_MINUTES.get(figures["run"])
-    verdict = "" if target is None else f" (target {target:.1f} min: {'met' if figures['minutes'] <= target else 'not met'})"
-    if figures["run"] in SIDE_BY_SIDE:  # a figure of another machine: only a run of the old code here compares
+    if target is None:
+        verdict = ""
+    elif figures["run"] in SIDE_BY_SIDE:  # a figure of another machine: only a run of the old code here compares
         verdict = f" (the README's {target:.1f} min was measured on another machine: compare with the old code side by side)"
+    else:
+        verdict = f" (target {target:.1f} min: {'met' if figures['minutes'] <= target else 'not met'})"
     ratio, pilot = figures["slowest_ratio"], figures["slowest_pilot_ratio"]
     print(f"mesh -> model {figures['minutes']:.1f} min{verdict}; calibration {100 * figures['calibration_share']:.1f} % "
           f"of the run (target <= {100 * CALIBRATION_SHARE:.0f} %); failed {100 * figures['failed_share']:.1f} % "

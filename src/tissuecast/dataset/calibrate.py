@@ -140,31 +140,28 @@ def calibrate_pilots(writer, ex, cfg: Config, recipe: Recipe) -> tuple[dict, lis
     zero = warm_zero(cfg.solver, scenario)
     nominal = scenario.uncertain is not None  # the loads' size is set at the nominal tissue
 
-    seconds: dict[int, float] = {}  # each pilot's worker seconds in the last round
-
     def pilot_max(alpha: float) -> np.ndarray:
         # each pilot starts from its solution of the previous round (if it converged)
         prev = {r.index: r.nodal for r in last if r.status == SampleStatus.DONE and r.nodal is not None}
         # the slowest pilots of the previous round first: a round lasts at least as long as its slowest
+        seconds = {r.index: r.seconds for r in last}
         order = sorted(pilots, key=lambda i: -seconds.get(i, 0.0))
-        seconds.clear()
         phase = f"calibration round {len(rounds) + 1} (at most {MAX_ROUNDS}), alpha {alpha:.4g} N"
         rounds.append(alpha)
 
-        def task(i):
+        def start(i: int) -> tuple[np.ndarray | None, int]:
+            """Pilot i's guess and its code this round (no guess: from zero, as configured)."""
             if i in prev:
-                return Task(i, int(seeds[i]), float(betas[i]), alpha, prev[i], nominal=nominal)
+                return prev[i], int(InitialGuess.PREVIOUS_ROUND)
             if linear is not None and len(rounds) == 1:
-                return Task(i, int(seeds[i]), float(betas[i]), alpha, alpha * linear[i],
-                            int(InitialGuess.LINEAR_ANSWER), nominal=nominal)
+                return alpha * linear[i], int(InitialGuess.LINEAR_ANSWER)
             if zero is not None:
-                return Task(i, int(seeds[i]), float(betas[i]), alpha, zero, int(InitialGuess.ZERO), nominal=nominal)
-            return Task(i, int(seeds[i]), float(betas[i]), alpha, None, nominal=nominal)
+                return zero, int(InitialGuess.ZERO)
+            return None, int(InitialGuess.PREVIOUS_ROUND)  # the code of a task without a guess is unused
 
-        tasks = [task(i) for i in order]
+        tasks = [Task(i, int(seeds[i]), float(betas[i]), alpha, *start(i), nominal=nominal) for i in order]
         outlook = calibration_outlook(len(rounds), len(pilots), ex.workers)
         last[:] = sorted(ex.run(tasks, phase, unit="pilot", outlook=outlook), key=lambda r: r.index)
-        seconds.update((r.index, r.seconds) for r in last)
         return np.array([r.max_displacement for r in last])
 
     alpha0, answers = _first_alpha(cfg, recipe, scenario, [(int(seeds[i]), float(betas[i])) for i in pilots])
