@@ -186,11 +186,12 @@ class Scenario:
         surface, body = self.sample_loads(draw, forces)
         ids, values = self.prescribed(draw)
         inputs = SampleInputs(forces, weights, surface, body if draw.body_force is not None else None, ids, values, draw)
-        return inputs if draw.parameters is None else self._with_parameters(inputs, draw.parameters)
+        return inputs if draw.parameters is None else self.with_parameters(inputs, draw.parameters)
 
-    def _with_parameters(self, inputs: SampleInputs, p) -> SampleInputs:
-        """``inputs`` under the drawn parameters ``p``: the density's factor on the body loads, the
-        attached extent's vertices held at zero, and the sample's materials and springs."""
+    def with_parameters(self, inputs: SampleInputs, p) -> SampleInputs:
+        """``inputs`` under the parameters ``p`` (a :class:`~.parameters.ParameterDraw`, drawn or
+        given): the density's factor on the body loads, the attached extent's vertices held at
+        zero, and the sample's materials and springs."""
         u, c = self.uncertain, self.config.uncertain
         extra = u.extra_held(p, self.attached)
         ids = np.concatenate([inputs.prescribed_ids, extra]).astype(np.int64)

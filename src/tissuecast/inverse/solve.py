@@ -1,0 +1,366 @@
+"""The field from the markers through the physics: the loads, and the parameters the operating
+room does not know, whose finite-element solution matches the tracked markers.
+
+The surrogate (:mod:`tissuecast.surrogate`) learns the map from marker displacements to the
+field from simulations. :class:`MarkerInverse` solves for it instead, one frame at a time, with
+the data set's own simulator: it looks for the LBO weights ``W`` ((n_b, 3), the surface load
+the scenario draws, at the data set's force magnitude alpha) and the scenario's uncertain
+parameters (``[scenario.uncertain]``) whose solution puts the markers where they were tracked,
+with the loads that navigation knows (the tracked instrument's indentation, the change of
+gravity) given as a :class:`~tissuecast.scenario.ScenarioDraw`.
+
+The estimate is the maximum a posteriori one: marker errors Gaussian with standard deviation
+``noise`` (mm, each coordinate), ``W`` with the prior of its draws (independent U(-1, 1):
+mean 0, variance 1/3), each continuous parameter with its range's mean and standard deviation
+(log-uniform factors in log space). Gauss-Newton steps: the markers' sensitivities from the
+tangent stiffness at the current solution (held dofs eliminated; the parameters' through a
+finite difference of the internal forces), each full solve started from the last one; a step
+is limited to one prior standard deviation per unknown and halved where the solve fails or the
+posterior falls.
+
+The attached region's margin changes which vertices are held, so the solution jumps where a
+vertex joins the region, and a single held vertex next to a marker moves it by millimetres:
+the posterior over the margin is rugged. It is searched over every distinct held set its range
+gives, each with a few Gauss-Newton steps started from the best solution so far, the best one
+then the best ``FINISHED`` iterated to convergence from the prior mean; the field is their
+average weighted by their posterior ``exp(-objective / 2)`` (where markers cannot tell whether a
+vertex far from them is held, it takes the middle). The parameters, W and the misfit are the
+best set's. The markers narrow the search first: a marker that did not move
+(within ``STILL_NOISES`` noise standard deviations) is held, one that moved is not, which
+brackets the margin between the largest surface distance of a still marker and the smallest
+of a moving one. The density (a factor on the gravity change, 1 %
+of the loads of the shipped presets) and the material regions' moduli are kept at their nominal
+values.
+
+This is a measurement of what the markers determine, and a reference predictor: a frame takes
+seconds (hundreds of full solves), not the surrogate's microseconds. ``benchmarks/physics_inverse.py``
+measures it against the surrogate. Ids are 0-based; mm, N, MPa.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse.linalg import splu
+
+from ..errors import ConfigError, ConvergenceError
+from ..forces.fields import lbo_field
+from ..scenario.parameters import ParameterDraw
+from ..scenario.sample_inputs import SampleInputs, ScenarioDraw
+
+__all__ = ["MarkerInverse", "InverseResult", "NOISE_MM"]
+
+#: Default standard deviation of a tracked marker coordinate, mm (a misfit of this size is noise).
+NOISE_MM = 0.05
+#: Continuous parameters the inverse estimates where the scenario gives them a range, in order;
+#: True where the range is log-uniform (a factor).
+ESTIMATED = (("youngs_modulus", True), ("spring_normal", True), ("spring_tangential", True),
+             ("poisson_ratio", False))
+#: Finite-difference step of the internal forces in a parameter, in prior standard deviations.
+FD_STEP = 1e-4
+#: Gauss-Newton steps while searching the attached margin, and at most when finishing.
+SEARCH_ITERATIONS = 4
+MAX_ITERATIONS = 15
+#: Convergence: the largest step below this many prior standard deviations.
+STEP_TOL = 1e-3
+#: Poisson's ratio stays within these while iterating.
+NU_LIMITS = (0.3, 0.495)
+#: Held sets iterated to convergence from the prior mean after the search.
+FINISHED = 4
+#: A marker that moved less than this many noise standard deviations is taken as held.
+STILL_NOISES = 4.0
+
+
+@dataclass(frozen=True, eq=False)
+class InverseResult:
+    """One frame's estimate.
+
+    Attributes:
+        field: (n, 3) float64 mm, the displacement at every mesh vertex: the posterior mean
+            over the finished held sets (module notes).
+        weights: (n_b, 3) float64, the LBO weights W of the surface load.
+        parameters: the estimated :class:`~tissuecast.scenario.parameters.ParameterDraw`
+            (nominal values where the scenario draws nothing).
+        marker_misfit: the largest distance between a marker's solved and tracked
+            displacement, mm.
+        objective: the negative log posterior (up to a constant) at the estimate.
+        held_sets: how many of the attached margin's held sets the field averages (1 where
+            the margin is not drawn).
+        solves: full finite-element solves it took.
+        seconds: wall-clock time.
+    """
+
+    field: np.ndarray
+    weights: np.ndarray
+    parameters: ParameterDraw
+    marker_misfit: float
+    objective: float
+    held_sets: int
+    solves: int
+    seconds: float
+
+
+class MarkerInverse:
+    """Fields from tracked markers by solving for the loads and parameters (module notes).
+
+    Args:
+        scenario: the data set's resolved :class:`~tissuecast.scenario.Scenario`.
+        solver: ``attempt -> Solver`` (``SampleContext.solver``): attempt 0 the data set's
+            solver, 1 its first cautious retry (used when a solve from the last one fails).
+        markers: (n_d,) int64 marker vertex ids, 0-based.
+        alpha: the data set's force magnitude, N.
+        noise: standard deviation of a tracked coordinate, mm.
+    """
+
+    def __init__(self, scenario, solver, markers, alpha: float, *, noise: float = NOISE_MM):
+        self.scenario = scenario
+        self._solver = solver
+        self.markers = np.asarray(markers, dtype=np.int64)
+        if not (np.isfinite(alpha) and alpha > 0):
+            raise ConfigError(f"the force magnitude alpha must be a positive number of N, got {alpha!r}")
+        if not noise > 0:
+            raise ConfigError(f"the marker noise must be a positive number of mm, got {noise!r}")
+        self.alpha, self.noise = float(alpha), float(noise)
+        surface = scenario.surface_forces
+        self.n_basis = surface.basis.n_vectors
+        n = scenario.mesh.n_vertices
+        unit = []
+        for k in range(3 * self.n_basis):
+            w = np.zeros((self.n_basis, 3))
+            w.flat[k] = 1.0
+            unit.append(scenario.sample_loads(ScenarioDraw(), lbo_field(surface.basis, w, self.alpha, n))[0])
+        self._unit = np.array(unit)  # (3 n_b, n_nodes, 3) N per unit weight
+        c = scenario.config.uncertain
+        self._names = [(name, log) for name, log in ESTIMATED if getattr(c, name)]
+        mu, sd = [0.0] * (3 * self.n_basis), [3.0 ** -0.5] * (3 * self.n_basis)
+        for name, log in self._names:
+            lo, hi = (float(v) for v in getattr(c, name))
+            a, b = (math.log(lo), math.log(hi)) if log else (lo, hi)
+            mu.append(0.5 * (a + b))
+            sd.append((b - a) / math.sqrt(12.0))
+        self._mu, self._sd = np.array(mu), np.array(sd)
+        self._margins = self._margin_candidates(scenario)
+
+    @classmethod
+    def from_dataset(cls, dataset, markers, *, noise: float = NOISE_MM) -> "MarkerInverse":
+        """The inverse of a data set's simulator (its scenario, solver and force magnitude: the
+        LBO samples' alpha)."""
+        from ..dataset.worker import SampleContext
+
+        ctx = SampleContext(dataset.recipe())
+        alpha = np.asarray(dataset.alpha, dtype=np.float64)
+        lbo = np.isnan(np.asarray(dataset.beta, dtype=np.float64)) & np.isfinite(alpha)
+        if not lbo.any():
+            raise ConfigError("the data set holds no solved LBO sample to take the force magnitude alpha from")
+        return cls(ctx.scenario, ctx.solver, markers, float(np.median(alpha[lbo])), noise=noise)
+
+    @staticmethod
+    def _margin_candidates(scenario) -> np.ndarray:
+        """One margin per distinct held set of the attached margin's range, ascending (empty
+        when the margin is not drawn)."""
+        u = scenario.uncertain
+        bounds = scenario.config.uncertain.attached_margin
+        if u is None or u.distance is None or not bounds:
+            return np.zeros(0)
+        lo, hi = float(bounds[0]), float(bounds[1])
+        d = u.distance[np.isfinite(u.distance)]
+        inside = np.unique(d[(d >= lo) & (d <= hi)])
+        first = [lo] if not inside.size or inside[0] > lo else []
+        return np.concatenate([first, inside])
+
+    def known_draw(self, seed: int) -> ScenarioDraw:
+        """A simulated sample's known loads: its draws (the instrument's indentation, the
+        gravity change) without its uncertain parameters, which the inverse estimates."""
+        return dataclasses.replace(self.scenario.draw_for(int(seed)), parameters=None)
+
+    # ------------------------------------------------------------------ solving
+    def solve(self, marker_displacements, draw: ScenarioDraw | None = None) -> InverseResult:
+        """The MAP estimate of one frame.
+
+        Args:
+            marker_displacements: (n_d, 3) mm, the tracked markers' displacements.
+            draw: the known loads (indentation, gravity change); None: none.
+
+        Raises:
+            ConfigError: the displacements do not match the markers.
+            ConvergenceError: no solve of the search converged.
+        """
+        t0 = time.perf_counter()
+        d = np.asarray(marker_displacements, dtype=np.float64)
+        if d.shape != (len(self.markers), 3) or not np.all(np.isfinite(d)):
+            raise ConfigError(f"marker displacements must be finite with shape ({len(self.markers)}, 3), got {d.shape}")
+        frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()))
+        if self._margins.size:
+            finished = frame.search_margin(self._margins)
+        else:
+            finished = [(0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS))]
+        objs = np.array([frame.objective(x, u)[0] for _, x, u in finished])
+        w = np.exp(-0.5 * (objs - objs.min()))
+        n = self.scenario.mesh.n_vertices
+        field = sum(wi * u[:n] for wi, (_, _, u) in zip(w / w.sum(), finished))
+        margin, x, u = finished[int(np.argmin(objs))]
+        obj, miss = frame.objective(x, u)
+        return InverseResult(field=field, weights=x[: 3 * self.n_basis].reshape(self.n_basis, 3).copy(),
+                             parameters=self._draw(x, margin), marker_misfit=miss, objective=obj,
+                             held_sets=len(finished), solves=frame.solves, seconds=time.perf_counter() - t0)
+
+    def _known_inputs(self, draw: ScenarioDraw) -> SampleInputs:
+        sc = self.scenario
+        n = sc.mesh.n_vertices
+        ids, values = sc.prescribed(draw)
+        surface, body = sc.sample_loads(draw, np.zeros((n, 3)))
+        return SampleInputs(np.zeros((n, 3)), np.zeros((self.n_basis, 3)), surface,
+                            body if draw.body_force is not None else None, ids, values, draw)
+
+    def _draw(self, x: np.ndarray, margin: float) -> ParameterDraw:
+        values = {}
+        for k, (name, log) in enumerate(self._names):
+            v = x[3 * self.n_basis + k]
+            values[name] = float(math.exp(v) if log else v)
+        return ParameterDraw(attached_margin=float(margin), **values)
+
+
+class _Frame:
+    """The state of one frame's search: its data, known inputs, best point and solve count."""
+
+    def __init__(self, inv: MarkerInverse, d: np.ndarray, known: SampleInputs):
+        self.inv, self.d, self.known = inv, d, known
+        self.solves = 0
+        self.best_x = inv._mu.copy()
+        self.best_u = None
+        self.best_obj = math.inf
+        self.best_margin = 0.0
+
+    def inputs(self, x: np.ndarray, margin: float) -> SampleInputs:
+        """The frame's inputs under the parameters of ``x`` and ``margin``."""
+        inv = self.inv
+        if inv.scenario.uncertain is None:
+            return self.known
+        return inv.scenario.with_parameters(self.known, inv._draw(x, margin))
+
+    def solver(self, inputs: SampleInputs, attempt: int = 0):
+        return self.inv._solver(attempt).with_parameters(*inputs.solver_parameters)
+
+    def field(self, x: np.ndarray, margin: float, guess: np.ndarray | None) -> np.ndarray:
+        """(n_nodes, 3) mm: the solution for unknowns ``x`` and margin ``margin``, started from
+        ``guess``; a failed start is retried from zero with the cautious solver."""
+        inv = self.inv
+        inputs = self.inputs(x, margin)
+        loads = np.tensordot(x[: 3 * inv.n_basis], inv._unit, axes=1)
+        kw = inputs.solve_keywords()
+        self.solves += 1
+        try:
+            return self.solver(inputs).solve(loads, guess, **kw).nodal_displacement
+        except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError):
+            if guess is None:
+                raise
+        self.solves += 1
+        return self.solver(inputs, 1).solve(loads, None, **kw).nodal_displacement
+
+    def jacobian(self, x: np.ndarray, margin: float, u: np.ndarray) -> np.ndarray:
+        """(3 n_d, n_x) d(marker displacements)/d(unknowns) at the equilibrium ``u`` of ``x``:
+        the tangent stiffness K (the held dofs eliminated) solved against the loads' derivative
+        (the unit LBO loads) and against minus the internal forces' derivative in each
+        parameter (a finite difference of one assembly)."""
+        inv = self.inv
+        inputs = self.inputs(x, margin)
+        solver = self.solver(inputs)
+        asm = solver.assembler
+        fint, data, jmin = asm.tangent(u)
+        if not jmin > 0.0:
+            raise ConvergenceError("the estimate inverts an element")
+        free = np.asarray(solver.free_dofs)
+        nodes, _ = solver.problem.solve_constraints((inputs.prescribed_ids, inputs.prescribed_values))
+        held = np.zeros(int(free.max()) + 1 if free.size else 0, dtype=bool)
+        held[(3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()] = True
+        keep = np.flatnonzero(~held[free])
+        K = asm.matrix(data)[keep][:, keep].tocsc()
+        rhs = np.empty((keep.size, x.size))
+        nw = 3 * inv.n_basis
+        rhs[:, :nw] = inv._unit.reshape(nw, -1)[:, free[keep]].T
+        for k in range(nw, x.size):
+            h = FD_STEP * inv._sd[k]
+            x2 = x.copy()
+            x2[k] += h
+            f2, _ = self.solver(self.inputs(x2, margin)).assembler.internal_force(u)
+            rhs[:, k] = -(f2 - fint)[free[keep]] / h
+        du = np.zeros((3 * len(u), x.size))
+        du[free[keep]] = splu(K).solve(rhs)
+        return du[(3 * inv.markers[:, None] + np.arange(3)).ravel()]
+
+    def objective(self, x: np.ndarray, u: np.ndarray) -> tuple[float, float]:
+        """(negative log posterior, largest marker miss in mm)."""
+        inv = self.inv
+        r = self.d - u[inv.markers].ravel()
+        z = (x - inv._mu) / inv._sd
+        return float(r @ r / inv.noise**2 + z @ z), float(np.linalg.norm(r.reshape(-1, 3), axis=1).max())
+
+    def _clip(self, x: np.ndarray) -> np.ndarray:
+        """Poisson's ratio kept physical (the prior alone keeps the factors near their ranges)."""
+        for k, (name, _) in enumerate(self.inv._names):
+            if name == "poisson_ratio":
+                j = 3 * self.inv.n_basis + k
+                x[j] = min(max(x[j], NU_LIMITS[0]), NU_LIMITS[1])
+        return x
+
+    def iterate(self, x: np.ndarray, margin: float, u: np.ndarray | None, iterations: int):
+        """Gauss-Newton from ``x`` (module notes); returns the last accepted (x, u)."""
+        inv = self.inv
+        x = x.copy()
+        u = self.field(x, margin, u)
+        obj, _ = self.objective(x, u)
+        for _ in range(iterations):
+            m0 = u[inv.markers].ravel()
+            J = self.jacobian(x, margin, u)
+            A = J.T @ J / inv.noise**2 + np.diag(inv._sd**-2.0)
+            g = J.T @ (self.d - m0) / inv.noise**2 - (x - inv._mu) / inv._sd**2
+            step = np.linalg.solve(A, g)
+            big = np.abs(step / inv._sd).max()
+            if big > 1.0:
+                step /= big
+            for _ in range(4):  # halve the step where the solve fails or the posterior falls
+                x_new = self._clip(x + step)
+                try:
+                    u_new = self.field(x_new, margin, u)
+                except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError):
+                    step /= 2.0
+                    continue
+                obj_new, _ = self.objective(x_new, u_new)
+                if obj_new <= obj:
+                    break
+                step /= 2.0
+            else:
+                break
+            x, u, obj = x_new, u_new, obj_new
+            if np.abs(step / inv._sd).max() < STEP_TOL:
+                break
+        if obj < self.best_obj:
+            self.best_obj, self.best_x, self.best_u, self.best_margin = obj, x.copy(), u, margin
+        return x, u
+
+    def search_margin(self, candidates: np.ndarray) -> float:
+        """The held sets' search (module notes): ``[(margin, x, u)]`` of the ``FINISHED`` best,
+        each iterated to convergence."""
+        inv = self.inv
+        moved = np.linalg.norm(self.d.reshape(-1, 3), axis=1)
+        dist = inv.scenario.uncertain.distance[inv.markers]
+        still = moved <= STILL_NOISES * inv.noise
+        lo = float(dist[still].max()) if still.any() else -math.inf
+        hi = float(dist[~still].min()) if (~still).any() else math.inf
+        bracket = np.flatnonzero((candidates >= lo) & (candidates < hi))
+        if not bracket.size:  # markers that contradict every held set (noise): search them all
+            bracket = np.arange(len(candidates))
+        start = int(bracket[np.argmin(np.abs(candidates[bracket]))])
+        order = sorted(bracket.tolist(), key=lambda i: abs(i - start))  # outwards from the nominal extent
+        scores = {}
+        for i in order:
+            x, u = self.iterate(self.best_x, float(candidates[i]), self.best_u, SEARCH_ITERATIONS)
+            scores[i] = self.objective(x, u)[0]
+        finished = []
+        for i in sorted(scores, key=scores.get)[:FINISHED]:  # the best few to convergence, afresh
+            finished.append((float(candidates[i]), *self.iterate(inv._mu, float(candidates[i]), None, MAX_ITERATIONS)))
+        return finished
