@@ -71,8 +71,8 @@ def main(argv=None) -> None:
     drawn = ds.parameters
     print(f"{args.dataset}: {len(idx)} {args.split} samples, {len(mk)} markers, noise {args.noise} mm, "
           f"alpha {inv.alpha:.4g} N, estimated: W ({3 * inv.n_basis}), "
-          f"{', '.join(n for n, _ in inv._names) or 'no parameter'}"
-          f"{', the attached margin (' + str(len(inv._margins)) + ' held sets)' if inv._margins.size else ''}")
+          f"{', '.join(inv.estimated) or 'no parameter'}"
+          f"{', the attached margin (' + str(len(inv.margins)) + ' held sets)' if inv.margins.size else ''}")
     rows = []
     t_all = time.perf_counter()
     for k, s in enumerate(idx):

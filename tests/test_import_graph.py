@@ -139,7 +139,7 @@ LAYERS = (
     ("fem",),
     ("scenario", "markers"),
     ("dataset",),
-    ("surrogate", "planning"),
+    ("surrogate", "planning", "inverse"),
     ("evaluate", "serve"),
     ("app",),
     ("cli",),

@@ -65,6 +65,8 @@ FD_STEP = 1e-4
 #: Gauss-Newton steps while searching the attached margin, and at most when finishing.
 SEARCH_ITERATIONS = 4
 MAX_ITERATIONS = 15
+#: The largest step of an unknown, in prior standard deviations.
+STEP_CAP = 3.0
 #: Convergence: the largest step below this many prior standard deviations.
 STEP_TOL = 1e-3
 #: Poisson's ratio stays within these while iterating.
@@ -145,6 +147,17 @@ class MarkerInverse:
         self._mu, self._sd = np.array(mu), np.array(sd)
         self._margins = self._margin_candidates(scenario)
 
+    @property
+    def estimated(self) -> tuple[str, ...]:
+        """The continuous parameters estimated (those the scenario draws, of :data:`ESTIMATED`)."""
+        return tuple(name for name, _ in self._names)
+
+    @property
+    def margins(self) -> np.ndarray:
+        """(k,) mm, one attached margin per distinct held set of its range, ascending (empty
+        when the margin is not drawn)."""
+        return self._margins.copy()
+
     @classmethod
     def from_dataset(cls, dataset, markers, *, noise: float = NOISE_MM) -> "MarkerInverse":
         """The inverse of a data set's simulator (its scenario, solver and force magnitude: the
@@ -198,6 +211,7 @@ class MarkerInverse:
             finished = frame.search_margin(self._margins)
         else:
             finished = [(0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS))]
+        finished = [(m, *frame.polish(x, m, u)) for m, x, u in finished]
         objs = np.array([frame.objective(x, u)[0] for _, x, u in finished])
         w = np.exp(-0.5 * (objs - objs.min()))
         n = self.scenario.mesh.n_vertices
@@ -319,7 +333,7 @@ class _Frame:
             A = J.T @ J / inv.noise**2 + np.diag(inv._sd**-2.0)
             g = J.T @ (self.d - m0) / inv.noise**2 - (x - inv._mu) / inv._sd**2
             step = np.linalg.solve(A, g)
-            big = np.abs(step / inv._sd).max()
+            big = np.abs(step / inv._sd).max() / STEP_CAP
             if big > 1.0:
                 step /= big
             for _ in range(4):  # halve the step where the solve fails or the posterior falls
@@ -340,6 +354,18 @@ class _Frame:
                 break
         if obj < self.best_obj:
             self.best_obj, self.best_x, self.best_u, self.best_margin = obj, x.copy(), u, margin
+        return x, u
+
+    def polish(self, x: np.ndarray, margin: float, u: np.ndarray):
+        """``(x, u)`` once more from a solve started at zero: where the loads have more than one
+        equilibrium the warm-started solves can follow another branch than a sample's solve
+        (which starts near zero); if the field from zero fits better, iterate on from it."""
+        try:
+            fresh = self.field(x, margin, None)
+        except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError):
+            return x, u
+        if self.objective(x, fresh)[0] < self.objective(x, u)[0] - 1e-9:
+            return self.iterate(x, margin, fresh, MAX_ITERATIONS)
         return x, u
 
     def search_margin(self, candidates: np.ndarray) -> float:

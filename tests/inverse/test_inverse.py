@@ -1,0 +1,97 @@
+"""The physics inverse (tissuecast.inverse): the markers' sensitivities against finite
+differences of full solves, and fields recovered from the markers of simulated samples, with
+the parameters known (nominal) and drawn (E, the springs, the attached margin)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mesh_factories import box_grid
+
+from tissuecast.config import Config, with_overrides
+from tissuecast.errors import ConfigError
+from tissuecast.fem import Solver
+from tissuecast.inverse import MarkerInverse
+from tissuecast.inverse.solve import _Frame
+from tissuecast.scenario import build_scenario
+
+MESH = box_grid(3, 3, 4, size=(10.0, 10.0, 10.0))  # 30 x 30 x 40 mm, 80 vertices
+SCENARIO = {"pins": False, "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
+            "springs": {"rule": "surface"}}
+UNCERTAIN = {"youngs_modulus": [0.5, 2.0], "spring_normal": [0.25, 4.0], "attached_margin": [-12.0, 12.0]}
+ALPHA = 20.0  # N: peaks of a few mm
+
+
+def _setup(uncertain: bool):
+    scenario = dict(SCENARIO, uncertain=UNCERTAIN) if uncertain else SCENARIO
+    cfg = with_overrides(Config(), solver={"order": 1, "force_tolerance": 1e-10}, forces={"n_basis": 4}, scenario=scenario)
+    sc = build_scenario(MESH, cfg, np.zeros(0, dtype=np.int64))
+    problem = sc.problem()
+    surface = MESH.surface_vertices
+    markers = surface[np.linspace(0, len(surface) - 1, 14).round().astype(int)]
+    return sc, (lambda attempt: Solver(problem, cfg.solver)), markers
+
+
+def _simulate(sc, solver, seed: int):
+    """A sample as a data set solves it: its field, LBO weights and drawn parameters."""
+    inputs = sc.sample(seed, ALPHA)
+    s = solver(0) if inputs.parameters is None else solver(0).with_parameters(*inputs.solver_parameters)
+    return s.solve(inputs.surface, None, **inputs.solve_keywords()).displacement, inputs
+
+
+def test_the_markers_sensitivities_match_finite_differences_of_full_solves():
+    sc, solver, markers = _setup(True)
+    inv = MarkerInverse(sc, solver, markers, ALPHA)
+    assert inv.estimated == ("youngs_modulus", "spring_normal") and inv.margins.size >= 3
+    truth, inputs = _simulate(sc, solver, 3)
+    frame = _Frame(inv, truth[markers].ravel(), inv._known_inputs(inv.known_draw(3)))
+    x = inv._mu.copy()
+    x[:12] = inputs.weights.ravel()
+    x[12:] = np.log([1.3, 0.7])
+    margin = float(inv.margins[len(inv.margins) // 2])
+    u = frame.field(x, margin, None)
+    J = frame.jacobian(x, margin, u)
+    for c in (0, 5, 11, 12, 13):
+        h = 1e-2  # central differences: O(h^2) truncation, well above the solves' tolerance
+        up, dn = x.copy(), x.copy()
+        up[c] += h
+        dn[c] -= h
+        fd = (frame.field(up, margin, u)[markers] - frame.field(dn, margin, u)[markers]).ravel() / (2 * h)
+        assert np.linalg.norm(J[:, c] - fd) <= 1e-4 * np.linalg.norm(fd), c
+
+
+def test_the_field_of_a_nominal_sample_is_recovered_from_its_markers():
+    sc, solver, markers = _setup(False)
+    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.002)  # exact markers: the prior barely pulls
+    assert inv.estimated == () and inv.margins.size == 0
+    for seed in (1, 2):
+        truth, inputs = _simulate(sc, solver, seed)
+        res = inv.solve(truth[markers], inv.known_draw(seed))
+        peak = np.linalg.norm(truth, axis=1).max()
+        assert 1.0 < peak < 20.0
+        assert np.linalg.norm(res.field - truth, axis=1).max() < 1e-3 * peak
+        np.testing.assert_allclose(res.weights, inputs.weights, atol=2e-3)
+        assert res.marker_misfit < 1e-3 and res.held_sets == 1
+    with pytest.raises(ConfigError, match=r"marker displacements must be finite with shape \(14, 3\)"):
+        inv.solve(truth[markers[:3]])
+    with pytest.raises(ConfigError, match="alpha must be a positive number of N"):
+        MarkerInverse(sc, solver, markers, 0.0)
+
+
+def test_drawn_parameters_are_estimated_where_the_markers_see_them():
+    """A stiffer tissue in softer surroundings, the attached region grown: the field comes back
+    from 14 markers, the held set with it; E and the springs only up to their common scale (a
+    stiffer body under larger loads looks the same to the markers)."""
+    sc, solver, markers = _setup(True)
+    inv = MarkerInverse(sc, solver, markers, ALPHA)
+    errors = []
+    for seed in (5, 8):
+        truth, inputs = _simulate(sc, solver, seed)
+        res = inv.solve(truth[markers], inv.known_draw(seed))
+        peak = np.linalg.norm(truth, axis=1).max()
+        errors.append(np.linalg.norm(res.field - truth, axis=1).max() / peak)
+        assert res.marker_misfit < 0.05
+        p, q = res.parameters, inputs.parameters
+        held = sc.uncertain.distance <= q.attached_margin
+        assert np.array_equal(held, sc.uncertain.distance <= p.attached_margin)
+    assert max(errors) < 0.02
