@@ -33,8 +33,9 @@ of the loads of the shipped presets) and the material regions' moduli are kept a
 values.
 
 This is a measurement of what the markers determine, and a reference predictor: a frame takes
-seconds (hundreds of full solves), not the surrogate's microseconds. ``benchmarks/physics_inverse.py``
-measures it against the surrogate. Ids are 0-based; mm, N, MPa.
+seconds to minutes (tens of full solves with the parameters known, hundreds with them drawn),
+not the surrogate's microseconds. ``benchmarks/physics_inverse.py`` measures it against the
+surrogate. Ids are 0-based; mm, N, MPa.
 """
 
 from __future__ import annotations
