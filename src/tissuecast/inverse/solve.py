@@ -21,16 +21,18 @@ posterior falls.
 The attached region's margin changes which vertices are held, so the solution jumps where a
 vertex joins the region, and a single held vertex next to a marker moves it by millimetres:
 the posterior over the margin is rugged. It is searched over every distinct held set its range
-gives, each with a few Gauss-Newton steps started from the best solution so far, the best one
-then the best ``FINISHED`` iterated to convergence from the prior mean; the field is their
-average weighted by their posterior ``exp(-objective / 2)`` (where markers cannot tell whether a
-vertex far from them is held, it takes the middle). The parameters, W and the misfit are the
-best set's. The markers narrow the search first: a marker that did not move
-(within ``STILL_NOISES`` noise standard deviations) is held, one that moved is not, which
-brackets the margin between the largest surface distance of a still marker and the smallest
-of a moving one. The density (a factor on the gravity change, 1 %
-of the loads of the shipped presets) and the material regions' moduli are kept at their nominal
-values.
+gives, each set with its prior probability (the share of the margin's range that gives it: the
+nominal extent holds over the whole gap between the rim's inner and outer vertices). The
+markers narrow the search first: a marker that did not move (within ``STILL_NOISES`` noise
+standard deviations) is held, one that moved is not, which brackets the margin between the
+largest surface distance of a still marker and the smallest of a moving one. The likeliest set
+a priori is iterated to convergence first, every other one with a few Gauss-Newton steps
+started from the best solution so far, then the best ``FINISHED`` to convergence from the
+prior mean; the field is their average weighted by their posterior ``exp(-objective / 2)``
+(where the markers cannot tell whether a vertex far from them is held, it takes the middle).
+The parameters, W and the misfit are the best set's. The density (a factor on the gravity
+change, 1 % of the loads of the shipped presets) and the material regions' moduli are kept at
+their nominal values.
 
 This is a measurement of what the markers determine, and a reference predictor: a frame takes
 seconds to minutes (tens of full solves with the parameters known, hundreds with them drawn),
@@ -90,7 +92,8 @@ class InverseResult:
             (nominal values where the scenario draws nothing).
         marker_misfit: the largest distance between a marker's solved and tracked
             displacement, mm.
-        objective: the negative log posterior (up to a constant) at the estimate.
+        objective: minus twice the log posterior (up to a constant) at the estimate, the held
+            set's prior included.
         held_sets: how many of the attached margin's held sets the field averages (1 where
             the margin is not drawn).
         solves: full finite-element solves it took.
@@ -147,6 +150,7 @@ class MarkerInverse:
             sd.append((b - a) / math.sqrt(12.0))
         self._mu, self._sd = np.array(mu), np.array(sd)
         self._margins = self._margin_candidates(scenario)
+        self._set_prior = self._held_set_prior(scenario, self._margins)
 
     @property
     def estimated(self) -> tuple[str, ...]:
@@ -186,6 +190,20 @@ class MarkerInverse:
         first = [lo] if not inside.size or inside[0] > lo else []
         return np.concatenate([first, inside])
 
+    @staticmethod
+    def _held_set_prior(scenario, margins: np.ndarray) -> dict[float, float]:
+        """``-2 log P(held set)`` by candidate margin: the share of the margin's (uniform) range
+        that gives the set (the nominal extent holds over the whole gap between the rim's inner
+        and outer vertices, each vertex beyond it over the gap to the next)."""
+        if not margins.size:
+            return {}
+        hi = float(scenario.config.uncertain.attached_margin[1])
+        lo = float(scenario.config.uncertain.attached_margin[0])
+        widths = np.diff(np.append(margins, hi))
+        widths[-1] = max(widths[-1], 0.0)
+        widths = np.maximum(widths, 1e-9 * (hi - lo))  # a set reached only at the range's end
+        return {float(m): float(-2.0 * math.log(w / (hi - lo))) for m, w in zip(margins, widths)}
+
     def known_draw(self, seed: int) -> ScenarioDraw:
         """A simulated sample's known loads: its draws (the instrument's indentation, the
         gravity change) without its uncertain parameters, which the inverse estimates."""
@@ -213,12 +231,13 @@ class MarkerInverse:
         else:
             finished = [(0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS))]
         finished = [(m, *frame.polish(x, m, u)) for m, x, u in finished]
-        objs = np.array([frame.objective(x, u)[0] for _, x, u in finished])
+        objs = np.array([frame.objective(x, u)[0] + self._set_prior.get(m, 0.0) for m, x, u in finished])
         w = np.exp(-0.5 * (objs - objs.min()))
         n = self.scenario.mesh.n_vertices
         field = sum(wi * u[:n] for wi, (_, _, u) in zip(w / w.sum(), finished))
         margin, x, u = finished[int(np.argmin(objs))]
         obj, miss = frame.objective(x, u)
+        obj += self._set_prior.get(margin, 0.0)
         return InverseResult(field=field, weights=x[: 3 * self.n_basis].reshape(self.n_basis, 3).copy(),
                              parameters=self._draw(x, margin), marker_misfit=miss, objective=obj,
                              held_sets=len(finished), solves=frame.solves, seconds=time.perf_counter() - t0)
@@ -381,12 +400,13 @@ class _Frame:
         bracket = np.flatnonzero((candidates >= lo) & (candidates < hi))
         if not bracket.size:  # markers that contradict every held set (noise): search them all
             bracket = np.arange(len(candidates))
-        start = int(bracket[np.argmin(np.abs(candidates[bracket]))])
-        order = sorted(bracket.tolist(), key=lambda i: abs(i - start))  # outwards from the nominal extent
-        scores = {}
-        for i in order:
+        prior = np.array([inv._set_prior[float(m)] for m in candidates])
+        start = int(bracket[np.argmin(prior[bracket])])  # the likeliest set a priori, to convergence first
+        x, u = self.iterate(inv._mu, float(candidates[start]), None, MAX_ITERATIONS)
+        scores = {start: self.objective(x, u)[0] + prior[start]}
+        for i in sorted(bracket.tolist(), key=lambda i: abs(i - start))[1:]:  # outwards from it
             x, u = self.iterate(self.best_x, float(candidates[i]), self.best_u, SEARCH_ITERATIONS)
-            scores[i] = self.objective(x, u)[0]
+            scores[i] = self.objective(x, u)[0] + prior[i]
         finished = []
         for i in sorted(scores, key=scores.get)[:FINISHED]:  # the best few to convergence, afresh
             finished.append((float(candidates[i]), *self.iterate(inv._mu, float(candidates[i]), None, MAX_ITERATIONS)))
