@@ -74,6 +74,9 @@ STEP_CAP = 3.0
 STEP_TOL = 1e-3
 #: Poisson's ratio stays within these while iterating.
 NU_LIMITS = (0.3, 0.495)
+#: Wall-clock seconds a full solve may take: a trial step into a far, soft corner of the
+#: parameters (a body near a limit point) is cut back instead of waited for.
+SOLVE_SECONDS = 20.0
 #: Held sets iterated to convergence from the prior mean after the search.
 FINISHED = 4
 #: A marker that moved less than this many noise standard deviations is taken as held.
@@ -288,12 +291,12 @@ class _Frame:
         kw = inputs.solve_keywords()
         self.solves += 1
         try:
-            return self.solver(inputs).solve(loads, guess, **kw).nodal_displacement
+            return self.solver(inputs).solve(loads, guess, time_limit=SOLVE_SECONDS, **kw).nodal_displacement
         except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError):
             if guess is None:
                 raise
         self.solves += 1
-        return self.solver(inputs, 1).solve(loads, None, **kw).nodal_displacement
+        return self.solver(inputs, 1).solve(loads, None, time_limit=SOLVE_SECONDS, **kw).nodal_displacement
 
     def jacobian(self, x: np.ndarray, margin: float, u: np.ndarray) -> np.ndarray:
         """(3 n_d, n_x) d(marker displacements)/d(unknowns) at the equilibrium ``u`` of ``x``:
