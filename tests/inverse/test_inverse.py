@@ -76,6 +76,8 @@ def test_the_field_of_a_nominal_sample_is_recovered_from_its_markers():
         inv.solve(truth[markers[:3]])
     with pytest.raises(ConfigError, match="alpha must be a positive number of N"):
         MarkerInverse(sc, solver, markers, 0.0)
+    with pytest.raises(ConfigError, match="marker noise must be a positive number of mm"):
+        MarkerInverse(sc, solver, markers, ALPHA, noise=0.0)
 
 
 def test_drawn_parameters_are_estimated_where_the_markers_see_them():

@@ -31,8 +31,8 @@ started from the best solution so far, then the best ``FINISHED`` to convergence
 prior mean; the field is their average weighted by their posterior ``exp(-objective / 2)``
 (where the markers cannot tell whether a vertex far from them is held, it takes the middle).
 The parameters, W and the misfit are the best set's. The density (a factor on the gravity
-change, 1 % of the loads of the shipped presets) and the material regions' moduli are kept at
-their nominal values.
+change, a small share of the shipped presets' loads: docs/uncertainty.md) and the material
+regions' moduli are kept at their nominal values.
 
 This is a measurement of what the markers determine, and a reference predictor: a frame takes
 seconds to minutes (tens of full solves with the parameters known, hundreds with them drawn),
@@ -81,6 +81,8 @@ SOLVE_SECONDS = 20.0
 FINISHED = 4
 #: A marker that moved less than this many noise standard deviations is taken as held.
 STILL_NOISES = 4.0
+#: A full solve that stopped or broke down (as the data set's worker counts them).
+_SOLVE_FAILURES = (ConvergenceError, ArithmeticError, np.linalg.LinAlgError)
 
 
 @dataclass(frozen=True, eq=False)
@@ -153,7 +155,7 @@ class MarkerInverse:
             sd.append((b - a) / math.sqrt(12.0))
         self._mu, self._sd = np.array(mu), np.array(sd)
         self._margins = self._margin_candidates(scenario)
-        self._set_prior = self._held_set_prior(scenario, self._margins)
+        self._set_prior = self._held_set_prior(scenario, self._margins)  # aligned with _margins
 
     @property
     def estimated(self) -> tuple[str, ...]:
@@ -194,18 +196,15 @@ class MarkerInverse:
         return np.concatenate([first, inside])
 
     @staticmethod
-    def _held_set_prior(scenario, margins: np.ndarray) -> dict[float, float]:
-        """``-2 log P(held set)`` by candidate margin: the share of the margin's (uniform) range
+    def _held_set_prior(scenario, margins: np.ndarray) -> np.ndarray:
+        """(k,) ``-2 log P(held set)`` of each candidate margin: the share of the margin's (uniform) range
         that gives the set (the nominal extent holds over the whole gap between the rim's inner
         and outer vertices, each vertex beyond it over the gap to the next)."""
         if not margins.size:
-            return {}
-        hi = float(scenario.config.uncertain.attached_margin[1])
-        lo = float(scenario.config.uncertain.attached_margin[0])
-        widths = np.diff(np.append(margins, hi))
-        widths[-1] = max(widths[-1], 0.0)
-        widths = np.maximum(widths, 1e-9 * (hi - lo))  # a set reached only at the range's end
-        return {float(m): float(-2.0 * math.log(w / (hi - lo))) for m, w in zip(margins, widths)}
+            return np.zeros(0)
+        lo, hi = (float(v) for v in scenario.config.uncertain.attached_margin)
+        widths = np.maximum(np.diff(np.append(margins, hi)), 1e-9 * (hi - lo))  # a set reached only at the range's end
+        return -2.0 * np.log(widths / (hi - lo))
 
     def known_draw(self, seed: int) -> ScenarioDraw:
         """A simulated sample's known loads: its draws (the instrument's indentation, the
@@ -230,17 +229,18 @@ class MarkerInverse:
             raise ConfigError(f"marker displacements must be finite with shape ({len(self.markers)}, 3), got {d.shape}")
         frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()))
         if self._margins.size:
-            finished = frame.search_margin(self._margins)
+            finished = frame.search_margin(self._margins, self._set_prior)
         else:
-            finished = [(0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS))]
-        finished = [(m, *frame.polish(x, m, u)) for m, x, u in finished]
-        objs = np.array([frame.objective(x, u)[0] + self._set_prior.get(m, 0.0) for m, x, u in finished])
+            finished = [(0.0, 0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS))]
+        finished = [(m, p, *frame.polish(x, m, u)) for m, p, x, u in finished]
+        scored = [frame.objective(x, u) for _, _, x, u in finished]
+        objs = np.array([obj + p for (obj, _), (_, p, _, _) in zip(scored, finished)])
         w = np.exp(-0.5 * (objs - objs.min()))
         n = self.scenario.mesh.n_vertices
-        field = sum(wi * u[:n] for wi, (_, _, u) in zip(w / w.sum(), finished))
-        margin, x, u = finished[int(np.argmin(objs))]
-        obj, miss = frame.objective(x, u)
-        obj += self._set_prior.get(margin, 0.0)
+        field = sum(wi * u[:n] for wi, (_, _, _, u) in zip(w / w.sum(), finished))
+        best = int(np.argmin(objs))
+        margin, _, x, u = finished[best]
+        obj, miss = float(objs[best]), scored[best][1]
         return InverseResult(field=field, weights=x[: 3 * self.n_basis].reshape(self.n_basis, 3).copy(),
                              parameters=self._draw(x, margin), marker_misfit=miss, objective=obj,
                              held_sets=len(finished), solves=frame.solves, seconds=time.perf_counter() - t0)
@@ -270,7 +270,6 @@ class _Frame:
         self.best_x = inv._mu.copy()
         self.best_u = None
         self.best_obj = math.inf
-        self.best_margin = 0.0
 
     def inputs(self, x: np.ndarray, margin: float) -> SampleInputs:
         """The frame's inputs under the parameters of ``x`` and ``margin``."""
@@ -292,7 +291,7 @@ class _Frame:
         self.solves += 1
         try:
             return self.solver(inputs).solve(loads, guess, time_limit=SOLVE_SECONDS, **kw).nodal_displacement
-        except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError):
+        except _SOLVE_FAILURES:
             if guess is None:
                 raise
         self.solves += 1
@@ -312,7 +311,7 @@ class _Frame:
             raise ConvergenceError("the estimate inverts an element")
         free = np.asarray(solver.free_dofs)
         nodes, _ = solver.problem.solve_constraints((inputs.prescribed_ids, inputs.prescribed_values))
-        held = np.zeros(int(free.max()) + 1 if free.size else 0, dtype=bool)
+        held = np.zeros(u.size, dtype=bool)
         held[(3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()] = True
         keep = np.flatnonzero(~held[free])
         K = asm.matrix(data)[keep][:, keep].tocsc()
@@ -330,7 +329,7 @@ class _Frame:
         return du[(3 * inv.markers[:, None] + np.arange(3)).ravel()]
 
     def objective(self, x: np.ndarray, u: np.ndarray) -> tuple[float, float]:
-        """(negative log posterior, largest marker miss in mm)."""
+        """(minus twice the log posterior without the held set's prior, largest marker miss in mm)."""
         inv = self.inv
         r = self.d - u[inv.markers].ravel()
         z = (x - inv._mu) / inv._sd
@@ -363,7 +362,7 @@ class _Frame:
                 x_new = self._clip(x + step)
                 try:
                     u_new = self.field(x_new, margin, u)
-                except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError):
+                except _SOLVE_FAILURES:
                     step /= 2.0
                     continue
                 obj_new, _ = self.objective(x_new, u_new)
@@ -376,7 +375,7 @@ class _Frame:
             if np.abs(step / inv._sd).max() < STEP_TOL:
                 break
         if obj < self.best_obj:
-            self.best_obj, self.best_x, self.best_u, self.best_margin = obj, x.copy(), u, margin
+            self.best_obj, self.best_x, self.best_u = obj, x.copy(), u
         return x, u
 
     def polish(self, x: np.ndarray, margin: float, u: np.ndarray):
@@ -385,15 +384,16 @@ class _Frame:
         (which starts near zero); if the field from zero fits better, iterate on from it."""
         try:
             fresh = self.field(x, margin, None)
-        except (ConvergenceError, ArithmeticError, np.linalg.LinAlgError):
+        except _SOLVE_FAILURES:
             return x, u
         if self.objective(x, fresh)[0] < self.objective(x, u)[0] - 1e-9:
             return self.iterate(x, margin, fresh, MAX_ITERATIONS)
         return x, u
 
-    def search_margin(self, candidates: np.ndarray) -> float:
-        """The held sets' search (module notes): ``[(margin, x, u)]`` of the ``FINISHED`` best,
-        each iterated to convergence."""
+    def search_margin(self, candidates: np.ndarray, prior: np.ndarray) -> list:
+        """The held sets' search (module notes) over ``candidates`` (k,) mm with their ``prior``
+        (k,) ``-2 log P``: ``[(margin, prior, x, u)]`` of the ``FINISHED`` best, each iterated to
+        convergence."""
         inv = self.inv
         moved = np.linalg.norm(self.d.reshape(-1, 3), axis=1)
         dist = inv.scenario.uncertain.distance[inv.markers]
@@ -403,7 +403,6 @@ class _Frame:
         bracket = np.flatnonzero((candidates >= lo) & (candidates < hi))
         if not bracket.size:  # markers that contradict every held set (noise): search them all
             bracket = np.arange(len(candidates))
-        prior = np.array([inv._set_prior[float(m)] for m in candidates])
         start = int(bracket[np.argmin(prior[bracket])])  # the likeliest set a priori, to convergence first
         x, u = self.iterate(inv._mu, float(candidates[start]), None, MAX_ITERATIONS)
         scores = {start: self.objective(x, u)[0] + prior[start]}
@@ -412,5 +411,6 @@ class _Frame:
             scores[i] = self.objective(x, u)[0] + prior[i]
         finished = []
         for i in sorted(scores, key=scores.get)[:FINISHED]:  # the best few to convergence, afresh
-            finished.append((float(candidates[i]), *self.iterate(inv._mu, float(candidates[i]), None, MAX_ITERATIONS)))
+            margin = float(candidates[i])
+            finished.append((margin, float(prior[i]), *self.iterate(inv._mu, margin, None, MAX_ITERATIONS)))
         return finished
