@@ -263,6 +263,8 @@ class SurrogateConfig:
     output_scaling: str = _f("global", choices=OUTPUT_SCALINGS, doc="PCA-weight scaling of the loss")
     weight_decay: float = _f(0.0, lo=0.0, doc="Adam weight decay")
     marker_dropout: float = _f(0.0, lo=0.0, hi=1.0, doc="share of training samples with one marker hidden; > 0 enables missing-marker input")
+    sensitivity_weight: float = _f(0.0, lo=0.0, doc="weight of the simulator's sensitivities in the training loss: the network's directional derivatives along each sample's load directions are fitted to the field's (dataset.sensitivities); 0 = off; needs linear elements and marker_dropout = 0")
+    sensitivity_directions: int = _f(4, lo=1, hi=64, doc="sensitivity_weight > 0: load directions drawn per sample in each mini-batch step")
     ensemble: int = _f(1, lo=1, hi=64, doc="networks trained with different seeds (>= 2 gives uncertainty)")
     calibration: str = _f("split", choices=CALIBRATIONS, doc="error bounds and alarm calibrated on out-of-fold predictions (cross-validation), on calibration_share held out (split), or none")
     calibration_folds: int = _f(5, lo=2, hi=50, doc="calibration = 'cross-validation': folds of the training split (one more model trained per fold)")
@@ -602,6 +604,9 @@ def _cross_checks(obj: Any, prefix: str) -> None:
     if isinstance(obj, SurrogateConfig):
         if not obj.hidden or any(h < 1 for h in obj.hidden):
             raise ConfigError(f"{prefix}hidden must be a non-empty list of positive widths, got {list(obj.hidden)}")
+        if obj.sensitivity_weight > 0 and obj.marker_dropout > 0:
+            raise ConfigError(f"{prefix}sensitivity_weight > 0 needs marker_dropout = 0 (the sensitivities are those of "
+                              "every marker); set one of them to 0")
     if isinstance(obj, ForceConfig):
         if not obj.betas or any(not 0.0 <= b <= 1.0 for b in obj.betas):
             raise ConfigError(f"{prefix}betas must be numbers in [0, 1], got {list(obj.betas)}")

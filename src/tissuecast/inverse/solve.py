@@ -48,10 +48,9 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse.linalg import splu
 
 from ..errors import ConfigError, ConvergenceError
-from ..forces.fields import lbo_field
+from ..dataset.sensitivities import equilibrium_response, unit_loads
 from ..scenario.parameters import ParameterDraw
 from ..scenario.sample_inputs import SampleInputs, ScenarioDraw
 
@@ -138,13 +137,7 @@ class MarkerInverse:
         self.alpha, self.noise = float(alpha), float(noise)
         surface = scenario.surface_forces
         self.n_basis = surface.basis.n_vectors
-        n = scenario.mesh.n_vertices
-        unit = []
-        for k in range(3 * self.n_basis):
-            w = np.zeros((self.n_basis, 3))
-            w.flat[k] = 1.0
-            unit.append(scenario.sample_loads(ScenarioDraw(), lbo_field(surface.basis, w, self.alpha, n))[0])
-        self._unit = np.array(unit)  # (3 n_b, n_nodes, 3) N per unit weight
+        self._unit = unit_loads(scenario, self.alpha, ScenarioDraw())  # (3 n_b, n_nodes, 3) N per unit weight
         c = scenario.config.uncertain
         self._names = [(name, log) for name, log in ESTIMATED if getattr(c, name)]
         mu, sd = [0.0] * (3 * self.n_basis), [3.0 ** -0.5] * (3 * self.n_basis)
@@ -305,27 +298,18 @@ class _Frame:
         inv = self.inv
         inputs = self.inputs(x, margin)
         solver = self.solver(inputs)
-        asm = solver.assembler
-        fint, data, jmin = asm.tangent(u)
-        if not jmin > 0.0:
-            raise ConvergenceError("the estimate inverts an element")
-        free = np.asarray(solver.free_dofs)
-        nodes, _ = solver.problem.solve_constraints((inputs.prescribed_ids, inputs.prescribed_values))
-        held = np.zeros(u.size, dtype=bool)
-        held[(3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()] = True
-        keep = np.flatnonzero(~held[free])
-        K = asm.matrix(data)[keep][:, keep].tocsc()
-        rhs = np.empty((keep.size, x.size))
         nw = 3 * inv.n_basis
-        rhs[:, :nw] = inv._unit.reshape(nw, -1)[:, free[keep]].T
+        forces = np.empty((x.size, u.size))
+        forces[:nw] = inv._unit.reshape(nw, -1)
+        if x.size > nw:
+            fint, _ = solver.assembler.internal_force(u)
         for k in range(nw, x.size):
             h = FD_STEP * inv._sd[k]
             x2 = x.copy()
             x2[k] += h
             f2, _ = self.solver(self.inputs(x2, margin)).assembler.internal_force(u)
-            rhs[:, k] = -(f2 - fint)[free[keep]] / h
-        du = np.zeros((3 * len(u), x.size))
-        du[free[keep]] = splu(K).solve(rhs)
+            forces[k] = -(f2 - fint) / h
+        du = equilibrium_response(solver, inputs, u, forces)
         return du[(3 * inv.markers[:, None] + np.arange(3)).ravel()]
 
     def objective(self, x: np.ndarray, u: np.ndarray) -> tuple[float, float]:

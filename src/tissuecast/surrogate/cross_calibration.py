@@ -101,7 +101,7 @@ def fold_config(config: SurrogateConfig) -> SurrogateConfig:
 
 def cross_calibration_scores(U, train_idx, valid_idx, markers, mesh, config: SurrogateConfig, *,
                              chunk: int = PREDICT_CHUNK, auxiliary: np.ndarray | None = None,
-                             spec: AuxiliaryInputs = MARKERS_ONLY) -> FoldCalibration:
+                             spec: AuxiliaryInputs = MARKERS_ONLY, sensitivities=None) -> FoldCalibration:
     """The out-of-fold calibration scores of every training sample.
 
     Args:
@@ -116,6 +116,9 @@ def cross_calibration_scores(U, train_idx, valid_idx, markers, mesh, config: Sur
         auxiliary: (N, n_a) every sample's auxiliary inputs (``spec``), or None: the fold
             models read them as the model does.
         spec: what the auxiliary inputs are (:class:`~.auxiliary.AuxiliaryInputs`).
+        sensitivities: the training samples' field sensitivities
+            (:class:`~tissuecast.dataset.sensitivities.Sensitivities`) the fold models train
+            on as the model does, or None.
 
     Returns:
         A :class:`FoldCalibration`.
@@ -131,7 +134,7 @@ def cross_calibration_scores(U, train_idx, valid_idx, markers, mesh, config: Sur
         fit_idx, held = train[folds != k], train[folds == k]
         rows = (None, None) if auxiliary is None else (auxiliary[fit_idx], auxiliary[valid])
         net = fit_network(np.asarray(U[fit_idx], dtype=np.float64).reshape(len(fit_idx), -1), Uv, markers, mesh, fc,
-                          *rows, auxiliary=spec)
+                          *rows, auxiliary=spec, St=None if sensitivities is None else sensitivities.rows(fit_idx))
         predictor = net.predictor
         basis, head = second_parts(predictor)
         layer = fit_trust_layer(predictor, U, train_idx=fit_idx, valid_idx=valid, coverage=c.coverage,
@@ -149,13 +152,13 @@ def cross_calibration_scores(U, train_idx, valid_idx, markers, mesh, config: Sur
 def cross_calibrated_layer(predictor: FieldPredictor, U, train_idx, valid_idx, mesh, config: SurrogateConfig, *,
                            basis: PCABasis | None = None, head: QuadraticRegression | None = None,
                            chunk: int = PREDICT_CHUNK, auxiliary: np.ndarray | None = None,
-                           spec: AuxiliaryInputs = MARKERS_ONLY) -> tuple[TrustLayer | None, dict]:
+                           spec: AuxiliaryInputs = MARKERS_ONLY, sensitivities=None) -> tuple[TrustLayer | None, dict]:
     """The trust layer of ``predictor`` (fitted on every ``train_idx`` sample), calibrated on the
     out-of-fold scores of :func:`cross_calibration_scores`.
 
     Args:
         predictor: the model's fitted learned predictor.
-        U, train_idx, valid_idx, mesh, config, chunk, auxiliary, spec: as
+        U, train_idx, valid_idx, mesh, config, chunk, auxiliary, spec, sensitivities: as
             :func:`cross_calibration_scores`.
         basis, head: the predictor's PCA basis and quadratic head (:func:`~.trust_fit.fit_trust_layer`).
 
@@ -170,7 +173,7 @@ def cross_calibrated_layer(predictor: FieldPredictor, U, train_idx, valid_idx, m
                     len(train), k, len(valid))
         return None, {"method": "none", "reason": "too few samples for cross-validated calibration"}
     folds = cross_calibration_scores(U, train, valid, predictor.markers, mesh, config, chunk=chunk, auxiliary=auxiliary,
-                                     spec=spec)
+                                     spec=spec, sensitivities=sensitivities)
     draft = fit_trust_layer(predictor, U, train_idx=train, valid_idx=valid, coverage=config.coverage,
                             false_alarm=config.false_alarm_rate, fault_score=config.alarm_fault_score, basis=basis, head=head,
                             chunk=chunk, auxiliary=auxiliary)
@@ -212,13 +215,14 @@ def second_parts(predictor: NetworkPredictor) -> tuple[PCABasis, QuadraticRegres
 
 
 def fit_model_trust(predictor: NetworkPredictor, U, splits, mesh, config: SurrogateConfig, *, explicit: bool,
-                    auxiliary: np.ndarray | None = None) -> tuple[TrustLayer | None, dict]:
+                    auxiliary: np.ndarray | None = None, sensitivities=None) -> tuple[TrustLayer | None, dict]:
     """The trust layer of a model's fitted learned predictor and the record of its calibration:
     split conformal on the held-out ``splits.calibration`` samples (given ones, ``explicit``, or
     ``calibration = "split"``'s share), cross-validated calibration (:func:`cross_calibrated_layer`)
     with ``calibration = "cross-validation"`` and no given samples, or none. ``auxiliary``:
     (N, n_a) every sample's auxiliary inputs for a predictor that reads some (its
-    ``auxiliary`` spec), else None.
+    ``auxiliary`` spec), else None. ``sensitivities``: what the fold models of cross-validated
+    calibration train on beside the fields (as the model did), or None.
 
     Returns:
         ``(layer or None, record)``.
@@ -232,5 +236,5 @@ def fit_model_trust(predictor: NetworkPredictor, U, splits, mesh, config: Surrog
         return layer, {"method": "split", "n_calibration": int(len(splits.calibration))}
     if c.calibration == "cross-validation" and not explicit:
         return cross_calibrated_layer(predictor, U, splits.train, splits.valid, mesh, c, basis=basis, head=head,
-                                      auxiliary=auxiliary, spec=predictor.auxiliary)
+                                      auxiliary=auxiliary, spec=predictor.auxiliary, sensitivities=sensitivities)
     return None, {"method": "none"}

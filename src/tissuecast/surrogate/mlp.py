@@ -13,6 +13,13 @@ loss is then proportional to the squared field error, since the PCA basis is ort
 or per component (``"component"``). Training is full-data Adam with mini-batches, a
 one-cycle or cosine learning-rate schedule, best-on-validation checkpointing and early
 stopping; it is seeded and runs with deterministic torch algorithms on one thread.
+
+With the simulator's sensitivities (:class:`Tangents`, ``sensitivity_weight`` > 0) each step
+also fits the network's directional derivatives (forward-mode, ``torch.func.jvp``) along
+``sensitivity_directions`` of each sample's load directions to the field's: the input moves
+as the markers do along the direction, the output as the PCA weights do. This is Sobolev
+training (Czarnecki et al., NeurIPS 2017); the loss adds ``sensitivity_weight`` times the mean
+squared error of the scaled derivatives to the weights' own.
 """
 
 from __future__ import annotations
@@ -31,7 +38,7 @@ from .encoding import input_width, masked_input
 from .network import build_network
 from .weights import MLPWeights
 
-__all__ = ["TrainingSummary", "train_mlp"]
+__all__ = ["Tangents", "TrainingSummary", "train_mlp"]
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +82,25 @@ class TrainingSummary:
 
 
 @dataclass(frozen=True, eq=False)
+class Tangents:
+    """Directional derivatives of the training samples along k directions each.
+
+    Attributes:
+        inputs: (N, k, 3 n_d + n_a) how the network's inputs move per unit of a direction
+            (marker displacements in mm; auxiliary inputs, e.g. a held instrument pose, 0).
+        outputs: (N, k, n_w) mm, how the target PCA weights move along it.
+        A sample whose rows are not finite has none (it trains on its values only).
+    """
+
+    inputs: np.ndarray
+    outputs: np.ndarray
+
+    def rows(self, idx) -> "Tangents":
+        """The tangents of samples ``idx``."""
+        return Tangents(self.inputs[idx], self.outputs[idx])
+
+
+@dataclass(frozen=True, eq=False)
 class _Scaling:
     """Standardisation of one training run: (3 n_d + n_a,) input mean/scale and (n_w,) weight mean/scale, mm."""
 
@@ -95,6 +121,9 @@ class _Tensors:
     x_std: object
     X_valid: object
     Y_valid: object
+    dX: object = None  # (N, k, n_in) scaled input tangents, None without
+    dY: object = None  # (N, k, n_w) scaled output tangents
+    has_tangent: object = None  # (N,) bool
 
 
 @dataclass
@@ -166,14 +195,21 @@ def _scaling(X: np.ndarray, Y: np.ndarray, output_scaling: str, n_auxiliary: int
     return _Scaling(X.mean(axis=0), x_std, Y.mean(axis=0), y_std)
 
 
-def _tensors(torch, X, Y, Xv, Yv, s: _Scaling, masked: bool, n_markers: int) -> _Tensors:
+def _tensors(torch, X, Y, Xv, Yv, s: _Scaling, masked: bool, n_markers: int, tangents: Tangents | None = None) -> _Tensors:
     f32 = torch.float32
     xm, xs = torch.as_tensor(s.x_mean, dtype=f32), torch.as_tensor(s.x_std, dtype=f32)
     Xvt = (torch.as_tensor(Xv, dtype=f32) - xm) / xs
     if masked:  # validation with every marker tracked
         Xvt = masked_input(Xvt, torch.ones(Xvt.shape[0], n_markers), torch)
+    extra = {}
+    if tangents is not None:
+        ok = np.isfinite(tangents.inputs).all(axis=(1, 2)) & np.isfinite(tangents.outputs).all(axis=(1, 2))
+        extra = {"dX": torch.as_tensor(np.where(ok[:, None, None], tangents.inputs, 0.0) / s.x_std, dtype=f32),
+                 "dY": torch.as_tensor(np.where(ok[:, None, None], tangents.outputs, 0.0) / s.y_std, dtype=f32),
+                 "has_tangent": torch.as_tensor(ok)}
     return _Tensors(X=torch.as_tensor(X, dtype=f32), Y=torch.as_tensor((Y - s.y_mean) / s.y_std, dtype=f32),
-                    x_mean=xm, x_std=xs, X_valid=Xvt, Y_valid=torch.as_tensor((Yv - s.y_mean) / s.y_std, dtype=f32))
+                    x_mean=xm, x_std=xs, X_valid=Xvt, Y_valid=torch.as_tensor((Yv - s.y_mean) / s.y_std, dtype=f32),
+                    **extra)
 
 
 def _scheduler(torch, optimizer, c: SurrogateConfig, total_steps: int):
@@ -215,7 +251,10 @@ def _train_epoch(torch, net, optimizer, scheduler, t: _Tensors, c: SurrogateConf
     total = 0.0
     for s in range(math.ceil(N / bs)):
         idx = perm[s * bs:(s + 1) * bs]
-        loss = torch.nn.functional.mse_loss(net(_batch_input(torch, t, idx, c, gen, masked, n_markers)), t.Y[idx])
+        xin = _batch_input(torch, t, idx, c, gen, masked, n_markers)
+        loss = torch.nn.functional.mse_loss(net(xin), t.Y[idx])
+        if t.dX is not None:
+            loss = loss + c.sensitivity_weight * _tangent_loss(torch, net, t, idx, xin, c.sensitivity_directions, gen)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
@@ -223,6 +262,20 @@ def _train_epoch(torch, net, optimizer, scheduler, t: _Tensors, c: SurrogateConf
             scheduler.step()
         total += float(loss.detach()) * len(idx)
     return total / N
+
+
+def _tangent_loss(torch, net, t: _Tensors, idx, xin, directions: int, gen):
+    """Mean squared error of the network's scaled directional derivatives at the batch inputs
+    ``xin`` along ``directions`` random load directions of each sample that has tangents."""
+    has = t.has_tangent[idx]
+    which = idx[has]
+    if not len(which):
+        return torch.zeros(())
+    k = torch.randint(0, t.dX.shape[1], (len(which), directions), generator=gen)
+    x = xin[has].repeat_interleave(directions, 0)
+    dx = t.dX[which[:, None], k].reshape(x.shape)
+    _, jv = torch.func.jvp(net, (x,), (dx,))
+    return torch.nn.functional.mse_loss(jv, t.dY[which[:, None], k].reshape(jv.shape))
 
 
 def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool, n_markers: int) -> _Run:
@@ -265,7 +318,8 @@ def _weights(torch, net, parameters: list, s: _Scaling, masked: bool, n_auxiliar
 
 
 def train_mlp(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig | None = None, *,
-              seed: int | None = None, n_auxiliary: int = 0) -> tuple[MLPWeights, TrainingSummary]:
+              seed: int | None = None, n_auxiliary: int = 0,
+              tangents: Tangents | None = None) -> tuple[MLPWeights, TrainingSummary]:
     """Train one network.
 
     Args:
@@ -278,6 +332,8 @@ def train_mlp(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig | None
             ``marker_dropout``); None: the defaults.
         seed: seed of this network (default ``config.seed``).
         n_auxiliary: n_a, the auxiliary inputs at the end of each input row (:mod:`.auxiliary`).
+        tangents: the training samples' directional derivatives (:class:`Tangents`), fitted
+            with weight ``sensitivity_weight``; None (or a weight of 0): values only.
 
     Returns:
         The best-on-validation weights and a :class:`TrainingSummary`.
@@ -294,7 +350,14 @@ def train_mlp(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig | None
     with _deterministic(torch):
         torch.manual_seed(seed)
         gen = torch.Generator().manual_seed(seed)
-        tensors = _tensors(torch, X, Y, Xv, Yv, scaling, masked, n_markers)
+        use = tangents if tangents is not None and c.sensitivity_weight > 0 else None
+        if use is not None and (use.inputs.shape[::2] != (X.shape[0], X.shape[1]) or use.outputs.shape[::2] != Y.shape
+                                or use.inputs.shape[1] != use.outputs.shape[1]):
+            raise ModelError(f"tangents {use.inputs.shape}, {use.outputs.shape} do not match the training data "
+                             f"{X.shape}, {Y.shape}")
+        if use is not None and masked:
+            raise ModelError("tangents need marker_dropout = 0")
+        tensors = _tensors(torch, X, Y, Xv, Yv, scaling, masked, n_markers, use)
         net = build_network(torch, input_width(n_markers, masked, n_a), c.hidden, Y.shape[1])
         run = _fit(torch, net, tensors, c, gen, masked, n_markers)
         weights = _weights(torch, net, run.best_parameters, scaling, masked, n_a)

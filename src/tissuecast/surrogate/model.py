@@ -26,6 +26,7 @@ in mm. A displacement field is (n, 3) mm at every mesh vertex (0-based ids). Aux
 
 from __future__ import annotations
 
+import logging
 import time
 from contextlib import contextmanager
 from pathlib import Path
@@ -49,6 +50,8 @@ from .gate import GateVerdict, InputGate
 from .state import ModelState, gate_of, training_summaries
 from .trust import TrustedPrediction
 from .trusted import TrustedPredictor
+
+log = logging.getLogger(__name__)
 
 __all__ = ["DeformationModel", "ENSEMBLE_SEED_STRIDE", "METHODS"]
 
@@ -221,7 +224,7 @@ class DeformationModel(FieldPredictor):
 
     # ------------------------------------------------------------------ fitting
     def fit(self, displacements, markers, *, mesh, fixed=(), train_idx=None, valid_idx=None,
-            calibration_idx=None, auxiliary: AuxiliaryValues | None = None) -> "DeformationModel":
+            calibration_idx=None, auxiliary: AuxiliaryValues | None = None, sensitivities=None) -> "DeformationModel":
         """Fit PCA (training fields only), the MLP (ensemble) and the ridge baseline, then the
         trust layer (error bounds and alarm, :mod:`tissuecast.surrogate.trust`) on the
         calibration samples. With tracked instruments among the auxiliary inputs, the MLP and
@@ -244,6 +247,10 @@ class DeformationModel(FieldPredictor):
             auxiliary: every sample's auxiliary inputs (:class:`~.auxiliary.AuxiliaryValues`:
                 instrument poses, measured parameters; finite for the used samples), or None
                 for a markers-only model.
+            sensitivities: the training samples' field sensitivities along their load
+                directions (:class:`~tissuecast.dataset.sensitivities.Sensitivities`, mm per
+                direction), fitted beside the fields with weight ``sensitivity_weight``
+                (:mod:`.mlp`); None: the fields only.
 
         Returns:
             self.
@@ -256,12 +263,15 @@ class DeformationModel(FieldPredictor):
         Ut, Uv = flat_fields(U, splits)
         spec, A = _auxiliary_values(auxiliary, U.shape[0], splits)
         explicit = calibration_idx is not None
-        net, trust, calibration = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec, A, explicit)
+        if sensitivities is not None and sensitivities.values.shape[2:] != U.shape[1:]:
+            raise ModelError(f"sensitivities of fields {sensitivities.values.shape[2:]} do not match the fields {U.shape[1:]}")
+        sens = sensitivities if c.sensitivity_weight > 0 else None
+        net, trust, calibration = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec, A, explicit, sens)
         fallback, fallback_trust = None, None
         if spec.instruments:
             kept = A[:, len(spec.instrument_columns):]
             fallback, fallback_trust, _ = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec.without_instruments(), kept,
-                                                            explicit)
+                                                            explicit, sens)
         pca = global_part(net.predictor.basis)  # the baselines and the trust layer's second predictor work in it
         ridge = RidgePredictor.fit(mesh, mk, pca, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
         training = {
@@ -291,15 +301,19 @@ class DeformationModel(FieldPredictor):
         return self
 
     def _fit_learned(self, U, Ut, Uv, mk, mesh, splits: FitSplits, spec: AuxiliaryInputs, A: np.ndarray | None,
-                     explicit: bool):
+                     explicit: bool, sensitivities=None):
         """``(NetworkFit, trust layer or None, calibration record)``: the learned predictor reading
         ``spec`` (values A (N, n_a), or None without) and its trust layer
-        (:func:`~.cross_calibration.fit_model_trust`; ``explicit``: calibration samples were given)."""
+        (:func:`~.cross_calibration.fit_model_trust`; ``explicit``: calibration samples were given),
+        trained on ``sensitivities`` too when given."""
         c = self.config
         A = A if spec.width else None
         rows = (None, None) if A is None else (A[splits.train], A[splits.valid])
-        net = fit_network(Ut, Uv, mk, mesh, c, *rows, auxiliary=spec)
-        trust, record = fit_model_trust(net.predictor, U, splits, mesh, c, explicit=explicit, auxiliary=A)
+        St = None if sensitivities is None else sensitivities.rows(splits.train)
+        net = fit_network(Ut, Uv, mk, mesh, c, *rows, auxiliary=spec, St=St)
+        del St
+        trust, record = fit_model_trust(net.predictor, U, splits, mesh, c, explicit=explicit, auxiliary=A,
+                                        sensitivities=sensitivities)
         return net, trust, record
 
     @classmethod
@@ -327,9 +341,17 @@ class DeformationModel(FieldPredictor):
         model = cls(config, **overrides)
         model.dataset_path = str(Path(dataset.path).resolve()) if dataset.path is not None else None
         model.scenario = dataset.scenario
+        sensitivities = None
+        if model.config.sensitivity_weight > 0:
+            from ..dataset.sensitivities import dataset_sensitivities
+
+            log.info("the simulator's sensitivities of %d training samples (one tangent factorisation each)",
+                     len(arrays.train_idx))
+            sensitivities = dataset_sensitivities(dataset, arrays.train_idx)
         return model.fit(
             arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed,
             train_idx=arrays.train_idx, valid_idx=arrays.valid_idx, auxiliary=arrays.auxiliary,
+            sensitivities=sensitivities,
         )
 
     # ------------------------------------------------------------------ prediction

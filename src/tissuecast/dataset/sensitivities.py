@@ -1,0 +1,158 @@
+"""The simulator's sensitivities at stored samples: how a sample's whole field moves when its
+LBO load weights move.
+
+At a solved sample (displacement u of the mesh's nodes, loads f(w) = sum_k w_k f_k linear in
+the 3 n_b LBO weights w), equilibrium r(u) = f(w) gives
+
+    du/dw_k = K(u)^-1 f_k,
+
+with K the tangent stiffness at u, the held dofs (supports, the instrument's prescribed
+patch, an attached margin's vertices) eliminated. One factorisation per sample and 3 n_b
+triangular solves: a small share of the sample's own Newton solve. The surrogate trains on
+these directions beside the fields (``surrogate.sensitivity_weight``, :mod:`tissuecast.surrogate.mlp`):
+each sample then says not only where the markers and the field are but how they move
+together along every load direction of the simulated family.
+
+Units: mm of displacement per prior standard deviation of a weight (the weights are drawn
+U(-1, 1), standard deviation :data:`WEIGHT_SD`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse.linalg import splu
+
+from ..errors import ConfigError, ConvergenceError
+from ..forces.fields import lbo_field
+
+__all__ = ["WEIGHT_SD", "Sensitivities", "equilibrium_response", "unit_loads", "dataset_sensitivities"]
+
+log = logging.getLogger(__name__)
+
+#: Standard deviation of an LBO weight (drawn U(-1, 1)).
+WEIGHT_SD = 3.0 ** -0.5
+
+
+@dataclass(frozen=True, eq=False)
+class Sensitivities:
+    """Some samples' field sensitivities.
+
+    Attributes:
+        indices: (M,) int64 sample indices, 0-based.
+        values: (M, k, n, 3) float32 mm per direction (NaN: the sample has none).
+    """
+
+    indices: np.ndarray
+    values: np.ndarray
+
+    def rows(self, idx) -> np.ndarray:
+        """(len(idx), k, n, 3) float32: the sensitivities of samples ``idx`` (NaN for one not held)."""
+        idx = np.asarray(idx, dtype=np.int64)
+        pos = np.searchsorted(self.indices, idx)
+        pos = np.minimum(pos, len(self.indices) - 1)
+        found = self.indices[pos] == idx if len(self.indices) else np.zeros(len(idx), dtype=bool)
+        out = np.full((len(idx),) + self.values.shape[1:], np.nan, dtype=np.float32)
+        out[found] = self.values[pos[found]]
+        return out
+
+
+def unit_loads(scenario, alpha: float, draw) -> np.ndarray:
+    """(3 n_b, n_nodes, 3) N: the surface loads of each unit LBO weight at force magnitude
+    ``alpha`` (N), for a sample with the draws ``draw`` (a :class:`~tissuecast.scenario.ScenarioDraw`)."""
+    surface = scenario.surface_forces
+    nb, n = surface.basis.n_vectors, scenario.mesh.n_vertices
+    out = []
+    for k in range(3 * nb):
+        w = np.zeros((nb, 3))
+        w.flat[k] = 1.0
+        out.append(scenario.sample_loads(draw, lbo_field(surface.basis, w, alpha, n))[0])
+    return np.array(out)
+
+
+def equilibrium_response(solver, inputs, u: np.ndarray, forces: np.ndarray) -> np.ndarray:
+    """(3 n_nodes, k) mm: the displacement's first-order response to k load changes at the
+    equilibrium ``u``.
+
+    Args:
+        solver: the sample's solver (its parameters applied: ``with_parameters``).
+        inputs: the sample's :class:`~tissuecast.scenario.SampleInputs` (its held dofs).
+        u: (n_nodes, 3) mm, the equilibrium.
+        forces: (k, 3 n_nodes) N, the load changes (rows at held dofs are ignored).
+
+    Raises:
+        ConvergenceError: ``u`` inverts an element (no tangent there).
+    """
+    asm = solver.assembler
+    _, data, jmin = asm.tangent(u)
+    if not jmin > 0.0:
+        raise ConvergenceError("the state inverts an element: no tangent stiffness there")
+    free = np.asarray(solver.free_dofs)
+    nodes, _ = solver.problem.solve_constraints((inputs.prescribed_ids, inputs.prescribed_values))
+    held = np.zeros(u.size, dtype=bool)
+    held[(3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()] = True
+    keep = free[~held[free]]
+    K = asm.matrix(data)
+    K = K[np.searchsorted(free, keep)][:, np.searchsorted(free, keep)].tocsc()
+    du = np.zeros((u.size, forces.shape[0]))
+    du[keep] = splu(K).solve(np.ascontiguousarray(np.asarray(forces, dtype=np.float64)[:, keep].T))
+    return du
+
+
+def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
+    """du/dw of the stored LBO samples ``indices`` (0-based, ascending after unique), per
+    weight standard deviation: values (M, 3 n_b, n, 3) float32 mm, NaN for a sample that has
+    none (a test-2 sample's concentrated loads, a failed sample, a state without a tangent).
+
+    Args:
+        dataset: a :class:`~tissuecast.dataset.Dataset` whose solver's nodes are its vertices
+            (linear elements: the store keeps only the vertices' displacements).
+        indices: (N,) sample indices.
+        progress: optional callable ``(done, total)``.
+
+    Raises:
+        ConfigError: the data set's elements have nodes the store does not keep.
+    """
+    from .worker import SampleContext
+
+    idx = np.unique(np.asarray(indices, dtype=np.int64))
+    ctx = SampleContext(dataset.recipe())
+    sc, base = ctx.scenario, ctx.solver(0)
+    n = dataset.n_vertices
+    n_nodes = len(base.problem.nodes)
+    if n_nodes != n:
+        raise ConfigError(f"sensitivities need the solver's nodes to be the store's {n} vertices (linear elements); "
+                          f"this data set's elements have {n_nodes} nodes: set "
+                          "surrogate.sensitivity_weight = 0 for it")
+    nb = sc.surface_forces.basis.n_vectors
+    out = np.full((len(idx), 3 * nb, n, 3), np.nan, dtype=np.float32)
+    alpha, beta = np.asarray(dataset.alpha, dtype=np.float64), np.asarray(dataset.beta, dtype=np.float64)
+    done = np.zeros(dataset.n_samples, dtype=bool)
+    done[dataset.select(None, status="done")] = True
+    params = dataset.parameters
+    cache: dict[float, np.ndarray] = {}
+    t0, failed = time.perf_counter(), 0
+    for k, s in enumerate(idx):
+        if progress is not None:
+            progress(k, len(idx))
+        if not (done[s] and np.isnan(beta[s]) and np.isfinite(alpha[s])):
+            continue
+        nominal = not params or all(np.isnan(np.asarray(v, dtype=np.float64)[s]) for v in params.values())
+        inputs = sc.sample(int(dataset.seed[s]), float(alpha[s]), nominal=nominal)
+        solver = base.with_parameters(*inputs.solver_parameters)
+        if alpha[s] not in cache:
+            cache[float(alpha[s])] = unit_loads(sc, float(alpha[s]), inputs.draw).reshape(3 * nb, -1)
+        try:
+            du = equilibrium_response(solver, inputs, np.asarray(dataset.displacements[s], dtype=np.float64),
+                                      cache[float(alpha[s])])
+        except ConvergenceError:
+            failed += 1
+            continue
+        out[k] = (WEIGHT_SD * du.T).reshape(3 * nb, n, 3)
+    if progress is not None:
+        progress(len(idx), len(idx))
+    log.info("sensitivities of %d samples (%d without a tangent) in %.1f s", len(idx), failed, time.perf_counter() - t0)
+    return Sensitivities(idx, out)

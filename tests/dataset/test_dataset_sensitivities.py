@@ -1,0 +1,61 @@
+"""The simulator's sensitivities at stored samples (tissuecast.dataset.sensitivities) against
+central differences of full solves, and the samples that have none."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from dataset_helpers import small_config
+
+from tissuecast.config import with_overrides
+from tissuecast.dataset import open_dataset, simulate
+from tissuecast.dataset.sensitivities import WEIGHT_SD, Sensitivities, dataset_sensitivities
+from tissuecast.dataset.worker import SampleContext
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("sens")
+    cfg = with_overrides(small_config(folder, n_samples=6, n_test2=2, workers=1),
+                         solver={"force_tolerance": 1e-10})
+    path = folder / "s.zarr"
+    simulate(cfg, path, progress=False)
+    return open_dataset(path)
+
+
+def test_sensitivities_match_central_differences_of_full_solves(store):
+    ds = store
+    lbo = ds.select("train")
+    S = dataset_sensitivities(ds, lbo)
+    ctx = SampleContext(ds.recipe())
+    sc, s = ctx.scenario, int(lbo[0])
+    assert S.values.shape == (len(lbo), 3 * sc.surface_forces.basis.n_vectors, ds.n_vertices, 3) == (len(lbo), 24, 140, 3)
+    assert np.isfinite(S.values).all()
+    inputs = sc.sample(int(ds.seed[s]), float(ds.alpha[s]))
+    solver = ctx.solver(0)
+    h = 1e-2 * WEIGHT_SD
+    for k in (0, 7, 20):
+        fields = []
+        for sign in (1.0, -1.0):
+            w = inputs.weights.copy()
+            w.flat[k] += sign * h
+            moved = sc.inputs_for(int(ds.seed[s]), _field(sc, w, float(ds.alpha[s])), w)
+            fields.append(solver.solve(moved.surface, None, **moved.solve_keywords()).displacement)
+        fd = (fields[0] - fields[1]) / (2 * h) * WEIGHT_SD
+        assert np.linalg.norm(S.values[0, k] - fd) <= 1e-3 * np.linalg.norm(fd), k
+
+
+def _field(sc, w, alpha):
+    from tissuecast.forces.fields import lbo_field
+
+    return lbo_field(sc.surface_forces.basis, w, alpha, sc.mesh.n_vertices)
+
+
+def test_test2_samples_have_none_and_rows_follow_the_indices(store):
+    ds = store
+    t2, train = ds.select("test2"), ds.select("train")
+    S = dataset_sensitivities(ds, np.concatenate([t2, train[:2]]))
+    assert isinstance(S, Sensitivities) and list(S.indices) == sorted(np.concatenate([t2, train[:2]]).tolist())
+    rows = S.rows([int(train[1]), int(t2[0]), 10_000])
+    assert np.isfinite(rows[0]).all() and np.isnan(rows[1]).all() and np.isnan(rows[2]).all()
+    np.testing.assert_array_equal(rows[0], S.values[list(S.indices).index(int(train[1]))])

@@ -1,0 +1,72 @@
+"""Training on the simulator's sensitivities (Sobolev training, tissuecast.surrogate.mlp): with
+fewer samples than inputs the values leave the map undetermined and the directional
+derivatives determine it; the fit path projects field sensitivities on the decoder."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tissuecast.config import SurrogateConfig
+from tissuecast.errors import ModelError
+from tissuecast.surrogate.mlp import Tangents, train_mlp
+from tissuecast.surrogate.network_fit import _tangents
+from tissuecast.surrogate.pca import fit_pca
+
+pytest.importorskip("torch")
+
+
+def _linear_problem(n_train: int, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    B = rng.normal(size=(9, 5))
+    X, Xv, Xt = (rng.normal(size=(m, 9)) for m in (n_train, 16, 200))
+    return B, X, Xv, Xt
+
+
+def _mse(w, Xt, B):
+    return float(np.mean((w.predict_weights(Xt) - Xt @ B) ** 2) / np.mean((Xt @ B) ** 2))
+
+
+def test_derivatives_determine_what_too_few_values_cannot():
+    B, X, Xv, Xt = _linear_problem(4)
+    base = SurrogateConfig(hidden=(32,), epochs=1500, batch_size=4, patience=0, head="none")
+    dX = np.broadcast_to(np.eye(9), (4, 9, 9)).copy()  # every input direction at every sample
+    dY = np.broadcast_to(B, (4, 9, 5)).copy()
+    plain, _ = train_mlp(X, X @ B, Xv, Xv @ B, base)
+    sob, _ = train_mlp(X, X @ B, Xv, Xv @ B, SurrogateConfig(**{**base.__dict__, "sensitivity_weight": 1.0,
+                                                                 "sensitivity_directions": 9}),
+                       tangents=Tangents(dX, dY))
+    e_plain, e_sob = _mse(plain, Xt, B), _mse(sob, Xt, B)
+    assert e_plain > 0.5  # 4 samples of a map of 9 inputs: most of it unseen
+    assert e_sob < 0.1 * e_plain
+
+
+def test_tangents_off_or_missing_train_as_without():
+    B, X, Xv, _ = _linear_problem(6)
+    c = SurrogateConfig(hidden=(8,), epochs=20, batch_size=6, patience=0, head="none")
+    dX = np.full((6, 2, 9), np.nan)
+    plain, _ = train_mlp(X, X @ B, Xv, Xv @ B, c)
+    off, _ = train_mlp(X, X @ B, Xv, Xv @ B, c, tangents=Tangents(np.zeros((6, 2, 9)), np.ones((6, 2, 5))))
+    none, _ = train_mlp(X, X @ B, Xv, Xv @ B, SurrogateConfig(**{**c.__dict__, "sensitivity_weight": 1.0}),
+                        tangents=Tangents(dX, np.zeros((6, 2, 5))))
+    for w in (off, none):  # weight 0, or no sample with finite tangents: bit-identical to values only
+        for a, b in zip(plain.weights, w.weights):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ModelError, match="tangents"):
+        train_mlp(X, X @ B, Xv, Xv @ B, SurrogateConfig(**{**c.__dict__, "sensitivity_weight": 1.0}),
+                  tangents=Tangents(np.zeros((5, 2, 9)), np.zeros((5, 2, 5))))
+
+
+def test_field_sensitivities_project_on_the_decoder_and_the_markers():
+    rng = np.random.default_rng(1)
+    n, k = 12, 3
+    U = rng.normal(size=(40, 3 * n))
+    pca = fit_pca(U, 6)
+    markers = np.array([2, 5, 9])
+    S = rng.normal(size=(40, k, n, 3))
+    Xt = U[:, (3 * markers[:, None] + np.arange(3)).ravel()]
+    t = _tangents(S, pca, markers, np.hstack([Xt, np.ones((40, 2))]), None)
+    assert t.inputs.shape == (40, k, 11) and t.outputs.shape == (40, k, 6)
+    np.testing.assert_allclose(t.inputs[:, :, :9], S[:, :, markers, :].reshape(40, k, 9))
+    np.testing.assert_array_equal(t.inputs[:, :, 9:], 0.0)  # the instrument's pose is held
+    np.testing.assert_allclose(t.outputs, S.reshape(40, k, -1) @ pca.components.T, atol=1e-12)
