@@ -235,6 +235,8 @@ HEADS = ("quadratic", "none")
 CALIBRATIONS = ("cross-validation", "split", "none")
 #: How the predicted coefficients become the field (see :mod:`tissuecast.surrogate.decoder`).
 DECODERS = ("pca", "local")
+#: Hidden-layer nonlinearities of the surrogate's networks.
+ACTIVATIONS = ("relu", "silu")
 
 
 @dataclass(frozen=True)
@@ -247,6 +249,7 @@ class SurrogateConfig:
     pca_max_error: float = _f(1.0, lo=0.0, lo_open=True, doc="paper rule: max cross-validated vertex reconstruction error (mm)")
     pca_folds: int = _f(5, lo=2, hi=50, doc="paper rule: folds of the n_w cross-validation")
     hidden: tuple[int, ...] = _f((128, 64), doc="hidden layer widths")
+    activation: str = _f("relu", choices=ACTIVATIONS, doc="hidden-layer nonlinearity: 'relu' (the paper's) or 'silu' (x sigmoid(x): smooth, so its derivatives can fit the sensitivities)")
     head: str = _f("quadratic", choices=HEADS, doc="'quadratic' = a regression on linear and quadratic marker features predicts, the networks learn its residual; 'none' = networks alone")
     head_dims: int = _f(0, lo=0, hi=60, doc="quadratic head: input directions whose products are features; 0 = chosen on validation")
     decoder: str = _f("pca", choices=DECODERS, doc="'pca' = the PCA basis decodes the predicted weights; 'local' = the PCA basis plus region-wise components of its residual")

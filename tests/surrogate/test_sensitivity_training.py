@@ -8,10 +8,14 @@ import numpy as np
 import pytest
 
 from tissuecast.config import SurrogateConfig
+from tissuecast.dataset.sensitivities import Sensitivities
 from tissuecast.errors import ModelError
+from tissuecast.surrogate import DeformationModel
 from tissuecast.surrogate.mlp import Tangents, train_mlp
 from tissuecast.surrogate.network_fit import _tangents
 from tissuecast.surrogate.pca import fit_pca
+
+from _surrogate_synthetic import MARKERS, box_mesh, nonlinear_fields
 
 pytest.importorskip("torch")
 
@@ -70,3 +74,56 @@ def test_field_sensitivities_project_on_the_decoder_and_the_markers():
     np.testing.assert_allclose(t.inputs[:, :, :9], S[:, :, markers, :].reshape(40, k, 9))
     np.testing.assert_array_equal(t.inputs[:, :, 9:], 0.0)  # the instrument's pose is held
     np.testing.assert_allclose(t.outputs, S.reshape(40, k, -1) @ pca.components.T, atol=1e-12)
+
+
+# ---------------------------------------------------------------------- a model trained on them
+def _fields_and_sensitivities(mesh, theta, h=1e-4):
+    """Fields of the synthetic family and their central-difference derivatives along each latent
+    parameter: (N, n, 3), (N, 3, n, 3) mm."""
+    U = nonlinear_fields(mesh, theta)
+    S = np.stack([(nonlinear_fields(mesh, theta + h * e) - nonlinear_fields(mesh, theta - h * e)) / (2 * h)
+                  for e in np.eye(3)], axis=1)
+    return U, S
+
+
+@pytest.fixture(scope="module")
+def silu_models():
+    mesh = box_mesh()
+    theta = np.random.default_rng(3).uniform(-1, 1, (240, 3))
+    U, S = _fields_and_sensitivities(mesh, theta)
+    cfg = dict(epochs=300, patience=0, batch_size=16, n_components=6, hidden=(32, 32), activation="silu",
+               calibration_share=0.0, head="none")
+    train, valid = np.arange(24), np.arange(24, 40)  # few samples: 24 fields of a 3-parameter family
+    plain = DeformationModel(**cfg).fit(U[:40], MARKERS, mesh=mesh, train_idx=train, valid_idx=valid)
+    sob = DeformationModel(**cfg, sensitivity_weight=1.0, sensitivity_directions=3).fit(
+        U[:40], MARKERS, mesh=mesh, train_idx=train, valid_idx=valid, sensitivities=Sensitivities(train, S[train]))
+    return mesh, U, plain, sob
+
+
+def test_a_model_trained_on_sensitivities_is_more_accurate(silu_models):
+    mesh, U, plain, sob = silu_models
+    test = U[40:]
+    d = plain.marker_displacements(test)
+    err = [np.linalg.norm(m.predict(d) - test, axis=2).max(axis=1).mean() for m in (plain, sob)]
+    floor = np.linalg.norm(plain.pca_projection(test) - test, axis=2).max(axis=1).mean()
+    assert err[1] < 0.7 * err[0] and err[1] > floor
+
+
+def test_silu_networks_agree_across_numpy_torch_onnx_and_the_folder(silu_models, tmp_path):
+    torch = pytest.importorskip("torch")
+    _, U, _, model = silu_models
+    assert model.network_.members[0].activation == "silu"
+    d = model.marker_displacements(U[40:60])
+    net = model.network_
+    ref = net.basis.inverse_transform(net.members[0].predict_weights(d.reshape(len(d), -1))).reshape(d.shape[0], -1, 3)
+    np.testing.assert_allclose(model.predict(d), ref, atol=1e-9)
+    with torch.no_grad():
+        out = model.torch_module()(torch.as_tensor(d, dtype=torch.float32)).numpy()
+    np.testing.assert_allclose(out, ref, atol=2e-5 * np.abs(U).max())
+    model.save(tmp_path / "m")
+    loaded = DeformationModel.load(tmp_path / "m")
+    np.testing.assert_array_equal(loaded.predict(d), model.predict(d))
+    ort = pytest.importorskip("onnxruntime")
+    model.export_onnx(tmp_path / "m.onnx")
+    sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
+    np.testing.assert_allclose(sess.run(None, {"markers": d.astype(np.float32)})[0], ref, atol=2e-5 * np.abs(U).max())

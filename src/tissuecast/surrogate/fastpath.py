@@ -18,7 +18,7 @@ import numpy as np
 from scipy.linalg import block_diag
 
 from ..errors import ModelError
-from .weights import MLPWeights
+from .weights import MLPWeights, activate
 from .encoding import fold_first_layer, untracked_at_mean
 from .pca import PCABasis
 from .quadratic import QuadraticRegression
@@ -66,6 +66,7 @@ class CompiledSurrogate:
         self.n_markers = m0.n_markers
         self.n_auxiliary = m0.n_auxiliary
         self.masked = m0.masked
+        self.activation = m0.activation
         xm, xs = m0.x_mean.astype(f8), m0.x_std.astype(f8)
         ys, ym = m0.y_std.astype(f8), m0.y_mean.astype(f8)
         C = basis.components
@@ -118,11 +119,11 @@ class CompiledSurrogate:
             b = b - missing.astype(np.float64) @ self.mask_cols
         h = d @ W
         h += b
-        np.maximum(h, 0.0, out=h)
+        activate(h, self.activation)
         for W, b in self.hidden[1:]:
             h = h @ W
             h += b
-            np.maximum(h, 0.0, out=h)
+            activate(h, self.activation)
         return h
 
     def fields(self, d: np.ndarray, missing: np.ndarray | None = None) -> np.ndarray:

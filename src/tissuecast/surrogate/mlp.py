@@ -302,7 +302,8 @@ def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool, n_marke
     return run
 
 
-def _weights(torch, net, parameters: list, s: _Scaling, masked: bool, n_auxiliary: int) -> MLPWeights:
+def _weights(torch, net, parameters: list, s: _Scaling, masked: bool, n_auxiliary: int,
+             activation: str = "relu") -> MLPWeights:
     """The network with ``parameters`` loaded, as float32 numpy :class:`MLPWeights`."""
     with torch.no_grad():
         for p, b in zip(net.parameters(), parameters):
@@ -313,7 +314,7 @@ def _weights(torch, net, parameters: list, s: _Scaling, masked: bool, n_auxiliar
         biases=tuple(m.bias.detach().numpy().astype(np.float32).copy() for m in linears),
         x_mean=s.x_mean.astype(np.float32), x_std=s.x_std.astype(np.float32),
         y_mean=s.y_mean.astype(np.float32), y_std=s.y_std.astype(np.float32),
-        masked=masked, n_auxiliary=n_auxiliary,
+        masked=masked, n_auxiliary=n_auxiliary, activation=activation,
     )
 
 
@@ -358,9 +359,9 @@ def train_mlp(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig | None
         if use is not None and masked:
             raise ModelError("tangents need marker_dropout = 0")
         tensors = _tensors(torch, X, Y, Xv, Yv, scaling, masked, n_markers, use)
-        net = build_network(torch, input_width(n_markers, masked, n_a), c.hidden, Y.shape[1])
+        net = build_network(torch, input_width(n_markers, masked, n_a), c.hidden, Y.shape[1], c.activation)
         run = _fit(torch, net, tensors, c, gen, masked, n_markers)
-        weights = _weights(torch, net, run.best_parameters, scaling, masked, n_a)
+        weights = _weights(torch, net, run.best_parameters, scaling, masked, n_a, c.activation)
     summary = TrainingSummary(
         seed=seed, epochs_run=run.epochs, best_epoch=run.best_epoch, best_valid_loss=run.best_loss,
         final_train_loss=run.train_loss, seconds=time.perf_counter() - t0, stopped_early=run.stopped_early,

@@ -11,11 +11,13 @@ from .weights import MLPWeights
 __all__ = ["build_network", "torch_network"]
 
 
-def build_network(torch, n_in: int, hidden, n_out: int):
-    """Linear-ReLU stack n_in -> hidden... -> n_out (torch.nn.Sequential)."""
+def build_network(torch, n_in: int, hidden, n_out: int, activation: str = "relu"):
+    """Linear stack n_in -> hidden... -> n_out with ``activation`` (relu or silu) between
+    (torch.nn.Sequential)."""
     layers, width = [], n_in
+    act = {"relu": torch.nn.ReLU, "silu": torch.nn.SiLU}[activation]
     for h in hidden:
-        layers += [torch.nn.Linear(width, int(h)), torch.nn.ReLU()]
+        layers += [torch.nn.Linear(width, int(h)), act()]
         width = int(h)
     layers.append(torch.nn.Linear(width, n_out))
     return torch.nn.Sequential(*layers)
@@ -42,7 +44,7 @@ def torch_network(members: list[MLPWeights], components: np.ndarray, mean: np.nd
             self.n_auxiliary = first.n_auxiliary
             self.nets = torch.nn.ModuleList()
             for m in members:
-                net = build_network(torch, m.weights[0].shape[1], m.hidden, m.weights[-1].shape[0])
+                net = build_network(torch, m.weights[0].shape[1], m.hidden, m.weights[-1].shape[0], m.activation)
                 with torch.no_grad():
                     for lin, W, b in zip([x for x in net if isinstance(x, torch.nn.Linear)], m.weights, m.biases):
                         lin.weight.copy_(torch.as_tensor(W))

@@ -77,7 +77,8 @@ def _network_record(net: NetworkPredictor) -> dict:
             "ensemble": len(net.members), "input": "marker displacements (n_d, 3) mm, vertex-major"
             + (", then the auxiliary inputs" if m0.n_auxiliary else ""),
             "output": "PCA weights (n_w,) mm", "n_auxiliary": int(m0.n_auxiliary),
-            "head": None if head is None else {"kind": "quadratic", "dims": int(len(head.directions))}}
+            "head": None if head is None else {"kind": "quadratic", "dims": int(len(head.directions))},
+            "activation": m0.activation}
 
 
 def _metadata(state: ModelState) -> dict:
@@ -221,7 +222,8 @@ def _weights(folder: Path, meta: dict) -> list[MLPWeights]:
         tensors = st.load_file(str(wpath))
     except Exception as exc:  # safetensors raises its own error types
         raise ModelError(f"model weights {str(wpath)!r} are unreadable: {exc}") from exc
-    return [MLPWeights.from_tensors(tensors, f"member{k}.", net["n_layers"], net["masked"], net.get("n_auxiliary", 0))
+    return [MLPWeights.from_tensors(tensors, f"member{k}.", net["n_layers"], net["masked"], net.get("n_auxiliary", 0),
+                                      net.get("activation", "relu"))
             for k in range(net["ensemble"])]
 
 

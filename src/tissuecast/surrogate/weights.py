@@ -10,11 +10,23 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import expit
 
 from ..errors import ModelError
 from .encoding import masked_input
 
-__all__ = ["MLPWeights"]
+__all__ = ["MLPWeights", "activate"]
+
+
+def activate(h: np.ndarray, activation: str) -> np.ndarray:
+    """The hidden-layer nonlinearity applied in place to float array ``h``: ``"relu"``
+    max(h, 0) or ``"silu"`` h sigmoid(h); returns ``h``."""
+    if activation == "relu":
+        return np.maximum(h, 0.0, out=h)
+    if activation == "silu":
+        h *= expit(h)
+        return h
+    raise ModelError(f"unknown activation {activation!r}; use relu or silu")
 
 
 @dataclass(frozen=True, eq=False)
@@ -31,6 +43,7 @@ class MLPWeights:
         y_std: (n_w,) float32 mm, PCA-weight scale.
         masked: whether the input carries n_d marker-present channels (:mod:`.encoding`).
         n_auxiliary: n_a, the auxiliary inputs after the 3 n_d marker displacements.
+        activation: the hidden layers' nonlinearity (:func:`activate`).
     """
 
     weights: tuple
@@ -41,6 +54,7 @@ class MLPWeights:
     y_std: np.ndarray
     masked: bool = False
     n_auxiliary: int = 0
+    activation: str = "relu"
 
     @property
     def n_markers(self) -> int:
@@ -69,7 +83,7 @@ class MLPWeights:
         for i, (W, b) in enumerate(zip(self.weights, self.biases)):
             h = h @ W.T.astype(np.float64) + b
             if i < last:
-                np.maximum(h, 0.0, out=h)
+                activate(h, self.activation)
         return h * self.y_std + self.y_mean
 
     def truncated(self, n_components: int) -> "MLPWeights":
@@ -81,7 +95,8 @@ class MLPWeights:
         return MLPWeights(weights=(*self.weights[:-1], self.weights[-1][:k].copy()),
                           biases=(*self.biases[:-1], self.biases[-1][:k].copy()),
                           x_mean=self.x_mean, x_std=self.x_std, y_mean=self.y_mean[:k].copy(),
-                          y_std=self.y_std[:k].copy(), masked=self.masked, n_auxiliary=self.n_auxiliary)
+                          y_std=self.y_std[:k].copy(), masked=self.masked, n_auxiliary=self.n_auxiliary,
+                          activation=self.activation)
 
     def tensors(self, prefix: str) -> dict[str, np.ndarray]:
         """Flat name -> array dict for safetensors/npz storage."""
@@ -93,7 +108,8 @@ class MLPWeights:
         return {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in out.items()}
 
     @classmethod
-    def from_tensors(cls, t: dict, prefix: str, n_layers: int, masked: bool, n_auxiliary: int = 0) -> "MLPWeights":
+    def from_tensors(cls, t: dict, prefix: str, n_layers: int, masked: bool, n_auxiliary: int = 0,
+                     activation: str = "relu") -> "MLPWeights":
         try:
             return cls(
                 weights=tuple(np.asarray(t[f"{prefix}layer{i}.weight"], np.float32) for i in range(n_layers)),
@@ -104,6 +120,7 @@ class MLPWeights:
                 y_std=np.asarray(t[f"{prefix}y_std"], np.float32),
                 masked=bool(masked),
                 n_auxiliary=int(n_auxiliary),
+                activation=str(activation),
             )
         except KeyError as exc:
             raise ModelError(f"model weights file lacks tensor {exc}; the model folder is incomplete or corrupt") from exc
