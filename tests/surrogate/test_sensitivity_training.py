@@ -127,3 +127,13 @@ def test_silu_networks_agree_across_numpy_torch_onnx_and_the_folder(silu_models,
     model.export_onnx(tmp_path / "m.onnx")
     sess = ort.InferenceSession(str(tmp_path / "m.onnx"), providers=["CPUExecutionProvider"])
     np.testing.assert_allclose(sess.run(None, {"markers": d.astype(np.float32)})[0], ref, atol=2e-5 * np.abs(U).max())
+
+
+def test_settings_that_cannot_train_on_sensitivities_are_refused():
+    from tissuecast.config import Config, with_overrides
+    from tissuecast.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="marker_dropout = 0"):
+        with_overrides(Config(), surrogate={"sensitivity_weight": 1.0, "marker_dropout": 0.1})
+    with pytest.raises(ConfigError, match="activation"):
+        with_overrides(Config(), surrogate={"activation": "tanh"})
