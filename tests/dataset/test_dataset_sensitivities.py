@@ -1,7 +1,10 @@
-"""The simulator's sensitivities at stored samples (tissuecast.dataset.sensitivities) against
-central differences of full solves, and the samples that have none."""
+"""The simulator's sensitivities at stored samples (tissuecast.dataset.sensitivities), along
+the load weights and the drawn parameters, against central differences of full solves, and
+the samples that have none."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -9,7 +12,7 @@ from dataset_helpers import small_config
 
 from tissuecast.config import with_overrides
 from tissuecast.dataset import open_dataset, simulate
-from tissuecast.dataset.sensitivities import WEIGHT_SD, Sensitivities, dataset_sensitivities
+from tissuecast.dataset.sensitivities import WEIGHT_SD, Sensitivities, dataset_sensitivities, parameter_directions
 from tissuecast.dataset.worker import SampleContext
 
 
@@ -59,3 +62,36 @@ def test_test2_samples_have_none_and_rows_follow_the_indices(store):
     rows = S.rows([int(train[1]), int(t2[0]), 10_000])
     assert np.isfinite(rows[0]).all() and np.isnan(rows[1]).all() and np.isnan(rows[2]).all()
     np.testing.assert_array_equal(rows[0], S.values[list(S.indices).index(int(train[1]))])
+
+
+@pytest.fixture(scope="module")
+def uncertain_store(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("sens_unc")
+    cfg = with_overrides(small_config(folder, n_samples=4, n_test2=1, workers=1), solver={"force_tolerance": 1e-10},
+                         scenario={"uncertain": {"youngs_modulus": [0.5, 2.0], "poisson_ratio": [0.40, 0.49]}})
+    path = folder / "u.zarr"
+    simulate(cfg, path, progress=False)
+    return open_dataset(path)
+
+
+def test_parameter_directions_match_central_differences_of_full_solves(uncertain_store):
+    ds = uncertain_store
+    s = int(ds.select("train")[0])
+    S = dataset_sensitivities(ds, [s])
+    ctx = SampleContext(ds.recipe())
+    sc = ctx.scenario
+    (e_name, e_log, e_sd), (nu_name, nu_log, nu_sd) = parameter_directions(sc)
+    assert (e_name, e_log, nu_name, nu_log) == ("youngs_modulus", True, "poisson_ratio", False)
+    assert S.values.shape[1] == 24 + 2 and np.isfinite(S.values).all()
+    known = sc.sample(int(ds.seed[s]), float(ds.alpha[s]), nominal=True)
+    drawn = sc.draw_for(int(ds.seed[s])).parameters
+    for col, name, sd, log in ((24, e_name, e_sd, True), (25, nu_name, nu_sd, False)):
+        h = 1e-2 * sd
+        fields = []
+        for sign in (1.0, -1.0):
+            v = getattr(drawn, name)
+            moved = sc.with_parameters(known, dataclasses.replace(drawn, **{name: v * np.exp(sign * h) if log else v + sign * h}))
+            solver = ctx.solver(0).with_parameters(*moved.solver_parameters)
+            fields.append(solver.solve(moved.surface, None, **moved.solve_keywords()).displacement)
+        fd = (fields[0] - fields[1]) / (2 * h) * sd
+        assert np.linalg.norm(S.values[0, col] - fd) <= 2e-3 * np.linalg.norm(fd), name

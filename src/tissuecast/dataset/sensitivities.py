@@ -1,5 +1,5 @@
 """The simulator's sensitivities at stored samples: how a sample's whole field moves when its
-LBO load weights move.
+LBO load weights, or its drawn material and support parameters, move.
 
 At a solved sample (displacement u of the mesh's nodes, loads f(w) = sum_k w_k f_k linear in
 the 3 n_b LBO weights w), equilibrium r(u) = f(w) gives
@@ -7,19 +7,23 @@ the 3 n_b LBO weights w), equilibrium r(u) = f(w) gives
     du/dw_k = K(u)^-1 f_k,
 
 with K the tangent stiffness at u, the held dofs (supports, the instrument's prescribed
-patch, an attached margin's vertices) eliminated. One factorisation per sample and 3 n_b
-triangular solves: a small share of the sample's own Newton solve. The surrogate trains on
+patch, an attached margin's vertices) eliminated; along a parameter p (E, the springs,
+Poisson's ratio) the load is minus the internal forces' derivative in p at u. One
+factorisation per sample and a triangular solve per direction: a small share of the sample's
+own Newton solve. The surrogate trains on
 these directions beside the fields (``surrogate.sensitivity_weight``, :mod:`tissuecast.surrogate.mlp`):
 each sample then says not only where the markers and the field are but how they move
 together along every load direction of the simulated family.
 
-Units: mm of displacement per prior standard deviation of a weight (the weights are drawn
-U(-1, 1), standard deviation :data:`WEIGHT_SD`).
+Units: mm of displacement per prior standard deviation of the weight (drawn U(-1, 1),
+standard deviation :data:`WEIGHT_SD`) or of the parameter (on its log scale for the factors).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import time
 from dataclasses import dataclass
 
@@ -29,12 +33,19 @@ from scipy.sparse.linalg import splu
 from ..errors import ConfigError, ConvergenceError
 from ..forces.fields import lbo_field
 
-__all__ = ["WEIGHT_SD", "Sensitivities", "equilibrium_response", "unit_loads", "dataset_sensitivities"]
+__all__ = ["WEIGHT_SD", "CONTINUOUS_PARAMETERS", "PARAMETER_STEP", "Sensitivities", "parameter_directions",
+           "equilibrium_response", "unit_loads", "dataset_sensitivities"]
 
 log = logging.getLogger(__name__)
 
 #: Standard deviation of an LBO weight (drawn U(-1, 1)).
 WEIGHT_SD = 3.0 ** -0.5
+#: The continuous uncertain parameters a field can be differentiated in, and whether on a log
+#: scale (the factors) or as they are (Poisson's ratio).
+CONTINUOUS_PARAMETERS = (("youngs_modulus", True), ("spring_normal", True), ("spring_tangential", True),
+                         ("poisson_ratio", False))
+#: Finite-difference step of the internal forces in a parameter, in prior standard deviations.
+PARAMETER_STEP = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
@@ -102,10 +113,31 @@ def equilibrium_response(solver, inputs, u: np.ndarray, forces: np.ndarray) -> n
     return du
 
 
+def parameter_directions(scenario) -> list[tuple[str, bool, float]]:
+    """``(name, log, sd)`` of each continuous parameter the scenario draws (of
+    :data:`CONTINUOUS_PARAMETERS`): its prior standard deviation on its scale (log for the
+    factors), from the config's uniform range."""
+    c = scenario.config.uncertain
+    if scenario.uncertain is None:
+        return []
+    out = []
+    for name, on_log in CONTINUOUS_PARAMETERS:
+        bounds = getattr(c, name)
+        if bounds:
+            lo, hi = (float(v) for v in bounds)
+            a, b = (math.log(lo), math.log(hi)) if on_log else (lo, hi)
+            out.append((name, on_log, (b - a) / math.sqrt(12.0)))
+    return out
+
+
 def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
-    """du/dw of the stored LBO samples ``indices`` (0-based, ascending after unique), per
-    weight standard deviation: values (M, 3 n_b, n, 3) float32 mm, NaN for a sample that has
-    none (a test-2 sample's concentrated loads, a failed sample, a state without a tangent).
+    """The field's derivatives at the stored LBO samples ``indices`` (0-based, ascending after
+    unique), per prior standard deviation: along each of the 3 n_b LBO weights, then along
+    each continuous parameter the scenario draws (:func:`parameter_directions`, the loads
+    held: the internal forces' finite difference). Values (M, 3 n_b + n_p, n, 3) float32 mm;
+    NaN for a sample that has none (a test-2 sample's concentrated loads, a failed sample, a
+    state without a tangent) and for a parameter direction of a sample drawn at the nominal
+    parameters.
 
     Args:
         dataset: a :class:`~tissuecast.dataset.Dataset` whose solver's nodes are its vertices
@@ -128,7 +160,8 @@ def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
                           f"this data set's elements have {n_nodes} nodes: set "
                           "surrogate.sensitivity_weight = 0 for it")
     nb = sc.surface_forces.basis.n_vectors
-    out = np.full((len(idx), 3 * nb, n, 3), np.nan, dtype=np.float32)
+    directions = parameter_directions(sc)
+    out = np.full((len(idx), 3 * nb + len(directions), n, 3), np.nan, dtype=np.float32)
     alpha, beta = np.asarray(dataset.alpha, dtype=np.float64), np.asarray(dataset.beta, dtype=np.float64)
     done = np.zeros(dataset.n_samples, dtype=bool)
     done[dataset.select(None, status="done")] = True
@@ -140,18 +173,39 @@ def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
             progress(k, len(idx))
         if not (done[s] and np.isnan(beta[s]) and np.isfinite(alpha[s])):
             continue
+        seed, a = int(dataset.seed[s]), float(alpha[s])
         nominal = not params or all(np.isnan(np.asarray(v, dtype=np.float64)[s]) for v in params.values())
-        inputs = sc.sample(int(dataset.seed[s]), float(alpha[s]), nominal=nominal)
+        known = sc.sample(seed, a, nominal=True)
+        drawn = None if nominal else sc.draw_for(seed).parameters
+        inputs = known if drawn is None else sc.with_parameters(known, drawn)
         solver = base.with_parameters(*inputs.solver_parameters)
-        if alpha[s] not in cache:
-            cache[float(alpha[s])] = unit_loads(sc, float(alpha[s]), inputs.draw).reshape(3 * nb, -1)
+        u = np.asarray(dataset.displacements[s], dtype=np.float64)
+        if a not in cache:
+            cache[a] = unit_loads(sc, a, inputs.draw).reshape(3 * nb, -1)
+        forces = [cache[a]]
+        usable = [True] * (3 * nb)
+        if directions:
+            fint = solver.assembler.internal_force(u)[0] if drawn is not None else None
+            for name, on_log, sd in directions:
+                v = None if drawn is None else float(getattr(drawn, name))
+                if v is None or not np.isfinite(v):
+                    forces.append(np.zeros((1, u.size)))
+                    usable.append(False)
+                    continue
+                h = PARAMETER_STEP * sd
+                moved = sc.with_parameters(known, dataclasses.replace(drawn, **{name: v * math.exp(h) if on_log else v + h}))
+                f2 = base.with_parameters(*moved.solver_parameters).assembler.internal_force(u)[0]
+                forces.append((-(f2 - fint) / h)[None])
+                usable.append(True)
+        scale = np.array([WEIGHT_SD] * (3 * nb) + [sd for _, _, sd in directions])
         try:
-            du = equilibrium_response(solver, inputs, np.asarray(dataset.displacements[s], dtype=np.float64),
-                                      cache[float(alpha[s])])
+            du = equilibrium_response(solver, inputs, u, np.vstack(forces))
         except ConvergenceError:
             failed += 1
             continue
-        out[k] = (WEIGHT_SD * du.T).reshape(3 * nb, n, 3)
+        values = (scale[:, None] * du.T).reshape(-1, n, 3)
+        values[~np.array(usable)] = np.nan
+        out[k] = values
     if progress is not None:
         progress(len(idx), len(idx))
     log.info("sensitivities of %d samples (%d without a tangent) in %.1f s", len(idx), failed, time.perf_counter() - t0)

@@ -50,7 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError, ConvergenceError
-from ..dataset.sensitivities import equilibrium_response, unit_loads
+from ..dataset.sensitivities import CONTINUOUS_PARAMETERS, PARAMETER_STEP, equilibrium_response, unit_loads
 from ..scenario.parameters import ParameterDraw
 from ..scenario.sample_inputs import SampleInputs, ScenarioDraw
 
@@ -60,10 +60,9 @@ __all__ = ["MarkerInverse", "InverseResult", "NOISE_MM"]
 NOISE_MM = 0.05
 #: Continuous parameters the inverse estimates where the scenario gives them a range, in order;
 #: True where the range is log-uniform (a factor).
-ESTIMATED = (("youngs_modulus", True), ("spring_normal", True), ("spring_tangential", True),
-             ("poisson_ratio", False))
+ESTIMATED = CONTINUOUS_PARAMETERS
 #: Finite-difference step of the internal forces in a parameter, in prior standard deviations.
-FD_STEP = 1e-4
+FD_STEP = PARAMETER_STEP
 #: Gauss-Newton steps while searching the attached margin, and at most when finishing.
 SEARCH_ITERATIONS = 4
 MAX_ITERATIONS = 15

@@ -89,7 +89,8 @@ class Tangents:
         inputs: (N, k, 3 n_d + n_a) how the network's inputs move per unit of a direction
             (marker displacements in mm; auxiliary inputs, e.g. a held instrument pose, 0).
         outputs: (N, k, n_w) mm, how the target PCA weights move along it.
-        A sample whose rows are not finite has none (it trains on its values only).
+        A direction whose rows are not finite is left out (a sample with none trains on its
+        values only).
     """
 
     inputs: np.ndarray
@@ -123,7 +124,8 @@ class _Tensors:
     Y_valid: object
     dX: object = None  # (N, k, n_in) scaled input tangents, None without
     dY: object = None  # (N, k, n_w) scaled output tangents
-    has_tangent: object = None  # (N,) bool
+    has_tangent: object = None  # (N,) bool: the sample has a usable direction
+    usable: object = None  # (N, k) 1.0 where the direction is usable
 
 
 @dataclass
@@ -203,10 +205,10 @@ def _tensors(torch, X, Y, Xv, Yv, s: _Scaling, masked: bool, n_markers: int, tan
         Xvt = masked_input(Xvt, torch.ones(Xvt.shape[0], n_markers), torch)
     extra = {}
     if tangents is not None:
-        ok = np.isfinite(tangents.inputs).all(axis=(1, 2)) & np.isfinite(tangents.outputs).all(axis=(1, 2))
-        extra = {"dX": torch.as_tensor(np.where(ok[:, None, None], tangents.inputs, 0.0) / s.x_std, dtype=f32),
-                 "dY": torch.as_tensor(np.where(ok[:, None, None], tangents.outputs, 0.0) / s.y_std, dtype=f32),
-                 "has_tangent": torch.as_tensor(ok)}
+        ok = np.isfinite(tangents.inputs).all(axis=2) & np.isfinite(tangents.outputs).all(axis=2)  # (N, k)
+        extra = {"dX": torch.as_tensor(np.where(ok[:, :, None], tangents.inputs, 0.0) / s.x_std, dtype=f32),
+                 "dY": torch.as_tensor(np.where(ok[:, :, None], tangents.outputs, 0.0) / s.y_std, dtype=f32),
+                 "has_tangent": torch.as_tensor(ok.any(axis=1)), "usable": torch.as_tensor(ok, dtype=f32)}
     return _Tensors(X=torch.as_tensor(X, dtype=f32), Y=torch.as_tensor((Y - s.y_mean) / s.y_std, dtype=f32),
                     x_mean=xm, x_std=xs, X_valid=Xvt, Y_valid=torch.as_tensor((Yv - s.y_mean) / s.y_std, dtype=f32),
                     **extra)
@@ -266,7 +268,8 @@ def _train_epoch(torch, net, optimizer, scheduler, t: _Tensors, c: SurrogateConf
 
 def _tangent_loss(torch, net, t: _Tensors, idx, xin, directions: int, gen):
     """Mean squared error of the network's scaled directional derivatives at the batch inputs
-    ``xin`` along ``directions`` random load directions of each sample that has tangents."""
+    ``xin`` along ``directions`` random directions of each sample that has tangents (the
+    unusable ones, not finite, left out)."""
     has = t.has_tangent[idx]
     which = idx[has]
     if not len(which):
@@ -275,7 +278,11 @@ def _tangent_loss(torch, net, t: _Tensors, idx, xin, directions: int, gen):
     x = xin[has].repeat_interleave(directions, 0)
     dx = t.dX[which[:, None], k].reshape(x.shape)
     _, jv = torch.func.jvp(net, (x,), (dx,))
-    return torch.nn.functional.mse_loss(jv, t.dY[which[:, None], k].reshape(jv.shape))
+    w = t.usable[which[:, None], k].reshape(-1, 1)
+    count = w.sum()
+    if not count > 0:
+        return torch.zeros(())
+    return (w * (jv - t.dY[which[:, None], k].reshape(jv.shape)) ** 2).sum() / (count * jv.shape[1])
 
 
 def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool, n_markers: int) -> _Run:
