@@ -46,6 +46,8 @@ CONTINUOUS_PARAMETERS = (("youngs_modulus", True), ("spring_normal", True), ("sp
                          ("poisson_ratio", False))
 #: Finite-difference step of the internal forces in a parameter, in prior standard deviations.
 PARAMETER_STEP = 1e-4
+#: A progress line at most this often, s.
+LOG_SECONDS = 20.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -168,9 +170,16 @@ def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
     params = dataset.parameters
     cache: dict[float, np.ndarray] = {}
     t0, failed = time.perf_counter(), 0
+    last = t0
+    log.info("sensitivities of %d samples along %d directions each (one tangent factorisation a sample)", len(idx),
+             out.shape[1])
     for k, s in enumerate(idx):
         if progress is not None:
             progress(k, len(idx))
+        now = time.perf_counter()
+        if k and now - last > LOG_SECONDS:
+            last = now
+            log.info("sensitivities: %d/%d samples, ETA %.0f s", k, len(idx), (now - t0) / k * (len(idx) - k))
         if not (done[s] and np.isnan(beta[s]) and np.isfinite(alpha[s])):
             continue
         seed, a = int(dataset.seed[s]), float(alpha[s])

@@ -366,6 +366,9 @@ def train_mlp(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig | None
         if use is not None and masked:
             raise ModelError("tangents need marker_dropout = 0")
         tensors = _tensors(torch, X, Y, Xv, Yv, scaling, masked, n_markers, use)
+        if use is not None:
+            log.info("training MLP %s seed %d on %d samples and their sensitivities (%d directions a sample a step, "
+                     "up to %d epochs)", list(c.hidden), seed, X.shape[0], c.sensitivity_directions, c.epochs)
         net = build_network(torch, input_width(n_markers, masked, n_a), c.hidden, Y.shape[1], c.activation)
         run = _fit(torch, net, tensors, c, gen, masked, n_markers)
         weights = _weights(torch, net, run.best_parameters, scaling, masked, n_a, c.activation)
