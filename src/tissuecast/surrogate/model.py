@@ -266,6 +266,9 @@ class DeformationModel(FieldPredictor):
         if sensitivities is not None and sensitivities.values.shape[2:] != U.shape[1:]:
             raise ModelError(f"sensitivities of fields {sensitivities.values.shape[2:]} do not match the fields {U.shape[1:]}")
         sens = sensitivities if c.sensitivity_weight > 0 else None
+        if c.sensitivity_weight > 0 and sensitivities is None:
+            log.warning("surrogate.sensitivity_weight = %g but no sensitivities were given: training on the fields only "
+                        "(DeformationModel.from_dataset computes them from the data set)", c.sensitivity_weight)
         net, trust, calibration = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec, A, explicit, sens)
         fallback, fallback_trust = None, None
         if spec.instruments:
