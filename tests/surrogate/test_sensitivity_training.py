@@ -137,3 +137,9 @@ def test_settings_that_cannot_train_on_sensitivities_are_refused():
         with_overrides(Config(), surrogate={"sensitivity_weight": 1.0, "marker_dropout": 0.1})
     with pytest.raises(ConfigError, match="activation"):
         with_overrides(Config(), surrogate={"activation": "tanh"})
+
+
+def test_the_fit_records_what_it_trained_on(silu_models):
+    _, _, plain, sob = silu_models
+    assert plain.training_["sensitivities"] is None
+    assert sob.training_["sensitivities"] == {"weight": 1.0, "directions": 3, "samples": 24}

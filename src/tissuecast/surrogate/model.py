@@ -288,6 +288,9 @@ class DeformationModel(FieldPredictor):
             "mlp_seconds": float(sum(s.seconds for s in net.summaries)),
             "seconds": time.perf_counter() - t0,
             "members": [s.as_dict() for s in net.summaries],
+            "sensitivities": None if sens is None else {
+                "weight": float(c.sensitivity_weight), "directions": int(sens.values.shape[1]),
+                "samples": int(np.isfinite(sens.values[:, :, 0, 0]).any(axis=1)[np.isin(sens.indices, splits.train)].sum())},
         }
         choice = {**net.choice, "ridge_components": ridge.n_components}
         if fallback is not None:
