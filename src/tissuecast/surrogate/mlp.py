@@ -96,10 +96,6 @@ class Tangents:
     inputs: np.ndarray
     outputs: np.ndarray
 
-    def rows(self, idx) -> "Tangents":
-        """The tangents of samples ``idx``."""
-        return Tangents(self.inputs[idx], self.outputs[idx])
-
 
 @dataclass(frozen=True, eq=False)
 class _Scaling:
