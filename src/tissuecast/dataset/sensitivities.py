@@ -179,7 +179,7 @@ def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
         now = time.perf_counter()
         if k and now - last > LOG_SECONDS:
             last = now
-            log.info("sensitivities: %d/%d samples, ETA %.0f s", k, len(idx), (now - t0) / k * (len(idx) - k))
+            log.info("%d of %d samples done, ETA %.0f s", k, len(idx), (now - t0) / k * (len(idx) - k))
         if not (done[s] and np.isnan(beta[s]) and np.isfinite(alpha[s])):
             continue
         seed, a = int(dataset.seed[s]), float(alpha[s])
