@@ -452,7 +452,7 @@ def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
     from tissuecast.scenario.regions import surface_region
 
     emb, paper = preset_config("embedded"), preset_config("paper")
-    # paper-size set, the paper's elements, material and surrogate
+    # paper-size set, the paper's elements, material and surrogate (but the networks' training)
     for section in ("dataset", "surrogate", "material", "markers"):
         a, b = (config_to_dict(getattr(c, section)) for c in (emb, paper))
         a.pop("store", None), b.pop("store", None)
@@ -462,8 +462,13 @@ def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
             a.pop(key, None), b.pop(key, None)
         for key in ("batch_size", "predictor_tolerance"):  # speed settings of the paper preset (32, 0.04)
             a.pop(key, None), b.pop(key, None)
+        # the networks train on the simulator's sensitivities (docs/surrogate.md): wider, smooth, shorter
+        for key in ("hidden", "activation", "sensitivity_weight", "sensitivity_directions", "epochs"):
+            a.pop(key, None), b.pop(key, None)
         assert a == b, section
     assert emb.surrogate.calibration_share > 0.0 and paper.surrogate.calibration == "cross-validation"
+    assert emb.surrogate.sensitivity_weight > 0 and emb.surrogate.activation == "silu"
+    assert paper.surrogate.sensitivity_weight == 0 and paper.surrogate.activation == "relu"  # the paper's network
     # linear tetrahedra: P2 solves of this spring-held body stall near a local instability (docs/scenarios.md)
     assert emb.solver.order == 1 and emb.solver.strategy == "quasi-newton" and emb.forces.loading == "traction"
     assert 15.0 <= emb.forces.target_max_displacement <= 30.0 and emb.forces.n_basis == 6
