@@ -80,7 +80,7 @@ def test_parameter_directions_match_central_differences_of_full_solves(uncertain
     S = dataset_sensitivities(ds, [s])
     ctx = SampleContext(ds.recipe())
     sc = ctx.scenario
-    (e_name, e_log, e_sd), (nu_name, nu_log, nu_sd) = parameter_directions(sc)
+    (e_name, e_log, _, e_sd), (nu_name, nu_log, _, nu_sd) = parameter_directions(sc)
     assert (e_name, e_log, nu_name, nu_log) == ("youngs_modulus", True, "poisson_ratio", False)
     assert S.values.shape[1] == 24 + 2 and np.isfinite(S.values).all()
     known = sc.sample(int(ds.seed[s]), float(ds.alpha[s]), nominal=True)

@@ -32,6 +32,7 @@ from scipy.sparse.linalg import splu
 
 from ..errors import ConfigError, ConvergenceError
 from ..forces.fields import lbo_field
+from ..scenario.sample_inputs import ScenarioDraw
 
 __all__ = ["WEIGHT_SD", "CONTINUOUS_PARAMETERS", "PARAMETER_STEP", "Sensitivities", "parameter_directions",
            "equilibrium_response", "unit_loads", "dataset_sensitivities"]
@@ -73,20 +74,20 @@ class Sensitivities:
         return out
 
 
-def unit_loads(scenario, alpha: float, draw) -> np.ndarray:
+def unit_loads(scenario, alpha: float) -> np.ndarray:
     """(3 n_b, n_nodes, 3) N: the surface loads of each unit LBO weight at force magnitude
-    ``alpha`` (N), for a sample with the draws ``draw`` (a :class:`~tissuecast.scenario.ScenarioDraw`)."""
+    ``alpha`` (N) (the same for every sample: a draw changes the body loads, not these)."""
     surface = scenario.surface_forces
     nb, n = surface.basis.n_vectors, scenario.mesh.n_vertices
     out = []
     for k in range(3 * nb):
         w = np.zeros((nb, 3))
         w.flat[k] = 1.0
-        out.append(scenario.sample_loads(draw, lbo_field(surface.basis, w, alpha, n))[0])
+        out.append(scenario.sample_loads(ScenarioDraw(), lbo_field(surface.basis, w, alpha, n))[0])
     return np.array(out)
 
 
-def equilibrium_response(solver, inputs, u: np.ndarray, forces: np.ndarray) -> np.ndarray:
+def equilibrium_response(solver, inputs, u: np.ndarray, forces: np.ndarray, tangent=None) -> np.ndarray:
     """(3 n_nodes, k) mm: the displacement's first-order response to k load changes at the
     equilibrium ``u``.
 
@@ -95,12 +96,14 @@ def equilibrium_response(solver, inputs, u: np.ndarray, forces: np.ndarray) -> n
         inputs: the sample's :class:`~tissuecast.scenario.SampleInputs` (its held dofs).
         u: (n_nodes, 3) mm, the equilibrium.
         forces: (k, 3 n_nodes) N, the load changes (rows at held dofs are ignored).
+        tangent: ``solver.assembler.tangent(u)`` when the caller has it already (e.g. for the
+            internal forces), else None.
 
     Raises:
         ConvergenceError: ``u`` inverts an element (no tangent there).
     """
     asm = solver.assembler
-    _, data, jmin = asm.tangent(u)
+    _, data, jmin = asm.tangent(u) if tangent is None else tangent
     if not jmin > 0.0:
         raise ConvergenceError("the state inverts an element: no tangent stiffness there")
     free = np.asarray(solver.free_dofs)
@@ -108,17 +111,17 @@ def equilibrium_response(solver, inputs, u: np.ndarray, forces: np.ndarray) -> n
     held = np.zeros(u.size, dtype=bool)
     held[(3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()] = True
     keep = free[~held[free]]
-    K = asm.matrix(data)
-    K = K[np.searchsorted(free, keep)][:, np.searchsorted(free, keep)].tocsc()
+    rows = np.searchsorted(free, keep)
+    K = asm.matrix(data)[rows][:, rows].tocsc()
     du = np.zeros((u.size, forces.shape[0]))
     du[keep] = splu(K).solve(np.ascontiguousarray(np.asarray(forces, dtype=np.float64)[:, keep].T))
     return du
 
 
-def parameter_directions(scenario) -> list[tuple[str, bool, float]]:
-    """``(name, log, sd)`` of each continuous parameter the scenario draws (of
-    :data:`CONTINUOUS_PARAMETERS`): its prior standard deviation on its scale (log for the
-    factors), from the config's uniform range."""
+def parameter_directions(scenario) -> list[tuple[str, bool, float, float]]:
+    """``(name, log, centre, sd)`` of each continuous parameter the scenario draws (of
+    :data:`CONTINUOUS_PARAMETERS`): its prior mean and standard deviation on its scale (log for
+    the factors), from the config's uniform range."""
     c = scenario.config.uncertain
     if scenario.uncertain is None:
         return []
@@ -128,11 +131,11 @@ def parameter_directions(scenario) -> list[tuple[str, bool, float]]:
         if bounds:
             lo, hi = (float(v) for v in bounds)
             a, b = (math.log(lo), math.log(hi)) if on_log else (lo, hi)
-            out.append((name, on_log, (b - a) / math.sqrt(12.0)))
+            out.append((name, on_log, 0.5 * (a + b), (b - a) / math.sqrt(12.0)))
     return out
 
 
-def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
+def dataset_sensitivities(dataset, indices) -> Sensitivities:
     """The field's derivatives at the stored LBO samples ``indices`` (0-based, ascending after
     unique), per prior standard deviation: along each of the 3 n_b LBO weights, then along
     each continuous parameter the scenario draws (:func:`parameter_directions`, the loads
@@ -145,7 +148,6 @@ def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
         dataset: a :class:`~tissuecast.dataset.Dataset` whose solver's nodes are its vertices
             (linear elements: the store keeps only the vertices' displacements).
         indices: (N,) sample indices.
-        progress: optional callable ``(done, total)``.
 
     Raises:
         ConfigError: the data set's elements have nodes the store does not keep.
@@ -168,14 +170,12 @@ def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
     done = np.zeros(dataset.n_samples, dtype=bool)
     done[dataset.select(None, status="done")] = True
     params = dataset.parameters
-    cache: dict[float, np.ndarray] = {}
+    units: dict[float, np.ndarray] = {}  # per force magnitude
     t0, failed = time.perf_counter(), 0
     last = t0
     log.info("sensitivities of %d samples along %d directions each (one tangent factorisation a sample)", len(idx),
              out.shape[1])
     for k, s in enumerate(idx):
-        if progress is not None:
-            progress(k, len(idx))
         now = time.perf_counter()
         if k and now - last > LOG_SECONDS:
             last = now
@@ -189,13 +189,15 @@ def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
         inputs = known if drawn is None else sc.with_parameters(known, drawn)
         solver = base.with_parameters(*inputs.solver_parameters)
         u = np.asarray(dataset.displacements[s], dtype=np.float64)
-        if a not in cache:
-            cache[a] = unit_loads(sc, a, inputs.draw).reshape(3 * nb, -1)
-        forces = [cache[a]]
+        if a not in units:
+            units[a] = unit_loads(sc, a).reshape(3 * nb, -1)
+        forces = [units[a]]
         usable = [True] * (3 * nb)
+        tangent = None
         if directions:
-            fint = solver.assembler.internal_force(u)[0] if drawn is not None else None
-            for name, on_log, sd in directions:
+            if drawn is not None:
+                tangent = solver.assembler.tangent(u)  # its internal forces too
+            for name, on_log, _, sd in directions:
                 v = None if drawn is None else float(getattr(drawn, name))
                 if v is None or not np.isfinite(v):
                     forces.append(np.zeros((1, u.size)))
@@ -204,18 +206,16 @@ def dataset_sensitivities(dataset, indices, *, progress=None) -> Sensitivities:
                 h = PARAMETER_STEP * sd
                 moved = sc.with_parameters(known, dataclasses.replace(drawn, **{name: v * math.exp(h) if on_log else v + h}))
                 f2 = base.with_parameters(*moved.solver_parameters).assembler.internal_force(u)[0]
-                forces.append((-(f2 - fint) / h)[None])
+                forces.append((-(f2 - tangent[0]) / h)[None])
                 usable.append(True)
-        scale = np.array([WEIGHT_SD] * (3 * nb) + [sd for _, _, sd in directions])
+        scale = np.array([WEIGHT_SD] * (3 * nb) + [sd for _, _, _, sd in directions])
         try:
-            du = equilibrium_response(solver, inputs, u, np.vstack(forces))
+            du = equilibrium_response(solver, inputs, u, np.vstack(forces), tangent)
         except ConvergenceError:
             failed += 1
             continue
         values = (scale[:, None] * du.T).reshape(-1, n, 3)
         values[~np.array(usable)] = np.nan
         out[k] = values
-    if progress is not None:
-        progress(len(idx), len(idx))
     log.info("sensitivities of %d samples (%d without a tangent) in %.1f s", len(idx), failed, time.perf_counter() - t0)
     return Sensitivities(idx, out)

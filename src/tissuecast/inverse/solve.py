@@ -50,7 +50,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError, ConvergenceError
-from ..dataset.sensitivities import CONTINUOUS_PARAMETERS, PARAMETER_STEP, equilibrium_response, unit_loads
+from ..dataset.sensitivities import (CONTINUOUS_PARAMETERS, PARAMETER_STEP, WEIGHT_SD, equilibrium_response,
+                                     parameter_directions, unit_loads)
 from ..scenario.parameters import ParameterDraw
 from ..scenario.sample_inputs import SampleInputs, ScenarioDraw
 
@@ -136,16 +137,11 @@ class MarkerInverse:
         self.alpha, self.noise = float(alpha), float(noise)
         surface = scenario.surface_forces
         self.n_basis = surface.basis.n_vectors
-        self._unit = unit_loads(scenario, self.alpha, ScenarioDraw())  # (3 n_b, n_nodes, 3) N per unit weight
-        c = scenario.config.uncertain
-        self._names = [(name, log) for name, log in ESTIMATED if getattr(c, name)]
-        mu, sd = [0.0] * (3 * self.n_basis), [3.0 ** -0.5] * (3 * self.n_basis)
-        for name, log in self._names:
-            lo, hi = (float(v) for v in getattr(c, name))
-            a, b = (math.log(lo), math.log(hi)) if log else (lo, hi)
-            mu.append(0.5 * (a + b))
-            sd.append((b - a) / math.sqrt(12.0))
-        self._mu, self._sd = np.array(mu), np.array(sd)
+        self._unit = unit_loads(scenario, self.alpha)  # (3 n_b, n_nodes, 3) N per unit weight
+        drawn = parameter_directions(scenario)  # those of ESTIMATED the scenario draws, with their priors
+        self._names = [(name, log) for name, log, _, _ in drawn]
+        self._mu = np.array([0.0] * (3 * self.n_basis) + [centre for _, _, centre, _ in drawn])
+        self._sd = np.array([WEIGHT_SD] * (3 * self.n_basis) + [sd for _, _, _, sd in drawn])
         self._margins = self._margin_candidates(scenario)
         self._set_prior = self._held_set_prior(scenario, self._margins)  # aligned with _margins
 
@@ -300,15 +296,14 @@ class _Frame:
         nw = 3 * inv.n_basis
         forces = np.empty((x.size, u.size))
         forces[:nw] = inv._unit.reshape(nw, -1)
-        if x.size > nw:
-            fint, _ = solver.assembler.internal_force(u)
+        tangent = solver.assembler.tangent(u) if x.size > nw else None  # its internal forces too
         for k in range(nw, x.size):
             h = FD_STEP * inv._sd[k]
             x2 = x.copy()
             x2[k] += h
             f2, _ = self.solver(self.inputs(x2, margin)).assembler.internal_force(u)
-            forces[k] = -(f2 - fint) / h
-        du = equilibrium_response(solver, inputs, u, forces)
+            forces[k] = -(f2 - tangent[0]) / h
+        du = equilibrium_response(solver, inputs, u, forces, tangent)
         return du[(3 * inv.markers[:, None] + np.arange(3)).ravel()]
 
     def objective(self, x: np.ndarray, u: np.ndarray) -> tuple[float, float]:

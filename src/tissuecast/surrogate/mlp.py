@@ -120,7 +120,6 @@ class _Tensors:
     Y_valid: object
     dX: object = None  # (N, k, n_in) scaled input tangents, None without
     dY: object = None  # (N, k, n_w) scaled output tangents
-    has_tangent: object = None  # (N,) bool: the sample has a usable direction
     usable: object = None  # (N, k) 1.0 where the direction is usable
 
 
@@ -204,7 +203,7 @@ def _tensors(torch, X, Y, Xv, Yv, s: _Scaling, masked: bool, n_markers: int, tan
         ok = np.isfinite(tangents.inputs).all(axis=2) & np.isfinite(tangents.outputs).all(axis=2)  # (N, k)
         extra = {"dX": torch.as_tensor(np.where(ok[:, :, None], tangents.inputs, 0.0) / s.x_std, dtype=f32),
                  "dY": torch.as_tensor(np.where(ok[:, :, None], tangents.outputs, 0.0) / s.y_std, dtype=f32),
-                 "has_tangent": torch.as_tensor(ok.any(axis=1)), "usable": torch.as_tensor(ok, dtype=f32)}
+                 "usable": torch.as_tensor(ok, dtype=f32)}
     return _Tensors(X=torch.as_tensor(X, dtype=f32), Y=torch.as_tensor((Y - s.y_mean) / s.y_std, dtype=f32),
                     x_mean=xm, x_std=xs, X_valid=Xvt, Y_valid=torch.as_tensor((Yv - s.y_mean) / s.y_std, dtype=f32),
                     **extra)
@@ -266,7 +265,7 @@ def _tangent_loss(torch, net, t: _Tensors, idx, xin, directions: int, gen):
     """Mean squared error of the network's scaled directional derivatives at the batch inputs
     ``xin`` along ``directions`` random directions of each sample that has tangents (the
     unusable ones, not finite, left out)."""
-    has = t.has_tangent[idx]
+    has = t.usable[idx].any(dim=1)
     which = idx[has]
     if not len(which):
         return torch.zeros(())
