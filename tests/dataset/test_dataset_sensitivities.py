@@ -14,6 +14,7 @@ from tissuecast.config import with_overrides
 from tissuecast.dataset import open_dataset, simulate
 from tissuecast.dataset.sensitivities import WEIGHT_SD, Sensitivities, dataset_sensitivities, parameter_directions
 from tissuecast.dataset.worker import SampleContext
+from tissuecast.errors import ConfigError
 
 
 @pytest.fixture(scope="module")
@@ -95,3 +96,11 @@ def test_parameter_directions_match_central_differences_of_full_solves(uncertain
             fields.append(solver.solve(moved.surface, None, **moved.solve_keywords()).displacement)
         fd = (fields[0] - fields[1]) / (2 * h) * sd
         assert np.linalg.norm(S.values[0, col] - fd) <= 2e-3 * np.linalg.norm(fd), name
+
+
+def test_a_store_of_quadratic_elements_is_refused_with_the_fix(tmp_path):
+    cfg = with_overrides(small_config(tmp_path, n_samples=2, n_test2=0, workers=1), solver={"order": 2})
+    simulate(cfg, tmp_path / "p2.zarr", progress=False)
+    ds = open_dataset(tmp_path / "p2.zarr")
+    with pytest.raises(ConfigError, match="linear elements.*sensitivity_weight = 0"):
+        dataset_sensitivities(ds, ds.select("train"))

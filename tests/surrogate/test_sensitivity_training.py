@@ -143,3 +143,19 @@ def test_the_fit_records_what_it_trained_on(silu_models):
     _, _, plain, sob = silu_models
     assert plain.training_["sensitivities"] is None
     assert sob.training_["sensitivities"] == {"weight": 1.0, "directions": 3, "samples": 24}
+
+
+def test_sensitivities_of_other_fields_are_refused(silu_models):
+    mesh, U, _, _ = silu_models
+    wrong = Sensitivities(np.arange(4), np.zeros((4, 3, mesh.n_vertices - 1, 3), dtype=np.float32))
+    with pytest.raises(ModelError, match="do not match the fields"):
+        DeformationModel(hidden=(8,), epochs=2, sensitivity_weight=1.0, calibration_share=0.0).fit(
+            U[:40], MARKERS, mesh=mesh, train_idx=np.arange(24), valid_idx=np.arange(24, 40), sensitivities=wrong)
+
+
+def test_train_mlp_refuses_tangents_with_missing_marker_input():
+    B, X, Xv, _ = _linear_problem(6)
+    c = SurrogateConfig(hidden=(8,), epochs=2, batch_size=6, patience=0, head="none", sensitivity_weight=1.0,
+                        marker_dropout=0.2)
+    with pytest.raises(ModelError, match="marker_dropout = 0"):
+        train_mlp(X, X @ B, Xv, Xv @ B, c, tangents=Tangents(np.zeros((6, 2, 9)), np.zeros((6, 2, 5))))
