@@ -1,7 +1,8 @@
 """Training on the simulator's sensitivities, side by side with the paper's network.
 
-For a store and a model folder (its markers and run config: e.g. a model of the embedded
-preset with planned markers), fits each variant on the store's training split and prints its
+For a store and either a model folder (its markers and run config: e.g. a model of the
+embedded preset with planned markers) or a marker count (that many markers planned on the
+store, ``tissuecast markers plan``'s rule, with the store's own config), fits each variant on the store's training split and prints its
 test-1 mean Offset_max / mean Offset_mean / share of samples below 1 mm everywhere (mm), the
 TRE at the model's targets (the phantom's 10 interior points) with the share of their
 displacement corrected (mean over samples), the fit time, and rigid registration and ridge
@@ -20,6 +21,7 @@ Variants are ``NAME[:key=value,...]`` of ``[surrogate]`` settings over the run c
 Usage::
 
     python benchmarks/sensitivity_training.py --dataset STORE --model MODEL_FOLDER [--variants ...]
+    python benchmarks/sensitivity_training.py --dataset STORE --markers 20 [--variants ...]
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ import tomllib
 
 import numpy as np
 
+from tissuecast.app.pipeline import planned_config
 from tissuecast.config import config_from_dict, with_overrides
 from tissuecast.dataset import open_dataset
 from tissuecast.dataset.sensitivities import dataset_sensitivities
@@ -68,12 +71,19 @@ def row(model, ds) -> dict:
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", required=True)
-    p.add_argument("--model", required=True, help="a model folder: its markers and run config")
+    how = p.add_mutually_exclusive_group(required=True)
+    how.add_argument("--model", help="a model folder: its markers and run config")
+    how.add_argument("--markers", type=int, help="plan this many markers on the store (its own config)")
     p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS)
     a = p.parse_args()
     ds = open_dataset(a.dataset)
-    ref = DeformationModel.load(a.model)
-    cfg = config_from_dict(ref.run_config)
+    if a.model:
+        cfg = config_from_dict(DeformationModel.load(a.model).run_config)
+    else:
+        t0 = time.perf_counter()
+        cfg, _ = planned_config(with_overrides(ds.config, markers={"count": a.markers, "ids": [], "rule": "planned"}), ds)
+        print(f"{a.markers} markers planned in {time.perf_counter() - t0:.0f} s: {list(cfg.markers.ids)}", flush=True)
+    markers = np.asarray(cfg.markers.ids, dtype=np.int64)
     arrays = dataset_arrays(ds, AuxiliaryInputs.from_config(cfg.scenario))
     variants = [parse_variant(v) for v in a.variants]
     sens, t_sens = None, 0.0
@@ -89,7 +99,7 @@ def main() -> None:
         t0 = time.perf_counter()
         model = DeformationModel(c)
         model.scenario = ds.scenario
-        model.fit(arrays.displacements, ref.markers, mesh=arrays.mesh, fixed=arrays.fixed, train_idx=arrays.train_idx,
+        model.fit(arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed, train_idx=arrays.train_idx,
                   valid_idx=arrays.valid_idx, auxiliary=arrays.auxiliary,
                   sensitivities=sens if c.surrogate.sensitivity_weight > 0 else None)
         fit = time.perf_counter() - t0 + (t_sens if c.surrogate.sensitivity_weight > 0 else 0.0)

@@ -12,7 +12,9 @@ from dataset_helpers import small_config
 
 from tissuecast.config import with_overrides
 from tissuecast.dataset import open_dataset, simulate
-from tissuecast.dataset.sensitivities import WEIGHT_SD, Sensitivities, dataset_sensitivities, parameter_directions
+from tissuecast.dataset.sensitivities import (WEIGHT_SD, Sensitivities, dataset_sensitivities, equilibrium_response,
+                                             parameter_directions)
+from tissuecast.dataset.sensitivities import _tangent_solve
 from tissuecast.dataset.worker import SampleContext
 from tissuecast.errors import ConfigError
 
@@ -104,3 +106,43 @@ def test_a_store_of_quadratic_elements_is_refused_with_the_fix(tmp_path):
     ds = open_dataset(tmp_path / "p2.zarr")
     with pytest.raises(ConfigError, match="linear elements.*sensitivity_weight = 0"):
         dataset_sensitivities(ds, ds.select("train"))
+
+
+EMBEDDED_LIKE = {"name": "embedded", "pins": False,
+                 "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
+                 "springs": {"rule": "surface"},
+                 "indentation": {"enabled": True, "radius": 11.0, "depth": [0.5, 1.5], "slide": [0.0, 0.5]}}
+
+
+@pytest.mark.parametrize("backend", ["superlu", "auto"])
+def test_the_response_holds_the_indented_dofs_and_solves_the_tangent_system(tmp_path, backend):
+    """With held (indented) dofs, on the backend's factorisation: zero there, K du = f elsewhere."""
+    cfg = with_overrides(small_config(tmp_path, n_samples=2, n_test2=0, workers=1),
+                         forces={"loading": "traction"}, scenario=EMBEDDED_LIKE,
+                         solver={"force_tolerance": 1e-10, "linear_solver": backend})
+    simulate(cfg, tmp_path / "e.zarr", progress=False)
+    ds = open_dataset(tmp_path / "e.zarr")
+    s = int(ds.select("train")[0])
+    ctx = SampleContext(ds.recipe())
+    sc, solver = ctx.scenario, ctx.solver(0)
+    inputs = sc.sample(int(ds.seed[s]), float(ds.alpha[s]))
+    assert len(inputs.prescribed_ids) > 0
+    u = np.asarray(ds.displacements[s], dtype=np.float64)
+    forces = np.random.default_rng(1).normal(size=(3, u.size))
+    du = equilibrium_response(solver, inputs, u, forces)
+    held = (3 * np.asarray(inputs.prescribed_ids)[:, None] + np.arange(3)).ravel()
+    assert np.abs(du[held]).max() == 0.0
+    free = np.asarray(solver.free_dofs)
+    rest = free[~np.isin(free, held)]
+    _, data, _ = solver.assembler.tangent(u)
+    K = solver.assembler.matrix(data)
+    position = np.searchsorted(free, rest)
+    residual = (K @ du[free])[position] - forces[:, rest].T
+    assert np.linalg.norm(residual) <= 1e-8 * np.linalg.norm(forces[:, rest])
+    assert np.linalg.norm(du[rest]) > 0.0
+    # a matrix the backend cannot factorise (not positive definite): SciPy's LU solves it
+    b = np.random.default_rng(2).normal(size=(len(free), 2))
+    x = _tangent_solve(solver, -data, b)
+    assert np.linalg.norm(-(K @ x) - b) <= 1e-8 * np.linalg.norm(b)
+    S = dataset_sensitivities(ds, [s])
+    assert np.isfinite(S.values).all() and np.abs(S.values[0].reshape(S.values.shape[1], -1)[:, held]).max() == 0.0

@@ -31,6 +31,7 @@ import numpy as np
 from scipy.sparse.linalg import splu
 
 from ..errors import ConfigError, ConvergenceError
+from ..fem.linear import NotPositiveDefinite
 from ..forces.fields import lbo_field
 from ..scenario.sample_inputs import ScenarioDraw
 
@@ -108,13 +109,35 @@ def equilibrium_response(solver, inputs, u: np.ndarray, forces: np.ndarray, tang
         raise ConvergenceError("the state inverts an element: no tangent stiffness there")
     free = np.asarray(solver.free_dofs)
     nodes, _ = solver.problem.solve_constraints((inputs.prescribed_ids, inputs.prescribed_values))
-    held = np.zeros(u.size, dtype=bool)
-    held[(3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()] = True
-    keep = free[~held[free]]
-    rows = np.searchsorted(free, keep)
-    K = asm.matrix(data)[rows][:, rows].tocsc()
+    position = np.full(u.size, -1, dtype=np.int64)
+    position[free] = np.arange(len(free))
+    held = position[(3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()]
+    data = np.array(data, dtype=np.float64)  # the caller's tangent stays as it was
+    if len(held):
+        data[asm.coupling_entries(held)] = 0.0  # held dofs decoupled, their diagonal kept
+    rhs = np.ascontiguousarray(np.asarray(forces, dtype=np.float64)[:, free].T)
+    rhs[held] = 0.0
     du = np.zeros((u.size, forces.shape[0]))
-    du[keep] = splu(K).solve(np.ascontiguousarray(np.asarray(forces, dtype=np.float64)[:, keep].T))
+    du[free] = _tangent_solve(solver, data, rhs)
+    return du
+
+
+def _tangent_solve(solver, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """(n_free, k): K^-1 rhs for the assembled tangent ``data`` on the solver's pattern, by the
+    solver's own direct backend (its symbolic analysis reused; CHOLMOD where installed); SciPy's
+    LU when the backend is not a factorisation or the tangent is not positive definite."""
+    factor = solver.borrow_factor()
+    try:
+        if factor.exact:
+            try:
+                factor.factorize(data)
+            except NotPositiveDefinite:
+                pass
+            else:
+                return np.asarray(factor.solve(rhs)).reshape(rhs.shape)
+    finally:
+        solver.give_back_factor(factor)
+    return splu(solver.assembler.matrix(data).tocsc()).solve(rhs)
     return du
 
 
