@@ -2,13 +2,14 @@
 
 For a store and either a model folder (its markers and run config: e.g. a model of the
 embedded preset with planned markers) or a marker count (that many markers planned on the
-store, ``tissuecast markers plan``'s rule, with the store's own config), fits each variant on the store's training split and prints its
-test-1 mean Offset_max / mean Offset_mean / share of samples below 1 mm everywhere (mm), the
-TRE at the model's targets (the phantom's 10 interior points) with the share of their
-displacement corrected (mean over samples), the fit time, and rigid registration and ridge
-from the same markers. The sensitivities (``tissuecast.dataset.sensitivities``: du/dw at
-each training sample, one tangent factorisation each) are computed once and timed; every
-variant that trains on them gets the same array.
+store, ``tissuecast markers plan``'s rule, with the store's own config), fits each variant on
+the store's training split and prints its test-1 mean Offset_max / mean Offset_mean / share of
+samples below 1 mm everywhere (mm), the TRE at the model's targets (the phantom's 10 interior
+points) with the share of their displacement corrected (mean over samples), the fit time, and
+rigid registration and ridge from the same markers. The sensitivities
+(``tissuecast.dataset.sensitivities``: du/dw at each training sample, one tangent
+factorisation each) are computed once and timed; every variant that trains on them gets the
+same array.
 
 Variants are ``NAME[:key=value,...]`` of ``[surrogate]`` settings over the run config's
 (values as TOML: ``hidden=[256,256]``). The defaults:

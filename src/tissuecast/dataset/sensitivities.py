@@ -138,7 +138,6 @@ def _tangent_solve(solver, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     finally:
         solver.give_back_factor(factor)
     return splu(solver.assembler.matrix(data).tocsc()).solve(rhs)
-    return du
 
 
 def parameter_directions(scenario) -> list[tuple[str, bool, float, float]]:
