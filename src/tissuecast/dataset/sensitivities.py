@@ -9,8 +9,9 @@ the 3 n_b LBO weights w), equilibrium r(u) = f(w) gives
 with K the tangent stiffness at u, the held dofs (supports, the instrument's prescribed
 patch, an attached margin's vertices) eliminated; along a parameter p (E, the springs,
 Poisson's ratio) the load is minus the internal forces' derivative in p at u. One
-factorisation per sample and a triangular solve per direction: a small share of the sample's
-own Newton solve. The surrogate trains on these directions beside the fields
+factorisation per sample, by the solver's own direct backend on its fixed pattern (the held
+dofs' couplings zeroed, as the Newton solver holds them), and a triangular solve per
+direction: a small share of the sample's own Newton solve. The surrogate trains on these directions beside the fields
 (``surrogate.sensitivity_weight``, :mod:`tissuecast.surrogate.mlp`): each sample then says not
 only where the markers and the field are but how they move together along every direction of
 the simulated family.
