@@ -23,6 +23,11 @@ Usage::
 
     python benchmarks/sensitivity_training.py --dataset STORE --model MODEL_FOLDER [--variants ...]
     python benchmarks/sensitivity_training.py --dataset STORE --markers 20 [--variants ...]
+    python benchmarks/sensitivity_training.py --dataset BIG_STORE --markers 10 --sizes 800 1600 3200
+
+``--sizes`` gives a learning curve: each variant trained on the first N samples of the training
+split (the same validation and test-1 samples for every N; the fit time counts the N samples'
+sensitivities at the measured cost per sample).
 """
 
 from __future__ import annotations
@@ -76,6 +81,8 @@ def main() -> None:
     how.add_argument("--model", help="a model folder: its markers and run config")
     how.add_argument("--markers", type=int, help="plan this many markers on the store (its own config)")
     p.add_argument("--variants", nargs="+", default=DEFAULT_VARIANTS)
+    p.add_argument("--sizes", type=int, nargs="+", default=[],
+                   help="train on the first N samples of the training split, for each N (a learning curve; default all)")
     a = p.parse_args()
     ds = open_dataset(a.dataset)
     if a.model:
@@ -87,28 +94,32 @@ def main() -> None:
     markers = np.asarray(cfg.markers.ids, dtype=np.int64)
     arrays = dataset_arrays(ds, AuxiliaryInputs.from_config(cfg.scenario))
     variants = [parse_variant(v) for v in a.variants]
+    train = np.asarray(arrays.train_idx)
+    sizes = [n for n in a.sizes if n <= len(train)] or [len(train)]
+    if len(sizes) < len(a.sizes):
+        print(f"sizes above the {len(train)} training samples skipped", flush=True)
     sens, t_sens = None, 0.0
     if any(o.get("sensitivity_weight", 0) > 0 for _, o in variants):
         t0 = time.perf_counter()
-        sens = dataset_sensitivities(ds, arrays.train_idx)
-        t_sens = time.perf_counter() - t0
-        print(f"sensitivities of {len(arrays.train_idx)} training samples: {t_sens:.0f} s", flush=True)
-    print(f"{'variant':14s} {'fit s':>6s}  {'Offset_max':>10s} {'mean':>6s} {'<1mm':>5s}  {'TRE':>6s} {'corr.':>6s}   "
+        sens = dataset_sensitivities(ds, train[:max(sizes)])
+        t_sens = (time.perf_counter() - t0) / max(sizes)  # per sample
+        print(f"sensitivities of {max(sizes)} training samples: {t_sens * max(sizes):.0f} s", flush=True)
+    print(f"{'variant':14s} {'N':>5s} {'fit s':>6s}  {'Offset_max':>10s} {'mean':>6s} {'<1mm':>5s}  {'TRE':>6s} {'corr.':>6s}   "
           f"rigid (max / TRE / corr.)   ridge", flush=True)
-    for name, over in variants:
-        c = with_overrides(cfg, surrogate=over)
-        t0 = time.perf_counter()
-        model = DeformationModel(c)
-        model.scenario = ds.scenario
-        model.fit(arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed, train_idx=arrays.train_idx,
-                  valid_idx=arrays.valid_idx, auxiliary=arrays.auxiliary,
-                  sensitivities=sens if c.surrogate.sensitivity_weight > 0 else None)
-        fit = time.perf_counter() - t0 + (t_sens if c.surrogate.sensitivity_weight > 0 else 0.0)
-        r = row(model, ds)
-        m, g, q = r["mlp"], r["rigid"], r["ridge"]
-        print(f"{name:14s} {fit:6.0f}  {m[0]:10.3f} {m[1]:6.3f} {100 * m[2]:4.0f}%  {m[3]:6.3f} {100 * m[4]:5.1f}%   "
-              f"{g[0]:.2f} / {g[3]:.2f} / {100 * g[4]:.1f}%   {q[0]:.2f} / {q[3]:.2f} / {100 * q[4]:.1f}%", flush=True)
-
+    for n in sizes:
+        for name, over in variants:
+            c = with_overrides(cfg, surrogate=over)
+            t0 = time.perf_counter()
+            model = DeformationModel(c)
+            model.scenario = ds.scenario
+            model.fit(arrays.displacements, markers, mesh=arrays.mesh, fixed=arrays.fixed, train_idx=train[:n],
+                      valid_idx=arrays.valid_idx, auxiliary=arrays.auxiliary,
+                      sensitivities=sens if c.surrogate.sensitivity_weight > 0 else None)
+            fit = time.perf_counter() - t0 + (t_sens * n if c.surrogate.sensitivity_weight > 0 else 0.0)
+            r = row(model, ds)
+            m, g, q = r["mlp"], r["rigid"], r["ridge"]
+            print(f"{name:14s} {n:5d} {fit:6.0f}  {m[0]:10.3f} {m[1]:6.3f} {100 * m[2]:4.0f}%  {m[3]:6.3f} {100 * m[4]:5.1f}%   "
+                  f"{g[0]:.2f} / {g[3]:.2f} / {100 * g[4]:.1f}%   {q[0]:.2f} / {q[3]:.2f} / {100 * q[4]:.1f}%", flush=True)
 
 if __name__ == "__main__":
     main()
