@@ -11,10 +11,10 @@ patch, an attached margin's vertices) eliminated; along a parameter p (E, the sp
 Poisson's ratio) the load is minus the internal forces' derivative in p at u. One
 factorisation per sample, by the solver's own direct backend on its fixed pattern (the held
 dofs' couplings zeroed, as the Newton solver holds them), and a triangular solve per
-direction: a small share of the sample's own Newton solve. The surrogate trains on these directions beside the fields
-(``surrogate.sensitivity_weight``, :mod:`tissuecast.surrogate.mlp`): each sample then says not
-only where the markers and the field are but how they move together along every direction of
-the simulated family.
+direction: a small share of the sample's own Newton solve. The surrogate trains on these
+directions beside the fields (``surrogate.sensitivity_weight``,
+:mod:`tissuecast.surrogate.mlp`): each sample then says not only where the markers and the
+field are but how they move together along every direction of the simulated family.
 
 Units: mm of displacement per prior standard deviation of the weight (drawn U(-1, 1),
 standard deviation :data:`WEIGHT_SD`) or of the parameter (on its log scale for the factors).
