@@ -12,9 +12,8 @@ from dataset_helpers import small_config
 
 from tissuecast.config import with_overrides
 from tissuecast.dataset import open_dataset, simulate
-from tissuecast.dataset.sensitivities import (WEIGHT_SD, Sensitivities, dataset_sensitivities, equilibrium_response,
-                                             parameter_directions)
-from tissuecast.dataset.sensitivities import _tangent_solve
+from tissuecast.dataset.sensitivities import (WEIGHT_SD, Sensitivities, _tangent_solve, dataset_sensitivities,
+                                             equilibrium_response, parameter_directions)
 from tissuecast.dataset.worker import SampleContext
 from tissuecast.errors import ConfigError
 

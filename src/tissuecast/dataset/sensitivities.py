@@ -110,11 +110,9 @@ def equilibrium_response(solver, inputs, u: np.ndarray, forces: np.ndarray, tang
         raise ConvergenceError("the state inverts an element: no tangent stiffness there")
     free = np.asarray(solver.free_dofs)
     nodes, _ = solver.problem.solve_constraints((inputs.prescribed_ids, inputs.prescribed_values))
-    position = np.full(u.size, -1, dtype=np.int64)
-    position[free] = np.arange(len(free))
-    held = position[(3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()]
-    data = np.array(data, dtype=np.float64)  # the caller's tangent stays as it was
+    held = asm.free_position[(3 * np.asarray(nodes, dtype=np.int64)[:, None] + np.arange(3)).ravel()]
     if len(held):
+        data = data.copy()  # the caller's tangent stays as it was
         data[asm.coupling_entries(held)] = 0.0  # held dofs decoupled, their diagonal kept
     rhs = np.ascontiguousarray(np.asarray(forces, dtype=np.float64)[:, free].T)
     rhs[held] = 0.0

@@ -60,6 +60,8 @@ class Assembler:
         geometry: the reference gradients and weights of every element.
         free_dofs: (n_free,) int, global ids of the free dofs; the stiffness and the
             reduced vectors are ordered like this.
+        free_position: (n_dofs,) int, each global dof's position among ``free_dofs`` (-1 for
+            a dof that is not free).
         element_dofs: (m, 3 nn) int, global dof ids of each element (node a, component i
             -> column 3 a + i).
         indptr, indices: CSR structure of the (n_free, n_free) stiffness (full, symmetric).
@@ -94,9 +96,9 @@ class Assembler:
         edofs = (3 * self.connectivity[:, :, None] + np.arange(3)).reshape(m, 3 * nn)
         self._edofs = edofs.ravel()
         self.element_dofs = edofs  # (m, 3 nn) global dof ids of each element, layout (a, i)
-        local = np.full(self.n_dofs, -1, dtype=np.int64)
-        local[self.free_dofs] = np.arange(self.n_free)
-        le = local[edofs]  # (m, 3nn)
+        self.free_position = np.full(self.n_dofs, -1, dtype=np.int64)
+        self.free_position[self.free_dofs] = np.arange(self.n_free)
+        le = self.free_position[edofs]  # (m, 3nn)
         rows = np.broadcast_to(le[:, :, None], (m, 3 * nn, 3 * nn)).ravel()
         cols = np.broadcast_to(le[:, None, :], (m, 3 * nn, 3 * nn)).ravel()
         keep = (rows >= 0) & (cols >= 0)

@@ -86,9 +86,7 @@ class SearchDirections:
         values = np.zeros((0, 3)) if held is None else np.asarray(held[1], dtype=np.float64).reshape(-1, 3)
         self.held_dofs = (3 * nodes[:, None] + np.arange(3)).ravel()
         self.held_values = values.ravel()
-        position = np.full(self.assembler.n_dofs, -1, dtype=np.int64)
-        position[sv.free_dofs] = np.arange(len(sv.free_dofs))
-        self.held = position[self.held_dofs]
+        self.held = self.assembler.free_position[self.held_dofs]
         if np.any(self.held < 0):
             raise ValueError("held nodes must be free in the Solver's problem")  # Problem.solve_constraints checks
         self._coupling = self.assembler.coupling_entries(self.held) if len(self.held) else None
