@@ -18,8 +18,8 @@ mean Offset_mean / share of samples below 1 mm everywhere (mm) of:
   distance of the worst vertex from the tip, and the model's figures were its field exact within
   ``--radii`` mm of the tip (the most any decoder resolving the instrument's dent could give).
 
-Ridge weights ``--ridge`` are in squared prior standard deviations per squared mm of marker
-residual. Usage::
+The ridge weights ``--ridge`` penalise the squared coefficients (in prior standard deviations)
+against the squared marker misfit: mm^2 per squared standard deviation. Usage::
 
     python benchmarks/prediction_corrections.py --dataset STORE --model MODEL_FOLDER
 """
