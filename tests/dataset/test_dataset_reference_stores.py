@@ -18,7 +18,16 @@ the embedded store's samples solved from the guess changed within the solver's t
 reduced model of 5 basis samples). On the machine that made them the rebuilt stores were identical bit for bit
 (every array but ``samples/seconds``); here the displacements, forces and other floats are
 compared to a relative 1e-6 (another BLAS may change last bits) and the integer records
-(seeds, splits, statuses, solver counts, initial guesses, batches, draws) exactly.
+(seeds, splits, statuses, solver counts, initial guesses, batches, draws) exactly. A store
+solved by inexact Newton steps (``solver.strategy = "krylov"``, the paper store) is the
+exception: its conjugate gradients stop at a relative residual (``krylov_tolerance``), so the
+last bits a BLAS changes (another CPU's kernels) change their path, and a hard sample's Newton
+steps and converged field move within the solver's tolerance. Measured on a machine with
+AVX-512 kernels (session 26): 2 of the paper store's 15 samples took 25 instead of 30 and 9
+instead of 10 iterations, their fields 1.8e-5 and 1.5e-5 of their peak displacement away, every
+other record identical. There the solver counts are compared to within
+:data:`KRYLOV_COUNT_SLACK` and the displacements to :data:`KRYLOV_FIELD_SHARE` of each sample's
+peak (the Newton steps stop at a correction of 1e-2 of the increment).
 
 Rebuild the references (only on purpose) with
 ``python tests/dataset/test_dataset_reference_stores.py PAPER.zarr EMBEDDED.zarr``.
@@ -41,6 +50,12 @@ EXACT = ("seed", "split", "status", "increments", "iterations", "factorizations"
          "indent_centre", "markers", "fixed", "scenario/pinned", "scenario/attached", "scenario/spring_region",
          "scenario/spring_nodes", "scenario/indent_access")
 RTOL = ATOL = 1e-6  # mm, N, ... (exact on the machine that made the references)
+#: Solver counts, compared exactly after direct solves only.
+SOLVER_COUNTS = ("increments", "iterations", "factorizations", "attempts")
+#: Inexact Newton steps: a sample's solver count may differ by this share of the reference's (or 2).
+KRYLOV_COUNT_SLACK = 0.25
+#: Inexact Newton steps: a sample's field may differ by this share of its peak displacement.
+KRYLOV_FIELD_SHARE = 1e-3
 
 
 def records(path) -> dict[str, np.ndarray]:
@@ -70,6 +85,26 @@ def _reference(name: str) -> dict[str, np.ndarray]:
         return {k.split(":", 1)[1]: z[k] for k in z.files if k.startswith(name + ":")}
 
 
+def compare(got: dict, want: dict, *, krylov: bool) -> None:
+    """Assert that a rebuilt store's records ``got`` match the reference's ``want`` (module notes;
+    ``krylov``: the store was solved by inexact Newton steps)."""
+    assert sorted(got) == sorted(want)
+    peak = want["max_displacement"].astype(np.float64)  # (N,) mm
+    for key, ref in want.items():
+        if krylov and key in SOLVER_COUNTS:
+            slack = np.maximum(2, np.ceil(KRYLOV_COUNT_SLACK * ref))
+            assert got[key].shape == ref.shape and (np.abs(got[key] - ref) <= slack).all(), (key, got[key], ref)
+        elif key in EXACT:
+            np.testing.assert_array_equal(got[key], ref, err_msg=key)
+        else:
+            assert got[key].dtype == ref.dtype and got[key].shape == ref.shape, key
+            if krylov and key in ("displacements", "max_displacement"):
+                off = np.abs(got[key].astype(np.float64) - ref).reshape(len(ref), -1).max(axis=1)
+                assert (off <= KRYLOV_FIELD_SHARE * peak + ATOL).all(), (key, off / peak)
+            else:
+                np.testing.assert_allclose(got[key], ref, rtol=RTOL, atol=ATOL, equal_nan=True, err_msg=key)
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_a_store_rebuilt_now_equals_the_reference(name, tmp_path):
     from tissuecast.config import config_from_dict, with_overrides
@@ -78,28 +113,33 @@ def test_a_store_rebuilt_now_equals_the_reference(name, tmp_path):
     cfg = config_from_dict(tomllib.loads((DATA / f"reference_{name}.toml").read_text()))
     cfg = with_overrides(cfg, dataset={"store": str(tmp_path / f"{name}.zarr"), "workers": 2, "time_budget": 0.0})
     simulate(cfg, progress=False)
-    got, want = records(tmp_path / f"{name}.zarr"), _reference(name)
-    assert sorted(got) == sorted(want)
-    for key, ref in want.items():
-        if key in EXACT:
-            np.testing.assert_array_equal(got[key], ref, err_msg=key)
-        else:
-            assert got[key].dtype == ref.dtype and got[key].shape == ref.shape, key
-            np.testing.assert_allclose(got[key], ref, rtol=RTOL, atol=ATOL, equal_nan=True, err_msg=key)
+    want = _reference(name)
+    compare(records(tmp_path / f"{name}.zarr"), want, krylov=cfg.solver.strategy == "krylov")
     assert np.isfinite(want["displacements"]).all() and np.abs(want["displacements"]).max() > 1.0  # all solved, moved
 
 
-def test_the_comparison_sees_a_changed_sample(tmp_path):
-    """The records catch what the rebuilt stores are compared on: a displacement off by
-    1e-4 mm, one solver count."""
+@pytest.mark.parametrize("krylov", [False, True])
+def test_the_comparison_sees_a_changed_sample(krylov):
+    """The comparison catches a displacement off by 1e-4 mm after direct solves, by 0.1 mm
+    (3e-3 of that sample's peak) after inexact Newton steps, and a solver count off by one or
+    by three of five; it passes the reference itself and, with ``krylov``, the differences seen
+    on another CPU (module notes)."""
     want = _reference("paper")
+    compare(dict(want), want, krylov=krylov)
     moved = want["displacements"].copy()
-    moved[3, 100, 1] += 1e-4
+    moved[3, 100, 1] += 0.1 if krylov else 1e-4  # sample 3 peaks at 23 mm
     with pytest.raises(AssertionError):
-        np.testing.assert_allclose(moved, want["displacements"], rtol=RTOL, atol=ATOL)
+        compare({**want, "displacements": moved}, want, krylov=krylov)
     iterations = want["iterations"].copy()
-    iterations[5] += 1
-    assert not np.array_equal(iterations, want["iterations"])
+    iterations[7] += 3 if krylov else 1  # sample 7 took 5
+    with pytest.raises(AssertionError):
+        compare({**want, "iterations": iterations}, want, krylov=krylov)
+    if krylov:
+        seen = want["iterations"].copy()
+        seen[8], seen[11] = 25, 9  # 30 and 10 on the machine that made the references
+        shifted = want["displacements"].astype(np.float64)
+        shifted[8] += 1.8e-5 * want["max_displacement"][8]
+        compare({**want, "iterations": seen, "displacements": shifted.astype(np.float32)}, want, krylov=True)
 
 
 if __name__ == "__main__":  # rebuild the references from two stores (see the module notes)
