@@ -22,9 +22,9 @@ import numpy as np
 
 from tissuecast.dataset import open_dataset
 from tissuecast.dataset.worker import SampleContext
+from tissuecast.evaluate.evaluation import auxiliary_values
+from tissuecast.evaluate.metrics import vertex_errors
 from tissuecast.surrogate import DeformationModel
-from tissuecast.surrogate.auxiliary import AuxiliaryInputs
-from tissuecast.surrogate.data import dataset_auxiliary
 
 
 def main() -> None:
@@ -43,9 +43,8 @@ def main() -> None:
     band = np.isfinite(uncertain.distance) & (np.abs(uncertain.distance) <= reach)
     idx = ds.select("test1")
     truth = np.asarray(ds.displacements[idx], dtype=np.float64)
-    inputs = AuxiliaryInputs(instruments=AuxiliaryInputs.from_config(ds.config.scenario).instruments)
-    aux = dataset_auxiliary(ds, inputs).values[idx] if inputs.width else None
-    e = np.linalg.norm(model.predict(truth[:, model.markers, :], auxiliary=aux) - truth, axis=2)  # (N, n) mm
+    aux = auxiliary_values(model, ds)
+    e = vertex_errors(model.predict(truth[:, model.markers, :], auxiliary=None if aux is None else aux[idx]), truth)  # (N, n) mm
     points = np.asarray(ds.mesh.points, dtype=np.float64)
     worst = points[e.argmax(axis=1)]
     to_band = np.min(np.linalg.norm(worst[:, None, :] - points[band][None, :, :], axis=2), axis=1)

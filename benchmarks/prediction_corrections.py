@@ -33,8 +33,10 @@ import numpy as np
 
 from tissuecast.dataset import open_dataset
 from tissuecast.dataset.sensitivities import dataset_sensitivities
+from tissuecast.evaluate.evaluation import auxiliary_values
+from tissuecast.evaluate.metrics import vertex_errors
 from tissuecast.surrogate import DeformationModel
-from tissuecast.surrogate.data import dataset_auxiliary, split_indices
+from tissuecast.surrogate.data import split_indices
 
 
 def figures(error: np.ndarray) -> str:
@@ -63,9 +65,9 @@ def main() -> None:
     train, test = np.sort(split_indices(ds, "train")), split_indices(ds, "test1")
     U = np.asarray(ds.displacements, dtype=np.float64)
     truth, sims = U[test], U[train]
-    aux = dataset_auxiliary(ds, model.auxiliary).values if model.auxiliary.width else None
+    aux = auxiliary_values(model, ds)
     pred = model.predict(truth[:, mk], auxiliary=None if aux is None else aux[test])
-    e = np.linalg.norm(pred - truth, axis=2)
+    e = vertex_errors(pred, truth)
     print(f"test-1: {len(test)} samples; the model {figures(e)}; its error at the markers {e[:, mk].mean():.3f} mm "
           f"on average, {e[:, mk].max(axis=1).mean():.3f} at the worst marker", flush=True)
 
@@ -84,7 +86,7 @@ def main() -> None:
             for i in range(len(test)):
                 J = np.concatenate([S[k][usable[k]] for k in order[i, :K]])
                 out[i] += np.tensordot(ridge_fit(J[:, mk].reshape(len(J), -1), residual[i], lam), J, 1)
-            print(f"ridge {lam:g}, the {K} nearest samples' sensitivities: {figures(np.linalg.norm(out - truth, axis=2))}",
+            print(f"ridge {lam:g}, the {K} nearest samples' sensitivities: {figures(vertex_errors(out, truth))}",
                   flush=True)
         moved = np.empty_like(truth)
         for i in range(len(test)):
@@ -93,7 +95,7 @@ def main() -> None:
             c = ridge_fit(J[:, mk].reshape(len(J), -1), observed[i] - at_markers[k], lam)
             moved[i] = sims[k] + np.tensordot(c, J, 1)
         print(f"ridge {lam:g}, the nearest sample moved along its sensitivities: "
-              f"{figures(np.linalg.norm(moved - truth, axis=2))}", flush=True)
+              f"{figures(vertex_errors(moved, truth))}", flush=True)
     flat = S[usable]  # (M k', n, 3)
     rng = np.random.default_rng(0)
     flat = flat[rng.choice(len(flat), min(len(flat), 8000), replace=False)].reshape(-1, S.shape[2] * 3)
@@ -104,14 +106,13 @@ def main() -> None:
         for lam in a.ridge:
             c = np.linalg.solve(PB @ PB.T + lam * np.eye(q), PB @ residual.T).T
             out = pred + np.tensordot(c, B, 1)
-            print(f"ridge {lam:g}, {q} global sensitivity directions: {figures(np.linalg.norm(out - truth, axis=2))}",
+            print(f"ridge {lam:g}, {q} global sensitivity directions: {figures(vertex_errors(out, truth))}",
                   flush=True)
 
-    poses = ds.instrument_poses
-    for name, pose in poses.items():
+    points = np.asarray(ds.mesh.points, dtype=np.float64)
+    for name, pose in ds.instrument_poses.items():
         contact = np.asarray(pose["contact"])[test] == 1
         tip = np.asarray(pose["tip"], dtype=np.float64)[test]
-        points = np.asarray(ds.mesh.points, dtype=np.float64)
         print(f"instrument {name!r}: in contact {contact.sum()} samples {figures(e[contact])}, away {(~contact).sum()} "
               f"{figures(e[~contact])}")
         if contact.any():
