@@ -140,3 +140,74 @@ def test_the_markers_command_says_a_planned_rule_plans_at_training(tmp_path, cap
     assert "markers.rule = 'planned'" in capsys.readouterr().out
     assert main(["markers", "phantom", "--out", str(tmp_path / "paper")]) == 0
     assert "planned" not in capsys.readouterr().out
+
+
+def _attached(ds, margin):
+    """The fake data set drawing an attached region's extent: the nominal edge at z = 10 mm, the
+    surface distance z - 10 (mm; inf inside), the margin drawn within ``margin``."""
+    from types import SimpleNamespace
+
+    p, surf = ds.mesh.points, np.asarray(ds.mesh.surface_vertices)
+    distance = np.full(len(p), np.inf)
+    distance[surf] = p[surf, 2] - 10.0
+    ds.config = SimpleNamespace(scenario=SimpleNamespace(uncertain=SimpleNamespace(attached_margin=margin)))
+    ds.scenario_arrays = {"attached_distance": distance}
+    return distance
+
+
+def _least_shares(U, others, band):
+    """Each band vertex's least share of the markers' motion (it included), by loops."""
+    out = []
+    for v in band:
+        shares = []
+        for u in U:
+            rms = np.sqrt((sum(np.sum(u[k] ** 2) for k in others) + np.sum(u[v] ** 2)) / (len(others) + 1))
+            shares.append(np.linalg.norm(u[v]) / rms)
+        out.append(min(shares))
+    return np.array(out)
+
+
+def test_a_sentinel_marker_watches_just_beyond_the_attached_regions_drawn_range(caplog):
+    from tissuecast.planning.sentinel import SENTINEL_REACH, sentinel_marker
+
+    ds = FakeDataset(n=200, n_test2=0)
+    distance = _attached(ds, (-2.0, 2.0))
+    p = ds.mesh.points
+    plain = plan_markers(ds, 4, min_distance=2.0)
+    plan = plan_markers(ds, 4, min_distance=2.0, sentinel=True)
+    assert plain.sentinel == -1  # without the flag, or without a drawn extent, no sentinel
+    assert plan.count == 4 and plan.sentinel == plan.markers[-1] and plan.as_dict()["sentinel"] == plan.sentinel
+    assert 2.0 < distance[plan.sentinel] <= 2.0 + SENTINEL_REACH  # no draw holds it; a region 5 mm larger would
+    gaps = np.linalg.norm(p[plan.markers][:, None] - p[plan.markers][None], axis=2)[np.triu_indices(4, 1)]
+    assert gaps.min() >= 2.0 and len(set(plan.markers.tolist())) == 4
+    assert plan.proxy_error == pytest.approx(plan.proxy(plan.markers))
+    # it costs the plan one marker's worth at most: no worse than the plain plan for three
+    assert plan.proxy_error <= plan_markers(ds, 3, min_distance=2.0).proxy_error
+    # of the band's vertices it is the one whose least share of the markers' motion is largest
+    train = ds.select("train")
+    U = np.asarray(ds.displacements[train], dtype=np.float64)
+    others = plan.markers[:3]
+    band = np.asarray(ds.mesh.surface_vertices)
+    band = band[(distance[band] > 2.0) & (distance[band] <= 2.0 + SENTINEL_REACH)]
+    band = band[np.linalg.norm(p[band][:, None] - p[others][None], axis=2).min(axis=1) >= 2.0]
+    least = _least_shares(U, others, band)
+    v, share = sentinel_marker(ds.displacements, train, others, plan.candidates, distance, 2.0, points=p,
+                               min_distance=2.0)
+    assert v == band[np.argmax(least)] and share == pytest.approx(least.max(), rel=1e-9)
+    # a simulation that held that vertex still disqualifies it
+    ds.displacements[train[0], v] = 0.0
+    assert sentinel_marker(ds.displacements, train, others, plan.candidates, distance, 2.0, points=p,
+                           min_distance=2.0)[0] not in (v, -1)
+    # no vertex within reach of the range: the plain plan, and the log says why
+    _attached(ds, (-2.0, 40.0))
+    with caplog.at_level("WARNING"):
+        none = plan_markers(ds, 4, min_distance=2.0, sentinel=True)
+    assert none.sentinel == -1 and "no sentinel marker" in caplog.text
+    np.testing.assert_array_equal(none.markers, plan_markers(ds, 4, min_distance=2.0).markers)
+    # with a target error the sentinel comes on top of the markers that reach it
+    _attached(ds, (-2.0, 2.0))
+    ref = plan_markers(ds, target_mm=float(plain.proxy_errors[1]) * 1.0001, min_distance=2.0, exchange_rounds=0)
+    target = plan_markers(ds, target_mm=float(plain.proxy_errors[1]) * 1.0001, min_distance=2.0, exchange_rounds=0,
+                          sentinel=True)
+    assert target.count == ref.count + 1 and target.sentinel == target.markers[-1]
+    np.testing.assert_array_equal(target.markers[:-1], ref.markers)

@@ -3,7 +3,8 @@ the whole-vector consistency score, and its calibrated false-alarm rate."""
 
 import numpy as np
 
-from tissuecast.surrogate.ood import calibrate_ood, fit_input_distance, fit_marker_consistency
+from tissuecast.surrogate.ood import (OODScores, calibrate_ood, fit_input_distance, fit_marker_consistency,
+                                     fit_marker_stillness)
 
 
 def _inputs(n, rng, n_d=20, noise=0.3):
@@ -53,3 +54,35 @@ def test_without_sensitivities_there_is_no_fault_score():
     # a two-score file's scales get a third 1 and the alarm score is the older one's
     two = type(ood)(ood.distance, old, ood.scale[:2], ood.calibration)
     np.testing.assert_array_equal(two.combined(two.scores(Xc)), ood.combined(ood.scores(Xc)))
+
+
+def test_the_stillness_score_finds_a_marker_held_still_that_every_training_input_moved():
+    rng = np.random.default_rng(4)
+    Xt, Xv, Xc, Xs = (_inputs(n, rng, n_d=8) for n in (1500, 300, 400, 1000))
+    Xt[:10, 3:6] = 0.0  # marker 1 held still in a few training inputs
+    still = fit_marker_stillness(Xt)
+    # the least share, by hand: |d_j| over the markers' root-mean-square displacement
+    n = np.linalg.norm(Xt.reshape(len(Xt), -1, 3), axis=2)
+    np.testing.assert_allclose(still.least, (n / np.sqrt((n**2).mean(axis=1, keepdims=True))).min(axis=0), rtol=1e-12)
+    assert still.least[1] == 0.0 and (np.delete(still.least, 1) > 0.01).all()
+    ood = calibrate_ood(fit_input_distance(Xt), fit_marker_consistency(Xt, Xv), Xv, Xc, stillness=still)
+    thr = ood.thresholds(0.01)
+    assert np.isfinite(thr[3])
+    assert np.mean(ood.combined(ood.scores(Xs)) > ood.threshold(0.01)) <= 0.03  # 1 % nominal
+    # a marker held still: its ratio is its least share over ~0, far beyond the threshold, and it is named
+    held = Xs.reshape(len(Xs), -1, 3).copy()
+    k = rng.choice([0, 2, 3, 4, 5, 6, 7], len(Xs))
+    held[np.arange(len(Xs)), k] = 0.0
+    held = held.reshape(len(Xs), -1)
+    s = ood.scores(held)
+    assert np.mean(s[:, 3] > thr[3]) == 1.0
+    np.testing.assert_array_equal(still.ratios(held).argmax(axis=1), k)
+    # a marker that some simulation held never scores, and nothing moving scores 0
+    held1 = Xs.reshape(len(Xs), -1, 3).copy()
+    held1[:, 1] = 0.0
+    assert (still.ratios(held1.reshape(len(Xs), -1))[:, 1] == 0.0).all()
+    assert (still(np.zeros((3, Xs.shape[1]))) == 0.0).all()
+    # trust files written before the score: no fourth score, the alarm score of three
+    old = OODScores(ood.distance, ood.consistency, ood.scale[:3], ood.calibration)
+    assert np.isnan(old.scores(Xs)[:, 3]).all() and np.isinf(old.thresholds(0.01)[3])
+    np.testing.assert_array_equal(old.combined(old.scores(Xs)[:, :3]), old.combined(old.scores(Xs)))

@@ -86,6 +86,19 @@ def test_alarm_is_quiet_on_clean_inputs_and_fires_on_each_fault(model, test_fiel
     far_alarms = model.predict_trusted(far).alarms
     assert np.mean([a.raised for a in far_alarms]) >= 0.95
     assert "far from every simulated deformation" in next(a.text for a in far_alarms if a.far_from_training)
+    # (d) one marker still (the tissue held there, or the marker tracked off the tissue) where every
+    # simulation moved it
+    least = model.layer.ood.stillness.least
+    moving = np.flatnonzero(least > 0.05)
+    assert moving.size >= len(MARKERS) // 2
+    held = d.copy()
+    k = moving[rng.integers(0, moving.size, len(d))]
+    held[np.arange(len(d)), k] = 0.0
+    held_alarms = model.predict_trusted(held).alarms
+    assert np.mean([a.raised and a.still_marker_alarm for a in held_alarms]) >= 0.95
+    assert np.mean([a.still_marker for a in held_alarms] == k) >= 0.95
+    assert "did not move" in held_alarms[0].text
+    assert not any(a.still_marker_alarm for a, c in zip(model.predict_trusted(d).alarms, clean) if not c)
     # a looser false-alarm rate raises more alarms on clean inputs, never fewer
     loose = np.mean([a.raised for a in model.predict_trusted(d, false_alarm=0.2).alarms])
     assert loose >= np.mean(clean) and 0.1 < loose < 0.3
@@ -108,6 +121,9 @@ def test_trust_layer_round_trips_through_the_model_folder(model, test_fields, tm
     assert [x.raised for x in a.alarms] == [x.raised for x in b.alarms]
     np.testing.assert_allclose([x.distance for x in b.alarms], [x.distance for x in a.alarms], rtol=1e-12)
     np.testing.assert_allclose([x.fault for x in b.alarms], [x.fault for x in a.alarms], rtol=1e-12)
+    np.testing.assert_array_equal(back.trusted_.layer.ood.stillness.least, model.trusted_.layer.ood.stillness.least)
+    np.testing.assert_allclose([x.stillness for x in b.alarms], [x.stillness for x in a.alarms], rtol=1e-12)
+    assert meta["trust"]["stillness_score"]
     (tmp_path / "m" / "trust.npz").unlink()
     with pytest.raises(ModelError, match="trust.npz"):
         DeformationModel.load(tmp_path / "m")

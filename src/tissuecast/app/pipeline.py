@@ -91,7 +91,8 @@ def planned_config(config: Config, dataset):
     from ..planning import plan_markers
 
     t = time.perf_counter()
-    plan = plan_markers(dataset, config.markers.count, region="surface", min_distance=config.markers.min_distance)
+    plan = plan_markers(dataset, config.markers.count, region="surface", min_distance=config.markers.min_distance,
+                        sentinel=config.markers.sentinel)
     log.info("planned %d markers from the simulations in %.1f s (proxy validation mean Offset_max %.2f mm): "
              "0-based ids %s", plan.count, time.perf_counter() - t, plan.proxy_error, plan.markers.tolist())
     return with_overrides(config, markers={"ids": [int(i) for i in plan.markers]}), plan

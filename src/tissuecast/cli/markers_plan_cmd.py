@@ -48,6 +48,9 @@ def register(sub) -> None:
     q.add_argument("--confirm", action="store_true",
                    help="train the network with the planned markers and report its validation error (with --target-mm "
                         "the network, not only the proxy, decides the count; ~1 training per count tried)")
+    q.add_argument("--no-sentinel", dest="sentinel", action="store_false",
+                   help="where the store draws the attached region's extent, do not make the last marker a sentinel "
+                        "beyond the drawn range (the alarm's watch for tissue attached farther than simulated)")
     q.add_argument("--out", default="planned_markers", metavar="PREFIX", help="output prefix (default 'planned_markers')")
     q.add_argument("--png", action="store_true", help="also render PREFIX.png (needs pyvista, extra 'viz')")
     q.set_defaults(func=run)
@@ -82,12 +85,16 @@ def run(args) -> int:
           "ids are 0-based")
     plan = plan_markers(ds, args.count, target_mm=args.target_mm, max_count=args.max_count, region=args.region,
                         min_distance=args.min_distance, allowed=allowed, shortlist=args.shortlist, confirm=args.confirm,
-                        exchange_rounds=args.exchange_rounds, on_step=progress)
+                        exchange_rounds=args.exchange_rounds, sentinel=args.sentinel, on_step=progress)
     if plan.exchanged:
         print(f"  exchange refinement: {plan.exchanged} of {plan.count} markers replaced, proxy validation mean Offset_max "
               f"{plan.proxy_error:.3f} mm")
     for k, v in sorted(plan.mlp_errors.items()):
         print(f"  network with {k} planned markers: validation mean Offset_max {v:.3f} mm")
+    if plan.sentinel >= 0:
+        print(f"  sentinel: vertex {plan.sentinel}, the last marker, beyond the attached region's drawn range (it took at "
+              f"least {100 * plan.sentinel_least:.0f} % of the markers' motion in every training sample; if it stands still "
+              "in surgery the alarm says the tissue is attached farther than simulated)")
     if args.target_mm is not None:
         print(f"target {args.target_mm:g} mm {'reached' if plan.target_reached else 'NOT reached'} with {plan.count} markers")
     mesh = ds.mesh

@@ -21,6 +21,7 @@ from ..surrogate.pca import fit_pca
 from .candidates import candidate_vertices
 from .proxy import QuadraticProxy
 from .selection import EXCHANGE_ROUNDS, SHORTLIST, exchange_markers, greedy_markers
+from .sentinel import SENTINEL_REACH, attached_range, sentinel_marker
 
 __all__ = ["MarkerPlan", "plan_markers", "validation_error", "MAX_COUNT"]
 
@@ -48,6 +49,11 @@ class MarkerPlan:
         mlp_errors: {n_markers: validation mean Offset_max of the MLP, mm} for counts
             confirmed by training.
         proxy: the :class:`QuadraticProxy` used (scores any marker set).
+        proxy_error: the proxy's validation mean Offset_max (mm) of :attr:`markers`.
+        exchanged: markers the exchange refinement replaced.
+        sentinel: the sentinel's vertex id (the last of :attr:`markers`,
+            :mod:`tissuecast.planning.sentinel`), or -1 without one.
+        sentinel_least: its least share of the markers' motion in the training samples.
     """
 
     markers: np.ndarray
@@ -62,6 +68,8 @@ class MarkerPlan:
     proxy: QuadraticProxy | None = None
     proxy_error: float = float("nan")
     exchanged: int = 0
+    sentinel: int = -1
+    sentinel_least: float = 0.0
 
     @property
     def count(self) -> int:
@@ -73,7 +81,8 @@ class MarkerPlan:
                 "proxy_valid_offset_max_mm_of_markers": float(self.proxy_error), "exchanged": int(self.exchanged),
                 "mlp_valid_offset_max_mm": {str(k): float(v) for k, v in sorted(self.mlp_errors.items())},
                 "region": self.region, "min_distance_mm": self.min_distance, "n_candidates": int(self.candidates.size),
-                "target_mm": self.target_mm, "target_reached": self.target_reached}
+                "target_mm": self.target_mm, "target_reached": self.target_reached,
+                "sentinel": int(self.sentinel), "sentinel_least_share": float(self.sentinel_least)}
 
 
 def validation_error(arrays, markers, config=None) -> float:
@@ -91,7 +100,7 @@ def validation_error(arrays, markers, config=None) -> float:
 
 def plan_markers(dataset, count: int | None = None, *, target_mm: float | None = None, max_count: int = MAX_COUNT,
                  region: str = "surface", min_distance: float = 0.0, allowed=None, shortlist: int = SHORTLIST,
-                 confirm: bool = False, config=None, exchange_rounds: int = EXCHANGE_ROUNDS,
+                 confirm: bool = False, config=None, exchange_rounds: int = EXCHANGE_ROUNDS, sentinel: bool = False,
                  on_step: Callable[[int, np.ndarray, float], None] | None = None) -> MarkerPlan:
     """Choose markers from a data set's simulated fields.
 
@@ -110,6 +119,11 @@ def plan_markers(dataset, count: int | None = None, *, target_mm: float | None =
         confirm: train the MLP (validation error) for the chosen count; with ``target_mm``
             the count is then adjusted until the MLP, not only the proxy, decides it.
         config: surrogate settings for ``confirm`` (default: the data set's).
+        sentinel: where the data set draws the attached region's extent, the last marker is a
+            sentinel just beyond the drawn range (:mod:`~tissuecast.planning.sentinel`): ``count``
+            markers are ``count - 1`` planned ones and the sentinel; with ``target_mm`` the
+            sentinel comes on top of the markers that reach it. Without a drawn extent, or where
+            no vertex qualifies (logged), there is none.
         on_step: progress callback (number of markers, markers so far, proxy score).
 
     Returns:
@@ -123,14 +137,17 @@ def plan_markers(dataset, count: int | None = None, *, target_mm: float | None =
         config = dataset.config
     arrays = dataset_arrays(dataset)
     planner = _planner(arrays, region, allowed, shortlist, min_distance, on_step)
+    watch = attached_range(dataset) if sentinel and (count is None or count >= 2) else None
     n_path = count if count is not None else min(max_count, planner.candidates.size)
     if target_mm is None:
         path, scores = planner.path(n_path)
         markers, err, changed = planner.exchange(path, float(scores[-1]), exchange_rounds)
         plan = MarkerPlan(markers, scores, path, planner.candidates, region, float(min_distance), proxy=planner.proxy,
                           proxy_error=err, exchanged=changed)
+        if watch is not None:
+            plan = _around_sentinel(plan, planner, arrays, watch, exchange_rounds)
         if confirm:
-            plan.mlp_errors[count] = validation_error(arrays, markers, config)
+            plan.mlp_errors[plan.count] = validation_error(arrays, plan.markers, config)
         return plan
     path, scores = planner.path(n_path, stop_at=target_mm)
     n = len(path)
@@ -145,8 +162,68 @@ def plan_markers(dataset, count: int | None = None, *, target_mm: float | None =
         else:
             markers, err, changed = path[:n], float(scores[n - 1]), 0
     reached = bool((mlp[n] if confirm else err) <= target_mm)
-    return MarkerPlan(markers, scores, path, planner.candidates, region, float(min_distance), float(target_mm), reached,
+    plan = MarkerPlan(markers, scores, path, planner.candidates, region, float(min_distance), float(target_mm), reached,
                       mlp, planner.proxy, err, changed)
+    return plan if watch is None else _with_sentinel(plan, planner, arrays, watch)
+
+
+def _around_sentinel(plan: MarkerPlan, planner: "_Planner", arrays, watch, rounds: int) -> MarkerPlan:
+    """``plan`` with one of its markers made the sentinel: each marker in turn is left out, the
+    sentinel for the others found (:func:`~.sentinel.sentinel_marker`), and the set with the
+    lowest proxy score refined by exchanges that keep the sentinel; the sentinel last. Where
+    none qualifies (logged), ``plan``."""
+    distance, margin_max = watch
+    best = None
+    for pos in range(plan.count):
+        others = np.delete(plan.markers, pos)
+        v, least = sentinel_marker(arrays.displacements, arrays.train_idx, others, planner.candidates, distance,
+                                   margin_max, points=planner.points, min_distance=planner.min_distance)
+        if v >= 0:
+            trial = np.r_[v, others]
+            score = float(planner.proxy(trial))
+            if best is None or score < best[0]:
+                best = (score, trial, least)
+    if best is None:
+        _sentinel(plan, planner, arrays, watch)  # logs why
+        return plan
+    score, trial, least = best
+    markers, err, changed = planner.exchange(trial, score, rounds, keep=1)
+    v = int(markers[0])
+    _log_sentinel(v, least, distance, margin_max)
+    return MarkerPlan(np.append(markers[1:], v), plan.proxy_errors, plan.path, planner.candidates, plan.region,
+                      plan.min_distance, proxy=planner.proxy, proxy_error=err, exchanged=plan.exchanged + changed,
+                      sentinel=v, sentinel_least=least)
+
+
+def _sentinel(plan: MarkerPlan, planner: "_Planner", arrays, watch) -> tuple[int, float]:
+    """The sentinel for ``plan``'s markers (:func:`~.sentinel.sentinel_marker`), or (-1, 0) and a warning."""
+    distance, margin_max = watch
+    v, least = sentinel_marker(arrays.displacements, arrays.train_idx, plan.markers, planner.candidates, distance,
+                               margin_max, points=planner.points, min_distance=planner.min_distance)
+    if v < 0:
+        log.warning("no sentinel marker: no candidate vertex lies %g-%g mm beyond the attached region's nominal edge "
+                    "and %g mm from the other markers; an attachment beyond the drawn range goes unseen by the alarm",
+                    margin_max, margin_max + SENTINEL_REACH, planner.min_distance)
+    return v, least
+
+
+def _log_sentinel(v: int, least: float, distance, margin_max: float) -> None:
+    log.info("sentinel marker: vertex %d, %.1f mm beyond the attached region's nominal edge (the drawn range ends at "
+             "%g mm); it took at least %.0f %% of the markers' motion in every training sample", v, distance[v],
+             margin_max, 100 * least)
+
+
+def _with_sentinel(plan: MarkerPlan, planner: "_Planner", arrays, watch) -> MarkerPlan:
+    """``plan`` with the sentinel appended to its markers (unchanged where none qualifies, logged)."""
+    distance, margin_max = watch
+    v, least = _sentinel(plan, planner, arrays, watch)
+    if v < 0:
+        return plan
+    markers = np.append(plan.markers, v)
+    _log_sentinel(v, least, distance, margin_max)
+    plan.markers, plan.sentinel, plan.sentinel_least = markers, v, least
+    plan.proxy_error = float(planner.proxy(markers))
+    return plan
 
 
 def _check_request(count: int | None, target_mm: float | None) -> None:
@@ -175,12 +252,13 @@ class _Planner:
         return greedy_markers(self.proxy, self.modes, self.candidates, count, shortlist=self.shortlist, points=self.points,
                               min_distance=self.min_distance, on_step=self.on_step, **options)
 
-    def exchange(self, markers: np.ndarray, score: float, rounds: int) -> tuple[np.ndarray, float, int]:
-        """``markers`` refined by exchanges (see :func:`exchange_markers`): (ids, proxy score, replaced count)."""
+    def exchange(self, markers: np.ndarray, score: float, rounds: int, keep: int = 0) -> tuple[np.ndarray, float, int]:
+        """``markers`` refined by exchanges, the first ``keep`` kept (see :func:`exchange_markers`):
+        (ids, proxy score, replaced count)."""
         if rounds < 1 or not np.isfinite(score):
             return markers, score, 0
         out, best, _ = exchange_markers(self.proxy, self.modes, self.candidates, markers, shortlist=self.shortlist,
-                                        points=self.points, min_distance=self.min_distance, rounds=rounds)
+                                        points=self.points, min_distance=self.min_distance, rounds=rounds, keep=keep)
         if not best < score:
             return markers, score, 0
         return out, best, int(np.sum(out != np.asarray(markers)))

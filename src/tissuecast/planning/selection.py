@@ -208,6 +208,7 @@ def exchange_markers(
     points=None,
     min_distance: float = 0.0,
     rounds: int = EXCHANGE_ROUNDS,
+    keep: int = 0,
 ) -> tuple[np.ndarray, float, int]:
     """Exchange refinement of a marker set: each marker in turn is replaced by the shortlisted
     candidate that most lowers the score, if any does (greedy forward selection cannot undo
@@ -224,6 +225,7 @@ def exchange_markers(
         points: (n, 3) mm, needed when ``min_distance > 0``.
         min_distance: markers stay farther apart than this (mm).
         rounds: passes over all positions (stops early when a pass changes nothing).
+        keep: the first ``keep`` markers are never exchanged.
 
     Returns:
         ``(markers (k,) int64, score, number of scores computed)``; a replacement keeps its
@@ -237,7 +239,7 @@ def exchange_markers(
     best, n_scores = float(score(np.asarray(chosen, dtype=np.int64))), 1
     for _ in range(rounds):
         changed = False
-        for pos in range(len(chosen)):
+        for pos in range(keep, len(chosen)):
             others = chosen[:pos] + chosen[pos + 1:]
             qr = _BlockQR(A, cand)
             for v in others:

@@ -24,15 +24,26 @@ from the other markers and a, so an instrument pose that disagrees with the mark
   its maximum over the markers. It looks along 3 directions instead of 3 n_d, so one
   displaced marker among many stands out of the scatter sooner; its argmax names the marker.
 
-The scores the alarm uses (distance and consistency; the fault score too where asked, else it
-only names the suspect marker), each divided by its median on validation samples, are
-combined by their maximum; the alarm threshold is the split-conformal ``1 - alpha`` quantile
+- **stillness** of one marker: each marker's displacement as a share of the markers' root-mean-
+  square displacement, against the smallest share any training input gave it; the score is the
+  largest ratio of that least share to the input's share, over the markers (a marker that some
+  simulation held still has a least share of 0 and never scores). Large for a marker that
+  stands still while every simulation moved it: the tissue held there (attached farther than
+  simulated, a marker planned beyond the attached region's drawn range watches for it:
+  :mod:`tissuecast.planning.sentinel`), or a marker lost from the tissue and tracked on a fixed
+  frame. The whitened distance and the markers' regressions read one still marker among many
+  as a modest change; this score reads it as what it is.
+
+The scores the alarm uses (distance, consistency and stillness; the fault score too where
+asked, else it only names the suspect marker), each divided by its median on validation
+samples, are combined by their maximum; the alarm threshold is the split-conformal ``1 - alpha`` quantile
 of that combined score on a calibration split, so a clean input (exchangeable with the
 calibration samples) raises an alarm with probability at most alpha (:class:`OODScores`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,10 +53,10 @@ from ..errors import ModelError
 from .conformal import conformal_quantile
 from .quadratic import fit_quadratic
 
-__all__ = ["InputDistance", "MarkerConsistency", "OODScores", "fit_input_distance", "fit_marker_consistency",
-           "scale_ood", "calibrate_ood", "SCORE_NAMES"]
+__all__ = ["InputDistance", "MarkerConsistency", "MarkerStillness", "OODScores", "fit_input_distance",
+           "fit_marker_consistency", "fit_marker_stillness", "scale_ood", "calibrate_ood", "SCORE_NAMES"]
 
-SCORE_NAMES = ("distance", "consistency", "fault")
+SCORE_NAMES = ("distance", "consistency", "fault", "stillness")
 
 # Whitening floors each axis's variance at this share of the largest, so that directions
 # the training inputs never vary along (to round-off) do not dominate the distance.
@@ -58,6 +69,11 @@ NEIGHBOURS = 5
 _TINY_VARIANCE = 1e-18
 _SCALE_FLOOR_REL = 1e-9
 _TINY_SCORE = 1e-12
+#: Markers' root-mean-square displacement (mm) below which an input has no stillness score (0):
+#: nothing moved, so no marker stands out by standing still.
+STILL_RMS_MM = 1e-6
+# A marker's share below this counts as this (a still marker's score is finite: 1e12 times its least share).
+_TINY_SHARE = 1e-12
 
 
 @dataclass(frozen=True, eq=False)
@@ -214,12 +230,56 @@ def fit_marker_consistency(X_train, X_valid, n_auxiliary: int = 0) -> MarkerCons
 
 
 @dataclass(frozen=True, eq=False)
+class MarkerStillness:
+    """The least share of the markers' motion each marker took in any training input.
+
+    Attributes:
+        least: (n_d,) smallest ``|d_j| / rms_k |d_k|`` over the training inputs (dimensionless;
+            0 for a marker some simulation held still).
+    """
+
+    least: np.ndarray
+
+    def shares(self, X) -> np.ndarray:
+        """(B, n_d) each marker's displacement over the markers' root-mean-square displacement
+        of inputs (B, 3 n_d + n_a) mm (the auxiliary inputs after the markers are not read);
+        NaN where the markers did not move (:data:`STILL_RMS_MM`)."""
+        X = np.asarray(X, dtype=np.float64)
+        n = np.linalg.norm(X[:, :3 * len(self.least)].reshape(len(X), -1, 3), axis=2)
+        rms = np.sqrt((n**2).mean(axis=1, keepdims=True))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(rms > STILL_RMS_MM, n / rms, np.nan)
+
+    def ratios(self, X) -> np.ndarray:
+        """(B, n_d) each marker's least share over its share in inputs (B, 3 n_d + n_a) mm: above
+        1, the marker moved less, relative to the others, than in any training input (0 where
+        nothing moved)."""
+        s = self.shares(X)
+        r = self.least / np.maximum(s, _TINY_SHARE)
+        return np.where(np.isnan(s), 0.0, r)
+
+    def __call__(self, X) -> np.ndarray:
+        """(B,) the largest ratio over the markers (dimensionless)."""
+        return self.ratios(X).max(axis=1)
+
+
+def fit_marker_stillness(X_train, n_auxiliary: int = 0) -> MarkerStillness:
+    """Fit on training inputs (N_t, 3 n_d + n_a) (mm, then the n_a auxiliary inputs); inputs
+    where no marker moved are left out."""
+    X = np.asarray(X_train, dtype=np.float64)
+    n_d = (X.shape[1] - n_auxiliary) // 3
+    s = MarkerStillness(np.zeros(n_d)).shares(X)
+    s = s[~np.isnan(s).any(axis=1)]
+    return MarkerStillness(s.min(axis=0) if len(s) else np.zeros(n_d))
+
+
+@dataclass(frozen=True, eq=False)
 class OODScores:
     """The scores, combined into one alarm score with a calibrated threshold.
 
-    The alarm score of an input is ``max(distance / scale[0], consistency / scale[1])``, and
-    with ``use_fault`` also ``fault / scale[2]`` (scales: the scores' medians on validation
-    samples; an absent score is left out); its threshold for a false-alarm rate alpha is the
+    The alarm score of an input is ``max(distance / scale[0], consistency / scale[1],
+    stillness / scale[3])``, and with ``use_fault`` also ``fault / scale[2]`` (scales: the
+    scores' medians on validation samples; an absent score is left out); its threshold for a false-alarm rate alpha is the
     split-conformal ``1 - alpha`` quantile of the calibration samples' alarm scores, so each
     score's own threshold is that value times its scale.
 
@@ -227,11 +287,13 @@ class OODScores:
         distance: the :class:`InputDistance`.
         consistency: the :class:`MarkerConsistency` (None with one marker; then no
             consistency and no fault score).
-        scale: (3,) validation medians of the three scores (1 for an absent one; trust files
-            written before the fault score hold two, and get a third 1).
+        scale: (4,) validation medians of the four scores (1 for an absent one; trust files
+            written before the fault or the stillness score hold two or three, and get 1s).
         calibration: (m,) sorted alarm scores of the calibration samples (empty: not calibrated,
             every threshold infinite).
         use_fault: the fault score is part of the alarm score (``surrogate.alarm_fault_score``).
+        stillness: the :class:`MarkerStillness` (None in trust files written before it: no
+            stillness score).
     """
 
     distance: InputDistance
@@ -239,13 +301,14 @@ class OODScores:
     scale: np.ndarray
     calibration: np.ndarray
     use_fault: bool = False
+    stillness: MarkerStillness | None = None
 
     def __post_init__(self):
         scale = np.asarray(self.scale, dtype=np.float64)
         object.__setattr__(self, "scale", np.concatenate([scale, np.ones(len(SCORE_NAMES) - len(scale))]))
 
     def scores(self, X) -> np.ndarray:
-        """(B, 3) [distance, consistency, fault] scores of inputs (B, 3 n_d) mm (NaN where absent)."""
+        """(B, 4) [distance, consistency, fault, stillness] scores of inputs (B, 3 n_d) mm (NaN where absent)."""
         X = np.asarray(X, dtype=np.float64)
         out = np.full((len(X), len(SCORE_NAMES)), np.nan)
         out[:, 0] = self.distance(X)
@@ -253,12 +316,19 @@ class OODScores:
             _, out[:, 1], faults = self.consistency.evaluate(X)
             if faults is not None:
                 out[:, 2] = faults.max(axis=1)
+        if self.stillness is not None:
+            out[:, 3] = self.stillness(X)
         return out
 
     def combined(self, scores) -> np.ndarray:
-        """(B,) alarm scores from (B, 3) scores (absent scores NaN)."""
-        s = np.asarray(scores, dtype=np.float64) / self.scale
-        return np.nanmax(s if self.use_fault else s[:, :2], axis=1)
+        """(B,) alarm scores from (B, 4) scores (absent scores NaN; (B, 3) scores of trust files
+        written before the stillness score read it as absent)."""
+        s = np.asarray(scores, dtype=np.float64)
+        if s.shape[1] < len(SCORE_NAMES):
+            s = np.hstack([s, np.full((len(s), len(SCORE_NAMES) - s.shape[1]), np.nan)])
+        s = s / self.scale
+        used = [True, True, self.use_fault, True]
+        return np.nanmax(s[:, used], axis=1)
 
     def threshold(self, false_alarm: float) -> float:
         """Alarm-score threshold for a false-alarm rate in (0, 1) (inf with too few calibration samples)."""
@@ -267,25 +337,23 @@ class OODScores:
         return float(conformal_quantile(self.calibration, 1.0 - false_alarm))
 
     def thresholds(self, false_alarm: float) -> np.ndarray:
-        """(3,) thresholds of the distance, consistency and fault scores (inf for a score that is
-        absent or not part of the alarm)."""
+        """(4,) thresholds of the distance, consistency, fault and stillness scores (inf for a
+        score that is absent or not part of the alarm)."""
         t = self.threshold(false_alarm) * self.scale
         present = [True, self.consistency is not None,
-                   self.use_fault and self.consistency is not None and self.consistency.sensitivity is not None]
+                   self.use_fault and self.consistency is not None and self.consistency.sensitivity is not None,
+                   self.stillness is not None]
         return np.where(present, t, np.inf)
 
     def calibrated(self, X_calibration) -> "OODScores":
         """These scores with the alarm threshold calibrated on inputs (B_c, 3 n_d) mm that the
         alarm should pass (exchangeable with clean inputs): their sorted alarm scores."""
-        return OODScores(self.distance, self.consistency, self.scale,
-                         np.sort(self.combined(self.scores(X_calibration))), self.use_fault)
+        return dataclasses.replace(self, calibration=np.sort(self.combined(self.scores(X_calibration))))
 
     def rescaled(self, scores) -> "OODScores":
-        """These scores (not calibrated) with their scales the medians of (B, 3) raw scores
+        """These scores (not calibrated) with their scales the medians of (B, 4) raw scores
         (:meth:`scores` of inputs like the clean ones: out-of-fold training inputs)."""
-        sv = np.asarray(scores, dtype=np.float64)
-        scale = np.where(np.isnan(sv[0]), 1.0, np.maximum(np.median(sv, axis=0), _TINY_SCORE))
-        return OODScores(self.distance, self.consistency, scale, np.zeros(0), self.use_fault)
+        return dataclasses.replace(self, scale=_medians(scores), calibration=np.zeros(0))
 
     def p_values(self, scores) -> np.ndarray:
         """(B,) conformal p-values ``(1 + #{calibration >= alarm score}) / (m + 1)``."""
@@ -294,18 +362,22 @@ class OODScores:
         return (1.0 + m - np.searchsorted(self.calibration, c, side="left")) / (m + 1.0)
 
 
+def _medians(scores) -> np.ndarray:
+    """(4,) the scores' medians over inputs (B, 4) (floored; 1 for an absent score)."""
+    sv = np.asarray(scores, dtype=np.float64)
+    return np.where(np.isnan(sv[0]), 1.0, np.maximum(np.median(sv, axis=0), _TINY_SCORE))
+
+
 def scale_ood(distance: InputDistance, consistency: MarkerConsistency | None, X_valid,
-              use_fault: bool = False) -> OODScores:
+              use_fault: bool = False, stillness: MarkerStillness | None = None) -> OODScores:
     """Uncalibrated scores (no threshold yet: :meth:`OODScores.calibrated` sets it), their scales
     the medians on validation inputs (B_v, 3 n_d) mm; ``use_fault``: the fault score is part of the alarm."""
-    draft = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0))
-    sv = draft.scores(X_valid)
-    scale = np.where(np.isnan(sv[0]), 1.0, np.maximum(np.median(sv, axis=0), _TINY_SCORE))
-    return OODScores(distance, consistency, scale, np.zeros(0), use_fault)
+    draft = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0), use_fault, stillness)
+    return draft.rescaled(draft.scores(X_valid))
 
 
 def calibrate_ood(distance: InputDistance, consistency: MarkerConsistency | None, X_valid, X_calibration,
-                  use_fault: bool = False) -> OODScores:
+                  use_fault: bool = False, stillness: MarkerStillness | None = None) -> OODScores:
     """Scales from validation inputs (B_v, 3 n_d) mm, calibration scores from (B_c, 3 n_d) mm;
     ``use_fault``: the fault score is part of the alarm."""
-    return scale_ood(distance, consistency, X_valid, use_fault).calibrated(X_calibration)
+    return scale_ood(distance, consistency, X_valid, use_fault, stillness).calibrated(X_calibration)

@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import ModelError
 from .calibration_scores import CalibrationScores
 from .conformal import VertexConformal, normalised_errors
-from .ood import InputDistance, MarkerConsistency, OODScores
+from .ood import InputDistance, MarkerConsistency, MarkerStillness, OODScores
 from .pca import PCABasis
 from .quadratic import QuadraticRegression
 
@@ -83,6 +83,13 @@ class Alarm:
         marker_residual: that marker's distance from where the other markers put it, mm.
         fault: single-marker fault score (the largest fault statistic; NaN where absent);
             ``fault_threshold``.
+        stillness: stillness score (:class:`~.ood.MarkerStillness`: a marker moved less, as a
+            share of the markers' motion, than in any simulation; NaN where absent);
+            ``stillness_threshold``.
+        still_marker: index (0-based, model marker order) of the stillest marker (the largest
+            stillness ratio), -1 without a stillness score.
+        still_share: that marker's displacement as a share of the markers' root-mean-square
+            displacement; ``still_least`` the least share any simulation gave it.
     """
 
     raised: bool
@@ -94,6 +101,11 @@ class Alarm:
     marker_residual: float = float("nan")
     fault: float = float("nan")
     fault_threshold: float = float("inf")
+    stillness: float = float("nan")
+    stillness_threshold: float = float("inf")
+    still_marker: int = -1
+    still_share: float = float("nan")
+    still_least: float = float("nan")
 
     @property
     def far_from_training(self) -> bool:
@@ -105,11 +117,21 @@ class Alarm:
         return bool(self.consistency > self.consistency_threshold or self.fault > self.fault_threshold)
 
     @property
+    def still_marker_alarm(self) -> bool:
+        """A marker stood still where every simulation moved it (the tissue held there?)."""
+        return bool(self.stillness > self.stillness_threshold)
+
+    @property
     def text(self) -> str:
         """One line for the surgeon's display."""
         if not self.raised:
             return "prediction within the simulated range"
         parts = []
+        if self.still_marker_alarm:
+            parts.append(f"marker {self.still_marker} did not move ({100 * self.still_share:.0f} % of the markers' mean "
+                         f"motion; every simulation moved it at least {100 * self.still_least:.0f} %): is the tissue "
+                         "held there (attached farther than simulated) or the marker off the tissue? do not trust the "
+                         "predicted shape near it")
         if self.inconsistent_markers:
             score = (f"one-marker score {self.fault:.1f} > {self.fault_threshold:.1f}" if self.fault > self.fault_threshold
                      else f"score {self.consistency:.1f} > {self.consistency_threshold:.1f}")
@@ -263,16 +285,26 @@ class TrustLayer:
         else:
             res, c_score, worst = None, np.full(len(d), np.nan), np.full(len(d), -1)
         f_score = faults.max(axis=1) if faults is not None else np.full(len(d), np.nan)
+        still = self.ood.stillness
+        if still is not None:
+            ratios, shares = still.ratios(d), still.shares(d)
+            stillest = ratios.argmax(axis=1)
+            s_score = ratios[np.arange(len(d)), stillest]
+        else:
+            s_score, stillest = np.full(len(d), np.nan), np.full(len(d), -1)
         alarms = []
         for b in range(len(d)):
-            raised = bool(dist[b] > thr[0] or c_score[b] > thr[1] or f_score[b] > thr[2])
+            raised = bool(dist[b] > thr[0] or c_score[b] > thr[1] or f_score[b] > thr[2] or s_score[b] > thr[3])
+            j = int(stillest[b])
             alarms.append(Alarm(raised, float(dist[b]), float(thr[0]), float(c_score[b]), float(thr[1]),
                                 int(worst[b]), float(res[b, worst[b]]) if res is not None else float("nan"),
-                                float(f_score[b]), float(thr[2])))
+                                float(f_score[b]), float(thr[2]), float(s_score[b]), float(thr[3]), j,
+                                float(shares[b, j]) if j >= 0 else float("nan"),
+                                float(still.least[j]) if j >= 0 else float("nan")))
         return bounds, alarms
 
     def alarm_scores(self, marker_displacements, *, auxiliary=None) -> np.ndarray:
-        """(B, 3) [distance, consistency, fault] scores of inputs (B, 3 n_d) or (B, n_d, 3) mm (and
+        """(B, 4) [distance, consistency, fault, stillness] scores of inputs (B, 3 n_d) or (B, n_d, 3) mm (and
         ``auxiliary`` (B, n_a), :meth:`inputs`; NaN where absent)."""
         return self.ood.scores(self.inputs(marker_displacements, auxiliary))
 
@@ -323,8 +355,7 @@ class TrustLayer:
             raise ModelError(f"calibration scores are for {scores.errors.shape[1]} vertices, this layer predicts {n}")
         h = scores.disagreement if scores.disagreement is not None else np.ones_like(scores.errors)
         vertex = normalised_errors(scores.errors, self.sigma(scores.features, h))
-        ood = OODScores(self.ood.distance, self.ood.consistency, self.ood.scale, np.sort(self.ood.combined(scores.alarm)),
-                        self.ood.use_fault)
+        ood = dataclasses.replace(self.ood, calibration=np.sort(self.ood.combined(scores.alarm)))
         return dataclasses.replace(self, conformal=VertexConformal(np.sort(vertex, axis=0)), ood=ood)
 
     def calibrate(self, marker_displacements, displacements, truths, *, chunk: int = PREDICT_CHUNK,
@@ -367,6 +398,8 @@ class TrustLayer:
                 out["ood.consistency.sensitivity"] = cons.sensitivity
             for j, reg in enumerate(cons.regressions):
                 out.update(reg.arrays(f"ood.consistency.{j}."))
+        if self.ood.stillness is not None:
+            out["ood.stillness.least"] = self.ood.stillness.least
         return out
 
     @classmethod
@@ -389,7 +422,10 @@ class TrustLayer:
                    conformal=VertexConformal(np.asarray(a["conformal.sorted_scores"])),
                    ood=OODScores(dist, cons, np.asarray(a["ood.scale"], dtype=np.float64),
                                  np.asarray(a["ood.calibration"], dtype=np.float64),
-                                 bool(a["ood.use_fault"]) if "ood.use_fault" in a else False),
+                                 bool(a["ood.use_fault"]) if "ood.use_fault" in a else False,
+                                 # absent in files written before the stillness score
+                                 MarkerStillness(np.asarray(a["ood.stillness.least"], dtype=np.float64))
+                                 if "ood.stillness.least" in a else None),
                    coverage=float(a["coverage"]), false_alarm=float(a["false_alarm"]),
                    error_input=QuadraticRegression.from_arrays(a, "error_input.") if "error_input.coef" in a else None,
                    flat=bool(a["flat"]) if "flat" in a else False,
@@ -421,5 +457,6 @@ class TrustLayer:
                 "consistency": self.ood.consistency is not None,
                 "fault_score": self.ood.consistency is not None and self.ood.consistency.sensitivity is not None,
                 "fault_score_in_alarm": self.ood.use_fault,
+                "stillness_score": self.ood.stillness is not None,
                 "flat_normaliser": self.flat, "auxiliary_inputs": self.n_auxiliary,
                 "calibration": self.method}
