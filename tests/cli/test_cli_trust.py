@@ -31,6 +31,7 @@ def test_plan_count_writes_files_and_respects_spacing(store, capsys):
     ids = doc["plan"]["markers"]
     assert len(ids) == 3 and doc["ids_are_0_based"] and f"ids = {ids}" in out
     assert len(doc["plan"]["proxy_valid_offset_max_mm"]) == 3 and not set(ids) & set(ds.fixed.tolist())
+    assert doc["plan"]["sentinel"] == -1 and "sentinel" not in out  # the store draws no attached extent
     p = ds.mesh.points[ids]
     assert np.linalg.norm(p[:, None] - p[None], axis=2)[np.triu_indices(3, 1)].min() > 6.0
     rows = list(csv.DictReader((folder / "pm.csv").open()))

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -189,9 +190,16 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
     solver_cfg = dataclasses.replace(cfg.solver, order=2)
     folder.mkdir(parents=True, exist_ok=True)
     out, kept = [], []
-    for k in ds.select("test1", status="done")[:samples]:
+    chosen = ds.select("test1", status="done")[:samples]
+    todo = sum(not (folder / f"sample_{int(k):05d}.npy").is_file() for k in chosen)
+    if todo:
+        log.info("discretisation: solving %d of %d nominal samples again on the refined mesh (%d vertices, quadratic "
+                 "elements; each can take minutes), saved in %s as they come", todo, len(chosen),
+                 refined.mesh.n_vertices, folder)
+    for k in chosen:
         path = folder / f"sample_{int(k):05d}.npy"
         if not path.is_file():
+            t0 = time.perf_counter()
             inputs = scenario.sample(int(ds.seed[k]), float(ds.alpha[k]))
             fine = refined_sample(scenario, cfg, refined, inputs)
             guess = refined.from_coarse(np.asarray(ds.displacements[k], dtype=np.float64))
@@ -201,6 +209,7 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
                 log.warning("discretisation: sample %d did not converge on the refined mesh (%s); left out", k, exc)
                 continue
             np.save(path, refined.coarse_values(res.displacement))
+            log.info("discretisation: sample %d solved on the refined mesh in %.0f s", k, time.perf_counter() - t0)
         out.append(np.load(path))
         kept.append(int(k))
         if progress is not None:

@@ -127,16 +127,16 @@ class Alarm:
         if not self.raised:
             return "prediction within the simulated range"
         parts = []
-        if self.still_marker_alarm:
-            parts.append(f"marker {self.still_marker} did not move ({100 * self.still_share:.0f} % of the markers' mean "
-                         f"motion; every simulation moved it at least {100 * self.still_least:.0f} %): is the tissue "
-                         "held there (attached farther than simulated) or the marker off the tissue? do not trust the "
-                         "predicted shape near it")
         if self.inconsistent_markers:
             score = (f"one-marker score {self.fault:.1f} > {self.fault_threshold:.1f}" if self.fault > self.fault_threshold
                      else f"score {self.consistency:.1f} > {self.consistency_threshold:.1f}")
             parts.append(f"markers disagree ({score}; most: marker {self.marker}, {self.marker_residual:.1f} mm from where "
                          "the other markers place it): a swapped, slipped or mistracked marker?")
+        if self.still_marker_alarm:
+            parts.append(f"marker {self.still_marker} did not move ({100 * self.still_share:.0f} % of the markers' mean "
+                         f"motion; every simulation moved it at least {100 * self.still_least:.0f} %): is the tissue "
+                         "held there (attached farther than simulated) or the marker off the tissue? do not trust the "
+                         "predicted shape near it")
         if self.far_from_training:
             parts.append(f"marker input far from every simulated deformation (distance {self.distance:.2f} > "
                          f"{self.distance_threshold:.2f}): do not trust the predicted shape")
