@@ -150,8 +150,8 @@ def fit_trust_layer(predictor: FieldPredictor, displacements, *, train_idx, vali
     if error_input is not None:
         fv = np.hstack([fv, error_input.predict(dv)])
     return TrustLayer(mk, second_basis, second, fit_error_model(fv, ev), empty,
-                      scale_ood(distance, consistency, dv, fault_score, stillness), coverage, false_alarm, error_input, head is not None,
-                      n_a)
+                      scale_ood(distance, consistency, dv, fault_score, stillness), coverage, false_alarm, error_input,
+                      head is not None, n_a)
 
 
 def _check_splits(sets: list[np.ndarray]) -> None:
