@@ -211,3 +211,24 @@ def test_a_sentinel_marker_watches_just_beyond_the_attached_regions_drawn_range(
                           sentinel=True)
     assert target.count == ref.count + 1 and target.sentinel == target.markers[-1]
     np.testing.assert_array_equal(target.markers[:-1], ref.markers)
+
+
+def test_the_plan_command_names_the_sentinel_and_can_leave_it_out(tmp_path, monkeypatch, capsys):
+    import csv
+    import json
+
+    from tissuecast.cli.main import main
+
+    ds = FakeDataset(n=200, n_test2=0)
+    _attached(ds, (-2.0, 2.0))
+    monkeypatch.setattr("tissuecast.dataset.open_dataset", lambda store: ds)
+    assert main(["markers", "plan", "fake.zarr", "--count", "4", "--min-distance", "2", "--out", str(tmp_path / "s")]) == 0
+    out = capsys.readouterr().out
+    plan = json.loads((tmp_path / "s.json").read_text())["plan"]
+    rows = list(csv.DictReader((tmp_path / "s.csv").open()))
+    assert plan["sentinel"] == plan["markers"][-1] >= 0 and f"sentinel: vertex {plan['sentinel']}" in out
+    assert [r["role"] for r in rows] == ["marker"] * 3 + ["sentinel"]
+    assert main(["markers", "plan", "fake.zarr", "--count", "4", "--min-distance", "2", "--no-sentinel",
+                 "--out", str(tmp_path / "n")]) == 0
+    assert json.loads((tmp_path / "n.json").read_text())["plan"]["sentinel"] == -1
+    assert "sentinel" not in capsys.readouterr().out

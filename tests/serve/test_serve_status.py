@@ -78,3 +78,17 @@ def test_our_client_reads_the_status_after_the_surface(model):
         status = client.receive()
         assert status.header.message_type == "STATUS" and status.status.subcode & AlarmBits.FAR_FROM_TRAINING
         assert "far from every simulated deformation" in status.text
+
+
+def test_a_marker_standing_still_sends_its_own_alarm_bit(model):
+    least = model.trusted_.layer.ood.stillness.least
+    j = int(np.argmax(least))  # the marker every simulation moved most, relative to the others
+    assert least[j] > 0.05
+    with IGTLServer(model, "127.0.0.1", 0) as srv, IGTLClient(*srv.address) as client:
+        held = _positions(model, 4)
+        held[j] = model.reference_marker_positions[j]  # tracked where it was before surgery: it did not move
+        assert not model.check_input(held - model.reference_marker_positions).refused
+        client.predict(held)
+        status = client.receive()
+        assert status.header.message_type == "STATUS" and status.status.subcode & AlarmBits.STILL_MARKER
+        assert f"marker {j} did not move" in status.text

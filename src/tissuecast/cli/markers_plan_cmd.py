@@ -102,7 +102,7 @@ def run(args) -> int:
     prefix = Path(args.out)
     if prefix.parent != Path("."):
         prefix.parent.mkdir(parents=True, exist_ok=True)
-    written = [_write_json(prefix, ds, plan, args), _write_csv(prefix, mesh, plan.markers, surface)]
+    written = [_write_json(prefix, ds, plan, args), _write_csv(prefix, mesh, plan.markers, surface, plan.sentinel)]
     from ..mesh.io import write_point_set
 
     ids = plan.markers
@@ -130,11 +130,13 @@ def _write_json(prefix: Path, ds, plan, args) -> Path:
     return path
 
 
-def _write_csv(prefix: Path, mesh, ids, surface) -> Path:
+def _write_csv(prefix: Path, mesh, ids, surface, sentinel: int = -1) -> Path:
+    """The markers, one row each; the sentinel's role is ``sentinel`` (:mod:`tissuecast.planning.sentinel`)."""
     path = prefix.with_name(prefix.name + ".csv")
     with open(path, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh)
         w.writerow(["role", "order", "vertex_id_0based", "x_mm", "y_mm", "z_mm", "on_surface"])
         for k, i in enumerate(ids):
-            w.writerow(["marker", k, int(i), *(f"{v:.6f}" for v in mesh.points[i]), int(int(i) in surface)])
+            role = "sentinel" if int(i) == sentinel else "marker"
+            w.writerow([role, k, int(i), *(f"{v:.6f}" for v in mesh.points[i]), int(int(i) in surface)])
     return path
