@@ -140,3 +140,17 @@ def test_every_default_set_has_its_own_folder():
     folders = [set_folder_name(n) for n in names]
     assert len(set(folders)) == len(names), folders
     assert set_folder_name("attached -5 mm") == "attached_minus5_mm" and set_folder_name("E x0.5") == "e_x0p5"
+
+
+def test_the_alarm_cell_names_what_raised_it():
+    from tissuecast.evaluate.mismatch_report import mismatch_table
+
+    row = {"set": "attached +10 mm", "in_range": False, "model": "m", "peak_median": 15.9, "mlp_offset_max": 7.0,
+           "relative": 0.44, "relative_vs_nominal": 2.5, "rigid_offset_max": 12.3, "ridge_offset_max": 7.8,
+           "gain_over_rigid": 1.8, "alarm_rate": 1.0, "alarm_far_rate": 0.1, "alarm_disagree_rate": 0.0,
+           "alarm_still_rate": 1.0}
+    assert mismatch_table([row])[0][-1] == "100 % (still marker, far)"
+    quiet = {**row, "alarm_rate": 0.0, "alarm_far_rate": 0.0, "alarm_still_rate": 0.0}
+    assert mismatch_table([quiet])[0][-1] == "0 %"
+    old = {k: v for k, v in row.items() if not k.startswith("alarm_") or k == "alarm_rate"}  # rows written before
+    assert mismatch_table([old])[0][-1] == "100 %"

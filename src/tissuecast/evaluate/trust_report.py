@@ -30,12 +30,17 @@ __all__ = ["bound_figures", "trust_evaluation", "reliability_figure", "uncertain
 
 #: Nominal coverages reported.
 LEVELS = (0.9, 0.95)
+#: Per-reason alarm shares of :func:`bound_figures`: row key -> the :class:`~tissuecast.surrogate.trust.Alarm` property.
+ALARM_REASONS = {"alarm_far_rate": "far_from_training", "alarm_disagree_rate": "inconsistent_markers",
+                 "alarm_still_rate": "still_marker_alarm"}
 
 
 def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> dict:
     """Coverage, sharpness, ranking and alarms of the bounds of a predictor with ``has_trust``
     on fields ``bench`` (B, n, 3) mm (``auxiliary`` (B, n_a): their auxiliary inputs, for a
-    predictor that reads some); ``alarms`` (B,) bool: which samples raised the alarm."""
+    predictor that reads some); ``alarms`` (B,) bool: which samples raised the alarm, and the
+    shares raising it for each reason: ``alarm_far_rate`` (far from training),
+    ``alarm_disagree_rate`` (markers disagree), ``alarm_still_rate`` (a marker stood still)."""
     bench = np.asarray(bench, dtype=np.float64)
     d = trusted.marker_displacements(bench)
     row: dict = {"count": int(len(bench))}
@@ -51,6 +56,8 @@ def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> 
             row["vertex_spearman"] = float(spearman_rows(tp.error_bound, e).mean())
             row["alarms"] = np.array([a.raised for a in tp.alarms], dtype=bool)
             row["alarm_rate"] = float(np.mean(row["alarms"]))
+            for key, reason in ALARM_REASONS.items():
+                row[key] = float(np.mean([a.raised and getattr(a, reason) for a in tp.alarms]))
             row["alarm_on"] = bool(np.isfinite(tp.alarms[0].distance_threshold))  # off: too few calibration samples
     return row
 
