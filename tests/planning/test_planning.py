@@ -232,3 +232,23 @@ def test_the_plan_command_names_the_sentinel_and_can_leave_it_out(tmp_path, monk
                  "--out", str(tmp_path / "n")]) == 0
     assert json.loads((tmp_path / "n.json").read_text())["plan"]["sentinel"] == -1
     assert "sentinel" not in capsys.readouterr().out
+
+
+def test_the_planned_rule_makes_the_last_marker_a_sentinel_unless_told_not_to(tmp_path, monkeypatch):
+    import json
+
+    from tissuecast.app import pipeline
+    from tissuecast.config import Config, with_overrides
+
+    ds = FakeDataset(n=200, n_test2=0)
+    distance = _attached(ds, (-2.0, 2.0))
+    monkeypatch.setattr("tissuecast.dataset.open_dataset", lambda store: ds)
+    cfg = with_overrides(Config(), markers={"rule": "planned", "count": 4, "min_distance": 2.0},
+                         surrogate={"epochs": 5, "calibration": "none"})
+    model, _ = pipeline.train_from_store(cfg, "unused.zarr", model_folder=tmp_path / "model", onnx=False)
+    saved = json.loads((tmp_path / "model" / pipeline.PLAN_FILE).read_text())
+    assert saved["sentinel"] == int(model.markers[-1]) and 2.0 < distance[model.markers[-1]] <= 7.0
+    off = with_overrides(cfg, markers={"sentinel": False})
+    model, _ = pipeline.train_from_store(off, "unused.zarr", model_folder=tmp_path / "off", onnx=False)
+    assert json.loads((tmp_path / "off" / pipeline.PLAN_FILE).read_text())["sentinel"] == -1
+    np.testing.assert_array_equal(model.markers, plan_markers(ds, 4, min_distance=2.0).markers)
