@@ -120,10 +120,11 @@ def plan_markers(dataset, count: int | None = None, *, target_mm: float | None =
             the count is then adjusted until the MLP, not only the proxy, decides it.
         config: surrogate settings for ``confirm`` (default: the data set's).
         sentinel: where the data set draws the attached region's extent, the last marker is a
-            sentinel just beyond the drawn range (:mod:`~tissuecast.planning.sentinel`): ``count``
-            markers are ``count - 1`` planned ones and the sentinel; with ``target_mm`` the
-            sentinel comes on top of the markers that reach it. Without a drawn extent, or where
-            no vertex qualifies (logged), there is none.
+            sentinel just beyond the drawn range (:mod:`~tissuecast.planning.sentinel`): of the
+            ``count`` planned markers the one whose place the sentinel takes at the least cost to
+            the proxy, the others then refined around it; with ``target_mm`` the sentinel comes on
+            top of the markers that reach it. Without a drawn extent, or where no vertex
+            qualifies (logged), there is none.
         on_step: progress callback (number of markers, markers so far, proxy score).
 
     Returns:
@@ -184,27 +185,23 @@ def _around_sentinel(plan: MarkerPlan, planner: "_Planner", arrays, watch, round
             if best is None or score < best[0]:
                 best = (score, trial, least)
     if best is None:
-        _sentinel(plan, planner, arrays, watch)  # logs why
+        _warn_no_sentinel(margin_max, planner.min_distance)
         return plan
-    score, trial, least = best
+    score, trial, _ = best
     markers, err, changed = planner.exchange(trial, score, rounds, keep=1)
     v = int(markers[0])
+    # its least share among the markers it ends with
+    _, least = sentinel_marker(arrays.displacements, arrays.train_idx, markers[1:], [v], distance, margin_max)
     _log_sentinel(v, least, distance, margin_max)
     return MarkerPlan(np.append(markers[1:], v), plan.proxy_errors, plan.path, planner.candidates, plan.region,
                       plan.min_distance, proxy=planner.proxy, proxy_error=err, exchanged=plan.exchanged + changed,
                       sentinel=v, sentinel_least=least)
 
 
-def _sentinel(plan: MarkerPlan, planner: "_Planner", arrays, watch) -> tuple[int, float]:
-    """The sentinel for ``plan``'s markers (:func:`~.sentinel.sentinel_marker`), or (-1, 0) and a warning."""
-    distance, margin_max = watch
-    v, least = sentinel_marker(arrays.displacements, arrays.train_idx, plan.markers, planner.candidates, distance,
-                               margin_max, points=planner.points, min_distance=planner.min_distance)
-    if v < 0:
-        log.warning("no sentinel marker: no candidate vertex lies %g-%g mm beyond the attached region's nominal edge "
-                    "and %g mm from the other markers; an attachment beyond the drawn range goes unseen by the alarm",
-                    margin_max, margin_max + SENTINEL_REACH, planner.min_distance)
-    return v, least
+def _warn_no_sentinel(margin_max: float, min_distance: float) -> None:
+    log.warning("no sentinel marker: no candidate vertex lies %g-%g mm beyond the attached region's nominal edge "
+                "and %g mm from the other markers; an attachment beyond the drawn range goes unseen by the alarm",
+                margin_max, margin_max + SENTINEL_REACH, min_distance)
 
 
 def _log_sentinel(v: int, least: float, distance, margin_max: float) -> None:
@@ -216,8 +213,10 @@ def _log_sentinel(v: int, least: float, distance, margin_max: float) -> None:
 def _with_sentinel(plan: MarkerPlan, planner: "_Planner", arrays, watch) -> MarkerPlan:
     """``plan`` with the sentinel appended to its markers (unchanged where none qualifies, logged)."""
     distance, margin_max = watch
-    v, least = _sentinel(plan, planner, arrays, watch)
+    v, least = sentinel_marker(arrays.displacements, arrays.train_idx, plan.markers, planner.candidates, distance,
+                               margin_max, points=planner.points, min_distance=planner.min_distance)
     if v < 0:
+        _warn_no_sentinel(margin_max, planner.min_distance)
         return plan
     markers = np.append(plan.markers, v)
     _log_sentinel(v, least, distance, margin_max)
