@@ -254,9 +254,13 @@ class MarkerStillness:
         """(B, n_d) each marker's least share over its share in inputs (B, 3 n_d + n_a) mm: above
         1, the marker moved less, relative to the others, than in any training input (0 where
         nothing moved)."""
+        return self.evaluate(X)[1]
+
+    def evaluate(self, X) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`shares` and :meth:`ratios` of inputs (B, 3 n_d + n_a) mm, from one evaluation."""
         s = self.shares(X)
         r = self.least / np.maximum(s, _TINY_SHARE)
-        return np.where(np.isnan(s), 0.0, r)
+        return s, np.where(np.isnan(s), 0.0, r)
 
     def __call__(self, X) -> np.ndarray:
         """(B,) the largest ratio over the markers (dimensionless)."""

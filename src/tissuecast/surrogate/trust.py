@@ -287,7 +287,7 @@ class TrustLayer:
         f_score = faults.max(axis=1) if faults is not None else np.full(len(d), np.nan)
         still = self.ood.stillness
         if still is not None:
-            ratios, shares = still.ratios(d), still.shares(d)
+            shares, ratios = still.evaluate(d)
             stillest = ratios.argmax(axis=1)
             s_score = ratios[np.arange(len(d)), stillest]
         else:
