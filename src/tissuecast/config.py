@@ -91,7 +91,7 @@ class MarkerConfig:
     min_distance: float = _f(10.0, lo=0.0, doc="d_min in mm")
     ids: tuple[int, ...] = _f((), doc="user-given 0-based marker ids (overrides count/start and rule)")
     rule: str = _f("k-center", choices=MARKER_RULES, doc="'k-center' = the paper's rule (count, start, min_distance); 'planned' = count surface markers planned from the simulations before training")
-    sentinel: bool = _f(True, doc="rule 'planned' with the attached margin drawn ([scenario.uncertain] attached_margin): the last of the count markers is a sentinel just beyond the drawn range, which every simulation moves; if it stands still the tissue is attached farther than simulated and the alarm says so")
+    sentinel: bool = _f(True, doc="rule 'planned', attached_margin drawn: the last marker is a sentinel beyond the drawn range; if it stands still the alarm says so")
     fixed_count: int = _f(3, lo=1, hi=50, doc="number of fixed (pinned) vertices")
     fixed_ids: tuple[int, ...] = _f((), doc="user-given 0-based fixed vertex ids")
     fixed_depth_fraction: float = _f(0.5, lo=0.0, hi=1.0, doc="fixed vertices lie at least this share of the largest depth below the surface")
