@@ -14,6 +14,11 @@ waits for the deformed surface. Printed side by side:
 - a fixed numpy kernel of similar size, whose p99 shows how much of the tail comes from the
   machine (other processes, scheduling) rather than from the server.
 
+A model that reads a tracked instrument (``--model`` of the embedded preset: the retractor)
+gets one TRANSFORM per instrument before each POINT (tip on the reference surface, pushing
+along the tool's +z), as navigation streams them: the round trip is then POINT + TRANSFORM in,
+POLYDATA out (target p99 < 3 ms), and the model's bounds and alarm are computed every frame.
+
 Usage: python benchmarks/igtl_latency.py [--requests 2000] [--model FOLDER]
 """
 
@@ -64,20 +69,46 @@ def start_server(folder: Path, *extra: str) -> tuple[subprocess.Popen, int]:
     return proc, int(line.split(" on ")[1].split()[0].rsplit(":", 1)[1])
 
 
-def round_trips(port: int, positions: np.ndarray, n: int, mode: str) -> np.ndarray:
+def round_trips(port: int, positions: np.ndarray, n: int, mode: str, tools: dict | None = None) -> np.ndarray:
+    """Seconds per request; ``tools``: {device: packed TRANSFORM} sent before each request."""
     rng = np.random.default_rng(0)
     with IGTLClient("127.0.0.1", port) as client:
         def once():
             p = positions + rng.normal(0.0, 0.5, positions.shape)
+            for packed in (tools or {}).values():
+                client.send(packed)
             if mode == "transform":
                 client.send_transforms(p)
             else:
                 client.send_positions(p)
             reply = client.receive()
+            while reply.header.message_type == "STATUS":  # an alarm or an instrument's STATUS of the last frame
+                reply = client.receive()
             if mode == "field":
                 reply = client.receive()
             assert reply.polydata is not None, reply.text
         return per_call(once, n)
+
+
+def instrument_transforms(model) -> dict:
+    """{device: packed TRANSFORM} of each instrument the model reads: the tip on the surface vertex
+    nearest the markers' centroid, 1 mm out along the outward axis from the body's centre, the
+    tool's +z pushing in."""
+    devices = SurfacePredictor(model).instrument_devices
+    if not devices:
+        return {}
+    pts = model.mesh.points
+    surface = pts[model.mesh.surface_vertices]
+    tip = surface[np.argmin(np.linalg.norm(surface - model.reference_marker_positions.mean(axis=0), axis=1))]
+    out = tip - pts.mean(axis=0)
+    out /= np.linalg.norm(out)
+    z = -out
+    x = np.cross(z, [0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [1.0, 0.0, 0.0])
+    x /= np.linalg.norm(x)
+    tool = np.eye(4)
+    tool[:3, :3] = np.column_stack([x, np.cross(z, x), z])
+    tool[:3, 3] = tip + out
+    return {device: pyigtl.TransformMessage(tool, device_name=device).pack() for device in devices}
 
 
 def main() -> None:
@@ -118,6 +149,9 @@ def main() -> None:
         h = np.random.default_rng(1).random((1, 64))
         print(row("machine jitter floor: one fixed (1x64)@(64x3n) matmul", per_call(lambda: h @ W, n)))
         print(row("model.predict_from_positions", per_call(lambda: model.predict_from_positions(positions + 1.0), n)))
+        tools = instrument_transforms(model)
+        for packed in tools.values():
+            session.feed(packed)
         print(row("server work per POINT request (in-process)", per_call(lambda: session.feed(point_message), n)))
         packed = per_call(lambda: predictor.surface_message(prediction), n)
         naive = per_call(pyigtl_pack, n)
@@ -133,14 +167,15 @@ def main() -> None:
         for name, path, extra, mode in runs:
             proc, port = start_server(path, *extra)
             try:
-                results[name] = round_trips(port, positions, n, mode)
+                results[name] = round_trips(port, positions, n, mode, tools)
             finally:
                 proc.terminate()
                 proc.wait(10)
             print(row(name, results[name]))
         p99 = np.percentile(results[runs[0][0]], 99) * 1e3
-        print(f"\nPOINT -> TissueSurface over {n} requests: p99 = {p99:.3f} ms "
-              f"({'meets' if p99 < 1.0 else 'MISSES'} the 1 ms target on this machine)")
+        what, target = ("POINT + TRANSFORM", 3.0) if tools else ("POINT", 1.0)
+        print(f"\n{what} -> TissueSurface over {n} requests: p99 = {p99:.3f} ms "
+              f"({'meets' if p99 < target else 'MISSES'} the {target:g} ms target on this machine)")
 
 
 if __name__ == "__main__":

@@ -110,7 +110,8 @@ def test_out_of_range_message_gives_the_allowed_range():
     message = r"material\.poisson_ratio = 0\.5 is out of range; allowed values are in \(-1\.0, 0\.5\)"
     with pytest.raises(ConfigError, match=message):
         config_from_dict({"material": {"poisson_ratio": 0.5}})
-    with pytest.raises(ConfigError, match=r"allowed keys in \[markers\]: count, fixed_count, .*min_distance, rule, sentinel, start"):
+    with pytest.raises(ConfigError,
+                       match=r"allowed keys in \[markers\]: count, fixed_count, .*min_distance, rule, sentinel, start"):
         config_from_dict({"markers": {"cout": 5}})
 
 

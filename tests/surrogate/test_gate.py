@@ -83,6 +83,31 @@ def test_missing_markers_are_not_checked():
     assert not gate.inspect(d, np.array([[False, True, False]]))[0].refused
 
 
+def test_the_input_let_through_last_passes_at_once_and_nothing_else_does(monkeypatch):
+    ref = np.array([[0.0, 0, 0], [10.0, 0, 0], [0, 20.0, 0]])
+    gate = InputGate(np.arange(3), ref, np.ones(3), np.array([[1.0, 1.0]] * 3))
+    calls = []
+    inspect = InputGate.inspect
+    monkeypatch.setattr(InputGate, "inspect", lambda self, d, missing=None: calls.append(1) or inspect(self, d, missing))
+    ok = np.zeros((1, 9))
+    gate.enforce(ok)
+    gate.enforce(ok.copy())  # the same values: not inspected again (the parts of a composed model share the gate)
+    assert len(calls) == 1
+    mask = np.array([[False, True, False]])
+    gate.enforce(ok, mask)  # another mask: inspected
+    gate.enforce(ok, mask.copy())
+    assert len(calls) == 2
+    bad = ok.copy()
+    bad[0, 3] = 50.0  # marker 1 displaced 50 mm, more than 3 x 1 mm + 2 mm
+    for _ in range(2):  # refused every time: only passed input is remembered
+        with pytest.raises(InputRejected, match="marker 1"):
+            gate.enforce(bad)
+    assert len(calls) == 4
+    gate.enforce(ok, mask)  # the last passed input still passes at once
+    gate.enforce(ok)  # the one before it is checked again
+    assert len(calls) == 5
+
+
 # ---------------------------------------------------------------------------------------------- the API
 def test_valid_inputs_pass_and_predict_as_without_the_gate(model):
     _, U, _ = trust_data()

@@ -17,6 +17,7 @@ server predicts from the markers only and says so in a STATUS. Errors come back 
 
 from __future__ import annotations
 
+import gc
 import logging
 import sys
 
@@ -100,6 +101,10 @@ def run(args) -> int:
           f"POLYDATA TissueField ({predictor.n_vertices} points{', every prediction' if serve.full_field else ''}); "
           "errors: STRING ERROR", flush=True)
     print("press Ctrl+C to stop", file=sys.stderr, flush=True)
+    # the model and the server live as long as this process: the garbage collector's full
+    # passes need not walk them between frames (they set the latency's tail)
+    gc.collect()
+    gc.freeze()
     try:
         server.serve_forever()
     finally:

@@ -94,6 +94,7 @@ class InputGate:
                                      length * (s[:, 1] + widen) + TOLERANCE_MM], axis=1))
         object.__setattr__(self, "_displacement_limits",
                            DISPLACEMENT_FACTOR * np.asarray(self.max_displacement, dtype=np.float64) + TOLERANCE_MM)
+        object.__setattr__(self, "_passed", None)  # the last input enforce() let through: (values, missing) bytes
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -146,12 +147,22 @@ class InputGate:
         return verdicts
 
     def enforce(self, d, missing=None) -> None:
-        """Raise :class:`~tissuecast.errors.InputRejected` for the first refused input of ``d`` (B, 3 n_d) mm."""
+        """Raise :class:`~tissuecast.errors.InputRejected` for the first refused input of ``d`` (B, 3 n_d) mm.
+
+        The input it last let through is remembered (its bytes): the parts of a composed model
+        share one gate, and each checks the input again on its way down; the same values pass
+        at once."""
+        values = np.ascontiguousarray(d, dtype=np.float64)
+        key = (values.shape, values.tobytes(),
+               None if missing is None else np.ascontiguousarray(missing, dtype=bool).tobytes())
+        if key == self._passed:
+            return
         for s, v in enumerate(self.inspect(d, missing)):
             if v.refused:
                 where = f"sample {s}: " if len(d) > 1 else ""
                 raise InputRejected(f"{where}{v.message}", reason=v.reason, marker=v.marker, vertex=v.vertex,
                                     sample=s)
+        object.__setattr__(self, "_passed", key)
 
     def _name(self, j: int) -> str:
         return f"marker {j} (input index {j}, vertex {int(self.markers[j])})"

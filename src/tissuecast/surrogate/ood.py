@@ -146,6 +146,9 @@ class MarkerConsistency:
     sensitivity: np.ndarray | None = None
 
     def __post_init__(self):
+        n_in = len(self.regressions[0].mean) + 3 if self.regressions else 0  # 3 n_d + n_a
+        object.__setattr__(self, "_others", [np.delete(np.arange(n_in), np.s_[3 * j:3 * j + 3])
+                                             for j in range(len(self.regressions))])
         if self.sensitivity is not None:  # per marker: L F_j (3 n_d, 3) and (F_j' L F_j)^-1 (3, 3)
             LF = np.einsum("pq,jqa->jpa", self.precision, self.sensitivity)
             gram = np.einsum("jpa,jpb->jab", self.sensitivity, LF)
@@ -158,7 +161,7 @@ class MarkerConsistency:
         out = np.empty((len(X), 3 * len(self.regressions)))
         for j, reg in enumerate(self.regressions):
             cols = np.s_[3 * j:3 * j + 3]
-            out[:, cols] = reg.predict(np.delete(X, cols, axis=1)) - X[:, cols]
+            out[:, cols] = reg.predict(X[:, self._others[j]]) - X[:, cols]
         return out
 
     def residuals(self, X) -> np.ndarray:
