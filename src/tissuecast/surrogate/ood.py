@@ -147,8 +147,9 @@ class MarkerConsistency:
 
     def __post_init__(self):
         n_in = len(self.regressions[0].mean) + 3 if self.regressions else 0  # 3 n_d + n_a
-        object.__setattr__(self, "_others", [np.delete(np.arange(n_in), np.s_[3 * j:3 * j + 3])
-                                             for j in range(len(self.regressions))])
+        object.__setattr__(self, "_others", np.array([np.delete(np.arange(n_in), np.s_[3 * j:3 * j + 3])
+                                                      for j in range(len(self.regressions))], dtype=np.int64))
+        object.__setattr__(self, "_stacked", _stack_regressions(self.regressions))
         if self.sensitivity is not None:  # per marker: L F_j (3 n_d, 3) and (F_j' L F_j)^-1 (3, 3)
             LF = np.einsum("pq,jqa->jpa", self.precision, self.sensitivity)
             gram = np.einsum("jpa,jpb->jab", self.sensitivity, LF)
@@ -158,7 +159,14 @@ class MarkerConsistency:
         """(B, 3 n_d) predicted minus observed displacement of every marker, mm, from inputs
         X (B, 3 n_d + n_a)."""
         X = np.asarray(X, dtype=np.float64)
-        out = np.empty((len(X), 3 * len(self.regressions)))
+        n_d = len(self.regressions)
+        if self._stacked is not None:  # every marker's regression at once
+            mean, scale, directions, (a, b), coef0, coef1, coef2 = self._stacked
+            Z = (X[:, self._others] - mean) / scale  # (B, n_d, d)
+            P = np.einsum("bjd,jqd->bjq", Z, directions)
+            y = coef0 + np.einsum("bjd,jdk->bjk", Z, coef1) + np.einsum("bjq,jqk->bjk", P[..., a] * P[..., b], coef2)
+            return (y - X[:, :3 * n_d].reshape(len(X), n_d, 3)).reshape(len(X), -1)
+        out = np.empty((len(X), 3 * n_d))
         for j, reg in enumerate(self.regressions):
             cols = np.s_[3 * j:3 * j + 3]
             out[:, cols] = reg.predict(X[:, self._others[j]]) - X[:, cols]
@@ -189,6 +197,19 @@ class MarkerConsistency:
             v = np.einsum("bp,jpa->bja", R, LF)  # F_j' L r
             faults = np.sqrt(np.maximum(np.einsum("bja,jac,bjc->bj", v, inv_gram, v), 0.0))
         return dist, _mahalanobis(R, self.precision), faults
+
+
+def _stack_regressions(regressions) -> tuple | None:
+    """The markers' regressions as stacked arrays (means, scales (n_d, d), directions (n_d, q, d),
+    the products' index pairs and the coefficients of the constant (n_d, 3), the linear (n_d, d, 3)
+    and the quadratic terms (n_d, Q, 3)), or None where they differ in size."""
+    if not regressions or len({(len(r.mean), len(r.directions)) for r in regressions}) != 1:
+        return None
+    d, q = len(regressions[0].mean), len(regressions[0].directions)
+    coef = np.stack([r.coef for r in regressions])  # (n_d, 1 + d + Q, 3)
+    return (np.stack([r.mean for r in regressions]), np.stack([r.scale for r in regressions]),
+            np.stack([r.directions for r in regressions]), np.triu_indices(q), coef[:, 0], coef[:, 1:1 + d],
+            coef[:, 1 + d:])
 
 
 def _mahalanobis(R: np.ndarray, precision: np.ndarray) -> np.ndarray:

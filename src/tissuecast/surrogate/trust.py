@@ -231,7 +231,7 @@ class TrustLayer:
         """
         B = len(d)
         markers = d[:, :3 * len(self.markers)].reshape(B, -1, 3)
-        second = self._second_field(self.second.predict(d)).reshape(B, -1, 3)
+        second = self.basis.inverse_transform(self.second.predict(d)).reshape(B, -1, 3)
         h = np.linalg.norm(u - second, axis=2)
         miss = np.linalg.norm(u[:, self.markers, :] - markers, axis=2).max(axis=1)
         dist = self.ood.distance(d)
@@ -241,17 +241,6 @@ class TrustLayer:
         if self.error_input is not None:
             cols.append(self.error_input.predict(d)[:, 0])
         return np.stack(cols, axis=1), h, dist
-
-    def _second_field(self, weights: np.ndarray) -> np.ndarray:
-        """(B, 3 n) the second predictor's fields (mm) from its weights (B, K): decoded in single
-        precision (its disagreement with the predictor is a feature of the bounds, read to a
-        few micrometres; the float64 basis is several MB, read once a frame, and costs 4x)."""
-        decoder = self.__dict__.get("_decoder32")
-        if decoder is None:
-            decoder = (self.basis.components.astype(np.float32), self.basis.mean.astype(np.float32))
-            self.__dict__["_decoder32"] = decoder
-        components, mean = decoder
-        return (np.asarray(weights, dtype=np.float32) @ components + mean).astype(np.float64)
 
     def sigma(self, feats: np.ndarray, h: np.ndarray) -> np.ndarray:
         """(B, n) normaliser (mm) from :meth:`features`' features (B, F) and disagreement (B, n) mm."""
