@@ -196,6 +196,7 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
         log.info("discretisation: solving %d of %d nominal samples again on the refined mesh (%d vertices, quadratic "
                  "elements; each can take minutes), saved in %s as they come", todo, len(chosen),
                  refined.mesh.n_vertices, folder)
+    solved, spent = 0, 0.0
     for k in chosen:
         path = folder / f"sample_{int(k):05d}.npy"
         if not path.is_file():
@@ -209,7 +210,10 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
                 log.warning("discretisation: sample %d did not converge on the refined mesh (%s); left out", k, exc)
                 continue
             np.save(path, refined.coarse_values(res.displacement))
-            log.info("discretisation: sample %d solved on the refined mesh in %.0f s", k, time.perf_counter() - t0)
+            solved, spent = solved + 1, spent + time.perf_counter() - t0
+            log.info("discretisation: sample %d solved on the refined mesh in %.0f s (%d of %d; about %.0f min left; "
+                     "--refined-samples sets how many, --sets can leave the set out)", k, time.perf_counter() - t0,
+                     solved, todo, (todo - solved) * spent / solved / 60.0)
         out.append(np.load(path))
         kept.append(int(k))
         if progress is not None:
