@@ -13,8 +13,8 @@ from __future__ import annotations
 import html
 import math
 
-__all__ = ["DASH", "fmt_mm", "fmt_share", "fmt_ratio", "fmt_time", "set_title", "headline_set", "headline_rows",
-           "trust_rows", "verdict", "html_table", "beta_table", "HEADLINE_METHODS"]
+__all__ = ["DASH", "fmt_mm", "fmt_share", "fmt_ratio", "fmt_time", "fmt_alarm", "set_title", "headline_set",
+           "headline_rows", "trust_rows", "verdict", "html_table", "beta_table", "HEADLINE_METHODS"]
 
 #: Written where a figure does not exist (a model without bounds, a baseline that cannot predict).
 DASH = "—"
@@ -47,6 +47,19 @@ def fmt_share(v) -> str:
         return DASH
     p = 100.0 * v
     return f"{round(p):.0f} %" if abs(p - round(p)) < 0.05 else f"{p:.1f} %"
+
+
+#: Short names of the alarm's reasons, by the figures' keys (:data:`.trust_report.ALARM_REASONS`).
+ALARM_WORDS = {"alarm_far_rate": "far", "alarm_disagree_rate": "disagree", "alarm_still_rate": "still marker"}
+
+
+def fmt_alarm(row: dict) -> str:
+    """A row's alarm rate (``alarm_rate``) with the reasons that raised it, most frequent first
+    (``alarm_far_rate``, ...; rows written before them: the rate alone)."""
+    rate = fmt_share(row.get("alarm_rate"))
+    reasons = sorted(((row.get(k) or 0.0, w) for k, w in ALARM_WORDS.items()), reverse=True)
+    named = [w for v, w in reasons if v > 0]
+    return f"{rate} ({', '.join(named)})" if named else rate
 
 
 def fmt_ratio(v) -> str:
@@ -118,10 +131,10 @@ def trust_rows(trust: dict | None, model_has_ensemble: bool = False) -> list[lis
     if not t.get("alarm_on", True):
         rows.append(["out-of-distribution alarm", "off", "too few calibration samples for its false-alarm rate"])
         return rows
-    rows.append([f"out-of-distribution alarm: samples raising it ({set_title(name)})", fmt_share(t["alarm_rate"]),
+    rows.append([f"out-of-distribution alarm: samples raising it ({set_title(name)})", fmt_alarm(t),
                  "in-distribution inputs: should be near the false-alarm rate"])
     if name == "test1" and "test2" in sets:
-        rows.append(["alarm on test-2 (other force fields)", fmt_share(sets["test2"]["alarm_rate"]),
+        rows.append(["alarm on test-2 (other force fields)", fmt_alarm(sets["test2"]),
                      f"bounds cover {fmt_share(sets['test2']['coverage_0.9'])} there"])
     return rows
 

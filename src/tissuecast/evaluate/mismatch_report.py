@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .headline import DASH, fmt_mm, fmt_ratio, fmt_share, html_table
+from .headline import DASH, fmt_alarm, fmt_mm, fmt_ratio, fmt_share, html_table
 
 __all__ = ["mismatch_table", "format_mismatch", "write_mismatch", "mismatch_figure", "mismatch_section",
            "MISMATCH_JSON", "MISMATCH_PNG"]
@@ -37,20 +37,8 @@ def mismatch_table(rows: list[dict]) -> list[list[str]]:
         out.append([r["set"], _range(r["in_range"]), r["model"], fmt_mm(r["peak_median"]), fmt_mm(r["mlp_offset_max"]),
                     fmt_share(r["relative"]), fmt_ratio(r["relative_vs_nominal"]), fmt_mm(r["rigid_offset_max"]),
                     fmt_mm(r["ridge_offset_max"]), fmt_ratio(r["gain_over_rigid"]), fmt_mm(r.get("mlp_tre_mean")),
-                    corrected, fmt_share(r.get("coverage_90")), _alarm_cell(r)])
+                    corrected, fmt_share(r.get("coverage_90")), fmt_alarm(r)])
     return out
-
-
-#: Short names of the alarm's reasons in the table (:data:`~.trust_report.ALARM_REASONS`' keys).
-_REASON_WORDS = {"alarm_far_rate": "far", "alarm_disagree_rate": "disagree", "alarm_still_rate": "still marker"}
-
-
-def _alarm_cell(r: dict) -> str:
-    """The alarm rate, with the reasons that raised it (most frequent first) where it fired."""
-    rate = fmt_share(r.get("alarm_rate"))
-    reasons = sorted(((r.get(k) or 0.0, w) for k, w in _REASON_WORDS.items()), reverse=True)
-    named = [w for v, w in reasons if v > 0]
-    return f"{rate} ({', '.join(named)})" if named else rate
 
 
 def format_mismatch(rows: list[dict]) -> str:

@@ -24,7 +24,7 @@ from scipy.stats import spearmanr
 
 from ..surrogate.conformal import reliability_curve
 from .evaluation import spearman_rows
-from .headline import DASH, beta_table, fmt_mm, fmt_share, html_table, set_title
+from .headline import DASH, beta_table, fmt_alarm, fmt_mm, fmt_share, html_table, set_title
 
 __all__ = ["bound_figures", "trust_evaluation", "reliability_figure", "uncertainty_section", "LEVELS"]
 
@@ -124,7 +124,7 @@ def _bounds_table(result: dict) -> str:
     rows = [[set_title(name), str(r["count"]), fmt_mm(r["offset_max"]), fmt_share(r["coverage_0.9"]),
              fmt_mm(r["median_bound_0.9"]), fmt_share(r["coverage_0.95"]), fmt_mm(r["median_bound_0.95"]),
              _fmt_rho(r["sample_spearman"]), _fmt_rho(r["vertex_spearman"]),
-             fmt_share(r["alarm_rate"]) if r.get("alarm_on", True) else "off"]
+             fmt_alarm(r) if r.get("alarm_on", True) else "off"]
             for name, r in result["sets"].items()]
     return beta_table(head, rows)
 
