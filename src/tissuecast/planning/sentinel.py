@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..surrogate.ood import fit_marker_stillness
+
 __all__ = ["SENTINEL_REACH", "attached_range", "sentinel_marker"]
 
 #: How far (mm, along the surface) beyond the drawn range's outer edge a sentinel may lie.
@@ -68,11 +70,10 @@ def sentinel_marker(displacements, train_idx, markers, candidates, distance, mar
     if not band.size:
         return -1, 0.0
     train = np.asarray(train_idx, dtype=np.int64)
-    others = np.linalg.norm(np.asarray(displacements[train][:, markers], dtype=np.float64), axis=2)
-    own = np.linalg.norm(np.asarray(displacements[train][:, band], dtype=np.float64), axis=2)
-    rms = np.sqrt(((others**2).sum(axis=1, keepdims=True) + own**2) / (markers.size + 1))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        share = np.where(rms > 0, own / rms, np.inf)
-    least = share.min(axis=0)
+    fields = np.asarray(displacements[train], dtype=np.float64)
+    others, own = fields[:, markers], fields[:, band]
+    # each candidate's least share with the others, exactly as the stillness score fits it
+    least = np.array([fit_marker_stillness(np.concatenate([others, own[:, [i]]], axis=1).reshape(len(train), -1)).least[-1]
+                      for i in range(band.size)])
     best = int(np.argmax(least))
     return int(band[best]), float(least[best])
