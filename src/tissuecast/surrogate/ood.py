@@ -160,17 +160,12 @@ class MarkerConsistency:
         X (B, 3 n_d + n_a)."""
         X = np.asarray(X, dtype=np.float64)
         n_d = len(self.regressions)
-        if self._stacked is not None:  # every marker's regression at once
-            mean, scale, directions, (a, b), coef0, coef1, coef2 = self._stacked
-            Z = (X[:, self._others] - mean) / scale  # (B, n_d, d)
-            P = np.einsum("bjd,jqd->bjq", Z, directions)
-            y = coef0 + np.einsum("bjd,jdk->bjk", Z, coef1) + np.einsum("bjq,jqk->bjk", P[..., a] * P[..., b], coef2)
-            return (y - X[:, :3 * n_d].reshape(len(X), n_d, 3)).reshape(len(X), -1)
-        out = np.empty((len(X), 3 * n_d))
-        for j, reg in enumerate(self.regressions):
-            cols = np.s_[3 * j:3 * j + 3]
-            out[:, cols] = reg.predict(X[:, self._others[j]]) - X[:, cols]
-        return out
+        # every marker's regression at once (QuadraticRegression.predict, stacked)
+        mean, scale, directions, (a, b), coef0, coef1, coef2 = self._stacked
+        Z = (X[:, self._others] - mean) / scale  # (B, n_d, d)
+        P = np.einsum("bjd,jqd->bjq", Z, directions)
+        y = coef0 + np.einsum("bjd,jdk->bjk", Z, coef1) + np.einsum("bjq,jqk->bjk", P[..., a] * P[..., b], coef2)
+        return (y - X[:, :3 * n_d].reshape(len(X), n_d, 3)).reshape(len(X), -1)
 
     def residuals(self, X) -> np.ndarray:
         """(B, n_d) distance (mm) of each marker from where the other markers put it."""
@@ -199,12 +194,11 @@ class MarkerConsistency:
         return dist, _mahalanobis(R, self.precision), faults
 
 
-def _stack_regressions(regressions) -> tuple | None:
-    """The markers' regressions as stacked arrays (means, scales (n_d, d), directions (n_d, q, d),
+def _stack_regressions(regressions) -> tuple:
+    """The markers' regressions as stacked arrays: means, scales (n_d, d), directions (n_d, q, d),
     the products' index pairs and the coefficients of the constant (n_d, 3), the linear (n_d, d, 3)
-    and the quadratic terms (n_d, Q, 3)), or None where they differ in size."""
-    if not regressions or len({(len(r.mean), len(r.directions)) for r in regressions}) != 1:
-        return None
+    and the quadratic terms (n_d, Q, 3). They are of one size: each is fitted on the same inputs
+    less one marker's 3 columns (:func:`fit_marker_consistency`)."""
     d, q = len(regressions[0].mean), len(regressions[0].directions)
     coef = np.stack([r.coef for r in regressions])  # (n_d, 1 + d + Q, 3)
     return (np.stack([r.mean for r in regressions]), np.stack([r.scale for r in regressions]),
