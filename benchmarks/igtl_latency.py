@@ -90,11 +90,11 @@ def round_trips(port: int, positions: np.ndarray, n: int, mode: str, tools: dict
         return per_call(once, n)
 
 
-def instrument_transforms(model) -> dict:
-    """{device: packed TRANSFORM} of each instrument the model reads: the tip on the surface vertex
-    nearest the markers' centroid, 1 mm out along the outward axis from the body's centre, the
-    tool's +z pushing in."""
-    devices = SurfacePredictor(model).instrument_devices
+def instrument_transforms(model, devices) -> dict:
+    """{device: packed TRANSFORM} of each instrument device the model reads (``devices``,
+    :attr:`SurfacePredictor.instrument_devices`): the tip on the surface vertex nearest the
+    markers' centroid, 1 mm out along the outward axis from the body's centre, the tool's +z
+    pushing in."""
     if not devices:
         return {}
     pts = model.mesh.points
@@ -149,7 +149,7 @@ def main() -> None:
         h = np.random.default_rng(1).random((1, 64))
         print(row("machine jitter floor: one fixed (1x64)@(64x3n) matmul", per_call(lambda: h @ W, n)))
         print(row("model.predict_from_positions", per_call(lambda: model.predict_from_positions(positions + 1.0), n)))
-        tools = instrument_transforms(model)
+        tools = instrument_transforms(model, predictor.instrument_devices)
         for packed in tools.values():
             session.feed(packed)
         print(row("server work per POINT request (in-process)", per_call(lambda: session.feed(point_message), n)))
