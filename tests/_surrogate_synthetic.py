@@ -66,6 +66,7 @@ class FakeDataset:
         self.config = None
         self.path = None  # in memory: no store
         self.scenario = None  # not recorded
+        self.scenario_arrays = {}  # nothing resolved: no attached extent drawn
         self.n_samples = len(codes)
 
     def select(self, split=None, status="done"):

@@ -31,14 +31,12 @@ SENTINEL_REACH = 5.0
 
 def attached_range(dataset) -> tuple[np.ndarray, float] | None:
     """``(signed surface distance (n,) mm from the nominal attached edge, largest drawn margin mm)``
-    of a data set that draws the attached region's extent, else None."""
-    if dataset.config is None:  # not recorded
-        return None
-    margin = tuple(dataset.config.scenario.uncertain.attached_margin)
+    of a data set that draws the attached region's extent, else None (the store keeps the distance
+    only where the margin is drawn: ``scenario/attached_distance``)."""
     distance = dataset.scenario_arrays.get("attached_distance")
-    if not margin or distance is None:
+    if distance is None:
         return None
-    return np.asarray(distance, dtype=np.float64), float(margin[1])
+    return np.asarray(distance, dtype=np.float64), float(dataset.config.scenario.uncertain.attached_margin[1])
 
 
 def sentinel_marker(displacements, train_idx, markers, candidates, distance, margin_max: float, *, points=None,
