@@ -19,12 +19,19 @@ gets one TRANSFORM per instrument before each POINT (tip on the reference surfac
 along the tool's +z), as navigation streams them: the round trip is then POINT + TRANSFORM in,
 POLYDATA out (target p99 < 3 ms), and the model's bounds and alarm are computed every frame.
 
+Where g++ and the official OpenIGTLink C++ library (Debian libopenigtlink-dev) are installed,
+the first round trip is also timed with the official client (tests/igtl_client, ``--latency``
+mode: the same TRANSFORM and POINT per frame, the POLYDATA unpacked with the library's CRC
+check, timed with std::chrono in the client), and the target line reads that client's p99.
+
 Usage: python benchmarks/igtl_latency.py [--requests 2000] [--model FOLDER]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -92,11 +99,17 @@ def round_trips(port: int, positions: np.ndarray, n: int, mode: str, tools: dict
 
 def instrument_transforms(model, devices) -> dict:
     """{device: packed TRANSFORM} of each instrument device the model reads (``devices``,
-    :attr:`SurfacePredictor.instrument_devices`): the tip on the surface vertex nearest the
-    markers' centroid, 1 mm out along the outward axis from the body's centre, the tool's +z
-    pushing in."""
+    :attr:`SurfacePredictor.instrument_devices`), each the pose :func:`tool_pose`."""
     if not devices:
         return {}
+    tool = tool_pose(model)
+    return {device: pyigtl.TransformMessage(tool, device_name=device).pack() for device in devices}
+
+
+def tool_pose(model) -> np.ndarray:
+    """(4, 4) tool pose in the model frame: the tip on the surface vertex nearest the
+    markers' centroid, 1 mm out along the outward axis from the body's centre, the tool's +z
+    pushing in."""
     pts = model.mesh.points
     surface = pts[model.mesh.surface_vertices]
     tip = surface[np.argmin(np.linalg.norm(surface - model.reference_marker_positions.mean(axis=0), axis=1))]
@@ -108,7 +121,37 @@ def instrument_transforms(model, devices) -> dict:
     tool = np.eye(4)
     tool[:3, :3] = np.column_stack([x, np.cross(z, x), z])
     tool[:3, 3] = tip + out
-    return {device: pyigtl.TransformMessage(tool, device_name=device).pack() for device in devices}
+    return tool
+
+
+CLIENT_SOURCE = Path(__file__).resolve().parents[1] / "tests" / "igtl_client" / "tissuecast_igtl_client.cxx"
+IGTL_INCLUDE = Path("/usr/include/openigtlink")
+
+
+def build_cpp_client(folder: Path) -> Path | None:
+    """The official-library client compiled into ``folder``, or None (with the reason printed)
+    where g++ or libopenigtlink-dev is missing."""
+    if shutil.which("g++") is None or not (IGTL_INCLUDE / "igtlPolyDataMessage.h").is_file():
+        print("official C++ client: not built (needs g++ and Debian libopenigtlink-dev)")
+        return None
+    binary = folder / "tissuecast_igtl_client"
+    subprocess.run(["g++", "-O2", "-o", str(binary), str(CLIENT_SOURCE), f"-I{IGTL_INCLUDE}", "-lOpenIGTLink"],
+                   check=True, capture_output=True, text=True, timeout=300)
+    return binary
+
+
+def cpp_round_trips(binary: Path, port: int, positions: np.ndarray, n: int, device: str | None,
+                    pose: np.ndarray | None) -> np.ndarray:
+    """Seconds per frame measured by the official client: TRANSFORM ``device`` (``pose``; none
+    when ``device`` is None) and POINT in, POLYDATA out and unpacked."""
+    pose = np.eye(4) if pose is None else pose
+    args = [str(binary), "127.0.0.1", str(port), "--latency", str(n), device or "-"]
+    args += [repr(float(v)) for v in pose.ravel()] + [repr(float(v)) for v in np.asarray(positions).ravel()]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=max(120, n))
+    if done.returncode != 0:
+        raise RuntimeError(f"the official client failed ({done.returncode}): {done.stderr.strip()}")
+    micros = [int(line.split()[1]) for line in done.stdout.splitlines() if line.startswith("R ")]
+    return np.asarray(micros, dtype=np.float64) * 1e-6
 
 
 def main() -> None:
@@ -136,7 +179,9 @@ def main() -> None:
         predictor = SurfacePredictor(model)
         prediction = predictor.predict(positions + 1.0, 0.0)
         session = ClientSession(predictor, lambda data: None)
-        point_message = pyigtl.PointMessage(positions + 1.0, device_name="Markers").pack()
+        jitter = np.random.default_rng(1)  # every frame's markers differ, as tracked ones do
+        point_messages = itertools.cycle([pyigtl.PointMessage(positions + jitter.normal(0.0, 0.5, positions.shape),
+                                                              device_name="Markers").pack() for _ in range(256)])
         tris = np.hstack([np.full((len(mesh.surface_triangles), 1), 3), np.searchsorted(
             predictor.surface_ids, mesh.surface_triangles)]).ravel()
 
@@ -152,7 +197,7 @@ def main() -> None:
         tools = instrument_transforms(model, predictor.instrument_devices)
         for packed in tools.values():
             session.feed(packed)
-        print(row("server work per POINT request (in-process)", per_call(lambda: session.feed(point_message), n)))
+        print(row("server work per POINT request (in-process)", per_call(lambda: session.feed(next(point_messages)), n)))
         packed = per_call(lambda: predictor.surface_message(prediction), n)
         naive = per_call(pyigtl_pack, n)
         print(row("pack surface: pre-packed template + segment CRC", packed))
@@ -164,17 +209,26 @@ def main() -> None:
         if ensemble is not None:
             runs.append(("round trip POINT -> surface + uncertainty (5 nets)", Path(tmp) / "ensemble", (), "point"))
         results = {}
+        binary = build_cpp_client(Path(tmp))
+        device = next(iter(tools), None)
+        official = "round trip POINT -> TissueSurface, C++ client"
         for name, path, extra, mode in runs:
             proc, port = start_server(path, *extra)
             try:
                 results[name] = round_trips(port, positions, n, mode, tools)
+                print(row(name, results[name]))
+                if binary is not None and name == runs[0][0]:
+                    results[official] = cpp_round_trips(binary, port, positions, n, device,
+                                                        tool_pose(model) if device else None)
+                    print(row(official, results[official]))
             finally:
                 proc.terminate()
                 proc.wait(10)
-            print(row(name, results[name]))
-        p99 = np.percentile(results[runs[0][0]], 99) * 1e3
+        which = official if official in results else runs[0][0]
+        p99 = np.percentile(results[which], 99) * 1e3
         what, target = ("POINT + TRANSFORM", 3.0) if tools else ("POINT", 1.0)
-        print(f"\n{what} -> TissueSurface over {n} requests: p99 = {p99:.3f} ms "
+        client = "the official C++ client" if which == official else "the Python client"
+        print(f"\n{what} -> TissueSurface over {n} requests with {client}: p99 = {p99:.3f} ms "
               f"({'meets' if p99 < target else 'MISSES'} the {target:g} ms target on this machine)")
 
 

@@ -110,6 +110,8 @@ class ReferenceSurface:
         self.origin = p[tri[:, 0]]
         self.edge1 = p[tri[:, 1]] - self.origin
         self.edge2 = p[tri[:, 2]] - self.origin
+        # (3, t) contiguous components: one pose per tracked frame reads them with 1-D products
+        self._o, self._e1, self._e2 = (np.ascontiguousarray(a.T) for a in (self.origin, self.edge1, self.edge2))
 
     @classmethod
     def of(cls, mesh) -> "ReferenceSurface":
@@ -120,17 +122,18 @@ class ReferenceSurface:
         """Distances (k,) mm, ascending, at which ``start + s ray`` (s > 0; ``ray`` (3,) unit)
         crosses the surface (Moller-Trumbore over every triangle; a ray through an edge or a
         vertex meets each triangle there at one distance, counted once)."""
-        start = np.asarray(start, dtype=np.float64)
-        ray = np.asarray(ray, dtype=np.float64)
-        h = np.cross(ray, self.edge2)
-        det = np.einsum("ij,ij->i", self.edge1, h)
+        sx, sy, sz = np.asarray(start, dtype=np.float64).reshape(3)
+        rx, ry, rz = np.asarray(ray, dtype=np.float64).reshape(3)
+        (e1x, e1y, e1z), (e2x, e2y, e2z) = self._e1, self._e2
+        hx, hy, hz = ry * e2z - rz * e2y, rz * e2x - rx * e2z, rx * e2y - ry * e2x  # ray x edge2
+        det = e1x * hx + e1y * hy + e1z * hz
         ok = np.abs(det) > 1e-14
         inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        s = start - self.origin
-        u = np.einsum("ij,ij->i", s, h) * inv
-        q = np.cross(s, self.edge1)
-        v = (q @ ray) * inv
-        t = np.einsum("ij,ij->i", self.edge2, q) * inv
+        px, py, pz = sx - self._o[0], sy - self._o[1], sz - self._o[2]  # start - origin
+        u = (px * hx + py * hy + pz * hz) * inv
+        qx, qy, qz = py * e1z - pz * e1y, pz * e1x - px * e1z, px * e1y - py * e1x  # (start - origin) x edge1
+        v = (qx * rx + qy * ry + qz * rz) * inv
+        t = (e2x * qx + e2y * qy + e2z * qz) * inv
         hit = ok & (u >= -_BARY_EPS) & (v >= -_BARY_EPS) & (u + v <= 1.0 + _BARY_EPS) & (t > _RAY_EPS)
         t = np.sort(t[hit])
         if len(t) < 2:

@@ -21,6 +21,7 @@
 //   POINT it prints the two replies (POLYDATA, then the STATUS saying whether the instrument is
 //   tracked), as above.
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
@@ -157,6 +158,75 @@ static int receiveAndPrint(igtl::ClientSocket::Pointer& socket)
   return 1;
 }
 
+// Receives messages until a POLYDATA (skipping STATUS and reading any other body); returns 1 when
+// the POLYDATA's CRC check passed, 0 otherwise or when the connection closed.
+static int receivePolyData(igtl::ClientSocket::Pointer& socket, igtl::MessageHeader::Pointer& header,
+                           igtl::PolyDataMessage::Pointer& polydata)
+{
+  for (;;)
+  {
+    header->InitPack();
+    if (socket->Receive(header->GetPackPointer(), header->GetPackSize()) != header->GetPackSize())
+      return 0;
+    header->Unpack();
+    if (std::strcmp(header->GetDeviceType(), "POLYDATA") == 0)
+    {
+      polydata->SetMessageHeader(header);
+      polydata->AllocatePack();
+      socket->Receive(polydata->GetPackBodyPointer(), polydata->GetPackBodySize());
+      return (polydata->Unpack(1) & igtl::MessageHeader::UNPACK_BODY) ? 1 : 0;
+    }
+    std::vector<char> body(header->GetBodySizeToRead());
+    if (!body.empty())
+      socket->Receive(&body[0], static_cast<int>(body.size()));
+    if (std::strcmp(header->GetDeviceType(), "STATUS") != 0)
+      return 0;
+  }
+}
+
+static int runLatency(igtl::ClientSocket::Pointer& socket, int argc, char* argv[])
+{
+  if (argc < 6 + 16 + 3 || (argc - 6 - 16) % 3 != 0 || std::atoi(argv[4]) < 1)
+  {
+    std::fprintf(stderr, "usage: %s HOST PORT --latency FRAMES DEVICE M00..M33 X0 Y0 Z0 [...]\n", argv[0]);
+    return 2;
+  }
+  int frames = std::atoi(argv[4]);
+  bool tool = std::strcmp(argv[5], "-") != 0;
+  float pose[16];
+  for (int i = 0; i < 16; ++i)
+    pose[i] = static_cast<float>(std::atof(argv[6 + i]));
+  std::vector<float> xyz;
+  for (int i = 6 + 16; i < argc; ++i)
+    xyz.push_back(static_cast<float>(std::atof(argv[i])));
+  size_t count = xyz.size() / 3;
+  std::vector<float> moved(xyz.size());
+  igtl::MessageHeader::Pointer header = igtl::MessageHeader::New();
+  igtl::PolyDataMessage::Pointer polydata = igtl::PolyDataMessage::New();
+  const int warmup = 20;
+  for (int frame = 0; frame < warmup + frames; ++frame)
+  {
+    for (size_t i = 0; i < xyz.size(); ++i)
+      moved[i] = xyz[i] + 0.5f * static_cast<float>(std::sin(0.7 * frame + 1.3 * i));
+    std::chrono::steady_clock::time_point start = std::chrono::steady_clock::now();
+    if (tool)
+      sendTransform(socket, argv[5], pose);
+    sendPoints(socket, moved, count, false);
+    if (!receivePolyData(socket, header, polydata))
+    {
+      std::fprintf(stderr, "frame %d: no POLYDATA reply with a valid CRC\n", frame);
+      return 3;
+    }
+    std::chrono::steady_clock::time_point end = std::chrono::steady_clock::now();
+    if (frame >= warmup)
+      std::printf("R %lld\n", static_cast<long long>(
+                                  std::chrono::duration_cast<std::chrono::microseconds>(end - start).count()));
+  }
+  std::fflush(stdout);
+  socket->CloseSocket();
+  return 0;
+}
+
 static int runInstrument(igtl::ClientSocket::Pointer& socket, int argc, char* argv[])
 {
   if (argc < 6 + 16 + 3 || (argc - 6 - 16) % 3 != 0)
@@ -189,7 +259,8 @@ static int runInstrument(igtl::ClientSocket::Pointer& socket, int argc, char* ar
 
 int main(int argc, char* argv[])
 {
-  if (argc > 3 && std::strcmp(argv[3], "--instrument") == 0)
+  bool latency = argc > 3 && std::strcmp(argv[3], "--latency") == 0;
+  if (latency || (argc > 3 && std::strcmp(argv[3], "--instrument") == 0))
   {
     igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
     if (socket->ConnectToServer(argv[1], std::atoi(argv[2])) != 0)
@@ -198,7 +269,7 @@ int main(int argc, char* argv[])
       return 1;
     }
     socket->SetReceiveTimeout(10000);
-    return runInstrument(socket, argc, argv);
+    return latency ? runLatency(socket, argc, argv) : runInstrument(socket, argc, argv);
   }
   if (argc < 4 + 16 + 3 || (argc - 4 - 16) % 3 != 0)
   {

@@ -159,3 +159,31 @@ def test_cpp_client_streams_a_tracked_instrument_and_hears_when_it_is_lost(clien
         assert (device, crc_ok, int(code), name) == (STATUS_DEVICE, "1", int(want_code), want_name)
         assert "RetractorToReference" in text
     assert "markers only" in status[2][6]
+
+
+def test_cpp_client_latency_mode_times_every_frame_and_fails_on_a_reply_that_is_not_the_surface(client_binary):
+    """The official client's timing mode (benchmarks/igtl_latency.py): TRANSFORM + POINT per frame,
+    one time per frame after 20 warm-up frames, each POLYDATA passing the library's CRC check;
+    a reply that is not the surface (a POINT one marker short is answered with a STRING) ends it
+    with exit status 3."""
+    from _instrument_synthetic import instrument_model
+
+    model = instrument_model()
+    tool = np.eye(4)
+    tool[:3, 3] = model.mesh.points[model.mesh.surface_vertices[0]]
+    markers = model.reference_marker_positions
+    frames = 40
+    with IGTLServer(model, "127.0.0.1", 0) as server:
+        def run(positions):
+            args = [str(client_binary), *map(str, server.address), "--latency", str(frames), "RetractorToReference"]
+            args += [repr(float(v)) for v in tool.ravel()] + [repr(float(v)) for v in positions.ravel()]
+            return subprocess.run(args, capture_output=True, text=True, timeout=60)
+
+        done = run(markers)
+        surfaces = server.stats["replies"]
+        short = run(markers[:-1])
+    assert done.returncode == 0, done.stderr
+    times = [line.split() for line in done.stdout.splitlines()]
+    assert len(times) == frames and all(t[0] == "R" and int(t[1]) > 0 for t in times), done.stdout[:200]
+    assert surfaces >= frames + 20  # a surface for every frame, warm-up included
+    assert short.returncode == 3 and "no POLYDATA reply" in short.stderr, (short.returncode, short.stderr)

@@ -106,6 +106,15 @@ def test_the_input_let_through_last_passes_at_once_and_nothing_else_does(monkeyp
     gate.enforce(ok, mask)  # the last passed input still passes at once
     gate.enforce(ok)  # the one before it is checked again
     assert len(calls) == 5
+    # an input a server inspected (and let through) passes the model's enforce at once; a mask
+    # with no marker missing is the same input as none
+    other = ok + 0.25
+    assert not gate.inspect(other, np.zeros((1, 3), dtype=bool))[0].refused
+    gate.enforce(other.copy())
+    assert len(calls) == 6
+    assert gate.inspect(bad)[0].refused  # a refused inspection forgets nothing and remembers nothing
+    gate.enforce(other)
+    assert len(calls) == 7
 
 
 # ---------------------------------------------------------------------------------------------- the API

@@ -94,7 +94,7 @@ class InputGate:
                                      length * (s[:, 1] + widen) + TOLERANCE_MM], axis=1))
         object.__setattr__(self, "_displacement_limits",
                            DISPLACEMENT_FACTOR * np.asarray(self.max_displacement, dtype=np.float64) + TOLERANCE_MM)
-        object.__setattr__(self, "_passed", None)  # the last input enforce() let through: (values, missing) bytes
+        object.__setattr__(self, "_passed", None)  # the last input inspect() or enforce() let through: (values, missing) bytes
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -123,7 +123,10 @@ class InputGate:
 
     # ------------------------------------------------------------------ verdicts
     def inspect(self, d, missing=None) -> list[GateVerdict]:
-        """One verdict per input of ``d`` (B, 3 n_d) mm; ``missing`` (B, n_d) bool marks untracked markers (not checked)."""
+        """One verdict per input of ``d`` (B, 3 n_d) mm; ``missing`` (B, n_d) bool marks untracked markers (not checked).
+
+        An input every verdict lets through is remembered as :meth:`enforce` remembers it."""
+        key = self._key(d, missing)
         d = np.asarray(d, dtype=np.float64).reshape(len(d), -1, 3)
         tracked = np.ones(d.shape[:2], dtype=bool) if missing is None else ~np.asarray(missing, dtype=bool)
         finite = np.isfinite(d).all(axis=2) | ~tracked
@@ -144,25 +147,32 @@ class InputGate:
                 verdicts.append(self._stretch_verdict(bad_pair[s], dist[s]))
             else:
                 verdicts.append(GateVerdict())
+        if not any(v.refused for v in verdicts):
+            object.__setattr__(self, "_passed", key)
         return verdicts
+
+    @staticmethod
+    def _key(d, missing) -> tuple:
+        """What identifies an input (B, 3 n_d) mm and its ``missing`` mask (no marker missing: None)."""
+        values = np.ascontiguousarray(d, dtype=np.float64)
+        values = values.reshape(len(values), -1)
+        if missing is not None:
+            missing = np.ascontiguousarray(missing, dtype=bool)
+        return values.shape, values.tobytes(), None if missing is None or not missing.any() else missing.tobytes()
 
     def enforce(self, d, missing=None) -> None:
         """Raise :class:`~tissuecast.errors.InputRejected` for the first refused input of ``d`` (B, 3 n_d) mm.
 
-        The input it last let through is remembered (its bytes): the parts of a composed model
-        share one gate, and each checks the input again on its way down; the same values pass
-        at once."""
-        values = np.ascontiguousarray(d, dtype=np.float64)
-        key = (values.shape, values.tobytes(),
-               None if missing is None else np.ascontiguousarray(missing, dtype=bool).tobytes())
-        if key == self._passed:
+        The input it last let through (here or in :meth:`inspect`) is remembered (its bytes): the
+        parts of a composed model share one gate, and each checks the input again on its way
+        down, after a server has inspected it; the same values pass at once."""
+        if self._key(d, missing) == self._passed:
             return
         for s, v in enumerate(self.inspect(d, missing)):
             if v.refused:
                 where = f"sample {s}: " if len(d) > 1 else ""
                 raise InputRejected(f"{where}{v.message}", reason=v.reason, marker=v.marker, vertex=v.vertex,
                                     sample=s)
-        object.__setattr__(self, "_passed", key)
 
     def _name(self, j: int) -> str:
         return f"marker {j} (input index {j}, vertex {int(self.markers[j])})"
