@@ -23,7 +23,14 @@ Prints, for the data-set store given (any preset: the paper's, or a scenario suc
    solves a sample, its scenario draws included, with only the force magnitude alpha scaled;
    cached in ``--cache``), at the calibrated
    1 % false-alarm rate; detection versus glitch size and load scale; for 3 mm glitches, which
-   score raised the alarm and how often it names the displaced marker.
+   score raised the alarm and how often it names the displaced marker; (d) tracking noise:
+   the alarm rate on test-1 with Gaussian noise of ``--noise`` mm a coordinate on every marker
+   (false alarms under tracking), and with ``--mismatch FOLDER`` (a mismatch study's kept sets,
+   ``REPORT/mismatch``) the alarm rate of every set at each noise level, with the reasons (far
+   from training, markers that disagree, a marker that stood still).
+
+A model reading instruments gets the store's poses with every input. ``--model FOLDER``
+measures a saved model (its markers) instead of fitting one for parts 2 and 3.
 
 All lengths in mm. Not run in CI (minutes; part 3's FEM solves take longer the first time).
 
@@ -31,6 +38,8 @@ Usage::
 
     python benchmarks/trust_and_planning.py --dataset runs/paper/dataset.zarr [--part all | planning bounds alarm]
         [--markers 10] [--json out.json]
+    python benchmarks/trust_and_planning.py --dataset runs/embedded/dataset.zarr --model runs/embedded/model \
+        --part alarm --skip-fem --mismatch runs/embedded/report/mismatch
 """
 
 from __future__ import annotations
@@ -45,11 +54,11 @@ from scipy.stats import spearmanr
 
 from tissuecast.dataset import open_dataset
 from tissuecast.evaluate.evaluation import spearman_rows
-from tissuecast.evaluate.trust_report import bound_figures
+from tissuecast.evaluate.trust_report import ALARM_REASONS, bound_figures
 from tissuecast.planning.selection import EXCHANGE_ROUNDS
 from tissuecast.surrogate import DeformationModel
 from tissuecast.surrogate.conformal import reliability_curve
-from tissuecast.surrogate.data import dataset_arrays, split_indices
+from tissuecast.surrogate.data import dataset_arrays, dataset_auxiliary, split_indices
 
 
 def head_override(args) -> dict:
@@ -166,9 +175,23 @@ def part_predictability(ds, model, U, out: dict, folds: int = 5) -> None:
 
 
 # ---------------------------------------------------------------------------------- bounds
+def auxiliary_of(model, ds, idx):
+    """(len(idx), n_a) the store's auxiliary inputs (instrument poses) of samples ``idx`` for a
+    model that reads some, else None."""
+    if not model.auxiliary.width:
+        return None
+    return dataset_auxiliary(ds, model.auxiliary).values[np.asarray(idx)]
+
+
 def trust_model(ds, args):
     a = dataset_arrays(ds)
     U = np.asarray(a.displacements, dtype=np.float64)
+    if args.model:
+        model = DeformationModel.load(args.model)
+        if not model.has_trust:
+            raise SystemExit(f"{args.model} has no trust layer (bounds and alarm)")
+        print(f"\nmodel {args.model}: markers {model.markers.tolist()}, n_w {model.n_components}")
+        return model, U
     markers = a.markers
     if args.markers:  # the k-center rule's first N markers instead of the store's
         from tissuecast.evaluate.studies import study_markers
@@ -195,9 +218,10 @@ def part_bounds(ds, model, U, args, out: dict) -> None:
     t1 = split_indices(ds, "test1")
     t2 = split_indices(ds, "test2")
     beta = np.asarray(ds.beta)
-    rows = {"test1": bound_figures(model, U[t1])}
+    rows = {"test1": bound_figures(model, U[t1], auxiliary=auxiliary_of(model, ds, t1))}
     for b in np.unique(beta[t2]):
-        rows[f"test2 beta={b:g}"] = bound_figures(model, U[t2[beta[t2] == b]])
+        chosen = t2[beta[t2] == b]
+        rows[f"test2 beta={b:g}"] = bound_figures(model, U[chosen], auxiliary=auxiliary_of(model, ds, chosen))
     print(f"{'set':14s} {'n':>4s} {'OffMax':>7s} | {'cov 90%':>7s} {'med b90':>7s} | {'cov 95%':>7s} {'med b95':>7s} | "
           f"{'rho sample':>10s} {'rho vertex':>10s}")
     for name, r in rows.items():
@@ -224,14 +248,17 @@ def part_bounds(ds, model, U, args, out: dict) -> None:
 
 
 # ---------------------------------------------------------------------------------- alarm
-def swap_markers(d, ref, rng) -> np.ndarray:
-    """Two random markers' tracked positions exchanged: d (B, n_d, 3) displacements, ref (n_d, 3)."""
+def swap_markers(d, ref, rng, return_pairs: bool = False):
+    """Two random markers' tracked positions exchanged: d (B, n_d, 3) displacements, ref (n_d, 3);
+    with ``return_pairs`` also the exchanged pairs (B, 2), i < j."""
     out = d.copy()
+    pairs = np.zeros((len(d), 2), dtype=np.int64)
     for b in range(len(d)):
-        i, j = rng.choice(len(ref), 2, replace=False)
+        i, j = sorted(rng.choice(len(ref), 2, replace=False))
         pi, pj = ref[i] + d[b, i], ref[j] + d[b, j]
         out[b, i], out[b, j] = pj - ref[i], pi - ref[j]
-    return out
+        pairs[b] = i, j
+    return (out, pairs) if return_pairs else out
 
 
 def displace_marker(d, size, rng, return_index: bool = False):
@@ -331,6 +358,47 @@ def part_alarm_loads(ds, model, args) -> dict:
     return rows
 
 
+def alarm_shares(model, d, aux) -> dict:
+    """Share of inputs ``d`` (B, n_d, 3) mm alarmed, alarmed for each reason, refused by the
+    input gate, and flagged either way (call with the gate suspended)."""
+    refused = np.array([v.refused for v in model.check_input(d)])
+    alarms = model.predict_trusted(d, auxiliary=aux).alarms
+    row = {"alarm": float(np.mean([a.raised for a in alarms])), "gate_refused": float(refused.mean()),
+           "flagged": float(np.mean(refused | np.array([a.raised for a in alarms])))}
+    for key, reason in ALARM_REASONS.items():
+        row[key] = float(np.mean([a.raised and getattr(a, reason) for a in alarms]))
+    return row
+
+
+def part_alarm_noise(ds, model, args) -> dict:
+    """(d): alarm rates under Gaussian tracking noise (``args.noise`` mm a coordinate, every
+    marker) on clean test-1 and on each kept set of a mismatch study (``args.mismatch``)."""
+    rng = np.random.default_rng(23)
+    sets = {"test-1 (clean)": ds}
+    if args.mismatch:
+        for store in sorted(Path(args.mismatch).glob("*.zarr")):
+            sets[store.stem] = open_dataset(store)
+    levels = [0.0, *args.noise]
+    print(f"(d) tracking noise ({', '.join(f'{v:g}' for v in levels)} mm a coordinate on every marker): "
+          "alarm rate (far / disagree / still marker / swapped markers)")
+    res = {}
+    for name, sds in sets.items():
+        idx = split_indices(sds, "test1")
+        if len(idx) == 0:
+            continue
+        d = np.asarray(sds.displacements, dtype=np.float64)[idx][:, model.markers, :]
+        aux = auxiliary_of(model, sds, idx)
+        with model.gate_suspended():  # noisy input the gate would refuse is still an input the alarm sees
+            rows = {f"{v:g}": alarm_shares(model, d + rng.normal(0.0, v, d.shape) if v else d, aux) for v in levels}
+        res[name] = rows
+        print(f"  {name:<28s} " + "  ".join(
+            f"{k} mm: {100 * r['alarm']:5.1f} % ({100 * r['alarm_far_rate']:.0f}/{100 * r['alarm_disagree_rate']:.0f}/"
+            f"{100 * r['alarm_still_rate']:.0f}/{100 * r['alarm_swap_rate']:.0f})" for k, r in rows.items())
+              + (f"; the gate refuses up to {100 * max(r['gate_refused'] for r in rows.values()):.0f} %"
+                 if any(r["gate_refused"] for r in rows.values()) else ""))
+    return res
+
+
 def part_alarm(ds, model, U, args, out: dict) -> None:
     rng = np.random.default_rng(17)
     fa = model.config.false_alarm_rate
@@ -339,27 +407,40 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
     ref = model.reference_marker_positions
     t1 = split_indices(ds, "test1")
     d = U[t1][:, model.markers, :]
+    aux1 = auxiliary_of(model, ds, t1)
 
-    def rate(dd) -> float:
-        return float(np.mean([a.raised for a in model.predict_trusted(dd).alarms]))
+    def rate(dd, aux=aux1) -> float:  # the alarm alone: the input gate would refuse some of these first
+        with model.gate_suspended():
+            return float(np.mean([a.raised for a in model.predict_trusted(dd, auxiliary=aux).alarms]))
 
     res = {"false_alarms_test1": rate(d)}
-    swaps = [rate(swap_markers(d, ref, rng)) for _ in range(5)]
-    res["swap"] = float(np.mean(swaps))
+    swaps, named = [], []
+    with model.gate_suspended():
+        for _ in range(5):
+            swapped, pairs = swap_markers(d, ref, rng, return_pairs=True)
+            swaps.append(alarm_shares(model, swapped, aux1))
+            alarms = model.predict_trusted(swapped, auxiliary=aux1).alarms
+            named += [a.swapped_markers_alarm and (a.swap_first, a.swap_second) == tuple(p) for a, p in zip(alarms, pairs)]
+    res["swap"] = float(np.mean([r["alarm"] for r in swaps]))
+    res["swap_flagged"] = float(np.mean([r["flagged"] for r in swaps]))  # refused by the input gate or alarmed
+    res["swap_named"] = float(np.mean(named))  # the swap score named the exchanged pair
     res["displaced"] = {f"{s:g}": float(np.mean([rate(displace_marker(d, s, rng)) for _ in range(5)]))
                         for s in (0.25, 0.5, 1.0, 2.0, 3.0, 5.0)}
     print(f"clean test-1: false alarms {100 * res['false_alarms_test1']:.1f} % (n = {len(t1)})")
     cons = model.trusted_.layer.ood.consistency
     if cons is not None:  # how far each clean marker lies from where the others put it: the floor of (b)
-        miss = cons.residuals(d.reshape(len(d), -1))
+        miss = cons.residuals(model.trusted_.layer.inputs(d.reshape(len(d), -1), aux1, len(d)))
         res["clean_marker_miss_mm"] = {q: float(np.percentile(miss, v)) for q, v in (("median", 50), ("p90", 90), ("p99", 99))}
         print("clean test-1, each marker predicted from the others misses by (mm): "
               + ", ".join(f"{k} {v:.2f}" for k, v in res["clean_marker_miss_mm"].items()))
-    print(f"(a) two markers swapped: detected {100 * res['swap']:.1f} % (5 random swaps per test-1 sample)")
+    print(f"(a) two markers swapped: detected {100 * res['swap']:.1f} % (5 random swaps per test-1 sample); refused by "
+          f"the input gate or alarmed {100 * res['swap_flagged']:.1f} %; the swap score names the pair in "
+          f"{100 * res['swap_named']:.1f} %")
     print("(b) one marker displaced, detection by size: "
           + ", ".join(f"{k} mm: {100 * v:.1f} %" for k, v in res["displaced"].items()))
     glitched, which = displace_marker(d, 3.0, rng, return_index=True)
-    alarms = model.predict_trusted(glitched).alarms
+    with model.gate_suspended():
+        alarms = model.predict_trusted(glitched, auxiliary=aux1).alarms
     raised = np.array([a.raised for a in alarms])
     named = np.array([a.marker for a in alarms]) == which
     res["displaced_3mm_named"] = float(named[raised].mean()) if raised.any() else float("nan")
@@ -375,8 +456,10 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
           "inputs)")
     t2 = split_indices(ds, "test2")
     beta = np.asarray(ds.beta)
-    res["test2_alarm_by_beta"] = {f"{b:g}": rate(U[t2[beta[t2] == b]][:, model.markers, :]) for b in np.unique(beta[t2])}
+    res["test2_alarm_by_beta"] = {f"{b:g}": rate(U[t2[beta[t2] == b]][:, model.markers, :],
+                                                 auxiliary_of(model, ds, t2[beta[t2] == b])) for b in np.unique(beta[t2])}
     print("test-2 alarm rate by beta: " + ", ".join(f"{k}: {100 * v:.0f} %" for k, v in res["test2_alarm_by_beta"].items()))
+    res["noise"] = part_alarm_noise(ds, model, args)
     if not args.skip_fem:
         res["loads"] = part_alarm_loads(ds, model, args)
     out["alarm"] = res
@@ -406,6 +489,10 @@ def main(argv=None) -> int:
     p.add_argument("--load-samples", type=int, default=24, help="test-1 force fields solved per load scale")
     p.add_argument("--cache", default="benchmark-cache", help="folder caching the scaled-load FEM solves")
     p.add_argument("--skip-fem", action="store_true", help="skip the scaled-load FEM solves of part 3")
+    p.add_argument("--model", help="bounds and alarm: this saved model folder instead of fitting one")
+    p.add_argument("--noise", type=float, nargs="*", default=[0.1, 0.25, 0.5],
+                   help="alarm (d): tracking noise levels, mm a coordinate")
+    p.add_argument("--mismatch", help="alarm (d): a mismatch study's folder of kept sets (REPORT/mismatch)")
     p.add_argument("--json", help="write every figure to this JSON file")
     args = p.parse_args(argv)
     ds = open_dataset(args.dataset)

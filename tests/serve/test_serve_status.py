@@ -1,5 +1,6 @@
 """Error bounds in the POLYDATA replies and the out-of-distribution alarm as OpenIGTLink STATUS."""
 
+import itertools
 import numpy as np
 import pytest
 
@@ -92,3 +93,18 @@ def test_a_marker_standing_still_sends_its_own_alarm_bit(model):
         status = client.receive()
         assert status.header.message_type == "STATUS" and status.status.subcode & AlarmBits.STILL_MARKER
         assert f"marker {j} did not move" in status.text
+
+
+def test_two_exchanged_markers_send_their_own_alarm_bit_naming_them(model):
+    """On this small body the input gate refuses every exchange (its markers' distances barely
+    change in the simulations); with the gate off, the alarm names the exchanged pair."""
+    ref = model.reference_marker_positions
+    positions = _positions(model, 4)
+    i, j = min(itertools.combinations(range(len(ref)), 2), key=lambda p: np.linalg.norm(ref[p[0]] - ref[p[1]]))
+    positions[[i, j]] = positions[[j, i]]  # the tracker's labels of the two nearest markers exchanged
+    assert model.check_input(positions - ref).refused
+    with model.gate_suspended(), IGTLServer(model, "127.0.0.1", 0) as srv, IGTLClient(*srv.address) as client:
+        client.predict(positions)
+        status = client.receive()
+        assert status.header.message_type == "STATUS" and status.status.subcode & AlarmBits.SWAPPED_MARKERS
+        assert f"markers {i} and {j} look exchanged" in status.text

@@ -3,8 +3,8 @@ the whole-vector consistency score, and its calibrated false-alarm rate."""
 
 import numpy as np
 
-from tissuecast.surrogate.ood import (OODScores, calibrate_ood, fit_input_distance, fit_marker_consistency,
-                                     fit_marker_stillness)
+from tissuecast.surrogate.ood import (SWAP_RATIO, MarkerSwap, OODScores, calibrate_ood, fit_input_distance,
+                                     fit_marker_consistency, fit_marker_stillness)
 
 
 def _inputs(n, rng, n_d=20, noise=0.3):
@@ -86,3 +86,57 @@ def test_the_stillness_score_finds_a_marker_held_still_that_every_training_input
     old = OODScores(ood.distance, ood.consistency, ood.scale[:3], ood.calibration)
     assert np.isnan(old.scores(Xs)[:, 3]).all() and np.isinf(old.thresholds(0.01)[3])
     np.testing.assert_array_equal(old.combined(old.scores(Xs)[:, :3]), old.combined(old.scores(Xs)))
+
+
+def test_exchanged_inputs_put_each_marker_of_a_pair_where_the_other_was_tracked():
+    ref = np.array([[0.0, 0, 0], [10.0, 0, 0], [0, 20.0, 0]])
+    swap = MarkerSwap(ref)
+    np.testing.assert_array_equal(swap.pairs, [[0, 1], [0, 2], [1, 2]])
+    d = np.array([[1.0, 2, 3], [4.0, 5, 6], [7.0, 8, 9]])
+    x = np.concatenate([d.ravel(), [0.5, -0.5]])[None]  # two auxiliary inputs after the markers
+    out = swap.exchanged(x)
+    assert out.shape == (1, 3, 11)
+    for p, (i, j) in enumerate(swap.pairs):
+        e = out[0, p, :9].reshape(3, 3)
+        np.testing.assert_allclose(ref + e, (ref + d)[[{i: j, j: i}.get(k, k) for k in range(3)]])  # positions exchanged
+        np.testing.assert_array_equal(out[0, p, 9:], [0.5, -0.5])
+    np.testing.assert_allclose(swap.exchanged(swap.exchanged(x)[:, 1])[:, 1], x)  # exchanging twice restores
+
+
+def test_the_swap_score_finds_two_exchanged_markers_and_passes_clean_and_slipped_ones():
+    rng = np.random.default_rng(6)
+    n_d = 8
+    pos = np.random.default_rng(0).uniform(-30, 30, (n_d, 3))
+    Xt, Xv, Xc, Xs = (_inputs(n, rng, n_d=n_d) for n in (1500, 300, 400, 500))
+    swap = MarkerSwap(pos)  # the reference positions of _inputs' markers
+    cons = fit_marker_consistency(Xt, Xv)
+    ood = calibrate_ood(fit_input_distance(Xt), cons, Xv, Xc, swap=swap)
+    thr = ood.thresholds(0.01)
+    assert thr[4] == SWAP_RATIO and ood.scale[4] == 1.0
+    clean = ood.scores(Xs)[:, 4]
+    assert np.mean(clean > SWAP_RATIO) <= 0.01 and np.median(clean) < 1.0  # any exchange makes clean markers agree worse
+    # two markers exchanged: exchanging them back is the best exchange, and by far
+    d = Xs.reshape(len(Xs), n_d, 3)
+    pair = rng.integers(0, len(swap.pairs), len(Xs))
+    i, j = swap.pairs[pair, 0], swap.pairs[pair, 1]
+    rows = np.arange(len(Xs))
+    swapped = d.copy()
+    swapped[rows, i] = pos[j] + d[rows, j] - pos[i]
+    swapped[rows, j] = pos[i] + d[rows, i] - pos[j]
+    score, named = swap.evaluate(swapped.reshape(len(Xs), -1), cons)
+    assert np.mean(score > SWAP_RATIO) >= 0.95
+    assert np.mean(named == pair) >= 0.95
+    np.testing.assert_allclose(ood.scores(swapped.reshape(len(Xs), -1))[:, 4], score)
+    # one marker slipped 5 mm: the markers disagree, but no exchange explains it
+    slipped = d.copy()
+    v = rng.normal(size=(len(Xs), 3))
+    slipped[rows, rng.integers(0, n_d, len(Xs))] += 5.0 * v / np.linalg.norm(v, axis=1, keepdims=True)
+    s = ood.scores(slipped.reshape(len(Xs), -1))
+    assert np.mean(s[:, 1] > thr[1]) >= 0.9 and np.mean(s[:, 4] > SWAP_RATIO) <= 0.02
+    # the swap score is not part of the conformal alarm score, and an uncalibrated alarm is off, swaps too
+    np.testing.assert_array_equal(ood.combined(s), OODScores(ood.distance, cons, ood.scale[:4], ood.calibration).combined(s))
+    assert np.isinf(OODScores(ood.distance, cons, ood.scale, np.zeros(0), swap=swap).thresholds(0.01)[4])
+    # trust files written before the score, and a single marker (no consistency): no swap score
+    for old in (OODScores(ood.distance, cons, ood.scale[:4], ood.calibration),
+                OODScores(ood.distance, None, ood.scale, ood.calibration, swap=swap)):
+        assert not old.has_swap and np.isnan(old.scores(Xs)[:, 4]).all() and np.isinf(old.thresholds(0.01)[4])

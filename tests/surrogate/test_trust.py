@@ -13,11 +13,15 @@ from _surrogate_synthetic import MARKERS, nonlinear_fields
 from _trust_synthetic import SPLITS, trust_data, trust_model
 
 
-def _swap(d, ref, rng):
+def _swap(d, ref, rng, pairs=None):
+    """d (B, n_d, 3) with two random markers' tracked positions exchanged in each sample; with
+    ``pairs`` (a list), the exchanged (i, j), i < j, are appended to it."""
     out = d.copy()
     for b in range(len(d)):
-        i, j = rng.choice(len(ref), 2, replace=False)
+        i, j = sorted(rng.choice(len(ref), 2, replace=False))
         out[b, i], out[b, j] = ref[j] + d[b, j] - ref[i], ref[i] + d[b, i] - ref[j]
+        if pairs is not None:
+            pairs.append((int(i), int(j)))
     return out
 
 
@@ -67,8 +71,15 @@ def test_alarm_is_quiet_on_clean_inputs_and_fires_on_each_fault(model, test_fiel
     clean = [a.raised for a in model.predict_trusted(d).alarms]
     assert np.mean(clean) <= 0.03  # nominal 1 % false alarms
     # (a) two markers' tracked positions swapped
-    swapped = model.predict_trusted(_swap(d, model.reference_marker_positions, rng)).alarms
+    pairs = []
+    swapped = model.predict_trusted(_swap(d, model.reference_marker_positions, rng, pairs)).alarms
     assert np.mean([a.raised and a.inconsistent_markers for a in swapped]) >= 0.95
+    # ... and named as an exchange: exchanged back, the markers agree far better
+    assert np.mean([a.raised and a.swapped_markers_alarm for a in swapped]) >= 0.95
+    assert np.mean([(a.swap_first, a.swap_second) == p for a, p in zip(swapped, pairs)]) >= 0.95
+    first = next(a for a in swapped if a.swapped_markers_alarm)
+    assert f"markers {first.swap_first} and {first.swap_second} look exchanged" in first.text
+    assert not any(a.swapped_markers_alarm for a in model.predict_trusted(d).alarms)
     # (b) one marker 3 mm off its true position (fields here reach ~10 mm)
     glitch = d.copy()
     v = rng.normal(size=(len(d), 3))
@@ -78,6 +89,7 @@ def test_alarm_is_quiet_on_clean_inputs_and_fires_on_each_fault(model, test_fiel
     assert np.mean([a.raised for a in alarms]) >= 0.95
     caught = [a for a in alarms if a.inconsistent_markers]
     assert len(caught) > 0.9 * len(d) and "from where the other markers place it" in caught[0].text
+    assert np.mean([a.swapped_markers_alarm for a in alarms]) <= 0.05  # a slipped marker is not an exchange
     assert np.mean([a.marker for a in alarms] == k) >= 0.95  # the single-marker fault score names it
     # (c) deformations beyond the simulated range (latents 1.5-2x outside [-1, 1])
     mesh, _, _ = trust_data()
@@ -123,7 +135,19 @@ def test_trust_layer_round_trips_through_the_model_folder(model, test_fields, tm
     np.testing.assert_allclose([x.fault for x in b.alarms], [x.fault for x in a.alarms], rtol=1e-12)
     np.testing.assert_array_equal(back.trusted_.layer.ood.stillness.least, model.trusted_.layer.ood.stillness.least)
     np.testing.assert_allclose([x.stillness for x in b.alarms], [x.stillness for x in a.alarms], rtol=1e-12)
-    assert meta["trust"]["stillness_score"]
+    assert meta["trust"]["stillness_score"] and meta["trust"]["swap_score"]
+    np.testing.assert_array_equal(back.trusted_.layer.ood.swap.reference, model.reference_marker_positions)
+    np.testing.assert_allclose([x.swap for x in b.alarms], [x.swap for x in a.alarms], rtol=1e-12)
+    # a trust file written before the swap score loads without it, and its alarms are as before but for it
+    with np.load(tmp_path / "m" / "trust.npz", allow_pickle=False) as z:
+        arrays = {k: z[k] for k in z.files if k != "ood.swap.reference"}
+    np.savez(tmp_path / "m" / "trust.npz", **arrays)
+    old = DeformationModel.load(tmp_path / "m")
+    assert not old.trusted_.layer.ood.has_swap
+    c = old.predict_trusted(d)
+    assert all(np.isnan(x.swap) and not x.swapped_markers_alarm for x in c.alarms)
+    np.testing.assert_allclose(c.error_bound, a.error_bound, rtol=1e-6)
+    np.testing.assert_allclose([x.distance for x in c.alarms], [x.distance for x in a.alarms], rtol=1e-12)
     (tmp_path / "m" / "trust.npz").unlink()
     with pytest.raises(ModelError, match="trust.npz"):
         DeformationModel.load(tmp_path / "m")

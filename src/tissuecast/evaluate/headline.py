@@ -50,7 +50,8 @@ def fmt_share(v) -> str:
 
 
 #: Short names of the alarm's reasons, by the figures' keys (:data:`.trust_report.ALARM_REASONS`).
-ALARM_WORDS = {"alarm_far_rate": "far", "alarm_disagree_rate": "disagree", "alarm_still_rate": "still marker"}
+ALARM_WORDS = {"alarm_far_rate": "far", "alarm_disagree_rate": "disagree", "alarm_still_rate": "still marker",
+               "alarm_swap_rate": "swapped markers"}
 
 
 def fmt_alarm(row: dict) -> str:

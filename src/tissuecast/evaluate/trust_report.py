@@ -32,7 +32,7 @@ __all__ = ["bound_figures", "trust_evaluation", "reliability_figure", "uncertain
 LEVELS = (0.9, 0.95)
 #: Per-reason alarm shares of :func:`bound_figures`: row key -> the :class:`~tissuecast.surrogate.trust.Alarm` property.
 ALARM_REASONS = {"alarm_far_rate": "far_from_training", "alarm_disagree_rate": "inconsistent_markers",
-                 "alarm_still_rate": "still_marker_alarm"}
+                 "alarm_still_rate": "still_marker_alarm", "alarm_swap_rate": "swapped_markers_alarm"}
 
 
 def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> dict:
@@ -40,7 +40,8 @@ def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> 
     on fields ``bench`` (B, n, 3) mm (``auxiliary`` (B, n_a): their auxiliary inputs, for a
     predictor that reads some); ``alarms`` (B,) bool: which samples raised the alarm, and the
     shares raising it for each reason: ``alarm_far_rate`` (far from training),
-    ``alarm_disagree_rate`` (markers disagree), ``alarm_still_rate`` (a marker stood still)."""
+    ``alarm_disagree_rate`` (markers disagree), ``alarm_still_rate`` (a marker stood still),
+    ``alarm_swap_rate`` (two markers look exchanged)."""
     bench = np.asarray(bench, dtype=np.float64)
     d = trusted.marker_displacements(bench)
     row: dict = {"count": int(len(bench))}

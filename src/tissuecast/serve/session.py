@@ -293,7 +293,8 @@ class ClientSession:
         if alarm.raised:
             bits = (AlarmBits.FAR_FROM_TRAINING if alarm.far_from_training else 0) | (
                 AlarmBits.INCONSISTENT_MARKERS if alarm.inconsistent_markers else 0) | (
-                AlarmBits.STILL_MARKER if alarm.still_marker_alarm else 0)
+                AlarmBits.STILL_MARKER if alarm.still_marker_alarm else 0) | (
+                AlarmBits.SWAPPED_MARKERS if alarm.swapped_markers_alarm else 0)
             self.send(pack_status(StatusCode.UNKNOWN_ERROR, int(bits), ALARM_NAME, alarm.text, prediction.timestamp))
         else:
             self.send(pack_status(StatusCode.OK, 0, "", alarm.text, prediction.timestamp))

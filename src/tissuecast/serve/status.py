@@ -63,6 +63,7 @@ class AlarmBits(IntFlag):
     FAR_FROM_TRAINING = 1  # the marker input lies far from every simulated deformation
     INCONSISTENT_MARKERS = 2  # a marker is far from where the others place it
     STILL_MARKER = 32  # a marker stood still where every simulation moved it (the tissue held there?)
+    SWAPPED_MARKERS = 64  # two markers look exchanged: the markers agree far better with them swapped back
 
 
 class RefusalBits(IntFlag):

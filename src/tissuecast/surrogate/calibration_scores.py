@@ -20,7 +20,7 @@ class CalibrationScores:
         features: (m, F) error-model features (:meth:`TrustLayer.features <.trust.TrustLayer.features>`).
         disagreement: (m, n) disagreement map h, mm (None for a flat normaliser).
         errors: (m, n) true vertex errors of the predictions, mm.
-        alarm: (m, 4) raw alarm scores [distance, consistency, fault, stillness] (NaN where absent).
+        alarm: (m, 5) raw alarm scores [distance, consistency, fault, stillness, swap] (NaN where absent).
     """
 
     features: np.ndarray

@@ -1,6 +1,6 @@
 """Out-of-distribution scores of a marker input, from what is observable during surgery.
 
-Three scores per input d (n_d, 3) mm (for a model with auxiliary inputs a, :mod:`.auxiliary`,
+Five scores per input d (n_d, 3) mm (for a model with auxiliary inputs a, :mod:`.auxiliary`,
 the input is x = [d, a]: the distance is taken over all of it, and every marker is predicted
 from the other markers and a, so an instrument pose that disagrees with the markers shows):
 
@@ -33,17 +33,31 @@ from the other markers and a, so an instrument pose that disagrees with the mark
   :mod:`tissuecast.planning.sentinel`), or a marker lost from the tissue and tracked on a fixed
   frame. The whitened distance and the markers' regressions read one still marker among many
   as a modest change; this score reads it as what it is.
+- **swap** of two markers: each pair of markers is exchanged in turn (marker i placed where j
+  was tracked and j where i was) and each exchanged input scored by the markers' consistency;
+  the score is the input's consistency score over the smallest of theirs, and its argmin names
+  the pair. Above 1, exchanging two markers makes the markers agree better: mislabelled or
+  swapped markers. The consistency and distance scores see a swap as disagreement or distance
+  only where it is larger than what the simulations' range allows; on a store with the
+  parameters drawn (wide ranges) many swaps pass them, and this score compares the input with
+  its own exchanged versions instead.
 
 The scores the alarm uses (distance, consistency and stillness; the fault score too where
 asked, else it only names the suspect marker), each divided by its median on validation
 samples, are combined by their maximum; the alarm threshold is the split-conformal ``1 - alpha`` quantile
 of that combined score on a calibration split, so a clean input (exchangeable with the
 calibration samples) raises an alarm with probability at most alpha (:class:`OODScores`).
+The swap score raises the alarm by itself above :data:`SWAP_RATIO`, a fixed level: on clean
+input it stays near its median (a few tenths: any exchange makes the markers agree worse),
+and a score scaled by that median would move with every change of the consistency score
+(a slipped marker raises the input's own score, not the exchanged ones' less), which it must
+not be read as.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,10 +67,13 @@ from ..errors import ModelError
 from .conformal import conformal_quantile
 from .quadratic import fit_quadratic
 
-__all__ = ["InputDistance", "MarkerConsistency", "MarkerStillness", "OODScores", "fit_input_distance",
-           "fit_marker_consistency", "fit_marker_stillness", "scale_ood", "calibrate_ood", "SCORE_NAMES"]
+__all__ = ["InputDistance", "MarkerConsistency", "MarkerStillness", "MarkerSwap", "OODScores", "fit_input_distance",
+           "fit_marker_consistency", "fit_marker_stillness", "scale_ood", "calibrate_ood", "SCORE_NAMES", "SWAP_RATIO"]
 
-SCORE_NAMES = ("distance", "consistency", "fault", "stillness")
+SCORE_NAMES = ("distance", "consistency", "fault", "stillness", "swap")
+#: Swap score above which two markers count as exchanged: exchanged back, the markers'
+#: consistency score falls at least this many times.
+SWAP_RATIO = 2.0
 
 # Whitening floors each axis's variance at this share of the largest, so that directions
 # the training inputs never vary along (to round-off) do not dominate the distance.
@@ -296,6 +313,58 @@ def fit_marker_stillness(X_train, n_auxiliary: int = 0) -> MarkerStillness:
 
 
 @dataclass(frozen=True, eq=False)
+class MarkerSwap:
+    """Whether two markers' tracked positions look exchanged (module notes).
+
+    Attributes:
+        reference: (n_d, 3) reference (undeformed) marker positions, mm, in input order.
+    """
+
+    reference: np.ndarray
+
+    def __post_init__(self):
+        n = len(self.reference)
+        object.__setattr__(self, "reference", np.asarray(self.reference, dtype=np.float64).reshape(n, 3))
+        object.__setattr__(self, "pairs", np.array(list(itertools.combinations(range(n), 2)),
+                                                   dtype=np.int64).reshape(-1, 2))
+
+    def exchanged(self, X) -> np.ndarray:
+        """(B, P, 3 n_d + n_a) inputs X (B, 3 n_d + n_a) mm (the auxiliary inputs after the
+        markers, unchanged) with the P pairs of markers (:attr:`pairs`, ``itertools.combinations``
+        order) exchanged in turn: ``d_i' = r_j + d_j - r_i`` and ``d_j' = r_i + d_i - r_j``."""
+        X = np.asarray(X, dtype=np.float64)
+        B, n_d, P = len(X), len(self.reference), len(self.pairs)
+        d = X[:, :3 * n_d].reshape(B, n_d, 3)
+        pos = d + self.reference  # tracked positions
+        i, j, p = self.pairs[:, 0], self.pairs[:, 1], np.arange(P)
+        out = np.repeat(d[:, None], P, axis=1)  # (B, P, n_d, 3)
+        out[:, p, i] = pos[:, j] - self.reference[i]
+        out[:, p, j] = pos[:, i] - self.reference[j]
+        out = out.reshape(B, P, 3 * n_d)
+        if X.shape[1] > 3 * n_d:
+            out = np.concatenate([out, np.repeat(X[:, None, 3 * n_d:], P, axis=1)], axis=2)
+        return out
+
+    def evaluate(self, X, consistency: MarkerConsistency, own=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(scores (B,), pair (B,))`` of inputs X (B, 3 n_d + n_a) mm: each input's
+        consistency score (``own`` (B,) where already known) over the smallest of its exchanged
+        inputs' (dimensionless), and the index into :attr:`pairs` of that exchange (-1 with
+        fewer than two markers: score 0)."""
+        X = np.asarray(X, dtype=np.float64)
+        B, P = len(X), len(self.pairs)
+        if P == 0:
+            return np.zeros(B), np.full(B, -1, dtype=np.int64)
+        c = consistency(X) if own is None else np.asarray(own, dtype=np.float64)
+        ce = consistency(self.exchanged(X).reshape(B * P, -1)).reshape(B, P)
+        best = ce.argmin(axis=1)
+        return c / np.maximum(ce[np.arange(B), best], _TINY_SCORE), best
+
+    def __call__(self, X, consistency: MarkerConsistency) -> np.ndarray:
+        """(B,) the swap scores of inputs (B, 3 n_d + n_a) mm (:meth:`evaluate`)."""
+        return self.evaluate(X, consistency)[0]
+
+
+@dataclass(frozen=True, eq=False)
 class OODScores:
     """The scores, combined into one alarm score with a calibrated threshold.
 
@@ -303,19 +372,22 @@ class OODScores:
     stillness / scale[3])``, and with ``use_fault`` also ``fault / scale[2]`` (scales: the
     scores' medians on validation samples; an absent score is left out); its threshold for a false-alarm rate alpha is the
     split-conformal ``1 - alpha`` quantile of the calibration samples' alarm scores, so each
-    score's own threshold is that value times its scale.
+    score's own threshold is that value times its scale. The swap score is not part of it: its
+    threshold is :data:`SWAP_RATIO` (module notes) and its scale 1.
 
     Attributes:
         distance: the :class:`InputDistance`.
         consistency: the :class:`MarkerConsistency` (None with one marker; then no
             consistency and no fault score).
-        scale: (4,) validation medians of the four scores (1 for an absent one; trust files
-            written before the fault or the stillness score hold two or three, and get 1s).
+        scale: (5,) validation medians of the five scores (1 for an absent one; trust files
+            written before the fault, the stillness or the swap score hold two to four, and get 1s).
         calibration: (m,) sorted alarm scores of the calibration samples (empty: not calibrated,
             every threshold infinite).
         use_fault: the fault score is part of the alarm score (``surrogate.alarm_fault_score``).
         stillness: the :class:`MarkerStillness` (None in trust files written before it: no
             stillness score).
+        swap: the :class:`MarkerSwap` (None in trust files written before it, or without a
+            consistency score: no swap score).
     """
 
     distance: InputDistance
@@ -324,13 +396,19 @@ class OODScores:
     calibration: np.ndarray
     use_fault: bool = False
     stillness: MarkerStillness | None = None
+    swap: MarkerSwap | None = None
 
     def __post_init__(self):
         scale = np.asarray(self.scale, dtype=np.float64)
         object.__setattr__(self, "scale", np.concatenate([scale, np.ones(len(SCORE_NAMES) - len(scale))]))
 
+    @property
+    def has_swap(self) -> bool:
+        """Whether the swap score is present (it needs the consistency score)."""
+        return self.swap is not None and self.consistency is not None
+
     def scores(self, X) -> np.ndarray:
-        """(B, 4) [distance, consistency, fault, stillness] scores of inputs (B, 3 n_d) mm (NaN where absent)."""
+        """(B, 5) [distance, consistency, fault, stillness, swap] scores of inputs (B, 3 n_d) mm (NaN where absent)."""
         X = np.asarray(X, dtype=np.float64)
         out = np.full((len(X), len(SCORE_NAMES)), np.nan)
         out[:, 0] = self.distance(X)
@@ -340,16 +418,18 @@ class OODScores:
                 out[:, 2] = faults.max(axis=1)
         if self.stillness is not None:
             out[:, 3] = self.stillness(X)
+        if self.has_swap:
+            out[:, 4] = self.swap.evaluate(X, self.consistency, own=out[:, 1])[0]
         return out
 
     def combined(self, scores) -> np.ndarray:
-        """(B,) alarm scores from (B, 4) scores (absent scores NaN; (B, 3) scores of trust files
-        written before the stillness score read it as absent)."""
+        """(B,) alarm scores from (B, 5) scores (absent scores NaN; the (B, 3) or (B, 4) scores of
+        trust files written before the stillness or the swap score read them as absent)."""
         s = np.asarray(scores, dtype=np.float64)
         if s.shape[1] < len(SCORE_NAMES):
             s = np.hstack([s, np.full((len(s), len(SCORE_NAMES) - s.shape[1]), np.nan)])
         s = s / self.scale
-        used = [True, True, self.use_fault, True]
+        used = [True, True, self.use_fault, True, False]
         return np.nanmax(s[:, used], axis=1)
 
     def threshold(self, false_alarm: float) -> float:
@@ -359,12 +439,13 @@ class OODScores:
         return float(conformal_quantile(self.calibration, 1.0 - false_alarm))
 
     def thresholds(self, false_alarm: float) -> np.ndarray:
-        """(4,) thresholds of the distance, consistency, fault and stillness scores (inf for a
-        score that is absent or not part of the alarm)."""
+        """(5,) thresholds of the distance, consistency, fault, stillness and swap scores (inf
+        for a score that is absent or not part of the alarm)."""
         t = self.threshold(false_alarm) * self.scale
+        t[4] = SWAP_RATIO if np.isfinite(t[0]) else np.inf  # an alarm not calibrated is off, swaps too
         present = [True, self.consistency is not None,
                    self.use_fault and self.consistency is not None and self.consistency.sensitivity is not None,
-                   self.stillness is not None]
+                   self.stillness is not None, self.has_swap]
         return np.where(present, t, np.inf)
 
     def calibrated(self, X_calibration) -> "OODScores":
@@ -373,7 +454,7 @@ class OODScores:
         return dataclasses.replace(self, calibration=np.sort(self.combined(self.scores(X_calibration))))
 
     def rescaled(self, scores) -> "OODScores":
-        """These scores (not calibrated) with their scales the medians of (B, 4) raw scores
+        """These scores (not calibrated) with their scales the medians of (B, 5) raw scores
         (:meth:`scores` of inputs like the clean ones: out-of-fold training inputs)."""
         return dataclasses.replace(self, scale=_medians(scores), calibration=np.zeros(0))
 
@@ -385,21 +466,26 @@ class OODScores:
 
 
 def _medians(scores) -> np.ndarray:
-    """(4,) the scores' medians over inputs (B, 4) (floored; 1 for an absent score)."""
+    """(5,) the scores' medians over inputs (B, 5) (floored; 1 for an absent score and for the
+    swap score, whose threshold is fixed)."""
     sv = np.asarray(scores, dtype=np.float64)
-    return np.where(np.isnan(sv[0]), 1.0, np.maximum(np.median(sv, axis=0), _TINY_SCORE))
+    out = np.where(np.isnan(sv[0]), 1.0, np.maximum(np.median(sv, axis=0), _TINY_SCORE))
+    out[4:] = 1.0
+    return out
 
 
 def scale_ood(distance: InputDistance, consistency: MarkerConsistency | None, X_valid,
-              use_fault: bool = False, stillness: MarkerStillness | None = None) -> OODScores:
+              use_fault: bool = False, stillness: MarkerStillness | None = None,
+              swap: MarkerSwap | None = None) -> OODScores:
     """Uncalibrated scores (no threshold yet: :meth:`OODScores.calibrated` sets it), their scales
     the medians on validation inputs (B_v, 3 n_d) mm; ``use_fault``: the fault score is part of the alarm."""
-    draft = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0), use_fault, stillness)
+    draft = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0), use_fault, stillness, swap)
     return draft.rescaled(draft.scores(X_valid))
 
 
 def calibrate_ood(distance: InputDistance, consistency: MarkerConsistency | None, X_valid, X_calibration,
-                  use_fault: bool = False, stillness: MarkerStillness | None = None) -> OODScores:
+                  use_fault: bool = False, stillness: MarkerStillness | None = None,
+                  swap: MarkerSwap | None = None) -> OODScores:
     """Scales from validation inputs (B_v, 3 n_d) mm, calibration scores from (B_c, 3 n_d) mm;
     ``use_fault``: the fault score is part of the alarm."""
-    return scale_ood(distance, consistency, X_valid, use_fault, stillness).calibrated(X_calibration)
+    return scale_ood(distance, consistency, X_valid, use_fault, stillness, swap).calibrated(X_calibration)

@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import ModelError
 from .calibration_scores import CalibrationScores
 from .conformal import VertexConformal, normalised_errors
-from .ood import InputDistance, MarkerConsistency, MarkerStillness, OODScores
+from .ood import InputDistance, MarkerConsistency, MarkerStillness, MarkerSwap, OODScores
 from .pca import PCABasis
 from .quadratic import QuadraticRegression
 
@@ -90,6 +90,10 @@ class Alarm:
             stillness ratio), -1 without a stillness score.
         still_share: that marker's displacement as a share of the markers' root-mean-square
             displacement; ``still_least`` the least share any simulation gave it.
+        swap: swap score (:class:`~.ood.MarkerSwap`: how many times better the markers agree
+            with two of them exchanged; NaN where absent); ``swap_threshold``.
+        swap_first, swap_second: indices (0-based, model marker order) of the pair whose
+            exchange makes the markers agree best, -1 without a swap score.
     """
 
     raised: bool
@@ -106,6 +110,10 @@ class Alarm:
     still_marker: int = -1
     still_share: float = float("nan")
     still_least: float = float("nan")
+    swap: float = float("nan")
+    swap_threshold: float = float("inf")
+    swap_first: int = -1
+    swap_second: int = -1
 
     @property
     def far_from_training(self) -> bool:
@@ -122,11 +130,20 @@ class Alarm:
         return bool(self.stillness > self.stillness_threshold)
 
     @property
+    def swapped_markers_alarm(self) -> bool:
+        """Two markers look exchanged (mislabelled or swapped)."""
+        return bool(self.swap > self.swap_threshold)
+
+    @property
     def text(self) -> str:
         """One line for the surgeon's display."""
         if not self.raised:
             return "prediction within the simulated range"
         parts = []
+        if self.swapped_markers_alarm:
+            parts.append(f"markers {self.swap_first} and {self.swap_second} look exchanged (exchanged back, the markers "
+                         f"agree {self.swap:.1f} x better, more than {self.swap_threshold:g} x): check their labels; do not "
+                         "trust the predicted shape")
         if self.inconsistent_markers:
             score = (f"one-marker score {self.fault:.1f} > {self.fault_threshold:.1f}" if self.fault > self.fault_threshold
                      else f"score {self.consistency:.1f} > {self.consistency_threshold:.1f}")
@@ -292,19 +309,27 @@ class TrustLayer:
             s_score = ratios[np.arange(len(d)), stillest]
         else:
             s_score, stillest = np.full(len(d), np.nan), np.full(len(d), -1)
+        if self.ood.has_swap:
+            w_score, pair = self.ood.swap.evaluate(d, cons, own=c_score)
+            pairs = self.ood.swap.pairs
+        else:
+            w_score, pair, pairs = np.full(len(d), np.nan), np.full(len(d), -1), None
         alarms = []
         for b in range(len(d)):
-            raised = bool(dist[b] > thr[0] or c_score[b] > thr[1] or f_score[b] > thr[2] or s_score[b] > thr[3])
-            j = int(stillest[b])
+            raised = bool(dist[b] > thr[0] or c_score[b] > thr[1] or f_score[b] > thr[2] or s_score[b] > thr[3]
+                          or w_score[b] > thr[4])
+            j, k = int(stillest[b]), int(pair[b])
+            first, second = (int(pairs[k, 0]), int(pairs[k, 1])) if k >= 0 else (-1, -1)
             alarms.append(Alarm(raised, float(dist[b]), float(thr[0]), float(c_score[b]), float(thr[1]),
                                 int(worst[b]), float(res[b, worst[b]]) if res is not None else float("nan"),
                                 float(f_score[b]), float(thr[2]), float(s_score[b]), float(thr[3]), j,
                                 float(shares[b, j]) if j >= 0 else float("nan"),
-                                float(still.least[j]) if j >= 0 else float("nan")))
+                                float(still.least[j]) if j >= 0 else float("nan"),
+                                float(w_score[b]), float(thr[4]), first, second))
         return bounds, alarms
 
     def alarm_scores(self, marker_displacements, *, auxiliary=None) -> np.ndarray:
-        """(B, 4) [distance, consistency, fault, stillness] scores of inputs (B, 3 n_d) or (B, n_d, 3) mm (and
+        """(B, 5) [distance, consistency, fault, stillness, swap] scores of inputs (B, 3 n_d) or (B, n_d, 3) mm (and
         ``auxiliary`` (B, n_a), :meth:`inputs`; NaN where absent)."""
         return self.ood.scores(self.inputs(marker_displacements, auxiliary))
 
@@ -400,6 +425,8 @@ class TrustLayer:
                 out.update(reg.arrays(f"ood.consistency.{j}."))
         if self.ood.stillness is not None:
             out["ood.stillness.least"] = self.ood.stillness.least
+        if self.ood.swap is not None:
+            out["ood.swap.reference"] = self.ood.swap.reference
         return out
 
     @classmethod
@@ -425,7 +452,10 @@ class TrustLayer:
                                  bool(a["ood.use_fault"]) if "ood.use_fault" in a else False,
                                  # absent in files written before the stillness score
                                  MarkerStillness(np.asarray(a["ood.stillness.least"], dtype=np.float64))
-                                 if "ood.stillness.least" in a else None),
+                                 if "ood.stillness.least" in a else None,
+                                 # absent in files written before the swap score
+                                 MarkerSwap(np.asarray(a["ood.swap.reference"], dtype=np.float64))
+                                 if "ood.swap.reference" in a else None),
                    coverage=float(a["coverage"]), false_alarm=float(a["false_alarm"]),
                    error_input=QuadraticRegression.from_arrays(a, "error_input.") if "error_input.coef" in a else None,
                    flat=bool(a["flat"]) if "flat" in a else False,
@@ -458,5 +488,6 @@ class TrustLayer:
                 "fault_score": self.ood.consistency is not None and self.ood.consistency.sensitivity is not None,
                 "fault_score_in_alarm": self.ood.use_fault,
                 "stillness_score": self.ood.stillness is not None,
+                "swap_score": self.ood.has_swap,
                 "flat_normaliser": self.flat, "auxiliary_inputs": self.n_auxiliary,
                 "calibration": self.method}

@@ -17,7 +17,8 @@ from ..errors import ModelError
 from .conformal import VertexConformal, min_calibration_samples
 from .data import CALIBRATION_SEED_OFFSET, MIN_SAMPLES
 from .field_predictor import FieldPredictor
-from .ood import SCORE_NAMES, OODScores, fit_input_distance, fit_marker_consistency, fit_marker_stillness, scale_ood
+from .ood import (SCORE_NAMES, MarkerSwap, OODScores, fit_input_distance, fit_marker_consistency, fit_marker_stillness,
+                  scale_ood)
 from .pca import PCABasis, fit_pca
 from .quadratic import QuadraticRegression, fit_quadratic
 from .ridge import marker_columns
@@ -140,7 +141,8 @@ def fit_trust_layer(predictor: FieldPredictor, displacements, *, train_idx, vali
     Xv = Xv if A is None else np.hstack([Xv, A[sets[1]]])
     consistency = fit_marker_consistency(Xt, Xv, n_a)
     stillness = fit_marker_stillness(Xt, n_a)
-    ood0 = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0), fault_score, stillness)
+    swap = MarkerSwap(predictor.reference_marker_positions) if consistency is not None else None
+    ood0 = OODScores(distance, consistency, np.ones(len(SCORE_NAMES)), np.zeros(0), fault_score, stillness, swap)
     empty = VertexConformal(np.zeros((0, U.shape[1])))
     draft = TrustLayer(mk, second_basis, second, np.zeros(1 + len(FEATURE_NAMES)), empty, ood0, coverage, false_alarm,
                        flat=head is not None, n_auxiliary=n_a)
@@ -150,7 +152,7 @@ def fit_trust_layer(predictor: FieldPredictor, displacements, *, train_idx, vali
     if error_input is not None:
         fv = np.hstack([fv, error_input.predict(dv)])
     return TrustLayer(mk, second_basis, second, fit_error_model(fv, ev), empty,
-                      scale_ood(distance, consistency, dv, fault_score, stillness), coverage, false_alarm, error_input,
+                      scale_ood(distance, consistency, dv, fault_score, stillness, swap), coverage, false_alarm, error_input,
                       head is not None, n_a)
 
 
