@@ -170,19 +170,22 @@ class MarkerConsistency:
         if self.sensitivity is not None:  # per marker: L F_j (3 n_d, 3) and (F_j' L F_j)^-1 (3, 3)
             LF = np.einsum("pq,jqa->jpa", self.precision, self.sensitivity)
             gram = np.einsum("jpa,jpb->jab", self.sensitivity, LF)
-            object.__setattr__(self, "_fault_maps", (LF, np.linalg.inv(gram)))
+            # L F_j side by side, (3 n_d, 3 n_d): r' L F_j for every j in one product
+            object.__setattr__(self, "_fault_maps", (np.ascontiguousarray(LF.transpose(1, 0, 2).reshape(LF.shape[1], -1)),
+                                                     np.linalg.inv(gram)))
 
     def residual_vectors(self, X) -> np.ndarray:
         """(B, 3 n_d) predicted minus observed displacement of every marker, mm, from inputs
         X (B, 3 n_d + n_a)."""
         X = np.asarray(X, dtype=np.float64)
         n_d = len(self.regressions)
-        # every marker's regression at once (QuadraticRegression.predict, stacked)
-        mean, scale, directions, (a, b), coef0, coef1, coef2 = self._stacked
-        Z = (X[:, self._others] - mean) / scale  # (B, n_d, d)
-        P = np.einsum("bjd,jqd->bjq", Z, directions)
-        y = coef0 + np.einsum("bjd,jdk->bjk", Z, coef1) + np.einsum("bjq,jqk->bjk", P[..., a] * P[..., b], coef2)
-        return (y - X[:, :3 * n_d].reshape(len(X), n_d, 3)).reshape(len(X), -1)
+        # every marker's regression at once (QuadraticRegression.predict, stacked; markers as the
+        # batch of the products)
+        mean, scale, directions_t, (a, b), coef0, coef1, coef2 = self._stacked
+        Z = ((X[:, self._others] - mean) / scale).transpose(1, 0, 2)  # (n_d, B, d)
+        P = Z @ directions_t  # (n_d, B, q)
+        y = coef0[:, None, :] + Z @ coef1 + (P[..., a] * P[..., b]) @ coef2  # (n_d, B, 3)
+        return (y.transpose(1, 0, 2) - X[:, :3 * n_d].reshape(len(X), n_d, 3)).reshape(len(X), -1)
 
     def residuals(self, X) -> np.ndarray:
         """(B, n_d) distance (mm) of each marker from where the other markers put it."""
@@ -190,7 +193,7 @@ class MarkerConsistency:
 
     def __call__(self, X) -> np.ndarray:
         """(B,) Mahalanobis distance of the residual vectors (dimensionless)."""
-        return self.evaluate(X)[1]
+        return _mahalanobis(self.residual_vectors(X) - self.mean, self.precision)
 
     def faults(self, X) -> np.ndarray | None:
         """(B, n_d) single-marker fault statistic of each marker (dimensionless), or None
@@ -206,25 +209,25 @@ class MarkerConsistency:
         faults = None
         if self.sensitivity is not None:
             LF, inv_gram = self._fault_maps
-            v = np.einsum("bp,jpa->bja", R, LF)  # F_j' L r
-            faults = np.sqrt(np.maximum(np.einsum("bja,jac,bjc->bj", v, inv_gram, v), 0.0))
+            v = (R @ LF).reshape(len(R), -1, 3)  # F_j' L r, (B, n_d, 3)
+            faults = np.sqrt(np.maximum((np.einsum("bja,jac->bjc", v, inv_gram) * v).sum(axis=2), 0.0))
         return dist, _mahalanobis(R, self.precision), faults
 
 
 def _stack_regressions(regressions) -> tuple:
-    """The markers' regressions as stacked arrays: means, scales (n_d, d), directions (n_d, q, d),
+    """The markers' regressions as stacked arrays: means, scales (n_d, d), directions transposed (n_d, d, q),
     the products' index pairs and the coefficients of the constant (n_d, 3), the linear (n_d, d, 3)
     and the quadratic terms (n_d, Q, 3). They are of one size: each is fitted on the same inputs
     less one marker's 3 columns (:func:`fit_marker_consistency`)."""
     d, q = len(regressions[0].mean), len(regressions[0].directions)
     coef = np.stack([r.coef for r in regressions])  # (n_d, 1 + d + Q, 3)
     return (np.stack([r.mean for r in regressions]), np.stack([r.scale for r in regressions]),
-            np.stack([r.directions for r in regressions]), np.triu_indices(q), coef[:, 0], coef[:, 1:1 + d],
-            coef[:, 1 + d:])
+            np.ascontiguousarray(np.stack([r.directions for r in regressions]).transpose(0, 2, 1)), np.triu_indices(q),
+            coef[:, 0], np.ascontiguousarray(coef[:, 1:1 + d]), np.ascontiguousarray(coef[:, 1 + d:]))
 
 
 def _mahalanobis(R: np.ndarray, precision: np.ndarray) -> np.ndarray:
-    return np.sqrt(np.maximum(np.einsum("bi,ij,bj->b", R, precision, R), 0.0))
+    return np.sqrt(np.maximum(((R @ precision) * R).sum(axis=1), 0.0))
 
 
 def fit_marker_consistency(X_train, X_valid, n_auxiliary: int = 0) -> MarkerConsistency | None:
