@@ -103,7 +103,7 @@ def test_exchanged_inputs_put_each_marker_of_a_pair_where_the_other_was_tracked(
     np.testing.assert_allclose(swap.exchanged(swap.exchanged(x)[:, 1])[:, 1], x)  # exchanging twice restores
 
 
-def test_the_swap_score_finds_two_exchanged_markers_and_passes_clean_and_slipped_ones():
+def test_the_swap_score_finds_two_exchanged_markers_and_passes_clean_and_slipped_ones(monkeypatch):
     rng = np.random.default_rng(6)
     n_d = 8
     pos = np.random.default_rng(0).uniform(-30, 30, (n_d, 3))
@@ -127,6 +127,12 @@ def test_the_swap_score_finds_two_exchanged_markers_and_passes_clean_and_slipped
     assert np.mean(score > SWAP_RATIO) >= 0.95
     assert np.mean(named == pair) >= 0.95
     np.testing.assert_allclose(ood.scores(swapped.reshape(len(Xs), -1))[:, 4], score)
+    import tissuecast.surrogate.ood as ood_module
+
+    monkeypatch.setattr(ood_module, "_SWAP_CHUNK", 100)  # a long batch scored in chunks: the same scores
+    chunked, named_chunked = swap.evaluate(swapped.reshape(len(Xs), -1), cons)
+    np.testing.assert_array_equal(chunked, score)
+    np.testing.assert_array_equal(named_chunked, named)
     # one marker slipped 5 mm: the markers disagree, but no exchange explains it
     slipped = d.copy()
     v = rng.normal(size=(len(Xs), 3))

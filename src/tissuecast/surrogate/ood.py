@@ -89,6 +89,8 @@ _TINY_SCORE = 1e-12
 #: Markers' root-mean-square displacement (mm) below which an input has no stillness score (0):
 #: nothing moved, so no marker stands out by standing still.
 STILL_RMS_MM = 1e-6
+# Exchanged inputs scored at once by the swap score.
+_SWAP_CHUNK = 4096
 # A marker's share below this counts as this (a still marker's score is finite: 1e12 times its least share).
 _TINY_SHARE = 1e-12
 
@@ -358,7 +360,9 @@ class MarkerSwap:
         if P == 0:
             return np.zeros(B), np.full(B, -1, dtype=np.int64)
         c = consistency(X) if own is None else np.asarray(own, dtype=np.float64)
-        ce = consistency(self.exchanged(X).reshape(B * P, -1)).reshape(B, P)
+        step = max(1, _SWAP_CHUNK // P)  # inputs exchanged at once (bounds the memory of a long batch)
+        ce = np.concatenate([consistency(self.exchanged(X[k:k + step]).reshape(-1, X.shape[1])).reshape(-1, P)
+                             for k in range(0, B, step)])
         best = ce.argmin(axis=1)
         return c / np.maximum(ce[np.arange(B), best], _TINY_SCORE), best
 
