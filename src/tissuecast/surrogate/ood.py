@@ -323,6 +323,8 @@ class MarkerSwap:
 
     Attributes:
         reference: (n_d, 3) reference (undeformed) marker positions, mm, in input order.
+        pairs: (P, 2) int64 the pairs exchanged, ``(i, j)`` with i < j in ``itertools.combinations``
+            order (set from ``reference``; P = n_d (n_d - 1) / 2).
     """
 
     reference: np.ndarray
@@ -386,7 +388,7 @@ class OODScores:
         distance: the :class:`InputDistance`.
         consistency: the :class:`MarkerConsistency` (None with one marker; then no
             consistency and no fault score).
-        scale: (5,) validation medians of the five scores (1 for an absent one; trust files
+        scale: (5,) validation medians of the scores (1 for an absent one and for the swap score; trust files
             written before the fault, the stillness or the swap score hold two to four, and get 1s).
         calibration: (m,) sorted alarm scores of the calibration samples (empty: not calibrated,
             every threshold infinite).
