@@ -129,3 +129,37 @@ def test_calibration_from_given_pairs_is_the_split_calibration(model):
         draft.calibrate(triples[0], triples[1], triples[2][:, :10])
     with pytest.raises(ModelError, match="trust layer is for markers"):
         TrustedPredictor(RigidRegistrationPredictor(net.mesh, net.markers[:4]), layer)
+
+
+def test_the_network_decodes_its_trust_layer_s_second_predictor_in_the_same_pass(model, test_fields):
+    """A trust layer whose second predictor works in the network's basis (the quadratic head of a
+    model with one): field and second prediction come from one product, equal to the two separate
+    decodes; any other basis (this synthetic model's own layer has one), or another predictor,
+    decodes them apart."""
+    from tissuecast.surrogate.pca import PCABasis
+    from tissuecast.surrogate.quadratic import fit_quadratic
+
+    net, own = model.predictor("mlp"), model.trusted_.layer
+    assert not net.decodes_with(own.basis)
+    mesh, U, _ = trust_data()
+    train = U[SPLITS["train"]].reshape(len(SPLITS["train"]), -1)
+    X = model.marker_displacements(U[SPLITS["train"]]).reshape(len(train), -1)
+    layer = dataclasses.replace(own, basis=net.basis, second=fit_quadratic(X, net.basis.transform(train)))
+    copy = PCABasis(net.basis.mean.copy(), net.basis.components.copy(), net.basis.singular_values, net.basis.n_samples)
+    assert net.decodes_with(layer.basis) and net.decodes_with(copy)
+    d = model.marker_displacements(test_fields[:7]).reshape(7, -1)
+    w2 = layer.second.predict(d)
+    u, v = net.predict_and_decode(d, None, layer.basis, w2)
+    np.testing.assert_allclose(u, net.predict(d), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(v.reshape(7, -1), layer.basis.inverse_transform(w2), rtol=0, atol=1e-12)
+    u1, v1 = net.predict_and_decode(d, None, own.basis, own.second.predict(d))  # apart
+    np.testing.assert_array_equal(u1, net.predict(d))
+    np.testing.assert_array_equal(v1.reshape(7, -1), own.basis.inverse_transform(own.second.predict(d)))
+    ridge = model.predictor("ridge")
+    np.testing.assert_array_equal(ridge.predict_and_decode(d, None, layer.basis, w2)[0], ridge.predict(d))
+    # the trusted prediction with the shared pass is the one of the separate decodes
+    tp = TrustedPredictor(net, layer).predict_trusted(d)
+    bounds, alarms = layer.assess(d, net.predict(d))
+    np.testing.assert_allclose(tp.displacement, net.predict(d), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(tp.error_bound, bounds, rtol=1e-12)
+    np.testing.assert_allclose([a.distance for a in tp.alarms], [a.distance for a in alarms], rtol=1e-12)

@@ -143,15 +143,32 @@ class CompiledSurrogate:
         """
         return self._reconstruct(self._hidden(d, None), d)
 
-    def _reconstruct(self, h: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Fields (..., 3 n) mm from last hidden activations (..., M h_last) and the input (..., 3 n_d + n_a)."""
+    def _weights(self, h: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Ensemble-mean PCA weights (..., n_w) mm from last hidden activations (..., M h_last)
+        and the input (..., 3 n_d + n_a), the head's added."""
         w = h @ self.out_W
         w += self.out_b
         if self.head is not None:
             w += self._head(d)
-        u = w @ self.components
+        return w
+
+    def _reconstruct(self, h: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """Fields (..., 3 n) mm from last hidden activations (..., M h_last) and the input (..., 3 n_d + n_a)."""
+        u = self._weights(h, d) @ self.components
         u += self.mean
         return u
+
+    def fields_and_decoded(self, d: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(fields (B, 3 n), decoded (B, 3 n))`` mm: :meth:`fields` of inputs (B, 3 n_d + n_a),
+        every marker tracked, and other weights (B, n_w) decoded by the same basis, in one
+        (2 B, n_w) x (n_w, 3 n) product (the basis read once)."""
+        B = len(d)
+        w = np.empty((2 * B, self.components.shape[0]))
+        w[:B] = self._weights(self._hidden(d, None), d)
+        w[B:] = weights
+        u = w @ self.components
+        u += self.mean
+        return u[:B], u[B:]
 
     def member_weights(self, d: np.ndarray, missing: np.ndarray | None = None) -> np.ndarray:
         """PCA weights of every member, (M, B, n_w) mm (each with the head's weights added)."""

@@ -146,6 +146,15 @@ class FieldPredictor(ABC):
             raise ModelError(f"marker positions must be ({self.n_markers}, 3) or (B, {self.n_markers}, 3) mm, got {p.shape}")
         return self.predict(p - self.reference_marker_positions, missing=missing, auxiliary=auxiliary)
 
+    def predict_and_decode(self, d: np.ndarray, auxiliary, basis, weights) -> tuple[np.ndarray, np.ndarray]:
+        """``(u (B, n, 3), v (B, n, 3))`` mm: the fields of checked displacements d (B, 3 n_d)
+        mm (and the auxiliary inputs (B, n_a) or None, as :meth:`predict`), and ``weights``
+        (B, K) decoded by ``basis`` (a :class:`~.pca.PCABasis` of K components): a trust layer's
+        second predictor beside the field. A predictor that decodes with the same basis reads
+        it once for both."""
+        u = self.predict(d, auxiliary=auxiliary).reshape(len(d), -1, 3)
+        return u, basis.inverse_transform(weights).reshape(len(d), -1, 3)
+
     def predict_with_uncertainty(self, marker_displacements, *, missing=None,
                                  auxiliary=None) -> tuple[np.ndarray, np.ndarray]:
         """``(u, sigma)``: the field as :meth:`predict` and a per-vertex spread (n,) or (B, n) mm.

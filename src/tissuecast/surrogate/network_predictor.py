@@ -115,6 +115,27 @@ class NetworkPredictor(FieldPredictor):
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
         return self.compiled.fields(self.inputs(d, a), missing).reshape(d.shape[0], -1, 3)
 
+    def decodes_with(self, basis) -> bool:
+        """Whether ``basis`` (a :class:`~.pca.PCABasis`) is this network's decoder: the same
+        components and mean (a trust layer fitted with the model shares them)."""
+        known = getattr(self, "_same_basis", None)
+        if known is not None and known[0] is basis:
+            return known[1]
+        mine = self.basis
+        same = basis is mine or (isinstance(mine, PCABasis) and basis.components.shape == mine.components.shape
+                                 and np.array_equal(basis.components, mine.components)
+                                 and np.array_equal(basis.mean, mine.mean))
+        self._same_basis = (basis, same)
+        return same
+
+    def predict_and_decode(self, d: np.ndarray, auxiliary, basis, weights) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`FieldPredictor.predict_and_decode`; with this network's own basis both are
+        decoded in one product (the basis read once)."""
+        if not self.decodes_with(basis):
+            return super().predict_and_decode(d, auxiliary, basis, weights)
+        u, v = self.compiled.fields_and_decoded(self.inputs(d, auxiliary), np.asarray(weights, dtype=np.float64))
+        return u.reshape(len(d), -1, 3), v.reshape(len(d), -1, 3)
+
     def member_weights(self, marker_displacements, *, missing=None, auxiliary=None) -> np.ndarray:
         """PCA weights of every member (M, B, n_w) mm (the head's added), inputs as :meth:`predict` (batch)."""
         d, miss, _ = self.marker_batch(marker_displacements, missing)

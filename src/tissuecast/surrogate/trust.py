@@ -239,16 +239,20 @@ class TrustLayer:
         return d
 
     # ---------------------------------------------------------------- normaliser
-    def features(self, d: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def features(self, d: np.ndarray, u: np.ndarray, second: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """What the error model reads from inputs x (B, 3 n_d + n_a) (:meth:`inputs`) and
-        predictions u (B, n, 3) mm.
+        predictions u (B, n, 3) mm; ``second`` (B, n, 3) mm: the second predictor's fields for
+        x where already decoded (:meth:`.field_predictor.FieldPredictor.predict_and_decode`).
 
         Returns:
             ``(features (B, F), disagreement h (B, n) mm, distance scores (B,))``.
         """
         B = len(d)
         markers = d[:, :3 * len(self.markers)].reshape(B, -1, 3)
-        second = self.basis.inverse_transform(self.second.predict(d)).reshape(B, -1, 3)
+        if second is None:
+            second = self.basis.inverse_transform(self.second.predict(d))
+        second = second.reshape(B, -1, 3)
         h = np.linalg.norm(u - second, axis=2)
         miss = np.linalg.norm(u[:, self.markers, :] - markers, axis=2).max(axis=1)
         dist = self.ood.distance(d)
@@ -276,7 +280,7 @@ class TrustLayer:
 
     # ---------------------------------------------------------------- bounds and alarms
     def assess(self, marker_displacements, displacement, *, coverage: float | None = None,
-               false_alarm: float | None = None, auxiliary=None) -> tuple[np.ndarray, list[Alarm]]:
+               false_alarm: float | None = None, auxiliary=None, second=None) -> tuple[np.ndarray, list[Alarm]]:
         """Error bounds and alarms of a batch of predictions.
 
         Args:
@@ -285,13 +289,14 @@ class TrustLayer:
             coverage: nominal coverage (default: :attr:`coverage`).
             false_alarm: false-alarm rate (default: :attr:`false_alarm`).
             auxiliary: (B, n_a) the auxiliary inputs of a layer that reads some (:meth:`inputs`).
+            second: (B, n, 3) mm, the second predictor's fields where already decoded (:meth:`features`).
 
         Returns:
             ``(bounds (B, n) mm, alarms: B Alarm)``.
         """
         u = np.asarray(displacement, dtype=np.float64)
         d = self.inputs(marker_displacements, auxiliary, len(u))
-        feats, h, dist = self.features(d, u)
+        feats, h, dist = self.features(d, u, second)
         bounds = self.conformal.bounds(self.sigma(feats, h), self.coverage if coverage is None else coverage)
         thr = self.ood.thresholds(self.false_alarm if false_alarm is None else false_alarm)
         cons = self.ood.consistency

@@ -126,8 +126,10 @@ class TrustedPredictor(FieldPredictor):
         """
         d, _, single = self.marker_batch(marker_displacements)
         a = self.auxiliary_batch(auxiliary, d.shape[0])
-        u = self.predictor.predict(d, auxiliary=a)
-        bounds, alarms = self.layer.assess(d, u, coverage=coverage, false_alarm=false_alarm, auxiliary=a)
+        layer = self.layer
+        x = layer.inputs(d, a, len(d))
+        u, second = self.predictor.predict_and_decode(d, a, layer.basis, layer.second.predict(x))
+        bounds, alarms = layer.assess(x, u, coverage=coverage, false_alarm=false_alarm, second=second)
         if single:
             return TrustedPrediction(u[0], bounds[0], coverage or self.layer.coverage, alarms[0])
         return TrustedPrediction(u, bounds, coverage or self.layer.coverage, alarms)
