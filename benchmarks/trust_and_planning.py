@@ -27,7 +27,8 @@ Prints, for the data-set store given (any preset: the paper's, or a scenario suc
    the alarm rate on test-1 with Gaussian noise of ``--noise`` mm a coordinate on every marker
    (false alarms under tracking), and with ``--mismatch FOLDER`` (a mismatch study's kept sets,
    ``REPORT/mismatch``) the alarm rate of every set at each noise level, with the reasons (far
-   from training, markers that disagree, a marker that stood still).
+   from training, markers that disagree, a marker that stood still, two markers exchanged).
+   For (a), also how often the swap score names the exchanged pair.
 
 A model reading instruments gets the store's poses with every input. ``--model FOLDER``
 measures a saved model (its markers) instead of fitting one for parts 2 and 3.
@@ -358,11 +359,12 @@ def part_alarm_loads(ds, model, args) -> dict:
     return rows
 
 
-def alarm_shares(model, d, aux) -> dict:
+def alarm_shares(model, d, aux, alarms=None) -> dict:
     """Share of inputs ``d`` (B, n_d, 3) mm alarmed, alarmed for each reason, refused by the
-    input gate, and flagged either way (call with the gate suspended)."""
+    input gate, and flagged either way (call with the gate suspended; ``alarms``: their alarms
+    where already computed)."""
     refused = np.array([v.refused for v in model.check_input(d)])
-    alarms = model.predict_trusted(d, auxiliary=aux).alarms
+    alarms = model.predict_trusted(d, auxiliary=aux).alarms if alarms is None else alarms
     row = {"alarm": float(np.mean([a.raised for a in alarms])), "gate_refused": float(refused.mean()),
            "flagged": float(np.mean(refused | np.array([a.raised for a in alarms])))}
     for key, reason in ALARM_REASONS.items():
@@ -418,8 +420,8 @@ def part_alarm(ds, model, U, args, out: dict) -> None:
     with model.gate_suspended():
         for _ in range(5):
             swapped, pairs = swap_markers(d, ref, rng, return_pairs=True)
-            swaps.append(alarm_shares(model, swapped, aux1))
             alarms = model.predict_trusted(swapped, auxiliary=aux1).alarms
+            swaps.append(alarm_shares(model, swapped, aux1, alarms))
             named += [a.swapped_markers_alarm and (a.swap_first, a.swap_second) == tuple(p) for a, p in zip(alarms, pairs)]
     res["swap"] = float(np.mean([r["alarm"] for r in swaps]))
     res["swap_flagged"] = float(np.mean([r["flagged"] for r in swaps]))  # refused by the input gate or alarmed
