@@ -180,14 +180,16 @@ class MarkerConsistency:
         """(B, 3 n_d) predicted minus observed displacement of every marker, mm, from inputs
         X (B, 3 n_d + n_a)."""
         X = np.asarray(X, dtype=np.float64)
-        n_d = len(self.regressions)
-        # every marker's regression at once (QuadraticRegression.predict, stacked; markers as the
-        # batch of the products)
-        mean, scale, directions_t, (a, b), coef0, coef1, coef2 = self._stacked
-        Z = ((X[:, self._others] - mean) / scale).transpose(1, 0, 2)  # (n_d, B, d)
-        P = Z @ directions_t  # (n_d, B, q)
-        y = coef0[:, None, :] + Z @ coef1 + (P[..., a] * P[..., b]) @ coef2  # (n_d, B, 3)
-        return (y.transpose(1, 0, 2) - X[:, :3 * n_d].reshape(len(X), n_d, 3)).reshape(len(X), -1)
+        n_d, B = len(self.regressions), len(X)
+        # every marker's regression at once (QuadraticRegression.predict, stacked and folded:
+        # markers as the batch of the products)
+        linear, offset, quadratic = self._stacked
+        q = quadratic.shape[1]
+        L = X[:, self._others].transpose(1, 0, 2) @ linear  # (n_d, B, q + 3): projections, linear part
+        L += offset[:, None, :]
+        P = L[..., :q]
+        y = L[..., q:] + np.einsum("jbka,jba->jbk", (P @ quadratic).reshape(n_d, B, 3, q), P)  # (n_d, B, 3)
+        return (y.transpose(1, 0, 2) - X[:, :3 * n_d].reshape(B, n_d, 3)).reshape(B, -1)
 
     def residuals(self, X) -> np.ndarray:
         """(B, n_d) distance (mm) of each marker from where the other markers put it."""
@@ -217,15 +219,26 @@ class MarkerConsistency:
 
 
 def _stack_regressions(regressions) -> tuple:
-    """The markers' regressions as stacked arrays: means, scales (n_d, d), directions transposed (n_d, d, q),
-    the products' index pairs and the coefficients of the constant (n_d, 3), the linear (n_d, d, 3)
-    and the quadratic terms (n_d, Q, 3). They are of one size: each is fitted on the same inputs
-    less one marker's 3 columns (:func:`fit_marker_consistency`)."""
+    """The markers' regressions as stacked arrays with their standardisation folded in:
+    ``(linear (n_d, d, q + 3), offset (n_d, q + 3), quadratic (n_d, q, 3 q))``. For marker j's
+    inputs x (d,), ``x @ linear[j] + offset[j]`` is ``[p, c_0 + z @ c_1]`` (p the projections on
+    its q directions, z the standardised inputs) and output k's products' term is
+    ``sum_a p_a (p @ quadratic[j])[k q + a]`` (each coefficient of p_a p_b, a < b, split evenly
+    between (a, b) and (b, a)). They are of one size: each is fitted on the same inputs less one marker's 3 columns
+    (:func:`fit_marker_consistency`)."""
     d, q = len(regressions[0].mean), len(regressions[0].directions)
-    coef = np.stack([r.coef for r in regressions])  # (n_d, 1 + d + Q, 3)
-    return (np.stack([r.mean for r in regressions]), np.stack([r.scale for r in regressions]),
-            np.ascontiguousarray(np.stack([r.directions for r in regressions]).transpose(0, 2, 1)), np.triu_indices(q),
-            coef[:, 0], np.ascontiguousarray(coef[:, 1:1 + d]), np.ascontiguousarray(coef[:, 1 + d:]))
+    a, b = np.triu_indices(q)
+    linear, offset, quadratic = [], [], []
+    for r in regressions:
+        scaled = np.hstack([r.directions.T, r.coef[1:1 + d]]) / r.scale[:, None]  # (d, q + 3) on raw inputs
+        linear.append(scaled)
+        offset.append(np.concatenate([np.zeros(q), r.coef[0]]) - r.mean @ scaled)
+        m = np.zeros((q, q, 3))
+        c = r.coef[1 + d:]  # (Q, 3), the products p_a p_b in triu order
+        np.add.at(m, (a, b), np.where((a == b)[:, None], c, c / 2.0))
+        np.add.at(m, (b[a != b], a[a != b]), c[a != b] / 2.0)
+        quadratic.append(m.transpose(1, 2, 0).reshape(q, 3 * q))  # row b, columns (output, a)
+    return np.stack(linear), np.stack(offset), np.stack(quadratic)
 
 
 def _mahalanobis(R: np.ndarray, precision: np.ndarray) -> np.ndarray:
