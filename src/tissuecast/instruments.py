@@ -107,11 +107,11 @@ class ReferenceSurface:
     def __init__(self, points, triangles):
         p = np.asarray(points, dtype=np.float64)
         tri = np.asarray(triangles, dtype=np.int64)
-        self.origin = p[tri[:, 0]]
-        self.edge1 = p[tri[:, 1]] - self.origin
-        self.edge2 = p[tri[:, 2]] - self.origin
-        # (3, t) contiguous components: one pose per tracked frame reads them with 1-D products
-        self._o, self._e1, self._e2 = (np.ascontiguousarray(a.T) for a in (self.origin, self.edge1, self.edge2))
+        origin = p[tri[:, 0]]
+        # (3, t) contiguous components of each triangle's first vertex and two edges: one pose per
+        # tracked frame reads them with 1-D products
+        self._o, self._e1, self._e2 = (np.ascontiguousarray(a.T) for a in (origin, p[tri[:, 1]] - origin,
+                                                                           p[tri[:, 2]] - origin))
 
     @classmethod
     def of(cls, mesh) -> "ReferenceSurface":

@@ -209,9 +209,11 @@ static int runLatency(igtl::ClientSocket::Pointer& socket, int argc, char* argv[
     for (size_t i = 0; i < xyz.size(); ++i)
       moved[i] = xyz[i] + 0.5f * static_cast<float>(std::sin(0.7 * frame + 1.3 * i));
     std::chrono::steady_clock::time_point start = std::chrono::steady_clock::now();
-    if (tool)
-      sendTransform(socket, argv[5], pose);
-    sendPoints(socket, moved, count, false);
+    if ((tool && !sendTransform(socket, argv[5], pose)) || !sendPoints(socket, moved, count, false))
+    {
+      std::fprintf(stderr, "frame %d: sending failed (the server closed the connection?)\n", frame);
+      return 3;
+    }
     if (!receivePolyData(socket, header, polydata))
     {
       std::fprintf(stderr, "frame %d: no POLYDATA reply with a valid CRC\n", frame);

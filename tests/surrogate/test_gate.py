@@ -87,8 +87,8 @@ def test_the_input_let_through_last_passes_at_once_and_nothing_else_does(monkeyp
     ref = np.array([[0.0, 0, 0], [10.0, 0, 0], [0, 20.0, 0]])
     gate = InputGate(np.arange(3), ref, np.ones(3), np.array([[1.0, 1.0]] * 3))
     calls = []
-    inspect = InputGate.inspect
-    monkeypatch.setattr(InputGate, "inspect", lambda self, d, missing=None: calls.append(1) or inspect(self, d, missing))
+    inspect = InputGate._inspect
+    monkeypatch.setattr(InputGate, "_inspect", lambda self, d, missing, key: calls.append(1) or inspect(self, d, missing, key))
     ok = np.zeros((1, 9))
     gate.enforce(ok)
     gate.enforce(ok.copy())  # the same values: not inspected again (the parts of a composed model share the gate)
@@ -115,6 +115,15 @@ def test_the_input_let_through_last_passes_at_once_and_nothing_else_does(monkeyp
     assert gate.inspect(bad)[0].refused  # a refused inspection forgets nothing and remembers nothing
     gate.enforce(other)
     assert len(calls) == 7
+    # an untracked marker's coordinates do not count: NaN from the tracker, 0 filled in by a model
+    tracked = np.array([[False, True, False]])
+    given = other.copy()
+    given[0, 3:6] = np.nan
+    assert not gate.inspect(given, tracked)[0].refused
+    filled = other.copy()
+    filled[0, 3:6] = 0.0
+    gate.enforce(filled, tracked)
+    assert len(calls) == 8
 
 
 # ---------------------------------------------------------------------------------------------- the API

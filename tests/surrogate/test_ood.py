@@ -146,3 +146,19 @@ def test_the_swap_score_finds_two_exchanged_markers_and_passes_clean_and_slipped
     for old in (OODScores(ood.distance, cons, ood.scale[:4], ood.calibration),
                 OODScores(ood.distance, None, ood.scale, ood.calibration, swap=swap)):
         assert not old.has_swap and np.isnan(old.scores(Xs)[:, 4]).all() and np.isinf(old.thresholds(0.01)[4])
+
+
+def test_the_stacked_consistency_regressions_are_each_marker_s_own_regression():
+    """MarkerConsistency.residual_vectors (every marker's regression in one set of products, the
+    standardisation folded in) against each QuadraticRegression.predict on the other markers'
+    inputs and two auxiliary ones; one input and a batch."""
+    rng = np.random.default_rng(8)
+    n_d = 6
+    Xt, Xv, Xs = (_inputs(n, rng, n_d=n_d) for n in (800, 200, 9))
+    aux = lambda n: rng.normal(0.0, 2.0, (n, 2))  # noqa: E731
+    Xt, Xv, Xs = (np.hstack([X, aux(len(X))]) for X in (Xt, Xv, Xs))
+    cons = fit_marker_consistency(Xt, Xv, n_auxiliary=2)
+    for X in (Xs[:1], Xs):
+        expected = np.hstack([cons.regressions[j].predict(np.delete(X, np.s_[3 * j:3 * j + 3], axis=1))
+                              - X[:, 3 * j:3 * j + 3] for j in range(n_d)])
+        np.testing.assert_allclose(cons.residual_vectors(X), expected, rtol=0, atol=1e-11)

@@ -126,7 +126,9 @@ class InputGate:
         """One verdict per input of ``d`` (B, 3 n_d) mm; ``missing`` (B, n_d) bool marks untracked markers (not checked).
 
         An input every verdict lets through is remembered as :meth:`enforce` remembers it."""
-        key = self._key(d, missing)
+        return self._inspect(d, missing, self._key(d, missing))
+
+    def _inspect(self, d, missing, key: tuple) -> list[GateVerdict]:
         d = np.asarray(d, dtype=np.float64).reshape(len(d), -1, 3)
         tracked = np.ones(d.shape[:2], dtype=bool) if missing is None else ~np.asarray(missing, dtype=bool)
         finite = np.isfinite(d).all(axis=2) | ~tracked
@@ -153,12 +155,17 @@ class InputGate:
 
     @staticmethod
     def _key(d, missing) -> tuple:
-        """What identifies an input (B, 3 n_d) mm and its ``missing`` mask (no marker missing: None)."""
-        values = np.ascontiguousarray(d, dtype=np.float64)
-        values = values.reshape(len(values), -1)
+        """What identifies an input (B, 3 n_d) mm and its ``missing`` mask (no marker missing:
+        None; an untracked marker's coordinates, NaN from a tracker or filled in by a model, do
+        not count)."""
+        values = np.array(d, dtype=np.float64).reshape(len(d), -1)
         if missing is not None:
             missing = np.ascontiguousarray(missing, dtype=bool)
-        return values.shape, values.tobytes(), None if missing is None or not missing.any() else missing.tobytes()
+            if missing.any():
+                values.reshape(len(values), -1, 3)[missing.reshape(len(values), -1)] = 0.0
+            else:
+                missing = None
+        return values.shape, values.tobytes(), None if missing is None else missing.tobytes()
 
     def enforce(self, d, missing=None) -> None:
         """Raise :class:`~tissuecast.errors.InputRejected` for the first refused input of ``d`` (B, 3 n_d) mm.
@@ -166,9 +173,10 @@ class InputGate:
         The input it last let through (here or in :meth:`inspect`) is remembered (its bytes): the
         parts of a composed model share one gate, and each checks the input again on its way
         down, after a server has inspected it; the same values pass at once."""
-        if self._key(d, missing) == self._passed:
+        key = self._key(d, missing)
+        if key == self._passed:
             return
-        for s, v in enumerate(self.inspect(d, missing)):
+        for s, v in enumerate(self._inspect(d, missing, key)):
             if v.refused:
                 where = f"sample {s}: " if len(d) > 1 else ""
                 raise InputRejected(f"{where}{v.message}", reason=v.reason, marker=v.marker, vertex=v.vertex,

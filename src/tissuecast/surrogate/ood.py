@@ -46,8 +46,10 @@ The scores the alarm uses (distance, consistency and stillness; the fault score 
 asked, else it only names the suspect marker), each divided by its median on validation
 samples, are combined by their maximum; the alarm threshold is the split-conformal ``1 - alpha`` quantile
 of that combined score on a calibration split, so a clean input (exchangeable with the
-calibration samples) raises an alarm with probability at most alpha (:class:`OODScores`).
-The swap score raises the alarm by itself above :data:`SWAP_RATIO`, a fixed level: on clean
+calibration samples) raises that alarm with probability at most alpha (:class:`OODScores`).
+The swap score raises the alarm by itself above :data:`SWAP_RATIO`, a fixed level, and adds its
+own false-alarm rate (measured, not bounded by alpha); it is off wherever the conformal alarm is
+(too few calibration samples for the rate asked). On clean
 input it stays near its median (a few tenths: any exchange makes the markers agree worse),
 and a score scaled by that median would move with every change of the consistency score
 (a slipped marker raises the input's own score, not the exchanged ones' less), which it must
@@ -372,7 +374,7 @@ class MarkerSwap:
         fewer than two markers: score 0)."""
         X = np.asarray(X, dtype=np.float64)
         B, P = len(X), len(self.pairs)
-        if P == 0:
+        if P == 0 or B == 0:
             return np.zeros(B), np.full(B, -1, dtype=np.int64)
         c = consistency(X) if own is None else np.asarray(own, dtype=np.float64)
         step = max(1, _SWAP_CHUNK // P)  # inputs exchanged at once (bounds the memory of a long batch)
@@ -464,7 +466,8 @@ class OODScores:
         """(5,) thresholds of the distance, consistency, fault, stillness and swap scores (inf
         for a score that is absent or not part of the alarm)."""
         t = self.threshold(false_alarm) * self.scale
-        t[4] = SWAP_RATIO if np.isfinite(t[0]) else np.inf  # an alarm not calibrated is off, swaps too
+        # an alarm that is off (too few calibration samples for the rate) is off for swaps too
+        t[4] = SWAP_RATIO if np.isfinite(t[0]) else np.inf
         present = [True, self.consistency is not None,
                    self.use_fault and self.consistency is not None and self.consistency.sensitivity is not None,
                    self.stillness is not None, self.has_swap]

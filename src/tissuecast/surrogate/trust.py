@@ -13,7 +13,7 @@ The layer is fitted in two steps (:mod:`.trust_fit`), for any field predictor:
   predicted field misses the markers it was given, the input distance, the peak marker
   displacement, and a regression of the error on the input learnt from out-of-fold errors on
   the training samples), the mean and covariance of the consistency residuals, and the medians
-  that put the three alarm scores on one scale;
+  that put the alarm's scores on one scale;
 - **calibration** (:meth:`TrustLayer.calibrate`) from any (input, prediction, truth) triples
   the predictor was not trained on: the split-conformal scores of the bounds
   (:mod:`.conformal`) and of the alarm. Today these are samples held out from the training
@@ -324,13 +324,13 @@ class TrustLayer:
             raised = bool(dist[b] > thr[0] or c_score[b] > thr[1] or f_score[b] > thr[2] or s_score[b] > thr[3]
                           or w_score[b] > thr[4])
             j, k = int(stillest[b]), int(pair[b])
-            first, second = (int(pairs[k, 0]), int(pairs[k, 1])) if k >= 0 else (-1, -1)
+            swap_i, swap_j = (int(pairs[k, 0]), int(pairs[k, 1])) if k >= 0 else (-1, -1)
             alarms.append(Alarm(raised, float(dist[b]), float(thr[0]), float(c_score[b]), float(thr[1]),
                                 int(worst[b]), float(res[b, worst[b]]) if res is not None else float("nan"),
                                 float(f_score[b]), float(thr[2]), float(s_score[b]), float(thr[3]), j,
                                 float(shares[b, j]) if j >= 0 else float("nan"),
                                 float(still.least[j]) if j >= 0 else float("nan"),
-                                float(w_score[b]), float(thr[4]), first, second))
+                                float(w_score[b]), float(thr[4]), swap_i, swap_j))
         return bounds, alarms
 
     def alarm_scores(self, marker_displacements, *, auxiliary=None) -> np.ndarray:
