@@ -158,6 +158,23 @@ static int receiveAndPrint(igtl::ClientSocket::Pointer& socket)
   return 1;
 }
 
+// Reads the 4x4 matrix (16 numbers, row by row) at argv[first] and the marker coordinates after
+// it; returns false (printing the usage) unless at least one whole marker follows.
+static bool readMatrixAndPoints(int argc, char* argv[], int first, const char* usage, float matrix[16],
+                                std::vector<float>& xyz)
+{
+  if (argc < first + 16 + 3 || (argc - first - 16) % 3 != 0)
+  {
+    std::fprintf(stderr, "usage: %s %s\n", argv[0], usage);
+    return false;
+  }
+  for (int i = 0; i < 16; ++i)
+    matrix[i] = static_cast<float>(std::atof(argv[first + i]));
+  for (int i = first + 16; i < argc; ++i)
+    xyz.push_back(static_cast<float>(std::atof(argv[i])));
+  return true;
+}
+
 // Receives messages until a POLYDATA (skipping STATUS and reading any other body); returns 1 when
 // the POLYDATA's CRC check passed, 0 otherwise or when the connection closed.
 static int receivePolyData(igtl::ClientSocket::Pointer& socket, igtl::MessageHeader::Pointer& header,
@@ -186,19 +203,13 @@ static int receivePolyData(igtl::ClientSocket::Pointer& socket, igtl::MessageHea
 
 static int runLatency(igtl::ClientSocket::Pointer& socket, int argc, char* argv[])
 {
-  if (argc < 6 + 16 + 3 || (argc - 6 - 16) % 3 != 0 || std::atoi(argv[4]) < 1)
-  {
-    std::fprintf(stderr, "usage: %s HOST PORT --latency FRAMES DEVICE M00..M33 X0 Y0 Z0 [...]\n", argv[0]);
+  float pose[16];
+  std::vector<float> xyz;
+  if (!readMatrixAndPoints(argc, argv, 6, "HOST PORT --latency FRAMES DEVICE M00..M33 X0 Y0 Z0 [...]", pose, xyz)
+      || std::atoi(argv[4]) < 1)
     return 2;
-  }
   int frames = std::atoi(argv[4]);
   bool tool = std::strcmp(argv[5], "-") != 0;
-  float pose[16];
-  for (int i = 0; i < 16; ++i)
-    pose[i] = static_cast<float>(std::atof(argv[6 + i]));
-  std::vector<float> xyz;
-  for (int i = 6 + 16; i < argc; ++i)
-    xyz.push_back(static_cast<float>(std::atof(argv[i])));
   size_t count = xyz.size() / 3;
   std::vector<float> moved(xyz.size());
   igtl::MessageHeader::Pointer header = igtl::MessageHeader::New();
@@ -231,17 +242,10 @@ static int runLatency(igtl::ClientSocket::Pointer& socket, int argc, char* argv[
 
 static int runInstrument(igtl::ClientSocket::Pointer& socket, int argc, char* argv[])
 {
-  if (argc < 6 + 16 + 3 || (argc - 6 - 16) % 3 != 0)
-  {
-    std::fprintf(stderr, "usage: %s HOST PORT --instrument DEVICE WAIT_MS M00..M33 X0 Y0 Z0 [...]\n", argv[0]);
-    return 2;
-  }
   float pose[16];
-  for (int i = 0; i < 16; ++i)
-    pose[i] = static_cast<float>(std::atof(argv[6 + i]));
   std::vector<float> xyz;
-  for (int i = 6 + 16; i < argc; ++i)
-    xyz.push_back(static_cast<float>(std::atof(argv[i])));
+  if (!readMatrixAndPoints(argc, argv, 6, "HOST PORT --instrument DEVICE WAIT_MS M00..M33 X0 Y0 Z0 [...]", pose, xyz))
+    return 2;
   size_t count = xyz.size() / 3;
 
   sendPoints(socket, xyz, count, false);  // no instrument yet: markers only
@@ -259,38 +263,36 @@ static int runInstrument(igtl::ClientSocket::Pointer& socket, int argc, char* ar
   return 0;
 }
 
+// Connects to argv[1]:argv[2] with a 10 s receive timeout; a null pointer (reason printed) on failure.
+static igtl::ClientSocket::Pointer connectTo(char* argv[])
+{
+  igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
+  if (socket->ConnectToServer(argv[1], std::atoi(argv[2])) != 0)
+  {
+    std::fprintf(stderr, "cannot connect to %s:%s\n", argv[1], argv[2]);
+    return igtl::ClientSocket::Pointer();
+  }
+  socket->SetReceiveTimeout(10000);
+  return socket;
+}
+
 int main(int argc, char* argv[])
 {
   bool latency = argc > 3 && std::strcmp(argv[3], "--latency") == 0;
   if (latency || (argc > 3 && std::strcmp(argv[3], "--instrument") == 0))
   {
-    igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
-    if (socket->ConnectToServer(argv[1], std::atoi(argv[2])) != 0)
-    {
-      std::fprintf(stderr, "cannot connect to %s:%s\n", argv[1], argv[2]);
+    igtl::ClientSocket::Pointer socket = connectTo(argv);
+    if (socket.IsNull())
       return 1;
-    }
-    socket->SetReceiveTimeout(10000);
     return latency ? runLatency(socket, argc, argv) : runInstrument(socket, argc, argv);
   }
-  if (argc < 4 + 16 + 3 || (argc - 4 - 16) % 3 != 0)
-  {
-    std::fprintf(stderr, "usage: %s HOST PORT REGISTRATION_NAME M00..M33 X0 Y0 Z0 [...]\n", argv[0]);
-    return 2;
-  }
-  igtl::ClientSocket::Pointer socket = igtl::ClientSocket::New();
-  if (socket->ConnectToServer(argv[1], std::atoi(argv[2])) != 0)
-  {
-    std::fprintf(stderr, "cannot connect to %s:%s\n", argv[1], argv[2]);
-    return 1;
-  }
-  socket->SetReceiveTimeout(10000);
   float matrix[16];
-  for (int i = 0; i < 16; ++i)
-    matrix[i] = static_cast<float>(std::atof(argv[4 + i]));
   std::vector<float> xyz;
-  for (int i = 4 + 16; i < argc; ++i)
-    xyz.push_back(static_cast<float>(std::atof(argv[i])));
+  if (!readMatrixAndPoints(argc, argv, 4, "HOST PORT REGISTRATION_NAME M00..M33 X0 Y0 Z0 [...]", matrix, xyz))
+    return 2;
+  igtl::ClientSocket::Pointer socket = connectTo(argv);
+  if (socket.IsNull())
+    return 1;
   size_t count = xyz.size() / 3;
 
   sendTransform(socket, argv[3], matrix);  // the registration: no reply

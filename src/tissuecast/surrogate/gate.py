@@ -94,7 +94,7 @@ class InputGate:
                                      length * (s[:, 1] + widen) + TOLERANCE_MM], axis=1))
         object.__setattr__(self, "_displacement_limits",
                            DISPLACEMENT_FACTOR * np.asarray(self.max_displacement, dtype=np.float64) + TOLERANCE_MM)
-        object.__setattr__(self, "_passed", None)  # the last input inspect() or enforce() let through: (values, missing) bytes
+        object.__setattr__(self, "_passed", None)  # the _key of the last input inspect() or enforce() let through
 
     # ------------------------------------------------------------------ construction
     @classmethod

@@ -70,6 +70,7 @@ class NetworkPredictor(FieldPredictor):
         self.head = head
         self.auxiliary = auxiliary
         self.compiled = CompiledSurrogate(members, basis, head)
+        self._same_basis = (None, False)  # (the basis last asked about, whether it is this network's): decodes_with
 
     # ------------------------------------------------------------------ description
     @property
@@ -118,9 +119,8 @@ class NetworkPredictor(FieldPredictor):
     def decodes_with(self, basis) -> bool:
         """Whether ``basis`` (a :class:`~.pca.PCABasis`) is this network's decoder: the same
         components and mean (a trust layer fitted with the model shares them)."""
-        known = getattr(self, "_same_basis", None)
-        if known is not None and known[0] is basis:
-            return known[1]
+        if self._same_basis[0] is basis:
+            return self._same_basis[1]
         mine = self.basis
         same = basis is mine or (isinstance(mine, PCABasis) and basis.components.shape == mine.components.shape
                                  and np.array_equal(basis.components, mine.components)
