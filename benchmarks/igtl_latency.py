@@ -24,7 +24,11 @@ the first round trip is also timed with the official client (tests/igtl_client, 
 mode: the same TRANSFORM and POINT per frame, the POLYDATA unpacked with the library's CRC
 check, timed with std::chrono in the client), and the target line reads that client's p99.
 
-Usage: python benchmarks/igtl_latency.py [--requests 2000] [--model FOLDER]
+With ``--interval S`` the first round trip is also timed paced, S seconds between a reply and the
+next frame (a tracker streaming at 1 / S Hz), beside a fixed numpy kernel served over the same
+kind of socket back to back and paced: the machine's share of the paced latency.
+
+Usage: python benchmarks/igtl_latency.py [--requests 2000] [--model FOLDER] [--interval 0.02]
 """
 
 from __future__ import annotations
@@ -48,12 +52,14 @@ from tissuecast.serve.synthetic import synthetic_model
 from tissuecast.surrogate import DeformationModel
 
 
-def per_call(fn, n: int) -> np.ndarray:
-    """Seconds per call of fn(), n calls after 20 warm-up calls."""
+def per_call(fn, n: int, pause: float = 0.0) -> np.ndarray:
+    """Seconds per call of fn(), n calls after 20 warm-up calls, each after ``pause`` seconds idle."""
     for _ in range(20):
         fn()
     out = np.empty(n)
     for i in range(n):
+        if pause:
+            time.sleep(pause)
         t = time.perf_counter()
         fn()
         out[i] = time.perf_counter() - t
@@ -76,8 +82,10 @@ def start_server(folder: Path, *extra: str) -> tuple[subprocess.Popen, int]:
     return proc, int(line.split(" on ")[1].split()[0].rsplit(":", 1)[1])
 
 
-def round_trips(port: int, positions: np.ndarray, n: int, mode: str, tools: dict | None = None) -> np.ndarray:
-    """Seconds per request; ``tools``: {device: packed TRANSFORM} sent before each request."""
+def round_trips(port: int, positions: np.ndarray, n: int, mode: str, tools: dict | None = None,
+                pause: float = 0.0) -> np.ndarray:
+    """Seconds per request; ``tools``: {device: packed TRANSFORM} sent before each request;
+    ``pause``: seconds between a reply and the next request (0: back to back)."""
     rng = np.random.default_rng(0)
     with IGTLClient("127.0.0.1", port) as client:
         def once():
@@ -94,7 +102,7 @@ def round_trips(port: int, positions: np.ndarray, n: int, mode: str, tools: dict
             if mode == "field":
                 reply = client.receive()
             assert reply.polydata is not None, reply.text
-        return per_call(once, n)
+        return per_call(once, n, pause)
 
 
 def instrument_transforms(model, devices) -> dict:
@@ -122,6 +130,50 @@ def tool_pose(model) -> np.ndarray:
     tool[:3, :3] = np.column_stack([x, np.cross(z, x), z])
     tool[:3, 3] = tip + out
     return tool
+
+
+def _kernel_server(port_queue) -> None:
+    """Answer each request with a 28 kB reply after six (2 x 120) @ (120 x 3500) products over
+    two fixed float64 matrices (6.7 MB read, about a served model's footprint)."""
+    import socket
+
+    with socket.create_server(("127.0.0.1", 0)) as listener:
+        port_queue.put(listener.getsockname()[1])
+        conn, _ = listener.accept()
+        conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        mats = [np.random.default_rng(k).random((120, 3500)) for k in range(2)]
+        h = np.ones((2, 120))
+        reply = bytes(28000)
+        while conn.recv(65536):
+            for _ in range(3):
+                for m in mats:
+                    h @ m
+            conn.sendall(reply)
+
+
+def kernel_round_trips(n: int, pause: float) -> np.ndarray:
+    """Seconds per round trip to :func:`_kernel_server` in another process (the machine's
+    share of a paced round trip: sockets, wake-ups and caches gone cold between frames)."""
+    import multiprocessing
+    import socket
+
+    ctx = multiprocessing.get_context("spawn")
+    ports = ctx.Queue()
+    proc = ctx.Process(target=_kernel_server, args=(ports,), daemon=True)
+    proc.start()
+    try:
+        with socket.create_connection(("127.0.0.1", ports.get(timeout=60))) as sock:
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+            def once():
+                sock.sendall(b"x" * 200)
+                got = 0
+                while got < 28000:
+                    got += len(sock.recv(65536))
+            return per_call(once, n, pause)
+    finally:
+        proc.join(10)
+        proc.kill()
 
 
 CLIENT_SOURCE = Path(__file__).resolve().parents[1] / "tests" / "igtl_client" / "tissuecast_igtl_client.cxx"
@@ -158,6 +210,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--requests", type=int, default=2000)
     parser.add_argument("--model", help="saved DeformationModel folder (default: a synthetic phantom model)")
+    parser.add_argument("--interval", type=float, default=0.0,
+                        help="also time the first round trip paced as a tracker streams: this many seconds between a "
+                             "reply and the next frame (e.g. 0.02 for 50 Hz), beside a fixed kernel served alike")
     args = parser.parse_args()
     n = args.requests
     mesh = phantom()
@@ -217,6 +272,9 @@ def main() -> None:
             try:
                 results[name] = round_trips(port, positions, n, mode, tools)
                 print(row(name, results[name]))
+                if args.interval and name == runs[0][0]:
+                    paced = round_trips(port, positions, max(100, n // 4), mode, tools, args.interval)
+                    print(row(f"  ... paced, {args.interval * 1e3:g} ms between frames", paced))
                 if binary is not None and name == runs[0][0]:
                     results[official] = cpp_round_trips(binary, port, positions, n, device,
                                                         tool_pose(model) if device else None)
@@ -224,6 +282,10 @@ def main() -> None:
             finally:
                 proc.terminate()
                 proc.wait(10)
+        if args.interval:
+            for pause in (0.0, args.interval):
+                print(row(f"fixed kernel server (6.7 MB read a frame), pause {pause * 1e3:g} ms",
+                          kernel_round_trips(max(100, n // 4), pause)))
         which = official if official in results else runs[0][0]
         p99 = np.percentile(results[which], 99) * 1e3
         what, target = ("POINT + TRANSFORM", 3.0) if tools else ("POINT", 1.0)

@@ -468,6 +468,7 @@ class UncertainConfig:
     spring_tangential: tuple[float, ...] = _f((), lo=0.0, lo_open=True, doc="[min, max] factor on the springs' tangential stiffness, drawn log-uniformly")
     attached_margin: tuple[float, ...] = _f((), doc="[min, max] mm the attached region grows (+) or shrinks (-) along the surface, drawn uniformly")
     measured: tuple[str, ...] = _f((), doc="parameters measured before surgery (e.g. 'youngs_modulus' by elastography): model inputs")
+    nominal_share: float = _f(0.0, lo=0.0, hi=1.0, hi_open=True, doc="share of the samples drawn with every parameter at its nominal value (a prior that trusts the nominal guess; 0: every sample from the ranges)")
 
 
 #: The scenario loads an instrument can be (:class:`InstrumentConfig`): today the indentation.
@@ -718,6 +719,9 @@ def _check_uncertain(obj: "UncertainConfig", prefix: str) -> None:
     unknown = [m for m in obj.measured if m not in UNCERTAIN_PARAMETERS]
     if unknown:
         raise ConfigError(f"{prefix}measured names {unknown}; choose among {list(UNCERTAIN_PARAMETERS)}")
+    if obj.nominal_share and not any(getattr(obj, name) for name in UNCERTAIN_PARAMETERS):
+        raise ConfigError(f"{prefix}nominal_share = {obj.nominal_share:g} with no parameter drawn; give a parameter a "
+                          f"[min, max] range, or remove {prefix}nominal_share")
     undrawn = [m for m in obj.measured if not getattr(obj, m)]
     if undrawn:
         raise ConfigError(f"{prefix}measured names {undrawn}, which {prefix[:-1]} does not draw; give "

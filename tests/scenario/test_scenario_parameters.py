@@ -52,6 +52,22 @@ def test_draws_are_reproducible_independent_of_the_other_ranges_and_follow_their
     np.testing.assert_allclose(nu_el, draws[0].poisson_ratio)
 
 
+def test_a_nominal_share_keeps_that_share_of_samples_nominal_and_the_others_draws_unchanged():
+    ranges = dict(youngs_modulus=(0.5, 2.0), poisson_ratio=(0.40, 0.49), attached_margin=(-5.0, 5.0),
+                  region_youngs_modulus=(1.0, 3.0))
+    plain, shared = _parameters(**ranges), _parameters(**ranges, nominal_share=0.3)
+    n = 4000
+    a = [plain.draw(parameter_rng(s)) for s in range(n)]
+    b = [shared.draw(parameter_rng(s)) for s in range(n)]
+    nominal = np.array([d.youngs_modulus == 1.0 and np.isnan(d.poisson_ratio) and d.attached_margin == 0.0
+                        and d.region_youngs_modulus == (1.0,) for d in b])
+    # the share is a binomial count: 0.3 within 4 standard deviations
+    assert abs(nominal.mean() - 0.3) < 4.0 * np.sqrt(0.3 * 0.7 / n)
+    # every other sample draws exactly what it draws without the share
+    assert all(x == y for x, y, nom in zip(a, b, nominal) if not nom)
+    np.testing.assert_equal([shared.draw(parameter_rng(s)).record() for s in range(20)], [d.record() for d in b[:20]])
+
+
 def test_the_signed_surface_distance_from_the_attached_rim():
     d = attached_distance(BOX, BOTTOM)
     side = np.flatnonzero(np.isclose(BOX.points[:, 0], 0.0) & (BOX.points[:, 2] > 0))
@@ -128,7 +144,9 @@ def test_the_attached_extent_and_the_density_follow_the_draw(tmp_path):
      ({"youngs_modulus": [2.0, 0.5]}, {}, "scenario.uncertain.youngs_modulus must be [min, max]"),
      ({"youngs_modulus": [0.5, 100.0]}, {}, "are factors on material.youngs_modulus"),
      ({"measured": ["E"]}, {}, "scenario.uncertain.measured names ['E']"),
-     ({"measured": ["poisson_ratio"]}, {}, "which scenario.uncertain does not draw")],
+     ({"measured": ["poisson_ratio"]}, {}, "which scenario.uncertain does not draw"),
+     ({"nominal_share": 0.3}, {}, "nominal_share = 0.3 with no parameter drawn"),
+     ({"youngs_modulus": [0.5, 2.0], "nominal_share": 1.0}, {}, "scenario.uncertain.nominal_share")],
 )
 def test_bad_uncertain_ranges_are_refused_naming_the_key(uncertain, scenario, text):
     with pytest.raises(ConfigError, match=text.replace("[", r"\[").replace("]", r"\]")):

@@ -14,6 +14,9 @@ uncertainty), one uniform number per slot in the fixed order E, nu, density, spr
 spring tangential, attached margin, then one per material region, whether or not the slot
 has a range: giving one parameter a range does not change another's draws. Factors on
 moduli and stiffnesses are log-uniform (as likely halved as doubled), the others uniform.
+With ``nominal_share`` > 0 one more uniform number is drawn after those: below the share, the
+sample keeps every parameter at its nominal value (its other numbers unused), so the ranges'
+draws of the remaining samples are those of the same seeds without the share.
 
 How a draw acts (:class:`UncertainParameters`): the element constants and the springs of the
 sample's problem, the body loads scaled by the density factor, and the attached region's
@@ -139,6 +142,8 @@ class UncertainParameters:
         values = {name: _value(u[k], getattr(c, name), nominal[name], name in _LOG_UNIFORM)
                   for k, name in enumerate(PARAMETER_NAMES)}
         regions = tuple(_value(x, c.region_youngs_modulus, 1.0, True) for x in u[len(PARAMETER_NAMES):])
+        if c.nominal_share and rng.random() < c.nominal_share:
+            values, regions = nominal, (1.0,) * self.n_regions
         return ParameterDraw(region_youngs_modulus=regions, **values)
 
     def element_constants(self, draw: ParameterDraw) -> tuple[np.ndarray, np.ndarray]:
