@@ -53,6 +53,11 @@ def test_the_sets_their_ranges_and_their_configs(tmp_path):
     g = set_config(cfg, sets["gravity 45 deg off"], alpha=1.5, samples=12, markers=markers, fixed=fixed, store="s")
     d0, d1 = np.asarray(cfg.scenario.gravity.surgery_direction), np.asarray(g.scenario.gravity.surgery_direction)
     assert np.degrees(np.arccos(d0 @ d1 / np.linalg.norm(d0) / np.linalg.norm(d1))) == pytest.approx(45.0)
+    # a training config's nominal share does not reach the sets: each set's samples all have its values
+    shared = with_overrides(cfg, scenario={"uncertain": {"nominal_share": 0.25}})
+    for name in ("nominal", "springs x4"):
+        assert set_config(shared, sets[name], alpha=1.5, samples=12, markers=markers, fixed=fixed,
+                          store="s").scenario.uncertain.nominal_share == 0.0
     inc = set_config(cfg, sets["inclusion 3x E"], alpha=1.5, samples=12, markers=markers, fixed=fixed, store="s")
     assert inc.scenario.materials.regions[-1].youngs_modulus == pytest.approx(3 * cfg.material.youngs_modulus)
     with pytest.raises(Exception, match="outside soft tissue"):

@@ -135,7 +135,8 @@ def mismatch_sets(config: Config, mesh) -> list[MismatchSet]:
 def set_config(config: Config, mset: MismatchSet, *, alpha: float, samples: int, markers, fixed, store) -> Config:
     """The data-set config of one set (module notes)."""
     none = {name: [] for name in UNCERTAIN_PARAMETERS}
-    scenario = {"uncertain": {**none, **mset.uncertain, "measured": []}, **mset.scenario}
+    # every sample of a set has the set's values: no share of them falls back to the nominal ones
+    scenario = {"uncertain": {**none, **mset.uncertain, "measured": [], "nominal_share": 0.0}, **mset.scenario}
     ds = {"store": str(store), "n_samples": samples, "n_test2": 0, "split": [0.0, 0.0, 1.0], "alpha": float(alpha),
           "seed": config.dataset.seed + STUDY_SEED_OFFSET, "predictor_samples": max(2, min(24, samples // 4))}
     mk = {"ids": [int(i) for i in markers]}
