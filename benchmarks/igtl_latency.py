@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -45,7 +44,10 @@ from pathlib import Path
 import numpy as np
 import pyigtl
 
-from tissuecast.mesh.phantom import phantom
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the official client's build
+import official_client  # noqa: E402
+
+from tissuecast.mesh.phantom import phantom  # noqa: E402
 from tissuecast.serve import IGTLClient, SurfacePredictor
 from tissuecast.serve.session import ClientSession
 from tissuecast.serve.synthetic import synthetic_model
@@ -176,20 +178,14 @@ def kernel_round_trips(n: int, pause: float) -> np.ndarray:
         proc.kill()
 
 
-CLIENT_SOURCE = Path(__file__).resolve().parents[1] / "tests" / "igtl_client" / "tissuecast_igtl_client.cxx"
-IGTL_INCLUDE = Path("/usr/include/openigtlink")
-
-
 def build_cpp_client(folder: Path) -> Path | None:
     """The official-library client compiled into ``folder``, or None (with the reason printed)
     where g++ or libopenigtlink-dev is missing."""
-    if shutil.which("g++") is None or not (IGTL_INCLUDE / "igtlPolyDataMessage.h").is_file():
-        print("official C++ client: not built (needs g++ and Debian libopenigtlink-dev)")
+    missing = official_client.missing()
+    if missing:
+        print(f"official C++ client: not built ({missing})")
         return None
-    binary = folder / "tissuecast_igtl_client"
-    subprocess.run(["g++", "-O2", "-o", str(binary), str(CLIENT_SOURCE), f"-I{IGTL_INCLUDE}", "-lOpenIGTLink"],
-                   check=True, capture_output=True, text=True, timeout=300)
-    return binary
+    return official_client.build(folder)
 
 
 def cpp_round_trips(binary: Path, port: int, positions: np.ndarray, n: int, device: str | None,

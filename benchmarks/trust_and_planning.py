@@ -369,7 +369,7 @@ def alarm_shares(model, d, aux, alarms=None) -> dict:
     alarms = model.predict_trusted(d, auxiliary=aux).alarms if alarms is None else alarms
     row = {"alarm": float(np.mean([a.raised for a in alarms])), "gate_refused": float(refused.mean()),
            "flagged": float(np.mean(refused | np.array([a.raised for a in alarms])))}
-    for key, reason in ALARM_REASONS.items():
+    for key, (reason, _) in ALARM_REASONS.items():
         row[key] = float(np.mean([a.raised and getattr(a, reason) for a in alarms]))
     return row
 

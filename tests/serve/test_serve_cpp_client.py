@@ -13,11 +13,11 @@ CI must run this test: with CI set, a missing library or compiler fails instead 
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 from pathlib import Path
 
 import numpy as np
+import official_client
 import pytest
 from scipy.spatial.transform import Rotation
 from serve_support import small_model
@@ -27,31 +27,15 @@ from tissuecast.serve import IGTLServer
 
 pytestmark = pytest.mark.timeout(120)
 
-SOURCE = Path(__file__).resolve().parents[1] / "igtl_client" / "tissuecast_igtl_client.cxx"
-INCLUDE = Path("/usr/include/openigtlink")
-LIBRARY = "OpenIGTLink"
-
-
-def _missing() -> str | None:
-    if shutil.which("g++") is None:
-        return "g++ not found (Debian package g++)"
-    if not (INCLUDE / "igtlPolyDataMessage.h").is_file():
-        return f"OpenIGTLink headers not found in {INCLUDE} (Debian package libopenigtlink-dev)"
-    return None
-
-
 @pytest.fixture(scope="module")
 def client_binary(tmp_path_factory) -> Path:
-    missing = _missing()
+    missing = official_client.missing()
     if missing:
         if os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no"):
             pytest.fail(f"CI must run the OpenIGTLink C++ interoperability test: {missing}; "
                         "scripts/install-system-deps.sh installs it")
         pytest.skip(missing)
-    binary = tmp_path_factory.mktemp("igtl") / "tissuecast_igtl_client"
-    subprocess.run(["g++", "-O1", "-o", str(binary), str(SOURCE), f"-I{INCLUDE}", f"-l{LIBRARY}"],
-                   check=True, capture_output=True, text=True, timeout=120)
-    return binary
+    return official_client.build(tmp_path_factory.mktemp("igtl"), "-O1")
 
 
 def _run(binary: Path, address, registration: str, matrix: np.ndarray, markers: np.ndarray) -> list[str]:

@@ -49,16 +49,20 @@ def fmt_share(v) -> str:
     return f"{round(p):.0f} %" if abs(p - round(p)) < 0.05 else f"{p:.1f} %"
 
 
-#: Short names of the alarm's reasons, by the figures' keys (:data:`.trust_report.ALARM_REASONS`).
-ALARM_WORDS = {"alarm_far_rate": "far", "alarm_disagree_rate": "disagree", "alarm_still_rate": "still marker",
-               "alarm_swap_rate": "swapped markers"}
+#: The alarm's reasons: the figures' key (:func:`.trust_report.bound_figures`, the share of
+#: samples raising the alarm for it) -> (the :class:`~tissuecast.surrogate.trust.Alarm` property,
+#: its short name in tables).
+ALARM_REASONS = {"alarm_far_rate": ("far_from_training", "far"),
+                 "alarm_disagree_rate": ("inconsistent_markers", "disagree"),
+                 "alarm_still_rate": ("still_marker_alarm", "still marker"),
+                 "alarm_swap_rate": ("swapped_markers_alarm", "swapped markers")}
 
 
 def fmt_alarm(row: dict) -> str:
     """A row's alarm rate (``alarm_rate``) with the reasons that raised it, most frequent first
     (``alarm_far_rate``, ...; rows written before them: the rate alone)."""
     rate = fmt_share(row.get("alarm_rate"))
-    reasons = sorted(((row.get(k) or 0.0, w) for k, w in ALARM_WORDS.items()), reverse=True)
+    reasons = sorted(((row.get(k) or 0.0, w) for k, (_, w) in ALARM_REASONS.items()), reverse=True)
     named = [w for v, w in reasons if v > 0]
     return f"{rate} ({', '.join(named)})" if named else rate
 

@@ -24,15 +24,12 @@ from scipy.stats import spearmanr
 
 from ..surrogate.conformal import reliability_curve
 from .evaluation import spearman_rows
-from .headline import DASH, beta_table, fmt_alarm, fmt_mm, fmt_share, html_table, set_title
+from .headline import ALARM_REASONS, DASH, beta_table, fmt_alarm, fmt_mm, fmt_share, html_table, set_title
 
 __all__ = ["bound_figures", "trust_evaluation", "reliability_figure", "uncertainty_section", "LEVELS"]
 
 #: Nominal coverages reported.
 LEVELS = (0.9, 0.95)
-#: Per-reason alarm shares of :func:`bound_figures`: row key -> the :class:`~tissuecast.surrogate.trust.Alarm` property.
-ALARM_REASONS = {"alarm_far_rate": "far_from_training", "alarm_disagree_rate": "inconsistent_markers",
-                 "alarm_still_rate": "still_marker_alarm", "alarm_swap_rate": "swapped_markers_alarm"}
 
 
 def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> dict:
@@ -57,7 +54,7 @@ def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> 
             row["vertex_spearman"] = float(spearman_rows(tp.error_bound, e).mean())
             row["alarms"] = np.array([a.raised for a in tp.alarms], dtype=bool)
             row["alarm_rate"] = float(np.mean(row["alarms"]))
-            for key, reason in ALARM_REASONS.items():
+            for key, (reason, _) in ALARM_REASONS.items():
                 row[key] = float(np.mean([a.raised and getattr(a, reason) for a in tp.alarms]))
             row["alarm_on"] = bool(np.isfinite(tp.alarms[0].distance_threshold))  # off: too few calibration samples
     return row
