@@ -108,3 +108,31 @@ def test_two_exchanged_markers_send_their_own_alarm_bit_naming_them(model):
         status = client.receive()
         assert status.header.message_type == "STATUS" and status.status.subcode & AlarmBits.SWAPPED_MARKERS
         assert f"markers {i} and {j} look exchanged" in status.text
+
+
+def test_the_mesh_goes_out_before_the_alarm_is_computed_and_both_are_as_before(model):
+    """A session sends the surface (with its bounds) as soon as the field is predicted and only
+    then computes the alarm, which reads the markers alone: the same mesh and the same alarm as
+    one prediction with both."""
+    from tissuecast.serve import SurfacePredictor
+    from tissuecast.serve.session import ClientSession
+
+    predictor = SurfacePredictor(model)
+    far = model.reference_marker_positions + 3.0 * trust_data()[1][SPLITS["test"][0]][model.markers]
+    far = far.astype(np.float32).astype(np.float64)  # as a POINT message carries them
+    whole = predictor.predict(far, 1.0)
+    assert whole.alarm.raised and whole.alarm_inputs is None
+    mesh = bytes(predictor.surface_message(whole))
+    later = predictor.predict(far, 1.0, alarm=False)
+    assert later.alarm is None and later.alarm_inputs is not None
+    np.testing.assert_array_equal(later.error_bound, whole.error_bound)
+    np.testing.assert_equal(vars(predictor.with_alarm(later).alarm), vars(whole.alarm))
+    assert predictor.with_alarm(whole) is whole  # nothing pending
+
+    sent = []
+    session = ClientSession(predictor, lambda data: sent.append((bytes(data), session.last.alarm)))
+    session.feed(pyigtl.PointMessage(far, device_name="Markers", timestamp=1.0).pack())
+    (surface, alarm_then), (status, alarm_after) = sent
+    assert surface == mesh and alarm_then is None  # the mesh left before the alarm existed
+    assert decode_status(status[58:]).subcode & AlarmBits.FAR_FROM_TRAINING and alarm_after.raised
+    np.testing.assert_equal(vars(session.last.alarm), vars(whole.alarm))

@@ -112,6 +112,30 @@ def test_bounds_cover_and_the_alarm_sees_the_instrument():
     assert m.trusted_.layer.n_auxiliary == 8 and m.fallback_trusted_.layer.n_auxiliary == 0
 
 
+def test_the_alarm_apart_from_the_field_is_the_same_alarm():
+    """predict_trusted(alarm=False) then alarms(): the same field, bounds and alarms as one call,
+    each sample routed as before (the instrument lost on a third: the fallback's layer)."""
+    m = instrument_model()
+    _, U, _, A = instrument_data()
+    te = SPLITS["test"]
+    d = m.marker_displacements(U[te])
+    aux = A[te].copy()
+    aux[:, 0] += 60.0 * (aux[:, 7] > 0)  # far from training where in contact: alarms
+    aux[::3] = np.nan  # tracking lost: the markers-only fallback
+    full = m.predict_trusted(d, auxiliary=aux)
+    assert 0 < np.mean([a.raised for a in full.alarms]) < 1
+    apart = m.predict_trusted(d, auxiliary=aux, alarm=False)
+    assert apart.alarms is None
+    np.testing.assert_array_equal(apart.displacement, full.displacement)
+    np.testing.assert_array_equal(apart.error_bound, full.error_bound)
+    np.testing.assert_equal([vars(a) for a in m.alarms(d, auxiliary=aux)], [vars(a) for a in full.alarms])
+    for k in (0, 1):  # one input of each route
+        whole, one = (m.predict_trusted(d[k], auxiliary=aux[k], alarm=a) for a in (True, False))
+        assert one.alarms is None and one.displacement.shape == full.displacement.shape[1:]
+        np.testing.assert_array_equal(one.error_bound, whole.error_bound)
+        np.testing.assert_equal(vars(m.alarms(d[k], auxiliary=aux[k])), vars(whole.alarms))
+
+
 def test_the_fallback_is_the_markers_only_model_of_the_same_samples():
     mesh, U, _, A = instrument_data()
     m = instrument_model()

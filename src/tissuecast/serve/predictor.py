@@ -32,8 +32,9 @@ server starts (they do not change during surgery).
 
 from __future__ import annotations
 
+
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -104,6 +105,9 @@ class Prediction:
         uncertainty: (n,) float, mm, or None when the model is not an ensemble.
         error_bound: (n,) float, mm, conformal error bound per vertex, or None.
         alarm: the model's :class:`~tissuecast.surrogate.trust.Alarm`, or None.
+        alarm_inputs: ``(marker displacements (n_d, 3) mm, auxiliary inputs)`` the alarm reads,
+            where :meth:`SurfacePredictor.predict` left the alarm for later
+            (:meth:`SurfacePredictor.with_alarm`); else None.
     """
 
     timestamp: float
@@ -111,6 +115,7 @@ class Prediction:
     uncertainty: np.ndarray | None = None
     error_bound: np.ndarray | None = None
     alarm: object | None = None
+    alarm_inputs: tuple | None = None
 
 
 class SurfacePredictor:
@@ -214,32 +219,37 @@ class SurfacePredictor:
             )
         return positions, missing
 
-    def _evaluate(self, positions: np.ndarray, missing: np.ndarray | None, instruments: dict | None) -> tuple:
-        """``(displacement, uncertainty, bound, alarm)`` of checked positions (n_d, 3) mm and the
-        instruments' poses (``{name: pose or None}``); the bounds and alarm need every marker tracked."""
+    def _evaluate(self, positions: np.ndarray, missing: np.ndarray | None, instruments: dict | None,
+                  alarm_now: bool = True) -> tuple:
+        """``(displacement, uncertainty, bound, alarm, alarm inputs)`` of checked positions (n_d, 3)
+        mm and the instruments' poses (``{name: pose or None}``); the bounds and alarm need every
+        marker tracked; ``alarm_now`` False leaves the alarm for :meth:`with_alarm`."""
         d = positions - self.reference
         extra = {} if missing is None else {"missing": missing}
         if self.auxiliary.width:
             extra["auxiliary"] = {**self.parameters, **(instruments or {})}
-        bound, alarm, mean, uncertainty = None, None, None, None
+        bound, alarm, mean, uncertainty, pending = None, None, None, None, None
         if self.has_bounds and missing is None:
-            trusted = self.model.predict_trusted(d, auxiliary=extra.get("auxiliary"))
+            trusted = self.model.predict_trusted(d, auxiliary=extra.get("auxiliary"), alarm=alarm_now)
             bound = np.asarray(trusted.error_bound, dtype=np.float64).reshape(self.n_vertices)
             alarm, mean = trusted.alarms, trusted.displacement
+            pending = None if alarm_now else (d, extra.get("auxiliary"))
         if self.has_uncertainty:
             mean, spread = self.model.predict_with_uncertainty(d, **extra)
             uncertainty = np.asarray(spread, dtype=np.float64).reshape(self.n_vertices)
         elif mean is None:
             mean = self.model.predict_from_positions(positions, **extra)
-        return mean, uncertainty, bound, alarm
+        return mean, uncertainty, bound, alarm, pending
 
-    def predict(self, positions: np.ndarray, timestamp: float, instruments: dict | None = None) -> Prediction:
+    def predict(self, positions: np.ndarray, timestamp: float, instruments: dict | None = None, *,
+                alarm: bool = True) -> Prediction:
         """Predict the displacement of every vertex from (n_d, 3) marker positions (mm) and the
         tracked instruments' poses (``{name: InstrumentPose or None (lost)}``, model frame;
-        an instrument left out is lost)."""
+        an instrument left out is lost). ``alarm`` False leaves the alarm for
+        :meth:`with_alarm` (the field and its bounds first: what a server sends before it)."""
         positions, missing = self.check_positions(positions)
         try:
-            mean, uncertainty, bound, alarm = self._evaluate(positions, missing, instruments)
+            mean, uncertainty, bound, alarm, pending = self._evaluate(positions, missing, instruments, alarm)
             displacement = np.asarray(mean, dtype=np.float64).reshape(self.n_vertices, 3)
         except ModelError as exc:  # the model refused this input (e.g. too many untracked markers)
             log.warning("model refused the marker input: %s", exc)
@@ -249,7 +259,20 @@ class SurfacePredictor:
             raise PredictionError(f"model evaluation failed: {type(exc).__name__}: {exc}") from exc
         if not np.isfinite(displacement).all():
             raise PredictionError("the model returned non-finite displacements for these marker positions")
-        return Prediction(float(timestamp), displacement, uncertainty, bound, alarm)
+        return Prediction(float(timestamp), displacement, uncertainty, bound, alarm, pending)
+
+    def with_alarm(self, prediction: Prediction) -> Prediction:
+        """``prediction`` with the alarm :meth:`predict` left for later (the same alarm it would
+        have given); a prediction without one pending is returned as it is."""
+        if prediction.alarm_inputs is None:
+            return prediction
+        d, auxiliary = prediction.alarm_inputs
+        try:
+            alarm = self.model.alarms(d, auxiliary=auxiliary)
+        except Exception as exc:  # a model failure must not take the server down
+            log.exception("the alarm's evaluation failed")
+            raise PredictionError(f"alarm evaluation failed: {type(exc).__name__}: {exc}") from exc
+        return replace(prediction, alarm=alarm, alarm_inputs=None)
 
     def is_instrument(self, device: str) -> bool:
         """Whether ``device`` is the TRANSFORM device of one of the model's instruments."""

@@ -103,7 +103,7 @@ class InstrumentFallback(FieldPredictor):
         return (u[0], sigma[0]) if single else (u, sigma)
 
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None,
-                        auxiliary=None) -> TrustedPrediction:
+                        auxiliary=None, alarm: bool = True) -> TrustedPrediction:
         """As :meth:`.trusted.TrustedPredictor.predict_trusted`, each sample's field, bounds and
         alarm from the predictor it is routed to.
 
@@ -114,16 +114,36 @@ class InstrumentFallback(FieldPredictor):
             return super().predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm)
         d, _, single = self.marker_batch(marker_displacements)
         a = self.auxiliary_batch(auxiliary, d.shape[0])
+        parts = list(self._parts(d, None, a))
+        if len(parts) == 1:  # every sample routed alike (a served frame): the part's prediction as it is
+            _, predictor, dr, _, ar = parts[0]
+            t = predictor.predict_trusted(dr, coverage=coverage, false_alarm=false_alarm, auxiliary=ar, alarm=alarm)
+            if single:
+                return TrustedPrediction(t.displacement[0], t.error_bound[0], t.coverage,
+                                         None if t.alarms is None else t.alarms[0])
+            return t
         u, bounds, alarms = np.empty((d.shape[0], self.n_vertices, 3)), np.empty((d.shape[0], self.n_vertices)), {}
         level = None
-        for rows, predictor, dr, _, ar in self._parts(d, None, a):
-            t = predictor.predict_trusted(dr, coverage=coverage, false_alarm=false_alarm, auxiliary=ar)
+        for rows, predictor, dr, _, ar in parts:
+            t = predictor.predict_trusted(dr, coverage=coverage, false_alarm=false_alarm, auxiliary=ar, alarm=alarm)
             u[rows], bounds[rows], level = t.displacement, t.error_bound, t.coverage
-            alarms.update(zip(rows.tolist(), t.alarms))
-        alarms = [alarms[b] for b in range(d.shape[0])]
+            if alarm:
+                alarms.update(zip(rows.tolist(), t.alarms))
+        alarms = [alarms[b] for b in range(d.shape[0])] if alarm else None
         if single:
-            return TrustedPrediction(u[0], bounds[0], level, alarms[0])
+            return TrustedPrediction(u[0], bounds[0], level, None if alarms is None else alarms[0])
         return TrustedPrediction(u, bounds, level, alarms)
+
+    def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None):
+        """As :meth:`.trusted.TrustedPredictor.alarms`, each sample's alarm from the predictor it is routed to."""
+        if not self.has_trust:
+            return super().alarms(marker_displacements, false_alarm=false_alarm)
+        d, _, single = self.marker_batch(marker_displacements)
+        a = self.auxiliary_batch(auxiliary, d.shape[0])
+        alarms = {}
+        for rows, predictor, dr, _, ar in self._parts(d, None, a):
+            alarms.update(zip(rows.tolist(), predictor.alarms(dr, false_alarm=false_alarm, auxiliary=ar)))
+        return alarms[0] if single else [alarms[b] for b in range(d.shape[0])]
 
     def describe(self) -> dict:
         return {**self.primary.describe(), "fallback": self.fallback.describe()}

@@ -165,16 +165,29 @@ class FieldPredictor(ABC):
         raise ModelError(f"the {self.name} predictor gives no uncertainty; use an ensemble model (surrogate.ensemble >= 2)")
 
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None,
-                        auxiliary=None):
+                        auxiliary=None, alarm: bool = True):
         """The field with per-vertex error bounds and the out-of-distribution alarm
-        (:class:`~.trust.TrustedPrediction`).
+        (:class:`~.trust.TrustedPrediction`; ``alarm=False``: without the alarm, which
+        :meth:`alarms` then gives).
 
         Raises:
             ModelError: this predictor is not calibrated (``has_trust`` is False).
         """
-        raise ModelError(f"the {self.name} predictor has no calibrated error bounds or alarm; wrap it in a "
-                         "TrustedPredictor (tissuecast.surrogate.trusted) or train with surrogate.calibration = "
-                         "'cross-validation' or 'split'")
+        raise ModelError(self._untrusted())
+
+    def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None):
+        """The out-of-distribution alarm :meth:`predict_trusted` gives, alone (one
+        :class:`~.trust.Alarm` or a list of B).
+
+        Raises:
+            ModelError: this predictor is not calibrated (``has_trust`` is False).
+        """
+        raise ModelError(self._untrusted())
+
+    def _untrusted(self) -> str:
+        return (f"the {self.name} predictor has no calibrated error bounds or alarm; wrap it in a "
+                "TrustedPredictor (tissuecast.surrogate.trusted) or train with surrogate.calibration = "
+                "'cross-validation' or 'split'")
 
     def describe(self) -> dict:
         """Small JSON-able description: name, sizes and capabilities."""

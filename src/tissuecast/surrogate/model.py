@@ -389,7 +389,7 @@ class DeformationModel(FieldPredictor):
         return self._by_method["mlp"].predict(d, missing=missing, auxiliary=a)
 
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None,
-                        false_alarm: float | None = None, auxiliary=None) -> TrustedPrediction:
+                        false_alarm: float | None = None, auxiliary=None, alarm: bool = True) -> TrustedPrediction:
         """The MLP's field with per-vertex error bounds and the out-of-distribution alarm
         (:meth:`TrustedPredictor.predict_trusted <.trusted.TrustedPredictor.predict_trusted>`).
 
@@ -399,16 +399,32 @@ class DeformationModel(FieldPredictor):
             false_alarm: false-alarm rate of the alarm (default ``surrogate.false_alarm_rate``).
             auxiliary: as for :meth:`predict` (the bounds and the alarm read them too; a sample
                 with an absent instrument gets the fallback's).
+            alarm: False leaves the alarm out (``alarms`` None): :meth:`alarms` gives the same
+                alarm later (a server sends the field first).
 
         Raises:
             ModelError: the model has no trust layer (trained with calibration = "none", or too few samples).
         """
+        self._need_trust()
+        return self._trusted.predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm,
+                                             auxiliary=auxiliary, alarm=alarm)
+
+    def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None):
+        """The out-of-distribution alarm of :meth:`predict_trusted`, alone: one
+        :class:`~tissuecast.surrogate.trust.Alarm` for one input, a list of B for a batch
+        (arguments as there).
+
+        Raises:
+            ModelError: the model has no trust layer.
+        """
+        self._need_trust()
+        return self._trusted.alarms(marker_displacements, false_alarm=false_alarm, auxiliary=auxiliary)
+
+    def _need_trust(self) -> None:
         if not self.has_trust:
             raise ModelError("this model has no calibrated error bounds or alarm; re-train it with surrogate.calibration = "
                              "'cross-validation' (out-of-fold, no samples held out) or 'split' with calibration_share > 0 "
                              f"(e.g. {SurrogateConfig.calibration_share:g})")
-        return self._trusted.predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm,
-                                             auxiliary=auxiliary)
 
     def _use_gate(self, gate) -> None:
         """``gate`` (or None: none) refuses input for the model and every part it predicts with."""

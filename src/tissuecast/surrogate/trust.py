@@ -281,7 +281,7 @@ class TrustLayer:
     # ---------------------------------------------------------------- bounds and alarms
     def assess(self, marker_displacements, displacement, *, coverage: float | None = None,
                false_alarm: float | None = None, auxiliary=None, second=None) -> tuple[np.ndarray, list[Alarm]]:
-        """Error bounds and alarms of a batch of predictions.
+        """Error bounds and alarms of a batch of predictions (:meth:`bounds` and :meth:`alarms`).
 
         Args:
             marker_displacements: (B, 3 n_d) or (B, n_d, 3) mm, the inputs.
@@ -296,8 +296,30 @@ class TrustLayer:
         """
         u = np.asarray(displacement, dtype=np.float64)
         d = self.inputs(marker_displacements, auxiliary, len(u))
+        bounds, dist = self._bounds(d, u, coverage, second)
+        return bounds, self._alarms(d, false_alarm, dist)
+
+    def bounds(self, marker_displacements, displacement, *, coverage: float | None = None, auxiliary=None,
+               second=None) -> np.ndarray:
+        """(B, n) mm error bounds of a batch of predictions, without the alarm (arguments as
+        :meth:`assess`)."""
+        u = np.asarray(displacement, dtype=np.float64)
+        return self._bounds(self.inputs(marker_displacements, auxiliary, len(u)), u, coverage, second)[0]
+
+    def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None) -> list[Alarm]:
+        """The alarms (B Alarm) of a batch of inputs (B, 3 n_d) or (B, n_d, 3) mm (and
+        ``auxiliary`` (B, n_a), :meth:`inputs`): the alarm reads the inputs only, so it can
+        follow the field and its bounds (as :meth:`assess` gives them together)."""
+        return self._alarms(self.inputs(marker_displacements, auxiliary), false_alarm, None)
+
+    def _bounds(self, d: np.ndarray, u: np.ndarray, coverage, second) -> tuple[np.ndarray, np.ndarray]:
+        """``(bounds (B, n) mm, distance scores (B,))`` of inputs d (B, 3 n_d + n_a) and fields u (B, n, 3)."""
         feats, h, dist = self.features(d, u, second)
-        bounds = self.conformal.bounds(self.sigma(feats, h), self.coverage if coverage is None else coverage)
+        return self.conformal.bounds(self.sigma(feats, h), self.coverage if coverage is None else coverage), dist
+
+    def _alarms(self, d: np.ndarray, false_alarm, dist: np.ndarray | None) -> list[Alarm]:
+        """B Alarm of inputs d (B, 3 n_d + n_a); ``dist``: their distance scores where known."""
+        dist = self.ood.distance(d) if dist is None else dist
         thr = self.ood.thresholds(self.false_alarm if false_alarm is None else false_alarm)
         cons = self.ood.consistency
         faults = None
@@ -331,7 +353,7 @@ class TrustLayer:
                                 float(shares[b, j]) if j >= 0 else float("nan"),
                                 float(still.least[j]) if j >= 0 else float("nan"),
                                 float(w_score[b]), float(thr[4]), swap_i, swap_j))
-        return bounds, alarms
+        return alarms
 
     def alarm_scores(self, marker_displacements, *, auxiliary=None) -> np.ndarray:
         """(B, 5) [distance, consistency, fault, stillness, swap] scores of inputs (B, 3 n_d) or (B, n_d, 3) mm (and

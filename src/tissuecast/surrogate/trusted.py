@@ -110,7 +110,7 @@ class TrustedPredictor(FieldPredictor):
         return self.layer.conformal.n_calibration
 
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None,
-                        false_alarm: float | None = None, auxiliary=None) -> TrustedPrediction:
+                        false_alarm: float | None = None, auxiliary=None, alarm: bool = True) -> TrustedPrediction:
         """The predictor's field with per-vertex error bounds and the out-of-distribution alarm.
 
         Args:
@@ -119,6 +119,8 @@ class TrustedPredictor(FieldPredictor):
             false_alarm: false-alarm rate of the alarm (default: the layer's).
             auxiliary: the predictor's auxiliary inputs, as for :meth:`predict` (the bounds and
                 the alarm read them too).
+            alarm: False leaves the alarm out (``alarms`` None): :meth:`alarms` gives it later,
+                e.g. after the field has been sent.
 
         Returns:
             A :class:`~tissuecast.surrogate.trust.TrustedPrediction`: displacement (n, 3) or
@@ -129,10 +131,22 @@ class TrustedPredictor(FieldPredictor):
         layer = self.layer
         x = layer.inputs(d, a, len(d))
         u, second = self.predictor.predict_and_decode(d, a, layer.basis, layer.second.predict(x))
-        bounds, alarms = layer.assess(x, u, coverage=coverage, false_alarm=false_alarm, second=second)
+        if alarm:
+            bounds, alarms = layer.assess(x, u, coverage=coverage, false_alarm=false_alarm, second=second)
+        else:
+            bounds, alarms = layer.bounds(x, u, coverage=coverage, second=second), None
+        level = coverage or self.layer.coverage
         if single:
-            return TrustedPrediction(u[0], bounds[0], coverage or self.layer.coverage, alarms[0])
-        return TrustedPrediction(u, bounds, coverage or self.layer.coverage, alarms)
+            return TrustedPrediction(u[0], bounds[0], level, None if alarms is None else alarms[0])
+        return TrustedPrediction(u, bounds, level, alarms)
+
+    def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None):
+        """The out-of-distribution alarm of inputs as for :meth:`predict_trusted` (the same
+        alarm it gives): one :class:`~tissuecast.surrogate.trust.Alarm` or a list of B."""
+        d, _, single = self.marker_batch(marker_displacements)
+        a = self.auxiliary_batch(auxiliary, d.shape[0])
+        alarms = self.layer.alarms(self.layer.inputs(d, a, len(d)), false_alarm=false_alarm)
+        return alarms[0] if single else alarms
 
     def describe(self) -> dict:
         return {**self.predictor.describe(), "has_trust": True, "trust": self.layer.summary()}
