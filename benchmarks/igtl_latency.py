@@ -68,6 +68,18 @@ def per_call(fn, n: int, pause: float = 0.0) -> np.ndarray:
     return out
 
 
+def until_first_reply(session, messages, sent_at: list, n: int) -> np.ndarray:
+    """Seconds from feeding a message to the session's first reply (the mesh), n messages after
+    20 warm-up ones; ``sent_at`` is the list the session's emit appends its times to."""
+    out = np.empty(n + 20)
+    for i in range(n + 20):
+        sent_at.clear()
+        t = time.perf_counter()
+        session.feed(next(messages))
+        out[i] = sent_at[0] - t
+    return out[20:]
+
+
 def row(name: str, seconds: np.ndarray) -> str:
     us = seconds * 1e6
     return f"{name:<52s} {np.percentile(us, 50):9.1f} {np.percentile(us, 99):9.1f} {us.max():9.1f}"
@@ -229,7 +241,8 @@ def main() -> None:
         positions = model.reference_marker_positions
         predictor = SurfacePredictor(model)
         prediction = predictor.predict(positions + 1.0, 0.0)
-        session = ClientSession(predictor, lambda data: None)
+        sent_at: list[float] = []  # when the session handed each reply to the socket
+        session = ClientSession(predictor, lambda data: sent_at.append(time.perf_counter()))
         jitter = np.random.default_rng(1)  # every frame's markers differ, as tracked ones do
         point_messages = itertools.cycle([pyigtl.PointMessage(positions + jitter.normal(0.0, 0.5, positions.shape),
                                                               device_name="Markers").pack() for _ in range(256)])
@@ -249,6 +262,7 @@ def main() -> None:
         for packed in tools.values():
             session.feed(packed)
         print(row("server work per POINT request (in-process)", per_call(lambda: session.feed(next(point_messages)), n)))
+        print(row("  ... until the mesh is handed to the socket", until_first_reply(session, point_messages, sent_at, n)))
         packed = per_call(lambda: predictor.surface_message(prediction), n)
         naive = per_call(pyigtl_pack, n)
         print(row("pack surface: pre-packed template + segment CRC", packed))

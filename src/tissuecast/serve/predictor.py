@@ -226,8 +226,8 @@ class SurfacePredictor:
         marker tracked; ``alarm_now`` False leaves the alarm for :meth:`with_alarm`."""
         d = positions - self.reference
         extra = {} if missing is None else {"missing": missing}
-        if self.auxiliary.width:
-            extra["auxiliary"] = {**self.parameters, **(instruments or {})}
+        if self.auxiliary.width:  # as one row (n_a,): the model's parts and the alarm take it as it is
+            extra["auxiliary"] = self.auxiliary.batch({**self.parameters, **(instruments or {})}, 1)[0]
         bound, alarm, mean, uncertainty, pending = None, None, None, None, None
         if self.has_bounds and missing is None:
             trusted = self.model.predict_trusted(d, auxiliary=extra.get("auxiliary"), alarm=alarm_now)
