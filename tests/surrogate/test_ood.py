@@ -162,3 +162,21 @@ def test_the_stacked_consistency_regressions_are_each_marker_s_own_regression():
         expected = np.hstack([cons.regressions[j].predict(np.delete(X, np.s_[3 * j:3 * j + 3], axis=1))
                               - X[:, 3 * j:3 * j + 3] for j in range(n_d)])
         np.testing.assert_allclose(cons.residual_vectors(X), expected, rtol=0, atol=1e-11)
+
+
+def test_the_input_distance_is_the_mean_of_the_k_nearest_as_a_kd_tree_finds_them(monkeypatch):
+    """Brute-force neighbours (chunked) against SciPy's k-d tree: 40 dimensions, k below, at
+    and above the number of training inputs, a chunk boundary inside the batch."""
+    from scipy.spatial import cKDTree
+
+    import tissuecast.surrogate.ood as ood_module
+
+    monkeypatch.setattr(ood_module, "_DISTANCE_CHUNK", 7)
+    rng = np.random.default_rng(5)
+    X = rng.normal(size=(300, 40)) * rng.uniform(0.1, 5.0, 40)
+    queries = np.vstack([rng.normal(size=(20, 40)) * 4.0, X[:3]])  # training inputs themselves too
+    for n_train, k in ((300, 5), (5, 5), (3, 5)):
+        dist = fit_input_distance(X[:n_train], neighbours=k)
+        tree = cKDTree(dist.reference)
+        expected, _ = tree.query((queries - dist.mean) @ dist.whitening, k=min(k, n_train))
+        np.testing.assert_allclose(dist(queries), expected.reshape(len(queries), -1).mean(axis=1), rtol=1e-12)
