@@ -55,7 +55,8 @@ from scipy.stats import spearmanr
 
 from tissuecast.dataset import open_dataset
 from tissuecast.evaluate.evaluation import spearman_rows
-from tissuecast.evaluate.trust_report import ALARM_REASONS, bound_figures
+from tissuecast.evaluate.headline import ALARM_REASONS
+from tissuecast.evaluate.trust_report import bound_figures
 from tissuecast.planning.selection import EXCHANGE_ROUNDS
 from tissuecast.surrogate import DeformationModel
 from tissuecast.surrogate.conformal import reliability_curve

@@ -846,12 +846,31 @@ def _check_uncertain_needs(cfg: "Config") -> None:
         if getattr(u, name) and not ok:
             raise ConfigError(f"scenario.uncertain.{name} varies something this scenario lacks; set {key}, or "
                               f"remove scenario.uncertain.{name}")
+    if u.nominal_share:
+        _check_nominal_share(u, cfg.material.poisson_ratio)
     lo, hi = SOFT_TISSUE_MODULUS_SPAN
     e = cfg.material.youngs_modulus
     if cfg.material.check_range and u.youngs_modulus and not lo <= min(u.youngs_modulus) * e <= max(u.youngs_modulus) * e <= hi:
         raise ConfigError(f"scenario.uncertain.youngs_modulus = {list(u.youngs_modulus)} are factors on material.youngs_modulus "
                           f"({e} MPa): they reach {min(u.youngs_modulus) * e:g}-{max(u.youngs_modulus) * e:g} MPa, outside soft "
                           f"tissue's {lo:g}-{hi:g} MPa; give factors (e.g. [0.5, 2]), or set material.check_range = false")
+
+
+def _check_nominal_share(u: "UncertainConfig", nu: float) -> None:
+    """A share of nominal samples needs every range to hold its nominal value (factor 1, margin
+    0 mm, the material's nu), and no measured Poisson's ratio (a nominal sample records the
+    elements' own, NaN, which a model input cannot take)."""
+    nominal = {"youngs_modulus": 1.0, "region_youngs_modulus": 1.0, "density": 1.0, "spring_normal": 1.0,
+               "spring_tangential": 1.0, "attached_margin": 0.0, "poisson_ratio": nu}
+    for name, value in nominal.items():
+        bounds = getattr(u, name)
+        if bounds and not min(bounds) <= value <= max(bounds):
+            raise ConfigError(f"scenario.uncertain.nominal_share = {u.nominal_share:g} draws samples at the nominal "
+                              f"{name} ({value:g}), outside scenario.uncertain.{name} = {list(bounds)}; widen the range "
+                              "to hold it, or remove scenario.uncertain.nominal_share")
+    if "poisson_ratio" in u.measured:
+        raise ConfigError("scenario.uncertain.nominal_share cannot go with a measured poisson_ratio (a nominal sample "
+                          "keeps each element's own nu, which is no model input); remove one of the two")
 
 
 def config_from_dict(data: dict) -> Config:

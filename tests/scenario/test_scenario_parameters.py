@@ -146,7 +146,12 @@ def test_the_attached_extent_and_the_density_follow_the_draw(tmp_path):
      ({"measured": ["E"]}, {}, "scenario.uncertain.measured names ['E']"),
      ({"measured": ["poisson_ratio"]}, {}, "which scenario.uncertain does not draw"),
      ({"nominal_share": 0.3}, {}, "nominal_share = 0.3 with no parameter drawn"),
-     ({"youngs_modulus": [0.5, 2.0], "nominal_share": 1.0}, {}, "scenario.uncertain.nominal_share")],
+     ({"youngs_modulus": [0.5, 2.0], "nominal_share": 1.0}, {}, "scenario.uncertain.nominal_share"),
+     ({"youngs_modulus": [1.2, 2.0], "nominal_share": 0.3}, {},
+      "draws samples at the nominal youngs_modulus"),
+     ({"poisson_ratio": [0.40, 0.44], "nominal_share": 0.3}, {}, "outside scenario.uncertain.poisson_ratio"),
+     ({"poisson_ratio": [0.40, 0.49], "measured": ["poisson_ratio"], "nominal_share": 0.3}, {},
+      "cannot go with a measured poisson_ratio")],
 )
 def test_bad_uncertain_ranges_are_refused_naming_the_key(uncertain, scenario, text):
     with pytest.raises(ConfigError, match=text.replace("[", r"\[").replace("]", r"\]")):

@@ -171,11 +171,11 @@ def test_the_input_distance_is_the_mean_of_the_k_nearest_as_a_kd_tree_finds_them
 
     import tissuecast.surrogate.ood as ood_module
 
-    monkeypatch.setattr(ood_module, "_DISTANCE_CHUNK", 7)
+    monkeypatch.setattr(ood_module, "_DISTANCE_ELEMENTS", 7 * 300)  # chunks of 7 inputs
     rng = np.random.default_rng(5)
     X = rng.normal(size=(300, 40)) * rng.uniform(0.1, 5.0, 40)
     queries = np.vstack([rng.normal(size=(20, 40)) * 4.0, X[:3]])  # training inputs themselves too
-    for n_train, k in ((300, 5), (5, 5), (3, 5)):
+    for n_train, k in ((300, 5), (5, 5), (3, 5)):  # chunks of 7, 420 and 700 inputs
         dist = fit_input_distance(X[:n_train], neighbours=k)
         tree = cKDTree(dist.reference)
         expected, _ = tree.query((queries - dist.mean) @ dist.whitening, k=min(k, n_train))

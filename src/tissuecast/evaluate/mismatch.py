@@ -228,7 +228,8 @@ def evaluate_on_set(model, dataset, targets) -> dict:
     """One model on one set: the test-1 figures of :func:`.evaluation.evaluate_model` (learned
     model, rigid, ridge, TRE) and, with a trust layer, the 90 % bounds' coverage and the alarm's rate."""
     from .evaluation import evaluate_model
-    from .trust_report import ALARM_REASONS, bound_figures
+    from .headline import ALARM_REASONS
+    from .trust_report import bound_figures
 
     result = evaluate_model(model, dataset, splits=("test1",), targets=targets).sets["test1"]
     row = {"count": int(result.indices.size), "peak_median": float(np.median(result.max_displacement)),

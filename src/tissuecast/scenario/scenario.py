@@ -362,6 +362,8 @@ class Scenario:
             u = cfg.uncertain
             out["uncertain"] = {name: list(getattr(u, name)) for name in UNCERTAIN_PARAMETERS if getattr(u, name)}
             out["uncertain"]["measured"] = list(u.measured)
+            if u.nominal_share:
+                out["uncertain"]["nominal_share"] = u.nominal_share
         return out
 
 

@@ -32,7 +32,6 @@ server starts (they do not change during surgery).
 
 from __future__ import annotations
 
-
 import logging
 from dataclasses import dataclass, replace
 
@@ -249,7 +248,7 @@ class SurfacePredictor:
         :meth:`with_alarm` (the field and its bounds first: what a server sends before it)."""
         positions, missing = self.check_positions(positions)
         try:
-            mean, uncertainty, bound, alarm, pending = self._evaluate(positions, missing, instruments, alarm)
+            mean, uncertainty, bound, found, pending = self._evaluate(positions, missing, instruments, alarm)
             displacement = np.asarray(mean, dtype=np.float64).reshape(self.n_vertices, 3)
         except ModelError as exc:  # the model refused this input (e.g. too many untracked markers)
             log.warning("model refused the marker input: %s", exc)
@@ -259,7 +258,7 @@ class SurfacePredictor:
             raise PredictionError(f"model evaluation failed: {type(exc).__name__}: {exc}") from exc
         if not np.isfinite(displacement).all():
             raise PredictionError("the model returned non-finite displacements for these marker positions")
-        return Prediction(float(timestamp), displacement, uncertainty, bound, alarm, pending)
+        return Prediction(float(timestamp), displacement, uncertainty, bound, found, pending)
 
     def with_alarm(self, prediction: Prediction) -> Prediction:
         """``prediction`` with the alarm :meth:`predict` left for later (the same alarm it would
@@ -269,6 +268,9 @@ class SurfacePredictor:
         d, auxiliary = prediction.alarm_inputs
         try:
             alarm = self.model.alarms(d, auxiliary=auxiliary)
+        except ModelError as exc:  # as predict: the model refused the input
+            log.warning("model refused the marker input for the alarm: %s", exc)
+            raise PredictionError(f"model refused the input for the alarm: {exc}") from exc
         except Exception as exc:  # a model failure must not take the server down
             log.exception("the alarm's evaluation failed")
             raise PredictionError(f"alarm evaluation failed: {type(exc).__name__}: {exc}") from exc

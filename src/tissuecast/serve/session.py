@@ -248,15 +248,16 @@ class ClientSession:
 
     def _serve(self, positions: np.ndarray, timestamp: float) -> None:
         poses = self.instruments.current()
-        # the mesh and its bounds go out first; the alarm, which reads only the markers, follows
+        # the mesh and its bounds go out first; the alarm, which reads the inputs (markers and
+        # instruments) and not the field, follows
         prediction = self.predictor.predict(self.frames.to_model(positions), timestamp, instruments=poses, alarm=False)
         self.last = prediction
         self.counts["predictions"] += 1
         self._send(self.predictor.surface_message(prediction, self.frames))
         if self.full_field:
             self._send(self.predictor.field_message(prediction, self.frames))
-        prediction = self.last = self.predictor.with_alarm(prediction)
         self._send_instrument_status(poses, timestamp)
+        prediction = self.last = self.predictor.with_alarm(prediction)  # a failure: STRING ERROR after the mesh
         if prediction.alarm is not None and (prediction.alarm.raised or self._alarmed):
             self._send_alarm_status(prediction)
         elif self._alarmed:  # a refusal before, a model without alarm now: clear it

@@ -92,8 +92,8 @@ _TINY_SCORE = 1e-12
 STILL_RMS_MM = 1e-6
 # Exchanged inputs scored at once by the swap score.
 _SWAP_CHUNK = 4096
-# Inputs whose distances to every training input are held at once (a (chunk, N_t) array).
-_DISTANCE_CHUNK = 512
+# Distances held at once by the input distance (a (chunk, N_t) array: 16 MB of float64).
+_DISTANCE_ELEMENTS = 2**21
 # A marker's share below this counts as this (a still marker's score is finite: 1e12 times its least share).
 _TINY_SHARE = 1e-12
 
@@ -104,8 +104,9 @@ class InputDistance:
 
     The neighbours are found by brute force (in the 30-40 dimensions of 10 markers and an
     instrument a k-d tree visits most of its nodes anyway, and one matrix product is faster):
-    the squared distances to every reference as ``|r|^2 - 2 z.r + |z|^2``, in chunks of
-    ``_DISTANCE_CHUNK`` inputs, the k smallest picked and their distances recomputed exactly.
+    the squared distances to every reference as ``|r|^2 - 2 z.r + |z|^2``, in chunks of inputs
+    (``_DISTANCE_ELEMENTS`` distances at once), the k smallest picked and their distances
+    recomputed exactly.
 
     Attributes:
         mean: (3 n_d,) training input mean, mm.
@@ -130,13 +131,14 @@ class InputDistance:
         Z = (np.asarray(X, dtype=np.float64) - self.mean) @ self.whitening
         k = min(self.neighbours, len(self._ref))
         out = np.empty(len(Z))
-        for s in range(0, len(Z), _DISTANCE_CHUNK):
-            z = Z[s:s + _DISTANCE_CHUNK]
+        chunk = max(1, _DISTANCE_ELEMENTS // len(self._ref))
+        for s in range(0, len(Z), chunk):
+            z = Z[s:s + chunk]
             sq = self._ref_sq - 2.0 * (z @ self._ref_t)  # (b, N_t): squared distances less |z|^2
             near = np.argpartition(sq, k - 1, axis=1)[:, :k] if k < sq.shape[1] else np.broadcast_to(
                 np.arange(k), sq.shape)
             diff = z[:, None, :] - self._ref[near]
-            out[s:s + _DISTANCE_CHUNK] = np.sqrt(np.einsum("bkd,bkd->bk", diff, diff)).mean(axis=1)
+            out[s:s + chunk] = np.sqrt(np.einsum("bkd,bkd->bk", diff, diff)).mean(axis=1)
         return out
 
 

@@ -169,7 +169,8 @@ class TrustedPrediction:
         error_bound: (n,) or (B, n) float64 mm; each vertex's error is below it with
             probability >= ``coverage`` for inputs like the calibration samples.
         coverage: the nominal coverage.
-        alarms: one :class:`Alarm` (single input) or a list of B.
+        alarms: one :class:`Alarm` (single input) or a list of B; None where the prediction
+            left the alarm out (``predict_trusted(..., alarm=False)``).
     """
 
     displacement: np.ndarray

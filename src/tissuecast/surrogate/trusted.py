@@ -124,7 +124,8 @@ class TrustedPredictor(FieldPredictor):
 
         Returns:
             A :class:`~tissuecast.surrogate.trust.TrustedPrediction`: displacement (n, 3) or
-            (B, n, 3) mm, error_bound (n,) or (B, n) mm, and one Alarm or a list of B.
+            (B, n, 3) mm, error_bound (n,) or (B, n) mm, and one Alarm or a list of B (None
+            with ``alarm=False``).
         """
         d, _, single = self.marker_batch(marker_displacements)
         a = self.auxiliary_batch(auxiliary, d.shape[0])
