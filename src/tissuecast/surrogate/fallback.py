@@ -114,19 +114,14 @@ class InstrumentFallback(FieldPredictor):
             return super().predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm)
         d, _, single = self.marker_batch(marker_displacements)
         a = self.auxiliary_batch(auxiliary, d.shape[0])
-        parts = self._parts(d, None, a)
-        if len(parts) == 1:  # one route for all (a served frame): that part's arrays as they are
-            _, predictor, dr, _, ar = parts[0]
+        u, bounds, by_row = np.empty((d.shape[0], self.n_vertices, 3)), np.empty((d.shape[0], self.n_vertices)), {}
+        level = None
+        for rows, predictor, dr, _, ar in self._parts(d, None, a):
             t = predictor.predict_trusted(dr, coverage=coverage, false_alarm=false_alarm, auxiliary=ar, alarm=alarm)
-            u, bounds, level, alarms = t.displacement, t.error_bound, t.coverage, t.alarms
-        else:
-            u, bounds, by_row = np.empty((d.shape[0], self.n_vertices, 3)), np.empty((d.shape[0], self.n_vertices)), {}
-            for rows, predictor, dr, _, ar in parts:
-                t = predictor.predict_trusted(dr, coverage=coverage, false_alarm=false_alarm, auxiliary=ar, alarm=alarm)
-                u[rows], bounds[rows], level = t.displacement, t.error_bound, t.coverage
-                if alarm:
-                    by_row.update(zip(rows.tolist(), t.alarms))
-            alarms = [by_row[b] for b in range(d.shape[0])] if alarm else None
+            u[rows], bounds[rows], level = t.displacement, t.error_bound, t.coverage
+            if alarm:
+                by_row.update(zip(rows.tolist(), t.alarms))
+        alarms = [by_row[b] for b in range(d.shape[0])] if alarm else None
         if single:
             return TrustedPrediction(u[0], bounds[0], level, None if alarms is None else alarms[0])
         return TrustedPrediction(u, bounds, level, alarms)
