@@ -97,3 +97,33 @@ def test_train_with_planned_markers_then_predict_with_bounds_and_alarm(store, ca
     assert "note: the bounds are infinite" in capsys.readouterr().out
     assert main(["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json"), "--coverage", "1.5"]) == 2
     assert "coverage" in capsys.readouterr().err
+
+
+def test_experts_gives_a_model_a_nominal_expert(store, capsys, tmp_path):
+    """`tissuecast experts`: two models of the store (another seed and width stand in for the
+    nominal one), the gate fitted on the valid split; the folder predicts like any model."""
+    from tissuecast.config import load_config, with_overrides, config_to_toml
+    from tissuecast.surrogate import DeformationModel
+
+    folder, cfg_path, ds = store
+    for name, over in (("unc", {"ensemble": 1}), ("nom", {"ensemble": 1, "seed": 5, "hidden": [16]})):
+        (tmp_path / f"{name}.toml").write_text(config_to_toml(with_overrides(load_config(cfg_path), surrogate=over)))
+        assert main(["train", str(tmp_path / f"{name}.toml"), "--out", str(tmp_path / name), "--no-onnx"]) == 0
+    capsys.readouterr()
+    assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "nom"), "--out", str(tmp_path / "pair"), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["samples"] == len(ds.select("valid")) and 0 < out["nominal_better"] < 1
+    assert out["routed_offset_max"] <= max(out["uncertain_offset_max"], out["nominal_offset_max"])
+    pair = DeformationModel.load(tmp_path / "pair")
+    assert pair.has_nominal_expert and json.loads((tmp_path / "pair" / "model.json").read_text())["nominal_expert"]
+    d = np.asarray(ds.displacements[ds.select("test1")[:3]], dtype=np.float64)[:, pair.markers, :]
+    (tmp_path / "in.json").write_text(json.dumps({"displacements": d.tolist()}))
+    assert main(["predict", str(tmp_path / "pair"), "--markers", str(tmp_path / "in.json"), "--out",
+                 str(tmp_path / "out.csv")]) == 0
+    # an expert on other markers is refused with the fix
+    other = with_overrides(load_config(cfg_path), surrogate={"ensemble": 1}, markers={"ids": list(range(10, 15))})
+    (tmp_path / "other.toml").write_text(config_to_toml(other))
+    assert main(["train", str(tmp_path / "other.toml"), "--out", str(tmp_path / "other"), "--no-onnx"]) == 0
+    capsys.readouterr()
+    assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "other"), "--out", str(tmp_path / "bad")]) == 2
+    assert "same mesh with the model's markers" in capsys.readouterr().err

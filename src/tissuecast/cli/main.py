@@ -40,6 +40,7 @@ COMMANDS: dict[str, str] = {
     "evaluate": "evaluate_cmd",
     "predict": "predict_cmd",
     "study": "study_cmd",
+    "experts": "experts_cmd",
     "run": "run_cmd",
     "demo": "demo_cmd",
 }

@@ -60,9 +60,14 @@ def bound_figures(trusted, bench: np.ndarray, levels=LEVELS, auxiliary=None) -> 
     return row
 
 
-def trust_evaluation(trusted, dataset) -> dict:
+def trust_evaluation(trusted, dataset, *, field_predictor=None) -> dict:
     """Figures of the bounds and alarm of a :class:`TrustedPredictor` on the data set's test-1 and
     test-2 samples.
+
+    ``field_predictor``: what predicts the evaluated field and returns ``trusted``'s bounds with
+    it (default ``trusted`` itself); e.g. a model with a nominal expert
+    (:class:`~tissuecast.surrogate.DeformationModel`), whose routed field the bounds of its
+    own trust layer are measured against.
 
     Returns:
         ``{"sets": {name: bound_figures row}, "reliability": {"nominal": [...], "empirical": [...]}}``
@@ -72,6 +77,7 @@ def trust_evaluation(trusted, dataset) -> dict:
 
     U = dataset.displacements
     beta = np.asarray(dataset.beta, dtype=np.float64)
+    field_predictor = trusted if field_predictor is None else field_predictor
     aux = auxiliary_values(trusted, dataset)
     rows = (lambda idx: None) if aux is None else (lambda idx: aux[idx])  # noqa: E731
     sets: dict = {}
@@ -79,12 +85,12 @@ def trust_evaluation(trusted, dataset) -> dict:
         idx = np.asarray(dataset.select(split, status="done"), dtype=np.int64)
         if idx.size == 0:
             continue
-        sets[split] = bound_figures(trusted, U[idx], auxiliary=rows(idx))
+        sets[split] = bound_figures(field_predictor, U[idx], auxiliary=rows(idx))
         sets[split].pop("alarms", None)
         if split == "test2":
             for b in np.unique(beta[idx][np.isfinite(beta[idx])]):
                 sub = idx[beta[idx] == b]
-                sets[f"test2 beta={b:g}"] = bound_figures(trusted, U[sub], auxiliary=rows(sub))
+                sets[f"test2 beta={b:g}"] = bound_figures(field_predictor, U[sub], auxiliary=rows(sub))
                 sets[f"test2 beta={b:g}"].pop("alarms", None)
     out: dict = {"sets": sets, "reliability": {}}
     idx = np.asarray(dataset.select("test1", status="done"), dtype=np.int64)
@@ -93,6 +99,8 @@ def trust_evaluation(trusted, dataset) -> dict:
         d = trusted.marker_displacements(bench)
         u = trusted.predict(d, auxiliary=rows(idx))
         sigma = trusted.layer.normaliser(d.reshape(len(d), -1), u, auxiliary=rows(idx))
+        if field_predictor is not trusted:
+            u = field_predictor.predict(d, auxiliary=rows(idx))
         lv, emp = reliability_curve(trusted.layer.conformal, np.linalg.norm(u - bench, axis=2), sigma)
         out["reliability"] = {"nominal": lv.tolist(), "empirical": emp.tolist()}
     return out

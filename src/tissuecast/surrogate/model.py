@@ -10,7 +10,11 @@ The model is composed of parts that each implement the one predictor protocol
   (:class:`~.trusted.TrustedPredictor`), or None without calibration samples;
 - for a model with tracked instruments as inputs (:mod:`.auxiliary`), ``fallback_`` (and
   ``fallback_trusted_``): the learned predictor fitted without the instruments, used for a
-  sample whose instrument is absent (:class:`~.fallback.InstrumentFallback`).
+  sample whose instrument is absent (:class:`~.fallback.InstrumentFallback`);
+- for a model given a nominal expert (:meth:`DeformationModel.with_nominal_expert`),
+  ``nominal_expert_``: a model of the same mesh, markers and inputs trained at the nominal
+  parameters, and ``expert_gate_``, which routes each sample's field between the two
+  (:class:`~.experts.NominalExpertRouter`; the bounds and the alarm stay this model's).
 
 Scikit-learn style: the hyper-parameters come from a :class:`~tissuecast.config.SurrogateConfig`
 given to ``__init__``; ``fit`` learns the state (attributes ending in ``_``) and returns
@@ -29,6 +33,7 @@ from __future__ import annotations
 import logging
 import time
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +45,7 @@ from .baselines import RidgePredictor, RigidRegistrationPredictor
 from .cross_calibration import fit_model_trust
 from .data import FitSplits, check_fit_inputs, dataset_arrays, fit_splits, flat_fields
 from .decoder import global_part
+from .experts import ExpertGate, NominalExpertRouter, check_expert, gate_features
 from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .inputs import marker_batch
@@ -154,9 +160,15 @@ class DeformationModel(FieldPredictor):
 
     @property
     def has_uncertainty(self) -> bool:
-        """Whether the network is an ensemble (``surrogate.ensemble >= 2``): per-vertex spread."""
+        """Whether the network is an ensemble (``surrogate.ensemble >= 2``): per-vertex spread
+        (not with a nominal expert: the routed field has no ensemble of its own)."""
         self._fitted()
-        return self.network_.has_uncertainty
+        return bool(self._by_method["mlp"].has_uncertainty)
+
+    @property
+    def has_nominal_expert(self) -> bool:
+        """Whether a nominal expert predicts the samples its gate routes to it (:meth:`with_nominal_expert`)."""
+        return self.is_fitted and self.nominal_expert_ is not None
 
     @property
     def has_trust(self) -> bool:
@@ -185,7 +197,8 @@ class DeformationModel(FieldPredictor):
                           training=self.training_, run_config=self.run_config, dataset_path=self.dataset_path,
                           scenario=self.scenario, metadata=self.metadata_, fallback=self.fallback_,
                           fallback_trust=None if self.fallback_trusted_ is None else self.fallback_trusted_.layer,
-                          gate=self.gate_)
+                          gate=self.gate_, expert=None if self.nominal_expert_ is None else self.nominal_expert_.get_state(),
+                          expert_gate=self.expert_gate_)
 
     @classmethod
     def from_state(cls, state: ModelState) -> "DeformationModel":
@@ -212,6 +225,14 @@ class DeformationModel(FieldPredictor):
             learned = InstrumentFallback(net, self.fallback_)
             if self.trusted_ is not None and self.fallback_trusted_ is not None:
                 self._trusted = InstrumentFallback(self.trusted_, self.fallback_trusted_)
+        self.nominal_expert_, self.expert_gate_ = None, state.expert_gate
+        if state.expert is not None:
+            self.nominal_expert_ = DeformationModel.from_state(state.expert)
+            self.nominal_expert_._use_gate(None)  # the model's gate judges the input: the expert's ranges are narrower
+            if self._trusted is None:
+                raise ModelError("a model with a nominal expert needs its own trust layer (the gate reads its alarm)")
+            self._trusted = NominalExpertRouter(learned, self._trusted, self.nominal_expert_._trusted, state.expert_gate)
+            learned = self._trusted
         self._by_method = {"mlp": learned, "rigid": self.rigid_, "ridge": self.ridge_}
         self.gate_ = gate_of(state)
         self._use_gate(self.gate_)
@@ -507,13 +528,66 @@ class DeformationModel(FieldPredictor):
         out = {**self.network_.describe(), "has_trust": self.has_trust, "pca": pca, "training": self.training_}
         if self.fallback_ is not None:
             out["fallback"] = self.fallback_.describe()
+        if self.nominal_expert_ is not None:
+            out["nominal_expert"] = self.nominal_expert_.describe()
+            out["expert_gate"] = {"samples": self.expert_gate_.samples, "nominal_better": self.expert_gate_.nominal_better}
+            out["has_uncertainty"] = self.has_uncertainty
         return out
+
+    # ------------------------------------------------------------------ a nominal expert
+    def with_nominal_expert(self, expert: "DeformationModel", fields, *, auxiliary=None) -> "DeformationModel":
+        """This model with a nominal expert beside it (:mod:`.experts`): a new model whose field
+        comes, sample by sample, from ``expert`` where a gate fitted here expects it to be the
+        better one, and from this model elsewhere; bounds and alarm stay this model's.
+
+        Args:
+            expert: a model trained at the scenario's nominal parameters on the same mesh, with
+                this model's markers and auxiliary inputs, calibrated (``has_trust``).
+            fields: (B, n, 3) mm simulated fields neither model was trained on, drawn as this
+                model's training data were (e.g. the validation split of its store): the gate
+                is fitted on them.
+            auxiliary: (B, n_a) their auxiliary inputs (models with some), as for :meth:`predict`.
+
+        Raises:
+            ModelError: a model without trust, an expert that does not fit (other markers, mesh
+                or inputs; an expert with an expert), or samples on which one model is always
+                the better one.
+        """
+        self._fitted()
+        expert._fitted()
+        self._need_trust()
+        if not expert.has_trust:
+            raise ModelError("the nominal expert has no calibrated error bounds or alarm (the gate reads its alarm); "
+                             "train it with surrogate.calibration = 'split' or 'cross-validation'")
+        if expert.has_nominal_expert or self.has_nominal_expert:
+            raise ModelError("a model with a nominal expert takes no second one; start from the models it was made of")
+        U = np.asarray(fields, dtype=np.float64)
+        if U.ndim != 3 or U.shape[1:] != (self.n_vertices, 3):
+            raise ModelError(f"fields must be (B, {self.n_vertices}, 3) mm, got {U.shape}")
+        state = self.get_state()
+        expert_state = expert.get_state()
+        trial = DeformationModel.from_state(expert_state)
+        trial._use_gate(None)
+        check_expert(self._trusted, trial._trusted)
+        d = self.marker_displacements(U)
+        with self.gate_suspended():
+            mine = self._trusted.predict_trusted(d, auxiliary=auxiliary)
+        theirs = trial._trusted.predict_trusted(d, auxiliary=auxiliary)
+        better = (np.linalg.norm(theirs.displacement - U, axis=2).max(axis=1)
+                  < np.linalg.norm(mine.displacement - U, axis=2).max(axis=1))
+        gate = ExpertGate.fit(gate_features(theirs, mine), better)
+        model = DeformationModel.from_state(replace(state, expert=expert_state, expert_gate=gate))
+        model.run_config, model.dataset_path, model.scenario = self.run_config, self.dataset_path, self.scenario
+        return model
 
     # ------------------------------------------------------------------ persistence
     def save(self, folder, *, onnx: bool = False) -> None:
         """Write the model folder (see :mod:`tissuecast.surrogate.storage`)."""
         from .storage import save_model
 
+        if onnx and self.has_nominal_expert:
+            raise ModelError("a model with a nominal expert routes between two networks by their alarm scores, which a "
+                             "graph does not compute; save without onnx and export each with export_onnx(path, expert=...)")
         save_model(self.get_state(), folder, onnx=onnx)
 
     @classmethod
@@ -523,22 +597,33 @@ class DeformationModel(FieldPredictor):
 
         return cls.from_state(load_model(folder))
 
-    def export_onnx(self, path, *, fallback: bool = False) -> None:
+    def export_onnx(self, path, *, fallback: bool = False, expert: str | None = None) -> None:
         """Write an ONNX graph: inputs ``markers`` (B, n_d, 3) float32 mm [+ ``auxiliary`` (B, n_a)
         float32 in ``model.auxiliary.units``] [+ ``present`` (B, n_d)], output ``displacement``
         (B, n, 3) float32 mm (PCA reconstruction included). ``fallback``: the graph of the
-        fallback without instruments (models with instrument inputs)."""
+        fallback without instruments (models with instrument inputs). ``expert``: for a model
+        with a nominal expert, whose network: ``"uncertain"`` (this model's) or ``"nominal"``
+        (the graph has no gate: the gate reads the trust layers' alarm scores)."""
         from .storage import export_onnx
 
-        export_onnx(self._learned(fallback), path)
+        export_onnx(self._learned(fallback, expert), path)
 
-    def torch_module(self, *, fallback: bool = False):
+    def torch_module(self, *, fallback: bool = False, expert: str | None = None):
         """The equivalent torch module (float32), see :func:`tissuecast.surrogate.network.torch_network`;
-        ``fallback`` as in :meth:`export_onnx`."""
-        return self._learned(fallback).torch_module()
+        ``fallback`` and ``expert`` as in :meth:`export_onnx`."""
+        return self._learned(fallback, expert).torch_module()
 
-    def _learned(self, fallback: bool) -> NetworkPredictor:
+    def _learned(self, fallback: bool, expert: str | None = None) -> NetworkPredictor:
         self._fitted()
+        if expert not in (None, "uncertain", "nominal"):
+            raise ModelError(f"expert must be 'uncertain' or 'nominal', got {expert!r}")
+        if self.nominal_expert_ is None and expert is not None:
+            raise ModelError("this model has no nominal expert; export it without expert=")
+        if self.nominal_expert_ is not None and expert is None:
+            raise ModelError("this model routes each sample between two networks by a gate on their trust layers' alarm "
+                             "scores, which a graph does not compute; export one of them: expert='uncertain' or 'nominal'")
+        if expert == "nominal":
+            return self.nominal_expert_._learned(fallback)
         if fallback and self.fallback_ is None:
             raise ModelError("this model has no fallback: it reads no tracked instrument")
         return self.fallback_ if fallback else self.network_

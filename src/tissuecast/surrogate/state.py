@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import SurrogateConfig
+from .experts import ExpertGate
 from .gate import InputGate
 from .mlp import TrainingSummary
 from .network_predictor import NetworkPredictor
@@ -43,6 +44,9 @@ class ModelState:
             (:mod:`.fallback`; the same mesh and markers), else None.
         fallback_trust: the fallback's calibrated trust layer, or None.
         gate: the input gate's ranges, or None (derived by :func:`gate_of`).
+        expert: the nominal expert's state (:mod:`.experts`: a model of the same mesh, markers and
+            inputs trained at the nominal parameters), or None.
+        expert_gate: the :class:`~.experts.ExpertGate` routing between this model and the expert.
     """
 
     config: SurrogateConfig
@@ -59,6 +63,8 @@ class ModelState:
     fallback: NetworkPredictor | None = None
     fallback_trust: TrustLayer | None = None
     gate: InputGate | None = None
+    expert: "ModelState | None" = None
+    expert_gate: ExpertGate | None = None
 
     @property
     def ridge_components(self) -> int:

@@ -19,6 +19,8 @@ A model folder holds::
     fallback/           models with tracked instruments as inputs (tissuecast.surrogate.fallback):
                         the fallback without them, as weights.safetensors, pca.npz, head.npz,
                         trust.npz (and model.onnx) above; model.json's "fallback" describes it
+    nominal_expert/     models with a nominal expert (tissuecast.surrogate.experts): the expert's own
+                        model folder; model.json's "nominal_expert" holds its gate (JSON)
 
 ``model.json``'s ``auxiliary`` lists the auxiliary inputs (tissuecast.surrogate.auxiliary: the
 instruments with their OpenIGTLink devices, the measured parameters, every input's name and
@@ -42,6 +44,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ModelError, require
 from .decoder import LocalBasis, describe_decoder, global_part
+from .experts import ExpertGate
 from .gate import InputGate
 from .network_predictor import NetworkPredictor
 from .auxiliary import AuxiliaryInputs
@@ -57,6 +60,8 @@ FORMAT = "tissuecast-model"
 SCHEMA = 1
 #: Sub-folder of the fallback network of a model with tracked instruments.
 FALLBACK_FOLDER = "fallback"
+#: Sub-folder of the nominal expert of a model that has one.
+EXPERT_FOLDER = "nominal_expert"
 
 
 def _versions() -> dict:
@@ -157,6 +162,9 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
         meta["auxiliary"] = net.auxiliary.as_dict()
     if state.fallback is not None:
         meta["fallback"] = _save_fallback(state, out / FALLBACK_FOLDER, onnx)
+    if state.expert is not None:
+        save_model(state.expert, out / EXPERT_FOLDER)
+        meta["nominal_expert"] = {"folder": EXPERT_FOLDER, "gate": state.expert_gate.as_dict()}
     (out / "model.json").write_text(json.dumps(meta, indent=2), encoding="utf-8")
 
 
@@ -283,6 +291,10 @@ def load_model(folder) -> ModelState:
     curve = PCACurve.from_dict(meta["pca_curve"]) if meta.get("pca_curve") else None
     trust = _trust(folder / meta["files"]["trust"]) if meta["files"].get("trust") else None
     fallback, fallback_trust = _fallback(folder, meta, network)
+    expert, expert_gate = None, None
+    if meta.get("nominal_expert"):
+        record = meta["nominal_expert"]
+        expert, expert_gate = load_model(folder / record["folder"]), ExpertGate.from_dict(record["gate"])
     return ModelState(
         config=config_from_dict({"surrogate": meta["surrogate_config"]}).surrogate, network=network,
         fixed=np.asarray(meta["fixed"], dtype=np.int64),
@@ -290,7 +302,7 @@ def load_model(folder) -> ModelState:
                                               "n_components": network.n_components},
         pca_curve=curve, trust=trust, training=meta.get("training") or None, run_config=meta.get("config"),
         dataset_path=meta.get("dataset_path"), scenario=meta.get("scenario"), metadata=meta, fallback=fallback,
-        fallback_trust=fallback_trust, gate=_gate(network, meta))
+        fallback_trust=fallback_trust, gate=_gate(network, meta), expert=expert, expert_gate=expert_gate)
 
 
 def _gate(network: NetworkPredictor, meta: dict) -> InputGate | None:

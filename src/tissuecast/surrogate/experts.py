@@ -1,0 +1,254 @@
+"""A nominal expert beside an uncertainty-trained model, and the gate that routes between them.
+
+A model trained with the scenario's parameters drawn (``[scenario.uncertain]``) pays for its
+robustness at the nominal parameters: it regresses a much wider family of fields
+(docs/uncertainty.md). A model trained at the nominal parameters alone (the *nominal expert*,
+on the same mesh, markers and instruments) is about twice as accurate there and fails where a
+parameter is far off (the attached region's extent above all). :class:`NominalExpertRouter`
+keeps both and sends each sample's field to one of them by an :class:`ExpertGate`: a logistic
+regression of what the operating room sees on both models, their alarm scores (input
+distance, marker consistency, the fault statistic and its marker's residual, mm) and how far
+their two fields are apart (largest and mean vertex distance, mm), fitted on held-out samples
+of the uncertain data with the label "the nominal expert's largest vertex error is the
+smaller". The gate sends a sample to the nominal expert when that probability is above one
+half, or to the uncertainty-trained model where a score is not finite.
+
+The error bounds and the alarm are always the uncertainty-trained model's: they were
+calibrated on the whole range of parameters, the nominal expert's only at the nominal ones.
+The routed field is as close or closer on the samples the gate sends to the nominal expert,
+so the bounds stay conservative (measured in docs/uncertainty.md). With untracked markers
+the uncertainty-trained model predicts alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ModelError
+from .field_predictor import FieldPredictor
+from .trust import TrustedPrediction
+
+__all__ = ["ExpertGate", "NominalExpertRouter", "GATE_FEATURES", "gate_features", "check_expert"]
+
+#: The alarm scores of each model that the gate reads (attributes of :class:`~.trust.Alarm`).
+GATE_SCORES = ("distance", "consistency", "fault", "marker_residual")
+#: The gate's inputs, in order: each model's scores, then how far the two fields are apart (mm).
+GATE_FEATURES = (tuple(f"nominal_{s}" for s in GATE_SCORES) + tuple(f"uncertain_{s}" for s in GATE_SCORES)
+                 + ("apart_max", "apart_mean"))
+#: Scores are read on a log scale; smaller values count as this (a score of 0, or a field alike).
+FEATURE_FLOOR = 1e-6
+#: L2 penalty of the gate's logistic regression, on standardised features (the intercept is free).
+GATE_PENALTY = 1.0
+#: Newton iterations of the logistic fit at most (it converges in about ten).
+GATE_ITERATIONS = 100
+
+
+def gate_features(nominal: TrustedPrediction, uncertain: TrustedPrediction) -> np.ndarray:
+    """The gate's inputs (B, len(GATE_FEATURES)) float64 from both models' trusted predictions
+    of the same B samples (with alarms): log scores and log distances (NaN where a score is)."""
+    if nominal.alarms is None or uncertain.alarms is None:
+        raise ModelError("the gate reads both models' alarms: predict with alarm=True")
+    u_n = np.asarray(nominal.displacement).reshape(-1, *np.shape(nominal.displacement)[-2:])
+    u_u = np.asarray(uncertain.displacement).reshape(u_n.shape)
+    alarms_n = [nominal.alarms] if not isinstance(nominal.alarms, list) else nominal.alarms
+    alarms_u = [uncertain.alarms] if not isinstance(uncertain.alarms, list) else uncertain.alarms
+    scores = [[float(getattr(a, s)) for s in GATE_SCORES] for a in alarms_n]
+    scores = np.hstack([np.array(scores), np.array([[float(getattr(a, s)) for s in GATE_SCORES] for a in alarms_u])])
+    apart = np.linalg.norm(u_n - u_u, axis=2)
+    X = np.hstack([scores, apart.max(axis=1)[:, None], apart.mean(axis=1)[:, None]])
+    with np.errstate(invalid="ignore"):
+        return np.log(np.where(np.isnan(X), np.nan, np.maximum(X, FEATURE_FLOOR)))
+
+
+@dataclass(frozen=True, eq=False)
+class ExpertGate:
+    """A fitted gate: the probability that the nominal expert's field is the better one.
+
+    Attributes:
+        mean, scale: (f,) the standardisation of the features (:data:`GATE_FEATURES`).
+        weights: (f,) logistic coefficients on the standardised features; ``bias`` the intercept.
+        samples: how many held-out samples it was fitted on; ``nominal_better`` the share of them
+            on which the nominal expert's largest vertex error was the smaller.
+    """
+
+    mean: np.ndarray
+    scale: np.ndarray
+    weights: np.ndarray
+    bias: float
+    samples: int
+    nominal_better: float
+
+    @classmethod
+    def fit(cls, features: np.ndarray, nominal_better: np.ndarray, *, penalty: float = GATE_PENALTY) -> "ExpertGate":
+        """L2-penalised logistic regression (Newton's method) of the labels ``nominal_better``
+        (B,) bool on ``features`` (B, f) (:func:`gate_features`).
+
+        Raises:
+            ModelError: a feature is not finite, or every label is the same (nothing to route).
+        """
+        X = np.asarray(features, dtype=np.float64)
+        y = np.asarray(nominal_better, dtype=bool)
+        if X.ndim != 2 or X.shape[1] != len(GATE_FEATURES) or len(X) != len(y):
+            raise ModelError(f"the gate needs features (B, {len(GATE_FEATURES)}) and B labels; got {X.shape} and {y.shape}")
+        if not np.isfinite(X).all():
+            raise ModelError("a model's alarm score is not finite on the gate's samples (a trust layer without the marker "
+                             "consistency, e.g. with one marker); the gate needs both models' full alarms")
+        if y.all() or not y.any():
+            who = "the nominal expert" if y.all() else "the uncertainty-trained model"
+            raise ModelError(f"{who} is the better one on all {len(y)} samples: there is nothing to route; use that "
+                             "model alone, or fit the gate on samples drawn from the whole range of parameters")
+        mean, scale = X.mean(axis=0), X.std(axis=0)
+        scale = np.where(scale > 0, scale, 1.0)
+        Z = np.hstack([(X - mean) / scale, np.ones((len(X), 1))])
+        reg = np.full(Z.shape[1], float(penalty))
+        reg[-1] = 0.0
+        w = np.zeros(Z.shape[1])
+        t = y.astype(np.float64)
+        for _ in range(GATE_ITERATIONS):
+            p = _sigmoid(Z @ w)
+            grad = Z.T @ (p - t) + reg * w
+            hess = (Z * (p * (1.0 - p))[:, None]).T @ Z + np.diag(reg + 1e-12)
+            step = np.linalg.solve(hess, grad)
+            w -= step
+            if np.abs(step).max() < 1e-12:
+                break
+        return cls(mean, scale, w[:-1].copy(), float(w[-1]), int(len(y)), float(y.mean()))
+
+    def probability(self, features: np.ndarray) -> np.ndarray:
+        """(B,) probability that the nominal expert is the better one (NaN where a feature is)."""
+        Z = (np.asarray(features, dtype=np.float64) - self.mean) / self.scale
+        return _sigmoid(Z @ self.weights + self.bias)
+
+    def to_nominal(self, features: np.ndarray) -> np.ndarray:
+        """(B,) bool: the samples whose field the nominal expert gives (probability above one
+        half; never where a feature is not finite)."""
+        p = self.probability(features)
+        return np.isfinite(p) & (p > 0.5)
+
+    def as_dict(self) -> dict:
+        """JSON-able form (``model.json``'s ``nominal_expert.gate``)."""
+        return {"features": list(GATE_FEATURES), "mean": self.mean.tolist(), "scale": self.scale.tolist(),
+                "weights": self.weights.tolist(), "bias": self.bias, "samples": self.samples,
+                "nominal_better": self.nominal_better}
+
+    @classmethod
+    def from_dict(cls, doc: dict) -> "ExpertGate":
+        """Read :meth:`as_dict`'s form.
+
+        Raises:
+            ModelError: other features than this version's gate reads.
+        """
+        if list(doc.get("features", [])) != list(GATE_FEATURES):
+            raise ModelError(f"the model's expert gate reads {doc.get('features')}, this version {list(GATE_FEATURES)}; "
+                             "fit the gate again (`tissuecast experts`)")
+        arrays = [np.asarray(doc[k], dtype=np.float64) for k in ("mean", "scale", "weights")]
+        if any(a.shape != (len(GATE_FEATURES),) for a in arrays):
+            raise ModelError("the model's expert gate is damaged: its arrays do not match its features")
+        return cls(*arrays, float(doc["bias"]), int(doc["samples"]), float(doc["nominal_better"]))
+
+
+def check_expert(trusted: FieldPredictor, expert: FieldPredictor) -> None:
+    """Raise :class:`~tissuecast.errors.ModelError` unless ``expert`` can stand beside
+    ``trusted``: both calibrated, the same mesh size, markers and auxiliary inputs."""
+    if not (trusted.has_trust and expert.has_trust):
+        raise ModelError("both models need calibrated error bounds and alarms (the gate reads the alarms' scores)")
+    if not np.array_equal(expert.markers, trusted.markers) or expert.n_vertices != trusted.n_vertices:
+        raise ModelError(f"the nominal expert reads markers {np.asarray(expert.markers).tolist()} on "
+                         f"{expert.n_vertices} vertices, the model {np.asarray(trusted.markers).tolist()} on "
+                         f"{trusted.n_vertices}; train the expert on the same mesh with the model's markers "
+                         "(one set is placed in surgery)")
+    if expert.auxiliary != trusted.auxiliary:
+        raise ModelError(f"the nominal expert reads the auxiliary inputs {list(expert.auxiliary.names)}, the model "
+                         f"{list(trusted.auxiliary.names)}; train both with the same instruments and measured parameters")
+
+
+def _sigmoid(z: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):
+        return 1.0 / (1.0 + np.exp(-z))
+
+
+class NominalExpertRouter(FieldPredictor):
+    """The uncertainty-trained model and the nominal expert, each sample's field routed by the gate.
+
+    Args:
+        learned: the uncertainty-trained learned predictor (what predicts with untracked markers).
+        trusted: the same with its trust layer (bounds and alarm of every prediction).
+        expert: the nominal expert's trusted predictor: the same mesh, markers and auxiliary inputs.
+        gate: the fitted :class:`ExpertGate`.
+
+    Raises:
+        ModelError: the expert does not predict on the same mesh from the same inputs, or one
+            of the two has no trust layer.
+    """
+
+    has_trust = True
+
+    def __init__(self, learned: FieldPredictor, trusted: FieldPredictor, expert: FieldPredictor, gate: ExpertGate):
+        check_expert(trusted, expert)
+        self.learned, self.trusted, self.expert, self.gate = learned, trusted, expert, gate
+
+    # ------------------------------------------------------------------ the protocol
+    @property
+    def name(self) -> str:
+        return self.trusted.name
+
+    @property
+    def mesh(self):
+        return self.trusted.mesh
+
+    @property
+    def markers(self) -> np.ndarray:
+        return self.trusted.markers
+
+    @property
+    def auxiliary(self):
+        return self.trusted.auxiliary
+
+    @property
+    def supports_missing_markers(self) -> bool:
+        return bool(self.learned.supports_missing_markers)
+
+    def routes(self, d: np.ndarray, a: np.ndarray | None, *, coverage=None, false_alarm=None):
+        """``(to_nominal (B,) bool, the model's TrustedPrediction, the expert's)`` of checked
+        displacements d (B, 3 n_d) mm and auxiliary inputs a (B, n_a) or None."""
+        mine = self.trusted.predict_trusted(d, coverage=coverage, false_alarm=false_alarm, auxiliary=a)
+        theirs = self.expert.predict_trusted(d, coverage=coverage, auxiliary=a)
+        return self.gate.to_nominal(gate_features(theirs, mine)), mine, theirs
+
+    def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
+        if missing is not None and missing.any():  # the gate's scores need every marker
+            return self.learned.predict(d, missing=missing, auxiliary=a)
+        to_nominal, mine, theirs = self.routes(d, a)
+        return np.where(to_nominal[:, None, None], theirs.displacement, mine.displacement)
+
+    def predict_with_uncertainty(self, marker_displacements, *, missing=None, auxiliary=None):
+        """Not available: the routed field comes from one of two networks, with no ensemble
+        spread of its own; the error bounds of :meth:`predict_trusted` bound it."""
+        raise ModelError("a model with a nominal expert gives no ensemble spread; use predict_trusted's error bounds")
+
+    def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None,
+                        auxiliary=None, alarm: bool = True) -> TrustedPrediction:
+        """As :meth:`.trusted.TrustedPredictor.predict_trusted`: each sample's field from the
+        model the gate routes it to, the bounds and the alarm the uncertainty-trained model's
+        (``alarm=False`` leaves the alarm out of the answer; the gate computes it anyway)."""
+        d, _, single = self.marker_batch(marker_displacements)
+        a = self.auxiliary_batch(auxiliary, d.shape[0])
+        to_nominal, mine, theirs = self.routes(d, a, coverage=coverage, false_alarm=false_alarm)
+        u = np.where(to_nominal[:, None, None], theirs.displacement, mine.displacement)
+        alarms = mine.alarms if alarm else None
+        if single:
+            return TrustedPrediction(u[0], mine.error_bound[0], mine.coverage, None if alarms is None else alarms[0])
+        return TrustedPrediction(u, mine.error_bound, mine.coverage, alarms)
+
+    def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None):
+        """The uncertainty-trained model's alarm (:meth:`.trusted.TrustedPredictor.alarms`)."""
+        return self.trusted.alarms(marker_displacements, false_alarm=false_alarm, auxiliary=auxiliary)
+
+    def describe(self) -> dict:
+        return {**self.trusted.describe(), "nominal_expert": self.expert.describe(),
+                "expert_gate": {"samples": self.gate.samples, "nominal_better": self.gate.nominal_better}}
+
+    def __repr__(self) -> str:
+        return f"NominalExpertRouter({self.trusted!r}, expert={self.expert!r})"

@@ -1,0 +1,159 @@
+"""A nominal expert beside a model, routed by a gate (tissuecast.surrogate.experts), on synthetic fields."""
+
+import functools
+
+import numpy as np
+import pytest
+
+from tissuecast.errors import ModelError
+from tissuecast.surrogate import DeformationModel
+from tissuecast.surrogate.experts import GATE_FEATURES, ExpertGate, gate_features
+
+from _surrogate_synthetic import MARKERS, nonlinear_fields
+from _trust_synthetic import SPLITS, trust_data
+
+
+#: The expert's family: |third latent| below this (the whole family spans [-1, 1]).
+NOMINAL_BAND = 0.3
+
+
+def _small_model(U: np.ndarray) -> DeformationModel:
+    """A small calibrated network on fields U (1100, n, 3) split as the trust tests' first 1100:
+    too small for the whole family, so that a narrower family suits it better."""
+    m = DeformationModel(epochs=60, patience=0, batch_size=32, learning_rate=3e-3, n_components=8, hidden=(12,),
+                         head="none", seed=1)
+    return m.fit(U, MARKERS, mesh=trust_data()[0], fixed=[0, 1, 2], train_idx=SPLITS["train"],
+                 valid_idx=SPLITS["valid"], calibration_idx=SPLITS["calibration"])
+
+
+@functools.lru_cache(maxsize=None)
+def uncertain_model() -> DeformationModel:
+    """Trained on the whole family (every latent drawn in [-1, 1])."""
+    return _small_model(trust_data()[1][:1100])
+
+
+@functools.lru_cache(maxsize=None)
+def expert_model() -> DeformationModel:
+    """Trained on a narrower family of as many samples (the third latent within
+    +-NOMINAL_BAND, as a nominal parameter): the better one there, the worse elsewhere."""
+    theta = np.random.default_rng(11).uniform(-1, 1, (1100, 3)) * [1.0, 1.0, NOMINAL_BAND]
+    return _small_model(nonlinear_fields(trust_data()[0], theta))
+
+
+@functools.lru_cache(maxsize=None)
+def gated() -> DeformationModel:
+    _, U, _ = trust_data()
+    return uncertain_model().with_nominal_expert(expert_model(), U[SPLITS["valid"]])
+
+
+def test_gate_fit_recovers_a_logistic_rule_and_round_trips():
+    rng = np.random.default_rng(3)
+    f = len(GATE_FEATURES)
+    X = rng.normal(size=(6000, f)) * rng.uniform(0.5, 3.0, f) + rng.normal(size=f)
+    w_true = np.zeros(f)
+    w_true[[0, 4, 8]] = [1.5, -2.0, 1.0]
+    z = ((X - X.mean(0)) / X.std(0)) @ w_true + 0.3
+    y = rng.uniform(size=len(X)) < 1.0 / (1.0 + np.exp(-z))
+    gate = ExpertGate.fit(X, y, penalty=1e-6)
+    np.testing.assert_allclose(gate.weights, w_true, atol=0.12)
+    assert abs(gate.bias - 0.3) < 0.1 and gate.samples == 6000 and abs(gate.nominal_better - y.mean()) < 1e-12
+    p = gate.probability(X)
+    assert ((p > 0.5) == (z > 0)).mean() > 0.97
+    bad = X[:3].copy()
+    bad[1, 2] = np.nan
+    assert gate.to_nominal(bad)[1] == np.False_  # a score missing: the uncertainty-trained model answers
+    back = ExpertGate.from_dict(gate.as_dict())
+    np.testing.assert_array_equal(back.probability(X), p)
+    with pytest.raises(ModelError, match="reads"):
+        ExpertGate.from_dict({**gate.as_dict(), "features": ["a"]})
+    with pytest.raises(ModelError, match="nothing to route"):
+        ExpertGate.fit(X, np.ones(len(X), bool))
+    X[0, 0] = np.inf
+    with pytest.raises(ModelError, match="not finite"):
+        ExpertGate.fit(X, y)
+
+
+def test_routed_field_bounds_and_alarm():
+    model, expert, pair = uncertain_model(), expert_model(), gated()
+    _, U, _ = trust_data()
+    test = U[SPLITS["test"]]
+    d = test[:, MARKERS, :]
+    tp = pair.predict_trusted(d)
+    mine, theirs = model.predict_trusted(d), expert.predict_trusted(d)
+    to_nominal = pair.expert_gate_.to_nominal(gate_features(theirs, mine))
+    assert 0.05 < to_nominal.mean() < 0.95  # the gate uses both
+    np.testing.assert_array_equal(tp.displacement[to_nominal], theirs.displacement[to_nominal])
+    np.testing.assert_array_equal(tp.displacement[~to_nominal], mine.displacement[~to_nominal])
+    np.testing.assert_array_equal(tp.error_bound, mine.error_bound)  # bounds and alarm: the model's own
+    assert [a.raised for a in tp.alarms] == [a.raised for a in mine.alarms]
+    np.testing.assert_array_equal(pair.predict(d), tp.displacement)
+    one = pair.predict_trusted(d[0], alarm=False)
+    np.testing.assert_allclose(one.displacement, tp.displacement[0], rtol=0, atol=1e-12)  # one sample: other BLAS sums
+    assert one.alarms is None and pair.alarms(d[0]).raised == mine.alarms[0].raised
+    # near the expert's family the pair is as good as the expert, elsewhere as the model, overall better than both
+    worst = {k: np.linalg.norm(u - test, axis=2).max(axis=1) for k, u in
+             (("mine", mine.displacement), ("theirs", theirs.displacement), ("pair", tp.displacement))}
+    near = np.abs(trust_data()[2][SPLITS["test"], 2]) < NOMINAL_BAND
+    assert worst["theirs"][near].mean() < 0.85 * worst["mine"][near].mean()  # the expert's advantage, at home
+    assert worst["pair"][near].mean() < 1.05 * worst["theirs"][near].mean()
+    assert worst["pair"][~near].mean() < 1.05 * worst["mine"][~near].mean() < 0.5 * worst["theirs"][~near].mean()
+    assert worst["pair"].mean() < min(worst["mine"].mean(), worst["theirs"].mean())
+    assert pair.has_nominal_expert and not model.has_nominal_expert and not pair.has_uncertainty
+    assert pair.describe()["expert_gate"]["samples"] == len(SPLITS["valid"])
+    with pytest.raises(ModelError, match="no ensemble spread"):
+        pair.predict_with_uncertainty(d)
+
+
+def test_saved_and_loaded(tmp_path):
+    pair = gated()
+    _, U, _ = trust_data()
+    d = U[SPLITS["test"]][:40, MARKERS, :]
+    pair.save(tmp_path / "m")
+    assert (tmp_path / "m" / "nominal_expert" / "model.json").exists()
+    back = DeformationModel.load(tmp_path / "m")
+    assert back.has_nominal_expert
+    a, b = pair.predict_trusted(d), back.predict_trusted(d)
+    np.testing.assert_array_equal(a.displacement, b.displacement)
+    np.testing.assert_allclose(a.error_bound, b.error_bound, rtol=1e-6)  # as any trust layer read back
+    np.testing.assert_array_equal(back.expert_gate_.weights, pair.expert_gate_.weights)
+    with pytest.raises(ModelError, match="onnx"):
+        pair.save(tmp_path / "o", onnx=True)
+
+
+def test_exports_name_the_network_and_refusals():
+    torch = pytest.importorskip("torch")
+    pair, model, expert = gated(), uncertain_model(), expert_model()
+    with pytest.raises(ModelError, match="expert='uncertain' or 'nominal'"):
+        pair.torch_module()
+    x = torch.tensor(trust_data()[1][SPLITS["test"]][:5, MARKERS, :], dtype=torch.float32)
+    with torch.no_grad():
+        assert torch.equal(pair.torch_module(expert="nominal")(x), expert.torch_module()(x))
+        assert torch.equal(pair.torch_module(expert="uncertain")(x), model.torch_module()(x))
+    with pytest.raises(ModelError, match="no nominal expert"):
+        model.torch_module(expert="nominal")
+    _, U, _ = trust_data()
+    valid = U[SPLITS["valid"]]
+    with pytest.raises(ModelError, match="takes no second one"):
+        pair.with_nominal_expert(expert, valid)
+    mesh = trust_data()[0]
+    other = DeformationModel(epochs=2, patience=0, n_components=4, hidden=(8,), head="none")
+    other.fit(U, MARKERS[:4], mesh=mesh, fixed=[0, 1, 2], train_idx=SPLITS["train"], valid_idx=SPLITS["valid"],
+              calibration_idx=SPLITS["calibration"])
+    with pytest.raises(ModelError, match="same mesh with the model's markers"):
+        model.with_nominal_expert(other, valid)
+    with pytest.raises(ModelError, match=r"fields must be \(B, 270, 3\)"):
+        model.with_nominal_expert(expert, valid[:, :10])
+
+
+def test_served_like_any_model():
+    from tissuecast.serve import SurfacePredictor
+
+    pair = gated()
+    d = trust_data()[1][SPLITS["test"]][:3, MARKERS, :]
+    served = SurfacePredictor(pair)
+    for row in d:
+        p = served.predict(pair.reference_marker_positions + row, 0.0)
+        want = pair.predict_trusted(row)
+        np.testing.assert_allclose(p.displacement, want.displacement, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(p.error_bound, want.error_bound, rtol=0, atol=1e-12)
+        assert p.alarm.raised == want.alarms.raised
