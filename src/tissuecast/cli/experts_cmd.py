@@ -60,7 +60,8 @@ def run(args) -> int:
     print(f"  gate fitted on the {figures['samples']} validation samples of {store}: the nominal expert the better one "
           f"on {100 * figures['nominal_better']:.0f} % of them")
     print(f"  on these samples (the gate's own, so optimistic), mean Offset_max: "
-          f"uncertain {figures['uncertain_offset_max']:.2f} mm, nominal {figures['nominal_offset_max']:.2f}, routed {figures['routed_offset_max']:.2f} "
+          f"uncertain {figures['uncertain_offset_max']:.2f} mm, nominal {figures['nominal_offset_max']:.2f}, "
+          f"routed {figures['routed_offset_max']:.2f} "
           f"({100 * figures['routed_to_nominal']:.0f} % to the nominal expert)")
     print("  bounds and alarm: the uncertain model's; measure the pair on data it was not fitted on "
           "(`tissuecast evaluate`, `tissuecast study mismatch`)")
