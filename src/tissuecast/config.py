@@ -277,6 +277,7 @@ class SurrogateConfig:
     coverage: float = _f(0.9, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="nominal coverage of the per-vertex error bounds: each vertex's error is below its bound with at least this probability")
     false_alarm_rate: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="share of in-distribution inputs allowed to raise the out-of-distribution alarm")
     alarm_fault_score: bool = _f(False, doc="the alarm also tests for one displaced marker: catches it sooner with many markers, catches fewer of the other faults at the same false-alarm rate")
+    nominal_expert: bool = _f(False, doc="run: also a nominal store (STORE_nominal) and a nominal-only expert on the model's markers, a gate routing each field (docs/uncertainty.md)")
 
 
 #: Where the errors at targets (TRE) are measured (see :mod:`tissuecast.evaluate.targets`).

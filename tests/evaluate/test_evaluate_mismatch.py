@@ -163,3 +163,31 @@ def test_the_alarm_cell_names_what_raised_it():
     assert mismatch_table([quiet])[0][-1] == "0 %"
     old = {k: v for k, v in row.items() if not k.startswith("alarm_") or k == "alarm_rate"}  # rows written before
     assert mismatch_table([old])[0][-1] == "100 %"
+
+
+def test_run_with_a_nominal_expert(tmp_path):
+    """`surrogate.nominal_expert`: the run simulates the nominal store beside the uncertain one
+    (the same alpha, nothing drawn, its own seed), trains the expert on the model's markers and
+    saves the pair; the config refuses what the expert cannot be built from."""
+    from tissuecast.app.configuration import check_config
+    from tissuecast.app.pipeline import run_pipeline
+    from tissuecast.errors import ConfigError
+    from tissuecast.surrogate import DeformationModel
+
+    cfg = with_overrides(_config(tmp_path), surrogate={"nominal_expert": True, "calibration_share": 0.3}, evaluate={"renders": 0},
+                         dataset={"store": str(tmp_path / "data.zarr")}, output=str(tmp_path / "run"))
+    result = run_pipeline(cfg, progress=False)
+    paths = result["paths"]
+    unc, nom = open_dataset(paths.store), open_dataset(paths.nominal_store)
+    assert paths.nominal_store.name == "data_nominal.zarr"
+    assert nom.calibration["alpha"] == unc.calibration["alpha"] and not nom.parameters
+    assert nom.config.dataset.seed != unc.config.dataset.seed and "simulate nominal" in result["seconds"]
+    model = DeformationModel.load(paths.model)
+    assert model.has_nominal_expert and np.array_equal(model.nominal_expert_.markers, model.markers)
+    assert not (paths.model / "model.onnx").exists() and result["model"].has_nominal_expert
+    assert model.expert_gate_.samples == len(unc.select("valid"))
+    for change, words in (({"scenario": {"uncertain": {name: [] for name in UNCERTAIN}}}, "draws no parameter"),
+                          ({"scenario": {"uncertain": {"measured": ["youngs_modulus"]}}}, "measured parameters"),
+                          ({"surrogate": {"calibration": "none"}}, "needs error bounds")):
+        with pytest.raises(ConfigError, match=words):
+            check_config(with_overrides(cfg, **change))

@@ -8,16 +8,18 @@ package, so those checks live beside the code that reads the files
 :func:`tissuecast.scenario.regions.check_region_source`,
 :func:`tissuecast.evaluate.targets.check_target_source`), which also asks them when it uses the
 section. :func:`check_config` asks them all at once, where the CLI and whole runs load a config,
-so that a slip is one error naming its key before anything is computed.
+so that a slip is one error naming its key before anything is computed; with them, what a whole
+run needs of sections that a model folder stores apart (:func:`check_nominal_expert`).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from ..config import Config, load_config
+from ..config import UNCERTAIN_PARAMETERS, Config, load_config
+from ..errors import ConfigError
 
-__all__ = ["check_config", "load_run_config", "REGION_KEYS"]
+__all__ = ["check_config", "check_nominal_expert", "load_run_config", "REGION_KEYS"]
 
 #: The surface regions of ``[scenario]``: config key -> how to read it from a ScenarioConfig.
 REGION_KEYS = {
@@ -47,7 +49,27 @@ def check_config(config: Config) -> Config:
     for key, region in REGION_KEYS.items():
         check_region_source(region(config.scenario), key)
     check_target_source(config.evaluate.targets, "evaluate.targets.")
+    check_nominal_expert(config)
     return config
+
+
+def check_nominal_expert(cfg: Config) -> None:
+    """A run with ``surrogate.nominal_expert`` needs parameters drawn (else the model is nominal
+    already), none measured (the expert's store records no drawn value to read) and calibrated
+    trust (the gate reads the alarms). A run-level check: a model folder's surrogate section is
+    read without its scenario."""
+    if not cfg.surrogate.nominal_expert:
+        return
+    u = cfg.scenario.uncertain
+    if not any(getattr(u, name) for name in UNCERTAIN_PARAMETERS):
+        raise ConfigError("surrogate.nominal_expert = true, but scenario.uncertain draws no parameter: the model is "
+                          "nominal already; give a parameter a [min, max] range, or set nominal_expert = false")
+    if u.measured:
+        raise ConfigError(f"surrogate.nominal_expert = true with measured parameters {list(u.measured)}: the nominal "
+                          "store draws none for the expert to read; remove one of the two")
+    if cfg.surrogate.calibration == "none":
+        raise ConfigError("surrogate.nominal_expert = true needs error bounds and alarms (the gate reads the alarms' "
+                          "scores); set surrogate.calibration = 'split' or 'cross-validation'")
 
 
 def load_run_config(path: str | Path | None = None) -> Config:

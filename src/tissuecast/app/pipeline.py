@@ -14,15 +14,18 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config, EvaluateConfig, with_overrides
+from ..config import Config, EvaluateConfig, config_to_dict, with_overrides
 
 __all__ = ["RunPaths", "run_paths", "train_from_store", "planned_config", "chosen_markers_config", "evaluate_and_report",
-           "run_pipeline", "resolve_source", "PLAN_FILE"]
+           "run_pipeline", "resolve_source", "nominal_config", "add_nominal_expert", "PLAN_FILE", "NOMINAL_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
 
 #: The markers' plan (``markers.rule = "planned"``), beside the model: ``tissuecast markers plan``'s JSON.
 PLAN_FILE = "markers_plan.json"
+#: Added to ``dataset.seed`` for the nominal expert's store (``surrogate.nominal_expert``): its
+#: samples are not the uncertain store's.
+NOMINAL_SEED_OFFSET = 104729
 
 
 class RunPaths:
@@ -32,6 +35,8 @@ class RunPaths:
         out = Path(config.output)
         self.output = out
         self.store = Path(store) if store else Path(config.dataset.store)
+        #: the nominal expert's store (``surrogate.nominal_expert``): ``dataset_nominal.zarr`` beside ``dataset.zarr``
+        self.nominal_store = self.store.with_name(f"{self.store.stem}_nominal{self.store.suffix}")
         self.model = out / "model"
         rep = Path(config.evaluate.output)
         self.report = rep if rep.is_absolute() else out / rep
@@ -65,6 +70,44 @@ def train_from_store(config: Config, store, *, model_folder=None, onnx: bool = T
         if plan is not None:
             (Path(model_folder) / PLAN_FILE).write_text(json.dumps(plan.as_dict(), indent=2))
     return model, ds
+
+
+def nominal_config(config: Config, store, alpha: float) -> Config:
+    """The config of the nominal expert's store (``surrogate.nominal_expert``): the scenario with
+    no parameter drawn, the force magnitude ``alpha`` (N; the uncertain store's calibrated one:
+    the same loads), its own ``store`` and seed (``dataset.seed + NOMINAL_SEED_OFFSET``)."""
+    from ..config import UNCERTAIN_PARAMETERS
+
+    none = {name: [] for name in UNCERTAIN_PARAMETERS}
+    return with_overrides(config, scenario={"uncertain": {**none, "measured": [], "nominal_share": 0.0}},
+                          dataset={"store": str(store), "alpha": float(alpha),
+                                   "seed": config.dataset.seed + NOMINAL_SEED_OFFSET},
+                          surrogate={"nominal_expert": False})
+
+
+def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_folder=None):
+    """``model`` (trained on ``dataset``, parameters drawn) with a nominal expert: a model of the
+    same settings trained on ``nominal_store`` with ``model``'s markers, and the gate fitted on
+    ``dataset``'s validation split (:meth:`~tissuecast.surrogate.DeformationModel.with_nominal_expert`);
+    saved into ``model_folder`` (no ONNX: the gate is not a graph) unless None."""
+    from ..dataset import open_dataset
+    from ..evaluate.evaluation import auxiliary_values
+    from ..surrogate import DeformationModel
+    from ..surrogate.data import split_indices
+
+    nominal = open_dataset(nominal_store)
+    cfg = with_overrides(nominal.config, markers={"ids": [int(i) for i in model.markers]},
+                         surrogate=config_to_dict(config)["surrogate"] | {"nominal_expert": False})
+    t = time.perf_counter()
+    expert = DeformationModel.from_dataset(nominal, cfg)
+    log.info("nominal expert trained on %s in %.1f s", nominal_store, time.perf_counter() - t)
+    idx = split_indices(dataset, "valid")
+    aux = auxiliary_values(model, dataset)
+    pair = model.with_nominal_expert(expert, np.asarray(dataset.displacements[idx], dtype=np.float64),
+                                     auxiliary=None if aux is None else aux[idx])
+    if model_folder is not None:
+        pair.save(model_folder)
+    return pair
 
 
 def chosen_markers_config(config: Config, dataset) -> Config:
@@ -138,8 +181,18 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
         t = time.perf_counter()
         summary = simulate_store(config, paths.store, progress=progress, workers=workers)
         seconds["simulate"] = time.perf_counter() - t
+        if config.surrogate.nominal_expert:
+            from ..evaluate.mismatch import store_alpha
+
+            t = time.perf_counter()
+            simulate_store(nominal_config(config, paths.nominal_store, store_alpha(paths.store)), paths.nominal_store,
+                           progress=progress, workers=workers)
+            seconds["simulate nominal"] = time.perf_counter() - t
     t = time.perf_counter()
-    model, ds = train_from_store(config, paths.store, model_folder=paths.model)
+    expert = config.surrogate.nominal_expert
+    model, ds = train_from_store(config, paths.store, model_folder=paths.model, onnx=not expert)
+    if expert:
+        model = add_nominal_expert(config, model, ds, paths.nominal_store, model_folder=paths.model)
     seconds["train"] = time.perf_counter() - t
     t = time.perf_counter()
     from ..evaluate.targets import model_targets

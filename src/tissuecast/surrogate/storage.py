@@ -163,6 +163,8 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     if state.fallback is not None:
         meta["fallback"] = _save_fallback(state, out / FALLBACK_FOLDER, onnx)
     if state.expert is not None:
+        if (out / "model.onnx").exists():  # an earlier model's graph: a pair has no single one
+            (out / "model.onnx").unlink()
         save_model(state.expert, out / EXPERT_FOLDER)
         meta["nominal_expert"] = {"folder": EXPERT_FOLDER, "gate": state.expert_gate.as_dict()}
     (out / "model.json").write_text(json.dumps(meta, indent=2), encoding="utf-8")
