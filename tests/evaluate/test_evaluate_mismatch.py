@@ -182,6 +182,7 @@ def test_run_with_a_nominal_expert(tmp_path):
     assert paths.nominal_store.name == "data_nominal.zarr"
     assert nom.calibration["alpha"] == unc.calibration["alpha"] and not nom.parameters
     assert nom.config.dataset.seed != unc.config.dataset.seed and "simulate nominal" in result["seconds"]
+    assert result["nominal_dataset"]["totals"]["done"] == nom.n_samples - result["nominal_dataset"]["totals"]["failed"]
     model = DeformationModel.load(paths.model)
     assert model.has_nominal_expert and np.array_equal(model.nominal_expert_.markers, model.markers)
     assert not (paths.model / "model.onnx").exists() and result["model"].has_nominal_expert

@@ -161,8 +161,8 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
     """Simulate (resumable) -> train -> evaluate -> report, as ``config`` says.
 
     Returns:
-        ``{"paths": RunPaths, "dataset": summary, "model": DeformationModel, "evaluation": Evaluation,
-        "report": Path, "seconds": {stage: s}}``.
+        ``{"paths": RunPaths, "dataset": summary, "nominal_dataset": summary or None (``surrogate.nominal_expert``),
+        "model": DeformationModel, "evaluation": Evaluation, "report": Path, "seconds": {stage: s}}``.
 
     Raises:
         ConfigError: a path of the config that does not name what its key reads
@@ -174,7 +174,7 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
     paths = run_paths(config)
     paths.output.mkdir(parents=True, exist_ok=True)
     seconds = {}
-    summary = None
+    summary = nominal_summary = None
     if simulate:
         from ..dataset import simulate as simulate_store
 
@@ -185,8 +185,8 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
             from ..evaluate.mismatch import store_alpha
 
             t = time.perf_counter()
-            simulate_store(nominal_config(config, paths.nominal_store, store_alpha(paths.store)), paths.nominal_store,
-                           progress=progress, workers=workers)
+            nominal_summary = simulate_store(nominal_config(config, paths.nominal_store, store_alpha(paths.store)),
+                                             paths.nominal_store, progress=progress, workers=workers)
             seconds["simulate nominal"] = time.perf_counter() - t
     t = time.perf_counter()
     expert = config.surrogate.nominal_expert
@@ -200,7 +200,8 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
     evaluation, index = evaluate_and_report(model, ds, paths.report, renders=config.evaluate.renders,
                                             title=f"tissuecast: {config.name}", targets=model_targets(model, config))
     seconds["evaluate"] = time.perf_counter() - t
-    return {"paths": paths, "dataset": summary, "model": model, "evaluation": evaluation, "report": index, "seconds": seconds}
+    return {"paths": paths, "dataset": summary, "nominal_dataset": nominal_summary, "model": model, "evaluation": evaluation,
+            "report": index, "seconds": seconds}
 
 
 def resolve_source(source=None, store=None) -> tuple[Config, Path]:

@@ -24,6 +24,9 @@ def report_run(result) -> None:
     if ds:
         tot = ds.get("totals", {})
         print(f"data set {p.store}: {tot.get('done', '?')} done, {tot.get('failed', '?')} failed")
+    if result.get("nominal_dataset"):
+        tot = result["nominal_dataset"].get("totals", {})
+        print(f"nominal expert's data set {p.nominal_store}: {tot.get('done', '?')} done, {tot.get('failed', '?')} failed")
     sec = result["seconds"]
     print("time: " + ", ".join(f"{k} {v:.1f} s" for k, v in sec.items()))
     print(format_evaluation(result["evaluation"]))
