@@ -20,35 +20,10 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-
+from tissuecast.app.pipeline import split_fields
 from tissuecast.dataset import open_dataset
-from tissuecast.evaluate.evaluation import auxiliary_values
 from tissuecast.surrogate import DeformationModel
-from tissuecast.surrogate.data import split_indices
-
-
-def fields_and_inputs(model, dataset, split: str):
-    """``(fields (B, n, 3) mm, auxiliary inputs (B, n_a) or None)`` of a store's split."""
-    idx = split_indices(dataset, split)
-    aux = auxiliary_values(model, dataset)
-    return np.asarray(dataset.displacements[idx], dtype=np.float64), None if aux is None else aux[idx]
-
-
-def set_row(pair, fields: np.ndarray, aux) -> dict:
-    """Mean Offset_max (mm) of both models, the routed pair and the oracle on one set, the
-    share routed to the expert and the share routed to the better model."""
-    d = pair.marker_displacements(fields)
-    with pair.gate_suspended():
-        to_nominal, mine, theirs = pair.predictor("mlp").routes(d.reshape(len(d), -1), aux)
-    worst = {k: np.linalg.norm(u - fields, axis=2).max(axis=1) for k, u in
-             (("uncertain", mine.displacement), ("nominal", theirs.displacement))}
-    routed = np.where(to_nominal, worst["nominal"], worst["uncertain"])
-    better = worst["nominal"] < worst["uncertain"]
-    return {"count": len(fields), **{f"{k}_offset_max": float(v.mean()) for k, v in worst.items()},
-            "routed_offset_max": float(routed.mean()),
-            "oracle_offset_max": float(np.minimum(worst["nominal"], worst["uncertain"]).mean()),
-            "routed_to_nominal": float(to_nominal.mean()), "routed_to_better": float(np.mean(to_nominal == better))}
+from tissuecast.surrogate.experts import routing_figures
 
 
 def main() -> None:
@@ -61,7 +36,7 @@ def main() -> None:
     p.add_argument("--out", default=None, help="write the rows as JSON here")
     a = p.parse_args()
     model = DeformationModel.load(a.uncertain)
-    fields, aux = fields_and_inputs(model, open_dataset(a.gate_store), "valid")
+    fields, aux = split_fields(model, open_dataset(a.gate_store), "valid")
     pair = model.with_nominal_expert(DeformationModel.load(a.nominal), fields, auxiliary=aux)
     gate = pair.expert_gate_
     print(f"gate fitted on {gate.samples} validation samples of {a.gate_store}: the expert better on "
@@ -73,7 +48,7 @@ def main() -> None:
     rows = {}
     for name in names:
         ds = open_dataset(folder / f"{name}.zarr")
-        r = rows[name] = set_row(pair, *fields_and_inputs(pair, ds, "test1"))
+        r = rows[name] = routing_figures(pair, *split_fields(pair, ds, "test1"))
         print(f"{name:22s} {r['uncertain_offset_max']:9.2f} {r['nominal_offset_max']:8.2f} {r['routed_offset_max']:7.2f} "
               f"{r['oracle_offset_max']:7.2f} {100 * r['routed_to_nominal']:9.0f}% {100 * r['routed_to_better']:8.0f}%",
               flush=True)

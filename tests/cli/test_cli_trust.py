@@ -113,9 +113,14 @@ def test_experts_gives_a_model_a_nominal_expert(store, capsys, tmp_path):
     assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "nom"), "--out", str(tmp_path / "pair"), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["samples"] == len(ds.select("valid")) and 0 < out["nominal_better"] < 1
-    assert out["routed_offset_max"] <= max(out["uncertain_offset_max"], out["nominal_offset_max"])
     pair = DeformationModel.load(tmp_path / "pair")
     assert pair.has_nominal_expert and json.loads((tmp_path / "pair" / "model.json").read_text())["nominal_expert"]
+    # the printed figures are the saved pair's own on the gate's samples
+    valid = np.asarray(ds.displacements[ds.select("valid")], dtype=np.float64)
+    with pair.gate_suspended():
+        routed = pair.predict(pair.marker_displacements(valid))
+    assert out["routed_offset_max"] == pytest.approx(np.linalg.norm(routed - valid, axis=2).max(axis=1).mean(), rel=1e-12)
+    assert out["oracle_offset_max"] <= out["routed_offset_max"] and pair.dataset_path == str(ds.path.resolve())
     d = np.asarray(ds.displacements[ds.select("test1")[:3]], dtype=np.float64)[:, pair.markers, :]
     (tmp_path / "in.json").write_text(json.dumps({"displacements": d.tolist()}))
     assert main(["predict", str(tmp_path / "pair"), "--markers", str(tmp_path / "in.json"), "--out",
@@ -127,3 +132,5 @@ def test_experts_gives_a_model_a_nominal_expert(store, capsys, tmp_path):
     capsys.readouterr()
     assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "other"), "--out", str(tmp_path / "bad")]) == 2
     assert "same mesh with the model's markers" in capsys.readouterr().err
+    assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "nom"), "--out", str(tmp_path / "nom")]) == 2
+    assert "one of the two models' folders" in capsys.readouterr().err

@@ -176,6 +176,8 @@ def test_run_with_a_nominal_expert(tmp_path):
 
     cfg = with_overrides(_config(tmp_path), surrogate={"nominal_expert": True, "calibration_share": 0.3}, evaluate={"renders": 0},
                          dataset={"store": str(tmp_path / "data.zarr")}, output=str(tmp_path / "run"))
+    (tmp_path / "run" / "model").mkdir(parents=True)
+    (tmp_path / "run" / "model" / "model.onnx").write_text("an earlier model's graph")
     result = run_pipeline(cfg, progress=False)
     paths = result["paths"]
     unc, nom = open_dataset(paths.store), open_dataset(paths.nominal_store)
@@ -187,6 +189,12 @@ def test_run_with_a_nominal_expert(tmp_path):
     assert model.has_nominal_expert and np.array_equal(model.nominal_expert_.markers, model.markers)
     assert not (paths.model / "model.onnx").exists() and result["model"].has_nominal_expert
     assert model.expert_gate_.samples == len(unc.select("valid"))
+    # the models given the wrong way round to `tissuecast experts`: refused, naming the order
+    from tissuecast.cli.main import main
+
+    assert main(["experts", str(paths.model / "nominal_expert"), str(paths.model), "--out", str(tmp_path / "x")]) == 2
+    with pytest.raises(ConfigError, match="without --skip-simulate"):  # no nominal store to train the expert on
+        run_pipeline(with_overrides(cfg, dataset={"store": str(tmp_path / "other.zarr")}), simulate=False)
     for change, words in (({"scenario": {"uncertain": {name: [] for name in UNCERTAIN}}}, "draws no parameter"),
                           ({"scenario": {"uncertain": {"measured": ["youngs_modulus"]}}}, "measured parameters"),
                           ({"surrogate": {"calibration": "none"}}, "needs error bounds")):

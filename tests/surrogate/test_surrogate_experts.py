@@ -61,7 +61,8 @@ def test_gate_fit_recovers_a_logistic_rule_and_round_trips():
     assert ((p > 0.5) == (z > 0)).mean() > 0.97
     bad = X[:3].copy()
     bad[1, 2] = np.nan
-    assert gate.to_nominal(bad)[1] == np.False_  # a score missing: the uncertainty-trained model answers
+    bad[2, 0] = np.inf if w_true[0] > 0 else -np.inf  # a certain "expert", were it read
+    assert not gate.to_nominal(bad)[1:].any()  # a score missing or infinite: the uncertainty-trained model answers
     back = ExpertGate.from_dict(gate.as_dict())
     np.testing.assert_array_equal(back.probability(X), p)
     with pytest.raises(ModelError, match="reads"):
@@ -94,7 +95,7 @@ def test_routed_field_bounds_and_alarm():
     worst = {k: np.linalg.norm(u - test, axis=2).max(axis=1) for k, u in
              (("mine", mine.displacement), ("theirs", theirs.displacement), ("pair", tp.displacement))}
     near = np.abs(trust_data()[2][SPLITS["test"], 2]) < NOMINAL_BAND
-    assert worst["theirs"][near].mean() < 0.85 * worst["mine"][near].mean()  # the expert's advantage, at home
+    assert worst["theirs"][near].mean() < 0.9 * worst["mine"][near].mean()  # the expert's advantage, at home
     assert worst["pair"][near].mean() < 1.05 * worst["theirs"][near].mean()
     assert worst["pair"][~near].mean() < 1.05 * worst["mine"][~near].mean() < 0.5 * worst["theirs"][~near].mean()
     assert worst["pair"].mean() < min(worst["mine"].mean(), worst["theirs"].mean())
@@ -157,3 +158,32 @@ def test_served_like_any_model():
         np.testing.assert_allclose(p.displacement, want.displacement, rtol=0, atol=1e-12)
         np.testing.assert_allclose(p.error_bound, want.error_bound, rtol=0, atol=1e-12)
         assert p.alarm.raised == want.alarms.raised
+
+
+def test_untracked_markers_go_to_the_model_row_by_row():
+    """A sample with an untracked marker is the model's alone; the others of its batch are routed
+    as they would be without it."""
+    mesh, U, _ = trust_data()
+    kw = dict(epochs=30, patience=0, batch_size=32, learning_rate=3e-3, n_components=8, hidden=(12,), head="none",
+              seed=1, marker_dropout=0.3)
+    model = DeformationModel(**kw).fit(U[:1100], MARKERS, mesh=mesh, fixed=[0, 1, 2], train_idx=SPLITS["train"],
+                                       valid_idx=SPLITS["valid"], calibration_idx=SPLITS["calibration"])
+    pair = model.with_nominal_expert(expert_model(), U[SPLITS["valid"]])
+    d = U[SPLITS["test"]][:6, MARKERS, :]
+    missing = np.zeros((6, len(MARKERS)), bool)
+    missing[2, 1] = True
+    mixed = pair.predict(d, missing=missing)
+    np.testing.assert_allclose(np.delete(mixed, 2, axis=0), pair.predict(np.delete(d, 2, axis=0)), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(mixed[2], model.predict(d[2], missing=[1]), rtol=0, atol=1e-12)
+
+
+def test_an_expert_on_another_mesh_is_refused():
+    mesh, U, _ = trust_data()
+    from tissuecast.mesh import TetMesh
+
+    moved = TetMesh(mesh.points * 1.01, mesh.tets)  # as many vertices, another body
+    other = DeformationModel(epochs=2, patience=0, n_components=4, hidden=(8,), head="none")
+    other.fit(U, MARKERS, mesh=moved, fixed=[0, 1, 2], train_idx=SPLITS["train"], valid_idx=SPLITS["valid"],
+              calibration_idx=SPLITS["calibration"])
+    with pytest.raises(ModelError, match="meshes differ"):
+        uncertain_model().with_nominal_expert(other, U[SPLITS["valid"]])

@@ -15,9 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Config, EvaluateConfig, config_to_dict, with_overrides
+from ..errors import ConfigError
 
 __all__ = ["RunPaths", "run_paths", "train_from_store", "planned_config", "chosen_markers_config", "evaluate_and_report",
-           "run_pipeline", "resolve_source", "nominal_config", "add_nominal_expert", "PLAN_FILE", "NOMINAL_SEED_OFFSET"]
+           "run_pipeline", "resolve_source", "nominal_config", "add_nominal_expert", "split_fields", "PLAN_FILE",
+           "NOMINAL_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
 
@@ -91,9 +93,7 @@ def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_f
     ``dataset``'s validation split (:meth:`~tissuecast.surrogate.DeformationModel.with_nominal_expert`);
     saved into ``model_folder`` (no ONNX: the gate is not a graph) unless None."""
     from ..dataset import open_dataset
-    from ..evaluate.evaluation import auxiliary_values
     from ..surrogate import DeformationModel
-    from ..surrogate.data import split_indices
 
     nominal = open_dataset(nominal_store)
     cfg = with_overrides(nominal.config, markers={"ids": [int(i) for i in model.markers]},
@@ -101,13 +101,22 @@ def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_f
     t = time.perf_counter()
     expert = DeformationModel.from_dataset(nominal, cfg)
     log.info("nominal expert trained on %s in %.1f s", nominal_store, time.perf_counter() - t)
-    idx = split_indices(dataset, "valid")
-    aux = auxiliary_values(model, dataset)
-    pair = model.with_nominal_expert(expert, np.asarray(dataset.displacements[idx], dtype=np.float64),
-                                     auxiliary=None if aux is None else aux[idx])
+    fields, aux = split_fields(model, dataset, "valid")
+    pair = model.with_nominal_expert(expert, fields, auxiliary=aux)
     if model_folder is not None:
         pair.save(model_folder)
     return pair
+
+
+def split_fields(model, dataset, split: str):
+    """``(fields (B, n, 3) float64 mm, auxiliary inputs (B, n_a) or None)`` of a store's converged
+    samples of ``split``, the auxiliary inputs as ``model`` reads them."""
+    from ..evaluate.evaluation import auxiliary_values
+    from ..surrogate.data import split_indices
+
+    idx = split_indices(dataset, split)
+    aux = auxiliary_values(model, dataset)
+    return np.asarray(dataset.displacements[idx], dtype=np.float64), None if aux is None else aux[idx]
 
 
 def chosen_markers_config(config: Config, dataset) -> Config:
@@ -172,6 +181,9 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
 
     check_config(config)
     paths = run_paths(config)
+    if config.surrogate.nominal_expert and not simulate and not paths.nominal_store.exists():
+        raise ConfigError(f"surrogate.nominal_expert = true, but the nominal expert's store {paths.nominal_store} does "
+                          "not exist; run without --skip-simulate (it simulates both stores)")
     paths.output.mkdir(parents=True, exist_ok=True)
     seconds = {}
     summary = nominal_summary = None

@@ -15,8 +15,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
-
 from ..errors import ModelError
 
 
@@ -33,11 +31,14 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    from ..app.pipeline import split_fields
     from ..dataset import open_dataset
-    from ..evaluate.evaluation import auxiliary_values
     from ..surrogate import DeformationModel
-    from ..surrogate.data import split_indices
+    from ..surrogate.experts import routing_figures
 
+    out = Path(args.out).resolve()
+    if out in (Path(args.uncertain).resolve(), Path(args.nominal).resolve()):
+        raise ModelError(f"--out {args.out} is one of the two models' folders; write the pair to a folder of its own")
     model, expert = DeformationModel.load(args.uncertain), DeformationModel.load(args.nominal)
     store = args.store or model.dataset_path
     if not store:
@@ -46,13 +47,16 @@ def run(args) -> int:
     if dataset.n_vertices != model.n_vertices:
         raise ModelError(f"the store {store} has {dataset.n_vertices} vertices, the model {model.n_vertices}; "
                          "give the store the uncertain model was trained on")
-    idx = split_indices(dataset, "valid")
-    fields = np.asarray(dataset.displacements[idx], dtype=np.float64)
-    aux = auxiliary_values(model, dataset)
-    aux = None if aux is None else aux[idx]
+    theirs = expert.dataset_path
+    if not dataset.parameters and theirs and Path(theirs).exists() and open_dataset(theirs).parameters:
+        raise ModelError(f"the models look swapped: {args.nominal} was trained on a store that draws parameters, the "
+                         f"gate's store {store} draws none; give them in the order UNCERTAIN NOMINAL")
+    fields, aux = split_fields(model, dataset, "valid")
     gated = model.with_nominal_expert(expert, fields, auxiliary=aux)
-    gated.save(args.out)
-    figures = _figures(gated, fields, aux)
+    gated.dataset_path = str(Path(store).resolve())
+    gated.save(out)
+    figures = {"samples": gated.expert_gate_.samples, "nominal_better": gated.expert_gate_.nominal_better,
+               **routing_figures(gated, fields, aux)}
     if args.json:
         print(json.dumps({"model": str(Path(args.out)), "store": str(store), **figures}, indent=2))
         return 0
@@ -66,16 +70,3 @@ def run(args) -> int:
     print("  bounds and alarm: the uncertain model's; measure the pair on data it was not fitted on "
           "(`tissuecast evaluate`, `tissuecast study mismatch`)")
     return 0
-
-
-def _figures(gated, fields: np.ndarray, aux) -> dict:
-    """The gate's record and the three fields' mean Offset_max (mm) on the gate's samples."""
-    d = gated.marker_displacements(fields)
-    router = gated.predictor("mlp")
-    with gated.gate_suspended():
-        to_nominal, mine, theirs = router.routes(d.reshape(len(d), -1), aux)
-    worst = {k: float(np.linalg.norm(u - fields, axis=2).max(axis=1).mean()) for k, u in
-             (("uncertain", mine.displacement), ("nominal", theirs.displacement),
-              ("routed", np.where(to_nominal[:, None, None], theirs.displacement, mine.displacement)))}
-    return {"samples": gated.expert_gate_.samples, "nominal_better": gated.expert_gate_.nominal_better,
-            "routed_to_nominal": float(to_nominal.mean()), **{f"{k}_offset_max": v for k, v in worst.items()}}

@@ -16,8 +16,8 @@ half, or to the uncertainty-trained model where a score is not finite.
 The error bounds and the alarm are always the uncertainty-trained model's: they were
 calibrated on the whole range of parameters, the nominal expert's only at the nominal ones.
 The routed field is as close or closer on the samples the gate sends to the nominal expert,
-so the bounds stay conservative (measured in docs/uncertainty.md). With untracked markers
-the uncertainty-trained model predicts alone.
+so the bounds stay conservative (measured in docs/uncertainty.md). A sample with untracked
+markers is predicted by the uncertainty-trained model alone.
 """
 
 from __future__ import annotations
@@ -30,7 +30,8 @@ from ..errors import ModelError
 from .field_predictor import FieldPredictor
 from .trust import TrustedPrediction
 
-__all__ = ["ExpertGate", "NominalExpertRouter", "GATE_FEATURES", "gate_features", "check_expert"]
+__all__ = ["ExpertGate", "NominalExpertRouter", "GATE_FEATURES", "gate_features", "check_expert", "routed_field",
+           "routing_figures"]
 
 #: The alarm scores of each model that the gate reads (attributes of :class:`~.trust.Alarm`).
 GATE_SCORES = ("distance", "consistency", "fault", "marker_residual")
@@ -93,8 +94,9 @@ class ExpertGate:
         if X.ndim != 2 or X.shape[1] != len(GATE_FEATURES) or len(X) != len(y):
             raise ModelError(f"the gate needs features (B, {len(GATE_FEATURES)}) and B labels; got {X.shape} and {y.shape}")
         if not np.isfinite(X).all():
-            raise ModelError("a model's alarm score is not finite on the gate's samples (a trust layer without the marker "
-                             "consistency, e.g. with one marker); the gate needs both models' full alarms")
+            raise ModelError("a model's alarm score is not finite on the gate's samples: a trust layer without the marker "
+                             "consistency (one marker) or written before the fault score; the gate needs both models' "
+                             "full alarms: re-train the model concerned with this version")
         if y.all() or not y.any():
             who = "the nominal expert" if y.all() else "the uncertainty-trained model"
             raise ModelError(f"{who} is the better one on all {len(y)} samples: there is nothing to route; use that "
@@ -124,8 +126,9 @@ class ExpertGate:
     def to_nominal(self, features: np.ndarray) -> np.ndarray:
         """(B,) bool: the samples whose field the nominal expert gives (probability above one
         half; never where a feature is not finite)."""
-        p = self.probability(features)
-        return np.isfinite(p) & (p > 0.5)
+        X = np.asarray(features, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(X).all(axis=1) & (self.probability(X) > 0.5)
 
     def as_dict(self) -> dict:
         """JSON-able form (``model.json``'s ``nominal_expert.gate``)."""
@@ -154,14 +157,38 @@ def check_expert(trusted: FieldPredictor, expert: FieldPredictor) -> None:
     ``trusted``: both calibrated, the same mesh size, markers and auxiliary inputs."""
     if not (trusted.has_trust and expert.has_trust):
         raise ModelError("both models need calibrated error bounds and alarms (the gate reads the alarms' scores)")
-    if not np.array_equal(expert.markers, trusted.markers) or expert.n_vertices != trusted.n_vertices:
-        raise ModelError(f"the nominal expert reads markers {np.asarray(expert.markers).tolist()} on "
+    if (not np.array_equal(expert.markers, trusted.markers) or expert.n_vertices != trusted.n_vertices
+            or expert.mesh.fingerprint() != trusted.mesh.fingerprint()):
+        raise ModelError(f"the nominal expert reads markers {np.asarray(expert.markers).tolist()} on a mesh of "
                          f"{expert.n_vertices} vertices, the model {np.asarray(trusted.markers).tolist()} on "
-                         f"{trusted.n_vertices}; train the expert on the same mesh with the model's markers "
-                         "(one set is placed in surgery)")
+                         f"{trusted.n_vertices} (or the meshes differ); train the expert on the same mesh with the "
+                         "model's markers (one set is placed in surgery)")
     if expert.auxiliary != trusted.auxiliary:
         raise ModelError(f"the nominal expert reads the auxiliary inputs {list(expert.auxiliary.names)}, the model "
                          f"{list(trusted.auxiliary.names)}; train both with the same instruments and measured parameters")
+
+
+def routed_field(to_nominal: np.ndarray, uncertain: np.ndarray, nominal: np.ndarray) -> np.ndarray:
+    """(B, n, 3) mm: each sample's field from ``nominal`` where ``to_nominal`` (B,) holds, else
+    from ``uncertain`` (both (B, n, 3) mm)."""
+    return np.where(np.asarray(to_nominal, dtype=bool)[:, None, None], nominal, uncertain)
+
+
+def routing_figures(pair, fields: np.ndarray, auxiliary=None) -> dict:
+    """How a model with a nominal expert routes simulated ``fields`` (B, n, 3) mm (auxiliary
+    inputs (B, n_a) or None), with its input gate suspended: the mean Offset_max (mm) of both
+    models, of the routed field and of the per-sample better of the two (the oracle), the share
+    routed to the expert and the share routed to the better one."""
+    d = pair.marker_displacements(fields)
+    with pair.gate_suspended():
+        to_nominal, mine, theirs = pair.predictor("mlp").routes(d.reshape(len(d), -1), auxiliary)
+    worst = {k: np.linalg.norm(u - fields, axis=2).max(axis=1) for k, u in
+             (("uncertain", mine.displacement), ("nominal", theirs.displacement))}
+    better = worst["nominal"] < worst["uncertain"]
+    return {"count": len(fields), **{f"{k}_offset_max": float(v.mean()) for k, v in worst.items()},
+            "routed_offset_max": float(np.where(to_nominal, worst["nominal"], worst["uncertain"]).mean()),
+            "oracle_offset_max": float(np.minimum(worst["nominal"], worst["uncertain"]).mean()),
+            "routed_to_nominal": float(to_nominal.mean()), "routed_to_better": float(np.mean(to_nominal == better))}
 
 
 def _sigmoid(z: np.ndarray) -> np.ndarray:
@@ -218,15 +245,23 @@ class NominalExpertRouter(FieldPredictor):
         return self.gate.to_nominal(gate_features(theirs, mine)), mine, theirs
 
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
-        if missing is not None and missing.any():  # the gate's scores need every marker
-            return self.learned.predict(d, missing=missing, auxiliary=a)
-        to_nominal, mine, theirs = self.routes(d, a)
-        return np.where(to_nominal[:, None, None], theirs.displacement, mine.displacement)
+        untracked = np.zeros(len(d), bool) if missing is None else missing.any(axis=1)
+        u = np.empty((len(d), self.n_vertices, 3))
+        rows = np.flatnonzero(untracked)  # the gate's scores need every marker: the model alone
+        if len(rows):
+            u[rows] = self.learned.predict(d[rows], missing=missing[rows], auxiliary=None if a is None else a[rows])
+        rows = np.flatnonzero(~untracked)
+        if len(rows):
+            to_nominal, mine, theirs = self.routes(d[rows], None if a is None else a[rows])
+            u[rows] = routed_field(to_nominal, mine.displacement, theirs.displacement)
+        return u
 
     def predict_with_uncertainty(self, marker_displacements, *, missing=None, auxiliary=None):
         """Not available: the routed field comes from one of two networks, with no ensemble
         spread of its own; the error bounds of :meth:`predict_trusted` bound it."""
-        raise ModelError("a model with a nominal expert gives no ensemble spread; use predict_trusted's error bounds")
+        raise ModelError("a model with a nominal expert gives no ensemble spread (its field comes from one of two "
+                         "networks); use its error bounds instead (predict_trusted; `tissuecast predict` without "
+                         "--uncertainty prints them)")
 
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None,
                         auxiliary=None, alarm: bool = True) -> TrustedPrediction:
@@ -236,7 +271,7 @@ class NominalExpertRouter(FieldPredictor):
         d, _, single = self.marker_batch(marker_displacements)
         a = self.auxiliary_batch(auxiliary, d.shape[0])
         to_nominal, mine, theirs = self.routes(d, a, coverage=coverage, false_alarm=false_alarm)
-        u = np.where(to_nominal[:, None, None], theirs.displacement, mine.displacement)
+        u = routed_field(to_nominal, mine.displacement, theirs.displacement)
         alarms = mine.alarms if alarm else None
         if single:
             return TrustedPrediction(u[0], mine.error_bound[0], mine.coverage, None if alarms is None else alarms[0])

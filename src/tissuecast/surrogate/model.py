@@ -229,8 +229,10 @@ class DeformationModel(FieldPredictor):
         if state.expert is not None:
             self.nominal_expert_ = DeformationModel.from_state(state.expert)
             self.nominal_expert_._use_gate(None)  # the model's gate judges the input: the expert's ranges are narrower
-            if self._trusted is None:
-                raise ModelError("a model with a nominal expert needs its own trust layer (the gate reads its alarm)")
+            if self._trusted is None or not self.nominal_expert_.has_trust:
+                raise ModelError("a model with a nominal expert needs both trust layers (trust.npz, and in "
+                                 "nominal_expert/; the gate reads both alarms): the folder is incomplete; make the pair "
+                                 "again with `tissuecast experts`")
             self._trusted = NominalExpertRouter(learned, self._trusted, self.nominal_expert_._trusted, state.expert_gate)
             learned = self._trusted
         self._by_method = {"mlp": learned, "rigid": self.rigid_, "ridge": self.ridge_}
@@ -576,18 +578,13 @@ class DeformationModel(FieldPredictor):
         better = (np.linalg.norm(theirs.displacement - U, axis=2).max(axis=1)
                   < np.linalg.norm(mine.displacement - U, axis=2).max(axis=1))
         gate = ExpertGate.fit(gate_features(theirs, mine), better)
-        model = DeformationModel.from_state(replace(state, expert=expert_state, expert_gate=gate))
-        model.run_config, model.dataset_path, model.scenario = self.run_config, self.dataset_path, self.scenario
-        return model
+        return DeformationModel.from_state(replace(state, expert=expert_state, expert_gate=gate))
 
     # ------------------------------------------------------------------ persistence
     def save(self, folder, *, onnx: bool = False) -> None:
         """Write the model folder (see :mod:`tissuecast.surrogate.storage`)."""
         from .storage import save_model
 
-        if onnx and self.has_nominal_expert:
-            raise ModelError("a model with a nominal expert routes between two networks by their alarm scores, which a "
-                             "graph does not compute; save without onnx and export each with export_onnx(path, expert=...)")
         save_model(self.get_state(), folder, onnx=onnx)
 
     @classmethod

@@ -147,6 +147,9 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     """Write a fitted model's state (``DeformationModel.get_state()``) to ``folder`` (created if
     needed; files overwritten)."""
     out = Path(folder)
+    if onnx and state.expert is not None:
+        raise ModelError("a model with a nominal expert routes between two networks by their alarm scores, which a "
+                         "graph does not compute; save without onnx and export each with export_onnx(path, expert=...)")
     net = state.network
     _write_network(net, out)
     np.savez(out / "mesh.npz", points=np.asarray(net.mesh.points, dtype=np.float64),
@@ -163,8 +166,8 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     if state.fallback is not None:
         meta["fallback"] = _save_fallback(state, out / FALLBACK_FOLDER, onnx)
     if state.expert is not None:
-        if (out / "model.onnx").exists():  # an earlier model's graph: a pair has no single one
-            (out / "model.onnx").unlink()
+        for stale in (out / "model.onnx", out / FALLBACK_FOLDER / "model.onnx"):  # an earlier model's graphs
+            stale.unlink(missing_ok=True)
         save_model(state.expert, out / EXPERT_FOLDER)
         meta["nominal_expert"] = {"folder": EXPERT_FOLDER, "gate": state.expert_gate.as_dict()}
     (out / "model.json").write_text(json.dumps(meta, indent=2), encoding="utf-8")
