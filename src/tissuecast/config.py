@@ -50,6 +50,7 @@ __all__ = [
     "config_to_dict",
     "config_to_toml",
     "with_overrides",
+    "nothing_drawn",
 ]
 
 
@@ -872,6 +873,12 @@ def _check_nominal_share(u: "UncertainConfig", nu: float) -> None:
     if "poisson_ratio" in u.measured:
         raise ConfigError("scenario.uncertain.nominal_share cannot go with a measured poisson_ratio (a nominal sample "
                           "keeps each element's own nu, which is no model input); remove one of the two")
+
+
+def nothing_drawn() -> dict:
+    """``[scenario.uncertain]`` overrides (for :func:`with_overrides`) that draw no parameter,
+    measure none and keep no nominal share: every sample at the nominal parameters."""
+    return {**{name: [] for name in UNCERTAIN_PARAMETERS}, "measured": [], "nominal_share": 0.0}
 
 
 def config_from_dict(data: dict) -> Config:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import Config, EvaluateConfig, config_to_dict, with_overrides
+from ..config import Config, EvaluateConfig, config_to_dict, nothing_drawn, with_overrides
 from ..errors import ConfigError
 
 __all__ = ["RunPaths", "run_paths", "train_from_store", "planned_config", "chosen_markers_config", "evaluate_and_report",
@@ -78,10 +78,7 @@ def nominal_config(config: Config, store, alpha: float) -> Config:
     """The config of the nominal expert's store (``surrogate.nominal_expert``): the scenario with
     no parameter drawn, the force magnitude ``alpha`` (N; the uncertain store's calibrated one:
     the same loads), its own ``store`` and seed (``dataset.seed + NOMINAL_SEED_OFFSET``)."""
-    from ..config import UNCERTAIN_PARAMETERS
-
-    none = {name: [] for name in UNCERTAIN_PARAMETERS}
-    return with_overrides(config, scenario={"uncertain": {**none, "measured": [], "nominal_share": 0.0}},
+    return with_overrides(config, scenario={"uncertain": nothing_drawn()},
                           dataset={"store": str(store), "alpha": float(alpha),
                                    "seed": config.dataset.seed + NOMINAL_SEED_OFFSET},
                           surrogate={"nominal_expert": False})

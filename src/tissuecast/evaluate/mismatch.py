@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import UNCERTAIN_PARAMETERS, Config, with_overrides
+from ..config import Config, nothing_drawn, with_overrides
 
 __all__ = ["MismatchSet", "mismatch_sets", "set_config", "ArraySet", "discretisation_set", "evaluate_on_set", "set_folder_name",
            "store_alpha", "mismatch_study", "DEFAULT_SAMPLES", "DISCRETISATION_SAMPLES", "STUDY_SEED_OFFSET"]
@@ -134,9 +134,8 @@ def mismatch_sets(config: Config, mesh) -> list[MismatchSet]:
 
 def set_config(config: Config, mset: MismatchSet, *, alpha: float, samples: int, markers, fixed, store) -> Config:
     """The data-set config of one set (module notes)."""
-    none = {name: [] for name in UNCERTAIN_PARAMETERS}
     # every sample of a set has the set's values: no share of them falls back to the nominal ones
-    scenario = {"uncertain": {**none, **mset.uncertain, "measured": [], "nominal_share": 0.0}, **mset.scenario}
+    scenario = {"uncertain": {**nothing_drawn(), **mset.uncertain}, **mset.scenario}
     ds = {"store": str(store), "n_samples": samples, "n_test2": 0, "split": [0.0, 0.0, 1.0], "alpha": float(alpha),
           "seed": config.dataset.seed + STUDY_SEED_OFFSET, "predictor_samples": max(2, min(24, samples // 4))}
     mk = {"ids": [int(i) for i in markers]}

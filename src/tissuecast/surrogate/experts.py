@@ -48,17 +48,13 @@ GATE_ITERATIONS = 100
 
 def gate_features(nominal: TrustedPrediction, uncertain: TrustedPrediction) -> np.ndarray:
     """The gate's inputs (B, len(GATE_FEATURES)) float64 from both models' trusted predictions
-    of the same B samples (with alarms): log scores and log distances (NaN where a score is)."""
+    of the same B samples (a batch, with alarms): log scores and log distances (NaN where a
+    score is)."""
     if nominal.alarms is None or uncertain.alarms is None:
         raise ModelError("the gate reads both models' alarms: predict with alarm=True")
-    u_n = np.asarray(nominal.displacement).reshape(-1, *np.shape(nominal.displacement)[-2:])
-    u_u = np.asarray(uncertain.displacement).reshape(u_n.shape)
-    alarms_n = [nominal.alarms] if not isinstance(nominal.alarms, list) else nominal.alarms
-    alarms_u = [uncertain.alarms] if not isinstance(uncertain.alarms, list) else uncertain.alarms
-    scores = [[float(getattr(a, s)) for s in GATE_SCORES] for a in alarms_n]
-    scores = np.hstack([np.array(scores), np.array([[float(getattr(a, s)) for s in GATE_SCORES] for a in alarms_u])])
-    apart = np.linalg.norm(u_n - u_u, axis=2)
-    X = np.hstack([scores, apart.max(axis=1)[:, None], apart.mean(axis=1)[:, None]])
+    scores = [[[float(getattr(a, s)) for s in GATE_SCORES] for a in p.alarms] for p in (nominal, uncertain)]
+    apart = np.linalg.norm(np.asarray(nominal.displacement) - np.asarray(uncertain.displacement), axis=2)
+    X = np.hstack([*scores, apart.max(axis=1)[:, None], apart.mean(axis=1)[:, None]])
     with np.errstate(invalid="ignore"):
         return np.log(np.where(np.isnan(X), np.nan, np.maximum(X, FEATURE_FLOOR)))
 
