@@ -104,6 +104,38 @@ def dying_solver_factory(scenario, cfg):
     return make
 
 
+def half_sent_solver_factory(scenario, cfg):
+    """The fake solver, except that on its first solve while the file named by
+    ``TISSUECAST_TEST_HALF_SENT`` exists (the file is removed first) the worker writes the start
+    of a result message into the pool's result pipe (a header promising 1 MB, then 64 bytes)
+    and sleeps: the state a worker terminated while it sent its result leaves behind."""
+    import os
+    import struct
+    import sys
+    import time
+
+    fake = fake_solver_factory(scenario, cfg)
+
+    def make(solver_cfg):
+        inner = fake(solver_cfg)
+
+        def solve(forces, initial_guess=None, time_limit=None):
+            flag = os.environ.get("TISSUECAST_TEST_HALF_SENT")
+            if flag and os.path.exists(flag):
+                frame = sys._getframe()
+                while frame.f_code.co_name != "_process_worker":  # concurrent.futures' worker loop
+                    frame = frame.f_back
+                writer = frame.f_locals["result_queue"]._writer
+                os.write(writer.fileno(), struct.pack("!i", 1 << 20) + bytes(64))
+                os.remove(flag)
+                time.sleep(600)
+            return inner.solve(forces, initial_guess)
+
+        return SimpleNamespace(solve=solve)
+
+    return make
+
+
 #: The stalling solver's samples whose largest nodal force lies in this band (N) stall.
 STALL_BAND = (0.6, 0.7)
 

@@ -193,6 +193,49 @@ def test_a_worker_that_dies_gives_one_clear_error_and_the_store_resumes(made, tm
         assert got[name] == ref[name], name
 
 
+_STOP_AFTER_HALF_SENT = """
+import os, signal, sys, time, threading
+sys.path.insert(0, {tests!r})
+from tissuecast.config import load_config
+from tissuecast.dataset import simulate
+flag = os.environ["TISSUECAST_TEST_HALF_SENT"]
+def stop():  # once the worker has half-sent its result, SIGTERM as `kill` or `timeout` would
+    while os.path.exists(flag):
+        time.sleep(0.02)
+    time.sleep(0.5)
+    os.kill(os.getpid(), signal.SIGTERM)
+threading.Thread(target=stop, daemon=True).start()
+try:
+    simulate(load_config({cfg!r}), {store!r}, progress=False, solver_factory="dataset_helpers:half_sent_solver_factory",
+             workers=1)
+except KeyboardInterrupt:
+    sys.exit(3)
+"""
+
+
+def test_a_stop_after_a_half_sent_result_does_not_hang(made, tmp_path):
+    """A worker terminated while it sent its result leaves part of a message in the result pipe;
+    stopping the run then waited forever in the pool's shutdown (seen in CI: a SIGTERM test hung)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from dataset_helpers import write_config
+
+    cfg, _, _ = made
+    flag = tmp_path / "half"
+    flag.touch()
+    script = _STOP_AFTER_HALF_SENT.format(tests=str(Path(__file__).parents[1]),
+                                          cfg=str(write_config(cfg, tmp_path / "cfg.toml")),
+                                          store=str(tmp_path / "half.zarr"))
+    env = dict(os.environ, TISSUECAST_TEST_HALF_SENT=str(flag))
+    run = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, env=env)
+    assert not flag.exists()
+    assert run.returncode == 3, run.stderr[-2000:]
+    assert "leaked" not in run.stderr, run.stderr[-2000:]
+
+
 def test_unknown_or_newer_schema_refused(made, tmp_path):
     _, path, _ = made
     import shutil

@@ -15,7 +15,8 @@ Stopping: local workers ignore SIGINT (Ctrl+C reaches the whole process group, b
 parent decides); when the parent leaves the executor by an exception (Ctrl+C, SIGTERM turned
 into one by the CLI, an error), it stops the workers at once and waits for them, so that the
 pool's queues and locks are released before the process exits (no leaked semaphores) and the
-samples the parent has written stay in the store for the next run to continue from.
+samples the parent has written stay in the store for the next run to continue from. A result a
+stopped worker had half sent does not hold the shutdown up (:meth:`LocalExecutor._stop_workers`).
 """
 
 from __future__ import annotations
@@ -268,6 +269,16 @@ class LocalExecutor:
                 p.terminate()
         for p in processes:
             p.join(STOP_TIMEOUT)
+            if p.is_alive():  # deaf to SIGTERM (e.g. a wedged native library): SIGKILL
+                p.kill()
+                p.join(STOP_TIMEOUT)
+        # A worker terminated while it sent its result leaves part of a message in the result
+        # pipe, and the pool's manager thread would wait for the rest forever (shutdown then
+        # hangs). The parent never writes to that pipe: with its own write end closed as well,
+        # that read ends (EOF) once the workers are gone, and the pool reports itself broken.
+        results = getattr(self._pool, "_result_queue", None)  # no public handle (Python 3.11-3.13)
+        if results is not None and all(not p.is_alive() for p in processes):
+            results._writer.close()
 
     def update(self, recipe: Recipe) -> None:
         """Give every worker ``recipe`` instead of the current one (call with no work in flight).
