@@ -18,7 +18,8 @@ from ..config import Config, EvaluateConfig, config_to_dict, nothing_drawn, with
 from ..errors import ConfigError
 
 __all__ = ["RunPaths", "run_paths", "train_from_store", "planned_config", "chosen_markers_config", "evaluate_and_report",
-           "run_pipeline", "resolve_source", "nominal_config", "add_nominal_expert", "split_fields", "PLAN_FILE",
+           "run_pipeline", "resolve_source", "nominal_config", "add_nominal_expert", "gate_fields",
+           "split_fields", "PLAN_FILE",
            "NOMINAL_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
@@ -87,7 +88,7 @@ def nominal_config(config: Config, store, alpha: float) -> Config:
 def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_folder=None):
     """``model`` (trained on ``dataset``, parameters drawn) with a nominal expert: a model of the
     same settings trained on ``nominal_store`` with ``model``'s markers, and the gate fitted on
-    ``dataset``'s validation split (:meth:`~tissuecast.surrogate.DeformationModel.with_nominal_expert`);
+    the validation splits of ``dataset`` and of the nominal store (:func:`gate_fields`) (:meth:`~tissuecast.surrogate.DeformationModel.with_nominal_expert`);
     saved into ``model_folder`` (no ONNX: the gate is not a graph) unless None."""
     from ..dataset import open_dataset
     from ..surrogate import DeformationModel
@@ -98,11 +99,24 @@ def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_f
     t = time.perf_counter()
     expert = DeformationModel.from_dataset(nominal, cfg)
     log.info("nominal expert trained on %s in %.1f s", nominal_store, time.perf_counter() - t)
-    fields, aux = split_fields(model, dataset, "valid")
-    pair = model.with_nominal_expert(expert, fields, auxiliary=aux)
+    pair = model.with_nominal_expert(expert, *gate_fields(model, dataset, nominal))
     if model_folder is not None:
         pair.save(model_folder)
     return pair
+
+
+def gate_fields(model, dataset, nominal=None):
+    """``(fields (B, n, 3) float64 mm, auxiliary inputs (B, n_a) or None)`` that the gate of
+    ``model``'s nominal expert is fitted on: the validation split of the uncertain store
+    ``dataset`` and, when ``nominal`` is another store, of the expert's nominal store. Both
+    families, so that the gate sees the expert win where it does (at and near the nominal
+    parameters, a small corner of the drawn ranges: 8 % of the uncertain store's validation
+    samples on the brain hemisphere, docs/uncertainty.md)."""
+    fields, aux = split_fields(model, dataset, "valid")
+    if nominal is None or Path(nominal.path).resolve() == Path(dataset.path).resolve():
+        return fields, aux
+    more, more_aux = split_fields(model, nominal, "valid")
+    return np.concatenate([fields, more]), None if aux is None else np.concatenate([aux, more_aux])
 
 
 def split_fields(model, dataset, split: str):

@@ -3,8 +3,8 @@
 UNCERTAIN is a model trained on a store with the scenario's parameters drawn
 (``[scenario.uncertain]``), NOMINAL one trained on a store of the same scenario at the nominal
 parameters, with UNCERTAIN's markers (``[markers] ids``) and instruments. The new model
-predicts each sample's field with NOMINAL where a gate, fitted here on the validation split of
-UNCERTAIN's store, expects it to be the better one, and with UNCERTAIN elsewhere; the error
+predicts each sample's field with NOMINAL where a gate, fitted here on the validation splits of
+both models' stores, expects it to be the better one, and with UNCERTAIN elsewhere; the error
 bounds and the alarm stay UNCERTAIN's (:mod:`tissuecast.surrogate.experts`, docs/uncertainty.md).
 The folder is a model folder like any other: ``predict``, ``evaluate``, ``serve`` and ``study
 mismatch`` take it.
@@ -25,13 +25,15 @@ def register(sub) -> None:
     p.add_argument("nominal", help="the nominal-only model's folder (the same mesh, markers and instruments)")
     p.add_argument("--store", help="the uncertain model's data-set store, whose 'valid' split fits the gate "
                                    "(default: the store the model records)")
+    p.add_argument("--nominal-store", help="the nominal model's data-set store, whose 'valid' split fits the gate too "
+                                           "(default: the store the nominal model records)")
     p.add_argument("--out", required=True, help="the new model folder")
     p.add_argument("--json", action="store_true", help="print the gate's figures as JSON")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from ..app.pipeline import split_fields
+    from ..app.pipeline import gate_fields
     from ..dataset import open_dataset
     from ..surrogate import DeformationModel
     from ..surrogate.experts import routing_figures
@@ -40,29 +42,26 @@ def run(args) -> int:
     if out in (Path(args.uncertain).resolve(), Path(args.nominal).resolve()):
         raise ModelError(f"--out {args.out} is one of the two models' folders; write the pair to a folder of its own")
     model, expert = DeformationModel.load(args.uncertain), DeformationModel.load(args.nominal)
-    store = args.store or model.dataset_path
-    if not store:
-        raise ModelError(f"{args.uncertain} records no data-set store; give the one it was trained on with --store")
+    store = _store(args.store or model.dataset_path, args.uncertain, "--store", model.n_vertices)
     dataset = open_dataset(store)
-    if dataset.n_vertices != model.n_vertices:
-        raise ModelError(f"the store {store} has {dataset.n_vertices} vertices, the model {model.n_vertices}; "
-                         "give the store the uncertain model was trained on")
     theirs = expert.dataset_path
     if not dataset.parameters and theirs and Path(theirs).exists() and open_dataset(theirs).parameters:
         raise ModelError(f"the models look swapped: {args.nominal} was trained on a store that draws parameters, the "
                          f"gate's store {store} draws none; give them in the order UNCERTAIN NOMINAL")
-    fields, aux = split_fields(model, dataset, "valid")
+    nominal_store = _store(args.nominal_store or theirs, args.nominal, "--nominal-store", model.n_vertices)
+    fields, aux = gate_fields(model, dataset, open_dataset(nominal_store))
     gated = model.with_nominal_expert(expert, fields, auxiliary=aux)
     gated.dataset_path = str(Path(store).resolve())
     gated.save(out)
     figures = {"samples": gated.expert_gate_.samples, "nominal_better": gated.expert_gate_.nominal_better,
                **routing_figures(gated, fields, aux)}
     if args.json:
-        print(json.dumps({"model": str(Path(args.out)), "store": str(store), **figures}, indent=2))
+        print(json.dumps({"model": str(Path(args.out)), "store": str(store), "nominal_store": str(nominal_store),
+                          **figures}, indent=2))
         return 0
     print(f"model with a nominal expert saved to {args.out}")
-    print(f"  gate fitted on the {figures['samples']} validation samples of {store}: the nominal expert the better one "
-          f"on {100 * figures['nominal_better']:.0f} % of them")
+    print(f"  gate fitted on the {figures['samples']} validation samples of {store} and {nominal_store}: the nominal "
+          f"expert the better one on {100 * figures['nominal_better']:.0f} % of them")
     print(f"  on these samples (the gate's own, so optimistic), mean Offset_max: "
           f"uncertain {figures['uncertain_offset_max']:.2f} mm, nominal {figures['nominal_offset_max']:.2f}, "
           f"routed {figures['routed_offset_max']:.2f} "
@@ -70,3 +69,19 @@ def run(args) -> int:
     print("  bounds and alarm: the uncertain model's; measure the pair on data it was not fitted on "
           "(`tissuecast evaluate`, `tissuecast study mismatch`)")
     return 0
+
+
+def _store(path, model_folder: str, option: str, n_vertices: int) -> str:
+    """The data-set store ``path`` a model of ``model_folder`` was trained on, checked: it exists
+    and has the model's ``n_vertices``."""
+    from ..dataset import open_dataset
+
+    if not path:
+        raise ModelError(f"{model_folder} records no data-set store; give the one it was trained on with {option}")
+    if not Path(path).exists():
+        raise ModelError(f"the store {path} of {model_folder} is not there; give the one it was trained on with {option}")
+    found = open_dataset(path).n_vertices
+    if found != n_vertices:
+        raise ModelError(f"the store {path} has {found} vertices, the model {n_vertices}; give the store "
+                         f"{model_folder} was trained on ({option})")
+    return path

@@ -545,9 +545,9 @@ class DeformationModel(FieldPredictor):
         Args:
             expert: a model trained at the scenario's nominal parameters on the same mesh, with
                 this model's markers and auxiliary inputs, calibrated (``has_trust``).
-            fields: (B, n, 3) mm simulated fields neither model was trained on, drawn as this
-                model's training data were (e.g. the validation split of its store): the gate
-                is fitted on them.
+            fields: (B, n, 3) mm simulated fields neither model was trained on, drawn as both
+                models' training data were (the validation splits of their stores,
+                :func:`tissuecast.app.pipeline.gate_fields`): the gate is fitted on them.
             auxiliary: (B, n_a) their auxiliary inputs (models with some), as for :meth:`predict`.
 
         Raises:
