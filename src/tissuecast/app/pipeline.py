@@ -99,7 +99,8 @@ def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_f
     t = time.perf_counter()
     expert = DeformationModel.from_dataset(nominal, cfg)
     log.info("nominal expert trained on %s in %.1f s", nominal_store, time.perf_counter() - t)
-    pair = model.with_nominal_expert(expert, *gate_fields(model, dataset, nominal))
+    fields, aux = gate_fields(model, dataset, nominal)
+    pair = model.with_nominal_expert(expert, fields, auxiliary=aux)
     if model_folder is not None:
         pair.save(model_folder)
     return pair
