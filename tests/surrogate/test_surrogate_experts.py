@@ -152,6 +152,9 @@ def test_served_like_any_model():
     pair = gated()
     d = trust_data()[1][SPLITS["test"]][:3, MARKERS, :]
     served = SurfacePredictor(pair)
+    calls = []
+    alarms = pair.alarms
+    pair.alarms = lambda *a, **k: calls.append(1) or alarms(*a, **k)  # counts the alarms computed after the field
     for row in d:
         p = served.predict(pair.reference_marker_positions + row, 0.0)
         want = pair.predict_trusted(row)
@@ -160,16 +163,10 @@ def test_served_like_any_model():
         assert p.alarm.raised == want.alarms.raised
         # as a server predicts (the field first, the alarm after): the alarm the gate computed
         # comes with the field, and the uncertain model's alarm is not computed a second time
-        calls = []
-        alarms = pair.alarms
-        pair.alarms = lambda *a, **k: calls.append(1) or alarms(*a, **k)
-        try:
-            first = served.predict(pair.reference_marker_positions + row, 0.0, alarm=False)
-            assert first.alarm_inputs is None and first.alarm.raised == want.alarms.raised
-            assert first.alarm.distance == pytest.approx(want.alarms.distance, rel=1e-12)
-            assert served.with_alarm(first) is first and not calls
-        finally:
-            del pair.alarms
+        first = served.predict(pair.reference_marker_positions + row, 0.0, alarm=False)
+        assert first.alarm_inputs is None and first.alarm.raised == want.alarms.raised
+        assert first.alarm.distance == pytest.approx(want.alarms.distance, rel=1e-12)
+        assert served.with_alarm(first) is first and not calls
 
 
 def test_untracked_markers_go_to_the_model_row_by_row():

@@ -88,8 +88,9 @@ def nominal_config(config: Config, store, alpha: float) -> Config:
 def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_folder=None):
     """``model`` (trained on ``dataset``, parameters drawn) with a nominal expert: a model of the
     same settings trained on ``nominal_store`` with ``model``'s markers, and the gate fitted on
-    the validation splits of ``dataset`` and of the nominal store (:func:`gate_fields`) (:meth:`~tissuecast.surrogate.DeformationModel.with_nominal_expert`);
-    saved into ``model_folder`` (no ONNX: the gate is not a graph) unless None."""
+    the validation splits of ``dataset`` and of the nominal store (:func:`gate_fields`,
+    :meth:`~tissuecast.surrogate.DeformationModel.with_nominal_expert`); saved into
+    ``model_folder`` (no ONNX: the gate is not a graph) unless None."""
     from ..dataset import open_dataset
     from ..surrogate import DeformationModel
 

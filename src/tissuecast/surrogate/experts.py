@@ -10,8 +10,9 @@ regression of what the operating room sees on both models, their alarm scores (i
 distance, marker consistency, the fault statistic and its marker's residual, mm) and how far
 their two fields are apart (largest and mean vertex distance, mm), fitted on held-out samples
 of both families (the validation splits of the uncertain and the nominal store) with the label
-"the nominal expert's largest vertex error is the smaller". The gate sends a sample to the nominal expert when that probability is above one
-half, or to the uncertainty-trained model where a score is not finite.
+"the nominal expert's largest vertex error is the smaller". The gate sends a sample to the
+nominal expert when that probability is above one half, or to the uncertainty-trained model
+where a score is not finite.
 
 The error bounds and the alarm are always the uncertainty-trained model's: they were
 calibrated on the whole range of parameters, the nominal expert's only at the nominal ones.
