@@ -1,5 +1,6 @@
 """A nominal expert beside a model, routed by a gate (tissuecast.surrogate.experts), on synthetic fields."""
 
+import copy
 import functools
 
 import numpy as np
@@ -149,7 +150,7 @@ def test_exports_name_the_network_and_refusals():
 def test_served_like_any_model():
     from tissuecast.serve import SurfacePredictor
 
-    pair = gated()
+    pair = copy.copy(gated())  # its own attributes: alarms is patched below
     d = trust_data()[1][SPLITS["test"]][:3, MARKERS, :]
     served = SurfacePredictor(pair)
     calls = []
