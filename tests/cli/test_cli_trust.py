@@ -134,3 +134,6 @@ def test_experts_gives_a_model_a_nominal_expert(store, capsys, tmp_path):
     assert "same mesh with the model's markers" in capsys.readouterr().err
     assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "nom"), "--out", str(tmp_path / "nom")]) == 2
     assert "one of the two models' folders" in capsys.readouterr().err
+    assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "nom"), "--out", str(tmp_path / "bad"),
+                 "--nominal-store", str(tmp_path / "nowhere.zarr")]) == 2
+    assert "nowhere.zarr" in (err := capsys.readouterr().err) and "is not there" in err and "--nominal-store" in err
