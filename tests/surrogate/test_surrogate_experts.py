@@ -151,6 +151,7 @@ def test_served_like_any_model():
     from tissuecast.serve import SurfacePredictor
 
     pair = copy.copy(gated())  # its own attributes: alarms is patched below
+    assert pair.alarm_with_field and pair.predictor("mlp").alarm_with_field and not pair.trusted_.alarm_with_field
     d = trust_data()[1][SPLITS["test"]][:3, MARKERS, :]
     served = SurfacePredictor(pair)
     calls = []

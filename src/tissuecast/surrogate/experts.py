@@ -208,6 +208,7 @@ class NominalExpertRouter(FieldPredictor):
     """
 
     has_trust = True
+    alarm_with_field = True  # the gate reads the alarm: predict_trusted computes it with every field
 
     def __init__(self, learned: FieldPredictor, trusted: FieldPredictor, expert: FieldPredictor, gate: ExpertGate):
         check_expert(trusted, expert)

@@ -171,6 +171,12 @@ class DeformationModel(FieldPredictor):
         return self.is_fitted and self.nominal_expert_ is not None
 
     @property
+    def alarm_with_field(self) -> bool:
+        """Whether :meth:`predict_trusted` computes the alarm with the field whatever ``alarm``
+        says: a model with a nominal expert (its gate reads the alarm)."""
+        return self.has_nominal_expert
+
+    @property
     def has_trust(self) -> bool:
         """Whether error bounds and the alarm are calibrated (``surrogate.calibration`` not ``"none"``)."""
         return self.is_fitted and self.trusted_ is not None
