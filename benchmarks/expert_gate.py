@@ -44,7 +44,8 @@ def main() -> None:
     fields, aux = gate_fields(model, open_dataset(a.gate_store), nominal)
     pair = model.with_nominal_expert(DeformationModel.load(a.nominal), fields, auxiliary=aux)
     gate = pair.expert_gate_
-    print(f"gate fitted on {gate.samples} validation samples of {a.gate_store} and {a.nominal_store}: the expert better on "
+    stores = a.gate_store if nominal is None else f"{a.gate_store} and {a.nominal_store}"
+    print(f"gate fitted on {gate.samples} validation samples of {stores}: the expert better on "
           f"{100 * gate.nominal_better:.0f} %", flush=True)
     folder = Path(a.study) / "mismatch"
     names = a.sets or sorted(q.name[:-5] for q in folder.glob("*.zarr"))

@@ -38,7 +38,8 @@ ALLOWED = {
     ("dataset/executors.py", "getattr(self._pool, '_result_queue', None)"):
         "ProcessPoolExecutor has no public handle on its result pipe, whose unused write end a stop closes (a "
         "half-sent result otherwise hangs the shutdown); absent in a later Python: the stop as before",
-    ("dataset/executors.py", "results._writer"): "the write end of that pipe (multiprocessing.SimpleQueue's, no public one)",
+    ("dataset/executors.py", "getattr(results, '_writer', None)"):
+        "the write end of that pipe (multiprocessing.SimpleQueue's, no public one); absent: the stop as before",
     ("dataset/executors.py", "getattr(multiprocessing.current_process(), '_inheriting', False)"):
         "multiprocessing's own test of a spawned child still importing its parent's main module (no public one)",
     ("mesh/meshio_read.py", "meshio._helpers"):

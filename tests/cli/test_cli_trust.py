@@ -99,7 +99,7 @@ def test_train_with_planned_markers_then_predict_with_bounds_and_alarm(store, ca
     assert "coverage" in capsys.readouterr().err
 
 
-def test_experts_gives_a_model_a_nominal_expert(store, capsys, tmp_path):
+def test_experts_gives_a_model_a_nominal_expert(store, capsys, tmp_path, monkeypatch):
     """`tissuecast experts`: two models of the store (another seed and width stand in for the
     nominal one), the gate fitted on the valid split; the folder predicts like any model."""
     from tissuecast.config import load_config, with_overrides, config_to_toml
@@ -136,4 +136,17 @@ def test_experts_gives_a_model_a_nominal_expert(store, capsys, tmp_path):
     assert "one of the two models' folders" in capsys.readouterr().err
     assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "nom"), "--out", str(tmp_path / "bad"),
                  "--nominal-store", str(tmp_path / "nowhere.zarr")]) == 2
-    assert "nowhere.zarr" in (err := capsys.readouterr().err) and "is not there" in err and "--nominal-store" in err
+    assert "nowhere.zarr" in (err := capsys.readouterr().err) and "is not there" in err and "--nominal-store none" in err
+    # 'none': the gate on the uncertain store alone (here both models' store: the same samples)
+    assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "nom"), "--out", str(tmp_path / "alone"),
+                 "--nominal-store", "none", "--json"]) == 0
+    alone = json.loads(capsys.readouterr().out)
+    assert alone["nominal_store"] is None and alone["samples"] == out["samples"]
+    # a "nominal" store that draws parameters is refused, naming the option (every store made to
+    # look as if it drew E)
+    from tissuecast.dataset.reader import Dataset
+
+    monkeypatch.setattr(Dataset, "parameters", property(lambda self: {"youngs_modulus": np.ones(self.n_samples)}))
+    assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "nom"), "--out", str(tmp_path / "drawn")]) == 2
+    assert "draws parameters (youngs_modulus)" in (err := capsys.readouterr().err) and "--nominal-store" in err
+

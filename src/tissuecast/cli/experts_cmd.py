@@ -26,7 +26,8 @@ def register(sub) -> None:
     p.add_argument("--store", help="the uncertain model's data-set store, whose 'valid' split fits the gate "
                                    "(default: the store the model records)")
     p.add_argument("--nominal-store", help="the nominal model's data-set store, whose 'valid' split fits the gate too "
-                                           "(default: the store the nominal model records)")
+                                           "(default: the store the nominal model records; 'none': the uncertain "
+                                           "store's alone, which sends fewer nominal samples to the expert)")
     p.add_argument("--out", required=True, help="the new model folder")
     p.add_argument("--json", action="store_true", help="print the gate's figures as JSON")
     p.set_defaults(func=run)
@@ -48,20 +49,28 @@ def run(args) -> int:
     if not dataset.parameters and theirs and Path(theirs).exists() and open_dataset(theirs).parameters:
         raise ModelError(f"the models look swapped: {args.nominal} was trained on a store that draws parameters, the "
                          f"gate's store {store} draws none; give them in the order UNCERTAIN NOMINAL")
-    nominal_store = _store(args.nominal_store or theirs, args.nominal, "--nominal-store", model.n_vertices)
-    fields, aux = gate_fields(model, dataset, open_dataset(nominal_store))
+    nominal_store, nominal = None, None
+    if args.nominal_store != "none":
+        nominal_store = _store(args.nominal_store or theirs, args.nominal, "--nominal-store", model.n_vertices)
+        nominal = open_dataset(nominal_store)
+        if nominal.parameters:
+            raise ModelError(f"the nominal store {nominal_store} draws parameters ({', '.join(sorted(nominal.parameters))}); "
+                             "give the store the nominal model was trained on, at the nominal parameters, with "
+                             "--nominal-store (and the uncertain model's with --store)")
+    fields, aux = gate_fields(model, dataset, nominal)
     gated = model.with_nominal_expert(expert, fields, auxiliary=aux)
     gated.dataset_path = str(Path(store).resolve())
     gated.save(out)
     figures = {"samples": gated.expert_gate_.samples, "nominal_better": gated.expert_gate_.nominal_better,
                **routing_figures(gated, fields, aux)}
     if args.json:
-        print(json.dumps({"model": str(Path(args.out)), "store": str(store), "nominal_store": str(nominal_store),
-                          **figures}, indent=2))
+        print(json.dumps({"model": str(Path(args.out)), "store": str(store),
+                          "nominal_store": None if nominal_store is None else str(nominal_store), **figures}, indent=2))
         return 0
     print(f"model with a nominal expert saved to {args.out}")
-    print(f"  gate fitted on the {figures['samples']} validation samples of {store} and {nominal_store}: the nominal "
-          f"expert the better one on {100 * figures['nominal_better']:.0f} % of them")
+    stores = store if nominal_store is None else f"{store} and {nominal_store}"
+    print(f"  gate fitted on the {figures['samples']} validation samples of {stores}: the nominal expert the better "
+          f"one on {100 * figures['nominal_better']:.0f} % of them")
     print(f"  on these samples (the gate's own, so optimistic), mean Offset_max: "
           f"uncertain {figures['uncertain_offset_max']:.2f} mm, nominal {figures['nominal_offset_max']:.2f}, "
           f"routed {figures['routed_offset_max']:.2f} "
@@ -71,15 +80,21 @@ def run(args) -> int:
     return 0
 
 
+#: How to go on without the nominal store (said where it is missing).
+NO_NOMINAL_STORE = " (or --nominal-store none: the gate on the uncertain store alone, fewer nominal samples to the expert)"
+
+
 def _store(path, model_folder: str, option: str, n_vertices: int) -> str:
     """The data-set store ``path`` a model of ``model_folder`` was trained on, checked: it exists
     and has the model's ``n_vertices``."""
     from ..dataset import open_dataset
 
     if not path:
-        raise ModelError(f"{model_folder} records no data-set store; give the one it was trained on with {option}")
+        raise ModelError(f"{model_folder} records no data-set store; give the one it was trained on with {option}"
+                         f"{NO_NOMINAL_STORE if option == '--nominal-store' else ''}")
     if not Path(path).exists():
-        raise ModelError(f"the store {path} of {model_folder} is not there; give the one it was trained on with {option}")
+        raise ModelError(f"the store {path} of {model_folder} is not there; give the one it was trained on with {option}"
+                         f"{NO_NOMINAL_STORE if option == '--nominal-store' else ''}")
     found = open_dataset(path).n_vertices
     if found != n_vertices:
         raise ModelError(f"the store {path} has {found} vertices, the model {n_vertices}; give the store "

@@ -277,8 +277,9 @@ class LocalExecutor:
         # hangs). The parent never writes to that pipe: with its own write end closed as well,
         # that read ends (EOF) once the workers are gone, and the pool reports itself broken.
         results = getattr(self._pool, "_result_queue", None)  # no public handle (Python 3.11-3.13)
-        if results is not None and all(not p.is_alive() for p in processes):
-            results._writer.close()
+        writer = getattr(results, "_writer", None)
+        if writer is not None and all(not p.is_alive() for p in processes):
+            writer.close()
 
     def update(self, recipe: Recipe) -> None:
         """Give every worker ``recipe`` instead of the current one (call with no work in flight).
