@@ -82,9 +82,9 @@ def fake_solver_factory(scenario, cfg):
     return make
 
 
-def dying_solver_factory(scenario, cfg):
-    """The fake solver, except that the worker process dies (os._exit) on its first solve
-    while the file named by ``TISSUECAST_TEST_DIE`` exists (the file is removed first)."""
+def _flagged_solver_factory(scenario, cfg, variable: str, act):
+    """The fake solver, except that a solve while the file named by the environment ``variable``
+    exists calls ``act(flag path)`` first (which removes the file: once per flag)."""
     import os
 
     fake = fake_solver_factory(scenario, cfg)
@@ -93,15 +93,26 @@ def dying_solver_factory(scenario, cfg):
         inner = fake(solver_cfg)
 
         def solve(forces, initial_guess=None, time_limit=None):
-            flag = os.environ.get("TISSUECAST_TEST_DIE")
+            flag = os.environ.get(variable)
             if flag and os.path.exists(flag):
-                os.remove(flag)
-                os._exit(1)
+                act(flag)
             return inner.solve(forces, initial_guess)
 
         return SimpleNamespace(solve=solve)
 
     return make
+
+
+def dying_solver_factory(scenario, cfg):
+    """The fake solver, except that the worker process dies (os._exit) on its first solve
+    while the file named by ``TISSUECAST_TEST_DIE`` exists (the file is removed first)."""
+    import os
+
+    def die(flag):
+        os.remove(flag)
+        os._exit(1)
+
+    return _flagged_solver_factory(scenario, cfg, "TISSUECAST_TEST_DIE", die)
 
 
 def half_sent_solver_factory(scenario, cfg):
@@ -114,26 +125,16 @@ def half_sent_solver_factory(scenario, cfg):
     import sys
     import time
 
-    fake = fake_solver_factory(scenario, cfg)
+    def half_send(flag):
+        frame = sys._getframe()
+        while frame.f_code.co_name != "_process_worker":  # concurrent.futures' worker loop
+            frame = frame.f_back
+        writer = frame.f_locals["result_queue"]._writer
+        os.write(writer.fileno(), struct.pack("!i", 1 << 20) + bytes(64))
+        os.remove(flag)
+        time.sleep(600)
 
-    def make(solver_cfg):
-        inner = fake(solver_cfg)
-
-        def solve(forces, initial_guess=None, time_limit=None):
-            flag = os.environ.get("TISSUECAST_TEST_HALF_SENT")
-            if flag and os.path.exists(flag):
-                frame = sys._getframe()
-                while frame.f_code.co_name != "_process_worker":  # concurrent.futures' worker loop
-                    frame = frame.f_back
-                writer = frame.f_locals["result_queue"]._writer
-                os.write(writer.fileno(), struct.pack("!i", 1 << 20) + bytes(64))
-                os.remove(flag)
-                time.sleep(600)
-            return inner.solve(forces, initial_guess)
-
-        return SimpleNamespace(solve=solve)
-
-    return make
+    return _flagged_solver_factory(scenario, cfg, "TISSUECAST_TEST_HALF_SENT", half_send)
 
 
 #: The stalling solver's samples whose largest nodal force lies in this band (N) stall.
