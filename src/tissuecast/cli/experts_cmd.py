@@ -43,16 +43,16 @@ def run(args) -> int:
     if out in (Path(args.uncertain).resolve(), Path(args.nominal).resolve()):
         raise ModelError(f"--out {args.out} is one of the two models' folders; write the pair to a folder of its own")
     model, expert = DeformationModel.load(args.uncertain), DeformationModel.load(args.nominal)
-    store = _store(args.store or model.dataset_path, args.uncertain, "--store", model.n_vertices)
-    dataset = open_dataset(store)
+    store = args.store or model.dataset_path
+    dataset = _open_store(store, args.uncertain, "--store", model.n_vertices)
     theirs = expert.dataset_path
     if not dataset.parameters and theirs and Path(theirs).exists() and open_dataset(theirs).parameters:
         raise ModelError(f"the models look swapped: {args.nominal} was trained on a store that draws parameters, the "
                          f"gate's store {store} draws none; give them in the order UNCERTAIN NOMINAL")
     nominal_store, nominal = None, None
     if args.nominal_store != "none":
-        nominal_store = _store(args.nominal_store or theirs, args.nominal, "--nominal-store", model.n_vertices)
-        nominal = open_dataset(nominal_store)
+        nominal_store = args.nominal_store or theirs
+        nominal = _open_store(nominal_store, args.nominal, "--nominal-store", model.n_vertices, hint=NO_NOMINAL_STORE)
         if nominal.parameters:
             raise ModelError(f"the nominal store {nominal_store} draws parameters ({', '.join(sorted(nominal.parameters))}); "
                              "give the store the nominal model was trained on, at the nominal parameters, with "
@@ -84,19 +84,18 @@ def run(args) -> int:
 NO_NOMINAL_STORE = " (or --nominal-store none: the gate on the uncertain store alone, fewer nominal samples to the expert)"
 
 
-def _store(path, model_folder: str, option: str, n_vertices: int) -> str:
-    """The data-set store ``path`` a model of ``model_folder`` was trained on, checked: it exists
-    and has the model's ``n_vertices``."""
+def _open_store(path, model_folder: str, option: str, n_vertices: int, *, hint: str = ""):
+    """The data-set store ``path`` a model of ``model_folder`` was trained on, opened and checked:
+    it exists and has the model's ``n_vertices`` (errors name ``option``, then ``hint``)."""
     from ..dataset import open_dataset
 
     if not path:
-        raise ModelError(f"{model_folder} records no data-set store; give the one it was trained on with {option}"
-                         f"{NO_NOMINAL_STORE if option == '--nominal-store' else ''}")
+        raise ModelError(f"{model_folder} records no data-set store; give the one it was trained on with {option}{hint}")
     if not Path(path).exists():
-        raise ModelError(f"the store {path} of {model_folder} is not there; give the one it was trained on with {option}"
-                         f"{NO_NOMINAL_STORE if option == '--nominal-store' else ''}")
-    found = open_dataset(path).n_vertices
-    if found != n_vertices:
-        raise ModelError(f"the store {path} has {found} vertices, the model {n_vertices}; give the store "
+        raise ModelError(f"the store {path} of {model_folder} is not there; give the one it was trained on with "
+                         f"{option}{hint}")
+    dataset = open_dataset(path)
+    if dataset.n_vertices != n_vertices:
+        raise ModelError(f"the store {path} has {dataset.n_vertices} vertices, the model {n_vertices}; give the store "
                          f"{model_folder} was trained on ({option})")
-    return path
+    return dataset
