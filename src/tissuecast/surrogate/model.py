@@ -173,8 +173,8 @@ class DeformationModel(FieldPredictor):
     @property
     def alarm_with_field(self) -> bool:
         """Whether :meth:`predict_trusted` computes the alarm with the field whatever ``alarm``
-        says: a model with a nominal expert (its gate reads the alarm)."""
-        return self.has_nominal_expert
+        says: as its trusted part declares (True with a nominal expert, whose gate reads it)."""
+        return self.has_trust and bool(self._trusted.alarm_with_field)
 
     @property
     def has_trust(self) -> bool:
