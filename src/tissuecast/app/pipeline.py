@@ -112,8 +112,7 @@ def gate_fields(model, dataset, nominal=None):
     ``model``'s nominal expert is fitted on: the validation split of the uncertain store
     ``dataset`` and, when ``nominal`` is another store, of the expert's nominal store. Both
     families, so that the gate sees the expert win where it does (at and near the nominal
-    parameters, a small corner of the drawn ranges: 8 % of the uncertain store's validation
-    samples on the brain hemisphere, docs/uncertainty.md)."""
+    parameters, a small corner of the drawn ranges; measured in docs/uncertainty.md)."""
     fields, aux = split_fields(model, dataset, "valid")
     if nominal is None or Path(nominal.path).resolve() == Path(dataset.path).resolve():
         return fields, aux
