@@ -101,6 +101,7 @@ def test_routed_field_bounds_and_alarm():
     assert worst["pair"][~near].mean() < 1.05 * worst["mine"][~near].mean() < 0.5 * worst["theirs"][~near].mean()
     assert worst["pair"].mean() < min(worst["mine"].mean(), worst["theirs"].mean())
     assert pair.has_nominal_expert and not model.has_nominal_expert and not pair.has_uncertainty
+    assert pair.bounds_predictor is pair and model.bounds_predictor is model.trusted_  # the routed field, or the network's
     assert pair.describe()["expert_gate"]["samples"] == len(SPLITS["valid"])
     with pytest.raises(ModelError, match="no ensemble spread"):
         pair.predict_with_uncertainty(d)

@@ -250,8 +250,7 @@ def evaluate_on_set(model, dataset, targets) -> dict:
         idx = dataset.select("test1", status="done")
         aux = auxiliary_values(model, dataset)
         with model.gate_suspended():
-            figures = bound_figures(model if model.has_nominal_expert else model.trusted_,  # a pair: its routed field
-                                    np.asarray(dataset.displacements[idx], dtype=np.float64),
+            figures = bound_figures(model.bounds_predictor, np.asarray(dataset.displacements[idx], dtype=np.float64),
                                     levels=(0.9,), auxiliary=None if aux is None else aux[idx])
         row["coverage_90"] = figures["coverage_0.9"]
         row["alarm_rate"] = figures["alarm_rate"] if figures["alarm_on"] else float("nan")

@@ -215,8 +215,7 @@ def write_report(folder, model, dataset, evaluation, *, renders: int = EvaluateC
 def _write_report(folder: Path, model, dataset, evaluation, renders: int, studies_folder, title: str) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     _write_tables(folder, evaluation)
-    routed = model if model.has_nominal_expert else None  # a pair's field is routed: measure the bounds against it
-    trust = trust_evaluation(model.trusted_, dataset, field_predictor=routed) if model.has_trust else None
+    trust = trust_evaluation(model.trusted_, dataset, field_predictor=model.bounds_predictor) if model.has_trust else None
     parts = [_header(title, model, dataset, evaluation), _headline(evaluation, trust, model),
              write_viewer(folder, model, dataset, evaluation), uncertainty_section(model.trusted_, evaluation, trust, folder)]
     parts += _detail_sections(evaluation)

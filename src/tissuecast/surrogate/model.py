@@ -177,6 +177,16 @@ class DeformationModel(FieldPredictor):
         return self.has_trust and bool(self._trusted.alarm_with_field)
 
     @property
+    def bounds_predictor(self):
+        """What predicts the field this model's bounds are measured against, with the bounds: this
+        model with a nominal expert (its field is the routed one), else its trusted network
+        (:class:`~.trusted.TrustedPredictor`, the samples' instrument poses as auxiliary inputs).
+        None without a trust layer."""
+        if not self.has_trust:
+            return None
+        return self if self.has_nominal_expert else self.trusted_
+
+    @property
     def has_trust(self) -> bool:
         """Whether error bounds and the alarm are calibrated (``surrogate.calibration`` not ``"none"``)."""
         return self.is_fitted and self.trusted_ is not None
