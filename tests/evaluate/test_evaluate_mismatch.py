@@ -121,6 +121,7 @@ def test_a_small_mismatch_study_through_the_cli(tmp_path):
     assert rows[("nominal", "uncertain")]["relative_vs_nominal"] == pytest.approx(1.0)
     assert rows[("E x2", "nominal")]["in_range"] is True and rows[("E x2", "nominal")]["count"] == 6
     assert (out / "study_mismatch.png").is_file() and (out / "study_mismatch.csv").is_file()
+    _a_refined_solve_past_its_limit_is_recorded(tmp_path / "uncertain.toml", out / "mismatch", tmp_path / "timed")
     # the sets are data sets with the set's parameter fixed, the trained alpha, the models' markers
     e2 = open_dataset(out / "mismatch" / "e_x2.zarr")
     assert (e2.parameters["youngs_modulus"] == 2.0).all()
@@ -200,3 +201,37 @@ def test_run_with_a_nominal_expert(tmp_path):
                           ({"surrogate": {"calibration": "none"}}, "needs error bounds")):
         with pytest.raises(ConfigError, match=words):
             check_config(with_overrides(cfg, **change))
+
+
+def _a_refined_solve_past_its_limit_is_recorded(config_path, study, folder):
+    """The discretisation set under a time limit no refined solve meets: every sample left out
+    and recorded; a second run with the same limit solves nothing; without a limit the samples
+    are solved again, as the study solved them."""
+    import tissuecast.fem
+    from tissuecast.config import load_config
+    from tissuecast.evaluate.mismatch import discretisation_set
+
+    cfg = load_config(config_path)
+    calls = []
+
+    class Counting(tissuecast.fem.Solver):
+        def solve(self, *args, **kwargs):
+            calls.append(kwargs.get("time_limit"))
+            return super().solve(*args, **kwargs)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(tissuecast.fem, "Solver", Counting)
+    try:
+        assert discretisation_set(cfg, study / "nominal.zarr", folder, 2, time_limit=1e-9).n_samples == 0
+        records = sorted(folder.glob("*.failed.json"))
+        assert len(records) == 2 and calls == [1e-9, 1e-9]
+        doc = json.loads(records[0].read_text())
+        assert doc["timeout"] is True and doc["time_limit"] == 1e-9 and "time limit" in doc["reason"]
+        assert discretisation_set(cfg, study / "nominal.zarr", folder, 2, time_limit=1e-9).n_samples == 0
+        assert len(calls) == 2  # recorded: not tried again under the same limit
+        again = discretisation_set(cfg, study / "nominal.zarr", folder, 2, time_limit=None)
+        assert len(calls) == 4 and again.n_samples == 2
+    finally:
+        mp.undo()
+    for k, path in enumerate(sorted((study / "discretisation").glob("sample_*.npy"))):
+        np.testing.assert_allclose(again.displacements[k], np.load(path), rtol=1e-9, atol=1e-9)

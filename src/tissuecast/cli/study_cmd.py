@@ -45,6 +45,9 @@ def register(sub) -> None:
     p.add_argument("--samples", type=int, default=None, help="mismatch: samples per set (default 100)")
     p.add_argument("--refined-samples", type=int, default=None,
                    help="mismatch: samples of the discretisation set, solved on the refined mesh (default 8)")
+    p.add_argument("--refined-time-limit", type=float, default=None, metavar="SECONDS",
+                   help="mismatch: wall-clock limit of one refined solve of the discretisation set; a sample past it is "
+                        "left out and recorded, and tried again only under a larger limit (default 900; 0 = none)")
     p.add_argument("--alpha", type=float, default=0.0,
                    help="mismatch: force magnitude of the sets, N (default: the first model's training store's)")
     p.set_defaults(func=run)
@@ -85,16 +88,20 @@ def _mismatch(args) -> int:
     out = Path(args.out) if args.out else run_paths(cfg).report
     samples = args.samples or mm.DEFAULT_SAMPLES
     refined = args.refined_samples or mm.DISCRETISATION_SAMPLES
+    limit = mm.REFINED_TIME_LIMIT if args.refined_time_limit is None else args.refined_time_limit
+    if limit < 0:
+        raise ConfigError(f"--refined-time-limit {limit:g}: give seconds > 0, or 0 for no limit")
+    limit = limit or None
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     print(f"mismatch study: {len(models)} model(s), {samples} samples a set ({refined} on the refined mesh), "
           f"alpha {alpha:.4g} N; sets kept in {out / 'mismatch'} (a second run resumes them)", flush=True)
     rows = mm.mismatch_study(cfg, models, out / "mismatch", alpha=alpha, sets=sets, samples=samples,
-                             refined_samples=refined, progress=True,
+                             refined_samples=refined, refined_time_limit=limit, progress=True,
                              on_row=lambda r: print(f"  {r['set']} / {r['model']}: Offset_max {r['mlp_offset_max']:.3g} mm "
                                                     f"(rigid {r['rigid_offset_max']:.3g}), relative "
                                                     f"{100 * r['relative']:.3g} %", flush=True))
-    meta = {"alpha": alpha, "samples": samples, "refined_samples": refined, "models": {k: m.describe()["markers"]
-                                                                                        for k, m in models.items()}}
+    markers = {k: m.describe()["markers"] for k, m in models.items()}
+    meta = {"alpha": alpha, "samples": samples, "refined_samples": refined, "refined_time_limit": limit, "models": markers}
     json_path, csv_path = write_mismatch(out, rows, meta)
     png = mismatch_figure(rows, out / "study_mismatch.png")
     print(format_mismatch(rows))

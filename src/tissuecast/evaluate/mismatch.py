@@ -33,6 +33,7 @@ value: a model trained with them has seen such data.
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import time
 from dataclasses import dataclass
@@ -43,13 +44,16 @@ import numpy as np
 from ..config import Config, nothing_drawn, with_overrides
 
 __all__ = ["MismatchSet", "mismatch_sets", "set_config", "ArraySet", "discretisation_set", "evaluate_on_set", "set_folder_name",
-           "store_alpha", "mismatch_study", "DEFAULT_SAMPLES", "DISCRETISATION_SAMPLES", "STUDY_SEED_OFFSET"]
+           "store_alpha", "mismatch_study", "DEFAULT_SAMPLES", "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT",
+           "STUDY_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
 
 #: Samples per set by default, and of the (costly) discretisation set.
 DEFAULT_SAMPLES = 100
 DISCRETISATION_SAMPLES = 8
+#: Wall-clock limit of one refined solve of the discretisation set by default, s.
+REFINED_TIME_LIMIT = 900.0
 #: The sets' data-set seed is the config's plus this.
 STUDY_SEED_OFFSET = 7919
 
@@ -170,14 +174,19 @@ class ArraySet:
         return np.arange(len(self.displacements)) if split in (None, "test1") else np.zeros(0, dtype=np.int64)
 
 
-def discretisation_set(config: Config, nominal_store, folder: Path, samples: int, *, progress=None) -> ArraySet:
+def discretisation_set(config: Config, nominal_store, folder: Path, samples: int, *,
+                       time_limit: float | None = REFINED_TIME_LIMIT) -> ArraySet:
     """The first ``samples`` samples of the nominal set solved on the refined mesh with quadratic
     elements, read on the coarse vertices, with their instrument poses and parameters: an
-    :class:`ArraySet` of k <= ``samples`` fields (a sample the refined solve does not converge
-    is left out and logged). Each is saved in ``folder`` as it comes and reused when the study
-    is run again."""
+    :class:`ArraySet` of k <= ``samples`` fields. Each is saved in ``folder`` as it comes and
+    reused when the study is run again.
+
+    A refined solve that does not converge, or runs past ``time_limit`` s (None: no limit), is
+    left out, logged and recorded in ``folder`` (``sample_NNNNN.failed.json``: why, how long it
+    ran, the limit): a second run does not try it again unless its limit is larger than the
+    recorded one (or the record is deleted)."""
     from ..dataset import open_dataset
-    from ..errors import ConvergenceError
+    from ..errors import ConvergenceError, SolveTimeout
     from ..fem import Solver
     from ..mesh.refine import refine_uniformly
     from ..scenario import restore_scenario
@@ -189,38 +198,53 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
     refined = refine_uniformly(ds.mesh)
     solver_cfg = dataclasses.replace(cfg.solver, order=2)
     folder.mkdir(parents=True, exist_ok=True)
-    out, kept = [], []
-    chosen = ds.select("test1", status="done")[:samples]
-    todo = sum(not (folder / f"sample_{int(k):05d}.npy").is_file() for k in chosen)
+    limit = float("inf") if time_limit is None else float(time_limit)
+    todo = [int(k) for k in ds.select("test1", status="done")[:samples]
+            if not (folder / f"sample_{int(k):05d}.npy").is_file() and _retry_refined(folder, int(k), limit)]
     if todo:
-        log.info("discretisation: solving %d of %d nominal samples again on the refined mesh (%d vertices, quadratic "
-                 "elements; each can take minutes), saved in %s as they come", todo, len(chosen),
-                 refined.mesh.n_vertices, folder)
-    solved, spent = 0, 0.0
-    for k in chosen:
-        path = folder / f"sample_{int(k):05d}.npy"
-        if not path.is_file():
-            t0 = time.perf_counter()
-            inputs = scenario.sample(int(ds.seed[k]), float(ds.alpha[k]))
-            fine = refined_sample(scenario, cfg, refined, inputs)
-            guess = refined.from_coarse(np.asarray(ds.displacements[k], dtype=np.float64))
-            try:
-                res = Solver(fine.problem, solver_cfg).solve(fine.surface, initial_guess=guess, **fine.keywords)
-            except ConvergenceError as exc:
-                log.warning("discretisation: sample %d did not converge on the refined mesh (%s); left out", k, exc)
-                continue
-            np.save(path, refined.coarse_values(res.displacement))
-            solved, spent = solved + 1, spent + time.perf_counter() - t0
-            log.info("discretisation: sample %d solved on the refined mesh in %.0f s (%d of %d; about %.0f min left; "
-                     "--refined-samples sets how many, --sets can leave the set out)", k, time.perf_counter() - t0,
-                     solved, todo, (todo - solved) * spent / solved / 60.0)
-        out.append(np.load(path))
-        kept.append(int(k))
-        if progress is not None:
-            progress(len(out))
+        log.info("discretisation: solving %d nominal samples again on the refined mesh (%d vertices, quadratic "
+                 "elements; each can take minutes, at most %s), saved in %s as they come", len(todo),
+                 refined.mesh.n_vertices, "no limit" if time_limit is None else f"{limit:.0f} s", folder)
+    spent = 0.0
+    for done, k in enumerate(todo, start=1):
+        t0 = time.perf_counter()
+        inputs = scenario.sample(int(ds.seed[k]), float(ds.alpha[k]))
+        fine = refined_sample(scenario, cfg, refined, inputs)
+        guess = refined.from_coarse(np.asarray(ds.displacements[k], dtype=np.float64))
+        try:
+            res = Solver(fine.problem, solver_cfg).solve(fine.surface, initial_guess=guess, time_limit=time_limit,
+                                                         **fine.keywords)
+        except ConvergenceError as exc:
+            seconds = time.perf_counter() - t0
+            why = "ran past its time limit" if isinstance(exc, SolveTimeout) else "did not converge"
+            record = folder / f"sample_{k:05d}.failed.json"
+            record.write_text(json.dumps({"sample": k, "reason": str(exc), "timeout": isinstance(exc, SolveTimeout),
+                                          "seconds": seconds, "time_limit": time_limit}, indent=1) + "\n")
+            log.warning("discretisation: sample %d %s on the refined mesh (%s); left out and recorded in %s (a "
+                        "larger --refined-time-limit tries it again)", k, why, exc, record)
+        else:
+            np.save(folder / f"sample_{k:05d}.npy", refined.coarse_values(res.displacement))
+            seconds = time.perf_counter() - t0
+            log.info("discretisation: sample %d solved on the refined mesh in %.0f s", k, seconds)
+        spent += seconds
+        log.info("discretisation: %d of %d tried; about %.0f min left (--refined-samples sets how many, "
+                 "--sets can leave the set out)", done, len(todo), (len(todo) - done) * spent / done / 60.0)
+    kept = [int(k) for k in ds.select("test1", status="done")[:samples] if (folder / f"sample_{int(k):05d}.npy").is_file()]
+    out = [np.load(folder / f"sample_{k:05d}.npy") for k in kept]
     poses = {name: {part: v[kept] for part, v in pose.items()} for name, pose in ds.instrument_poses.items()}
     return ArraySet(np.asarray(out).reshape(len(out), ds.mesh.n_vertices, 3), ds.mesh, ds.scenario, poses,
                     {name: v[kept] for name, v in ds.parameters.items()})
+
+
+def _retry_refined(folder: Path, k: int, limit: float) -> bool:
+    """Whether sample ``k``'s refined solve is to be tried: no failure recorded, or a time-out
+    under a smaller limit than ``limit`` s."""
+    record = folder / f"sample_{k:05d}.failed.json"
+    if not record.is_file():
+        return True
+    doc = json.loads(record.read_text())
+    before = float("inf") if doc.get("time_limit") is None else float(doc["time_limit"])
+    return bool(doc.get("timeout")) and limit > before
 
 
 def evaluate_on_set(model, dataset, targets) -> dict:
@@ -268,13 +292,15 @@ def store_alpha(store) -> float:
     return float(cal.get("alpha", 0.0))
 
 
-def _set_dataset(config: Config, mset: MismatchSet, folder: Path, *, alpha, samples, model, progress, nominal_store):
+def _set_dataset(config: Config, mset: MismatchSet, folder: Path, *, alpha, samples, model, progress, nominal_store,
+                 refined_time_limit):
     """The set's samples as a data set (simulated, or resumed, in ``folder``) or, for the
     discretisation set, as an :class:`ArraySet`; None when it has no sample."""
     from ..dataset import open_dataset, simulate
 
     if mset.refined:
-        fields = discretisation_set(config, nominal_store, folder / "discretisation", samples)
+        fields = discretisation_set(config, nominal_store, folder / "discretisation", samples,
+                                    time_limit=refined_time_limit)
         return fields if fields.n_samples else None
     store = folder / f"{set_folder_name(mset.name)}.zarr"
     cfg = set_config(config, mset, alpha=alpha, samples=samples, markers=model.markers, fixed=model.fixed, store=store)
@@ -290,8 +316,8 @@ def set_folder_name(name: str) -> str:
 
 
 def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=None, samples: int = DEFAULT_SAMPLES,
-                   refined_samples: int = DISCRETISATION_SAMPLES, targets=None, progress: bool = False,
-                   on_row=None) -> list[dict]:
+                   refined_samples: int = DISCRETISATION_SAMPLES, refined_time_limit: float | None = REFINED_TIME_LIMIT,
+                   targets=None, progress: bool = False, on_row=None) -> list[dict]:
     """Simulate the mismatch sets and evaluate every model on each (module notes).
 
     Args:
@@ -302,6 +328,8 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
         alpha: the force magnitude of every set, N.
         sets: names of the sets to run (default all of :func:`mismatch_sets`).
         samples: samples per set; ``refined_samples`` of the discretisation set.
+        refined_time_limit: wall-clock limit of one refined solve of the discretisation set, s
+            (None: none); a sample past it is left out (:func:`discretisation_set`).
         targets: where TRE is measured (default: the evaluation's interior rule).
         progress: progress bars of the simulations.
         on_row: called with each row as it comes.
@@ -325,7 +353,8 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
     nominal_store = folder / "nominal.zarr"
     for mset in chosen:
         ds = _set_dataset(config, mset, folder, alpha=alpha, samples=refined_samples if mset.refined else samples,
-                          model=first, progress=progress, nominal_store=nominal_store)
+                          model=first, progress=progress, nominal_store=nominal_store,
+                          refined_time_limit=refined_time_limit)
         if ds is None:
             continue
         for label, model in models.items():
