@@ -1,0 +1,62 @@
+"""benchmarks/discretisation.py with quadratic elements on the store's own mesh as the reference:
+the cached answers are the samples' own P2 solutions, and every model is evaluated against both."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tissuecast.config import with_overrides
+from tissuecast.dataset import open_dataset, simulate
+from tissuecast.fem import Solver
+from tissuecast.scenario import restore_scenario
+from tissuecast.surrogate import DeformationModel
+
+from dataset_helpers import small_config
+
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "discretisation.py"
+SCENARIO = {"name": "embedded", "pins": False,
+            "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
+            "springs": {"rule": "surface"}, "gravity": {"enabled": True}}
+
+
+def _module():
+    spec = importlib.util.spec_from_file_location("discretisation_bench", BENCH)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_quadratic_reference_and_models_against_both(tmp_path, capsys):
+    cfg = with_overrides(small_config(tmp_path, n_samples=40, n_test2=0, alpha=0.0, calibration_samples=2,
+                                      predictor_samples=8, split=[6.0, 2.0, 2.0],
+                                      store=str(tmp_path / "data.zarr")),
+                         forces={"loading": "traction", "target_max_displacement": 4.0}, scenario=SCENARIO,
+                         solver={"order": 1}, surrogate={"epochs": 40, "patience": 0, "calibration": "none"})
+    simulate(cfg, progress=False)
+    ds = open_dataset(cfg.dataset.store)
+    DeformationModel.from_dataset(ds, cfg).save(tmp_path / "model")
+    mod = _module()
+    assert mod.main([cfg.dataset.store, "--samples", "2", "--reference", "p2", "--cache", str(tmp_path / "c"),
+                     "--model", f"linear={tmp_path / 'model'}"]) == 0
+    out = capsys.readouterr().out
+    assert "against P2 on this mesh, 2 test-1 samples" in out
+    assert sum(line.startswith("linear") for line in out.splitlines()) == 2  # against the data and the reference
+    cached = sorted((tmp_path / "c").glob("sample_*.p2.npy"))
+    assert len(cached) == 2 and not list((tmp_path / "c").glob("*.reference.npy"))
+    # the cached answer is the sample's own P2 solution, its loads the store's (the store's LBO
+    # basis: a basis computed again may differ in its eigenvectors' signs), solved from zero here
+    k = int(cached[0].name.split("_")[1].split(".")[0])
+    sc = restore_scenario(ds.mesh, with_overrides(cfg, solver={"order": 2}), ds.scenario_arrays, ds.basis)
+    x = sc.sample(int(ds.seed[k]), float(ds.alpha[k]))
+    u2 = Solver(sc.problem(), with_overrides(cfg, solver={"order": 2}).solver).solve(x.surface, **x.solve_keywords())
+    np.testing.assert_allclose(np.load(cached[0]), u2.displacement, atol=2e-3 * np.abs(u2.displacement).max())
+    u1 = np.asarray(ds.displacements[k])
+    assert np.abs(u1 - u2.displacement).max() > 1e-3 * np.abs(u2.displacement).max()  # P1 is not P2
+    with pytest.raises(SystemExit, match="quadratic already"):
+        q = with_overrides(cfg, dataset={"store": str(tmp_path / "q.zarr"), "n_samples": 20}, solver={"order": 2})
+        simulate(q, progress=False)
+        mod.main([q.dataset.store, "--reference", "p2"])
