@@ -47,7 +47,8 @@ def _solve(problem, solver_cfg, surface, keywords, guess=None):
 
 def _answers(ds, k: int, scenario, refined, cache: Path, reference: str) -> dict:
     """``{"data", "p2", "reference"}`` vertex fields (n, 3) mm of sample ``k`` ("p2" only for a
-    linear store; "reference" is "p2" with ``reference = "p2"``)."""
+    linear store; "reference" is "p2" with ``reference = "p2"``) and ``"contact"``, the
+    instrument's contact vertex (None without an indentation)."""
     from tissuecast.scenario import restore_scenario
     from tissuecast.scenario.refined import refined_sample
 
@@ -55,6 +56,7 @@ def _answers(ds, k: int, scenario, refined, cache: Path, reference: str) -> dict
     n = ds.mesh.n_vertices
     out = {"data": np.asarray(ds.displacements[k], dtype=np.float64)}
     x = scenario.sample(int(ds.seed[k]), float(ds.alpha[k]))
+    out["contact"] = None if x.draw.indentation is None else int(x.draw.indentation.centre)
     p2_cfg = dataclasses.replace(cfg.solver, order=2)
     p2_path, ref_path = cache / f"sample_{k:05d}.p2.npy", cache / f"sample_{k:05d}.reference.npy"
     if cfg.solver.order == 1:
@@ -125,6 +127,7 @@ def main(argv=None) -> int:
     refined = refine_uniformly(ds.mesh) if args.reference == "refined" else None
     rows: dict[str, list] = {}
     t0 = time.perf_counter()
+    attached = ds.mesh.points[np.asarray(ds.scenario_arrays.get("attached", []), dtype=np.int64)]
     kept, fields = [], {"data": [], "reference": []}
     for k in ds.select("test1", status="done")[: args.samples]:
         try:
@@ -141,7 +144,11 @@ def main(argv=None) -> int:
             if name in a and not (args.reference == "p2" and name == "p2"):
                 e = np.linalg.norm(a[name] - ref, axis=1)
                 rows.setdefault(name, []).append((e.max() / peak, np.percentile(e, 95), e.mean(), peak))
-        print(f"sample {int(k)}: peak {peak:.2f} mm, data's largest error {100 * rows['data'][-1][0]:.1f} % of it "
+        worst = ds.mesh.points[int(np.argmax(np.linalg.norm(a["data"] - ref, axis=1)))]
+        to_attached = np.linalg.norm(attached - worst, axis=1).min() if len(attached) else float("nan")
+        to_contact = float("nan") if a["contact"] is None else np.linalg.norm(ds.mesh.points[a["contact"]] - worst)
+        print(f"sample {int(k)}: peak {peak:.2f} mm, data's largest error {100 * rows['data'][-1][0]:.1f} % of it, "
+              f"{to_attached:.1f} mm from the attached region and {to_contact:.1f} mm from the instrument's contact "
               f"({time.perf_counter() - t0:.0f} s so far)", flush=True)
     order = "P1" if ds.config.solver.order == 1 else "P2"
     labels = {"data": f"the data set ({order}, this mesh)", "p2": "P2, this mesh"}

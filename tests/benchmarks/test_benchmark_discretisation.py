@@ -44,6 +44,7 @@ def test_quadratic_reference_and_models_against_both(tmp_path, capsys):
                      "--model", f"linear={tmp_path / 'model'}"]) == 0
     out = capsys.readouterr().out
     assert "against P2 on this mesh, 2 test-1 samples" in out
+    assert out.count("mm from the attached region and nan mm from the instrument's contact") == 2  # no instrument here
     assert sum(line.startswith("linear") for line in out.splitlines()) == 2  # against the data and the reference
     cached = sorted((tmp_path / "c").glob("sample_*.p2.npy"))
     assert len(cached) == 2 and not list((tmp_path / "c").glob("*.reference.npy"))
