@@ -89,8 +89,9 @@ def _models_against(ds, kept: list, fields: dict, specs: list) -> None:
 
     poses = {name: {part: v[kept] for part, v in pose.items()} for name, pose in ds.instrument_poses.items()}
     params = {name: v[kept] for name, v in ds.parameters.items()}
-    print(f"\nmodels on the same {len(kept)} samples (mean Offset_max / Offset_mean, mm; TRE mm, share corrected):")
-    print("model          truth       MLP              rigid   ridge   MLP TRE        rigid corrected")
+    print(f"\nmodels on the same {len(kept)} samples (mean Offset_max / Offset_mean, mm; TRE mm, share corrected; "
+          f"the 90 % bounds' coverage and the alarm's rate with a trust layer):")
+    print("model          truth       MLP              rigid   ridge   MLP TRE        rigid corrected  coverage  alarm")
     for spec in specs:
         label, _, folder = spec.partition("=")
         model = DeformationModel.load(folder)
@@ -99,7 +100,9 @@ def _models_against(ds, kept: list, fields: dict, specs: list) -> None:
             print(f"{label:<14} {truth:<11} {row['mlp_offset_max']:6.2f} / {row['mlp_offset_mean']:5.3f}   "
                   f"{row['rigid_offset_max']:6.2f}  {row['ridge_offset_max']:6.2f}  "
                   f"{row.get('mlp_tre_mean', float('nan')):5.2f} ({100 * row.get('mlp_corrected', float('nan')):3.0f} %)   "
-                  f"{100 * row.get('rigid_corrected', float('nan')):3.0f} %", flush=True)
+                  f"{100 * row.get('rigid_corrected', float('nan')):3.0f} %            "
+                  f"{100 * row.get('coverage_90', float('nan')):5.1f} %  {100 * row.get('alarm_rate', float('nan')):4.0f} %",
+                  flush=True)
 
 
 def main(argv=None) -> int:
