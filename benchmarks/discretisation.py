@@ -59,6 +59,12 @@ def _answers(ds, k: int, scenario, refined, cache: Path, reference: str) -> dict
     out["contact"] = None if x.draw.indentation is None else int(x.draw.indentation.centre)
     p2_cfg = dataclasses.replace(cfg.solver, order=2)
     p2_path, ref_path = cache / f"sample_{k:05d}.p2.npy", cache / f"sample_{k:05d}.reference.npy"
+    earlier = cache / f"sample_{k:05d}.npz"  # earlier versions kept both answers in one file
+    if earlier.is_file():
+        saved = np.load(earlier)
+        for key, path in (("p2", p2_path), ("reference", ref_path)):
+            if key in saved.files and not path.is_file():
+                np.save(path, saved[key])
     if cfg.solver.order == 1:
         if not p2_path.is_file():
             from tissuecast.config import with_overrides
