@@ -93,8 +93,6 @@ def _models_against(ds, kept: list, fields: dict, specs: list) -> None:
     from tissuecast.evaluate.mismatch import ArraySet, evaluate_on_set
     from tissuecast.surrogate import DeformationModel
 
-    poses = {name: {part: v[kept] for part, v in pose.items()} for name, pose in ds.instrument_poses.items()}
-    params = {name: v[kept] for name, v in ds.parameters.items()}
     print(f"\nmodels on the same {len(kept)} samples (mean Offset_max / Offset_mean, mm; TRE mm, share corrected; "
           f"the 90 % bounds' coverage and the alarm's rate with a trust layer):")
     print("model          truth       MLP              rigid   ridge   MLP TRE        rigid corrected  coverage  alarm")
@@ -102,7 +100,7 @@ def _models_against(ds, kept: list, fields: dict, specs: list) -> None:
         label, _, folder = spec.partition("=")
         model = DeformationModel.load(folder)
         for truth in ("data", "reference"):
-            row = evaluate_on_set(model, ArraySet(np.asarray(fields[truth]), ds.mesh, ds.scenario, poses, params), None)
+            row = evaluate_on_set(model, ArraySet.of_samples(ds, kept, fields[truth]), None)
             print(f"{label:<14} {truth:<11} {row['mlp_offset_max']:6.2f} / {row['mlp_offset_mean']:5.3f}   "
                   f"{row['rigid_offset_max']:6.2f}  {row['ridge_offset_max']:6.2f}  "
                   f"{row.get('mlp_tre_mean', float('nan')):5.2f} ({100 * row.get('mlp_corrected', float('nan')):3.0f} %)   "

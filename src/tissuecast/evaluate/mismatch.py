@@ -169,6 +169,16 @@ class ArraySet:
         self.instrument_poses = instrument_poses or {}
         self.parameters = parameters or {}
 
+    @classmethod
+    def of_samples(cls, dataset, samples, displacements: np.ndarray) -> "ArraySet":
+        """Other fields of ``dataset``'s samples ``samples`` ((k,) ids; e.g. solved again on a
+        finer mesh), with the data set's mesh and scenario record and those samples' instrument
+        poses and parameters; ``displacements`` (k, n, 3) float mm."""
+        kept = np.asarray(samples, dtype=np.int64)
+        poses = {name: {part: v[kept] for part, v in pose.items()} for name, pose in dataset.instrument_poses.items()}
+        return cls(np.asarray(displacements).reshape(len(kept), dataset.mesh.n_vertices, 3), dataset.mesh,
+                   dataset.scenario, poses, {name: v[kept] for name, v in dataset.parameters.items()})
+
     def select(self, split=None, status: str | None = "done") -> np.ndarray:
         """Every sample is test-1 and done."""
         return np.arange(len(self.displacements)) if split in (None, "test1") else np.zeros(0, dtype=np.int64)
@@ -194,14 +204,14 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
 
     ds = open_dataset(nominal_store)
     cfg = ds.config
-    scenario = restore_scenario(ds.mesh, cfg, ds.scenario_arrays, ds.basis)
-    refined = refine_uniformly(ds.mesh)
-    solver_cfg = dataclasses.replace(cfg.solver, order=2)
     folder.mkdir(parents=True, exist_ok=True)
     limit = float("inf") if time_limit is None else float(time_limit)
-    todo = [int(k) for k in ds.select("test1", status="done")[:samples]
-            if not (folder / f"sample_{int(k):05d}.npy").is_file() and _retry_refined(folder, int(k), limit)]
-    if todo:
+    chosen = [int(k) for k in ds.select("test1", status="done")[:samples]]
+    todo = [k for k in chosen if not _refined_file(folder, k).is_file() and _retry_refined(folder, k, limit)]
+    if todo:  # the refined problem is built only when there is something to solve
+        scenario = restore_scenario(ds.mesh, cfg, ds.scenario_arrays, ds.basis)
+        refined = refine_uniformly(ds.mesh)
+        solver_cfg = dataclasses.replace(cfg.solver, order=2)
         log.info("discretisation: solving %d nominal samples again on the refined mesh (%d vertices, quadratic "
                  "elements; each can take minutes, at most %s), saved in %s as they come", len(todo),
                  refined.mesh.n_vertices, "no limit" if time_limit is None else f"{limit:.0f} s", folder)
@@ -217,29 +227,31 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
         except ConvergenceError as exc:
             seconds = time.perf_counter() - t0
             why = "ran past its time limit" if isinstance(exc, SolveTimeout) else "did not converge"
-            record = folder / f"sample_{k:05d}.failed.json"
+            record = _refined_file(folder, k, failed=True)
             record.write_text(json.dumps({"sample": k, "reason": str(exc), "timeout": isinstance(exc, SolveTimeout),
                                           "seconds": seconds, "time_limit": time_limit}, indent=1) + "\n")
             log.warning("discretisation: sample %d %s on the refined mesh (%s); left out and recorded in %s (a "
                         "larger --refined-time-limit tries it again)", k, why, exc, record)
         else:
-            np.save(folder / f"sample_{k:05d}.npy", refined.coarse_values(res.displacement))
+            np.save(_refined_file(folder, k), refined.coarse_values(res.displacement))
             seconds = time.perf_counter() - t0
             log.info("discretisation: sample %d solved on the refined mesh in %.0f s", k, seconds)
         spent += seconds
         log.info("discretisation: %d of %d tried; about %.0f min left (--refined-samples sets how many, "
                  "--sets can leave the set out)", done, len(todo), (len(todo) - done) * spent / done / 60.0)
-    kept = [int(k) for k in ds.select("test1", status="done")[:samples] if (folder / f"sample_{int(k):05d}.npy").is_file()]
-    out = [np.load(folder / f"sample_{k:05d}.npy") for k in kept]
-    poses = {name: {part: v[kept] for part, v in pose.items()} for name, pose in ds.instrument_poses.items()}
-    return ArraySet(np.asarray(out).reshape(len(out), ds.mesh.n_vertices, 3), ds.mesh, ds.scenario, poses,
-                    {name: v[kept] for name, v in ds.parameters.items()})
+    kept = [k for k in chosen if _refined_file(folder, k).is_file()]
+    return ArraySet.of_samples(ds, kept, [np.load(_refined_file(folder, k)) for k in kept])
+
+
+def _refined_file(folder: Path, k: int, *, failed: bool = False) -> Path:
+    """Where sample ``k``'s refined answer is saved (``.npy``), or its failure recorded (``.failed.json``)."""
+    return folder / f"sample_{k:05d}{'.failed.json' if failed else '.npy'}"
 
 
 def _retry_refined(folder: Path, k: int, limit: float) -> bool:
     """Whether sample ``k``'s refined solve is to be tried: no failure recorded, or a time-out
     under a smaller limit than ``limit`` s."""
-    record = folder / f"sample_{k:05d}.failed.json"
+    record = _refined_file(folder, k, failed=True)
     if not record.is_file():
         return True
     doc = json.loads(record.read_text())
