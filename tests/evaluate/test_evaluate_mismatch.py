@@ -96,7 +96,7 @@ def test_the_refined_sample_carries_the_same_loads_and_converges(tmp_path):
     assert err_p2 < 0.5 * err_p1
 
 
-def test_a_small_mismatch_study_through_the_cli(tmp_path):
+def test_a_small_mismatch_study_through_the_cli(tmp_path, capsys):
     from tissuecast.cli.main import main
 
     models = {}
@@ -110,6 +110,9 @@ def test_a_small_mismatch_study_through_the_cli(tmp_path):
         assert main(["-q", "train", str(path), "--out", str(tmp_path / label / "model")]) == 0
         models[label] = tmp_path / label / "model"
     out = tmp_path / "study"
+    assert main(["-q", "study", "mismatch", str(tmp_path / "uncertain.toml"), "--model", f"u={models['uncertain']}",
+                 "--refined-time-limit", "-5"]) == 2
+    assert "--refined-time-limit -5: give seconds > 0, or 0 for no limit" in capsys.readouterr().err
     code = main(["-q", "study", "mismatch", str(tmp_path / "uncertain.toml"), "--out", str(out),
                  "--model", f"nominal={models['nominal']}", "--model", f"uncertain={models['uncertain']}",
                  "--sets", "E x2,attached -5 mm,discretisation", "--samples", "6", "--refined-samples", "2"])

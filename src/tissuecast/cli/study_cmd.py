@@ -78,6 +78,10 @@ def _mismatch(args) -> int:
 
     if not args.source or not Path(args.source).is_file():
         raise ConfigError("study mismatch takes the scenario's TOML config (CONFIG), e.g. configs/embedded.toml")
+    limit = mm.REFINED_TIME_LIMIT if args.refined_time_limit is None else args.refined_time_limit
+    if limit < 0:
+        raise ConfigError(f"--refined-time-limit {limit:g}: give seconds > 0, or 0 for no limit")
+    limit = limit or None
     cfg = load_run_config(args.source)
     models = _models(args.model)
     first = next(iter(models.values()))
@@ -88,10 +92,6 @@ def _mismatch(args) -> int:
     out = Path(args.out) if args.out else run_paths(cfg).report
     samples = args.samples or mm.DEFAULT_SAMPLES
     refined = args.refined_samples or mm.DISCRETISATION_SAMPLES
-    limit = mm.REFINED_TIME_LIMIT if args.refined_time_limit is None else args.refined_time_limit
-    if limit < 0:
-        raise ConfigError(f"--refined-time-limit {limit:g}: give seconds > 0, or 0 for no limit")
-    limit = limit or None
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     print(f"mismatch study: {len(models)} model(s), {samples} samples a set ({refined} on the refined mesh), "
           f"alpha {alpha:.4g} N; sets kept in {out / 'mismatch'} (a second run resumes them)", flush=True)
