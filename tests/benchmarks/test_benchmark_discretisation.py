@@ -44,7 +44,8 @@ def test_quadratic_reference_and_models_against_both(tmp_path, capsys):
                      "--model", f"linear={tmp_path / 'model'}"]) == 0
     out = capsys.readouterr().out
     assert "against P2 on this mesh, 2 test-1 samples" in out
-    assert out.count("mm from the attached region and nan mm from the instrument's contact") == 2  # no instrument here
+    assert out.count("mm from the supports and nan mm from the instrument's contact") == 2  # no instrument here
+    assert out.count("after a rigid fit, which turns it by") == 2
     assert sum(line.startswith("linear") for line in out.splitlines()) == 2  # against the data and the reference
     cached = sorted((tmp_path / "c").glob("sample_*.p2.npy"))
     assert len(cached) == 2 and not list((tmp_path / "c").glob("*.reference.npy"))
@@ -61,3 +62,18 @@ def test_quadratic_reference_and_models_against_both(tmp_path, capsys):
         q = with_overrides(cfg, dataset={"store": str(tmp_path / "q.zarr"), "n_samples": 20}, solver={"order": 2})
         simulate(q, progress=False)
         mod.main([q.dataset.store, "--reference", "p2"])
+
+
+def test_a_swing_of_the_whole_body_is_taken_out_and_its_angle_measured():
+    rng = np.random.default_rng(0)
+    points = rng.normal(size=(50, 3)) * 20.0
+    ref = rng.normal(size=(50, 3))
+    angle = np.radians(7.0)
+    turn = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0], [0.0, 0.0, 1.0]])
+    swung = (points + ref) @ turn.T + np.array([1.0, -2.0, 0.5]) - points  # the reference, turned and moved
+    bump = np.zeros_like(ref)
+    bump[3] = [0.0, 0.0, 0.4]
+    errors, deg = _module()._after_rigid(points, swung + bump, ref)
+    assert deg == pytest.approx(7.0, abs=0.05)
+    assert errors.max() == pytest.approx(0.4, abs=0.02) and int(np.argmax(errors)) == 3
+    assert np.linalg.norm(swung - ref, axis=1).max() > 2.0  # before the fit the swing dominates

@@ -10,7 +10,8 @@ import pytest
 
 from tissuecast.config import with_overrides
 from tissuecast.dataset import open_dataset, simulate
-from tissuecast.evaluate.mismatch import mismatch_sets, set_config
+from tissuecast.errors import ConfigError
+from tissuecast.evaluate.mismatch import ReferenceSolver, chosen_sets, mismatch_sets, set_config
 from tissuecast.fem import Solver
 from tissuecast.mesh.refine import refine_uniformly
 from tissuecast.scenario import scenario_from_config
@@ -40,7 +41,16 @@ def test_the_sets_their_ranges_and_their_configs(tmp_path):
     cfg = _config(tmp_path)
     mesh, markers, fixed, _ = scenario_from_config(cfg)
     sets = {s.name: s for s in mismatch_sets(cfg, mesh)}
-    assert list(sets)[0] == "nominal" and "discretisation" in sets and sets["discretisation"].refined
+    assert list(sets)[0] == "nominal" and sets["discretisation"].reference == "refined"
+    assert sets["quadratic elements"].reference == "p2"  # linear elements here: their order's share too
+    # the refined solves take minutes to tens of minutes: run when named, not by default
+    default = [s.name for s in chosen_sets(cfg, mesh)]
+    assert "discretisation" not in default and "quadratic elements" in default and default[0] == "nominal"
+    assert [s.name for s in chosen_sets(cfg, mesh, ["discretisation"])] == ["nominal", "discretisation"]
+    with pytest.raises(ConfigError, match=r"unknown mismatch set\(s\) \['E x3'\]; choose among"):
+        chosen_sets(cfg, mesh, ["E x3"])
+    quadratic = with_overrides(cfg, solver={"order": 2})
+    assert "quadratic elements" not in {s.name for s in mismatch_sets(quadratic, mesh)}  # it would be the data itself
     assert sets["E x0.5"].in_range and sets["E x2"].in_range and not sets["E x4"].in_range
     assert sets["springs x0.25"].in_range and sets["attached +5 mm"].in_range and not sets["attached +10 mm"].in_range
     assert not sets["nu 0.40"].in_range  # the config draws no nu
@@ -115,12 +125,20 @@ def test_a_small_mismatch_study_through_the_cli(tmp_path, capsys):
     assert "--refined-time-limit -5: give seconds > 0, or 0 for no limit" in capsys.readouterr().err
     code = main(["-q", "study", "mismatch", str(tmp_path / "uncertain.toml"), "--out", str(out),
                  "--model", f"nominal={models['nominal']}", "--model", f"uncertain={models['uncertain']}",
-                 "--sets", "E x2,attached -5 mm,discretisation", "--samples", "6", "--refined-samples", "2"])
+                 "--sets", "E x2,attached -5 mm,quadratic elements,discretisation", "--samples", "6",
+                 "--refined-samples", "2"])
     assert code == 0
     data = json.loads((out / "study_mismatch.json").read_text())
     rows = {(r["set"], r["model"]): r for r in data["rows"]}
-    assert set(rows) == {(s, m) for s in ("nominal", "E x2", "attached -5 mm", "discretisation")
+    assert set(rows) == {(s, m) for s in ("nominal", "E x2", "attached -5 mm", "quadratic elements", "discretisation")
                          for m in ("nominal", "uncertain")}
+    # the quadratic-elements set: the nominal set's first samples with P2 on the same mesh
+    nominal_set = open_dataset(out / "mismatch" / "nominal.zarr")
+    first = int(nominal_set.select("test1")[0])
+    p2 = np.load(out / "mismatch" / "quadratic_elements" / f"sample_{first:05d}.npy")
+    np.testing.assert_allclose(p2, ReferenceSolver(nominal_set, "p2").solve(first), rtol=1e-9, atol=1e-9)
+    linear = np.linalg.norm(nominal_set.displacements[first], axis=1)
+    assert np.linalg.norm(p2, axis=1).mean() > 1.05 * linear.mean()  # linear tetrahedra are the stiffer
     assert rows[("nominal", "uncertain")]["relative_vs_nominal"] == pytest.approx(1.0)
     assert rows[("E x2", "nominal")]["in_range"] is True and rows[("E x2", "nominal")]["count"] == 6
     assert (out / "study_mismatch.png").is_file() and (out / "study_mismatch.csv").is_file()
@@ -145,7 +163,8 @@ def test_every_default_set_has_its_own_folder():
     from tissuecast.evaluate.mismatch import set_folder_name
 
     names = ["nominal", "E x0.5", "E x2", "E x4", "nu 0.40", "nu 0.49", "springs x0.25", "springs x4", "attached +5 mm",
-             "attached -5 mm", "attached +10 mm", "gravity 45 deg off", "inclusion 3x E", "discretisation"]
+             "attached -5 mm", "attached +10 mm", "gravity 45 deg off", "inclusion 3x E", "quadratic elements",
+             "discretisation"]
     folders = [set_folder_name(n) for n in names]
     assert len(set(folders)) == len(names), folders
     assert set_folder_name("attached -5 mm") == "attached_minus5_mm" and set_folder_name("E x0.5") == "e_x0p5"
@@ -175,7 +194,6 @@ def test_run_with_a_nominal_expert(tmp_path):
     saves the pair; the config refuses what the expert cannot be built from."""
     from tissuecast.app.configuration import check_config
     from tissuecast.app.pipeline import run_pipeline
-    from tissuecast.errors import ConfigError
     from tissuecast.surrogate import DeformationModel
 
     cfg = with_overrides(_config(tmp_path), surrogate={"nominal_expert": True, "calibration_share": 0.3}, evaluate={"renders": 0},

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..evaluate.mismatch import DISCRETISATION_SAMPLES
 from ..evaluate.studies import ARCHITECTURE_REPEATS, ARCHITECTURE_WIDTHS, MARKER_COUNTS, PCA_MAX_COMPONENTS
 
 _WIDTHS = ",".join(str(w) for w in ARCHITECTURE_WIDTHS)
@@ -41,12 +42,15 @@ def register(sub) -> None:
     p.add_argument("--model", action="append", default=[], metavar="LABEL=DIR",
                    help="mismatch: a model folder to evaluate, with its label (repeat: e.g. nominal=runs/a/model "
                         "uncertain=runs/b/model)")
-    p.add_argument("--sets", default="", help="mismatch: comma-separated set names (default: every set the scenario has)")
+    p.add_argument("--sets", default="",
+                   help="mismatch: comma-separated set names (default: every set the scenario has but the refined "
+                        "'discretisation', whose solves take minutes to tens of minutes each: name it to run it)")
     p.add_argument("--samples", type=int, default=None, help="mismatch: samples per set (default 100)")
     p.add_argument("--refined-samples", type=int, default=None,
-                   help="mismatch: samples of the discretisation set, solved on the refined mesh (default 8)")
+                   help="mismatch: samples of the sets solved again with quadratic elements ('quadratic elements' on "
+                        f"the same mesh, 'discretisation' on the refined one; default {DISCRETISATION_SAMPLES})")
     p.add_argument("--refined-time-limit", type=float, default=None, metavar="SECONDS",
-                   help="mismatch: wall-clock limit of one refined solve of the discretisation set; a sample past it is "
+                   help="mismatch: wall-clock limit of one solve of those sets; a sample past it is "
                         "left out and recorded, and tried again only under a larger limit (default 900; 0 = none)")
     p.add_argument("--alpha", type=float, default=0.0,
                    help="mismatch: force magnitude of the sets, N (default: the first model's training store's)")
@@ -93,8 +97,10 @@ def _mismatch(args) -> int:
     samples = args.samples or mm.DEFAULT_SAMPLES
     refined = args.refined_samples or mm.DISCRETISATION_SAMPLES
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
-    print(f"mismatch study: {len(models)} model(s), {samples} samples a set ({refined} on the refined mesh), "
-          f"alpha {alpha:.4g} N; sets kept in {out / 'mismatch'} (a second run resumes them)", flush=True)
+    names = [s.name for s in mm.chosen_sets(cfg, first.mesh, sets)]
+    print(f"mismatch study: {len(models)} model(s), sets {', '.join(names)}; {samples} samples a set ({refined} for "
+          f"those solved again with quadratic elements), alpha {alpha:.4g} N; sets kept in {out / 'mismatch'} (a "
+          "second run resumes them)", flush=True)
     rows = mm.mismatch_study(cfg, models, out / "mismatch", alpha=alpha, sets=sets, samples=samples,
                              refined_samples=refined, refined_time_limit=limit, progress=True,
                              on_row=lambda r: print(f"  {r['set']} / {r['model']}: Offset_max {r['mlp_offset_max']:.3g} mm "

@@ -17,9 +17,14 @@ The sets (:func:`mismatch_sets`, those the scenario has the parts for):
 * ``gravity 45 deg off`` -- the surgery's gravity direction 45 degrees from the nominal one;
 * ``inclusion 3x E`` -- a sphere of a third of the body's smallest extent at its centre, three
   times as stiff;
+* ``quadratic elements`` (a data set of linear elements only) -- the nominal samples solved
+  again with quadratic elements on the same mesh: the element order's share of the truth's
+  own discretisation error (a lower bound of the whole);
 * ``discretisation`` -- the nominal samples solved again on the uniformly refined mesh with
   quadratic elements (:mod:`tissuecast.scenario.refined`), read on the model's vertices: the
-  truth's own discretisation error.
+  truth's discretisation error against a finer reference. Its solves take much longer than a
+  data set's (minutes to tens of minutes each on a 2-core machine), so it runs only when named
+  (``sets``); every other set runs by default.
 
 A set is a data set (:func:`tissuecast.dataset.simulate`, resumable) of the config with no
 uncertain parameter drawn but the set's one fixed, every sample in test-1, the force
@@ -43,16 +48,16 @@ import numpy as np
 
 from ..config import Config, nothing_drawn, with_overrides
 
-__all__ = ["MismatchSet", "mismatch_sets", "set_config", "ArraySet", "discretisation_set", "evaluate_on_set", "set_folder_name",
-           "store_alpha", "mismatch_study", "DEFAULT_SAMPLES", "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT",
-           "STUDY_SEED_OFFSET"]
+__all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver", "discretisation_set",
+           "evaluate_on_set", "set_folder_name", "store_alpha", "mismatch_study", "DEFAULT_SAMPLES",
+           "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT", "STUDY_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
 
-#: Samples per set by default, and of the (costly) discretisation set.
+#: Samples per set by default, and of each (costly) set solved again with quadratic elements.
 DEFAULT_SAMPLES = 100
-DISCRETISATION_SAMPLES = 8
-#: Wall-clock limit of one refined solve of the discretisation set by default, s.
+DISCRETISATION_SAMPLES = 4
+#: Wall-clock limit of one solve of those sets by default, s.
 REFINED_TIME_LIMIT = 900.0
 #: The sets' data-set seed is the config's plus this.
 STUDY_SEED_OFFSET = 7919
@@ -68,7 +73,9 @@ class MismatchSet:
         uncertain: ``[scenario.uncertain]`` fixed values of the set (``{name: [v, v]}``).
         scenario: other ``[scenario]`` overrides (gravity direction, an inclusion).
         in_range: whether the config's uncertain ranges cover it (None for the nominal set).
-        refined: the discretisation reference (solved on the refined mesh, not simulated).
+        reference: ``""`` for a simulated set; ``"p2"`` or ``"refined"`` for the nominal samples
+            solved again (:class:`ReferenceSolver`).
+        default: whether the study runs it when no set is named.
     """
 
     name: str
@@ -76,7 +83,8 @@ class MismatchSet:
     uncertain: dict = dataclasses.field(default_factory=dict)
     scenario: dict = dataclasses.field(default_factory=dict)
     in_range: bool | None = None
-    refined: bool = False
+    reference: str = ""
+    default: bool = True
 
 
 def _covers(bounds: tuple, value: float) -> bool:
@@ -131,9 +139,30 @@ def mismatch_sets(config: Config, mesh) -> list[MismatchSet]:
                  "poisson_ratio": config.material.poisson_ratio}
     out.append(MismatchSet("inclusion 3x E", "a stiffer inclusion (3x E) at the body's centre",
                            scenario={"materials": {"regions": regions + [inclusion]}}, in_range=False))
+    if config.solver.order == 1:
+        out.append(MismatchSet("quadratic elements", "the nominal samples with quadratic elements on the same mesh",
+                               reference="p2", in_range=None))
     out.append(MismatchSet("discretisation", "the nominal samples on the refined mesh, quadratic elements",
-                           refined=True, in_range=None))
+                           reference="refined", in_range=None, default=False))
     return out
+
+
+def chosen_sets(config: Config, mesh, names=None) -> list[MismatchSet]:
+    """The sets a study runs: ``names`` (and the nominal set, which every relative figure
+    needs), or by default those of :func:`mismatch_sets` marked ``default``.
+
+    Raises:
+        ConfigError: a name that is not a set of this scenario (the error lists them).
+    """
+    every = mismatch_sets(config, mesh)
+    if not names:
+        return [s for s in every if s.default]
+    unknown = set(names) - {s.name for s in every}
+    if unknown:
+        from ..errors import ConfigError
+
+        raise ConfigError(f"unknown mismatch set(s) {sorted(unknown)}; choose among {[s.name for s in every]}")
+    return [s for s in every if s.name in names or s.name == "nominal"]
 
 
 def set_config(config: Config, mset: MismatchSet, *, alpha: float, samples: int, markers, fixed, store) -> Config:
@@ -184,58 +213,108 @@ class ArraySet:
         return np.arange(len(self.displacements)) if split in (None, "test1") else np.zeros(0, dtype=np.int64)
 
 
-def discretisation_set(config: Config, nominal_store, folder: Path, samples: int, *,
-                       time_limit: float | None = REFINED_TIME_LIMIT) -> ArraySet:
-    """The first ``samples`` samples of the nominal set solved on the refined mesh with quadratic
-    elements, read on the coarse vertices, with their instrument poses and parameters: an
-    :class:`ArraySet` of k <= ``samples`` fields. Each is saved in ``folder`` as it comes and
-    reused when the study is run again.
+class ReferenceSolver:
+    """Solves a data set's samples again with quadratic elements, read on its vertices.
 
-    A refined solve that does not converge, or runs past ``time_limit`` s (None: no limit), is
-    left out, logged and recorded in ``folder`` (``sample_NNNNN.failed.json``: why, how long it
-    ran, the limit): a second run does not try it again unless its limit is larger than the
-    recorded one (or the record is deleted)."""
+    Args:
+        dataset: the data set (its mesh, config, scenario arrays, seeds, alphas and fields).
+        kind: ``"refined"`` (the uniformly refined mesh, :mod:`tissuecast.scenario.refined`) or
+            ``"p2"`` (the data set's own mesh: the element order's share of the error alone).
+
+    Each solve starts from the data set's own answer, with the data set's solver settings.
+    """
+
+    def __init__(self, dataset, kind: str):
+        from ..scenario import restore_scenario
+
+        if kind not in ("refined", "p2"):
+            raise ValueError(f"kind must be 'refined' or 'p2', got {kind!r}")
+        self.dataset, self.kind = dataset, kind
+        cfg = dataset.config
+        self.solver_config = dataclasses.replace(cfg.solver, order=2)
+        if kind == "refined":
+            from ..mesh.refine import refine_uniformly
+
+            self.scenario = restore_scenario(dataset.mesh, cfg, dataset.scenario_arrays, dataset.basis)
+            self.refined = refine_uniformly(dataset.mesh)
+        else:
+            self.scenario = restore_scenario(dataset.mesh, with_overrides(cfg, solver={"order": 2}),
+                                             dataset.scenario_arrays, dataset.basis)
+            self.refined = None
+
+    @property
+    def n_vertices(self) -> int:
+        """Vertices of the mesh the reference is solved on."""
+        return (self.dataset.mesh if self.refined is None else self.refined.mesh).n_vertices
+
+    def solve(self, k: int, *, time_limit: float | None = None) -> np.ndarray:
+        """Sample ``k``'s answer (n, 3) float64 mm on the data set's n vertices.
+
+        Raises:
+            ConvergenceError: the solve does not converge; SolveTimeout (one) past ``time_limit`` s.
+        """
+        from ..fem import Solver
+        from ..scenario.refined import refined_sample
+
+        ds = self.dataset
+        inputs = self.scenario.sample(int(ds.seed[k]), float(ds.alpha[k]))
+        data = np.asarray(ds.displacements[k], dtype=np.float64)
+        if self.refined is not None:
+            fine = refined_sample(self.scenario, ds.config, self.refined, inputs)
+            res = Solver(fine.problem, self.solver_config).solve(
+                fine.surface, initial_guess=self.refined.from_coarse(data), time_limit=time_limit, **fine.keywords)
+            return self.refined.coarse_values(res.displacement)
+        problem = self.scenario.problem()
+        changes = {key: v for key, v in zip(("materials", "springs"), inputs.solver_parameters) if v is not None}
+        problem = dataclasses.replace(problem, **changes) if changes else problem
+        res = Solver(problem, self.solver_config).solve(inputs.surface, initial_guess=data, time_limit=time_limit,
+                                                        **inputs.solve_keywords())
+        return np.asarray(res.displacement[: ds.mesh.n_vertices])
+
+
+def discretisation_set(config: Config, nominal_store, folder: Path, samples: int, *, reference: str = "refined",
+                       time_limit: float | None = REFINED_TIME_LIMIT) -> ArraySet:
+    """The first ``samples`` samples of the nominal set solved again with quadratic elements
+    (:class:`ReferenceSolver`, ``reference`` ``"refined"`` or ``"p2"``), read on the coarse
+    vertices, with their instrument poses and parameters: an :class:`ArraySet` of k <=
+    ``samples`` fields. Each is saved in ``folder`` as it comes and reused when the study is run
+    again.
+
+    A solve that does not converge, or runs past ``time_limit`` s (None: no limit), is left
+    out, logged and recorded in ``folder`` (``sample_NNNNN.failed.json``: why, how long it ran,
+    the limit): a second run does not try it again unless its limit is larger than the recorded
+    one (or the record is deleted)."""
     from ..dataset import open_dataset
     from ..errors import ConvergenceError, SolveTimeout
-    from ..fem import Solver
-    from ..mesh.refine import refine_uniformly
-    from ..scenario import restore_scenario
-    from ..scenario.refined import refined_sample
 
     ds = open_dataset(nominal_store)
-    cfg = ds.config
     folder.mkdir(parents=True, exist_ok=True)
     limit = float("inf") if time_limit is None else float(time_limit)
     chosen = [int(k) for k in ds.select("test1", status="done")[:samples]]
     todo = [k for k in chosen if not _refined_file(folder, k).is_file() and _retry_refined(folder, k, limit)]
-    if todo:  # the refined problem is built only when there is something to solve
-        scenario = restore_scenario(ds.mesh, cfg, ds.scenario_arrays, ds.basis)
-        refined = refine_uniformly(ds.mesh)
-        solver_cfg = dataclasses.replace(cfg.solver, order=2)
-        log.info("discretisation: solving %d nominal samples again on the refined mesh (%d vertices, quadratic "
-                 "elements; each can take minutes, at most %s), saved in %s as they come", len(todo),
-                 refined.mesh.n_vertices, "no limit" if time_limit is None else f"{limit:.0f} s", folder)
+    where = "on the refined mesh" if reference == "refined" else "with quadratic elements on the same mesh"
+    if todo:  # the reference's problem is built only when there is something to solve
+        solver = ReferenceSolver(ds, reference)
+        log.info("discretisation: solving %d nominal samples again %s (%d vertices, quadratic elements; each can take "
+                 "minutes, at most %s), saved in %s as they come", len(todo), where, solver.n_vertices,
+                 "no limit" if time_limit is None else f"{limit:.0f} s", folder)
     spent = 0.0
     for done, k in enumerate(todo, start=1):
         t0 = time.perf_counter()
-        inputs = scenario.sample(int(ds.seed[k]), float(ds.alpha[k]))
-        fine = refined_sample(scenario, cfg, refined, inputs)
-        guess = refined.from_coarse(np.asarray(ds.displacements[k], dtype=np.float64))
         try:
-            res = Solver(fine.problem, solver_cfg).solve(fine.surface, initial_guess=guess, time_limit=time_limit,
-                                                         **fine.keywords)
+            field = solver.solve(k, time_limit=time_limit)
         except ConvergenceError as exc:
             seconds = time.perf_counter() - t0
             why = "ran past its time limit" if isinstance(exc, SolveTimeout) else "did not converge"
             record = _refined_file(folder, k, failed=True)
             record.write_text(json.dumps({"sample": k, "reason": str(exc), "timeout": isinstance(exc, SolveTimeout),
                                           "seconds": seconds, "time_limit": time_limit}, indent=1) + "\n")
-            log.warning("discretisation: sample %d %s on the refined mesh (%s); left out and recorded in %s (a "
-                        "larger --refined-time-limit tries it again)", k, why, exc, record)
+            log.warning("discretisation: sample %d %s %s (%s); left out and recorded in %s (a larger "
+                        "--refined-time-limit tries it again)", k, why, where, exc, record)
         else:
-            np.save(_refined_file(folder, k), refined.coarse_values(res.displacement))
+            np.save(_refined_file(folder, k), field)
             seconds = time.perf_counter() - t0
-            log.info("discretisation: sample %d solved on the refined mesh in %.0f s", k, seconds)
+            log.info("discretisation: sample %d solved %s in %.0f s", k, where, seconds)
         spent += seconds
         log.info("discretisation: %d of %d tried; about %.0f min left (--refined-samples sets how many, "
                  "--sets can leave the set out)", done, len(todo), (len(todo) - done) * spent / done / 60.0)
@@ -310,9 +389,9 @@ def _set_dataset(config: Config, mset: MismatchSet, folder: Path, *, alpha, samp
     discretisation set, as an :class:`ArraySet`; None when it has no sample."""
     from ..dataset import open_dataset, simulate
 
-    if mset.refined:
-        fields = discretisation_set(config, nominal_store, folder / "discretisation", samples,
-                                    time_limit=refined_time_limit)
+    if mset.reference:
+        fields = discretisation_set(config, nominal_store, folder / set_folder_name(mset.name), samples,
+                                    reference=mset.reference, time_limit=refined_time_limit)
         return fields if fields.n_samples else None
     store = folder / f"{set_folder_name(mset.name)}.zarr"
     cfg = set_config(config, mset, alpha=alpha, samples=samples, markers=model.markers, fixed=model.fixed, store=store)
@@ -338,10 +417,11 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
             the config's mesh with the same markers.
         folder: where the sets' stores are kept (resumed when the study is run again).
         alpha: the force magnitude of every set, N.
-        sets: names of the sets to run (default all of :func:`mismatch_sets`).
-        samples: samples per set; ``refined_samples`` of the discretisation set.
-        refined_time_limit: wall-clock limit of one refined solve of the discretisation set, s
-            (None: none); a sample past it is left out (:func:`discretisation_set`).
+        sets: names of the sets to run (default: those of :func:`mismatch_sets` marked ``default``,
+            every one but the refined ``discretisation``).
+        samples: samples per set; ``refined_samples`` of each set solved again with quadratic elements.
+        refined_time_limit: wall-clock limit of one solve of those sets, s (None: none); a sample
+            past it is left out (:func:`discretisation_set`).
         targets: where TRE is measured (default: the evaluation's interior rule).
         progress: progress bars of the simulations.
         on_row: called with each row as it comes.
@@ -353,18 +433,11 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
     """
     folder = Path(folder)
     first = next(iter(models.values()))
-    chosen = mismatch_sets(config, first.mesh)
-    if sets:
-        unknown = set(sets) - {s.name for s in chosen}
-        if unknown:
-            from ..errors import ConfigError
-
-            raise ConfigError(f"unknown mismatch set(s) {sorted(unknown)}; choose among {[s.name for s in chosen]}")
-        chosen = [s for s in chosen if s.name in sets or s.name == "nominal"]
+    chosen = chosen_sets(config, first.mesh, sets)
     rows, nominal_relative = [], {}
     nominal_store = folder / "nominal.zarr"
     for mset in chosen:
-        ds = _set_dataset(config, mset, folder, alpha=alpha, samples=refined_samples if mset.refined else samples,
+        ds = _set_dataset(config, mset, folder, alpha=alpha, samples=refined_samples if mset.reference else samples,
                           model=first, progress=progress, nominal_store=nominal_store,
                           refined_time_limit=refined_time_limit)
         if ds is None:
