@@ -8,7 +8,7 @@ import pytest
 
 from tissuecast.errors import ModelError
 from tissuecast.surrogate import DeformationModel
-from tissuecast.surrogate.experts import GATE_FEATURES, ExpertGate, gate_features
+from tissuecast.surrogate.experts import GATE_FEATURES, ExpertGate, RouteCalibration, gate_features, out_of_fold_routes
 
 from _surrogate_synthetic import MARKERS, nonlinear_fields
 from _trust_synthetic import SPLITS, trust_data
@@ -45,6 +45,47 @@ def expert_model() -> DeformationModel:
 def gated() -> DeformationModel:
     _, U, _ = trust_data()
     return uncertain_model().with_nominal_expert(expert_model(), U[SPLITS["valid"]])
+
+
+def test_route_calibration_covers_each_route_at_its_level():
+    """Errors of known distributions on each route: uniform on [0, 0.5] x bound on one route,
+    [0, 2] x bound on the other; the per-route quantiles give each route its coverage."""
+    rng = np.random.default_rng(5)
+    B, n = 400, 30
+    bound = rng.uniform(0.5, 3.0, (B, n))
+    bound[:, 0] = 0.0  # a held vertex: no bound to scale, the model's own is kept
+    route = np.arange(B) % 2 == 0
+    errors = rng.uniform(0, 1, (B, n)) * np.where(route[:, None], 0.5, 2.0) * bound
+    # each route reads its own model's errors (the other model's, 100 mm off, must not count)
+    calib = RouteCalibration.fit(route, errors + 100.0 * ~route[:, None], errors + 100.0 * route[:, None], bound)
+    assert calib.summary() == {"expert_samples": 200, "model_samples": 200}
+    fresh_bound = rng.uniform(0.5, 3.0, (2000, n))
+    fresh_route = rng.uniform(size=2000) < 0.3
+    fresh = rng.uniform(0, 1, (2000, n)) * np.where(fresh_route[:, None], 0.5, 2.0) * fresh_bound
+    for level in (0.8, 0.9):
+        b = calib.bounds(fresh_route, fresh_bound, level)
+        for r in (fresh_route, ~fresh_route):
+            assert abs(np.mean(fresh[r][:, 1:] <= b[r][:, 1:]) - level) < 0.03
+    b = calib.bounds(fresh_route, fresh_bound, 0.9)
+    np.testing.assert_allclose(b[fresh_route, 1:] / fresh_bound[fresh_route, 1:], 0.45, atol=0.05)  # 0.9 x 0.5
+    assert np.isnan(calib.bounds(route, bound, 0.9)[:, 0]).all()  # the held vertex: the caller's own bound
+    assert np.isnan(calib.bounds(route, bound, 0.999)).all()  # 200 samples a route cannot say 99.9 %
+    back = RouteCalibration.from_arrays(calib.arrays())
+    np.testing.assert_allclose(back.bounds(fresh_route, fresh_bound, 0.9), b, rtol=1e-6)
+    with pytest.raises(ModelError, match="damaged"):
+        RouteCalibration.from_arrays({"expert": np.zeros((3, 4)), "model": np.zeros((3, 5))})
+
+
+def test_out_of_fold_routes_come_from_gates_that_did_not_see_the_sample():
+    rng = np.random.default_rng(2)
+    X = rng.normal(size=(300, len(GATE_FEATURES)))
+    y = X[:, 0] + 0.5 * rng.normal(size=300) > 0
+    routes = out_of_fold_routes(X, y, folds=3)
+    held = np.arange(300) % 3 == 1
+    np.testing.assert_array_equal(routes[held], ExpertGate.fit(X[~held], y[~held]).to_nominal(X[held]))
+    assert 0.8 < np.mean(routes == y) < 0.95  # the rule learned, the noise not
+    one = np.where(held, y, True)  # fold 1's others all say "the expert": so is fold 1 routed, whatever it holds
+    assert out_of_fold_routes(X, one, folds=3)[held].all() and not one[held].all()
 
 
 def test_gate_fit_recovers_a_logistic_rule_and_round_trips():
@@ -86,8 +127,21 @@ def test_routed_field_bounds_and_alarm():
     assert 0.05 < to_nominal.mean() < 0.95  # the gate uses both
     np.testing.assert_array_equal(tp.displacement[to_nominal], theirs.displacement[to_nominal])
     np.testing.assert_array_equal(tp.displacement[~to_nominal], mine.displacement[~to_nominal])
-    np.testing.assert_array_equal(tp.error_bound, mine.error_bound)  # bounds and alarm: the model's own
-    assert [a.raised for a in tp.alarms] == [a.raised for a in mine.alarms]
+    assert [a.raised for a in tp.alarms] == [a.raised for a in mine.alarms]  # the alarm: the model's own
+    # the bounds: calibrated per route on the gate's samples, each route covered at its level
+    errors = np.linalg.norm(tp.displacement - test, axis=2)
+    for route in (to_nominal, ~to_nominal):
+        assert 0.82 < np.mean(errors[route] <= tp.error_bound[route]) < 0.97
+    assert not np.allclose(tp.error_bound, mine.error_bound)
+    routes = pair.expert_routes_.summary()  # the gate's samples, split by their out-of-fold routes
+    assert routes["expert_samples"] + routes["model_samples"] == len(SPLITS["valid"]) and routes["expert_samples"] > 20
+    for level in (0.8, 0.95):
+        at = pair.predict_trusted(d, coverage=level, alarm=False)
+        assert at.coverage == level and abs(np.mean(errors <= at.error_bound) - level) < 0.04
+    # 0.99 needs 99 samples a route; the expert's route has fewer: its bounds are the model's own there
+    assert pair.expert_routes_.expert.n_calibration < 99
+    np.testing.assert_array_equal(pair.predict_trusted(d, coverage=0.99, alarm=False).error_bound[to_nominal],
+                                  model.predict_trusted(d, coverage=0.99, alarm=False).error_bound[to_nominal])
     np.testing.assert_array_equal(pair.predict(d), tp.displacement)
     one = pair.predict_trusted(d[0], alarm=False)
     np.testing.assert_allclose(one.displacement, tp.displacement[0], rtol=0, atol=1e-12)  # one sample: other BLAS sums
@@ -119,6 +173,17 @@ def test_saved_and_loaded(tmp_path):
     np.testing.assert_array_equal(a.displacement, b.displacement)
     np.testing.assert_allclose(a.error_bound, b.error_bound, rtol=1e-6)  # as any trust layer read back
     np.testing.assert_array_equal(back.expert_gate_.weights, pair.expert_gate_.weights)
+    # a pair saved before its bounds were calibrated per route: the uncertain model's bounds
+    import json
+
+    meta = json.loads((tmp_path / "m" / "model.json").read_text())
+    assert meta["nominal_expert"]["routes"] == "expert_routes.npz"
+    del meta["nominal_expert"]["routes"]
+    (tmp_path / "m" / "model.json").write_text(json.dumps(meta))
+    old = DeformationModel.load(tmp_path / "m")
+    assert old.expert_routes_ is None and old.describe()["expert_gate"]["bounds_per_route"] is None
+    np.testing.assert_allclose(old.predict_trusted(d).error_bound, uncertain_model().predict_trusted(d).error_bound,
+                               rtol=1e-6)
     with pytest.raises(ModelError, match="onnx"):
         pair.save(tmp_path / "o", onnx=True)
 

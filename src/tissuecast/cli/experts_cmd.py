@@ -4,8 +4,9 @@ UNCERTAIN is a model trained on a store with the scenario's parameters drawn
 (``[scenario.uncertain]``), NOMINAL one trained on a store of the same scenario at the nominal
 parameters, with UNCERTAIN's markers (``[markers] ids``) and instruments. The new model
 predicts each sample's field with NOMINAL where a gate, fitted here on the validation splits of
-both models' stores, expects it to be the better one, and with UNCERTAIN elsewhere; the error
-bounds and the alarm stay UNCERTAIN's (:mod:`tissuecast.surrogate.experts`, docs/uncertainty.md).
+both models' stores, expects it to be the better one, and with UNCERTAIN elsewhere; the alarm
+stays UNCERTAIN's, the error bounds are calibrated per route on the same samples
+(:mod:`tissuecast.surrogate.experts`, docs/uncertainty.md).
 The folder is a model folder like any other: ``predict``, ``evaluate``, ``serve`` and ``study
 mismatch`` take it.
 """
@@ -62,7 +63,7 @@ def run(args) -> int:
     gated.dataset_path = str(Path(store).resolve())
     gated.save(out)
     figures = {"samples": gated.expert_gate_.samples, "nominal_better": gated.expert_gate_.nominal_better,
-               **routing_figures(gated, fields, aux)}
+               **gated.expert_routes_.summary(), **routing_figures(gated, fields, aux)}
     if args.json:
         print(json.dumps({"model": str(Path(args.out)), "store": str(store),
                           "nominal_store": None if nominal_store is None else str(nominal_store), **figures}, indent=2))
@@ -75,7 +76,9 @@ def run(args) -> int:
           f"uncertain {figures['uncertain_offset_max']:.2f} mm, nominal {figures['nominal_offset_max']:.2f}, "
           f"routed {figures['routed_offset_max']:.2f} "
           f"({100 * figures['routed_to_nominal']:.0f} % to the nominal expert)")
-    print("  bounds and alarm: the uncertain model's; measure the pair on data it was not fitted on "
+    print(f"  bounds calibrated per route on the same samples, each routed by a gate fitted without it: "
+          f"{figures['expert_samples']} to the nominal expert, {figures['model_samples']} to the uncertain model; "
+          "the alarm is the uncertain model's. Measure the pair on data it was not fitted on "
           "(`tissuecast evaluate`, `tissuecast study mismatch`)")
     return 0
 

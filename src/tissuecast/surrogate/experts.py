@@ -14,10 +14,17 @@ of both families (the validation splits of the uncertain and the nominal store) 
 nominal expert when that probability is above one half, or to the uncertainty-trained model
 where a score is not finite.
 
-The error bounds and the alarm are always the uncertainty-trained model's: they were
-calibrated on the whole range of parameters, the nominal expert's only at the nominal ones.
-The routed field is as close or closer on the samples the gate sends to the nominal expert,
-so the bounds stay conservative (measured in docs/uncertainty.md). A sample with untracked
+The alarm is always the uncertainty-trained model's: it was calibrated on the whole range of
+parameters, the nominal expert's only at the nominal ones. The error bounds are calibrated per
+route (Mondrian conformal, :class:`RouteCalibration`): on the same held-out samples, each routed
+by a gate fitted without it (:func:`out_of_fold_routes`, 5 folds), the routed field's vertex
+errors over the uncertainty-trained model's normaliser give one set of conformal scores for the
+samples the gate sends to the expert and one for the rest. A sample's bound is its route's
+quantile times that normaliser, so the bounds hold at their coverage on each route (under
+draws like the held-out samples') instead of being the uncertainty-trained model's own, which
+over-cover where the expert answers. Where a route has too few samples for the coverage asked
+(or a vertex's normaliser is not defined), the uncertainty-trained model's bound is kept. A
+pair saved without route scores keeps that model's bounds everywhere. A sample with untracked
 markers is predicted by the uncertainty-trained model alone.
 """
 
@@ -28,11 +35,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ModelError
+from .conformal import VertexConformal
 from .field_predictor import FieldPredictor
 from .trust import TrustedPrediction
 
-__all__ = ["ExpertGate", "NominalExpertRouter", "GATE_FEATURES", "gate_features", "check_expert", "routed_field",
-           "routing_figures"]
+__all__ = ["ExpertGate", "NominalExpertRouter", "RouteCalibration", "GATE_FEATURES", "gate_features", "check_expert",
+           "routed_field", "routing_figures", "out_of_fold_routes", "ROUTE_FOLDS"]
 
 #: The alarm scores of each model that the gate reads (attributes of :class:`~.trust.Alarm`).
 GATE_SCORES = ("distance", "consistency", "fault", "marker_residual")
@@ -45,6 +53,8 @@ FEATURE_FLOOR = 1e-6
 GATE_PENALTY = 1.0
 #: Newton iterations of the logistic fit at most (it converges in about ten).
 GATE_ITERATIONS = 100
+#: Folds of the out-of-fold routes the bounds are calibrated on (:func:`out_of_fold_routes`).
+ROUTE_FOLDS = 5
 
 
 def gate_features(nominal: TrustedPrediction, uncertain: TrustedPrediction) -> np.ndarray:
@@ -149,6 +159,89 @@ class ExpertGate:
         return cls(*arrays, float(doc["bias"]), int(doc["samples"]), float(doc["nominal_better"]))
 
 
+def out_of_fold_routes(features: np.ndarray, nominal_better: np.ndarray, folds: int = ROUTE_FOLDS) -> np.ndarray:
+    """(B,) bool: where a gate fitted without each sample routes it to the nominal expert.
+
+    Sample b is in fold ``b % folds``; each fold is routed by :meth:`ExpertGate.fit` on the
+    others (a fold whose other folds all carry one label is routed by that label)."""
+    X = np.asarray(features, dtype=np.float64)
+    y = np.asarray(nominal_better, dtype=bool)
+    fold = np.arange(len(y)) % folds
+    out = np.zeros(len(y), dtype=bool)
+    for f in range(folds):
+        held, rest = fold == f, fold != f
+        if y[rest].all() or not y[rest].any():
+            out[held] = bool(y[rest].all())
+        else:
+            out[held] = ExpertGate.fit(X[rest], y[rest]).to_nominal(X[held])
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class RouteCalibration:
+    """Conformal scores of a pair's routed field, one set per route (module notes).
+
+    A score is a vertex error of the routed field over the uncertainty-trained model's bound
+    at its own coverage (its normaliser times a constant per vertex, which leaves per-vertex
+    conformal quantiles as they are); NaN where that bound is 0 or not finite.
+
+    Attributes:
+        expert: scores of the samples routed to the nominal expert, (m_e, n) sorted along samples.
+        model: the same for the samples routed to the uncertainty-trained model, (m_u, n).
+    """
+
+    expert: VertexConformal
+    model: VertexConformal
+
+    @classmethod
+    def fit(cls, to_nominal: np.ndarray, expert_errors: np.ndarray, model_errors: np.ndarray,
+            model_bounds: np.ndarray) -> "RouteCalibration":
+        """From held-out samples: their out-of-fold routes (B,) bool, both models' vertex errors
+        (B, n) mm and the uncertainty-trained model's bounds (B, n) mm at its own coverage."""
+        route = np.asarray(to_nominal, dtype=bool)
+        scores = _over(np.where(route[:, None], expert_errors, model_errors), model_bounds)
+        return cls(VertexConformal(np.sort(scores[route], axis=0)), VertexConformal(np.sort(scores[~route], axis=0)))
+
+    def bounds(self, to_nominal: np.ndarray, model_bounds: np.ndarray, coverage: float) -> np.ndarray:
+        """(B, n) mm bounds at ``coverage`` of fields routed as ``to_nominal`` (B,) bool, from the
+        uncertainty-trained model's bounds (B, n) mm at its own coverage; NaN where a route has
+        too few samples for ``coverage`` or the model's bound is 0 or not finite."""
+        route = np.asarray(to_nominal, dtype=bool)
+        q = np.where(route[:, None], self.expert.quantiles(coverage)[None, :], self.model.quantiles(coverage)[None, :])
+        b = np.asarray(model_bounds, dtype=np.float64)
+        usable = np.isfinite(b) & (b > 0) & np.isfinite(q)
+        with np.errstate(invalid="ignore", over="ignore"):
+            return np.where(usable, q * b, np.nan)
+
+    def arrays(self) -> dict:
+        """``{"expert", "model"}`` sorted scores, float32 (what :meth:`from_arrays` reads)."""
+        return {"expert": self.expert.sorted_scores.astype(np.float32),
+                "model": self.model.sorted_scores.astype(np.float32)}
+
+    @classmethod
+    def from_arrays(cls, arrays) -> "RouteCalibration":
+        """Read :meth:`arrays`' form.
+
+        Raises:
+            ModelError: the two arrays are not (m, n) with the same n.
+        """
+        e, m = (np.asarray(arrays[k], dtype=np.float32) for k in ("expert", "model"))
+        if e.ndim != 2 or m.ndim != 2 or e.shape[1] != m.shape[1]:
+            raise ModelError(f"the pair's route scores are damaged ({e.shape}, {m.shape}); make the pair again with "
+                             "`tissuecast experts`")
+        return cls(VertexConformal(e), VertexConformal(m))
+
+    def summary(self) -> dict:
+        return {"expert_samples": self.expert.n_calibration, "model_samples": self.model.n_calibration}
+
+
+def _over(errors: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """errors (B, n) over bounds (B, n), NaN where a bound is 0 or not finite."""
+    b = np.asarray(bounds, dtype=np.float64)
+    ok = np.isfinite(b) & (b > 0)
+    return np.where(ok, np.asarray(errors, dtype=np.float64) / np.where(ok, b, 1.0), np.nan)
+
+
 def check_expert(trusted: FieldPredictor, expert: FieldPredictor) -> None:
     """Raise :class:`~tissuecast.errors.ModelError` unless ``expert`` can stand beside
     ``trusted``: both calibrated, the same mesh size, markers and auxiliary inputs."""
@@ -210,9 +303,10 @@ class NominalExpertRouter(FieldPredictor):
     has_trust = True
     alarm_with_field = True  # the gate reads the alarm: predict_trusted computes it with every field
 
-    def __init__(self, learned: FieldPredictor, trusted: FieldPredictor, expert: FieldPredictor, gate: ExpertGate):
+    def __init__(self, learned: FieldPredictor, trusted: FieldPredictor, expert: FieldPredictor, gate: ExpertGate,
+                 routes: RouteCalibration | None = None):
         check_expert(trusted, expert)
-        self.learned, self.trusted, self.expert, self.gate = learned, trusted, expert, gate
+        self.learned, self.trusted, self.expert, self.gate, self.route_calibration = learned, trusted, expert, gate, routes
 
     # ------------------------------------------------------------------ the protocol
     @property
@@ -237,8 +331,10 @@ class NominalExpertRouter(FieldPredictor):
 
     def routes(self, d: np.ndarray, a: np.ndarray | None, *, coverage=None, false_alarm=None):
         """``(to_nominal (B,) bool, the model's TrustedPrediction, the expert's)`` of checked
-        displacements d (B, 3 n_d) mm and auxiliary inputs a (B, n_a) or None."""
-        mine = self.trusted.predict_trusted(d, coverage=coverage, false_alarm=false_alarm, auxiliary=a)
+        displacements d (B, 3 n_d) mm and auxiliary inputs a (B, n_a) or None (the model's
+        bounds at its own coverage when the bounds are calibrated per route)."""
+        level = None if self.route_calibration is not None else coverage
+        mine = self.trusted.predict_trusted(d, coverage=level, false_alarm=false_alarm, auxiliary=a)
         theirs = self.expert.predict_trusted(d, coverage=coverage, auxiliary=a)
         return self.gate.to_nominal(gate_features(theirs, mine)), mine, theirs
 
@@ -264,24 +360,36 @@ class NominalExpertRouter(FieldPredictor):
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None,
                         auxiliary=None, alarm: bool = True) -> TrustedPrediction:
         """As :meth:`.trusted.TrustedPredictor.predict_trusted`: each sample's field from the
-        model the gate routes it to, the bounds and the alarm the uncertainty-trained model's
-        (``alarm=False`` leaves the alarm out of the answer; the gate computes it anyway)."""
+        model the gate routes it to, its bounds calibrated on that route (module notes), the
+        alarm the uncertainty-trained model's (``alarm=False`` leaves the alarm out of the
+        answer; the gate computes it anyway)."""
         d, _, single = self.marker_batch(marker_displacements)
         a = self.auxiliary_batch(auxiliary, d.shape[0])
         to_nominal, mine, theirs = self.routes(d, a, coverage=coverage, false_alarm=false_alarm)
         u = routed_field(to_nominal, mine.displacement, theirs.displacement)
+        bounds, level = mine.error_bound, mine.coverage
+        if self.route_calibration is not None:
+            level = coverage or mine.coverage
+            routed = self.route_calibration.bounds(to_nominal, bounds, level)
+            if np.isnan(routed).any():  # the model's own bound where a route cannot say
+                own = bounds if level == mine.coverage else self.trusted.predict_trusted(
+                    d, coverage=level, auxiliary=a, alarm=False).error_bound
+                routed = np.where(np.isnan(routed), own, routed)
+            bounds = routed
         alarms = mine.alarms if alarm else None
         if single:
-            return TrustedPrediction(u[0], mine.error_bound[0], mine.coverage, None if alarms is None else alarms[0])
-        return TrustedPrediction(u, mine.error_bound, mine.coverage, alarms)
+            return TrustedPrediction(u[0], bounds[0], level, None if alarms is None else alarms[0])
+        return TrustedPrediction(u, bounds, level, alarms)
 
     def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None):
         """The uncertainty-trained model's alarm (:meth:`.trusted.TrustedPredictor.alarms`)."""
         return self.trusted.alarms(marker_displacements, false_alarm=false_alarm, auxiliary=auxiliary)
 
     def describe(self) -> dict:
+        routes = None if self.route_calibration is None else self.route_calibration.summary()
         return {**self.trusted.describe(), "nominal_expert": self.expert.describe(),
-                "expert_gate": {"samples": self.gate.samples, "nominal_better": self.gate.nominal_better}}
+                "expert_gate": {"samples": self.gate.samples, "nominal_better": self.gate.nominal_better,
+                                "bounds_per_route": routes}}
 
     def __repr__(self) -> str:
         return f"NominalExpertRouter({self.trusted!r}, expert={self.expert!r})"

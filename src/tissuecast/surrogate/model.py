@@ -45,7 +45,7 @@ from .baselines import RidgePredictor, RigidRegistrationPredictor
 from .cross_calibration import fit_model_trust
 from .data import FitSplits, check_fit_inputs, dataset_arrays, fit_splits, flat_fields
 from .decoder import global_part
-from .experts import ExpertGate, NominalExpertRouter, check_expert, gate_features
+from .experts import ExpertGate, NominalExpertRouter, RouteCalibration, check_expert, gate_features, out_of_fold_routes
 from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .inputs import marker_batch
@@ -214,7 +214,7 @@ class DeformationModel(FieldPredictor):
                           scenario=self.scenario, metadata=self.metadata_, fallback=self.fallback_,
                           fallback_trust=None if self.fallback_trusted_ is None else self.fallback_trusted_.layer,
                           gate=self.gate_, expert=None if self.nominal_expert_ is None else self.nominal_expert_.get_state(),
-                          expert_gate=self.expert_gate_)
+                          expert_gate=self.expert_gate_, expert_routes=self.expert_routes_)
 
     @classmethod
     def from_state(cls, state: ModelState) -> "DeformationModel":
@@ -241,7 +241,7 @@ class DeformationModel(FieldPredictor):
             learned = InstrumentFallback(net, self.fallback_)
             if self.trusted_ is not None and self.fallback_trusted_ is not None:
                 self._trusted = InstrumentFallback(self.trusted_, self.fallback_trusted_)
-        self.nominal_expert_, self.expert_gate_ = None, state.expert_gate
+        self.nominal_expert_, self.expert_gate_, self.expert_routes_ = None, state.expert_gate, state.expert_routes
         if state.expert is not None:
             self.nominal_expert_ = DeformationModel.from_state(state.expert)
             self.nominal_expert_._use_gate(None)  # the model's gate judges the input: the expert's ranges are narrower
@@ -249,7 +249,8 @@ class DeformationModel(FieldPredictor):
                 raise ModelError("a model with a nominal expert needs both trust layers (trust.npz, and in "
                                  "nominal_expert/; the gate reads both alarms): the folder is incomplete; make the pair "
                                  "again with `tissuecast experts`")
-            self._trusted = NominalExpertRouter(learned, self._trusted, self.nominal_expert_._trusted, state.expert_gate)
+            self._trusted = NominalExpertRouter(learned, self._trusted, self.nominal_expert_._trusted, state.expert_gate,
+                                                state.expert_routes)
             learned = self._trusted
         self._by_method = {"mlp": learned, "rigid": self.rigid_, "ridge": self.ridge_}
         self.gate_ = gate_of(state)
@@ -548,7 +549,8 @@ class DeformationModel(FieldPredictor):
             out["fallback"] = self.fallback_.describe()
         if self.nominal_expert_ is not None:
             out["nominal_expert"] = self.nominal_expert_.describe()
-            out["expert_gate"] = {"samples": self.expert_gate_.samples, "nominal_better": self.expert_gate_.nominal_better}
+            out["expert_gate"] = {"samples": self.expert_gate_.samples, "nominal_better": self.expert_gate_.nominal_better,
+                                  "bounds_per_route": None if self.expert_routes_ is None else self.expert_routes_.summary()}
             out["has_uncertainty"] = self.has_uncertainty
         return out
 
@@ -556,7 +558,8 @@ class DeformationModel(FieldPredictor):
     def with_nominal_expert(self, expert: "DeformationModel", fields, *, auxiliary=None) -> "DeformationModel":
         """This model with a nominal expert beside it (:mod:`.experts`): a new model whose field
         comes, sample by sample, from ``expert`` where a gate fitted here expects it to be the
-        better one, and from this model elsewhere; bounds and alarm stay this model's.
+        better one, and from this model elsewhere; the alarm stays this model's, the bounds are
+        calibrated per route on ``fields`` (:class:`.experts.RouteCalibration`).
 
         Args:
             expert: a model trained at the scenario's nominal parameters on the same mesh, with
@@ -591,10 +594,12 @@ class DeformationModel(FieldPredictor):
         with self.gate_suspended():
             mine = self._trusted.predict_trusted(d, auxiliary=auxiliary)
         theirs = trial._trusted.predict_trusted(d, auxiliary=auxiliary)
-        better = (np.linalg.norm(theirs.displacement - U, axis=2).max(axis=1)
-                  < np.linalg.norm(mine.displacement - U, axis=2).max(axis=1))
-        gate = ExpertGate.fit(gate_features(theirs, mine), better)
-        return DeformationModel.from_state(replace(state, expert=expert_state, expert_gate=gate))
+        e_theirs, e_mine = (np.linalg.norm(p.displacement - U, axis=2) for p in (theirs, mine))
+        better = e_theirs.max(axis=1) < e_mine.max(axis=1)
+        features = gate_features(theirs, mine)
+        gate = ExpertGate.fit(features, better)
+        routes = RouteCalibration.fit(out_of_fold_routes(features, better), e_theirs, e_mine, mine.error_bound)
+        return DeformationModel.from_state(replace(state, expert=expert_state, expert_gate=gate, expert_routes=routes))
 
     # ------------------------------------------------------------------ persistence
     def save(self, folder, *, onnx: bool = False) -> None:

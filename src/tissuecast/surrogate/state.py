@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..config import SurrogateConfig
-from .experts import ExpertGate
+from .experts import ExpertGate, RouteCalibration
 from .gate import InputGate
 from .mlp import TrainingSummary
 from .network_predictor import NetworkPredictor
@@ -47,6 +47,8 @@ class ModelState:
         expert: the nominal expert's state (:mod:`.experts`: a model of the same mesh, markers and
             inputs trained at the nominal parameters), or None.
         expert_gate: the :class:`~.experts.ExpertGate` routing between this model and the expert.
+        expert_routes: the pair's bounds' :class:`~.experts.RouteCalibration`, or None (a pair
+            saved before it: the uncertainty-trained model's bounds).
     """
 
     config: SurrogateConfig
@@ -65,6 +67,7 @@ class ModelState:
     gate: InputGate | None = None
     expert: "ModelState | None" = None
     expert_gate: ExpertGate | None = None
+    expert_routes: RouteCalibration | None = None
 
     @property
     def ridge_components(self) -> int:

@@ -44,7 +44,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ModelError, require
 from .decoder import LocalBasis, describe_decoder, global_part
-from .experts import ExpertGate
+from .experts import ExpertGate, RouteCalibration
 from .gate import InputGate
 from .network_predictor import NetworkPredictor
 from .auxiliary import AuxiliaryInputs
@@ -62,6 +62,8 @@ SCHEMA = 1
 FALLBACK_FOLDER = "fallback"
 #: Sub-folder of the nominal expert of a model that has one.
 EXPERT_FOLDER = "nominal_expert"
+#: The pair's per-route conformal scores of its bounds (:class:`~.experts.RouteCalibration`).
+ROUTES_FILE = "expert_routes.npz"
 
 
 def _versions() -> dict:
@@ -170,6 +172,10 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
             stale.unlink(missing_ok=True)
         save_model(state.expert, out / EXPERT_FOLDER)
         meta["nominal_expert"] = {"folder": EXPERT_FOLDER, "gate": state.expert_gate.as_dict()}
+        (out / ROUTES_FILE).unlink(missing_ok=True)
+        if state.expert_routes is not None:
+            np.savez(out / ROUTES_FILE, **state.expert_routes.arrays())
+            meta["nominal_expert"].update(routes=ROUTES_FILE, route_samples=state.expert_routes.summary())
     (out / "model.json").write_text(json.dumps(meta, indent=2), encoding="utf-8")
 
 
@@ -296,10 +302,12 @@ def load_model(folder) -> ModelState:
     curve = PCACurve.from_dict(meta["pca_curve"]) if meta.get("pca_curve") else None
     trust = _trust(folder / meta["files"]["trust"]) if meta["files"].get("trust") else None
     fallback, fallback_trust = _fallback(folder, meta, network)
-    expert, expert_gate = None, None
+    expert, expert_gate, expert_routes = None, None, None
     if meta.get("nominal_expert"):
         record = meta["nominal_expert"]
         expert, expert_gate = load_model(folder / record["folder"]), ExpertGate.from_dict(record["gate"])
+        if record.get("routes"):
+            expert_routes = RouteCalibration.from_arrays(_npz(folder / record["routes"], ("expert", "model")))
     return ModelState(
         config=config_from_dict({"surrogate": meta["surrogate_config"]}).surrogate, network=network,
         fixed=np.asarray(meta["fixed"], dtype=np.int64),
@@ -307,7 +315,8 @@ def load_model(folder) -> ModelState:
                                               "n_components": network.n_components},
         pca_curve=curve, trust=trust, training=meta.get("training") or None, run_config=meta.get("config"),
         dataset_path=meta.get("dataset_path"), scenario=meta.get("scenario"), metadata=meta, fallback=fallback,
-        fallback_trust=fallback_trust, gate=_gate(network, meta), expert=expert, expert_gate=expert_gate)
+        fallback_trust=fallback_trust, gate=_gate(network, meta), expert=expert, expert_gate=expert_gate,
+        expert_routes=expert_routes)
 
 
 def _gate(network: NetworkPredictor, meta: dict) -> InputGate | None:
