@@ -41,8 +41,8 @@ def main() -> None:
     a = p.parse_args()
     model = DeformationModel.load(a.uncertain)
     nominal = None if a.nominal_store == "none" else open_dataset(a.nominal_store)
-    fields, aux = gate_fields(model, open_dataset(a.gate_store), nominal)
-    pair = model.with_nominal_expert(DeformationModel.load(a.nominal), fields, auxiliary=aux)
+    fields, aux, drawn = gate_fields(model, open_dataset(a.gate_store), nominal)
+    pair = model.with_nominal_expert(DeformationModel.load(a.nominal), fields, auxiliary=aux, drawn=drawn)
     gate = pair.expert_gate_
     stores = a.gate_store if nominal is None else f"{a.gate_store} and {a.nominal_store}"
     print(f"gate fitted on {gate.samples} validation samples of {stores}: the expert better on "

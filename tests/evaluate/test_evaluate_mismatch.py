@@ -211,6 +211,7 @@ def test_run_with_a_nominal_expert(tmp_path):
     assert model.has_nominal_expert and np.array_equal(model.nominal_expert_.markers, model.markers)
     assert not (paths.model / "model.onnx").exists() and result["model"].has_nominal_expert
     assert model.expert_gate_.samples == len(unc.select("valid")) + len(nom.select("valid"))  # both families
+    assert sum(model.expert_routes_.summary().values()) == len(unc.select("valid"))  # the bounds: the drawn family
     # the models given the wrong way round to `tissuecast experts`: refused, naming the order
     from tissuecast.cli.main import main
 

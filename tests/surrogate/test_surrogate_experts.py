@@ -211,6 +211,10 @@ def test_exports_name_the_network_and_refusals():
         model.with_nominal_expert(other, valid)
     with pytest.raises(ModelError, match=r"fields must be \(B, 270, 3\)"):
         model.with_nominal_expert(expert, valid[:, :10])
+    with pytest.raises(ModelError, match=r"drawn must be \(B,\) = \(200,\) bool"):
+        model.with_nominal_expert(expert, valid, drawn=np.ones(10, bool))
+    half = model.with_nominal_expert(expert, valid, drawn=np.arange(len(valid)) < 100)  # bounds on the first 100 alone
+    assert sum(half.expert_routes_.summary().values()) == 100
 
 
 def test_served_like_any_model():

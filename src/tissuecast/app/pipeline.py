@@ -100,24 +100,26 @@ def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_f
     t = time.perf_counter()
     expert = DeformationModel.from_dataset(nominal, cfg)
     log.info("nominal expert trained on %s in %.1f s", nominal_store, time.perf_counter() - t)
-    fields, aux = gate_fields(model, dataset, nominal)
-    pair = model.with_nominal_expert(expert, fields, auxiliary=aux)
+    fields, aux, drawn = gate_fields(model, dataset, nominal)
+    pair = model.with_nominal_expert(expert, fields, auxiliary=aux, drawn=drawn)
     if model_folder is not None:
         pair.save(model_folder)
     return pair
 
 
 def gate_fields(model, dataset, nominal=None):
-    """``(fields (B, n, 3) float64 mm, auxiliary inputs (B, n_a) or None)`` that the gate of
-    ``model``'s nominal expert is fitted on: the validation split of the uncertain store
-    ``dataset`` and, when ``nominal`` is another store, of the expert's nominal store. Both
-    families, so that the gate sees the expert win where it does (at and near the nominal
-    parameters, a small corner of the drawn ranges; measured in docs/uncertainty.md)."""
+    """``(fields (B, n, 3) float64 mm, auxiliary inputs (B, n_a) or None, drawn (B,) bool)`` that
+    the gate of ``model``'s nominal expert is fitted on: the validation split of the uncertain
+    store ``dataset`` (``drawn``: these) and, when ``nominal`` is another store, of the expert's
+    nominal store. Both families, so that the gate sees the expert win where it does (at and
+    near the nominal parameters, a small corner of the drawn ranges; measured in
+    docs/uncertainty.md); the pair's bounds are calibrated on the drawn ones alone."""
     fields, aux = split_fields(model, dataset, "valid")
     if nominal is None or Path(nominal.path).resolve() == Path(dataset.path).resolve():
-        return fields, aux
+        return fields, aux, np.ones(len(fields), dtype=bool)
     more, more_aux = split_fields(model, nominal, "valid")
-    return np.concatenate([fields, more]), None if aux is None else np.concatenate([aux, more_aux])
+    drawn = np.concatenate([np.ones(len(fields), dtype=bool), np.zeros(len(more), dtype=bool)])
+    return np.concatenate([fields, more]), None if aux is None else np.concatenate([aux, more_aux]), drawn
 
 
 def split_fields(model, dataset, split: str):

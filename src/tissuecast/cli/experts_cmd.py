@@ -5,7 +5,7 @@ UNCERTAIN is a model trained on a store with the scenario's parameters drawn
 parameters, with UNCERTAIN's markers (``[markers] ids``) and instruments. The new model
 predicts each sample's field with NOMINAL where a gate, fitted here on the validation splits of
 both models' stores, expects it to be the better one, and with UNCERTAIN elsewhere; the alarm
-stays UNCERTAIN's, the error bounds are calibrated per route on the same samples
+stays UNCERTAIN's, the error bounds are calibrated per route on the samples of UNCERTAIN's store
 (:mod:`tissuecast.surrogate.experts`, docs/uncertainty.md).
 The folder is a model folder like any other: ``predict``, ``evaluate``, ``serve`` and ``study
 mismatch`` take it.
@@ -58,8 +58,8 @@ def run(args) -> int:
             raise ModelError(f"the nominal store {nominal_store} draws parameters ({', '.join(sorted(nominal.parameters))}); "
                              "give the store the nominal model was trained on, at the nominal parameters, with "
                              "--nominal-store (and the uncertain model's with --store)")
-    fields, aux = gate_fields(model, dataset, nominal)
-    gated = model.with_nominal_expert(expert, fields, auxiliary=aux)
+    fields, aux, drawn = gate_fields(model, dataset, nominal)
+    gated = model.with_nominal_expert(expert, fields, auxiliary=aux, drawn=drawn)
     gated.dataset_path = str(Path(store).resolve())
     gated.save(out)
     figures = {"samples": gated.expert_gate_.samples, "nominal_better": gated.expert_gate_.nominal_better,
@@ -76,7 +76,7 @@ def run(args) -> int:
           f"uncertain {figures['uncertain_offset_max']:.2f} mm, nominal {figures['nominal_offset_max']:.2f}, "
           f"routed {figures['routed_offset_max']:.2f} "
           f"({100 * figures['routed_to_nominal']:.0f} % to the nominal expert)")
-    print(f"  bounds calibrated per route on the same samples, each routed by a gate fitted without it: "
+    print(f"  bounds calibrated per route on the uncertain store's samples, each routed by a gate fitted without it: "
           f"{figures['expert_samples']} to the nominal expert, {figures['model_samples']} to the uncertain model; "
           "the alarm is the uncertain model's. Measure the pair on data it was not fitted on "
           "(`tissuecast evaluate`, `tissuecast study mismatch`)")

@@ -16,15 +16,17 @@ where a score is not finite.
 
 The alarm is always the uncertainty-trained model's: it was calibrated on the whole range of
 parameters, the nominal expert's only at the nominal ones. The error bounds are calibrated per
-route (Mondrian conformal, :class:`RouteCalibration`): on the same held-out samples, each routed
-by a gate fitted without it (:func:`out_of_fold_routes`, 5 folds), the routed field's vertex
-errors over the uncertainty-trained model's normaliser give one set of conformal scores for the
-samples the gate sends to the expert and one for the rest. A sample's bound is its route's
-quantile times that normaliser, so the bounds hold at their coverage on each route (under
-draws like the held-out samples') instead of being the uncertainty-trained model's own, which
-over-cover where the expert answers. Where a route has too few samples for the coverage asked
-(or a vertex's normaliser is not defined), the uncertainty-trained model's bound is kept. A
-pair saved without route scores keeps that model's bounds everywhere. A sample with untracked
+route (Mondrian conformal, :class:`RouteCalibration`): on the held-out samples drawn as the
+uncertainty-trained model's training data were (the uncertain store's validation split), each
+routed by a gate fitted without it (:func:`out_of_fold_routes`, 5 folds), the routed field's
+vertex errors over the uncertainty-trained model's bound give one set of conformal scores for
+the samples the gate sends to the expert and one for the rest. A sample's bound is its route's
+quantile times that bound, so the bounds hold at their coverage on each route under the
+distribution the model's own bounds hold under; before, the expert's route had no bound of its
+own. (Calibrating on the nominal store's samples too makes the expert's route look easier than
+it is off the nominal parameters: measured in docs/uncertainty.md.) Where a route has too few
+samples for the coverage asked, or the model's bound at a vertex is 0, the model's bound is kept.
+A pair saved without route scores keeps that model's bounds everywhere. A sample with untracked
 markers is predicted by the uncertainty-trained model alone.
 """
 

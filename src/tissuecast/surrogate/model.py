@@ -555,11 +555,13 @@ class DeformationModel(FieldPredictor):
         return out
 
     # ------------------------------------------------------------------ a nominal expert
-    def with_nominal_expert(self, expert: "DeformationModel", fields, *, auxiliary=None) -> "DeformationModel":
+    def with_nominal_expert(self, expert: "DeformationModel", fields, *, auxiliary=None,
+                            drawn=None) -> "DeformationModel":
         """This model with a nominal expert beside it (:mod:`.experts`): a new model whose field
         comes, sample by sample, from ``expert`` where a gate fitted here expects it to be the
         better one, and from this model elsewhere; the alarm stays this model's, the bounds are
-        calibrated per route on ``fields`` (:class:`.experts.RouteCalibration`).
+        calibrated per route (:class:`.experts.RouteCalibration`) on the fields drawn as this
+        model's training data were.
 
         Args:
             expert: a model trained at the scenario's nominal parameters on the same mesh, with
@@ -568,6 +570,11 @@ class DeformationModel(FieldPredictor):
                 models' training data were (the validation splits of their stores,
                 :func:`tissuecast.app.pipeline.gate_fields`): the gate is fitted on them.
             auxiliary: (B, n_a) their auxiliary inputs (models with some), as for :meth:`predict`.
+            drawn: (B,) bool, the fields drawn as this model's training data were (with the
+                scenario's parameters drawn; default all): the bounds are calibrated on these, so
+                that they hold on each route under the distribution this model's own bounds hold
+                under (the nominal store's samples would make the expert's route look easier
+                than it is off the nominal parameters; measured in docs/uncertainty.md).
 
         Raises:
             ModelError: a model without trust, an expert that does not fit (other markers, mesh
@@ -598,7 +605,11 @@ class DeformationModel(FieldPredictor):
         better = e_theirs.max(axis=1) < e_mine.max(axis=1)
         features = gate_features(theirs, mine)
         gate = ExpertGate.fit(features, better)
-        routes = RouteCalibration.fit(out_of_fold_routes(features, better), e_theirs, e_mine, mine.error_bound)
+        keep = np.ones(len(U), dtype=bool) if drawn is None else np.asarray(drawn, dtype=bool)
+        if keep.shape != (len(U),):
+            raise ModelError(f"drawn must be (B,) = ({len(U)},) bool, got shape {keep.shape}")
+        routed = out_of_fold_routes(features, better)
+        routes = RouteCalibration.fit(routed[keep], e_theirs[keep], e_mine[keep], mine.error_bound[keep])
         return DeformationModel.from_state(replace(state, expert=expert_state, expert_gate=gate, expert_routes=routes))
 
     # ------------------------------------------------------------------ persistence
