@@ -309,8 +309,10 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
             record = _refined_file(folder, k, failed=True)
             record.write_text(json.dumps({"sample": k, "reason": str(exc), "timeout": isinstance(exc, SolveTimeout),
                                           "seconds": seconds, "time_limit": time_limit}, indent=1) + "\n")
-            log.warning("discretisation: sample %d %s %s (%s); left out and recorded in %s (a larger "
-                        "--refined-time-limit tries it again)", k, why, where, exc, record)
+            again = ("a larger --refined-time-limit tries it again" if isinstance(exc, SolveTimeout)
+                     else "not tried again unless the record is deleted")
+            log.warning("discretisation: sample %d %s %s (%s); left out and recorded in %s (%s)", k, why, where, exc,
+                        record, again)
         else:
             np.save(_refined_file(folder, k), field)
             seconds = time.perf_counter() - t0
