@@ -103,7 +103,7 @@ def _models_against(ds, kept: list, fields: dict, specs: list) -> None:
 
 def main(argv=None) -> int:
     from tissuecast.dataset import open_dataset
-    from tissuecast.errors import ConvergenceError
+    from tissuecast.errors import ConvergenceError, SolveTimeout
     from tissuecast.evaluate.mismatch import ReferenceSolver
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -135,7 +135,8 @@ def main(argv=None) -> int:
         try:
             a = _answers(ds, int(k), solvers, cache, args.reference, time_limit)
         except ConvergenceError as exc:
-            print(f"sample {int(k)}: a solve did not converge ({exc}); left out", flush=True)
+            why = "ran past --time-limit" if isinstance(exc, SolveTimeout) else "did not converge"
+            print(f"sample {int(k)}: a solve {why} ({exc}); left out", flush=True)
             continue
         kept.append(int(k))
         for key in fields:

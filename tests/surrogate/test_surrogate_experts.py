@@ -68,7 +68,7 @@ def test_route_calibration_covers_each_route_at_its_level():
             assert abs(np.mean(fresh[r][:, 1:] <= b[r][:, 1:]) - level) < 0.03
     b = calib.bounds(fresh_route, fresh_bound, 0.9)
     np.testing.assert_allclose(b[fresh_route, 1:] / fresh_bound[fresh_route, 1:], 0.45, atol=0.05)  # 0.9 x 0.5
-    assert np.isnan(calib.bounds(route, bound, 0.9)[:, 0]).all()  # the held vertex: the caller's own bound
+    assert (calib.bounds(route, bound, 0.9)[:, 0] == 0.0).all()  # the held vertex: no error, no bound
     assert np.isnan(calib.bounds(route, bound, 0.999)).all()  # 200 samples a route cannot say 99.9 %
     back = RouteCalibration.from_arrays(calib.arrays())
     np.testing.assert_allclose(back.bounds(fresh_route, fresh_bound, 0.9), b, rtol=1e-6)
@@ -146,6 +146,8 @@ def test_routed_field_bounds_and_alarm():
     one = pair.predict_trusted(d[0], alarm=False)
     np.testing.assert_allclose(one.displacement, tp.displacement[0], rtol=0, atol=1e-12)  # one sample: other BLAS sums
     assert one.alarms is None and pair.alarms(d[0]).raised == mine.alarms[0].raised
+    np.testing.assert_allclose(one.error_bound, tp.error_bound[0], rtol=1e-9, atol=1e-12)
+    assert one.coverage == tp.coverage
     # near the expert's family the pair is as good as the expert, elsewhere as the model, overall better than both
     worst = {k: np.linalg.norm(u - test, axis=2).max(axis=1) for k, u in
              (("mine", mine.displacement), ("theirs", theirs.displacement), ("pair", tp.displacement))}
@@ -268,3 +270,30 @@ def test_an_expert_on_another_mesh_is_refused():
               calibration_idx=SPLITS["calibration"])
     with pytest.raises(ModelError, match="meshes differ"):
         uncertain_model().with_nominal_expert(other, U[SPLITS["valid"]])
+
+
+def test_a_pair_with_a_tracked_instrument_keeps_the_fallbacks_bounds_when_tracking_is_lost():
+    """The route scores are of the model with its instrument: a sample whose instrument is not
+    tracked (the markers-only fallback answers) keeps the model's own bounds; tracked ones get
+    the routes'."""
+    from _instrument_synthetic import MARKERS as IM, SPLITS as IS, instrument_data, instrument_model
+
+    mesh, U, _, A = instrument_data()
+    model = instrument_model()
+    other = DeformationModel(epochs=60, patience=0, batch_size=64, n_components=8, hidden=(16,), seed=3)
+    other.fit(U, IM, mesh=mesh, fixed=[0, 1, 2], train_idx=IS["train"], valid_idx=IS["valid"],
+              calibration_idx=IS["calibration"], auxiliary=_auxiliary(A))
+    pair = model.with_nominal_expert(other, U[IS["valid"]], auxiliary=A[IS["valid"]])
+    test = IS["test"]
+    d, a = U[test][:, IM, :], A[test].copy()
+    a[::2] = np.nan  # tracking lost on every second sample
+    got, own = pair.predict_trusted(d, auxiliary=a), model.predict_trusted(d, auxiliary=a)
+    np.testing.assert_array_equal(got.error_bound[::2], own.error_bound[::2])
+    assert not np.allclose(got.error_bound[1::2], own.error_bound[1::2])
+
+
+def _auxiliary(A):
+    from _instrument_synthetic import INPUTS
+    from tissuecast.surrogate.auxiliary import AuxiliaryValues
+
+    return AuxiliaryValues(INPUTS, A)

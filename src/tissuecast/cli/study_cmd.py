@@ -44,7 +44,7 @@ def register(sub) -> None:
                         "uncertain=runs/b/model)")
     p.add_argument("--sets", default="",
                    help="mismatch: comma-separated set names (default: every set the scenario has but the refined "
-                        "'discretisation', whose solves take minutes to tens of minutes each: name it to run it)")
+                        "'discretisation', whose refined solves take far longer than a set: name it to run it)")
     p.add_argument("--samples", type=int, default=None, help="mismatch: samples per set (default 100)")
     p.add_argument("--refined-samples", type=int, default=None,
                    help="mismatch: samples of the sets solved again with quadratic elements ('quadratic elements' on "

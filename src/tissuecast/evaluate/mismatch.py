@@ -22,9 +22,9 @@ The sets (:func:`mismatch_sets`, those the scenario has the parts for):
   own discretisation error (a lower bound of the whole);
 * ``discretisation`` -- the nominal samples solved again on the uniformly refined mesh with
   quadratic elements (:mod:`tissuecast.scenario.refined`), read on the model's vertices: the
-  truth's discretisation error against a finer reference. Its solves take much longer than a
-  data set's (minutes to tens of minutes each on a 2-core machine), so it runs only when named
-  (``sets``); every other set runs by default.
+  truth's discretisation error against a finer reference. Its solves take far longer than a
+  data set's (docs/uncertainty.md), so it runs only when named (``sets``); every other set runs
+  by default.
 
 A set is a data set (:func:`tissuecast.dataset.simulate`, resumable) of the config with no
 uncertain parameter drawn but the set's one fixed, every sample in test-1, the force

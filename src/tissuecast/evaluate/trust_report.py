@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import spearmanr
 
-from ..surrogate.conformal import reliability_curve
+from ..surrogate.conformal import reliability_curve, reliability_levels
 from .evaluation import spearman_rows
 from .headline import ALARM_REASONS, DASH, beta_table, fmt_alarm, fmt_mm, fmt_share, html_table, set_title
 
@@ -64,10 +64,10 @@ def trust_evaluation(trusted, dataset, *, field_predictor=None) -> dict:
     """Figures of the bounds and alarm of a :class:`TrustedPredictor` on the data set's test-1 and
     test-2 samples.
 
-    ``field_predictor``: what predicts the evaluated field and returns ``trusted``'s bounds with
-    it (default ``trusted`` itself); e.g. a model with a nominal expert
-    (:class:`~tissuecast.surrogate.DeformationModel`), whose routed field the bounds of its
-    own trust layer are measured against.
+    ``field_predictor``: what predicts the evaluated field and its bounds (default ``trusted``
+    itself); e.g. a model with a nominal expert (:class:`~tissuecast.surrogate.DeformationModel`),
+    whose routed field has bounds calibrated per route: its reliability curve is then read from
+    its own bounds at each level.
 
     Returns:
         ``{"sets": {name: bound_figures row}, "reliability": {"nominal": [...], "empirical": [...]}}``
@@ -97,11 +97,16 @@ def trust_evaluation(trusted, dataset, *, field_predictor=None) -> dict:
     if idx.size:
         bench = np.asarray(U[idx], dtype=np.float64)
         d = trusted.marker_displacements(bench)
-        u = trusted.predict(d, auxiliary=rows(idx))
-        sigma = trusted.layer.normaliser(d.reshape(len(d), -1), u, auxiliary=rows(idx))
-        if field_predictor is not trusted:
-            u = field_predictor.predict(d, auxiliary=rows(idx))
-        lv, emp = reliability_curve(trusted.layer.conformal, np.linalg.norm(u - bench, axis=2), sigma)
+        if field_predictor is trusted:
+            u = trusted.predict(d, auxiliary=rows(idx))
+            sigma = trusted.layer.normaliser(d.reshape(len(d), -1), u, auxiliary=rows(idx))
+            lv, emp = reliability_curve(trusted.layer.conformal, np.linalg.norm(u - bench, axis=2), sigma)
+        else:  # the field predictor's own bounds at each level
+            lv = reliability_levels()
+            emp = np.empty(len(lv))
+            for i, level in enumerate(lv):
+                t = field_predictor.predict_trusted(d, coverage=float(level), auxiliary=rows(idx), alarm=False)
+                emp[i] = float(np.mean(np.linalg.norm(t.displacement - bench, axis=2) <= t.error_bound))
         out["reliability"] = {"nominal": lv.tolist(), "empirical": emp.tolist()}
     return out
 

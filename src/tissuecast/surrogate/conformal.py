@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import ModelError
 
 __all__ = ["conformal_rank", "conformal_quantile", "min_calibration_samples", "VertexConformal", "fit_vertex_conformal",
-           "normalised_errors", "reliability_curve"]
+           "normalised_errors", "reliability_levels", "reliability_curve"]
 
 
 def conformal_rank(m: int, coverage: float) -> int:
@@ -108,6 +108,11 @@ def fit_vertex_conformal(errors, sigma) -> VertexConformal:
     return VertexConformal(np.sort(normalised_errors(errors, sigma), axis=0))
 
 
+def reliability_levels() -> np.ndarray:
+    """The nominal coverages of a reliability diagram: 0.5, 0.55, ..., 0.95, 0.99."""
+    return np.r_[np.arange(0.5, 0.951, 0.05), 0.99]
+
+
 def reliability_curve(conformal: VertexConformal, errors, sigma, levels=None) -> tuple[np.ndarray, np.ndarray]:
     """Nominal versus empirical coverage on a test set (the reliability diagram).
 
@@ -120,7 +125,7 @@ def reliability_curve(conformal: VertexConformal, errors, sigma, levels=None) ->
     Returns:
         ``(levels (L,), empirical (L,))``: share of (sample, vertex) pairs within their bound.
     """
-    lv = np.asarray(np.r_[np.arange(0.5, 0.951, 0.05), 0.99] if levels is None else levels, dtype=np.float64)
+    lv = reliability_levels() if levels is None else np.asarray(levels, dtype=np.float64)
     e = np.asarray(errors, dtype=np.float64)
     emp = np.array([float(np.mean(e <= conformal.bounds(sigma, c))) for c in lv])
     return lv, emp

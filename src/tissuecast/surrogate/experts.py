@@ -18,14 +18,15 @@ The alarm is always the uncertainty-trained model's: it was calibrated on the wh
 parameters, the nominal expert's only at the nominal ones. The error bounds are calibrated per
 route (Mondrian conformal, :class:`RouteCalibration`): on the held-out samples drawn as the
 uncertainty-trained model's training data were (the uncertain store's validation split), each
-routed by a gate fitted without it (:func:`out_of_fold_routes`, 5 folds), the routed field's
+routed by a gate fitted without it (:func:`out_of_fold_routes`, :data:`ROUTE_FOLDS` folds), the routed field's
 vertex errors over the uncertainty-trained model's bound give one set of conformal scores for
 the samples the gate sends to the expert and one for the rest. A sample's bound is its route's
 quantile times that bound, so the bounds hold at their coverage on each route under the
 distribution the model's own bounds hold under; before, the expert's route had no bound of its
 own. (Calibrating on the nominal store's samples too makes the expert's route look easier than
 it is off the nominal parameters: measured in docs/uncertainty.md.) Where a route has too few
-samples for the coverage asked, or the model's bound at a vertex is 0, the model's bound is kept.
+samples for the coverage asked, and for a sample whose instrument is not tracked (the model's
+fallback answers: the scores are of the model with its instrument), the model's bound is kept.
 A pair saved without route scores keeps that model's bounds everywhere. A sample with untracked
 markers is predicted by the uncertainty-trained model alone.
 """
@@ -38,6 +39,7 @@ import numpy as np
 
 from ..errors import ModelError
 from .conformal import VertexConformal
+from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .trust import TrustedPrediction
 
@@ -185,7 +187,8 @@ class RouteCalibration:
 
     A score is a vertex error of the routed field over the uncertainty-trained model's bound
     at its own coverage (its normaliser times a constant per vertex, which leaves per-vertex
-    conformal quantiles as they are); NaN where that bound is 0 or not finite.
+    conformal quantiles as they are): 0 where both are 0 (a held vertex), infinite where only
+    the bound is, NaN where the bound is not finite.
 
     Attributes:
         expert: scores of the samples routed to the nominal expert, (m_e, n) sorted along samples.
@@ -207,11 +210,12 @@ class RouteCalibration:
     def bounds(self, to_nominal: np.ndarray, model_bounds: np.ndarray, coverage: float) -> np.ndarray:
         """(B, n) mm bounds at ``coverage`` of fields routed as ``to_nominal`` (B,) bool, from the
         uncertainty-trained model's bounds (B, n) mm at its own coverage; NaN where a route has
-        too few samples for ``coverage`` or the model's bound is 0 or not finite."""
+        too few samples for ``coverage`` (or its scores at a vertex are not finite) or the
+        model's bound is not finite."""
         route = np.asarray(to_nominal, dtype=bool)
         q = np.where(route[:, None], self.expert.quantiles(coverage)[None, :], self.model.quantiles(coverage)[None, :])
         b = np.asarray(model_bounds, dtype=np.float64)
-        usable = np.isfinite(b) & (b > 0) & np.isfinite(q)
+        usable = np.isfinite(b) & np.isfinite(q)
         with np.errstate(invalid="ignore", over="ignore"):
             return np.where(usable, q * b, np.nan)
 
@@ -238,10 +242,12 @@ class RouteCalibration:
 
 
 def _over(errors: np.ndarray, bounds: np.ndarray) -> np.ndarray:
-    """errors (B, n) over bounds (B, n), NaN where a bound is 0 or not finite."""
+    """errors (B, n) over bounds (B, n): 0 / 0 is 0, e / 0 infinite, NaN where a bound is not finite."""
     b = np.asarray(bounds, dtype=np.float64)
-    ok = np.isfinite(b) & (b > 0)
-    return np.where(ok, np.asarray(errors, dtype=np.float64) / np.where(ok, b, 1.0), np.nan)
+    e = np.asarray(errors, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(b > 0, e / np.where(b > 0, b, 1.0), np.where(e > 0, np.inf, 0.0))
+    return np.where(np.isfinite(b), r, np.nan)
 
 
 def check_expert(trusted: FieldPredictor, expert: FieldPredictor) -> None:
@@ -371,8 +377,10 @@ class NominalExpertRouter(FieldPredictor):
         u = routed_field(to_nominal, mine.displacement, theirs.displacement)
         bounds, level = mine.error_bound, mine.coverage
         if self.route_calibration is not None:
-            level = coverage or mine.coverage
+            level = mine.coverage if coverage is None else coverage
             routed = self.route_calibration.bounds(to_nominal, bounds, level)
+            if isinstance(self.trusted, InstrumentFallback) and a is not None:
+                routed[self.trusted.routes(a)] = np.nan  # an untracked instrument: calibrated for the fallback alone
             if np.isnan(routed).any():  # the model's own bound where a route cannot say
                 own = bounds if level == mine.coverage else self.trusted.predict_trusted(
                     d, coverage=level, auxiliary=a, alarm=False).error_bound
