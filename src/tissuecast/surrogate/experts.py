@@ -44,7 +44,7 @@ from .field_predictor import FieldPredictor
 from .trust import TrustedPrediction
 
 __all__ = ["ExpertGate", "NominalExpertRouter", "RouteCalibration", "GATE_FEATURES", "gate_features", "check_expert",
-           "routed_field", "routing_figures", "out_of_fold_routes", "ROUTE_FOLDS"]
+           "routed_field", "routing_figures", "out_of_fold_routes", "gate_description", "ROUTE_FOLDS"]
 
 #: The alarm scores of each model that the gate reads (attributes of :class:`~.trust.Alarm`).
 GATE_SCORES = ("distance", "consistency", "fault", "marker_residual")
@@ -241,6 +241,13 @@ class RouteCalibration:
         return {"expert_samples": self.expert.n_calibration, "model_samples": self.model.n_calibration}
 
 
+def gate_description(gate: ExpertGate, routes: RouteCalibration | None) -> dict:
+    """``describe()``'s ``expert_gate`` entry of a pair: the gate's samples and share, and how
+    many samples calibrated each route's bounds (None: a pair saved before)."""
+    return {"samples": gate.samples, "nominal_better": gate.nominal_better,
+            "bounds_per_route": None if routes is None else routes.summary()}
+
+
 def _over(errors: np.ndarray, bounds: np.ndarray) -> np.ndarray:
     """errors (B, n) over bounds (B, n): 0 / 0 is 0, e / 0 infinite, NaN where a bound is not finite."""
     b = np.asarray(bounds, dtype=np.float64)
@@ -396,10 +403,8 @@ class NominalExpertRouter(FieldPredictor):
         return self.trusted.alarms(marker_displacements, false_alarm=false_alarm, auxiliary=auxiliary)
 
     def describe(self) -> dict:
-        routes = None if self.route_calibration is None else self.route_calibration.summary()
         return {**self.trusted.describe(), "nominal_expert": self.expert.describe(),
-                "expert_gate": {"samples": self.gate.samples, "nominal_better": self.gate.nominal_better,
-                                "bounds_per_route": routes}}
+                "expert_gate": gate_description(self.gate, self.route_calibration)}
 
     def __repr__(self) -> str:
         return f"NominalExpertRouter({self.trusted!r}, expert={self.expert!r})"

@@ -45,7 +45,8 @@ from .baselines import RidgePredictor, RigidRegistrationPredictor
 from .cross_calibration import fit_model_trust
 from .data import FitSplits, check_fit_inputs, dataset_arrays, fit_splits, flat_fields
 from .decoder import global_part
-from .experts import ExpertGate, NominalExpertRouter, RouteCalibration, check_expert, gate_features, out_of_fold_routes
+from .experts import (ExpertGate, NominalExpertRouter, RouteCalibration, check_expert, gate_description, gate_features,
+                      out_of_fold_routes)
 from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .inputs import marker_batch
@@ -549,8 +550,7 @@ class DeformationModel(FieldPredictor):
             out["fallback"] = self.fallback_.describe()
         if self.nominal_expert_ is not None:
             out["nominal_expert"] = self.nominal_expert_.describe()
-            out["expert_gate"] = {"samples": self.expert_gate_.samples, "nominal_better": self.expert_gate_.nominal_better,
-                                  "bounds_per_route": None if self.expert_routes_ is None else self.expert_routes_.summary()}
+            out["expert_gate"] = gate_description(self.expert_gate_, self.expert_routes_)
             out["has_uncertainty"] = self.has_uncertainty
         return out
 
@@ -592,6 +592,9 @@ class DeformationModel(FieldPredictor):
         U = np.asarray(fields, dtype=np.float64)
         if U.ndim != 3 or U.shape[1:] != (self.n_vertices, 3):
             raise ModelError(f"fields must be (B, {self.n_vertices}, 3) mm, got {U.shape}")
+        keep = np.ones(len(U), dtype=bool) if drawn is None else np.asarray(drawn, dtype=bool)
+        if keep.shape != (len(U),):
+            raise ModelError(f"drawn must be (B,) = ({len(U)},) bool, got shape {keep.shape}")
         state = self.get_state()
         expert_state = expert.get_state()
         trial = DeformationModel.from_state(expert_state)
@@ -605,9 +608,6 @@ class DeformationModel(FieldPredictor):
         better = e_theirs.max(axis=1) < e_mine.max(axis=1)
         features = gate_features(theirs, mine)
         gate = ExpertGate.fit(features, better)
-        keep = np.ones(len(U), dtype=bool) if drawn is None else np.asarray(drawn, dtype=bool)
-        if keep.shape != (len(U),):
-            raise ModelError(f"drawn must be (B,) = ({len(U)},) bool, got shape {keep.shape}")
         routed = out_of_fold_routes(features, better)
         routes = RouteCalibration.fit(routed[keep], e_theirs[keep], e_mine[keep], mine.error_bound[keep])
         return DeformationModel.from_state(replace(state, expert=expert_state, expert_gate=gate, expert_routes=routes))
