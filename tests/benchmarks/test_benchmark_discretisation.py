@@ -3,8 +3,6 @@ the cached answers are the samples' own P2 solutions, and every model is evaluat
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,31 +13,20 @@ from tissuecast.fem import Solver
 from tissuecast.scenario import restore_scenario
 from tissuecast.surrogate import DeformationModel
 
+from bench_helpers import SPRING_HELD, load_benchmark
 from dataset_helpers import small_config
-
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "discretisation.py"
-SCENARIO = {"name": "embedded", "pins": False,
-            "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
-            "springs": {"rule": "surface"}, "gravity": {"enabled": True}}
-
-
-def _module():
-    spec = importlib.util.spec_from_file_location("discretisation_bench", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_quadratic_reference_and_models_against_both(tmp_path, capsys):
     cfg = with_overrides(small_config(tmp_path, n_samples=40, n_test2=0, alpha=0.0, calibration_samples=2,
                                       predictor_samples=8, split=[6.0, 2.0, 2.0],
                                       store=str(tmp_path / "data.zarr")),
-                         forces={"loading": "traction", "target_max_displacement": 4.0}, scenario=SCENARIO,
+                         forces={"loading": "traction", "target_max_displacement": 4.0}, scenario=SPRING_HELD,
                          solver={"order": 1}, surrogate={"epochs": 40, "patience": 0, "calibration": "none"})
     simulate(cfg, progress=False)
     ds = open_dataset(cfg.dataset.store)
     DeformationModel.from_dataset(ds, cfg).save(tmp_path / "model")
-    mod = _module()
+    mod = load_benchmark("discretisation")
     assert mod.main([cfg.dataset.store, "--samples", "2", "--reference", "p2", "--cache", str(tmp_path / "c"),
                      "--model", f"linear={tmp_path / 'model'}"]) == 0
     out = capsys.readouterr().out
@@ -73,7 +60,7 @@ def test_a_swing_of_the_whole_body_is_taken_out_and_its_angle_measured():
     swung = (points + ref) @ turn.T + np.array([1.0, -2.0, 0.5]) - points  # the reference, turned and moved
     bump = np.zeros_like(ref)
     bump[3] = [0.0, 0.0, 0.4]
-    errors, deg = _module()._after_rigid(points, swung + bump, ref)
+    errors, deg = load_benchmark("discretisation")._after_rigid(points, swung + bump, ref)
     assert deg == pytest.approx(7.0, abs=0.05)
     assert errors.max() == pytest.approx(0.4, abs=0.02) and int(np.argmax(errors)) == 3
     assert np.linalg.norm(swung - ref, axis=1).max() > 2.0  # before the fit the swing dominates

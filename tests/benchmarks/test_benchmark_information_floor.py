@@ -3,9 +3,6 @@ gives a model on a mismatch-study set (a set at nominal values records none of t
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,18 +11,7 @@ import pytest
 from tissuecast.config import Config, with_overrides
 from tissuecast.surrogate.auxiliary import AuxiliaryInputs
 
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
-
-
-def _module():
-    sys.path.insert(0, str(BENCH))  # it imports decoder_floor from beside it
-    try:
-        spec = importlib.util.spec_from_file_location("information_floor", BENCH / "information_floor.py")
-        mod = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(mod)
-        return mod
-    finally:
-        sys.path.remove(str(BENCH))
+from bench_helpers import load_benchmark
 
 
 def _config():
@@ -35,7 +21,7 @@ def _config():
 
 
 def test_variants_name_drawn_parameters_only():
-    mod, cfg = _module(), _config()
+    mod, cfg = load_benchmark("information_floor"), _config()
     assert mod.variant_names("none", cfg) == ()
     assert mod.variant_names("all", cfg) == ("youngs_modulus", "poisson_ratio", "attached_margin")
     assert mod.variant_names("attached_margin+youngs_modulus", cfg) == ("attached_margin", "youngs_modulus")
@@ -45,7 +31,7 @@ def test_variants_name_drawn_parameters_only():
 
 
 def test_a_sets_missing_or_nan_parameters_are_their_nominal_values():
-    mod, cfg = _module(), _config()
+    mod, cfg = load_benchmark("information_floor"), _config()
     model = SimpleNamespace(auxiliary=AuxiliaryInputs(parameters=("youngs_modulus", "poisson_ratio", "attached_margin")))
     drawn = SimpleNamespace(n_samples=2, instrument_poses={}, parameters={
         "youngs_modulus": np.array([2.0, 0.5]), "poisson_ratio": np.array([np.nan, 0.41]),

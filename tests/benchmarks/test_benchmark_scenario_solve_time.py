@@ -4,14 +4,10 @@ their ratio (figures themselves are not asserted: timings belong to idle machine
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
+from bench_helpers import load_benchmark
 from mesh_factories import box_mesh
 
 from tissuecast.mesh import write_mesh
-
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "scenario_solve_time.py"
 
 COMMON = """
 [mesh]
@@ -47,9 +43,7 @@ clearance = 4.0
 
 
 def test_solve_time_benchmark_runs_both_configs(tmp_path, capsys):
-    spec = importlib.util.spec_from_file_location("scenario_solve_time", BENCH)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_benchmark("scenario_solve_time")
     write_mesh(tmp_path / "box.vtu", box_mesh(3, 3, 6, (20.0, 20.0, 40.0)))
     common = COMMON.format(mesh=tmp_path / "box.vtu", store=tmp_path / "unused.zarr")
     (tmp_path / "paper.toml").write_text('name = "paper-box"\n' + common)
