@@ -38,7 +38,6 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from tissuecast.dataset import open_dataset  # noqa: E402
-from tissuecast.dataset.codes import SampleStatus  # noqa: E402
 from tissuecast.dataset.worker import Task, context_for  # noqa: E402
 from tissuecast.errors import ConvergenceError  # noqa: E402
 
@@ -51,10 +50,16 @@ def load_path_solver(solver, strategy: str, increment: float):
     return out
 
 
-def path_answers(store, samples, strategies, increment: float) -> dict:
-    """Each of ``samples`` (ids) of ``store`` solved from zero along its load path with each
-    strategy. Returns ``{strategy: {"fields": {id: (n, 3) mm}, "seconds": {id: s}, "failed": {id: why}}}``."""
-    ds = open_dataset(store)
+def apart(u: np.ndarray, v: np.ndarray, tolerance: float) -> tuple[float, bool]:
+    """The largest vertex distance (mm) between fields ``u`` and ``v`` ((n, 3) mm), and whether
+    it is more than ``tolerance`` times ``v``'s peak displacement."""
+    d = float(np.linalg.norm(u - v, axis=1).max())
+    return d, d > tolerance * max(float(np.linalg.norm(v, axis=1).max()), 1e-12)
+
+
+def path_answers(ds, samples, strategies, increment: float) -> dict:
+    """Each of ``samples`` (ids) of the data set ``ds`` solved from zero along its load path with
+    each strategy. Returns ``{strategy: {"fields": {id: (n, 3) mm}, "seconds": {id: s}, "failed": {id: why}}}``."""
     ctx = context_for(ds.recipe())
     base = ctx.solver(0)
     out = {s: {"fields": {}, "seconds": {}, "failed": {}} for s in strategies}
@@ -75,21 +80,18 @@ def path_answers(store, samples, strategies, increment: float) -> dict:
     return out
 
 
-def compare(store, answers: dict, tolerance: float) -> dict:
-    """The figures of the module notes from :func:`path_answers`' ``answers``."""
-    ds = open_dataset(store)
-    report = {"store": str(store), "tolerance": tolerance, "strategies": {}}
+def compare(ds, answers: dict, tolerance: float) -> dict:
+    """The figures of the module notes from :func:`path_answers`' ``answers`` of the data set ``ds``."""
+    report = {"tolerance": tolerance, "strategies": {}}
     done = ds.select(status="done")
     stored_seconds = float(np.mean(ds.seconds[done])) if len(done) else float("nan")
     for strategy, a in answers.items():
         off, dist = [], []
         for k, u in a["fields"].items():
-            stored = np.asarray(ds.displacements[k], dtype=np.float64)
-            d = float(np.linalg.norm(stored - u, axis=1).max())
-            peak = float(np.linalg.norm(u, axis=1).max())
+            d, far = apart(np.asarray(ds.displacements[k], dtype=np.float64), u, tolerance)
             dist.append(d)
-            if d > tolerance * max(peak, 1e-12):
-                off.append({"sample": k, "distance_mm": d, "peak_mm": peak})
+            if far:
+                off.append({"sample": k, "distance_mm": d, "peak_mm": float(np.linalg.norm(u, axis=1).max())})
         sec = np.array(list(a["seconds"].values()))
         report["strategies"][strategy] = {
             "solved": len(a["fields"]), "failed": len(a["failed"]), "off_path": len(off),
@@ -101,8 +103,7 @@ def compare(store, answers: dict, tolerance: float) -> dict:
     if len(names) >= 2:
         a, b = answers[names[0]]["fields"], answers[names[1]]["fields"]
         both = sorted(set(a) & set(b))
-        split = [k for k in both
-                 if np.linalg.norm(a[k] - b[k], axis=1).max() > tolerance * max(np.linalg.norm(a[k], axis=1).max(), 1e-12)]
+        split = [k for k in both if apart(b[k], a[k], tolerance)[1]]
         report["paths_disagree"] = {"strategies": names[:2], "samples": split, "of": len(both)}
     report["stored_seconds_mean"] = stored_seconds
     return report
@@ -123,11 +124,13 @@ def main(argv=None) -> int:
     if not 0.0 < args.increment <= 1.0:
         ap.error(f"--increment must be in (0, 1], got {args.increment}")
     ds = open_dataset(args.store)
-    samples = [k for k in range(args.first, min(args.first + args.samples, len(ds))) if ds.status[k] == SampleStatus.DONE]
+    done = ds.select(status="done")
+    samples = [int(k) for k in done[(done >= args.first) & (done < args.first + args.samples)]]
     if not samples:
         ap.error(f"no solved samples in ids {args.first}..{args.first + args.samples - 1} of {args.store}")
     t0 = time.perf_counter()
-    report = compare(args.store, path_answers(args.store, samples, args.strategies, args.increment), args.tolerance)
+    report = {"store": str(args.store),
+              **compare(ds, path_answers(ds, samples, args.strategies, args.increment), args.tolerance)}
     print(f"{len(samples)} samples of {args.store}, each from zero along its load path (first increment "
           f"{args.increment:g}); off the path: farther than {100 * args.tolerance:g} % of the peak; "
           f"{time.perf_counter() - t0:.0f} s")

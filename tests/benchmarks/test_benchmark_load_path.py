@@ -3,9 +3,7 @@ path reproduces every answer), a second strategy's path is compared, and bad arg
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,19 +11,8 @@ import pytest
 from tissuecast.config import with_overrides
 from tissuecast.dataset import open_dataset, simulate
 
+from bench_helpers import SPRING_HELD, load_benchmark
 from dataset_helpers import small_config
-
-BENCH = Path(__file__).resolve().parents[2] / "benchmarks" / "load_path.py"
-SCENARIO = {"name": "embedded", "pins": False,
-            "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
-            "springs": {"rule": "surface"}, "gravity": {"enabled": True}}
-
-
-def _module():
-    spec = importlib.util.spec_from_file_location("load_path_bench", BENCH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.fixture(scope="module")
@@ -35,14 +22,14 @@ def path_store(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("load_path")
     cfg = with_overrides(small_config(tmp, n_samples=8, n_test2=0, alpha=0.0, calibration_samples=2,
                                       predictor="none", store=str(tmp / "data.zarr")),
-                         forces={"loading": "traction", "target_max_displacement": 4.0}, scenario=SCENARIO,
+                         forces={"loading": "traction", "target_max_displacement": 4.0}, scenario=SPRING_HELD,
                          solver={"order": 1, "strategy": "krylov", "initial_increment": 0.1})
     simulate(cfg, progress=False)
     return cfg.dataset.store
 
 
 def test_a_store_solved_along_its_load_path_is_on_it(path_store, tmp_path, capsys):
-    mod = _module()
+    mod = load_benchmark("load_path")
     out = tmp_path / "report.json"
     assert mod.main([path_store, "--first", "2", "--samples", "4", "--strategies", "krylov", "newton", "--json", str(out)]) == 0
     text = capsys.readouterr().out
@@ -62,18 +49,19 @@ def test_a_store_solved_along_its_load_path_is_on_it(path_store, tmp_path, capsy
 
 def test_a_store_off_its_path_is_reported(path_store):
     """Stored answers moved by a known field are reported off the path by that distance."""
-    mod = _module()
-    answers = mod.path_answers(path_store, [2, 3], ["krylov"], 0.1)
+    mod = load_benchmark("load_path")
+    ds = open_dataset(path_store)
+    answers = mod.path_answers(ds, [2, 3], ["krylov"], 0.1)
     shifted = {k: u + np.array([0.0, 0.0, 0.5]) for k, u in answers["krylov"]["fields"].items()}
     answers["krylov"]["fields"] = shifted
-    report = mod.compare(path_store, answers, 0.001)
+    report = mod.compare(ds, answers, 0.001)
     r = report["strategies"]["krylov"]
     assert r["off_path"] == 2 and r["largest_distance_mm"] == pytest.approx(0.5, abs=1e-5)
     assert "paths_disagree" not in report
 
 
 def test_bad_arguments_are_refused(path_store, capsys):
-    mod = _module()
+    mod = load_benchmark("load_path")
     with pytest.raises(SystemExit):
         mod.main([path_store, "--increment", "0"])
     assert "--increment must be in (0, 1]" in capsys.readouterr().err
