@@ -190,6 +190,25 @@ def test_saved_and_loaded(tmp_path):
         pair.save(tmp_path / "o", onnx=True)
 
 
+def test_a_model_saved_over_a_pair_folder_keeps_none_of_the_pair(tmp_path):
+    folder = tmp_path / "m"
+    gated().save(folder)
+    (folder / "nominal_expert" / "notes.txt").write_text("the user's")  # not the layout's: kept
+    (folder / "README.txt").write_text("the user's")
+    uncertain_model().save(folder)
+    assert not (folder / "expert_routes.npz").exists()
+    assert sorted(p.name for p in (folder / "nominal_expert").iterdir()) == ["notes.txt"]
+    assert (folder / "README.txt").exists()
+    back = DeformationModel.load(folder)
+    assert not back.has_nominal_expert
+    d = trust_data()[1][SPLITS["test"]][:10, MARKERS, :]
+    np.testing.assert_array_equal(back.predict(d), uncertain_model().predict(d))
+    (folder / "nominal_expert" / "notes.txt").unlink()
+    gated().save(folder)  # and a pair over a plain model, then a plain one again: no folder left behind
+    uncertain_model().save(folder)
+    assert not (folder / "nominal_expert").exists()
+
+
 def test_exports_name_the_network_and_refusals():
     torch = pytest.importorskip("torch")
     pair, model, expert = gated(), uncertain_model(), expert_model()

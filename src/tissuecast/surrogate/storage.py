@@ -64,6 +64,9 @@ FALLBACK_FOLDER = "fallback"
 EXPERT_FOLDER = "nominal_expert"
 #: The pair's per-route conformal scores of its bounds (:class:`~.experts.RouteCalibration`).
 ROUTES_FILE = "expert_routes.npz"
+#: Files of the layout above that a fitted model may or may not write (removed before a save, so
+#: that a folder saved over an earlier model holds none of that model's parts).
+_OPTIONAL_FILES = ("head.npz", "decoder.npz", "trust.npz", "model.onnx", ROUTES_FILE)
 
 
 def _versions() -> dict:
@@ -152,6 +155,7 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     if onnx and state.expert is not None:
         raise ModelError("a model with a nominal expert routes between two networks by their alarm scores, which a "
                          "graph does not compute; save without onnx and export each with export_onnx(path, expert=...)")
+    _clear_earlier_model(out)
     net = state.network
     _write_network(net, out)
     np.savez(out / "mesh.npz", points=np.asarray(net.mesh.points, dtype=np.float64),
@@ -168,15 +172,31 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     if state.fallback is not None:
         meta["fallback"] = _save_fallback(state, out / FALLBACK_FOLDER, onnx)
     if state.expert is not None:
-        for stale in (out / "model.onnx", out / FALLBACK_FOLDER / "model.onnx"):  # an earlier model's graphs
-            stale.unlink(missing_ok=True)
         save_model(state.expert, out / EXPERT_FOLDER)
         meta["nominal_expert"] = {"folder": EXPERT_FOLDER, "gate": state.expert_gate.as_dict()}
-        (out / ROUTES_FILE).unlink(missing_ok=True)
         if state.expert_routes is not None:
             np.savez(out / ROUTES_FILE, **state.expert_routes.arrays())
             meta["nominal_expert"].update(routes=ROUTES_FILE, route_samples=state.expert_routes.summary())
     (out / "model.json").write_text(json.dumps(meta, indent=2), encoding="utf-8")
+
+
+def _clear_earlier_model(out: Path) -> None:
+    """Remove from ``out`` the optional parts of an earlier model saved there (its head, decoder,
+    trust layer, graph, fallback and nominal expert); only in a model folder (one with ``model.json``),
+    and only the layout's own names."""
+    if not (out / "model.json").is_file():
+        return
+    for name in _OPTIONAL_FILES:
+        (out / name).unlink(missing_ok=True)
+    for sub in (out / FALLBACK_FOLDER, out / EXPERT_FOLDER):
+        if sub.is_dir():
+            _clear_earlier_model(sub)
+            for name in _OPTIONAL_FILES + ("weights.safetensors", "pca.npz", "mesh.npz", "model.json"):
+                (sub / name).unlink(missing_ok=True)
+            try:
+                sub.rmdir()
+            except OSError:  # it holds files that are not the layout's: left as they are
+                pass
 
 
 def _save_fallback(state: ModelState, out: Path, onnx: bool) -> dict:
