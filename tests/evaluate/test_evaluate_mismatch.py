@@ -142,6 +142,7 @@ def test_a_small_mismatch_study_through_the_cli(tmp_path, capsys):
     assert rows[("E x2", "nominal")]["in_range"] is True and rows[("E x2", "nominal")]["count"] == 6
     assert (out / "study_mismatch.png").is_file() and (out / "study_mismatch.csv").is_file()
     _a_refined_solve_past_its_limit_is_recorded(tmp_path / "uncertain.toml", out / "mismatch", tmp_path / "timed")
+    _the_reference_takes_the_data_sets_path(out / "mismatch" / "nominal.zarr")
     # the sets are data sets with the set's parameter fixed, the trained alpha, the models' markers
     e2 = open_dataset(out / "mismatch" / "e_x2.zarr")
     assert (e2.parameters["youngs_modulus"] == 2.0).all()
@@ -256,3 +257,47 @@ def _a_refined_solve_past_its_limit_is_recorded(config_path, study, folder):
         mp.undo()
     for k, path in enumerate(sorted((study / "discretisation").glob("sample_*.npy"))):
         np.testing.assert_allclose(again.displacements[k], np.load(path), rtol=1e-9, atol=1e-9)
+
+
+class _AlongTheLoadPath:
+    """A data set read as if it had been solved from zero along the load path (``predictor = "none"``)."""
+
+    def __init__(self, ds):
+        self._ds, self.config = ds, with_overrides(ds.config, dataset={"predictor": "none"})
+
+    def __getattr__(self, name):
+        return getattr(self._ds, name)
+
+
+def _the_reference_takes_the_data_sets_path(store):
+    """A data set solved from a guess: its reference starts from the data set's answer; one solved
+    along the load path: the reference too, from zero (the P2 answer of a plain solve from zero)."""
+    import tissuecast.fem
+    from tissuecast.evaluate.mismatch import ReferenceSolver
+    from tissuecast.scenario import restore_scenario
+
+    ds = open_dataset(store)
+    k = int(ds.select("test1")[0])
+    guesses = []
+
+    class Recording(tissuecast.fem.Solver):
+        def solve(self, *args, **kwargs):
+            guesses.append(kwargs.get("initial_guess"))
+            return super().solve(*args, **kwargs)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(tissuecast.fem, "Solver", Recording)
+    try:
+        assert ds.config.dataset.predictor == "reduced" and not ReferenceSolver(ds, "p2").along_load_path
+        ReferenceSolver(ds, "p2").solve(k)
+        np.testing.assert_array_equal(guesses[-1], ds.displacements[k])
+        along = ReferenceSolver(_AlongTheLoadPath(ds), "p2")
+        u = along.solve(k)
+    finally:
+        mp.undo()
+    assert along.along_load_path and guesses[-1] is None
+    cfg2 = with_overrides(ds.config, solver={"order": 2})
+    sc = restore_scenario(ds.mesh, cfg2, ds.scenario_arrays, ds.basis)
+    x = sc.sample(int(ds.seed[k]), float(ds.alpha[k]))
+    plain = Solver(sc.problem(), cfg2.solver).solve(x.surface, **x.solve_keywords()).displacement[: ds.mesh.n_vertices]
+    np.testing.assert_allclose(u, plain, rtol=0, atol=1e-9)

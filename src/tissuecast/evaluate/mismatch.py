@@ -221,7 +221,10 @@ class ReferenceSolver:
         kind: ``"refined"`` (the uniformly refined mesh, :mod:`tissuecast.scenario.refined`) or
             ``"p2"`` (the data set's own mesh: the element order's share of the error alone).
 
-    Each solve starts from the data set's own answer, with the data set's solver settings.
+    Each solve takes the data set's solve path with the data set's solver settings: from zero
+    along the load path when the data set is solved so (``dataset.predictor = "none"``: a body
+    with more than one equilibrium under the same loads gets the one its loading reaches, as the
+    data set's own answer is), otherwise from the data set's answer at the full load.
     """
 
     def __init__(self, dataset, kind: str):
@@ -243,6 +246,11 @@ class ReferenceSolver:
             self.refined = None
 
     @property
+    def along_load_path(self) -> bool:
+        """Whether each solve starts from zero along the load path (the data set's own path)."""
+        return self.dataset.config.dataset.predictor == "none"
+
+    @property
     def n_vertices(self) -> int:
         """Vertices of the mesh the reference is solved on."""
         return (self.dataset.mesh if self.refined is None else self.refined.mesh).n_vertices
@@ -258,11 +266,12 @@ class ReferenceSolver:
 
         ds = self.dataset
         inputs = self.scenario.sample(int(ds.seed[k]), float(ds.alpha[k]))
-        data = np.asarray(ds.displacements[k], dtype=np.float64)
+        data = None if self.along_load_path else np.asarray(ds.displacements[k], dtype=np.float64)
         if self.refined is not None:
             fine = refined_sample(self.scenario, ds.config, self.refined, inputs)
             res = Solver(fine.problem, self.solver_config).solve(
-                fine.surface, initial_guess=self.refined.from_coarse(data), time_limit=time_limit, **fine.keywords)
+                fine.surface, initial_guess=None if data is None else self.refined.from_coarse(data),
+                time_limit=time_limit, **fine.keywords)
             return self.refined.coarse_values(res.displacement)
         problem = self.scenario.problem()
         changes = {key: v for key, v in zip(("materials", "springs"), inputs.solver_parameters) if v is not None}
