@@ -13,8 +13,10 @@ share of samples within 2 %), the 95th-percentile vertex error and the mean vert
 same largest error once the best rigid motion between the two deformed bodies is taken out
 (how much of the error is a swing of the whole body, which markers see, and the angle of
 that swing), and where the largest errors sit (distance to the supports, the pins and the
-attached region, and to the instrument's contact). The refined solves start from the store's
-answer and are slow (minutes each on a 2-core machine for the phantom); a solve past
+attached region, and to the instrument's contact). The solves take the store's own path (from
+zero along the load path, or from the store's answer when the store was solved from a guess;
+:class:`~tissuecast.evaluate.mismatch.ReferenceSolver`) and are slow (minutes each on a 2-core
+machine for the phantom); a solve past
 ``--time-limit`` is stopped and its sample left out; the answers are cached in ``--cache``.
 ``--reference p2``
 takes quadratic elements on the store's own mesh as the reference instead (no refined solve:

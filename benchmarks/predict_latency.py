@@ -9,7 +9,10 @@ Prints p50/p99 per single prediction (us) and batch throughput (samples/s), with
         [--versus OTHER_FOLDER]
 
 Without a model folder a model of the paper's size (the phantom, 5 markers, n_w 27,
-[128, 64]) is built from random weights: latency does not depend on training.
+[128, 64]) is built from random weights: latency does not depend on training. A model that
+reads tracked instruments (e.g. the embedded preset's retractor) is timed with its inputs: the
+marker displacements and instrument poses of its training store's test-1 samples (the store
+must be where the model folder records it), every path given both.
 ``--versus`` times another model's ``predict`` (e.g. the same store with another decoder,
 ``surrogate.decoder``) call by call alternately with the first one's, so that both see the
 same machine load, and prints the two p50/p99 and their ratio.
@@ -25,10 +28,15 @@ from pathlib import Path
 import numpy as np
 
 
+#: Scale of the random marker displacements of a model without a store (mm).
+RANDOM_SCALE = 5.0
+
+
 def paper_size_model(ensemble: int = 1):
     """An untrained-but-valid model of the paper's size (random weights, random PCA basis)."""
     from tissuecast.surrogate import DeformationModel, ModelState, NetworkPredictor
     from tissuecast.surrogate.weights import MLPWeights
+    from tissuecast.surrogate.gate import InputGate
     from tissuecast.surrogate.pca import PCABasis
 
     from tissuecast.mesh.phantom import phantom
@@ -47,8 +55,12 @@ def paper_size_model(ensemble: int = 1):
             x_mean=np.zeros(3 * n_d, np.float32), x_std=np.full(3 * n_d, 5.0, np.float32),
             y_mean=np.zeros(n_w, np.float32), y_std=np.full(n_w, 10.0, np.float32)))
     network = NetworkPredictor(mesh, [0, 200, 400, 600, 1000], basis, members)
+    # the input gate of the inputs the benchmark draws (random displacements of 5 mm scale), so
+    # that every call passes the gate's checks as a served frame does
+    gate = InputGate.from_inputs(network.markers, network.reference_marker_positions,
+                                 rng.normal(scale=RANDOM_SCALE, size=(4000, 3 * n_d)))
     return DeformationModel.from_state(ModelState(DeformationModel().config, network, np.zeros(0, np.int64),
-                                                  {"rule": "random", "n_components": n_w}))
+                                                  {"rule": "random", "n_components": n_w}, gate=gate))
 
 
 def timings(fn, inputs, repeats: int) -> np.ndarray:
@@ -81,13 +93,18 @@ def paired_timings(fns, inputs, repeats: int) -> np.ndarray:
 
 
 def versus(model, other_folder: str, singles, repeats: int) -> None:
-    """Print both models' single-sample ``predict`` latency, timed alternately."""
+    """Print both models' single-sample ``predict`` latency, timed alternately (``singles``:
+    :func:`model_inputs` of the first)."""
     from tissuecast.surrogate import DeformationModel
 
     other = DeformationModel.load(other_folder)
     if other.n_markers != model.n_markers:
         raise SystemExit(f"--versus: the models read {model.n_markers} and {other.n_markers} markers")
-    t = paired_timings([model.predict, other.predict], singles, repeats) * 1e6
+    if other.auxiliary.names != model.auxiliary.names:
+        raise SystemExit(f"--versus: the models read {model.auxiliary.names} and {other.auxiliary.names} beside "
+                         "their markers")
+    calls = [lambda x, m=m: m.predict(x[0], auxiliary=x[1]) for m in (model, other)]
+    t = paired_timings(calls, singles, repeats) * 1e6
     p50, p99 = np.percentile(t, 50, axis=1), np.percentile(t, 99, axis=1)
     print(f"side by side, alternating calls ({repeats} each):")
     for name, m, a, b in (("first", model, p50[0], p99[0]), ("versus", other, p50[1], p99[1])):
@@ -96,25 +113,49 @@ def versus(model, other_folder: str, singles, repeats: int) -> None:
     print(f"  versus / first: p50 {p50[1] / p50[0]:.2f}x, p99 {p99[1] / p99[0]:.2f}x")
 
 
+def model_inputs(model, rng, count: int = 256) -> list[tuple[np.ndarray, np.ndarray | None]]:
+    """``count`` single-sample inputs ``(d (3 n_d,) mm, auxiliary (n_a,) or None)``: the model's
+    training store's test-1 samples (their marker displacements and instrument poses) where the
+    store is at the path the model folder records; else, for a markers-only model, random
+    displacements (``RANDOM_SCALE`` mm)."""
+    from tissuecast.dataset import open_dataset
+    from tissuecast.evaluate.evaluation import auxiliary_values
+
+    if not model.dataset_path or not Path(model.dataset_path).exists():
+        if model.auxiliary.width:
+            raise SystemExit(f"the model reads {model.auxiliary.names} beside its markers; their values come from "
+                             f"its training store, which is not at {model.dataset_path!r}: run the benchmark where "
+                             "the model was trained")
+        return [(rng.normal(scale=RANDOM_SCALE, size=3 * model.n_markers), None) for _ in range(count)]
+    ds = open_dataset(model.dataset_path)
+    rows = ds.select("test1")[:count]
+    d = model.marker_displacements(np.asarray(ds.displacements[rows], dtype=np.float64)).reshape(len(rows), -1)
+    aux = auxiliary_values(model, ds)
+    return list(zip(d, [None] * len(rows) if aux is None else aux[rows]))
+
+
 def _torch_and_onnx(model, singles, batch, add) -> tuple[float | None, float | None]:
     """Time the torch module and the ONNX graph (one thread each) where installed; returns their
-    batch throughputs (samples/s, None where not installed)."""
+    batch throughputs (samples/s, None where not installed). ``singles``: :func:`model_inputs`;
+    ``batch``: ``(d (B, n_d, 3), auxiliary (B, n_a) or None)``."""
     n_d = model.n_markers
     torch_thr = ort_thr = None
+    d_b, a_b = batch
     try:
         import torch
 
         torch.set_num_threads(1)
         net = model.torch_module()
-        tin = [torch.as_tensor(s.reshape(1, n_d, 3), dtype=torch.float32) for s in singles]
+        as_t = lambda v: torch.as_tensor(v, dtype=torch.float32)  # noqa: E731
+        tin = [(as_t(d.reshape(1, n_d, 3)),) + (() if a is None else (as_t(a.reshape(1, -1)),)) for d, a in singles]
 
         def torch_call(x):
             with torch.inference_mode():
-                return net(x)
+                return net(*x)
 
         add("torch  module (1 thread)", torch_call, tin)
-        tb = torch.as_tensor(batch, dtype=torch.float32)
-        torch_thr = len(batch) / np.median(timings(torch_call, [tb], 20))
+        tb = (as_t(d_b),) + (() if a_b is None else (as_t(a_b),))
+        torch_thr = len(d_b) / np.median(timings(torch_call, [tb], 20))
     except ImportError:
         pass
     try:
@@ -126,12 +167,17 @@ def _torch_and_onnx(model, singles, batch, add) -> tuple[float | None, float | N
             so = ort.SessionOptions()
             so.intra_op_num_threads = 1
             sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-        feeds = [s.reshape(1, n_d, 3).astype(np.float32) for s in singles]
-        extra = {"present": np.ones((1, n_d), np.float32)} if model.supports_missing_markers else {}
-        add("onnxruntime (1 thread)", lambda x: sess.run(None, {"markers": x, **extra}), feeds)
-        extra_b = {"present": np.ones((len(batch), n_d), np.float32)} if extra else {}
-        bf = batch.astype(np.float32)
-        ort_thr = len(batch) / np.median(timings(lambda x: sess.run(None, {"markers": x, **extra_b}), [bf], 20))
+
+        def feed(d, a, rows):
+            out = {"markers": d.reshape(rows, n_d, 3).astype(np.float32)}
+            if a is not None:
+                out["auxiliary"] = a.reshape(rows, -1).astype(np.float32)
+            if model.supports_missing_markers:
+                out["present"] = np.ones((rows, n_d), np.float32)
+            return out
+
+        add("onnxruntime (1 thread)", lambda x: sess.run(None, x), [feed(d, a, 1) for d, a in singles])
+        ort_thr = len(d_b) / np.median(timings(lambda x: sess.run(None, x), [feed(d_b, a_b, len(d_b))], 20))
     except ImportError:
         pass
     return torch_thr, ort_thr
@@ -151,26 +197,28 @@ def main(argv=None) -> int:
     model = DeformationModel.load(args.model) if args.model else paper_size_model(args.ensemble)
     n_d = model.n_markers
     rng = np.random.default_rng(1)
-    singles = [rng.normal(scale=5.0, size=3 * n_d) for _ in range(256)]
+    singles = model_inputs(model, rng)
     rows = []
 
     def add(name, fn, inputs):
         t = timings(fn, inputs, args.repeats) * 1e6
         rows.append((name, np.percentile(t, 50), np.percentile(t, 99)))
 
-    add("numpy  model.predict", model.predict, singles)
+    add("numpy  model.predict", lambda x: model.predict(x[0], auxiliary=x[1]), singles)
     net = model.network_
     if net.head is not None:  # the same networks without their quadratic head: its cost
         from tissuecast.surrogate import NetworkPredictor
 
-        bare = NetworkPredictor(net.mesh, net.markers, net.basis, net.members)
-        add("numpy  model.predict, head left out", bare.predict, singles)
-    add("numpy  model.predict_ridge", model.predict_ridge, singles)
-    pos = [model.reference_marker_positions + s.reshape(n_d, 3) for s in singles]
-    add("numpy  predict_from_positions", model.predict_from_positions, pos)
-    batch = rng.normal(scale=5.0, size=(args.batch, n_d, 3))
+        bare = NetworkPredictor(net.mesh, net.markers, net.basis, net.members, auxiliary=net.auxiliary)
+        add("numpy  model.predict, head left out", lambda x: bare.predict(x[0], auxiliary=x[1]), singles)
+    add("numpy  model.predict_ridge", lambda x: model.predict_ridge(x[0]), singles)
+    pos = [(model.reference_marker_positions + d.reshape(n_d, 3), a) for d, a in singles]
+    add("numpy  predict_from_positions", lambda x: model.predict_from_positions(x[0], auxiliary=x[1]), pos)
+    picks = rng.integers(len(singles), size=args.batch)
+    batch = (np.stack([singles[i][0] for i in picks]).reshape(args.batch, n_d, 3),
+             None if singles[0][1] is None else np.stack([singles[i][1] for i in picks]))
     torch_thr, ort_thr = _torch_and_onnx(model, singles, batch, add)
-    np_thr = args.batch / np.median(timings(model.predict, [batch], 20))
+    np_thr = args.batch / np.median(timings(lambda b: model.predict(b[0], auxiliary=b[1]), [batch], 20))
 
     print(f"model: {model!r}")
     print(f"single-sample prediction, {args.repeats} calls each (in-process)")
