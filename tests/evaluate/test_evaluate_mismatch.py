@@ -143,6 +143,7 @@ def test_a_small_mismatch_study_through_the_cli(tmp_path, capsys):
     assert (out / "study_mismatch.png").is_file() and (out / "study_mismatch.csv").is_file()
     _a_refined_solve_past_its_limit_is_recorded(tmp_path / "uncertain.toml", out / "mismatch", tmp_path / "timed")
     _the_reference_takes_the_data_sets_path(out / "mismatch" / "nominal.zarr")
+    _answers_solved_another_way_are_solved_again(tmp_path / "uncertain.toml", out / "mismatch")
     # the sets are data sets with the set's parameter fixed, the trained alpha, the models' markers
     e2 = open_dataset(out / "mismatch" / "e_x2.zarr")
     assert (e2.parameters["youngs_modulus"] == 2.0).all()
@@ -301,3 +302,39 @@ def _the_reference_takes_the_data_sets_path(store):
     x = sc.sample(int(ds.seed[k]), float(ds.alpha[k]))
     plain = Solver(sc.problem(), cfg2.solver).solve(x.surface, **x.solve_keywords()).displacement[: ds.mesh.n_vertices]
     np.testing.assert_allclose(u, plain, rtol=0, atol=1e-9)
+
+
+def _answers_solved_another_way_are_solved_again(config_path, study):
+    """The quadratic set's folder records how its answers were solved; answers of another path
+    (or of a version that did not record it) are moved aside and solved again, never mixed."""
+    import tissuecast.fem
+    from tissuecast.config import load_config
+    from tissuecast.evaluate.mismatch import REFERENCE_RECORD, discretisation_set
+
+    cfg, folder = load_config(config_path), study / "quadratic_elements"
+    record = folder / REFERENCE_RECORD
+    assert json.loads(record.read_text()) == {"reference": "p2", "path": "from the data set's answer"}
+    first = sorted(folder.glob("sample_*.npy"))[0]
+    before = np.load(first)
+    calls = []
+
+    class Counting(tissuecast.fem.Solver):
+        def solve(self, *args, **kwargs):
+            calls.append(1)
+            return super().solve(*args, **kwargs)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(tissuecast.fem, "Solver", Counting)
+    try:
+        again = discretisation_set(cfg, study / "nominal.zarr", folder, 1, reference="p2")
+        assert calls == [] and again.n_samples == 1  # the same path: the answers are reused
+        record.write_text(json.dumps({"reference": "p2", "path": "load path"}))
+        again = discretisation_set(cfg, study / "nominal.zarr", folder, 1, reference="p2")
+        assert calls == [1] and (folder / "superseded" / first.name).is_file()
+        assert json.loads(record.read_text())["path"] == "from the data set's answer"
+        np.testing.assert_allclose(again.displacements[0], before, rtol=0, atol=1e-9)  # solved again, the same way
+        record.unlink()  # answers of a version that did not record how they were solved
+        discretisation_set(cfg, study / "nominal.zarr", folder, 1, reference="p2")
+        assert calls == [1, 1] and record.is_file()
+    finally:
+        mp.undo()

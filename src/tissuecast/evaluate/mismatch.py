@@ -48,8 +48,8 @@ import numpy as np
 
 from ..config import Config, nothing_drawn, with_overrides
 
-__all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver", "discretisation_set",
-           "evaluate_on_set", "set_folder_name", "store_alpha", "mismatch_study", "DEFAULT_SAMPLES",
+__all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver", "along_load_path",
+           "discretisation_set", "evaluate_on_set", "set_folder_name", "store_alpha", "mismatch_study", "DEFAULT_SAMPLES",
            "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT", "STUDY_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
@@ -213,6 +213,11 @@ class ArraySet:
         return np.arange(len(self.displacements)) if split in (None, "test1") else np.zeros(0, dtype=np.int64)
 
 
+def along_load_path(config: Config) -> bool:
+    """Whether a data set of ``config`` is solved from zero along the load path (no initial guess)."""
+    return config.dataset.predictor == "none"
+
+
 class ReferenceSolver:
     """Solves a data set's samples again with quadratic elements, read on its vertices.
 
@@ -248,7 +253,7 @@ class ReferenceSolver:
     @property
     def along_load_path(self) -> bool:
         """Whether each solve starts from zero along the load path (the data set's own path)."""
-        return self.dataset.config.dataset.predictor == "none"
+        return along_load_path(self.dataset.config)
 
     @property
     def n_vertices(self) -> int:
@@ -292,12 +297,16 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
     A solve that does not converge, or runs past ``time_limit`` s (None: no limit), is left
     out, logged and recorded in ``folder`` (``sample_NNNNN.failed.json``: why, how long it ran,
     the limit): a second run does not try it again unless its limit is larger than the recorded
-    one (or the record is deleted)."""
+    one (or the record is deleted). ``folder/reference.json`` records how the answers are solved
+    (the reference and the solve path, :class:`ReferenceSolver`); answers solved otherwise are
+    moved to ``folder/superseded/`` and solved again."""
     from ..dataset import open_dataset
     from ..errors import ConvergenceError, SolveTimeout
 
     ds = open_dataset(nominal_store)
     folder.mkdir(parents=True, exist_ok=True)
+    _keep_answers_of_one_path(folder, {"reference": reference, "path": "load path" if along_load_path(ds.config)
+                                       else "from the data set's answer"})
     limit = float("inf") if time_limit is None else float(time_limit)
     chosen = [int(k) for k in ds.select("test1", status="done")[:samples]]
     todo = [k for k in chosen if not _refined_file(folder, k).is_file() and _retry_refined(folder, k, limit)]
@@ -331,6 +340,29 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
                  "--sets can leave the set out)", done, len(todo), (len(todo) - done) * spent / done / 60.0)
     kept = [k for k in chosen if _refined_file(folder, k).is_file()]
     return ArraySet.of_samples(ds, kept, [np.load(_refined_file(folder, k)) for k in kept])
+
+
+#: Where a set's folder records how its answers were solved (:func:`discretisation_set`).
+REFERENCE_RECORD = "reference.json"
+
+
+def _keep_answers_of_one_path(folder: Path, how: dict) -> None:
+    """Record ``how`` the answers in ``folder`` are solved; answers solved otherwise (or by a
+    version that did not record it) are moved to ``folder/superseded/`` and logged, so that a
+    set never mixes two references."""
+    record = folder / REFERENCE_RECORD
+    earlier = json.loads(record.read_text()) if record.is_file() else None
+    old = sorted(folder.glob("sample_*.npy")) + sorted(folder.glob("sample_*.failed.json"))
+    if earlier != how and old:
+        aside = folder / "superseded"
+        aside.mkdir(exist_ok=True)
+        for path in old:
+            path.replace(aside / path.name)
+        log.warning("discretisation: the %d answers in %s were solved %s; this study solves %s: they are moved to %s "
+                    "and solved again", len(old), folder, "by a version that did not record how" if earlier is None
+                    else f"{earlier.get('path')} ({earlier.get('reference')})", f"{how['path']} ({how['reference']})",
+                    aside)
+    record.write_text(json.dumps(how, indent=1) + "\n")
 
 
 def _refined_file(folder: Path, k: int, *, failed: bool = False) -> Path:
