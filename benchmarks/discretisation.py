@@ -17,7 +17,8 @@ attached region, and to the instrument's contact). The solves take the store's o
 zero along the load path, or from the store's answer when the store was solved from a guess;
 :class:`~tissuecast.evaluate.mismatch.ReferenceSolver`) and are slow (minutes each on a 2-core
 machine for the phantom); a solve past
-``--time-limit`` is stopped and its sample left out; the answers are cached in ``--cache``.
+``--time-limit`` is stopped and its sample left out; the answers are cached in ``--cache`` (with
+the path they were solved along: answers of another path are moved to ``superseded/``).
 ``--reference p2``
 takes quadratic elements on the store's own mesh as the reference instead (no refined solve:
 the element order's share of the error alone, a lower bound of the whole).
@@ -106,7 +107,7 @@ def _models_against(ds, kept: list, fields: dict, specs: list) -> None:
 def main(argv=None) -> int:
     from tissuecast.dataset import open_dataset
     from tissuecast.errors import ConvergenceError, SolveTimeout
-    from tissuecast.evaluate.mismatch import ReferenceSolver
+    from tissuecast.evaluate.mismatch import ReferenceSolver, along_load_path, keep_answers_of_one_path
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("store")
@@ -126,6 +127,7 @@ def main(argv=None) -> int:
                          "use --reference refined")
     cache = Path(args.cache or Path(args.store).with_suffix(".discretisation"))
     cache.mkdir(parents=True, exist_ok=True)
+    keep_answers_of_one_path(cache, {"path": "load path" if along_load_path(ds.config) else "from the store's answer"})
     kinds = (("p2",) if ds.config.solver.order == 1 else ()) + (("refined",) if args.reference == "refined" else ())
     solvers = {kind: ReferenceSolver(ds, kind) for kind in kinds}
     rows: dict[str, list] = {}

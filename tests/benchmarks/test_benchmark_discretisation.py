@@ -3,6 +3,7 @@ the cached answers are the samples' own P2 solutions, and every model is evaluat
 
 from __future__ import annotations
 
+import json
 
 import numpy as np
 import pytest
@@ -36,6 +37,8 @@ def test_quadratic_reference_and_models_against_both(tmp_path, capsys):
     assert sum(line.startswith("linear") for line in out.splitlines()) == 2  # against the data and the reference
     cached = sorted((tmp_path / "c").glob("sample_*.p2.npy"))
     assert len(cached) == 2 and not list((tmp_path / "c").glob("*.reference.npy"))
+    record = json.loads((tmp_path / "c" / "reference.json").read_text())
+    assert record == {"path": "from the store's answer"}  # this store's samples start from a reduced guess
     # the cached answer is the sample's own P2 solution, its loads the store's (the store's LBO
     # basis: a basis computed again may differ in its eigenvectors' signs), solved from zero here
     k = int(cached[0].name.split("_")[1].split(".")[0])

@@ -49,8 +49,8 @@ import numpy as np
 from ..config import Config, nothing_drawn, with_overrides
 
 __all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver", "along_load_path",
-           "discretisation_set", "evaluate_on_set", "set_folder_name", "store_alpha", "mismatch_study", "DEFAULT_SAMPLES",
-           "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT", "STUDY_SEED_OFFSET"]
+           "keep_answers_of_one_path", "discretisation_set", "evaluate_on_set", "set_folder_name", "store_alpha",
+           "mismatch_study", "DEFAULT_SAMPLES", "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT", "STUDY_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
 
@@ -305,7 +305,7 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
 
     ds = open_dataset(nominal_store)
     folder.mkdir(parents=True, exist_ok=True)
-    _keep_answers_of_one_path(folder, {"reference": reference, "path": "load path" if along_load_path(ds.config)
+    keep_answers_of_one_path(folder, {"reference": reference, "path": "load path" if along_load_path(ds.config)
                                        else "from the data set's answer"})
     limit = float("inf") if time_limit is None else float(time_limit)
     chosen = [int(k) for k in ds.select("test1", status="done")[:samples]]
@@ -346,10 +346,11 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
 REFERENCE_RECORD = "reference.json"
 
 
-def _keep_answers_of_one_path(folder: Path, how: dict) -> None:
-    """Record ``how`` the answers in ``folder`` are solved; answers solved otherwise (or by a
-    version that did not record it) are moved to ``folder/superseded/`` and logged, so that a
-    set never mixes two references."""
+def keep_answers_of_one_path(folder: Path, how: dict) -> None:
+    """Record ``how`` the reference answers in ``folder`` (``sample_*.npy``, ``sample_*.failed.json``)
+    are solved (JSON-able, e.g. ``{"reference": "p2", "path": "load path"}``); answers solved
+    otherwise (or by a version that did not record it) are moved to ``folder/superseded/`` and
+    logged, so that a folder never mixes two references."""
     record = folder / REFERENCE_RECORD
     earlier = json.loads(record.read_text()) if record.is_file() else None
     old = sorted(folder.glob("sample_*.npy")) + sorted(folder.glob("sample_*.failed.json"))
