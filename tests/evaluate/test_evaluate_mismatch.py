@@ -338,3 +338,20 @@ def _answers_solved_another_way_are_solved_again(config_path, study):
         assert calls == [1, 1] and record.is_file()
     finally:
         mp.undo()
+
+
+def test_a_folder_keeps_the_answers_of_one_path(tmp_path, caplog):
+    from tissuecast.evaluate.mismatch import REFERENCE_RECORD, keep_answers_of_one_path
+
+    np.save(tmp_path / "sample_00001.npy", np.ones((3, 3)))
+    (tmp_path / "sample_00002.failed.json").write_text("{}")
+    keep_answers_of_one_path(tmp_path, {"path": "load path"})  # unrecorded answers: moved aside
+    assert sorted(p.name for p in (tmp_path / "superseded").iterdir()) == ["sample_00001.npy", "sample_00002.failed.json"]
+    assert "did not record how" in caplog.text
+    np.save(tmp_path / "sample_00001.npy", np.zeros((3, 3)))
+    keep_answers_of_one_path(tmp_path, {"path": "load path"})  # the same path: kept
+    assert (tmp_path / "sample_00001.npy").is_file()
+    keep_answers_of_one_path(tmp_path, {"path": "from the store's answer"})
+    assert not (tmp_path / "sample_00001.npy").exists() and np.load(tmp_path / "superseded" / "sample_00001.npy").sum() == 0
+    assert json.loads((tmp_path / REFERENCE_RECORD).read_text()) == {"path": "from the store's answer"}
+    assert '{"path": "load path"}' in caplog.text

@@ -359,10 +359,9 @@ def keep_answers_of_one_path(folder: Path, how: dict) -> None:
         aside.mkdir(exist_ok=True)
         for path in old:
             path.replace(aside / path.name)
-        log.warning("discretisation: the %d answers in %s were solved %s; this study solves %s: they are moved to %s "
-                    "and solved again", len(old), folder, "by a version that did not record how" if earlier is None
-                    else f"{earlier.get('path')} ({earlier.get('reference')})", f"{how['path']} ({how['reference']})",
-                    aside)
+        log.warning("discretisation: the %d answers in %s were solved %s, not %s: they are moved to %s and solved "
+                    "again", len(old), folder, "by a version that did not record how" if earlier is None
+                    else json.dumps(earlier), json.dumps(how), aside)
     record.write_text(json.dumps(how, indent=1) + "\n")
 
 

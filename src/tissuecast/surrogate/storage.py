@@ -182,10 +182,7 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
 
 def _clear_earlier_model(out: Path) -> None:
     """Remove from ``out`` the optional parts of an earlier model saved there (its head, decoder,
-    trust layer, graph, fallback and nominal expert); only in a model folder (one with ``model.json``),
-    and only the layout's own names."""
-    if not (out / "model.json").is_file():
-        return
+    trust layer, graph, fallback and nominal expert): the layout's own names only."""
     for name in _OPTIONAL_FILES:
         (out / name).unlink(missing_ok=True)
     for sub in (out / FALLBACK_FOLDER, out / EXPERT_FOLDER):
