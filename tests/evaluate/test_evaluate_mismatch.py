@@ -263,8 +263,8 @@ def _a_refined_solve_past_its_limit_is_recorded(config_path, study, folder):
 class _AlongTheLoadPath:
     """A data set read as if it had been solved from zero along the load path (``predictor = "none"``)."""
 
-    def __init__(self, ds):
-        self._ds, self.config = ds, with_overrides(ds.config, dataset={"predictor": "none"})
+    def __init__(self, ds, **changes):
+        self._ds, self.config = ds, with_overrides(ds.config, dataset={"predictor": "none"}, **changes)
 
     def __getattr__(self, name):
         return getattr(self._ds, name)
@@ -302,6 +302,29 @@ def _the_reference_takes_the_data_sets_path(store):
     x = sc.sample(int(ds.seed[k]), float(ds.alpha[k]))
     plain = Solver(sc.problem(), cfg2.solver).solve(x.surface, **x.solve_keywords()).displacement[: ds.mesh.n_vertices]
     np.testing.assert_allclose(u, plain, rtol=0, atol=1e-9)
+    # a solve that stops is tried again as the data set's samples are: exact Newton steps, smaller increments
+    from tissuecast.errors import ConvergenceError
+
+    strategies = []
+
+    class StopsUnlessNewton(tissuecast.fem.Solver):
+        def solve(self, *args, **kwargs):
+            strategies.append(self.config.strategy)
+            if self.config.strategy != "newton":
+                raise ConvergenceError("stopped at load fraction 0.5", 0.5)
+            return super().solve(*args, **kwargs)
+
+    mp.setattr(tissuecast.fem, "Solver", StopsUnlessNewton)
+    try:
+        retried = along.solve(k)
+        assert ds.config.solver.strategy != "newton" and strategies == [ds.config.solver.strategy, "newton"]
+        np.testing.assert_allclose(retried, plain, rtol=0, atol=0.02 * np.abs(plain).max())  # the same equilibrium
+        once = ReferenceSolver(_AlongTheLoadPath(ds, solver={"retries": 0}), "p2")
+        with pytest.raises(ConvergenceError, match="load fraction 0.5"):
+            once.solve(k)
+        assert strategies[2:] == [ds.config.solver.strategy]
+    finally:
+        mp.undo()
 
 
 def _answers_solved_another_way_are_solved_again(config_path, study):
