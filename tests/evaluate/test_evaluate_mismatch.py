@@ -302,27 +302,36 @@ def _the_reference_takes_the_data_sets_path(store):
     x = sc.sample(int(ds.seed[k]), float(ds.alpha[k]))
     plain = Solver(sc.problem(), cfg2.solver).solve(x.surface, **x.solve_keywords()).displacement[: ds.mesh.n_vertices]
     np.testing.assert_allclose(u, plain, rtol=0, atol=1e-9)
-    # a solve that stops is tried again as the data set's samples are: exact Newton steps, smaller increments
+    # a solve that stops is tried again as the data set's samples are (exact Newton steps, smaller
+    # increments), from the state it reached; without a state, from zero again
     from tissuecast.errors import ConvergenceError
 
-    strategies = []
+    strategies, starts, reached = [], [], []
 
     class StopsUnlessNewton(tissuecast.fem.Solver):
         def solve(self, *args, **kwargs):
             strategies.append(self.config.strategy)
-            if self.config.strategy != "newton":
-                raise ConvergenceError("stopped at load fraction 0.5", 0.5)
-            return super().solve(*args, **kwargs)
+            starts.append(kwargs.get("initial_guess"))
+            if self.config.strategy == "newton":
+                return super().solve(*args, **kwargs)
+            if len(strategies) > 1:  # stopped before it reached anything
+                raise ConvergenceError("stopped at load fraction 0", 0.0)
+            reached.append(super().solve(*args, **kwargs))  # as if it had stopped there
+            raise ConvergenceError("stopped at load fraction 0.9", 0.9, result=reached[0])
 
     mp.setattr(tissuecast.fem, "Solver", StopsUnlessNewton)
     try:
         retried = along.solve(k)
         assert ds.config.solver.strategy != "newton" and strategies == [ds.config.solver.strategy, "newton"]
-        np.testing.assert_allclose(retried, plain, rtol=0, atol=0.02 * np.abs(plain).max())  # the same equilibrium
+        assert starts[0] is None and starts[1] is reached[0].nodal_displacement
+        np.testing.assert_allclose(retried, plain, rtol=0, atol=1e-3 * np.abs(plain).max())  # the same equilibrium
+        again = along.solve(k)  # stopped at once: from zero, with Newton steps
+        assert strategies[2:] == [ds.config.solver.strategy, "newton"] and starts[3] is None
+        np.testing.assert_allclose(again, plain, rtol=0, atol=0.02 * np.abs(plain).max())
         once = ReferenceSolver(_AlongTheLoadPath(ds, solver={"retries": 0}), "p2")
-        with pytest.raises(ConvergenceError, match="load fraction 0.5"):
+        with pytest.raises(ConvergenceError, match="load fraction 0"):
             once.solve(k)
-        assert strategies[2:] == [ds.config.solver.strategy]
+        assert strategies[4:] == [ds.config.solver.strategy]
     finally:
         mp.undo()
 

@@ -262,9 +262,10 @@ class ReferenceSolver:
 
     def solve(self, k: int, *, time_limit: float | None = None) -> np.ndarray:
         """Sample ``k``'s answer (n, 3) float64 mm on the data set's n vertices. A solve that stops
-        is tried again as the data set's own samples are (``solver.retries`` times, each more
-        cautious: exact Newton steps, smaller increments; :func:`~tissuecast.dataset.worker.retry_solver_config`),
-        all attempts within ``time_limit`` s together.
+        is tried again more cautiously, as the data set's own samples are (``solver.retries``
+        times: exact Newton steps, smaller increments; :func:`~tissuecast.dataset.worker.retry_solver_config`),
+        from the state it reached (the load path kept up to there), all attempts within
+        ``time_limit`` s together.
 
         Raises:
             ConvergenceError: no attempt converges (the last one's); SolveTimeout (one) past ``time_limit`` s.
@@ -275,6 +276,7 @@ class ReferenceSolver:
         ds = self.dataset
         inputs = self.scenario.sample(int(ds.seed[k]), float(ds.alpha[k]))
         data = None if self.along_load_path else np.asarray(ds.displacements[k], dtype=np.float64)
+        reached = None  # every node's displacement where the last attempt stopped
         start, attempts = time.perf_counter(), ds.config.solver.retries + 1
         for attempt in range(attempts):
             left = time_limit if time_limit is None or attempt == 0 else time_limit - (time.perf_counter() - start)
@@ -282,33 +284,37 @@ class ReferenceSolver:
                 raise SolveTimeout(f"sample {k}: {attempt} attempt(s) used the time limit of {time_limit:g} s",
                                    time.perf_counter() - start, time_limit)
             try:
-                return self._solve_once(inputs, data, retry_solver_config(self.solver_config, attempt), left)
+                return self._solve_once(inputs, retry_solver_config(self.solver_config, attempt), left, data, reached)
             except SolveTimeout:
                 raise
             except ConvergenceError as exc:
                 if attempt + 1 == attempts:
                     raise
+                if exc.result is not None and exc.load_fraction > 0:
+                    reached = exc.result.nodal_displacement
                 log.info("reference of sample %d: attempt %d of %d stopped at %.1f %% of its load (%s); trying again "
-                         "with exact Newton steps and smaller increments", k, attempt + 1, attempts,
-                         100 * exc.load_fraction, exc)
+                         "with exact Newton steps and smaller increments%s", k, attempt + 1, attempts,
+                         100 * exc.load_fraction, exc, "" if reached is None else ", from where it stopped")
 
-    def _solve_once(self, inputs, data, solver_config, time_limit) -> np.ndarray:
-        """One solve of a sample's ``inputs`` with ``solver_config``, from ``data`` (None: zero)."""
+    def _solve_once(self, inputs, solver_config, time_limit, data, reached) -> np.ndarray:
+        """One solve of a sample's ``inputs`` with ``solver_config``: from ``reached`` (every node's
+        displacement, where an earlier attempt stopped), else from ``data`` (the data set's answer
+        on its vertices), else from zero."""
         from ..fem import Solver
         from ..scenario.refined import refined_sample
 
         ds = self.dataset
         if self.refined is not None:
             fine = refined_sample(self.scenario, ds.config, self.refined, inputs)
-            res = Solver(fine.problem, solver_config).solve(
-                fine.surface, initial_guess=None if data is None else self.refined.from_coarse(data),
-                time_limit=time_limit, **fine.keywords)
+            guess = reached if reached is not None else None if data is None else self.refined.from_coarse(data)
+            res = Solver(fine.problem, solver_config).solve(fine.surface, initial_guess=guess, time_limit=time_limit,
+                                                            **fine.keywords)
             return self.refined.coarse_values(res.displacement)
         problem = self.scenario.problem()
         changes = {key: v for key, v in zip(("materials", "springs"), inputs.solver_parameters) if v is not None}
         problem = dataclasses.replace(problem, **changes) if changes else problem
-        res = Solver(problem, solver_config).solve(inputs.surface, initial_guess=data, time_limit=time_limit,
-                                                   **inputs.solve_keywords())
+        res = Solver(problem, solver_config).solve(inputs.surface, initial_guess=reached if reached is not None else data,
+                                                   time_limit=time_limit, **inputs.solve_keywords())
         return np.asarray(res.displacement[: ds.mesh.n_vertices])
 
 
