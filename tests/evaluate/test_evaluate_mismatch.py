@@ -3,6 +3,7 @@ the whole study (two models, a few sets) through the CLI."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 
 import numpy as np
@@ -226,25 +227,39 @@ def test_run_with_a_nominal_expert(tmp_path):
             check_config(with_overrides(cfg, **change))
 
 
+@contextlib.contextmanager
+def _watched_solver(hook):
+    """``tissuecast.fem.Solver`` replaced, inside the block, by one whose ``solve`` calls
+    ``hook(solver, solve, kwargs)`` (``solve()``: the real solve) and returns what it returns."""
+    import tissuecast.fem
+
+    class Watched(tissuecast.fem.Solver):
+        def solve(self, *args, **kwargs):
+            return hook(self, lambda: super(Watched, self).solve(*args, **kwargs), kwargs)
+
+    mp = pytest.MonkeyPatch()
+    mp.setattr(tissuecast.fem, "Solver", Watched)
+    try:
+        yield
+    finally:
+        mp.undo()
+
+
 def _a_refined_solve_past_its_limit_is_recorded(config_path, study, folder):
     """The discretisation set under a time limit no refined solve meets: every sample left out
     and recorded; a second run with the same limit solves nothing; without a limit the samples
     are solved again, as the study solved them."""
-    import tissuecast.fem
     from tissuecast.config import load_config
     from tissuecast.evaluate.mismatch import discretisation_set
 
     cfg = load_config(config_path)
     calls = []
 
-    class Counting(tissuecast.fem.Solver):
-        def solve(self, *args, **kwargs):
-            calls.append(kwargs.get("time_limit"))
-            return super().solve(*args, **kwargs)
+    def counting(solver, solve, kwargs):
+        calls.append(kwargs.get("time_limit"))
+        return solve()
 
-    mp = pytest.MonkeyPatch()
-    mp.setattr(tissuecast.fem, "Solver", Counting)
-    try:
+    with _watched_solver(counting):
         assert discretisation_set(cfg, study / "nominal.zarr", folder, 2, time_limit=1e-9).n_samples == 0
         records = sorted(folder.glob("*.failed.json"))
         assert len(records) == 2 and calls == [1e-9, 1e-9]
@@ -254,8 +269,6 @@ def _a_refined_solve_past_its_limit_is_recorded(config_path, study, folder):
         assert len(calls) == 2  # recorded: not tried again under the same limit
         again = discretisation_set(cfg, study / "nominal.zarr", folder, 2, time_limit=None)
         assert len(calls) == 4 and again.n_samples == 2
-    finally:
-        mp.undo()
     for k, path in enumerate(sorted((study / "discretisation").glob("sample_*.npy"))):
         np.testing.assert_allclose(again.displacements[k], np.load(path), rtol=1e-9, atol=1e-9)
 
@@ -273,7 +286,7 @@ class _AlongTheLoadPath:
 def _the_reference_takes_the_data_sets_path(store):
     """A data set solved from a guess: its reference starts from the data set's answer; one solved
     along the load path: the reference too, from zero (the P2 answer of a plain solve from zero)."""
-    import tissuecast.fem
+    from tissuecast.errors import ConvergenceError
     from tissuecast.evaluate.mismatch import ReferenceSolver
     from tissuecast.scenario import restore_scenario
 
@@ -281,21 +294,16 @@ def _the_reference_takes_the_data_sets_path(store):
     k = int(ds.select("test1")[0])
     guesses = []
 
-    class Recording(tissuecast.fem.Solver):
-        def solve(self, *args, **kwargs):
-            guesses.append(kwargs.get("initial_guess"))
-            return super().solve(*args, **kwargs)
+    def recording(solver, solve, kwargs):
+        guesses.append(kwargs.get("initial_guess"))
+        return solve()
 
-    mp = pytest.MonkeyPatch()
-    mp.setattr(tissuecast.fem, "Solver", Recording)
-    try:
+    with _watched_solver(recording):
         assert ds.config.dataset.predictor == "reduced" and not ReferenceSolver(ds, "p2").along_load_path
         ReferenceSolver(ds, "p2").solve(k)
         np.testing.assert_array_equal(guesses[-1], ds.displacements[k])
         along = ReferenceSolver(_AlongTheLoadPath(ds), "p2")
         u = along.solve(k)
-    finally:
-        mp.undo()
     assert along.along_load_path and guesses[-1] is None
     cfg2 = with_overrides(ds.config, solver={"order": 2})
     sc = restore_scenario(ds.mesh, cfg2, ds.scenario_arrays, ds.basis)
@@ -304,23 +312,19 @@ def _the_reference_takes_the_data_sets_path(store):
     np.testing.assert_allclose(u, plain, rtol=0, atol=1e-9)
     # a solve that stops is tried again as the data set's samples are (exact Newton steps, smaller
     # increments), from the state it reached; without a state, from zero again
-    from tissuecast.errors import ConvergenceError
-
     strategies, starts, reached = [], [], []
 
-    class StopsUnlessNewton(tissuecast.fem.Solver):
-        def solve(self, *args, **kwargs):
-            strategies.append(self.config.strategy)
-            starts.append(kwargs.get("initial_guess"))
-            if self.config.strategy == "newton":
-                return super().solve(*args, **kwargs)
-            if len(strategies) > 1:  # stopped before it reached anything
-                raise ConvergenceError("stopped at load fraction 0", 0.0)
-            reached.append(super().solve(*args, **kwargs))  # as if it had stopped there
-            raise ConvergenceError("stopped at load fraction 0.9", 0.9, result=reached[0])
+    def stops_unless_newton(solver, solve, kwargs):
+        strategies.append(solver.config.strategy)
+        starts.append(kwargs.get("initial_guess"))
+        if solver.config.strategy == "newton":
+            return solve()
+        if len(strategies) > 1:  # stopped before it reached anything
+            raise ConvergenceError("stopped at load fraction 0", 0.0)
+        reached.append(solve())  # as if it had stopped there
+        raise ConvergenceError("stopped at load fraction 0.9", 0.9, result=reached[0])
 
-    mp.setattr(tissuecast.fem, "Solver", StopsUnlessNewton)
-    try:
+    with _watched_solver(stops_unless_newton):
         retried = along.solve(k)
         assert ds.config.solver.strategy != "newton" and strategies == [ds.config.solver.strategy, "newton"]
         assert starts[0] is None and starts[1] is reached[0].nodal_displacement
@@ -332,14 +336,11 @@ def _the_reference_takes_the_data_sets_path(store):
         with pytest.raises(ConvergenceError, match="load fraction 0"):
             once.solve(k)
         assert strategies[4:] == [ds.config.solver.strategy]
-    finally:
-        mp.undo()
 
 
 def _answers_solved_another_way_are_solved_again(config_path, study):
     """The quadratic set's folder records how its answers were solved; answers of another path
     (or of a version that did not record it) are moved aside and solved again, never mixed."""
-    import tissuecast.fem
     from tissuecast.config import load_config
     from tissuecast.evaluate.mismatch import REFERENCE_RECORD, discretisation_set
 
@@ -350,14 +351,11 @@ def _answers_solved_another_way_are_solved_again(config_path, study):
     before = np.load(first)
     calls = []
 
-    class Counting(tissuecast.fem.Solver):
-        def solve(self, *args, **kwargs):
-            calls.append(1)
-            return super().solve(*args, **kwargs)
+    def counting(solver, solve, kwargs):
+        calls.append(1)
+        return solve()
 
-    mp = pytest.MonkeyPatch()
-    mp.setattr(tissuecast.fem, "Solver", Counting)
-    try:
+    with _watched_solver(counting):
         again = discretisation_set(cfg, study / "nominal.zarr", folder, 1, reference="p2")
         assert calls == [] and again.n_samples == 1  # the same path: the answers are reused
         record.write_text(json.dumps({"reference": "p2", "path": "load path"}))
@@ -368,8 +366,6 @@ def _answers_solved_another_way_are_solved_again(config_path, study):
         record.unlink()  # answers of a version that did not record how they were solved
         discretisation_set(cfg, study / "nominal.zarr", folder, 1, reference="p2")
         assert calls == [1, 1] and record.is_file()
-    finally:
-        mp.undo()
 
 
 def test_a_folder_keeps_the_answers_of_one_path(tmp_path, caplog):
