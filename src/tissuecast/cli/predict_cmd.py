@@ -25,6 +25,9 @@ A model trained with tracked instruments ([[scenario.instruments]]) reads their 
 [dx, dy, dz]}}, or {"transform": 4x4}, {"contact": false}, null; see
 tissuecast.cli.predict_inputs); an instrument not given is not tracked and the model predicts
 from the markers only. Measured parameters come as --parameter NAME=VALUE.
+--physics STORE solves each sample through the data set's simulator instead (the physics
+inverse, tissuecast.cli.predict_physics: seconds to minutes a frame, no error bounds; every
+instrument's pose needed, --gravity the surgery's gravity direction).
 """
 
 from __future__ import annotations
@@ -67,6 +70,15 @@ def register(sub) -> None:
     p.add_argument("--false-alarm", type=float, metavar="RATE",
                    help="false-alarm rate of the out-of-distribution alarm, in (0, 1) "
                         "(default: the model's surrogate.false_alarm_rate)")
+    p.add_argument("--physics", metavar="STORE",
+                   help="solve for the field through the data set's simulator (the store the model was trained on) "
+                        "instead of the learned model: the loads and unknown parameters that put the markers where "
+                        "they were tracked; seconds to minutes a sample")
+    p.add_argument("--gravity", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="with --physics: the direction of gravity in surgery, model frame (LPS); default the "
+                        "scenario's planned scenario.gravity.surgery_direction")
+    p.add_argument("--noise", type=float, metavar="MM",
+                   help="with --physics: standard deviation of a tracked marker coordinate, mm (default 0.05)")
     p.set_defaults(func=run)
 
 
@@ -211,6 +223,12 @@ def run(args) -> int:
         b, j = np.argwhere(partial)[0]
         raise ModelError(f"sample {b}: marker {j} (input index {j}, vertex {int(model.markers[j])}) has only some "
                          "coordinates given; give x, y and z, or leave all three empty")
+    if args.physics:
+        return _run_physics(args, model, d, missing)
+    if args.gravity is not None or args.noise is not None:
+        from ..errors import ModelError
+
+        raise ModelError("--gravity and --noise go with --physics (the physics inverse); the learned model reads neither")
     if not model.predictor(args.method).supports_missing_markers:
         missing[:] = False  # a lost marker: the input gate refuses it, naming the marker
     from .predict_inputs import auxiliary_inputs
@@ -255,11 +273,32 @@ def run(args) -> int:
         print("note: the alarm is off: too few calibration samples for this false-alarm rate; use a larger "
               "--false-alarm or re-train with surrogate.calibration = 'cross-validation'")
     print(f"predicted {u.shape[0]} sample(s) of {u.shape[1]} vertices in {sec * 1e3:.2f} ms")
+    _write_outputs(args, model, u, sigma, bound, args.method)
+    return 0
+
+
+def _write_outputs(args, model, u, sigma, bound, method: str) -> None:
     if args.out:
         for f in _write(Path(args.out), model, u, sigma, bound):
             print(f"wrote {f}")
     if args.targets_out:
-        print(f"wrote {_write_targets(Path(args.targets_out), model, u, args.targets, args.method)}")
+        print(f"wrote {_write_targets(Path(args.targets_out), model, u, args.targets, method)}")
+
+
+def _run_physics(args, model, d: np.ndarray, missing: np.ndarray) -> int:
+    """``--physics``: every sample through the physics inverse (:mod:`.predict_physics`)."""
+    from .predict_physics import check_physics_options, describe, physics_fields
+
+    check_physics_options(args)
+    t = time.perf_counter()
+    u, results, estimated = physics_fields(args, model, d, missing)
+    for b, res in enumerate(results):
+        mag = np.linalg.norm(u[b], axis=1)
+        lost = f", missing markers {np.flatnonzero(missing[b]).tolist()}" if missing[b].any() else ""
+        print(f"sample {b}: max displacement {mag.max():.3f} mm at vertex {int(mag.argmax())} (physics: "
+              f"{describe(res, estimated)}){lost}")
+    print(f"solved {u.shape[0]} sample(s) of {u.shape[1]} vertices through the physics in {time.perf_counter() - t:.1f} s")
+    _write_outputs(args, model, u, None, None, "physics")
     return 0
 
 

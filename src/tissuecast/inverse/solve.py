@@ -55,7 +55,7 @@ from ..dataset.sensitivities import (CONTINUOUS_PARAMETERS, PARAMETER_STEP, WEIG
 from ..scenario.parameters import ParameterDraw
 from ..scenario.sample_inputs import SampleInputs, ScenarioDraw
 
-__all__ = ["MarkerInverse", "InverseResult", "NOISE_MM"]
+__all__ = ["MarkerInverse", "InverseResult", "NOISE_MM", "MIN_TRACKED"]
 
 #: Default standard deviation of a tracked marker coordinate, mm (a misfit of this size is noise).
 NOISE_MM = 0.05
@@ -80,6 +80,8 @@ SOLVE_SECONDS = 20.0
 FINISHED = 4
 #: A marker that moved less than this many noise standard deviations is taken as held.
 STILL_NOISES = 4.0
+#: Tracked markers a frame needs at least.
+MIN_TRACKED = 3
 #: A full solve that stopped or broke down (as the data set's worker counts them).
 _SOLVE_FAILURES = (ConvergenceError, ArithmeticError, np.linalg.LinAlgError)
 
@@ -200,26 +202,41 @@ class MarkerInverse:
         return dataclasses.replace(self.scenario.draw_for(int(seed)), parameters=None)
 
     # ------------------------------------------------------------------ solving
-    def solve(self, marker_displacements, draw: ScenarioDraw | None = None) -> InverseResult:
+    def solve(self, marker_displacements, draw: ScenarioDraw | None = None, *, progress=None) -> InverseResult:
         """The MAP estimate of one frame.
 
         Args:
-            marker_displacements: (n_d, 3) mm, the tracked markers' displacements.
-            draw: the known loads (indentation, gravity change); None: none.
+            marker_displacements: (n_d, 3) mm, the tracked markers' displacements; a marker
+                that was not tracked is NaN in all three coordinates (left out of the fit; at
+                least :data:`MIN_TRACKED` must be tracked).
+            draw: the known loads (indentation, gravity change: a simulated sample's
+                :meth:`known_draw`, a tracked frame's :meth:`Scenario.frame_draw
+                <tissuecast.scenario.Scenario.frame_draw>`); None: none.
+            progress: called with a line of text as the search goes on (a frame takes seconds
+                to minutes), or None.
 
         Raises:
-            ConfigError: the displacements do not match the markers.
+            ConfigError: the displacements do not match the markers, a marker has only some
+                coordinates, or fewer than :data:`MIN_TRACKED` markers are tracked.
             ConvergenceError: no solve of the search converged.
         """
         t0 = time.perf_counter()
         d = np.asarray(marker_displacements, dtype=np.float64)
-        if d.shape != (len(self.markers), 3) or not np.all(np.isfinite(d)):
+        if d.shape != (len(self.markers), 3) or np.isinf(d).any():
             raise ConfigError(f"marker displacements must be finite with shape ({len(self.markers)}, 3), got {d.shape}")
-        frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()))
+        lost = np.isnan(d)
+        if (lost.any(axis=1) & ~lost.all(axis=1)).any():
+            j = int(np.flatnonzero(lost.any(axis=1) & ~lost.all(axis=1))[0])
+            raise ConfigError(f"marker {j} has only some coordinates; give x, y and z, or NaN for all three (not tracked)")
+        if (~lost.all(axis=1)).sum() < MIN_TRACKED:
+            raise ConfigError(f"only {int((~lost.all(axis=1)).sum())} markers are tracked; the physics inverse needs at "
+                              f"least {MIN_TRACKED}")
+        frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()), progress)
         if self._margins.size:
             finished = frame.search_margin(self._margins, self._set_prior)
         else:
             finished = [(0.0, 0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS))]
+            frame.tell("iterated")
         finished = [(m, p, *frame.polish(x, m, u)) for m, p, x, u in finished]
         scored = [frame.objective(x, u) for _, _, x, u in finished]
         objs = np.array([obj + p for (obj, _), (_, p, _, _) in zip(scored, finished)])
@@ -252,8 +269,10 @@ class MarkerInverse:
 class _Frame:
     """The state of one frame's search: its data, known inputs, best point and solve count."""
 
-    def __init__(self, inv: MarkerInverse, d: np.ndarray, known: SampleInputs):
-        self.inv, self.d, self.known = inv, d, known
+    def __init__(self, inv: MarkerInverse, d: np.ndarray, known: SampleInputs, progress=None):
+        self.inv, self.known, self.progress = inv, known, progress
+        self.rows = np.isfinite(d)  # (3 n_d,) the tracked markers' coordinates
+        self.d = np.where(self.rows, d, 0.0)
         self.solves = 0
         self.best_x = inv._mu.copy()
         self.best_u = None
@@ -309,7 +328,7 @@ class _Frame:
     def objective(self, x: np.ndarray, u: np.ndarray) -> tuple[float, float]:
         """(minus twice the log posterior without the held set's prior, largest marker miss in mm)."""
         inv = self.inv
-        r = self.d - u[inv.markers].ravel()
+        r = (self.d - u[inv.markers].ravel())[self.rows]
         z = (x - inv._mu) / inv._sd
         return float(r @ r / inv.noise**2 + z @ z), float(np.linalg.norm(r.reshape(-1, 3), axis=1).max())
 
@@ -328,10 +347,10 @@ class _Frame:
         u = self.field(x, margin, u)
         obj, _ = self.objective(x, u)
         for _ in range(iterations):
-            m0 = u[inv.markers].ravel()
-            J = self.jacobian(x, margin, u)
+            m0 = u[inv.markers].ravel()[self.rows]
+            J = self.jacobian(x, margin, u)[self.rows]
             A = J.T @ J / inv.noise**2 + np.diag(inv._sd**-2.0)
-            g = J.T @ (self.d - m0) / inv.noise**2 - (x - inv._mu) / inv._sd**2
+            g = J.T @ (self.d[self.rows] - m0) / inv.noise**2 - (x - inv._mu) / inv._sd**2
             step = np.linalg.solve(A, g)
             big = np.abs(step / inv._sd).max() / STEP_CAP
             if big > 1.0:
@@ -374,21 +393,32 @@ class _Frame:
         convergence."""
         inv = self.inv
         moved = np.linalg.norm(self.d.reshape(-1, 3), axis=1)
+        tracked = self.rows.reshape(-1, 3).all(axis=1)
         dist = inv.scenario.uncertain.distance[inv.markers]
-        still = moved <= STILL_NOISES * inv.noise
+        still = tracked & (moved <= STILL_NOISES * inv.noise)
+        moving = tracked & ~still
         lo = float(dist[still].max()) if still.any() else -math.inf
-        hi = float(dist[~still].min()) if (~still).any() else math.inf
+        hi = float(dist[moving].min()) if moving.any() else math.inf
         bracket = np.flatnonzero((candidates >= lo) & (candidates < hi))
         if not bracket.size:  # markers that contradict every held set (noise): search them all
             bracket = np.arange(len(candidates))
         start = int(bracket[np.argmin(prior[bracket])])  # the likeliest set a priori, to convergence first
         x, u = self.iterate(inv._mu, float(candidates[start]), None, MAX_ITERATIONS)
         scores = {start: self.objective(x, u)[0] + prior[start]}
-        for i in sorted(bracket.tolist(), key=lambda i: abs(i - start))[1:]:  # outwards from it
+        self.tell(f"held set 1 of {bracket.size} the markers allow (margin {candidates[start]:+.2f} mm) iterated")
+        for j, i in enumerate(sorted(bracket.tolist(), key=lambda i: abs(i - start))[1:], 2):  # outwards from it
             x, u = self.iterate(self.best_x, float(candidates[i]), self.best_u, SEARCH_ITERATIONS)
             scores[i] = self.objective(x, u)[0] + prior[i]
+            self.tell(f"held set {j} of {bracket.size} searched")
         finished = []
-        for i in sorted(scores, key=scores.get)[:FINISHED]:  # the best few to convergence, afresh
+        best = sorted(scores, key=scores.get)[:FINISHED]
+        for j, i in enumerate(best, 1):  # the best few to convergence, afresh
             margin = float(candidates[i])
             finished.append((margin, float(prior[i]), *self.iterate(inv._mu, margin, None, MAX_ITERATIONS)))
+            self.tell(f"best held set {j} of {len(best)} finished (margin {margin:+.2f} mm)")
         return finished
+
+    def tell(self, what: str) -> None:
+        """Report the search's progress (with the solves so far), where asked to."""
+        if self.progress is not None:
+            self.progress(f"{what}; {self.solves} solves so far")

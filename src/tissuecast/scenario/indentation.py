@@ -40,7 +40,7 @@ from ..errors import ConfigError
 from ..mesh.tetmesh import TetMesh
 from ..mesh.surface import lumped_areas
 
-__all__ = ["Indentation", "IndentationSites", "indentation_sites", "draw_indentation", "contact_profile",
+__all__ = ["Indentation", "IndentationSites", "indentation_sites", "draw_indentation", "indentation_at", "contact_profile",
            "PATCH_MIN_VERTICES", "PATCH_FACING_COS"]
 
 #: A patch holds at least this many vertices (fewer would be a point load, singular in 3-D).
@@ -174,7 +174,53 @@ def draw_indentation(rng: np.random.Generator, sites: IndentationSites, config: 
     t1 /= np.linalg.norm(t1)
     t2 = np.cross(n, t1)
     tangential = slide * (np.cos(phi) * t1 + np.sin(phi) * t2)
-    d = -depth * n + tangential
+    return _pushed_patch(sites, config, k, -depth * n + tangential, depth, slide, tangential)
+
+
+def indentation_at(sites: IndentationSites, config: IndentationConfig, points: np.ndarray, tip) -> Indentation:
+    """The indentation of a tool tip tracked at ``tip`` (3,) mm (model frame): the inverse of
+    the draw, for a tracked frame's known loads.
+
+    The tip is the patch centre's reference position plus the tool's displacement, so each site
+    ``k`` explains it with the displacement ``d = tip - X_k``: a depth ``-d . n_k`` along the
+    inward normal and a slide, the rest of ``d``. The site taken is the nearest one (the
+    smallest ``|d|``) with the tip below its surface (depth > 0): the tracked pose does not say
+    where the tool first touched, so where sites lie closer together than the tool slid, the
+    nearest is taken. Its patch is pushed as a drawn one is.
+
+    Args:
+        sites: the scenario's :class:`IndentationSites`.
+        config: the indentation settings (the tool).
+        points: (n, 3) mesh vertices, mm.
+        tip: (3,) the tracked tip, mm.
+
+    Raises:
+        ConfigError: the tip lies below no site's surface (no depth above 0), or farther
+            along the surface from the nearest site than the patch radius.
+    """
+    tip = np.asarray(tip, dtype=np.float64).reshape(3)
+    d = tip[None, :] - points[sites.centres]  # (c, 3)
+    depth = -(d * sites.normals).sum(axis=1)
+    tangential = d + depth[:, None] * sites.normals
+    slide = np.linalg.norm(tangential, axis=1)
+    below = depth > 0.0
+    if not below.any():
+        k = int(np.argmin(np.linalg.norm(d, axis=1)))
+        raise ConfigError(f"the instrument's tip lies {-depth[k]:.2f} mm outside the tissue at vertex "
+                          f"{int(sites.centres[k])} yet is reported in contact; check the tracked pose's frame (LPS mm)")
+    k = int(np.flatnonzero(below)[np.argmin(np.linalg.norm(d[below], axis=1))])
+    if slide[k] > config.radius:
+        raise ConfigError(f"the instrument's tip lies {slide[k]:.2f} mm along the surface from the nearest place the "
+                          f"scenario pushes it (vertex {int(sites.centres[k])}; patch radius {config.radius:g} mm, "
+                          "scenario.indentation.access): the simulator cannot push the tissue there")
+    return _pushed_patch(sites, config, k, d[k], float(depth[k]), float(slide[k]), tangential[k])
+
+
+def _pushed_patch(sites: IndentationSites, config: IndentationConfig, k: int, d: np.ndarray, depth: float,
+                  slide: float, tangential: np.ndarray) -> Indentation:
+    """Site ``k``'s patch pushed by the tool displacement ``d`` (3,) mm: ``depth`` along the
+    inward normal, ``tangential`` (3,) mm of length ``slide`` along the surface."""
+    n = sites.normals[k]
     patch = sites.patches[k]
     if config.tool == "flat":
         return Indentation(int(sites.centres[k]), patch, d, depth, slide, n.copy(), np.repeat(d[None, :], len(patch), 0))

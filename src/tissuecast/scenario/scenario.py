@@ -29,7 +29,7 @@ from ..fem.springs import NodalSprings
 from ..instruments import InstrumentPose, ReferenceSurface
 from ..mesh.tetmesh import TetMesh
 from .gravity import body_loads, cone_direction, gravity_body_force
-from .indentation import IndentationSites, draw_indentation
+from .indentation import IndentationSites, draw_indentation, indentation_at
 from .materials import ElementMaterials
 from .parameters import UncertainParameters, parameter_rng
 from .sample_inputs import SampleInputs, ScenarioDraw
@@ -308,6 +308,52 @@ class Scenario:
                 self.mesh.points[ind.centre] + ind.displacement, -ind.normal)
             out.append((inst.name, pose))
         return tuple(out)
+
+    def frame_draw(self, poses: dict | None = None, gravity_direction=None) -> ScenarioDraw:
+        """The loads navigation knows in a tracked frame, as a :class:`ScenarioDraw` without
+        uncertain parameters: each instrument's indentation from its tracked pose
+        (:func:`~.indentation.indentation_at`; none for an instrument away from the tissue) and
+        the gravity change for the patient's position.
+
+        Args:
+            poses: ``{instrument name: InstrumentPose}`` in the model frame (LPS mm), one for
+                each of ``scenario.instruments``.
+            gravity_direction: (3,) the direction of gravity in surgery, model frame; None: the
+                planned one (``scenario.gravity.surgery_direction``, the drawn cone's axis).
+
+        Raises:
+            ConfigError: an instrument's pose missing or not given as a pose, a pose the
+                simulator cannot push with (:func:`~.indentation.indentation_at`), or a
+                gravity direction that is not a non-zero finite vector.
+        """
+        from ..errors import ConfigError
+
+        cfg = self.config
+        poses = dict(poses or {})
+        unknown = sorted(set(poses) - {inst.name for inst in cfg.instruments})
+        if unknown:
+            raise ConfigError(f"unknown instruments {unknown}; the scenario has {[i.name for i in cfg.instruments]}")
+        ind = None
+        for inst in cfg.instruments:  # load "indentation", the only one (config.INSTRUMENT_LOADS)
+            pose = poses.get(inst.name)
+            if not isinstance(pose, InstrumentPose):
+                raise ConfigError(f"the pose of instrument {inst.name!r} is needed: where it pushes is a load of the "
+                                  "simulator; give its tip and direction, or contact false when it is away")
+            if pose.contact:
+                ind = indentation_at(self.sites, cfg.indentation, self.mesh.points, pose.tip)
+        direction = force = None
+        if self.gravity is not None:
+            g = cfg.gravity.surgery_direction if gravity_direction is None else gravity_direction
+            direction = np.asarray(g, dtype=np.float64).reshape(-1)
+            norm = float(np.linalg.norm(direction)) if direction.size == 3 else 0.0
+            if not (np.isfinite(direction).all() and norm > 0.0):
+                raise ConfigError(f"the gravity direction must be a non-zero finite (x, y, z) vector, got {g!r}")
+            direction = direction / norm
+            force = gravity_body_force(*self.gravity, cfg.gravity.imaging_direction, direction)
+        draw = ScenarioDraw(direction, force, ind)
+        if cfg.instruments:
+            draw = dataclasses.replace(draw, instruments=tuple((i.name, poses[i.name]) for i in cfg.instruments))
+        return draw
 
     def draw(self, rng: np.random.Generator) -> ScenarioDraw:
         """A sample's draws: the gravity direction (2 draws), then the indentation (4 draws)."""

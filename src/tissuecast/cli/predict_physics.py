@@ -1,0 +1,112 @@
+"""``tissuecast predict MODEL --markers FILE --physics STORE``: the field through the physics.
+
+Instead of the learned model, the physics inverse (:class:`tissuecast.inverse.MarkerInverse`)
+solves, frame by frame, for the loads and the parameters the operating room does not know whose
+finite-element solution (the data set's own simulator: its mesh, elements, supports and load
+family) puts the model's markers where they were tracked. It takes seconds (parameters known)
+to minutes (parameters drawn) a frame, not the model's microseconds: for a frame that can wait
+(before a resection, to check the model). The model gives the markers and its input gate; the
+data set gives the simulator and the force magnitude.
+
+The loads navigation knows come in as for the model: each tracked instrument's pose
+(``--instrument``, required when the scenario pushes with one; where it pushes is a load the
+simulator needs) and the direction of gravity in surgery (``--gravity``, model frame; default
+the scenario's planned ``scenario.gravity.surgery_direction``). An untracked marker is left out
+of the fit. The estimate is the maximum a posteriori one with the scenario's parameter ranges as
+priors; E and the surroundings' stiffness come back only up to a common scale (a stiffer body
+under larger loads looks the same to the markers). No error bounds or alarm: those are the
+model's, calibrated on its own errors.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ModelError
+
+__all__ = ["physics_fields", "check_physics_options", "describe"]
+
+
+def check_physics_options(args) -> None:
+    """Refuse the options that belong to the learned model (one error naming the fix)."""
+    clash = [flag for flag, on in (("--uncertainty", args.uncertainty), ("--coverage", args.coverage is not None),
+                                   ("--false-alarm", args.false_alarm is not None), ("--parameter", bool(args.parameter)),
+                                   (f"--method {args.method}", args.method != "mlp")) if on]
+    if clash:
+        raise ModelError(f"--physics solves with the data set's simulator; {', '.join(clash)} belong to the learned "
+                         "model: drop them, or drop --physics")
+    if args.noise is not None and not (np.isfinite(args.noise) and args.noise > 0):
+        raise ModelError(f"--noise must be a positive number of mm, got {args.noise!r}")
+
+
+def _dataset_for(model, path: str):
+    """The data set at ``path``, checked to be of the model's mesh."""
+    from ..dataset import open_dataset
+
+    if not Path(path).exists():
+        raise FileNotFoundError(f"--physics {path!r}: no data set there; give the store the model was trained on")
+    ds = open_dataset(path)
+    if ds.mesh.fingerprint() != model.mesh.fingerprint():
+        raise ModelError(f"--physics {path!r} was simulated on another mesh than the model's; give the store the model "
+                         "was trained on")
+    return ds
+
+
+def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.ndarray, list, tuple]:
+    """The physics inverse's fields of every sample.
+
+    Args:
+        args: the ``predict`` arguments (``physics``, ``instrument``, ``gravity``, ``noise``).
+        model: the :class:`~tissuecast.surrogate.DeformationModel` (markers, input gate).
+        d: (B, n_d, 3) marker displacements, mm (NaN where ``missing``).
+        missing: (B, n_d) bool, the untracked markers.
+
+    Returns:
+        ``(fields (B, n, 3) mm, [InverseResult] one per sample, the names of the estimated
+        parameters)``.
+
+    Raises:
+        InputRejected: the model's input gate refuses a sample's markers.
+        ModelError / ConfigError: a data set of another mesh, a missing instrument pose, a pose
+            or gravity direction the simulator cannot take.
+    """
+    from ..inverse import NOISE_MM, MarkerInverse
+
+    B = d.shape[0]
+    if model.input_gate is not None:
+        model.input_gate.enforce(d.reshape(B, -1), missing)
+    ds = _dataset_for(model, args.physics)
+    inv = MarkerInverse.from_dataset(ds, model.markers, noise=args.noise or NOISE_MM)
+    names = [inst.name for inst in inv.scenario.config.instruments]
+    poses = {}
+    if names and not args.instrument:
+        raise ModelError(f"the simulator pushes with {names}: give their poses with --instrument FILE "
+                         '(e.g. {"retractor": {"contact": false}} when it is away)')
+    if args.instrument:
+        from ..instruments import ReferenceSurface
+        from .predict_inputs import read_instrument_file
+
+        poses = read_instrument_file(Path(args.instrument), names, ReferenceSurface.of(model.mesh), B)
+    fields, results = [], []
+    for b in range(B):
+        draw = inv.scenario.frame_draw({n: poses[n][b] for n in names}, args.gravity)
+        print(f"sample {b}: solving through the physics (seconds to minutes a frame) ...", flush=True)
+        res = inv.solve(np.where(missing[b][:, None], np.nan, d[b]), draw,
+                        progress=lambda text, b=b: print(f"sample {b}: {text}", flush=True))
+        fields.append(res.field)
+        results.append(res)
+    return np.stack(fields), results, inv.estimated
+
+
+def describe(res, estimated=()) -> str:
+    """One line of an inverse's estimate: misfit, the ``estimated`` parameters' values (factors
+    on the nominal ones; Poisson's ratio), the held sets, solves and time."""
+    p = res.parameters
+    parts = [f"markers fitted to {res.marker_misfit:.3f} mm"]
+    for name in estimated:
+        parts.append(f"{name} {getattr(p, name):.3g}")
+    if res.held_sets > 1:
+        parts.append(f"attached margin {p.attached_margin:+.2f} mm ({res.held_sets} held sets averaged)")
+    return ", ".join(parts) + f"; {res.solves} solves, {res.seconds:.1f} s"

@@ -1,0 +1,120 @@
+"""``tissuecast predict --physics``: the field of a tracked frame through the data set's simulator
+(the physics inverse), its known loads from the tracked instrument's pose and the gravity
+direction (``Scenario.frame_draw``), untracked markers, and the options' checks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from tissuecast.cli.main import main
+from tissuecast.config import with_overrides
+from tissuecast.errors import ConfigError
+from tissuecast.instruments import InstrumentPose
+from tissuecast.scenario import scenario_from_config
+
+from dataset_helpers import small_config
+
+SCENARIO = {"name": "embedded", "pins": False,
+            "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
+            "springs": {"rule": "surface"}, "gravity": {"enabled": True},
+            "indentation": {"enabled": True, "radius": 11.0, "depth": [0.5, 1.5], "slide": [0.0, 0.5],
+                            "probability": 0.6},
+            "instruments": [{"name": "retractor", "load": "indentation", "device": "RetractorToReference"}]}
+
+
+def _config(tmp_path, **indentation):
+    sc = {**SCENARIO, "indentation": {**SCENARIO["indentation"], **indentation}}
+    # 14 markers and 4 LBO modes (12 load weights): the markers determine the loads
+    return with_overrides(small_config(tmp_path), forces={"loading": "traction", "target_max_displacement": 4.0,
+                                                          "n_basis": 4},
+                          markers={"count": 14, "min_distance": 4.0},
+                          scenario=sc, solver={"force_tolerance": 1e-10},
+                          dataset={"n_samples": 30, "n_test2": 0, "alpha": 0.0, "calibration_samples": 2,
+                                   "predictor_samples": 6})
+
+
+@pytest.mark.parametrize("tool", [{"tool": "flat"}, {"tool": "rounded", "tool_radius": 6.0}])
+def test_a_tracked_pose_gives_back_the_drawn_indentation(tmp_path, tool):
+    _, _, _, sc = scenario_from_config(_config(tmp_path, probability=1.0, **tool))
+    for seed in range(40):
+        draw = sc.draw_for(seed)
+        (_, pose), = draw.instruments
+        frame = sc.frame_draw({"retractor": pose}, draw.gravity_direction)
+        a, b = draw.indentation, frame.indentation
+        assert b.centre == a.centre
+        np.testing.assert_array_equal(b.vertices, a.vertices)
+        np.testing.assert_allclose(b.values, a.values, rtol=0, atol=1e-12)
+        assert b.depth == pytest.approx(a.depth, abs=1e-12) and b.slide == pytest.approx(a.slide, abs=1e-12)
+        np.testing.assert_allclose(frame.body_force, draw.body_force, rtol=1e-12, atol=0)
+    away = sc.frame_draw({"retractor": InstrumentPose.away()})
+    assert away.indentation is None  # the planned gravity direction: the cone's axis, so no change
+    np.testing.assert_allclose(away.body_force, 0.0, atol=1e-15)
+    with pytest.raises(ConfigError, match="pose of instrument 'retractor' is needed"):
+        sc.frame_draw({})
+    # the retractor only where the surgery gives access (the middle of the top face): a push on a
+    # side face, 18 mm along the surface from the access, is not a load this simulator draws
+    access = {"rule": "distance", "point": [10.5, 16.0, 60.0], "distance": 6.0}
+    _, _, _, top = scenario_from_config(_config(tmp_path, probability=1.0, access=access, **tool))
+    side = top.reference_surface.pose([1.0, 1.0, 30.0], [1.0, 0.0, 0.0])
+    assert side.contact
+    with pytest.raises(ConfigError, match="cannot push the tissue there"):
+        top.frame_draw({"retractor": side})
+    with pytest.raises(ConfigError, match="gravity direction must be a non-zero finite"):
+        sc.frame_draw({"retractor": InstrumentPose.away()}, [0.0, 0.0, 0.0])
+
+
+def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(tmp_path, capsys):
+    from tissuecast.dataset import open_dataset, simulate
+    from tissuecast.surrogate import DeformationModel
+
+    cfg = _config(tmp_path)
+    store = tmp_path / "store.zarr"
+    assert simulate(cfg, store, progress=False)["totals"]["failed"] == 0
+    ds = open_dataset(store)
+    model = DeformationModel.from_dataset(ds, cfg, epochs=20, patience=0, calibration_share=0.0, n_components=4)
+    model.save(tmp_path / "model")
+    _, _, _, sc = scenario_from_config(cfg)
+    idx = np.asarray(ds.select("test1", status="done"))
+    i = int(next(j for j in idx if ds.draws["indent_centre"][j] >= 0))  # the retractor in contact
+    truth = np.asarray(ds.displacements[i], dtype=np.float64)
+    seed = int(ds.seed[i])
+    draw = sc.draw_for(seed)
+    (_, pose), = draw.instruments
+    d = truth[model.markers]
+    markers = tmp_path / "markers.json"
+    markers.write_text(json.dumps({"displacements": d.tolist()}))
+    inst = tmp_path / "retractor.json"
+    inst.write_text(json.dumps({"retractor": {"tip": pose.tip.tolist(), "direction": pose.direction.tolist()}}))
+    out = tmp_path / "u.json"
+    base = ["predict", str(tmp_path / "model"), "--markers", str(markers), "--physics", str(store),
+            "--instrument", str(inst), "--noise", "0.002"]
+    assert main(base + ["--gravity", *map(str, draw.gravity_direction), "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "solving through the physics" in text and "markers fitted to" in text and "1 sample(s)" in text
+    u = np.array(json.loads(out.read_text())["displacement"])[0]
+    peak = np.linalg.norm(truth, axis=1).max()
+    assert 0.5 < peak < 20.0
+    assert np.linalg.norm(u - truth, axis=1).max() < 1e-3 * peak
+    learned = model.predict(d, auxiliary={"retractor": pose})
+    assert np.linalg.norm(learned - truth, axis=1).max() > 10 * np.linalg.norm(u - truth, axis=1).max()
+
+    # a marker not tracked is left out of the fit; the answer stays close
+    lost = d.copy()
+    lost[1] = np.nan
+    markers.write_text(json.dumps({"displacements": lost.tolist()}))
+    assert main(base + ["--gravity", *map(str, draw.gravity_direction), "--out", str(out)]) == 0
+    assert "missing markers [1]" in capsys.readouterr().out
+    u = np.array(json.loads(out.read_text())["displacement"])[0]
+    assert np.linalg.norm(u - truth, axis=1).max() < 0.05 * peak
+
+    for extra, why in ((["--uncertainty"], "--uncertainty belong to the learned model"),
+                       (None, "give their poses with --instrument"),
+                       (["--noise", "-1"], "--noise must be a positive number of mm")):
+        argv = base + extra if extra is not None else base[:-4] + base[-2:]
+        assert main(argv) == 2
+        assert why in capsys.readouterr().err
+    assert main(["predict", str(tmp_path / "model"), "--markers", str(markers), "--noise", "0.1"]) == 2
+    assert "--gravity and --noise go with --physics" in capsys.readouterr().err
