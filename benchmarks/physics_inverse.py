@@ -20,6 +20,9 @@ assumes that noise). ``--split test2`` takes the test-2 samples, whose loads ble
 outside the LBO family the inverse solves for. ``--simulator TRAINING_STORE`` solves with another
 store's simulator: for the sets of ``tissuecast study mismatch`` (simulated with one parameter
 off), the store the model was trained on, so the inverse assumes what the model assumes.
+``--tracked`` gives the inverse what a tracked frame gives ``tissuecast predict --physics``
+instead of the sample's own draws: the indentation from the instrument's recorded pose
+(``Scenario.frame_draw``) and gravity in its planned direction (the drawn cone's axis).
 
 Usage::
 
@@ -38,8 +41,13 @@ from tissuecast.dataset import open_dataset
 from tissuecast.evaluate.evaluation import auxiliary_values
 from tissuecast.evaluate.metrics import share_corrected, target_errors
 from tissuecast.evaluate.targets import model_targets
+from tissuecast.fem.linear import one_blas_thread
 from tissuecast.inverse import NOISE_MM, MarkerInverse
 from tissuecast.surrogate import DeformationModel
+
+
+#: How the inverse is given the loads navigation knows (by ``--tracked``).
+KNOWN = {False: "each sample's own draws", True: "as tracked (the instrument's pose, gravity as planned)"}
 
 
 def errors(field: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -69,6 +77,9 @@ def main(argv=None) -> None:
     ap.add_argument("--split", default="test1", choices=("test1", "test2"))
     ap.add_argument("--noise", type=float, default=0.0, help="mm, standard deviation added to each tracked coordinate")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--tracked", action="store_true",
+                    help="known loads as a tracked frame gives them (the instrument's pose, gravity as planned), "
+                         "not the sample's draws")
     ap.add_argument("--simulator", help="the store whose simulator the inverse solves with (default: --dataset); "
                     "for a mismatch-study set, the store the model trained on, so that the inverse knows no more "
                     "than the model")
@@ -90,13 +101,18 @@ def main(argv=None) -> None:
     drawn = ds.parameters
     targets = model_targets(model)
     print(f"{args.dataset}: {len(idx)} {args.split} samples, {len(mk)} markers, noise {args.noise} mm, "
+          f"known loads {KNOWN[args.tracked]}, "
           f"alpha {inv.alpha:.4g} N, estimated: W ({3 * inv.n_basis}), "
           f"{', '.join(inv.estimated) or 'no parameter'}"
           f"{', the attached margin (' + str(len(inv.margins)) + ' held sets)' if inv.margins.size else ''}")
     rows = []
     t_all = time.perf_counter()
     for k, s in enumerate(idx):
-        res = inv.solve(d[k], inv.known_draw(int(ds.seed[s])))
+        known = inv.known_draw(int(ds.seed[s]))
+        if args.tracked:
+            known = inv.scenario.frame_draw(dict(known.instruments))
+        with one_blas_thread():  # as the data set's workers and `predict --physics` solve
+            res = inv.solve(d[k], known)
         row = [v for f in (res.field, net[k], rigid[k], ridge[k]) for v in (*errors(f, U[k]), *clinical(f, U[k], targets))]
         rows.append(row)
         p = res.parameters
