@@ -21,8 +21,8 @@ outside the LBO family the inverse solves for. ``--simulator TRAINING_STORE`` so
 store's simulator: for the sets of ``tissuecast study mismatch`` (simulated with one parameter
 off), the store the model was trained on, so the inverse assumes what the model assumes.
 ``--tracked`` gives the inverse what a tracked frame gives ``tissuecast predict --physics``
-instead of the sample's own draws: the indentation from the instrument's recorded pose
-(``Scenario.frame_draw``) and gravity in its planned direction (the drawn cone's axis).
+instead of the sample's own draws: the indentation from the instrument's pose as the store
+recorded it (``Scenario.frame_draw``) and gravity in its planned direction (the drawn cone's axis).
 
 Usage::
 
@@ -42,12 +42,24 @@ from tissuecast.evaluate.evaluation import auxiliary_values
 from tissuecast.evaluate.metrics import share_corrected, target_errors
 from tissuecast.evaluate.targets import model_targets
 from tissuecast.fem.linear import one_blas_thread
+from tissuecast.instruments import InstrumentPose
 from tissuecast.inverse import NOISE_MM, MarkerInverse
 from tissuecast.surrogate import DeformationModel
 
 
 #: How the inverse is given the loads navigation knows (by ``--tracked``).
 KNOWN = {False: "each sample's own draws", True: "as tracked (the instrument's pose, gravity as planned)"}
+
+
+def recorded_poses(ds, s: int) -> dict:
+    """``{instrument: InstrumentPose}`` of sample ``s`` as its store recorded them (what a
+    tracker would have reported)."""
+    out = {}
+    for name, p in ds.instrument_poses.items():
+        touching = bool(p["contact"][s] == 1)
+        out[name] = (InstrumentPose(np.asarray(p["tip"][s], dtype=np.float64), np.asarray(p["direction"][s], dtype=np.float64),
+                                    float(p["depth"][s]), True) if touching else InstrumentPose.away())
+    return out
 
 
 def errors(field: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -110,7 +122,7 @@ def main(argv=None) -> None:
     for k, s in enumerate(idx):
         known = inv.known_draw(int(ds.seed[s]))
         if args.tracked:
-            known = inv.scenario.frame_draw(dict(known.instruments))
+            known = inv.scenario.frame_draw(recorded_poses(ds, s))
         with one_blas_thread():  # as the data set's workers and `predict --physics` solve
             res = inv.solve(d[k], known)
         row = [v for f in (res.field, net[k], rigid[k], ridge[k]) for v in (*errors(f, U[k]), *clinical(f, U[k], targets))]

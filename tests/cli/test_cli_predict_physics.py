@@ -10,30 +10,12 @@ import numpy as np
 import pytest
 
 from tissuecast.cli.main import main
-from tissuecast.config import with_overrides
 from tissuecast.errors import ConfigError
 from tissuecast.instruments import InstrumentPose
 from tissuecast.scenario import scenario_from_config
 
-from dataset_helpers import small_config
-
-SCENARIO = {"name": "embedded", "pins": False,
-            "attached": {"rule": "normal", "direction": [0.0, 0.0, -1.0], "angle": 30.0},
-            "springs": {"rule": "surface"}, "gravity": {"enabled": True},
-            "indentation": {"enabled": True, "radius": 11.0, "depth": [0.5, 1.5], "slide": [0.0, 0.5],
-                            "probability": 0.6},
-            "instruments": [{"name": "retractor", "load": "indentation", "device": "RetractorToReference"}]}
-
-
-def _config(tmp_path, **indentation):
-    sc = {**SCENARIO, "indentation": {**SCENARIO["indentation"], **indentation}}
-    # 14 markers and 4 LBO modes (12 load weights): the markers determine the loads
-    return with_overrides(small_config(tmp_path), forces={"loading": "traction", "target_max_displacement": 4.0,
-                                                          "n_basis": 4},
-                          markers={"count": 14, "min_distance": 4.0},
-                          scenario=sc, solver={"force_tolerance": 1e-10},
-                          dataset={"n_samples": 30, "n_test2": 0, "alpha": 0.0, "calibration_samples": 2,
-                                   "predictor_samples": 6})
+from dataset_helpers import tracked_retractor_config as _config
+from dataset_helpers import tracked_retractor_store
 
 
 @pytest.mark.parametrize("tool", [{"tool": "flat"}, {"tool": "rounded", "tool_radius": 6.0}])
@@ -67,15 +49,11 @@ def test_a_tracked_pose_gives_back_the_drawn_indentation(tmp_path, tool):
 
 
 def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(tmp_path, capsys):
-    from tissuecast.dataset import open_dataset, simulate
+    from tissuecast.dataset import open_dataset
     from tissuecast.surrogate import DeformationModel
 
-    cfg = _config(tmp_path)
-    store = tmp_path / "store.zarr"
-    assert simulate(cfg, store, progress=False)["totals"]["failed"] == 0
-    ds = open_dataset(store)
-    model = DeformationModel.from_dataset(ds, cfg, epochs=20, patience=0, calibration_share=0.0, n_components=4)
-    model.save(tmp_path / "model")
+    cfg, store, folder = tracked_retractor_store(tmp_path)
+    ds, model = open_dataset(store), DeformationModel.load(folder)
     _, _, _, sc = scenario_from_config(cfg)
     idx = np.asarray(ds.select("test1", status="done"))
     i = int(next(j for j in idx if ds.draws["indent_centre"][j] >= 0))  # the retractor in contact

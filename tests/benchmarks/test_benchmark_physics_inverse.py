@@ -1,0 +1,38 @@
+"""benchmarks/physics_inverse.py: the poses a store recorded are the draws' (what a tracker
+reports), and a run as a tracked frame (``--tracked``) puts the inverse far below the model
+on samples of its own simulator."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from tissuecast.dataset import open_dataset
+from tissuecast.scenario import scenario_from_config
+
+from bench_helpers import load_benchmark
+from dataset_helpers import tracked_retractor_store
+
+
+def test_the_inverse_as_a_tracked_frame_beats_the_model(tmp_path, capsys):
+    mod = load_benchmark("physics_inverse")
+    cfg, store, model = tracked_retractor_store(tmp_path)
+    ds = open_dataset(store)
+    _, _, _, sc = scenario_from_config(cfg)
+    touched = 0
+    for s in range(ds.n_samples):
+        (name, drawn), = sc.draw_for(int(ds.seed[s])).instruments
+        pose = mod.recorded_poses(ds, s)[name]
+        assert pose.contact == drawn.contact
+        if drawn.contact:
+            touched += 1
+            np.testing.assert_array_equal(pose.tip, drawn.tip)
+            np.testing.assert_allclose(pose.direction, drawn.direction, rtol=0, atol=1e-15)
+            assert pose.depth == drawn.depth
+    assert 0 < touched < ds.n_samples
+    mod.main(["--dataset", str(store), "--model", str(model), "--samples", "2", "--tracked"])
+    out = capsys.readouterr().out
+    assert "as tracked" in out
+    rows = {k: float(v) for k, v in re.findall(r"^\s+(physics inverse|model)\s+([0-9.]+) /", out, flags=re.M)}
+    assert rows["physics inverse"] < 0.05 and rows["model"] > 10 * rows["physics inverse"]
