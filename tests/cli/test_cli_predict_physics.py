@@ -90,9 +90,10 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
 
     for extra, why in ((["--uncertainty"], "--uncertainty belong to the learned model"),
                        (None, "give their poses with --instrument"),
-                       (["--noise", "-1"], "--noise must be a positive number of mm")):
+                       (["--noise", "-1"], "--noise must be a positive number of mm"),
+                       (["--time-limit", "-1"], "--time-limit must be a number of seconds >= 0")):
         argv = base + extra if extra is not None else base[:-4] + base[-2:]
         assert main(argv) == 2
         assert why in capsys.readouterr().err
     assert main(["predict", str(tmp_path / "model"), "--markers", str(markers), "--noise", "0.1"]) == 2
-    assert "--gravity and --noise go with --physics" in capsys.readouterr().err
+    assert "--gravity, --noise and --time-limit go with --physics" in capsys.readouterr().err

@@ -97,3 +97,21 @@ def test_drawn_parameters_are_estimated_where_the_markers_see_them():
         held = sc.uncertain.distance <= q.attached_margin
         assert np.array_equal(held, sc.uncertain.distance <= p.attached_margin)
     assert max(errors) < 0.02
+
+
+def test_a_frame_past_its_time_limit_gives_the_best_estimate_reached_and_says_so():
+    """The held sets' search stops once the frame's time is up: one set iterated (its first
+    solve; no Gauss-Newton step after the limit), no other searched, the estimate that set's;
+    without a limit the same frame searches them all. (Tracking noise of 0.2 mm leaves three
+    held sets that the still and moving markers allow.)"""
+    sc, solver, markers = _setup(True)
+    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.2)
+    truth, _ = _simulate(sc, solver, 5)
+    full = inv.solve(truth[markers], inv.known_draw(5))
+    assert full.complete and full.held_sets == 3
+    told = []
+    cut = inv.solve(truth[markers], inv.known_draw(5), time_limit=1e-6, progress=told.append)
+    assert not cut.complete and cut.held_sets == 1 and cut.solves <= 2 < full.solves
+    assert np.isfinite(cut.field).all() and any("time is up: 1 of" in t for t in told)
+    with pytest.raises(ConfigError, match="time limit must be a positive number of seconds"):
+        inv.solve(truth[markers], time_limit=0.0)

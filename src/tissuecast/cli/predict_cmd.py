@@ -79,6 +79,9 @@ def register(sub) -> None:
                         "scenario's planned scenario.gravity.surgery_direction")
     p.add_argument("--noise", type=float, metavar="MM",
                    help="with --physics: standard deviation of a tracked marker coordinate, mm (default 0.05)")
+    p.add_argument("--time-limit", type=float, metavar="S",
+                   help="with --physics: wall-clock seconds a sample may take (default 600; 0: none); past it the "
+                        "best estimate reached is written")
     p.set_defaults(func=run)
 
 
@@ -225,10 +228,11 @@ def run(args) -> int:
                          "coordinates given; give x, y and z, or leave all three empty")
     if args.physics:
         return _run_physics(args, model, d, missing)
-    if args.gravity is not None or args.noise is not None:
+    if args.gravity is not None or args.noise is not None or args.time_limit is not None:
         from ..errors import ModelError
 
-        raise ModelError("--gravity and --noise go with --physics (the physics inverse); the learned model reads neither")
+        raise ModelError("--gravity, --noise and --time-limit go with --physics (the physics inverse); the learned model "
+                         "reads none of them")
     if not model.predictor(args.method).supports_missing_markers:
         missing[:] = False  # a lost marker: the input gate refuses it, naming the marker
     from .predict_inputs import auxiliary_inputs
@@ -287,8 +291,10 @@ def _write_outputs(args, model, u, sigma, bound, method: str) -> None:
 
 def _run_physics(args, model, d: np.ndarray, missing: np.ndarray) -> int:
     """``--physics``: every sample through the physics inverse (:mod:`.predict_physics`)."""
-    from .predict_physics import check_physics_options, describe, physics_fields
+    from .predict_physics import TIME_LIMIT, check_physics_options, describe, physics_fields
 
+    if args.time_limit is None:
+        args.time_limit = TIME_LIMIT
     check_physics_options(args)
     t = time.perf_counter()
     u, results, estimated = physics_fields(args, model, d, missing)

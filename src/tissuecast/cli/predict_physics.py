@@ -14,8 +14,10 @@ simulator needs) and the direction of gravity in surgery (``--gravity``, model f
 the scenario's planned ``scenario.gravity.surgery_direction``). An untracked marker is left out
 of the fit. The estimate is the maximum a posteriori one with the scenario's parameter ranges as
 priors; E and the surroundings' stiffness come back only up to a common scale (a stiffer body
-under larger loads looks the same to the markers). No error bounds or alarm: those are the
-model's, calibrated on its own errors.
+under larger loads looks the same to the markers). A frame is given ``--time-limit`` seconds
+(:data:`TIME_LIMIT` by default, 0 for none): past it the search stops and the best estimate
+reached is written, said so. No error bounds or alarm: those are the model's, calibrated on its
+own errors.
 """
 
 from __future__ import annotations
@@ -26,7 +28,11 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["physics_fields", "check_physics_options", "describe"]
+__all__ = ["physics_fields", "check_physics_options", "describe", "TIME_LIMIT"]
+
+#: Default wall-clock seconds of one frame (a frame of the embedded preset as shipped takes
+#: 20-220 s on a 2-core machine, docs/uncertainty.md).
+TIME_LIMIT = 600.0
 
 
 def check_physics_options(args) -> None:
@@ -39,6 +45,8 @@ def check_physics_options(args) -> None:
                          "model: drop them, or drop --physics")
     if args.noise is not None and not (np.isfinite(args.noise) and args.noise > 0):
         raise ModelError(f"--noise must be a positive number of mm, got {args.noise!r}")
+    if not (np.isfinite(args.time_limit) and args.time_limit >= 0):
+        raise ModelError(f"--time-limit must be a number of seconds >= 0 (0: none), got {args.time_limit!r}")
 
 
 def _dataset_for(model, path: str):
@@ -58,7 +66,8 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
     """The physics inverse's fields of every sample.
 
     Args:
-        args: the ``predict`` arguments (``physics``, ``instrument``, ``gravity``, ``noise``).
+        args: the ``predict`` arguments (``physics``, ``instrument``, ``gravity``, ``noise``,
+            ``time_limit``).
         model: the :class:`~tissuecast.surrogate.DeformationModel` (markers, input gate).
         d: (B, n_d, 3) marker displacements, mm (NaN where ``missing``).
         missing: (B, n_d) bool, the untracked markers.
@@ -96,7 +105,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         draw = inv.scenario.frame_draw({n: poses[n][b] for n in names}, args.gravity)
         print(f"sample {b}: solving through the physics (seconds to minutes a frame) ...", flush=True)
         with one_blas_thread():  # as the data set's workers solve: faster, the same bits
-            res = inv.solve(np.where(missing[b][:, None], np.nan, d[b]), draw,
+            res = inv.solve(np.where(missing[b][:, None], np.nan, d[b]), draw, time_limit=args.time_limit or None,
                             progress=lambda text, b=b: print(f"sample {b}: {text}", flush=True))
         fields.append(res.field)
         results.append(res)
@@ -112,4 +121,5 @@ def describe(res, estimated=()) -> str:
         parts.append(f"{name} {getattr(p, name):.3g}")
     if res.held_sets > 1:
         parts.append(f"attached margin {p.attached_margin:+.2f} mm ({res.held_sets} held sets averaged)")
-    return ", ".join(parts) + f"; {res.solves} solves, {res.seconds:.1f} s"
+    cut = "" if res.complete else "; cut short by --time-limit: the best estimate reached by then"
+    return ", ".join(parts) + f"; {res.solves} solves, {res.seconds:.1f} s{cut}"

@@ -104,6 +104,8 @@ class InverseResult:
             the margin is not drawn).
         solves: full finite-element solves it took.
         seconds: wall-clock time.
+        complete: False where the frame's time limit cut the search short (the estimate is
+            the best reached by then).
     """
 
     field: np.ndarray
@@ -114,6 +116,7 @@ class InverseResult:
     held_sets: int
     solves: int
     seconds: float
+    complete: bool = True
 
 
 class MarkerInverse:
@@ -202,7 +205,8 @@ class MarkerInverse:
         return dataclasses.replace(self.scenario.draw_for(int(seed)), parameters=None)
 
     # ------------------------------------------------------------------ solving
-    def solve(self, marker_displacements, draw: ScenarioDraw | None = None, *, progress=None) -> InverseResult:
+    def solve(self, marker_displacements, draw: ScenarioDraw | None = None, *, progress=None,
+              time_limit: float | None = None) -> InverseResult:
         """The MAP estimate of one frame.
 
         Args:
@@ -214,6 +218,10 @@ class MarkerInverse:
                 <tissuecast.scenario.Scenario.frame_draw>`); None: none.
             progress: called with a line of text as the search goes on (a frame takes seconds
                 to minutes), or None.
+            time_limit: wall-clock seconds for the frame, or None (none). Past it no further
+                held set is searched or iterated (a solve under way finishes, within
+                :data:`SOLVE_SECONDS`): the estimate is the best reached by then and
+                ``complete`` is False.
 
         Raises:
             ConfigError: the displacements do not match the markers, a marker has only some
@@ -231,7 +239,10 @@ class MarkerInverse:
         if (~lost.all(axis=1)).sum() < MIN_TRACKED:
             raise ConfigError(f"only {int((~lost.all(axis=1)).sum())} markers are tracked; the physics inverse needs at "
                               f"least {MIN_TRACKED}")
-        frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()), progress)
+        if time_limit is not None and not time_limit > 0:
+            raise ConfigError(f"the time limit must be a positive number of seconds (or None), got {time_limit!r}")
+        deadline = math.inf if time_limit is None else t0 + float(time_limit)
+        frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()), progress, deadline)
         if self._margins.size:
             finished = frame.search_margin(self._margins, self._set_prior)
         else:
@@ -248,7 +259,8 @@ class MarkerInverse:
         obj, miss = float(objs[best]), scored[best][1]
         return InverseResult(field=field, weights=x[: 3 * self.n_basis].reshape(self.n_basis, 3).copy(),
                              parameters=self._draw(x, margin), marker_misfit=miss, objective=obj,
-                             held_sets=len(finished), solves=frame.solves, seconds=time.perf_counter() - t0)
+                             held_sets=len(finished), solves=frame.solves, seconds=time.perf_counter() - t0,
+                             complete=not frame.cut_short)
 
     def _known_inputs(self, draw: ScenarioDraw) -> SampleInputs:
         sc = self.scenario
@@ -269,8 +281,10 @@ class MarkerInverse:
 class _Frame:
     """The state of one frame's search: its data, known inputs, best point and solve count."""
 
-    def __init__(self, inv: MarkerInverse, d: np.ndarray, known: SampleInputs, progress=None):
-        self.inv, self.known, self.progress = inv, known, progress
+    def __init__(self, inv: MarkerInverse, d: np.ndarray, known: SampleInputs, progress=None,
+                 deadline: float = math.inf):
+        self.inv, self.known, self.progress, self.deadline = inv, known, progress, deadline
+        self.cut_short = False
         self.rows = np.isfinite(d)  # (3 n_d,) the tracked markers' coordinates
         self.d = np.where(self.rows, d, 0.0)
         self.solves = 0
@@ -347,6 +361,8 @@ class _Frame:
         u = self.field(x, margin, u)
         obj, _ = self.objective(x, u)
         for _ in range(iterations):
+            if self.out_of_time():
+                break
             m0 = u[inv.markers].ravel()[self.rows]
             J = self.jacobian(x, margin, u)[self.rows]
             A = J.T @ J / inv.noise**2 + np.diag(inv._sd**-2.0)
@@ -378,7 +394,10 @@ class _Frame:
     def polish(self, x: np.ndarray, margin: float, u: np.ndarray):
         """``(x, u)`` once more from a solve started at zero: where the loads have more than one
         equilibrium the warm-started solves can follow another branch than a sample's solve
-        (which starts near zero); if the field from zero fits better, iterate on from it."""
+        (which starts near zero); if the field from zero fits better, iterate on from it. Not
+        once the frame's time is up."""
+        if self.out_of_time():
+            return x, u
         try:
             fresh = self.field(x, margin, None)
         except _SOLVE_FAILURES:
@@ -405,18 +424,32 @@ class _Frame:
         start = int(bracket[np.argmin(prior[bracket])])  # the likeliest set a priori, to convergence first
         x, u = self.iterate(inv._mu, float(candidates[start]), None, MAX_ITERATIONS)
         scores = {start: self.objective(x, u)[0] + prior[start]}
+        searched = {start: (x, u)}
         self.tell(f"held set 1 of {bracket.size} the markers allow (margin {candidates[start]:+.2f} mm) iterated")
         for j, i in enumerate(sorted(bracket.tolist(), key=lambda i: abs(i - start))[1:], 2):  # outwards from it
+            if self.out_of_time():
+                self.tell(f"time is up: {j - 1} of {bracket.size} held sets searched")
+                break
             x, u = self.iterate(self.best_x, float(candidates[i]), self.best_u, SEARCH_ITERATIONS)
             scores[i] = self.objective(x, u)[0] + prior[i]
+            searched[i] = (x, u)
             self.tell(f"held set {j} of {bracket.size} searched")
         finished = []
         best = sorted(scores, key=scores.get)[:FINISHED]
-        for j, i in enumerate(best, 1):  # the best few to convergence, afresh
+        for j, i in enumerate(best, 1):  # the best few to convergence, afresh (as searched once time is up)
             margin = float(candidates[i])
+            if self.out_of_time():
+                finished.append((margin, float(prior[i]), *searched[i]))
+                continue
             finished.append((margin, float(prior[i]), *self.iterate(inv._mu, margin, None, MAX_ITERATIONS)))
             self.tell(f"best held set {j} of {len(best)} finished (margin {margin:+.2f} mm)")
         return finished
+
+    def out_of_time(self) -> bool:
+        """Whether the frame's time is up (then :attr:`cut_short` is set)."""
+        if time.perf_counter() > self.deadline:
+            self.cut_short = True
+        return self.cut_short
 
     def tell(self, what: str) -> None:
         """Report the search's progress (with the solves so far), where asked to."""
