@@ -97,3 +97,13 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
         assert why in capsys.readouterr().err
     assert main(["predict", str(tmp_path / "model"), "--markers", str(markers), "--noise", "0.1"]) == 2
     assert "--gravity, --noise and --time-limit go with --physics" in capsys.readouterr().err
+
+
+def test_a_fit_that_misses_its_markers_is_flagged():
+    from types import SimpleNamespace
+
+    from tissuecast.cli.predict_physics import MISFIT_NOISES, misfit_warning
+
+    assert misfit_warning(SimpleNamespace(marker_misfit=MISFIT_NOISES * 0.05 - 1e-9), 0.05) is None
+    text = misfit_warning(SimpleNamespace(marker_misfit=0.309), 0.05)
+    assert text.startswith("WARNING: a marker is 0.309 mm") and "6 x the tracking noise of 0.05 mm" in text

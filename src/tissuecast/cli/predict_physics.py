@@ -16,8 +16,10 @@ of the fit. The estimate is the maximum a posteriori one with the scenario's par
 priors; E and the surroundings' stiffness come back only up to a common scale (a stiffer body
 under larger loads looks the same to the markers). A frame is given ``--time-limit`` seconds
 (:data:`TIME_LIMIT` by default, 0 for none): past it the search stops and the best estimate
-reached is written, said so. No error bounds or alarm: those are the model's, calibrated on its
-own errors.
+reached is written, said so. A fit whose worst marker misses by more than :data:`MISFIT_NOISES`
+noise standard deviations is flagged with a warning (a frame the simulator's family does not
+explain, or a search that missed; measured in docs/uncertainty.md). No error bounds or alarm:
+those are the model's, calibrated on its own errors.
 """
 
 from __future__ import annotations
@@ -28,8 +30,11 @@ import numpy as np
 
 from ..errors import ModelError
 
-__all__ = ["physics_fields", "check_physics_options", "describe", "TIME_LIMIT"]
+__all__ = ["physics_fields", "check_physics_options", "describe", "misfit_warning", "TIME_LIMIT", "MISFIT_NOISES"]
 
+#: A fit whose worst marker misses by more than this many noise standard deviations is flagged:
+#: the simulator's loads and parameters do not explain the frame (or the search missed).
+MISFIT_NOISES = 4.0
 #: Default wall-clock seconds of one frame (a frame of the embedded preset as shipped takes
 #: 20-220 s on a 2-core machine, docs/uncertainty.md).
 TIME_LIMIT = 600.0
@@ -110,6 +115,17 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         fields.append(res.field)
         results.append(res)
     return np.stack(fields), results, inv.estimated
+
+
+def misfit_warning(res, noise: float) -> str | None:
+    """The warning of a fit whose worst marker misses by more than :data:`MISFIT_NOISES` noise
+    standard deviations (``noise`` mm), else None."""
+    if res.marker_misfit <= MISFIT_NOISES * noise:
+        return None
+    return (f"WARNING: a marker is {res.marker_misfit:.3f} mm from where the solution puts it ({res.marker_misfit / noise:.0f} "
+            f"x the tracking noise of {noise:g} mm): no load and parameters of the simulator explain this frame (or "
+            "the search missed them); do not take this field over the learned model's, whose error bounds and alarm "
+            "judge the frame")
 
 
 def describe(res, estimated=()) -> str:
