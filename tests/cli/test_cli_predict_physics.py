@@ -95,6 +95,8 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
         argv = base + extra if extra is not None else base[:-4] + base[-2:]
         assert main(argv) == 2
         assert why in capsys.readouterr().err
+    assert main(base[:4] + ["--physics", str(tmp_path / "nowhere.zarr"), "--instrument", str(inst)]) == 2
+    assert "no data set there; give the store the model was trained on" in capsys.readouterr().err
     assert main(["predict", str(tmp_path / "model"), "--markers", str(markers), "--noise", "0.1"]) == 2
     assert "--gravity, --noise and --time-limit go with --physics" in capsys.readouterr().err
 

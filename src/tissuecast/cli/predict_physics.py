@@ -35,8 +35,8 @@ __all__ = ["physics_fields", "check_physics_options", "describe", "misfit_warnin
 #: A fit whose worst marker misses by more than this many noise standard deviations is flagged:
 #: the simulator's loads and parameters do not explain the frame (or the search missed).
 MISFIT_NOISES = 4.0
-#: Default wall-clock seconds of one frame (a frame of the embedded preset as shipped takes
-#: 20-220 s on a 2-core machine, docs/uncertainty.md).
+#: Default wall-clock seconds of one frame (what frames of the shipped presets take:
+#: docs/uncertainty.md).
 TIME_LIMIT = 600.0
 
 
