@@ -65,7 +65,7 @@ ESTIMATED = CONTINUOUS_PARAMETERS
 #: Finite-difference step of the internal forces in a parameter, in prior standard deviations.
 FD_STEP = PARAMETER_STEP
 #: Gauss-Newton steps while searching the attached margin, and at most when finishing.
-SEARCH_ITERATIONS = 4
+SEARCH_ITERATIONS = 2
 MAX_ITERATIONS = 15
 #: The largest step of an unknown, in prior standard deviations.
 STEP_CAP = 3.0
