@@ -36,6 +36,8 @@ def test_a_tracked_pose_gives_back_the_drawn_indentation(tmp_path, tool):
     np.testing.assert_allclose(away.body_force, 0.0, atol=1e-15)
     with pytest.raises(ConfigError, match="pose of instrument 'retractor' is needed"):
         sc.frame_draw({})
+    with pytest.raises(ConfigError, match=r"unknown instruments \['spatula'\]"):
+        sc.frame_draw({"retractor": InstrumentPose.away(), "spatula": InstrumentPose.away()})
     # the retractor only where the surgery gives access (the middle of the top face): a push on a
     # side face, 18 mm along the surface from the access, is not a load this simulator draws
     access = {"rule": "distance", "point": [10.5, 16.0, 60.0], "distance": 6.0}
