@@ -291,20 +291,19 @@ def _write_outputs(args, model, u, sigma, bound, method: str) -> None:
 
 def _run_physics(args, model, d: np.ndarray, missing: np.ndarray) -> int:
     """``--physics``: every sample through the physics inverse (:mod:`.predict_physics`)."""
-    from ..inverse import NOISE_MM
     from .predict_physics import TIME_LIMIT, check_physics_options, describe, misfit_warning, physics_fields
 
     if args.time_limit is None:
         args.time_limit = TIME_LIMIT
     check_physics_options(args)
     t = time.perf_counter()
-    u, results, estimated = physics_fields(args, model, d, missing)
+    u, results, inverse = physics_fields(args, model, d, missing)
     for b, res in enumerate(results):
         mag = np.linalg.norm(u[b], axis=1)
         lost = f", missing markers {np.flatnonzero(missing[b]).tolist()}" if missing[b].any() else ""
         print(f"sample {b}: max displacement {mag.max():.3f} mm at vertex {int(mag.argmax())} (physics: "
-              f"{describe(res, estimated)}){lost}")
-        warning = misfit_warning(res, args.noise or NOISE_MM)
+              f"{describe(res, inverse.estimated)}){lost}")
+        warning = misfit_warning(res, inverse.noise)
         if warning:
             print(f"sample {b}: {warning}")
     print(f"solved {u.shape[0]} sample(s) of {u.shape[1]} vertices through the physics in {time.perf_counter() - t:.1f} s")

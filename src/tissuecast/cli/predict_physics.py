@@ -25,10 +25,14 @@ those are the model's, calibrated on its own errors.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import ModelError
+
+if TYPE_CHECKING:
+    from ..inverse import MarkerInverse
 
 __all__ = ["physics_fields", "check_physics_options", "describe", "misfit_warning", "TIME_LIMIT", "MISFIT_NOISES"]
 
@@ -67,7 +71,7 @@ def _dataset_for(model, path: str):
     return ds
 
 
-def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.ndarray, list, tuple]:
+def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.ndarray, list, "MarkerInverse"]:
     """The physics inverse's fields of every sample.
 
     Args:
@@ -78,8 +82,8 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         missing: (B, n_d) bool, the untracked markers.
 
     Returns:
-        ``(fields (B, n, 3) mm, [InverseResult] one per sample, the names of the estimated
-        parameters)``.
+        ``(fields (B, n, 3) mm, [InverseResult] one per sample, the MarkerInverse that solved
+        them: its estimated parameters and its marker noise)``.
 
     Raises:
         InputRejected: the model's input gate refuses a sample's markers.
@@ -114,7 +118,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
                             progress=lambda text, b=b: print(f"sample {b}: {text}", flush=True))
         fields.append(res.field)
         results.append(res)
-    return np.stack(fields), results, inv.estimated
+    return np.stack(fields), results, inv
 
 
 def misfit_warning(res, noise: float) -> str | None:
