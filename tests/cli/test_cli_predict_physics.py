@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from tissuecast.cli.main import main
-from tissuecast.errors import ConfigError
+from tissuecast.errors import ConfigError, ModelError
 from tissuecast.instruments import InstrumentPose
 from tissuecast.scenario import scenario_from_config
 
@@ -46,11 +46,19 @@ def test_a_tracked_pose_gives_back_the_drawn_indentation(tmp_path, tool):
     assert side.contact
     with pytest.raises(ConfigError, match="cannot push the tissue there"):
         top.frame_draw({"retractor": side})
+    # a tip reported in contact that lies outside the tissue (3 mm above the access) is refused
+    assert top.frame_draw({"retractor": top.reference_surface.pose([10.5, 16.0, 59.0], [0.0, 0.0, -1.0])}).indentation
+    above = InstrumentPose(np.array([10.5, 16.0, 63.0]), np.array([0.0, 0.0, -1.0]), 1.0, True)
+    with pytest.raises(ConfigError, match=r"lies 3.00 mm outside the tissue at vertex \d+ yet is reported in contact"):
+        top.frame_draw({"retractor": above})
     with pytest.raises(ConfigError, match="gravity direction must be a non-zero finite"):
         sc.frame_draw({"retractor": InstrumentPose.away()}, [0.0, 0.0, 0.0])
 
 
 def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(tmp_path, capsys):
+    from types import SimpleNamespace
+
+    from tissuecast.cli.predict_physics import _dataset_for
     from tissuecast.dataset import open_dataset
     from tissuecast.surrogate import DeformationModel
 
@@ -99,6 +107,9 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
         assert why in capsys.readouterr().err
     assert main(base[:4] + ["--physics", str(tmp_path / "nowhere.zarr"), "--instrument", str(inst)]) == 2
     assert "no data set there; give the store the model was trained on" in capsys.readouterr().err
+    other = SimpleNamespace(mesh=SimpleNamespace(fingerprint=lambda: "another mesh"))
+    with pytest.raises(ModelError, match="simulated on another mesh than the model's; give the store the model was"):
+        _dataset_for(other, str(store))
     assert main(["predict", str(tmp_path / "model"), "--markers", str(markers), "--noise", "0.1"]) == 2
     assert "--gravity, --noise and --time-limit go with --physics" in capsys.readouterr().err
 
