@@ -27,8 +27,8 @@ markers narrow the search first: a marker that did not move (within ``STILL_NOIS
 standard deviations) is held, one that moved is not, which brackets the margin between the
 largest surface distance of a still marker and the smallest of a moving one. The likeliest set
 a priori is iterated to convergence first, every other one with a few Gauss-Newton steps
-started from the best solution so far, then the best ``FINISHED`` to convergence from the
-prior mean; the field is their average weighted by their posterior ``exp(-objective / 2)``
+started from the best solution so far, then the best ``FINISHED`` to convergence from where
+the search left them; the field is their average weighted by their posterior ``exp(-objective / 2)``
 (where the markers cannot tell whether a vertex far from them is held, it takes the middle).
 The parameters, W and the misfit are the best set's. The density (a factor on the gravity
 change, a small share of the shipped presets' loads: docs/uncertainty.md) and the material
@@ -76,7 +76,7 @@ NU_LIMITS = (0.3, 0.495)
 #: Wall-clock seconds a full solve may take: a trial step into a far, soft corner of the
 #: parameters (a body near a limit point) is cut back instead of waited for.
 SOLVE_SECONDS = 20.0
-#: Held sets iterated to convergence from the prior mean after the search.
+#: Held sets iterated to convergence after the search.
 FINISHED = 4
 #: A marker that moved less than this many noise standard deviations is taken as held.
 STILL_NOISES = 4.0
@@ -436,13 +436,13 @@ class _Frame:
             self.tell(f"held set {j} of {bracket.size} searched")
         finished = []
         best = sorted(scores, key=scores.get)[:FINISHED]
-        for j, i in enumerate(best, 1):  # the best few to convergence, afresh (as searched once time is up)
+        for j, i in enumerate(best, 1):  # the best few on to convergence (the first set is already)
             margin = float(candidates[i])
-            if self.out_of_time():
-                finished.append((margin, float(prior[i]), *searched[i]))
-                continue
-            finished.append((margin, float(prior[i]), *self.iterate(inv._mu, margin, None, MAX_ITERATIONS)))
-            self.tell(f"best held set {j} of {len(best)} finished (margin {margin:+.2f} mm)")
+            x, u = searched[i]
+            if not (i == start or self.out_of_time()):
+                x, u = self.iterate(x, margin, u, MAX_ITERATIONS)
+                self.tell(f"best held set {j} of {len(best)} finished (margin {margin:+.2f} mm)")
+            finished.append((margin, float(prior[i]), x, u))
         return finished
 
     def out_of_time(self) -> bool:
