@@ -14,7 +14,8 @@ and prints, per sample and over the samples: mean Offset_max, mean Offset_mean a
 of samples below 1 mm everywhere (mm), the TRE at the model's targets (its evaluation's target
 rule: the phantom's 10 interior points) with the share of their displacement corrected
 (``tissuecast.evaluate.metrics``), the inverse's marker misfit, its estimated parameters
-beside the drawn ones, and its time. ``--noise MM`` adds Gaussian noise of that standard
+beside the drawn ones, its time, and the share of the vertices whose error lies within its 90 %
+band (:func:`~tissuecast.inverse.spread_band` times its posterior spread). ``--noise MM`` adds Gaussian noise of that standard
 deviation to every tracked coordinate (the same draws for every predictor; the inverse then
 assumes that noise). ``--split test2`` takes the test-2 samples, whose loads blend in fields
 outside the LBO family the inverse solves for. ``--simulator TRAINING_STORE`` solves with another
@@ -46,11 +47,14 @@ from tissuecast.fem.linear import one_blas_thread
 from tissuecast.instruments import InstrumentPose
 from tissuecast.registration import nonrigid_part
 from tissuecast.cli.predict_physics import TIME_LIMIT
-from tissuecast.inverse import NOISE_MM, MarkerInverse
+from tissuecast.inverse import NOISE_MM, MarkerInverse, spread_band
 from tissuecast.surrogate import DeformationModel
 
 
 #: How the inverse is given the loads navigation knows (by ``--tracked``).
+#: The factor on the inverse's posterior spread of its 90 % band.
+BAND = spread_band(0.9)
+
 KNOWN = {False: "each sample's own draws", True: "as tracked (the instrument's pose, gravity as planned)"}
 
 
@@ -122,7 +126,7 @@ def main(argv=None) -> None:
           f"alpha {inv.alpha:.4g} N, estimated: W ({3 * inv.n_basis}), "
           f"{', '.join(inv.estimated) or 'no parameter'}"
           f"{', the attached margin (' + str(len(inv.margins)) + ' held sets)' if inv.margins.size else ''}")
-    rows = []
+    rows, covered = [], []
     t_all = time.perf_counter()
     for k, s in enumerate(idx):
         known = inv.known_draw(int(ds.seed[s]))
@@ -132,6 +136,8 @@ def main(argv=None) -> None:
             res = inv.solve(d[k], known, time_limit=args.time_limit or None)
         row = [v for f in (res.field, net[k], rigid[k], ridge[k]) for v in (*errors(f, U[k]), *clinical(f, U[k], targets))]
         rows.append(row)
+        band = BAND * res.spread
+        covered.append(float(np.mean(np.linalg.norm(res.field - U[k], axis=1) <= band)))
         p = res.parameters
         truth = {name: float(v[s]) for name, v in drawn.items()}
         est = " ".join(f"{name} {getattr(p, name):.3g} ({truth[name]:.3g})" for name in truth
@@ -139,7 +145,8 @@ def main(argv=None) -> None:
                                    "attached_margin"))
         print(f"  {k:3d} peak {np.linalg.norm(U[k], axis=1).max():5.1f}  inverse {row[0]:6.3f}/{row[1]:5.3f}  "
               f"model {row[4]:6.3f}/{row[5]:5.3f}  rigid {row[8]:6.2f}  ridge {row[12]:6.2f}  "
-              f"marker miss {res.marker_misfit:.3f}  {res.solves} solves {res.seconds:.0f} s"
+              f"marker miss {res.marker_misfit:.3f}  band {np.median(band):.3f} mm covers {100 * covered[-1]:3.0f} %  "
+              f"{res.solves} solves {res.seconds:.0f} s"
               f"{'' if res.complete else ' (time limit)'}  {est}", flush=True)
     r = np.array(rows)
     peaks = np.linalg.norm(U, axis=2).max(axis=1)
@@ -151,6 +158,9 @@ def main(argv=None) -> None:
     for name, cols in (("physics inverse", slice(0, 4)), ("model", slice(4, 8)), ("rigid registration", slice(8, 12)),
                        ("ridge", slice(12, 16))):
         print(f"  {name:20s} {summary(r[:, cols])}")
+    c = np.array(covered)
+    print(f"the inverse's 90 % band ({BAND:.2f} x its posterior spread) covers {100 * c.mean():.1f} % of the vertices "
+          f"(frames {100 * c.min():.0f}-{100 * c.max():.0f} %; {int(np.sum(c < 0.8))} of {len(c)} below 80 %)")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """benchmarks/physics_inverse.py: the poses a store recorded are the draws' (what a tracker
 reports), and a run as a tracked frame (``--tracked``) puts the inverse far below the model
-on samples of its own simulator."""
+on samples of its own simulator, and says how much of the field its band holds."""
 
 from __future__ import annotations
 
@@ -36,3 +36,5 @@ def test_the_inverse_as_a_tracked_frame_beats_the_model(tmp_path, capsys):
     assert "as tracked" in out
     rows = {k: float(v) for k, v in re.findall(r"^\s+(physics inverse|model)\s+([0-9.]+) /", out, flags=re.M)}
     assert rows["physics inverse"] < 0.05 and rows["model"] > 10 * rows["physics inverse"]
+    covered = re.search(r"90 % band \(1.44 x its posterior spread\) covers ([0-9.]+) % of the vertices", out)
+    assert covered and 0.0 <= float(covered.group(1)) <= 100.0

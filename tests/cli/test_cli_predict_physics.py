@@ -82,7 +82,10 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
     assert main(base + ["--gravity", *map(str, draw.gravity_direction), "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "solving through the physics" in text and "markers fitted to" in text and "1 sample(s)" in text
-    u = np.array(json.loads(out.read_text())["displacement"])[0]
+    assert "posterior spread median" in text
+    written = json.loads(out.read_text())
+    u, spread = np.array(written["displacement"])[0], np.array(written["uncertainty"])[0]
+    assert spread.shape == (len(u),) and np.all(spread >= 0.0) and 0.0 < np.median(spread) < 0.01  # 0.002 mm noise
     peak = np.linalg.norm(truth, axis=1).max()
     assert 0.5 < peak < 20.0
     assert np.linalg.norm(u - truth, axis=1).max() < 1e-3 * peak

@@ -11,7 +11,7 @@ from mesh_factories import box_grid
 from tissuecast.config import Config, with_overrides
 from tissuecast.errors import ConfigError
 from tissuecast.fem import Solver
-from tissuecast.inverse import MarkerInverse
+from tissuecast.inverse import MarkerInverse, spread_band
 from tissuecast.inverse.solve import _Frame
 from tissuecast.scenario import build_scenario
 
@@ -97,6 +97,38 @@ def test_drawn_parameters_are_estimated_where_the_markers_see_them():
         held = sc.uncertain.distance <= q.attached_margin
         assert np.array_equal(held, sc.uncertain.distance <= p.attached_margin)
     assert max(errors) < 0.02
+
+
+def test_the_posterior_spread_matches_the_errors_of_noisy_frames():
+    """Frames of one sample with fresh tracking noise (0.2 mm) each: the estimate's squared
+    error at a vertex averages the spread squared (its definition: the expected squared error
+    under the posterior, here with three held sets averaged), and the 90 % band holds about 90 %
+    of the vertices; held vertices have no spread."""
+    sc, solver, markers = _setup(True)
+    noise = 0.2
+    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=noise)
+    truth, _ = _simulate(sc, solver, 1)
+    rng = np.random.default_rng(0)
+    err2, spread2, covered = [], [], []
+    for _ in range(16):
+        res = inv.solve(truth[markers] + rng.normal(0.0, noise, (len(markers), 3)), inv.known_draw(1))
+        e = np.linalg.norm(res.field - truth, axis=1)
+        err2.append(e**2)
+        spread2.append(res.spread**2)
+        covered.append(np.mean(e <= spread_band(0.9) * res.spread))
+    assert res.held_sets == 3
+    ratio = np.mean(err2) / np.mean(spread2)
+    assert 0.6 < ratio < 1.6, ratio
+    assert 0.8 < np.mean(covered) < 0.97
+    assert 0.1 < np.median(res.spread) < 0.5
+    sc, solver, markers = _setup(False)  # the attached region known: no spread where it holds
+    truth, _ = _simulate(sc, solver, 1)
+    res = MarkerInverse(sc, solver, markers, ALPHA, noise=noise).solve(truth[markers], sc.draw_for(1))
+    held = solver(0).constrained_nodes
+    assert held.size and np.all(res.spread[held] == 0.0) and np.all(np.delete(res.spread, held) > 0.0)
+    assert spread_band(0.9) == pytest.approx(1.4435, abs=1e-4)
+    with pytest.raises(ConfigError, match="coverage must lie between 0 and 1"):
+        spread_band(1.0)
 
 
 def test_a_frame_past_its_time_limit_gives_the_best_estimate_reached_and_says_so():

@@ -307,7 +307,7 @@ def _run_physics(args, model, d: np.ndarray, missing: np.ndarray) -> int:
         if warning:
             print(f"sample {b}: {warning}")
     print(f"solved {u.shape[0]} sample(s) of {u.shape[1]} vertices through the physics in {time.perf_counter() - t:.1f} s")
-    _write_outputs(args, model, u, None, None, "physics")
+    _write_outputs(args, model, u, np.stack([res.spread for res in results]), None, "physics")
     return 0
 
 

@@ -18,8 +18,10 @@ under larger loads looks the same to the markers). A frame is given ``--time-lim
 (:data:`TIME_LIMIT` by default, 0 for none): past it the search stops and the best estimate
 reached is written, said so. A fit whose worst marker misses by more than :data:`MISFIT_NOISES`
 noise standard deviations is flagged with a warning (a frame the simulator's family does not
-explain, or a search that missed; measured in docs/uncertainty.md). No error bounds or alarm:
-those are the model's, calibrated on its own errors.
+explain, or a search that missed; measured in docs/uncertainty.md). Each vertex gets the
+estimate's posterior spread (:attr:`~tissuecast.inverse.InverseResult.spread`, mm), written
+where the learned model writes its ensemble's (``uncertainty`` point data, ``sigma_mm`` in CSV):
+what the markers' noise and the held sets leave open within the simulator's family; no alarm.
 """
 
 from __future__ import annotations
@@ -134,12 +136,14 @@ def misfit_warning(res, noise: float) -> str | None:
 
 def describe(res, estimated=()) -> str:
     """One line of an inverse's estimate: misfit, the ``estimated`` parameters' values (factors
-    on the nominal ones; Poisson's ratio), the held sets, solves and time."""
+    on the nominal ones; Poisson's ratio), the held sets, the posterior spread, solves and time."""
     p = res.parameters
     parts = [f"markers fitted to {res.marker_misfit:.3f} mm"]
     for name in estimated:
         parts.append(f"{name} {getattr(p, name):.3g}")
     if res.held_sets > 1:
         parts.append(f"attached margin {p.attached_margin:+.2f} mm ({res.held_sets} held sets averaged)")
+    if res.spread is not None:
+        parts.append(f"posterior spread median {np.nanmedian(res.spread):.3f} / max {np.nanmax(res.spread):.3f} mm")
     cut = "" if res.complete else "; cut short by --time-limit: the best estimate reached by then"
     return ", ".join(parts) + f"; {res.solves} solves, {res.seconds:.1f} s{cut}"

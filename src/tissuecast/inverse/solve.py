@@ -55,7 +55,7 @@ from ..dataset.sensitivities import (CONTINUOUS_PARAMETERS, PARAMETER_STEP, WEIG
 from ..scenario.parameters import ParameterDraw
 from ..scenario.sample_inputs import SampleInputs, ScenarioDraw
 
-__all__ = ["MarkerInverse", "InverseResult", "NOISE_MM", "MIN_TRACKED"]
+__all__ = ["MarkerInverse", "InverseResult", "NOISE_MM", "MIN_TRACKED", "spread_band"]
 
 #: Default standard deviation of a tracked marker coordinate, mm (a misfit of this size is noise).
 NOISE_MM = 0.05
@@ -86,6 +86,16 @@ MIN_TRACKED = 3
 _SOLVE_FAILURES = (ConvergenceError, ArithmeticError, np.linalg.LinAlgError)
 
 
+def spread_band(coverage: float) -> float:
+    """The factor on :attr:`InverseResult.spread` of the ball that holds ``coverage`` of an
+    isotropic 3-D Gaussian error of that spread: ``sqrt(chi2_3(coverage) / 3)`` (1.44 at 0.9)."""
+    from scipy.stats import chi2
+
+    if not 0.0 < coverage < 1.0:
+        raise ConfigError(f"coverage must lie between 0 and 1, got {coverage!r}")
+    return math.sqrt(chi2.ppf(coverage, 3) / 3.0)
+
+
 @dataclass(frozen=True, eq=False)
 class InverseResult:
     """One frame's estimate.
@@ -106,6 +116,13 @@ class InverseResult:
         seconds: wall-clock time.
         complete: False where the frame's time limit cut the search short (the estimate is
             the best reached by then).
+        spread: (n,) float64 mm, each vertex's posterior spread ``sqrt(sum_xyz var)`` (as an
+            ensemble's ``sigma``): the Laplace approximation within the best held set (what
+            the markers' noise leaves open, to first order) plus the spread of the averaged
+            held sets' fields about ``field``. It does not see what the simulator's family
+            leaves out, nor another equilibrium or held set that the search ranked below
+            (docs/uncertainty.md measures how often the error exceeds it); NaN where the
+            estimate has no tangent.
     """
 
     field: np.ndarray
@@ -117,6 +134,7 @@ class InverseResult:
     solves: int
     seconds: float
     complete: bool = True
+    spread: np.ndarray | None = None
 
 
 class MarkerInverse:
@@ -135,6 +153,7 @@ class MarkerInverse:
         self.scenario = scenario
         self._solver = solver
         self.markers = np.asarray(markers, dtype=np.int64)
+        self.marker_dofs = (3 * self.markers[:, None] + np.arange(3)).ravel()  # (3 n_d,) node-major
         if not (np.isfinite(alpha) and alpha > 0):
             raise ConfigError(f"the force magnitude alpha must be a positive number of N, got {alpha!r}")
         if not noise > 0:
@@ -253,14 +272,20 @@ class MarkerInverse:
         objs = np.array([obj + p for (obj, _), (_, p, _, _) in zip(scored, finished)])
         w = np.exp(-0.5 * (objs - objs.min()))
         n = self.scenario.mesh.n_vertices
-        field = sum(wi * u[:n] for wi, (_, _, _, u) in zip(w / w.sum(), finished))
+        w /= w.sum()
+        field = sum(wi * u[:n] for wi, (_, _, _, u) in zip(w, finished))
+        between = sum(wi * ((u[:n] - field) ** 2).sum(axis=1) for wi, (_, _, _, u) in zip(w, finished))
         best = int(np.argmin(objs))
         margin, _, x, u = finished[best]
         obj, miss = float(objs[best]), scored[best][1]
+        try:
+            within = frame.spread(x, margin, u)
+        except _SOLVE_FAILURES:  # no tangent at the estimate (an element inverted)
+            within = np.full(n, np.nan)
         return InverseResult(field=field, weights=x[: 3 * self.n_basis].reshape(self.n_basis, 3).copy(),
                              parameters=self._draw(x, margin), marker_misfit=miss, objective=obj,
                              held_sets=len(finished), solves=frame.solves, seconds=time.perf_counter() - t0,
-                             complete=not frame.cut_short)
+                             complete=not frame.cut_short, spread=np.sqrt(within + between))
 
     def _known_inputs(self, draw: ScenarioDraw) -> SampleInputs:
         sc = self.scenario
@@ -319,7 +344,12 @@ class _Frame:
         return self.solver(inputs, 1).solve(loads, None, time_limit=SOLVE_SECONDS, **kw).nodal_displacement
 
     def jacobian(self, x: np.ndarray, margin: float, u: np.ndarray) -> np.ndarray:
-        """(3 n_d, n_x) d(marker displacements)/d(unknowns) at the equilibrium ``u`` of ``x``:
+        """(3 n_d, n_x) d(marker displacements)/d(unknowns) at the equilibrium ``u`` of ``x``
+        (the marker rows of :meth:`sensitivity`)."""
+        return self.sensitivity(x, margin, u)[self.inv.marker_dofs]
+
+    def sensitivity(self, x: np.ndarray, margin: float, u: np.ndarray) -> np.ndarray:
+        """(3 n_nodes, n_x) d(displacements)/d(unknowns) at the equilibrium ``u`` of ``x``:
         the tangent stiffness K (the held dofs eliminated) solved against the loads' derivative
         (the unit LBO loads) and against minus the internal forces' derivative in each
         parameter (a finite difference of one assembly)."""
@@ -336,8 +366,18 @@ class _Frame:
             x2[k] += h
             f2, _ = self.solver(self.inputs(x2, margin)).assembler.internal_force(u)
             forces[k] = -(f2 - tangent[0]) / h
-        du = equilibrium_response(solver, inputs, u, forces, tangent)
-        return du[(3 * inv.markers[:, None] + np.arange(3)).ravel()]
+        return equilibrium_response(solver, inputs, u, forces, tangent)
+
+    def spread(self, x: np.ndarray, margin: float, u: np.ndarray) -> np.ndarray:
+        """(n,) mm^2: each vertex's posterior variance within the held set of ``margin`` at the
+        estimate ``(x, u)`` (Laplace): ``trace(S_v C S_v^T)``, with ``S_v`` the vertex's rows of
+        :meth:`sensitivity` and ``C = (J^T J / noise^2 + P^-1)^-1`` the Gauss-Newton posterior
+        covariance of the unknowns (``J`` the tracked markers' rows, ``P`` the prior's)."""
+        inv = self.inv
+        S = self.sensitivity(x, margin, u)[: 3 * inv.scenario.mesh.n_vertices]
+        J = S[inv.marker_dofs][self.rows]
+        cov = np.linalg.inv(J.T @ J / inv.noise**2 + np.diag(inv._sd**-2.0))
+        return np.einsum("ij,ij->i", S @ cov, S).reshape(-1, 3).sum(axis=1)
 
     def objective(self, x: np.ndarray, u: np.ndarray) -> tuple[float, float]:
         """(minus twice the log posterior without the held set's prior, largest marker miss in mm)."""
