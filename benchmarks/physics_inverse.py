@@ -15,9 +15,9 @@ of samples below 1 mm everywhere (mm), the TRE at the model's targets (its evalu
 rule: the phantom's 10 interior points) with the share of their displacement corrected
 (``tissuecast.evaluate.metrics``), the inverse's marker misfit, its estimated parameters
 beside the drawn ones, its time, and the share of the vertices whose error lies within its 90 %
-band (:func:`~tissuecast.inverse.spread_band` times its posterior spread). ``--noise MM`` adds Gaussian noise of that standard
-deviation to every tracked coordinate (the same draws for every predictor; the inverse then
-assumes that noise). ``--split test2`` takes the test-2 samples, whose loads blend in fields
+band (:func:`~tissuecast.inverse.spread_band` times its posterior spread). ``--noise MM`` adds
+Gaussian noise of that standard deviation to every tracked coordinate (the same draws for
+every predictor; the inverse then assumes that noise). ``--split test2`` takes the test-2 samples, whose loads blend in fields
 outside the LBO family the inverse solves for. ``--simulator TRAINING_STORE`` solves with another
 store's simulator: for the sets of ``tissuecast study mismatch`` (simulated with one parameter
 off), the store the model was trained on, so the inverse assumes what the model assumes.
@@ -51,10 +51,9 @@ from tissuecast.inverse import NOISE_MM, MarkerInverse, spread_band
 from tissuecast.surrogate import DeformationModel
 
 
-#: How the inverse is given the loads navigation knows (by ``--tracked``).
 #: The factor on the inverse's posterior spread of its 90 % band.
 BAND = spread_band(0.9)
-
+#: How the inverse is given the loads navigation knows (by ``--tracked``).
 KNOWN = {False: "each sample's own draws", True: "as tracked (the instrument's pose, gravity as planned)"}
 
 
