@@ -107,7 +107,7 @@ def _models_against(ds, kept: list, fields: dict, specs: list) -> None:
 def main(argv=None) -> int:
     from tissuecast.dataset import open_dataset
     from tissuecast.errors import ConvergenceError, SolveTimeout
-    from tissuecast.evaluate.mismatch import ReferenceSolver, along_load_path, keep_answers_of_one_path
+    from tissuecast.evaluate.mismatch import ReferenceSolver, keep_answers_of_one_path, solve_path
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("store")
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
                          "use --reference refined")
     cache = Path(args.cache or Path(args.store).with_suffix(".discretisation"))
     cache.mkdir(parents=True, exist_ok=True)
-    keep_answers_of_one_path(cache, {"path": "load path" if along_load_path(ds.config) else "from the store's answer"})
+    keep_answers_of_one_path(cache, {"path": solve_path(ds.config)})
     kinds = (("p2",) if ds.config.solver.order == 1 else ()) + (("refined",) if args.reference == "refined" else ())
     solvers = {kind: ReferenceSolver(ds, kind) for kind in kinds}
     rows: dict[str, list] = {}

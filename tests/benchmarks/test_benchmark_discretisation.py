@@ -38,7 +38,7 @@ def test_quadratic_reference_and_models_against_both(tmp_path, capsys):
     cached = sorted((tmp_path / "c").glob("sample_*.p2.npy"))
     assert len(cached) == 2 and not list((tmp_path / "c").glob("*.reference.npy"))
     record = json.loads((tmp_path / "c" / "reference.json").read_text())
-    assert record == {"path": "from the store's answer"}  # this store's samples start from a reduced guess
+    assert record == {"path": "from the data set's answer"}  # this store's samples start from a reduced guess
     # the cached answer is the sample's own P2 solution, its loads the store's (the store's LBO
     # basis: a basis computed again may differ in its eigenvectors' signs), solved from zero here
     k = int(cached[0].name.split("_")[1].split(".")[0])

@@ -379,7 +379,7 @@ def test_a_folder_keeps_the_answers_of_one_path(tmp_path, caplog):
     np.save(tmp_path / "sample_00001.npy", np.zeros((3, 3)))
     keep_answers_of_one_path(tmp_path, {"path": "load path"})  # the same path: kept
     assert (tmp_path / "sample_00001.npy").is_file()
-    keep_answers_of_one_path(tmp_path, {"path": "from the store's answer"})
+    keep_answers_of_one_path(tmp_path, {"path": "from the data set's answer"})
     assert not (tmp_path / "sample_00001.npy").exists() and np.load(tmp_path / "superseded" / "sample_00001.npy").sum() == 0
-    assert json.loads((tmp_path / REFERENCE_RECORD).read_text()) == {"path": "from the store's answer"}
+    assert json.loads((tmp_path / REFERENCE_RECORD).read_text()) == {"path": "from the data set's answer"}
     assert '{"path": "load path"}' in caplog.text

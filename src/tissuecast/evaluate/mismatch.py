@@ -49,7 +49,7 @@ import numpy as np
 from ..config import Config, nothing_drawn, with_overrides
 
 __all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver", "along_load_path",
-           "keep_answers_of_one_path", "discretisation_set", "evaluate_on_set", "set_folder_name", "store_alpha",
+           "keep_answers_of_one_path", "solve_path", "discretisation_set", "evaluate_on_set", "set_folder_name", "store_alpha",
            "mismatch_study", "DEFAULT_SAMPLES", "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT", "STUDY_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
@@ -218,6 +218,12 @@ def along_load_path(config: Config) -> bool:
     return config.dataset.predictor == "none"
 
 
+def solve_path(config: Config) -> str:
+    """How the references of a data set of ``config`` are solved (:class:`ReferenceSolver`), as
+    recorded beside their answers (:func:`keep_answers_of_one_path`)."""
+    return "load path" if along_load_path(config) else "from the data set's answer"
+
+
 class ReferenceSolver:
     """Solves a data set's samples again with quadratic elements, read on its vertices.
 
@@ -337,8 +343,7 @@ def discretisation_set(config: Config, nominal_store, folder: Path, samples: int
 
     ds = open_dataset(nominal_store)
     folder.mkdir(parents=True, exist_ok=True)
-    keep_answers_of_one_path(folder, {"reference": reference, "path": "load path" if along_load_path(ds.config)
-                                       else "from the data set's answer"})
+    keep_answers_of_one_path(folder, {"reference": reference, "path": solve_path(ds.config)})
     limit = float("inf") if time_limit is None else float(time_limit)
     chosen = [int(k) for k in ds.select("test1", status="done")[:samples]]
     todo = [k for k in chosen if not _refined_file(folder, k).is_file() and _retry_refined(folder, k, limit)]
