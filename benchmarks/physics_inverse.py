@@ -44,7 +44,7 @@ from tissuecast.evaluate.evaluation import auxiliary_values
 from tissuecast.evaluate.metrics import share_corrected, target_errors
 from tissuecast.evaluate.targets import model_targets
 from tissuecast.fem.linear import one_blas_thread
-from tissuecast.instruments import InstrumentPose
+from tissuecast.instruments import recorded_poses
 from tissuecast.registration import nonrigid_part
 from tissuecast.cli.predict_physics import TIME_LIMIT
 from tissuecast.inverse import NOISE_MM, MarkerInverse, spread_band
@@ -55,17 +55,6 @@ from tissuecast.surrogate import DeformationModel
 BAND = spread_band(0.9)
 #: How the inverse is given the loads navigation knows (by ``--tracked``).
 KNOWN = {False: "each sample's own draws", True: "as tracked (the instrument's pose, gravity as planned)"}
-
-
-def recorded_poses(ds, s: int) -> dict:
-    """``{instrument: InstrumentPose}`` of sample ``s`` as its store recorded them (what a
-    tracker would have reported)."""
-    out = {}
-    for name, p in ds.instrument_poses.items():
-        touching = bool(p["contact"][s] == 1)
-        out[name] = (InstrumentPose(np.asarray(p["tip"][s], dtype=np.float64), np.asarray(p["direction"][s], dtype=np.float64),
-                                    float(p["depth"][s]), True) if touching else InstrumentPose.away())
-    return out
 
 
 def errors(field: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
@@ -130,7 +119,7 @@ def main(argv=None) -> None:
     for k, s in enumerate(idx):
         known = inv.known_draw(int(ds.seed[s]))
         if args.tracked:
-            known = inv.scenario.frame_draw(recorded_poses(ds, s))
+            known = inv.scenario.frame_draw(recorded_poses(ds.instrument_poses, s))
         with one_blas_thread():  # as the data set's workers and `predict --physics` solve
             res = inv.solve(d[k], known, time_limit=args.time_limit or None)
         row = [v for f in (res.field, net[k], rigid[k], ridge[k]) for v in (*errors(f, U[k]), *clinical(f, U[k], targets))]

@@ -34,7 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["InstrumentPose", "ReferenceSurface", "POSE_FEATURES", "POSE_UNITS", "pose_features", "features_from_arrays"]
+__all__ = ["InstrumentPose", "ReferenceSurface", "POSE_FEATURES", "POSE_UNITS", "pose_features", "features_from_arrays",
+           "recorded_poses"]
 
 #: The model inputs of one instrument, in order (``<instrument>.<feature>``), and their units.
 POSE_FEATURES = ("tip_x", "tip_y", "tip_z", "direction_x", "direction_y", "direction_z", "depth", "contact")
@@ -84,6 +85,20 @@ def features_from_arrays(tip, direction, depth, contact) -> np.ndarray:
     contact = np.asarray(contact).reshape(-1).astype(bool)
     out = np.hstack([tip, direction, depth[:, None], np.ones((len(tip), 1))])
     out[~contact] = 0.0
+    return out
+
+
+def recorded_poses(instrument_poses: dict, s: int) -> dict:
+    """``{instrument: InstrumentPose}`` of sample ``s`` as a data set recorded them (what a tracker
+    would have reported), from its ``instrument_poses`` (:attr:`tissuecast.dataset.Dataset.instrument_poses`);
+    an instrument not in contact is :meth:`InstrumentPose.away`."""
+    out = {}
+    for name, p in instrument_poses.items():
+        if int(p["contact"][s]) == 1:
+            out[name] = InstrumentPose(np.asarray(p["tip"][s], dtype=np.float64),
+                                       np.asarray(p["direction"][s], dtype=np.float64), float(p["depth"][s]), True)
+        else:
+            out[name] = InstrumentPose.away()
     return out
 
 

@@ -9,6 +9,7 @@ import re
 import numpy as np
 
 from tissuecast.dataset import open_dataset
+from tissuecast.instruments import recorded_poses
 from tissuecast.scenario import scenario_from_config
 
 from bench_helpers import load_benchmark
@@ -23,7 +24,7 @@ def test_the_inverse_as_a_tracked_frame_beats_the_model(tmp_path, capsys):
     touched = 0
     for s in range(ds.n_samples):
         (name, drawn), = sc.draw_for(int(ds.seed[s])).instruments
-        pose = mod.recorded_poses(ds, s)[name]
+        pose = recorded_poses(ds.instrument_poses, s)[name]
         assert pose.contact == drawn.contact
         if drawn.contact:
             touched += 1

@@ -383,3 +383,37 @@ def test_a_folder_keeps_the_answers_of_one_path(tmp_path, caplog):
     assert not (tmp_path / "sample_00001.npy").exists() and np.load(tmp_path / "superseded" / "sample_00001.npy").sum() == 0
     assert json.loads((tmp_path / REFERENCE_RECORD).read_text()) == {"path": "from the data set's answer"}
     assert '{"path": "load path"}' in caplog.text
+
+
+def test_the_study_solves_a_few_frames_of_each_set_through_the_physics(tmp_path, capsys):
+    """``--physics 2``: each set's first two frames also through the physics inverse (the model's
+    training simulator, markers and recorded retractor poses): on the nominal set it recovers the
+    fields far below the model, within its band and without a misfit warning, and the row carries
+    the baselines of the same frames; the report explains the row."""
+    from dataset_helpers import tracked_retractor_store
+
+    from tissuecast.cli.main import main
+    from tissuecast.evaluate.mismatch_report import mismatch_section
+
+    cfg, store, model = tracked_retractor_store(tmp_path)
+    path = write_config(cfg, tmp_path / "tracked.toml")
+    out = tmp_path / "study"
+    argv = ["-q", "study", "mismatch", str(path), "--out", str(out), "--model", f"m={model}", "--sets", "E x2",
+            "--samples", "4"]
+    assert main(argv + ["--physics", "-1"]) == 2
+    assert "--physics -1: give a number of frames >= 0" in capsys.readouterr().err
+    assert main(argv + ["--physics", "2"]) == 0
+    data = json.loads((out / "study_mismatch.json").read_text())
+    rows = {(r["set"], r["model"]): r for r in data["rows"]}
+    assert set(rows) == {(s, m) for s in ("nominal", "E x2") for m in ("m", "physics")} and data["meta"]["physics_frames"] == 2
+    phys, learned = rows[("nominal", "physics")], rows[("nominal", "m")]
+    assert phys["count"] == 2 and learned["count"] == 4
+    assert phys["mlp_offset_max"] < 0.02 * phys["peak_median"] and learned["mlp_offset_max"] > 5 * phys["mlp_offset_max"]
+    assert phys["alarm_rate"] == 0.0 and phys["coverage_90"] > 0.5 and phys["incomplete"] == 0
+    assert phys["rigid_offset_max"] > 5 * phys["mlp_offset_max"] and phys["mlp_corrected"] > 0.95
+    assert rows[("E x2", "physics")]["relative_vs_nominal"] == pytest.approx(
+        rows[("E x2", "physics")]["relative"] / phys["relative"])
+    header = (out / "study_mismatch.csv").read_text().splitlines()[0].split(",")
+    assert "coverage_90" in header and "seconds_median" in header  # keys only the physics rows carry
+    (tmp_path / "report").mkdir()
+    assert "The <i>physics</i> rows" in mismatch_section(out, tmp_path / "report")

@@ -52,6 +52,12 @@ def register(sub) -> None:
     p.add_argument("--refined-time-limit", type=float, default=None, metavar="SECONDS",
                    help="mismatch: wall-clock limit of one solve of those sets; a sample past it is "
                         "left out and recorded, and tried again only under a larger limit (default 900; 0 = none)")
+    p.add_argument("--physics", type=int, default=0, metavar="N",
+                   help="mismatch: also solve each set's first N frames through the physics inverse (the first model's "
+                        "markers and training store's simulator, as `predict --physics`; seconds to minutes a frame), "
+                        "a row 'physics' beside the models' (default 0: none)")
+    p.add_argument("--physics-time-limit", type=float, default=None, metavar="SECONDS",
+                   help="mismatch: seconds one physics frame may take (default that of `predict --physics`; 0: none)")
     p.add_argument("--alpha", type=float, default=0.0,
                    help="mismatch: force magnitude of the sets, N (default: the first model's training store's)")
     p.set_defaults(func=run)
@@ -86,6 +92,13 @@ def _mismatch(args) -> int:
     if limit < 0:
         raise ConfigError(f"--refined-time-limit {limit:g}: give seconds > 0, or 0 for no limit")
     limit = limit or None
+    if args.physics < 0:
+        raise ConfigError(f"--physics {args.physics}: give a number of frames >= 0 (0: no physics rows)")
+    from .predict_physics import TIME_LIMIT
+
+    physics_limit = TIME_LIMIT if args.physics_time_limit is None else args.physics_time_limit
+    if not physics_limit >= 0:
+        raise ConfigError(f"--physics-time-limit {physics_limit:g}: give seconds > 0, or 0 for no limit")
     cfg = load_run_config(args.source)
     models = _models(args.model)
     first = next(iter(models.values()))
@@ -100,14 +113,17 @@ def _mismatch(args) -> int:
     names = [s.name for s in mm.chosen_sets(cfg, first.mesh, sets)]
     print(f"mismatch study: {len(models)} model(s), sets {', '.join(names)}; {samples} samples a set ({refined} for "
           f"those solved again with quadratic elements), alpha {alpha:.4g} N; sets kept in {out / 'mismatch'} (a "
-          "second run resumes them)", flush=True)
+          "second run resumes them)" + (f"; the first {args.physics} frame(s) of each set also through the physics "
+                                         "inverse" if args.physics else ""), flush=True)
     rows = mm.mismatch_study(cfg, models, out / "mismatch", alpha=alpha, sets=sets, samples=samples,
-                             refined_samples=refined, refined_time_limit=limit, progress=True,
+                             refined_samples=refined, refined_time_limit=limit, progress=True, physics=args.physics,
+                             physics_time_limit=physics_limit or None,
                              on_row=lambda r: print(f"  {r['set']} / {r['model']}: Offset_max {r['mlp_offset_max']:.3g} mm "
                                                     f"(rigid {r['rigid_offset_max']:.3g}), relative "
                                                     f"{100 * r['relative']:.3g} %", flush=True))
     markers = {k: m.describe()["markers"] for k, m in models.items()}
-    meta = {"alpha": alpha, "samples": samples, "refined_samples": refined, "refined_time_limit": limit, "models": markers}
+    meta = {"alpha": alpha, "samples": samples, "refined_samples": refined, "refined_time_limit": limit, "models": markers,
+            "physics_frames": args.physics}
     json_path, csv_path = write_mismatch(out, rows, meta)
     png = mismatch_figure(rows, out / "study_mismatch.png")
     print(format_mismatch(rows))

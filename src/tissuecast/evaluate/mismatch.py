@@ -48,14 +48,17 @@ import numpy as np
 
 from ..config import Config, nothing_drawn, with_overrides
 
-__all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver", "along_load_path",
-           "keep_answers_of_one_path", "solve_path", "discretisation_set", "evaluate_on_set", "set_folder_name", "store_alpha",
-           "mismatch_study", "DEFAULT_SAMPLES", "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT", "STUDY_SEED_OFFSET"]
+__all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver",
+           "along_load_path", "keep_answers_of_one_path", "solve_path", "discretisation_set", "evaluate_on_set",
+           "set_folder_name", "store_alpha", "mismatch_study", "physics_on_set", "PHYSICS", "DEFAULT_SAMPLES",
+           "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT", "STUDY_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
 
 #: Samples per set by default, and of each (costly) set solved again with quadratic elements.
 DEFAULT_SAMPLES = 100
+#: The model label of the physics inverse's rows (``mismatch_study(physics=...)``).
+PHYSICS = "physics"
 DISCRETISATION_SAMPLES = 4
 #: Wall-clock limit of one solve of those sets by default, s.
 REFINED_TIME_LIMIT = 900.0
@@ -455,6 +458,58 @@ def evaluate_on_set(model, dataset, targets) -> dict:
     return row
 
 
+def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit: float | None = None) -> dict:
+    """The physics inverse on a set's first ``samples`` test-1 samples, as a study row.
+
+    Each frame is solved as ``tissuecast predict --physics`` solves it: the model's markers (all
+    tracked, no noise), the sample's recorded instrument poses, gravity in its planned direction,
+    ``inverse`` (a :class:`~tissuecast.inverse.MarkerInverse` of the training store's simulator:
+    what the model assumes), ``time_limit`` s a frame (None: none).
+
+    Returns:
+        The keys of :func:`evaluate_on_set` over those samples, the inverse's figures in the
+        ``mlp_*`` keys (rigid registration and ridge from the same markers on the same samples),
+        ``coverage_90`` the share of vertices within its 90 % band
+        (:func:`~tissuecast.inverse.spread_band`), ``alarm_rate`` the share of frames whose fit
+        the misfit warning flags (:func:`~tissuecast.cli.predict_physics.misfit_warning`),
+        ``seconds_median`` a frame's median time, ``incomplete`` how many frames the limit cut short.
+    """
+    from ..cli.predict_physics import misfit_warning
+    from ..fem.linear import one_blas_thread
+    from ..instruments import recorded_poses
+    from ..inverse import spread_band
+    from ..registration import nonrigid_part
+    from .metrics import summarize_targets, target_errors
+
+    idx = np.asarray(dataset.select("test1", status="done"), dtype=np.int64)[:samples]
+    U = np.asarray(dataset.displacements[idx], dtype=np.float64)
+    d = U[:, model.markers]
+    fields, covered, flagged, seconds, cut = [], [], [], [], 0
+    band = spread_band(0.9)
+    for k, s in enumerate(idx):
+        draw = inverse.scenario.frame_draw(recorded_poses(dataset.instrument_poses, int(s)))
+        with one_blas_thread():
+            res = inverse.solve(d[k], draw, time_limit=time_limit)
+        fields.append(res.field)
+        covered.append(np.mean(np.linalg.norm(res.field - U[k], axis=1) <= band * res.spread))
+        flagged.append(misfit_warning(res, inverse.noise) is not None)
+        seconds.append(res.seconds)
+        cut += not res.complete
+    row = {"count": int(idx.size), "peak_median": float(np.median(np.linalg.norm(U, axis=2).max(axis=1))),
+           "nonrigid_median": float(np.median(nonrigid_part(dataset.mesh.points, U))), "gate_refused": 0.0}
+    moved = np.linalg.norm(targets.displacements(U), axis=2).mean(axis=1)
+    for m, F in (("mlp", np.stack(fields)), ("rigid", model.predict_rigid(d)), ("ridge", model.predict_ridge(d))):
+        e = np.linalg.norm(F - U, axis=2)
+        row[f"{m}_offset_max"], row[f"{m}_offset_mean"] = float(e.max(axis=1).mean()), float(e.mean())
+        t = summarize_targets(target_errors(targets.displacements(F), targets.displacements(U)), moved)
+        row[f"{m}_tre_mean"], row[f"{m}_tre_p95"], row[f"{m}_corrected"] = t.tre_mean, t.tre_p95, t.share_corrected_mean
+    row["relative"] = row["mlp_offset_max"] / max(row["peak_median"], 1e-300)
+    row["gain_over_rigid"] = row["rigid_offset_max"] / max(row["mlp_offset_max"], 1e-300)
+    row.update(coverage_90=float(np.mean(covered)), alarm_rate=float(np.mean(flagged)),
+               seconds_median=float(np.median(seconds)), incomplete=cut)
+    return row
+
+
 def store_alpha(store) -> float:
     """The calibrated force magnitude alpha (N) of a training store."""
     from ..dataset import open_dataset
@@ -488,7 +543,8 @@ def set_folder_name(name: str) -> str:
 
 def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=None, samples: int = DEFAULT_SAMPLES,
                    refined_samples: int = DISCRETISATION_SAMPLES, refined_time_limit: float | None = REFINED_TIME_LIMIT,
-                   targets=None, progress: bool = False, on_row=None) -> list[dict]:
+                   targets=None, progress: bool = False, on_row=None, physics: int = 0,
+                   physics_time_limit: float | None = None) -> list[dict]:
     """Simulate the mismatch sets and evaluate every model on each (module notes).
 
     Args:
@@ -505,6 +561,10 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
         targets: where TRE is measured (default: the evaluation's interior rule).
         progress: progress bars of the simulations.
         on_row: called with each row as it comes.
+        physics: frames of each set also solved by the physics inverse (:func:`physics_on_set`,
+            a row labelled :data:`PHYSICS`; the first model's markers and training store's
+            simulator, its ranges as priors), 0 for none; each takes seconds to minutes.
+        physics_time_limit: seconds one such frame may take (None: none).
 
     Returns:
         One row per (set, model): the figures of :func:`evaluate_on_set` with ``set``, ``what``,
@@ -514,6 +574,17 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
     folder = Path(folder)
     first = next(iter(models.values()))
     chosen = chosen_sets(config, first.mesh, sets)
+    inverse = None
+    if physics > 0:
+        from ..dataset import open_dataset
+        from ..errors import ConfigError
+        from ..inverse import MarkerInverse
+        from .targets import interior_targets
+
+        if not first.dataset_path or not Path(first.dataset_path).exists():
+            raise ConfigError(f"the physics rows solve with the first model's training store, which is not at "
+                              f"{first.dataset_path!r}; put it back (or leave the physics rows out)")
+        inverse = MarkerInverse.from_dataset(open_dataset(first.dataset_path), first.markers)
     rows, nominal_relative = [], {}
     nominal_store = folder / "nominal.zarr"
     for mset in chosen:
@@ -522,9 +593,15 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
                           refined_time_limit=refined_time_limit)
         if ds is None:
             continue
-        for label, model in models.items():
-            row = {"set": mset.name, "what": mset.what, "in_range": mset.in_range, "model": label,
-                   **evaluate_on_set(model, ds, targets)}
+        judged = list(models.items()) + ([(PHYSICS, first)] if inverse is not None else [])
+        for label, model in judged:
+            if label == PHYSICS and inverse is not None:
+                log.info("%s: the physics inverse on %d frames (seconds to minutes each)", mset.name, physics)
+                figures = physics_on_set(inverse, first, ds, targets or interior_targets(first.mesh, exclude=first.fixed),
+                                         physics, time_limit=physics_time_limit)
+            else:
+                figures = evaluate_on_set(model, ds, targets)
+            row = {"set": mset.name, "what": mset.what, "in_range": mset.in_range, "model": label, **figures}
             if mset.name == "nominal":
                 nominal_relative[label] = row["relative"]
             row["relative_vs_nominal"] = row["relative"] / nominal_relative.get(label, float("nan"))

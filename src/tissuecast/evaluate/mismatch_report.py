@@ -103,5 +103,12 @@ def mismatch_section(studies_folder: Path, folder: Path) -> str | None:
              "displacement; x nominal: that over the model's own on the nominal set; TRE at the evaluation's "
              "targets; corrected: share of the targets' displacement corrected (rigid registration's in brackets). "
              "In range: the uncertain parameters the model was trained with cover the set.</p>")
+    if any(r["model"] == "physics" for r in rows):
+        intro += (f"<p>The <i>physics</i> rows: the physics inverse (<code>predict --physics</code>: the first model's "
+                  f"training simulator and markers, the recorded instrument poses) on each set's first "
+                  f"{html.escape(str(meta.get('physics_frames', '')))} samples, rigid registration and ridge on the same "
+                  "samples; its bounds column is the share of vertices within its 90 % band (1.44 x its posterior "
+                  "spread, not a calibrated bound), its alarm column the share of frames its misfit warning "
+                  "flags.</p>")
     body = intro + html_table(_HEAD, mismatch_table(rows)) + f"<img src='{png.name}' alt='mismatch study'>"
     return ("<details open><summary><h2>What a mismatch costs</h2></summary>" + body + "</details>")

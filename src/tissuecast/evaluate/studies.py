@@ -40,12 +40,13 @@ log = logging.getLogger(__name__)
 
 
 def write_rows(path, rows: list[dict]) -> Path:
-    """Write study rows to CSV (columns from the first row)."""
+    """Write study rows to CSV: a column for every key of any row, in order of first appearance (a
+    row without a key leaves its cell empty: e.g. a model without a trust layer has no coverage)."""
     path = Path(path)
     if not rows:
         raise ModelError(f"no study rows to write to {str(path)!r}")
     with path.open("w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0].keys()))
+        w = csv.DictWriter(fh, fieldnames=list(dict.fromkeys(k for row in rows for k in row)))
         w.writeheader()
         w.writerows(rows)
     return path
