@@ -495,6 +495,9 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
         flagged.append(misfit_warning(res, inverse.noise) is not None)
         seconds.append(res.seconds)
         cut += not res.complete
+        log.info("physics frame %d of %d: worst vertex %.3g mm off, markers fitted to %.3g mm, %.0f s%s", k + 1,
+                 idx.size, float(np.linalg.norm(res.field - U[k], axis=1).max()), res.marker_misfit, res.seconds,
+                 "" if res.complete else " (cut short by the time limit)")
     row = {"count": int(idx.size), "peak_median": float(np.median(np.linalg.norm(U, axis=2).max(axis=1))),
            "nonrigid_median": float(np.median(nonrigid_part(dataset.mesh.points, U))), "gate_refused": 0.0}
     moved = np.linalg.norm(targets.displacements(U), axis=2).mean(axis=1)
