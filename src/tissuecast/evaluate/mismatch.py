@@ -467,7 +467,8 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
     what the model assumes), ``time_limit`` s a frame (None: none).
 
     Returns:
-        The keys of :func:`evaluate_on_set` over those samples, the inverse's figures in the
+        The keys of :func:`evaluate_on_set` over those samples (no input gate's share: the frames
+        are solved whatever the model's gate says), the inverse's figures in the
         ``mlp_*`` keys (rigid registration and ridge from the same markers on the same samples),
         ``coverage_90`` the share of vertices within its 90 % band
         (:func:`~tissuecast.inverse.spread_band`), ``alarm_rate`` the share of frames whose fit
@@ -499,7 +500,7 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
                  idx.size, float(np.linalg.norm(res.field - U[k], axis=1).max()), res.marker_misfit, res.seconds,
                  "" if res.complete else " (cut short by the time limit)")
     row = {"count": int(idx.size), "peak_median": float(np.median(np.linalg.norm(U, axis=2).max(axis=1))),
-           "nonrigid_median": float(np.median(nonrigid_part(dataset.mesh.points, U))), "gate_refused": 0.0}
+           "nonrigid_median": float(np.median(nonrigid_part(dataset.mesh.points, U)))}
     moved = np.linalg.norm(targets.displacements(U), axis=2).mean(axis=1)
     for m, F in (("mlp", np.stack(fields)), ("rigid", model.predict_rigid(d)), ("ridge", model.predict_ridge(d))):
         e = np.linalg.norm(F - U, axis=2)
