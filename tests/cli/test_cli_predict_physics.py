@@ -120,8 +120,12 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
 def test_a_fit_that_misses_its_markers_is_flagged():
     from types import SimpleNamespace
 
-    from tissuecast.cli.predict_physics import MISFIT_NOISES, misfit_warning
+    from tissuecast.cli.predict_physics import misfit_warning
+    from tissuecast.inverse import MISFIT_NOISES, MarkerInverse
 
     assert misfit_warning(SimpleNamespace(marker_misfit=MISFIT_NOISES * 0.05 - 1e-9), 0.05) is None
+    inverse = SimpleNamespace(noise=0.05)  # the study's physics rows count the same frames (MarkerInverse.flags)
+    assert MarkerInverse.flags(inverse, SimpleNamespace(marker_misfit=0.309))
+    assert not MarkerInverse.flags(inverse, SimpleNamespace(marker_misfit=MISFIT_NOISES * 0.05 - 1e-9))
     text = misfit_warning(SimpleNamespace(marker_misfit=0.309), 0.05)
     assert text.startswith("WARNING: a marker is 0.309 mm") and "6 x the tracking noise of 0.05 mm" in text

@@ -16,9 +16,10 @@ of the fit. The estimate is the maximum a posteriori one with the scenario's par
 priors; E and the surroundings' stiffness come back only up to a common scale (a stiffer body
 under larger loads looks the same to the markers). A frame is given ``--time-limit`` seconds
 (:data:`TIME_LIMIT` by default, 0 for none): past it the search stops and the best estimate
-reached is written, said so. A fit whose worst marker misses by more than :data:`MISFIT_NOISES`
-noise standard deviations is flagged with a warning (a frame the simulator's family does not
-explain, or a search that missed; measured in docs/uncertainty.md). Each vertex gets the
+reached is written, said so. A fit whose worst marker misses by more than
+:data:`~tissuecast.inverse.MISFIT_NOISES` noise standard deviations is flagged with a warning
+(a frame the simulator's family does not explain, or a search that missed; measured in
+docs/uncertainty.md). Each vertex gets the
 estimate's posterior spread (:attr:`~tissuecast.inverse.InverseResult.spread`, mm), written
 where the learned model writes its ensemble's (``uncertainty`` point data, ``sigma_mm`` in CSV):
 what the markers' noise and the held sets leave open within the simulator's family; no alarm.
@@ -36,11 +37,8 @@ from ..errors import ModelError
 if TYPE_CHECKING:
     from ..inverse import MarkerInverse
 
-__all__ = ["physics_fields", "check_physics_options", "describe", "misfit_warning", "TIME_LIMIT", "MISFIT_NOISES"]
+__all__ = ["physics_fields", "check_physics_options", "describe", "misfit_warning", "TIME_LIMIT"]
 
-#: A fit whose worst marker misses by more than this many noise standard deviations is flagged:
-#: the simulator's loads and parameters do not explain the frame (or the search missed).
-MISFIT_NOISES = 4.0
 #: Default wall-clock seconds of one frame (what frames of the shipped presets take:
 #: docs/uncertainty.md).
 TIME_LIMIT = 600.0
@@ -126,6 +124,8 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
 def misfit_warning(res, noise: float) -> str | None:
     """The warning of a fit whose worst marker misses by more than :data:`MISFIT_NOISES` noise
     standard deviations (``noise`` mm), else None."""
+    from ..inverse import MISFIT_NOISES
+
     if res.marker_misfit <= MISFIT_NOISES * noise:
         return None
     return (f"WARNING: a marker is {res.marker_misfit:.3f} mm from where the solution puts it ({res.marker_misfit / noise:.0f} "

@@ -472,10 +472,9 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
         ``mlp_*`` keys (rigid registration and ridge from the same markers on the same samples),
         ``coverage_90`` the share of vertices within its 90 % band
         (:func:`~tissuecast.inverse.spread_band`), ``alarm_rate`` the share of frames whose fit
-        the misfit warning flags (:func:`~tissuecast.cli.predict_physics.misfit_warning`),
+        the misfit warning flags (:meth:`~tissuecast.inverse.MarkerInverse.flags`),
         ``seconds_median`` a frame's median time, ``incomplete`` how many frames the limit cut short.
     """
-    from ..cli.predict_physics import misfit_warning
     from ..fem.linear import one_blas_thread
     from ..instruments import recorded_poses
     from ..inverse import spread_band
@@ -493,7 +492,7 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
             res = inverse.solve(d[k], draw, time_limit=time_limit)
         fields.append(res.field)
         covered.append(np.mean(np.linalg.norm(res.field - U[k], axis=1) <= band * res.spread))
-        flagged.append(misfit_warning(res, inverse.noise) is not None)
+        flagged.append(inverse.flags(res))
         seconds.append(res.seconds)
         cut += not res.complete
         log.info("physics frame %d of %d: worst vertex %.3g mm off, markers fitted to %.3g mm, %.0f s%s", k + 1,

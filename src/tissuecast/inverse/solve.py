@@ -55,7 +55,7 @@ from ..dataset.sensitivities import (CONTINUOUS_PARAMETERS, PARAMETER_STEP, WEIG
 from ..scenario.parameters import ParameterDraw
 from ..scenario.sample_inputs import SampleInputs, ScenarioDraw
 
-__all__ = ["MarkerInverse", "InverseResult", "NOISE_MM", "MIN_TRACKED", "spread_band"]
+__all__ = ["MarkerInverse", "InverseResult", "NOISE_MM", "MIN_TRACKED", "MISFIT_NOISES", "spread_band"]
 
 #: Default standard deviation of a tracked marker coordinate, mm (a misfit of this size is noise).
 NOISE_MM = 0.05
@@ -84,6 +84,9 @@ FINISHED = 4
 STILL_NOISES = 4.0
 #: Tracked markers a frame needs at least.
 MIN_TRACKED = 3
+#: A fit whose worst marker misses by more than this many noise standard deviations is flagged:
+#: the simulator's loads and parameters do not explain the frame (or the search missed them).
+MISFIT_NOISES = 4.0
 #: A full solve that stopped or broke down (as the data set's worker counts them).
 _SOLVE_FAILURES = (ConvergenceError, ArithmeticError, np.linalg.LinAlgError)
 
@@ -170,6 +173,11 @@ class MarkerInverse:
         self._sd = np.array([WEIGHT_SD] * (3 * self.n_basis) + [sd for _, _, _, sd in drawn])
         self._margins = self._margin_candidates(scenario)
         self._set_prior = self._held_set_prior(scenario, self._margins)  # aligned with _margins
+
+    def flags(self, result: InverseResult) -> bool:
+        """Whether ``result``'s worst marker misses by more than :data:`MISFIT_NOISES` noise
+        standard deviations (a frame the simulator's family does not explain, or a missed search)."""
+        return result.marker_misfit > MISFIT_NOISES * self.noise
 
     @property
     def estimated(self) -> tuple[str, ...]:
