@@ -17,10 +17,11 @@ rule: the phantom's 10 interior points) with the share of their displacement cor
 beside the drawn ones, its time, and the share of the vertices whose error lies within its 90 %
 band (:func:`~tissuecast.inverse.spread_band` times its posterior spread). ``--noise MM`` adds
 Gaussian noise of that standard deviation to every tracked coordinate (the same draws for
-every predictor; the inverse then assumes that noise). ``--split test2`` takes the test-2 samples, whose loads blend in fields
-outside the LBO family the inverse solves for. ``--simulator TRAINING_STORE`` solves with another
-store's simulator: for the sets of ``tissuecast study mismatch`` (simulated with one parameter
-off), the store the model was trained on, so the inverse assumes what the model assumes.
+every predictor; the inverse then assumes that noise). ``--split test2`` takes the test-2
+samples, whose loads blend in fields outside the LBO family the inverse solves for.
+``--simulator TRAINING_STORE`` solves with another store's simulator: for the sets of
+``tissuecast study mismatch`` (simulated with one parameter off), the store the model was
+trained on, so the inverse assumes what the model assumes.
 ``--tracked`` gives the inverse what a tracked frame gives ``tissuecast predict --physics``
 instead of the sample's own draws: the indentation from the instrument's pose as the store
 recorded it (``Scenario.frame_draw``) and gravity in its planned direction (the drawn cone's axis).
@@ -124,8 +125,7 @@ def main(argv=None) -> None:
             res = inv.solve(d[k], known, time_limit=args.time_limit or None)
         row = [v for f in (res.field, net[k], rigid[k], ridge[k]) for v in (*errors(f, U[k]), *clinical(f, U[k], targets))]
         rows.append(row)
-        band = BAND * res.spread
-        covered.append(float(np.mean(np.linalg.norm(res.field - U[k], axis=1) <= band)))
+        covered.append(res.within_band(U[k]))
         p = res.parameters
         truth = {name: float(v[s]) for name, v in drawn.items()}
         est = " ".join(f"{name} {getattr(p, name):.3g} ({truth[name]:.3g})" for name in truth
@@ -133,7 +133,8 @@ def main(argv=None) -> None:
                                    "attached_margin"))
         print(f"  {k:3d} peak {np.linalg.norm(U[k], axis=1).max():5.1f}  inverse {row[0]:6.3f}/{row[1]:5.3f}  "
               f"model {row[4]:6.3f}/{row[5]:5.3f}  rigid {row[8]:6.2f}  ridge {row[12]:6.2f}  "
-              f"marker miss {res.marker_misfit:.3f}  band {np.median(band):.3f} mm covers {100 * covered[-1]:3.0f} %  "
+              f"marker miss {res.marker_misfit:.3f}  "
+              f"band {BAND * np.median(res.spread):.3f} mm covers {100 * covered[-1]:3.0f} %  "
               f"{res.solves} solves {res.seconds:.0f} s"
               f"{'' if res.complete else ' (time limit)'}  {est}", flush=True)
     r = np.array(rows)

@@ -123,9 +123,10 @@ def test_a_fit_that_misses_its_markers_is_flagged():
     from tissuecast.cli.predict_physics import misfit_warning
     from tissuecast.inverse import MISFIT_NOISES, MarkerInverse
 
-    assert misfit_warning(SimpleNamespace(marker_misfit=MISFIT_NOISES * 0.05 - 1e-9), 0.05) is None
-    inverse = SimpleNamespace(noise=0.05)  # the study's physics rows count the same frames (MarkerInverse.flags)
+    inverse = SimpleNamespace(noise=0.05)  # MarkerInverse.flags on it: the study's physics rows count the same frames
+    inverse.flags = lambda res: MarkerInverse.flags(inverse, res)
+    assert misfit_warning(SimpleNamespace(marker_misfit=MISFIT_NOISES * 0.05 - 1e-9), inverse) is None
     assert MarkerInverse.flags(inverse, SimpleNamespace(marker_misfit=0.309))
     assert not MarkerInverse.flags(inverse, SimpleNamespace(marker_misfit=MISFIT_NOISES * 0.05 - 1e-9))
-    text = misfit_warning(SimpleNamespace(marker_misfit=0.309), 0.05)
+    text = misfit_warning(SimpleNamespace(marker_misfit=0.309), inverse)
     assert text.startswith("WARNING: a marker is 0.309 mm") and "6 x the tracking noise of 0.05 mm" in text

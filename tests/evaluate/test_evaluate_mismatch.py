@@ -402,6 +402,8 @@ def test_the_study_solves_a_few_frames_of_each_set_through_the_physics(tmp_path,
             "--samples", "4"]
     assert main(argv + ["--physics", "-1"]) == 2
     assert "--physics -1: give a number of frames >= 0" in capsys.readouterr().err
+    assert main(argv + ["--model", f"physics={model}", "--physics", "2"]) == 2
+    assert "a model is labelled 'physics', the label of the physics rows" in capsys.readouterr().err
     assert main(argv + ["--physics", "2"]) == 0
     data = json.loads((out / "study_mismatch.json").read_text())
     rows = {(r["set"], r["model"]): r for r in data["rows"]}

@@ -303,7 +303,7 @@ def _run_physics(args, model, d: np.ndarray, missing: np.ndarray) -> int:
         lost = f", missing markers {np.flatnonzero(missing[b]).tolist()}" if missing[b].any() else ""
         print(f"sample {b}: max displacement {mag.max():.3f} mm at vertex {int(mag.argmax())} (physics: "
               f"{describe(res, inverse.estimated)}){lost}")
-        warning = misfit_warning(res, inverse.noise)
+        warning = misfit_warning(res, inverse)
         if warning:
             print(f"sample {b}: {warning}")
     print(f"solved {u.shape[0]} sample(s) of {u.shape[1]} vertices through the physics in {time.perf_counter() - t:.1f} s")

@@ -121,13 +121,13 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
     return np.stack(fields), results, inv
 
 
-def misfit_warning(res, noise: float) -> str | None:
-    """The warning of a fit whose worst marker misses by more than :data:`MISFIT_NOISES` noise
-    standard deviations (``noise`` mm), else None."""
-    from ..inverse import MISFIT_NOISES
-
-    if res.marker_misfit <= MISFIT_NOISES * noise:
+def misfit_warning(res, inverse) -> str | None:
+    """The warning of a fit that ``inverse`` flags (:meth:`~tissuecast.inverse.MarkerInverse.flags`:
+    its worst marker misses by more than :data:`~tissuecast.inverse.MISFIT_NOISES` noise standard
+    deviations), else None."""
+    if not inverse.flags(res):
         return None
+    noise = inverse.noise
     return (f"WARNING: a marker is {res.marker_misfit:.3f} mm from where the solution puts it ({res.marker_misfit / noise:.0f} "
             f"x the tracking noise of {noise:g} mm): no load and parameters of the simulator explain this frame (or "
             "the search missed them); do not take this field over the learned model's, whose error bounds and alarm "
@@ -143,7 +143,6 @@ def describe(res, estimated=()) -> str:
         parts.append(f"{name} {getattr(p, name):.3g}")
     if res.held_sets > 1:
         parts.append(f"attached margin {p.attached_margin:+.2f} mm ({res.held_sets} held sets averaged)")
-    if res.spread is not None:
-        parts.append(f"posterior spread median {np.nanmedian(res.spread):.3f} / max {np.nanmax(res.spread):.3f} mm")
+    parts.append(f"posterior spread median {np.nanmedian(res.spread):.3f} / max {np.nanmax(res.spread):.3f} mm")
     cut = "" if res.complete else "; cut short by --time-limit: the best estimate reached by then"
     return ", ".join(parts) + f"; {res.solves} solves, {res.seconds:.1f} s{cut}"

@@ -477,7 +477,6 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
     """
     from ..fem.linear import one_blas_thread
     from ..instruments import recorded_poses
-    from ..inverse import spread_band
     from ..registration import nonrigid_part
     from .metrics import summarize_targets, target_errors
 
@@ -485,13 +484,12 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
     U = np.asarray(dataset.displacements[idx], dtype=np.float64)
     d = U[:, model.markers]
     fields, covered, flagged, seconds, cut = [], [], [], [], 0
-    band = spread_band(0.9)
     for k, s in enumerate(idx):
         draw = inverse.scenario.frame_draw(recorded_poses(dataset.instrument_poses, int(s)))
         with one_blas_thread():
             res = inverse.solve(d[k], draw, time_limit=time_limit)
         fields.append(res.field)
-        covered.append(np.mean(np.linalg.norm(res.field - U[k], axis=1) <= band * res.spread))
+        covered.append(res.within_band(U[k]))
         flagged.append(inverse.flags(res))
         seconds.append(res.seconds)
         cut += not res.complete
@@ -584,11 +582,23 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
         from ..inverse import MarkerInverse
         from .targets import interior_targets
 
+        if PHYSICS in models:
+            raise ConfigError(f"a model is labelled {PHYSICS!r}, the label of the physics rows; give it another label")
         if not first.dataset_path or not Path(first.dataset_path).exists():
             raise ConfigError(f"the physics rows solve with the first model's training store, which is not at "
                               f"{first.dataset_path!r}; put it back (or leave the physics rows out)")
         inverse = MarkerInverse.from_dataset(open_dataset(first.dataset_path), first.markers)
     rows, nominal_relative = [], {}
+
+    def add(mset: MismatchSet, label: str, figures: dict) -> None:
+        row = {"set": mset.name, "what": mset.what, "in_range": mset.in_range, "model": label, **figures}
+        if mset.name == "nominal":
+            nominal_relative[label] = row["relative"]
+        row["relative_vs_nominal"] = row["relative"] / nominal_relative.get(label, float("nan"))
+        rows.append(row)
+        if on_row is not None:
+            on_row(row)
+
     nominal_store = folder / "nominal.zarr"
     for mset in chosen:
         ds = _set_dataset(config, mset, folder, alpha=alpha, samples=refined_samples if mset.reference else samples,
@@ -596,19 +606,10 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
                           refined_time_limit=refined_time_limit)
         if ds is None:
             continue
-        judged = list(models.items()) + ([(PHYSICS, first)] if inverse is not None else [])
-        for label, model in judged:
-            if label == PHYSICS and inverse is not None:
-                log.info("%s: the physics inverse on %d frames (seconds to minutes each)", mset.name, physics)
-                figures = physics_on_set(inverse, first, ds, targets or interior_targets(first.mesh, exclude=first.fixed),
-                                         physics, time_limit=physics_time_limit)
-            else:
-                figures = evaluate_on_set(model, ds, targets)
-            row = {"set": mset.name, "what": mset.what, "in_range": mset.in_range, "model": label, **figures}
-            if mset.name == "nominal":
-                nominal_relative[label] = row["relative"]
-            row["relative_vs_nominal"] = row["relative"] / nominal_relative.get(label, float("nan"))
-            rows.append(row)
-            if on_row is not None:
-                on_row(row)
+        for label, model in models.items():
+            add(mset, label, evaluate_on_set(model, ds, targets))
+        if inverse is not None:
+            log.info("%s: the physics inverse on %d frames (seconds to minutes each)", mset.name, physics)
+            add(mset, PHYSICS, physics_on_set(inverse, first, ds, targets or interior_targets(first.mesh, exclude=first.fixed),
+                                              physics, time_limit=physics_time_limit))
     return rows

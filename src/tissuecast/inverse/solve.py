@@ -119,8 +119,6 @@ class InverseResult:
             the margin is not drawn).
         solves: full finite-element solves it took.
         seconds: wall-clock time.
-        complete: False where the frame's time limit cut the search short (the estimate is
-            the best reached by then).
         spread: (n,) float64 mm, each vertex's posterior spread ``sqrt(sum_xyz var)`` (as an
             ensemble's ``sigma``): the Laplace approximation within the best held set (what
             the markers' noise leaves open, to first order) plus the spread of the averaged
@@ -128,6 +126,8 @@ class InverseResult:
             leaves out, nor another equilibrium or held set that the search ranked below
             (docs/uncertainty.md measures how often the error exceeds it); NaN where the
             estimate has no tangent.
+        complete: False where the frame's time limit cut the search short (the estimate is
+            the best reached by then).
     """
 
     field: np.ndarray
@@ -138,8 +138,13 @@ class InverseResult:
     held_sets: int
     solves: int
     seconds: float
+    spread: np.ndarray
     complete: bool = True
-    spread: np.ndarray | None = None
+
+    def within_band(self, truth: np.ndarray, coverage: float = 0.9) -> float:
+        """The share of the vertices whose error against ``truth`` (n, 3) mm lies within the
+        ``coverage`` band, :func:`spread_band` times :attr:`spread`."""
+        return float(np.mean(np.linalg.norm(self.field - truth, axis=1) <= spread_band(coverage) * self.spread))
 
 
 class MarkerInverse:
