@@ -5,6 +5,8 @@ attached margin); the posterior spread against noisy frames; the time limit."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 from mesh_factories import box_grid
@@ -150,3 +152,32 @@ def test_a_frame_past_its_time_limit_gives_the_best_estimate_reached_and_says_so
     assert np.isfinite(cut.field).all() and any("time is up: 1 of" in t for t in told)
     with pytest.raises(ConfigError, match="time limit must be a positive number of seconds"):
         inv.solve(truth[markers], time_limit=0.0)
+
+
+def test_a_frames_solves_are_capped_at_a_multiple_of_its_slowest_one(monkeypatch):
+    """The slowest converged solve so far sets the next solves' time cap: SOLVE_FACTOR times its
+    time within [SOLVE_FLOOR, SOLVE_SECONDS] (the first solve has the ceiling); a solve past the
+    cap is cut and its Gauss-Newton step halved, so a cap of (nearly) zero leaves the frame at
+    the prior mean's field after the first solve and the halvings' cut ones."""
+    import tissuecast.inverse.solve as inverse_solve
+
+    sc, solver, markers = _setup(False)
+    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.002)  # exact markers
+    truth, _ = _simulate(sc, solver, 2)
+    frame = _Frame(inv, truth[markers].ravel(), inv._known_inputs(inv.known_draw(2)))
+    assert frame.solve_seconds == inverse_solve.SOLVE_SECONDS
+    t0 = time.perf_counter()
+    u0 = frame.field(inv._mu, 0.0, None)  # zero: the prior's mean load is none
+    elapsed = time.perf_counter() - t0
+    assert inverse_solve.SOLVE_FLOOR <= frame.solve_seconds <= max(inverse_solve.SOLVE_FLOOR,
+                                                                  inverse_solve.SOLVE_FACTOR * elapsed)
+    monkeypatch.setattr(inverse_solve, "SOLVE_FACTOR", 1e9)
+    frame = _Frame(inv, truth[markers].ravel(), inv._known_inputs(inv.known_draw(2)))
+    frame.field(inv._mu, 0.0, None)
+    assert frame.solve_seconds == inverse_solve.SOLVE_SECONDS
+    free = inv.solve(truth[markers], inv.known_draw(2))
+    monkeypatch.setattr(inverse_solve, "SOLVE_FACTOR", 0.0)
+    monkeypatch.setattr(inverse_solve, "SOLVE_FLOOR", 1e-9)
+    cut = inv.solve(truth[markers], inv.known_draw(2))
+    assert np.linalg.norm(free.field - truth, axis=1).max() < 1e-3 * np.linalg.norm(truth, axis=1).max()
+    assert np.abs(cut.field - u0[: len(truth)]).max() == 0.0 and cut.marker_misfit > 100 * free.marker_misfit

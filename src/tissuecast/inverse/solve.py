@@ -75,9 +75,14 @@ STEP_CAP = 3.0
 STEP_TOL = 1e-3
 #: Poisson's ratio stays within these while iterating.
 NU_LIMITS = (0.3, 0.495)
-#: Wall-clock seconds a full solve may take: a trial step into a far, soft corner of the
+#: Wall-clock seconds a full solve may take at most: a trial step into a far, soft corner of the
 #: parameters (a body near a limit point) is cut back instead of waited for.
 SOLVE_SECONDS = 20.0
+#: A solve may take this many times as long as the frame's slowest converged one so far (at
+#: least ``SOLVE_FLOOR`` s, at most ``SOLVE_SECONDS``): the cap follows the mesh, the loads and
+#: the machine (docs/uncertainty.md).
+SOLVE_FACTOR = 5.0
+SOLVE_FLOOR = 3.0
 #: Held sets iterated to convergence after the search.
 FINISHED = 4
 #: A marker that moved less than this many noise standard deviations is taken as held.
@@ -254,7 +259,7 @@ class MarkerInverse:
                 to minutes), or None.
             time_limit: wall-clock seconds for the frame, or None (none). Past it no further
                 held set is searched or iterated (a solve under way finishes, within
-                :data:`SOLVE_SECONDS`): the estimate is the best reached by then and
+                its cap: :meth:`_Frame.field`): the estimate is the best reached by then and
                 ``complete`` is False.
 
         Raises:
@@ -328,6 +333,8 @@ class _Frame:
         self.rows = np.isfinite(d)  # (3 n_d,) the tracked markers' coordinates
         self.d = np.where(self.rows, d, 0.0)
         self.solves = 0
+        self.solve_seconds = SOLVE_SECONDS  # a solve's cap (:meth:`field`)
+        self.slowest = 0.0  # s, the slowest converged solve so far
         self.best_x = inv._mu.copy()
         self.best_u = None
         self.best_obj = math.inf
@@ -344,19 +351,29 @@ class _Frame:
 
     def field(self, x: np.ndarray, margin: float, guess: np.ndarray | None) -> np.ndarray:
         """(n_nodes, 3) mm: the solution for unknowns ``x`` and margin ``margin``, started from
-        ``guess``; a failed start is retried from zero with the cautious solver."""
+        ``guess``; a failed start is retried from zero with the cautious solver. Each solve may
+        take :attr:`solve_seconds`: :data:`SOLVE_FACTOR` times the slowest converged one so far,
+        within [:data:`SOLVE_FLOOR`, :data:`SOLVE_SECONDS`]."""
         inv = self.inv
         inputs = self.inputs(x, margin)
         loads = np.tensordot(x[: 3 * inv.n_basis], inv._unit, axes=1)
         kw = inputs.solve_keywords()
         self.solves += 1
+        t0 = time.perf_counter()
         try:
-            return self.solver(inputs).solve(loads, guess, time_limit=SOLVE_SECONDS, **kw).nodal_displacement
+            return self._timed(self.solver(inputs).solve(loads, guess, time_limit=self.solve_seconds, **kw), t0)
         except _SOLVE_FAILURES:
             if guess is None:
                 raise
         self.solves += 1
-        return self.solver(inputs, 1).solve(loads, None, time_limit=SOLVE_SECONDS, **kw).nodal_displacement
+        t0 = time.perf_counter()
+        return self._timed(self.solver(inputs, 1).solve(loads, None, time_limit=self.solve_seconds, **kw), t0)
+
+    def _timed(self, result, t0: float) -> np.ndarray:
+        """``result``'s displacements (n_nodes, 3) mm; its time (since ``t0``) may raise the cap."""
+        self.slowest = max(self.slowest, time.perf_counter() - t0)
+        self.solve_seconds = min(SOLVE_SECONDS, max(SOLVE_FLOOR, SOLVE_FACTOR * self.slowest))
+        return result.nodal_displacement
 
     def jacobian(self, x: np.ndarray, margin: float, u: np.ndarray) -> np.ndarray:
         """(3 n_d, n_x) d(marker displacements)/d(unknowns) at the equilibrium ``u`` of ``x``
