@@ -258,9 +258,10 @@ class MarkerInverse:
             progress: called with a line of text as the search goes on (a frame takes seconds
                 to minutes), or None.
             time_limit: wall-clock seconds for the frame, or None (none). Past it no further
-                held set is searched or iterated (a solve under way finishes, within
-                its cap: :meth:`_Frame.field`): the estimate is the best reached by then and
-                ``complete`` is False.
+                held set is searched or iterated (a solve under way finishes, within its cap:
+                :meth:`_Frame.field`): the estimate is the best reached by then and
+                ``complete`` is False. The first held set (the likeliest a priori; the only
+                one where the margin is not drawn) is iterated to convergence regardless.
 
         Raises:
             ConfigError: the displacements do not match the markers, a marker has only some
@@ -285,7 +286,7 @@ class MarkerInverse:
         if self._margins.size:
             finished = frame.search_margin(self._margins, self._set_prior)
         else:
-            finished = [(0.0, 0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS))]
+            finished = [(0.0, 0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS, timed=False))]
             frame.tell("iterated")
         finished = [(m, p, *frame.polish(x, m, u)) for m, p, x, u in finished]
         scored = [frame.objective(x, u) for _, _, x, u in finished]
@@ -426,14 +427,16 @@ class _Frame:
                 x[j] = min(max(x[j], NU_LIMITS[0]), NU_LIMITS[1])
         return x
 
-    def iterate(self, x: np.ndarray, margin: float, u: np.ndarray | None, iterations: int):
-        """Gauss-Newton from ``x`` (module notes); returns the last accepted (x, u)."""
+    def iterate(self, x: np.ndarray, margin: float, u: np.ndarray | None, iterations: int, timed: bool = True):
+        """Gauss-Newton from ``x`` (module notes); returns the last accepted (x, u). ``timed``:
+        stop once the frame's time is up (the first held set is iterated to convergence
+        regardless: an estimate cut before it converges can be far off)."""
         inv = self.inv
         x = x.copy()
         u = self.field(x, margin, u)
         obj, _ = self.objective(x, u)
         for _ in range(iterations):
-            if self.out_of_time():
+            if timed and self.out_of_time():
                 break
             m0 = u[inv.markers].ravel()[self.rows]
             J = self.jacobian(x, margin, u)[self.rows]
@@ -494,7 +497,7 @@ class _Frame:
         if not bracket.size:  # markers that contradict every held set (noise): search them all
             bracket = np.arange(len(candidates))
         start = int(bracket[np.argmin(prior[bracket])])  # the likeliest set a priori, to convergence first
-        x, u = self.iterate(inv._mu, float(candidates[start]), None, MAX_ITERATIONS)
+        x, u = self.iterate(inv._mu, float(candidates[start]), None, MAX_ITERATIONS, timed=False)
         scores = {start: self.objective(x, u)[0] + prior[start]}
         searched = {start: (x, u)}
         self.tell(f"held set 1 of {bracket.size} the markers allow (margin {candidates[start]:+.2f} mm) iterated")
