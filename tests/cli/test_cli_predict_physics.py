@@ -130,3 +130,13 @@ def test_a_fit_that_misses_its_markers_is_flagged():
     assert not MarkerInverse.flags(inverse, SimpleNamespace(marker_misfit=MISFIT_NOISES * 0.05 - 1e-9))
     text = misfit_warning(SimpleNamespace(marker_misfit=0.309), inverse)
     assert text.startswith("WARNING: a marker is 0.309 mm") and "6 x the tracking noise of 0.05 mm" in text
+
+
+def test_an_inverse_with_more_unknowns_than_marker_coordinates_gets_a_note():
+    from types import SimpleNamespace
+
+    from tissuecast.cli.predict_physics import underdetermined_note
+
+    assert underdetermined_note(SimpleNamespace(n_unknowns=22), 30) is None  # the embedded preset: 18 + 4, 10 markers
+    text = underdetermined_note(SimpleNamespace(n_unknowns=60), 15)  # the paper preset: 20 LBO vectors, 5 markers
+    assert text.startswith("note: the physics inverse estimates 60 unknowns from 15 marker coordinates")

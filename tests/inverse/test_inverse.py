@@ -46,7 +46,7 @@ def _simulate(sc, solver, seed: int):
 def test_the_markers_sensitivities_match_finite_differences_of_full_solves():
     sc, solver, markers = _setup(True)
     inv = MarkerInverse(sc, solver, markers, ALPHA)
-    assert inv.estimated == ("youngs_modulus", "spring_normal") and inv.margins.size >= 3
+    assert inv.estimated == ("youngs_modulus", "spring_normal") and inv.margins.size >= 3 and inv.n_unknowns == 14
     truth, inputs = _simulate(sc, solver, 3)
     frame = _Frame(inv, truth[markers].ravel(), inv._known_inputs(inv.known_draw(3)))
     x = inv._mu.copy()

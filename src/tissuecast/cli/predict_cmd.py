@@ -80,8 +80,8 @@ def register(sub) -> None:
     p.add_argument("--noise", type=float, metavar="MM",
                    help="with --physics: standard deviation of a tracked marker coordinate, mm (default 0.05)")
     p.add_argument("--time-limit", type=float, metavar="S",
-                   help="with --physics: wall-clock seconds a sample may take (default 600; 0: none); past it the "
-                        "best estimate reached is written")
+                   help="with --physics: wall-clock seconds a sample's search may take (default 600; 0: none); past "
+                        "it the best estimate reached is written (the first held set always converges)")
     p.set_defaults(func=run)
 
 

@@ -16,7 +16,8 @@ of the fit. The estimate is the maximum a posteriori one with the scenario's par
 priors; E and the surroundings' stiffness come back only up to a common scale (a stiffer body
 under larger loads looks the same to the markers). A frame is given ``--time-limit`` seconds
 (:data:`TIME_LIMIT` by default, 0 for none): past it the search stops and the best estimate
-reached is written, said so. A fit whose worst marker misses by more than
+reached is written, said so (the first held set is iterated to convergence regardless). A fit
+whose worst marker misses by more than
 :data:`~tissuecast.inverse.MISFIT_NOISES` noise standard deviations is flagged with a warning
 (a frame the simulator's family does not explain, or a search that missed; measured in
 docs/uncertainty.md). Each vertex gets the
@@ -97,6 +98,9 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         model.input_gate.enforce(d.reshape(B, -1), missing)
     ds = _dataset_for(model, args.physics)
     inv = MarkerInverse.from_dataset(ds, model.markers, noise=args.noise or NOISE_MM)
+    note = underdetermined_note(inv, 3 * len(model.markers))
+    if note:
+        print(note, flush=True)
     names = [inst.name for inst in inv.scenario.config.instruments]
     poses = {}
     if names and not args.instrument:
@@ -119,6 +123,17 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         fields.append(res.field)
         results.append(res)
     return np.stack(fields), results, inv
+
+
+def underdetermined_note(inverse, coordinates: int) -> str | None:
+    """A note where ``inverse`` estimates more unknowns (:attr:`~tissuecast.inverse.MarkerInverse.n_unknowns`)
+    than the ``coordinates`` tracked marker coordinates determine, else None."""
+    n = inverse.n_unknowns
+    if n <= coordinates:
+        return None
+    return (f"note: the physics inverse estimates {n} unknowns from {coordinates} marker coordinates: the prior decides "
+            "what the markers do not see, and the learned model (the mean over the simulations) is then as accurate "
+            "and far faster (on the paper preset: docs/uncertainty.md)")
 
 
 def misfit_warning(res, inverse) -> str | None:

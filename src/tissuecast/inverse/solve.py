@@ -195,6 +195,12 @@ class MarkerInverse:
         return tuple(name for name, _ in self._names)
 
     @property
+    def n_unknowns(self) -> int:
+        """The continuous unknowns of a frame: ``3 n_b`` load weights and the :attr:`estimated`
+        parameters (the attached margin, when drawn, is searched over besides)."""
+        return int(self._mu.size)
+
+    @property
     def margins(self) -> np.ndarray:
         """(k,) mm, one attached margin per distinct held set of its range, ascending (empty
         when the margin is not drawn)."""
