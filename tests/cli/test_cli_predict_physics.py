@@ -104,7 +104,8 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
     for extra, why in ((["--uncertainty"], "--uncertainty belong to the learned model"),
                        (None, "give their poses with --instrument"),
                        (["--noise", "-1"], "--noise must be a positive number of mm"),
-                       (["--time-limit", "-1"], "--time-limit must be a number of seconds >= 0")):
+                       (["--time-limit", "-1"], "--time-limit must be a number of seconds >= 0"),
+                       (["--attached-margin", "1.0"], "does not draw the attached region's margin")):
         argv = base + extra if extra is not None else base[:-4] + base[-2:]
         assert main(argv) == 2
         assert why in capsys.readouterr().err
@@ -114,7 +115,7 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
     with pytest.raises(ModelError, match="simulated on another mesh than the model's; give the store the model was"):
         _dataset_for(other, str(store))
     assert main(["predict", str(tmp_path / "model"), "--markers", str(markers), "--noise", "0.1"]) == 2
-    assert "--gravity, --noise and --time-limit go with --physics" in capsys.readouterr().err
+    assert "--gravity, --noise, --time-limit and --attached-margin go with --physics" in capsys.readouterr().err
 
 
 def test_a_fit_that_misses_its_markers_is_flagged():

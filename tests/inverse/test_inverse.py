@@ -184,3 +184,27 @@ def test_a_frames_solves_are_capped_at_a_multiple_of_its_slowest_one(monkeypatch
     cut = inv.solve(truth[markers], inv.known_draw(2))
     assert np.linalg.norm(free.field - truth, axis=1).max() < 1e-3 * np.linalg.norm(truth, axis=1).max()
     assert np.abs(cut.field - u0[: len(truth)]).max() == 0.0 and cut.marker_misfit > 100 * free.marker_misfit
+
+
+def test_a_known_attached_margin_is_iterated_alone():
+    """With the margin a sample was drawn with, its held set alone is iterated (no search): the
+    field comes back as well as from the search, in under half the solves; a margin outside the drawn range, or
+    one given where none is drawn, is refused."""
+    sc, solver, markers = _setup(True)
+    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.2)  # three held sets to search (above)
+    truth, inputs = _simulate(sc, solver, 5)
+    margin = inputs.parameters.attached_margin
+    told = []
+    known = inv.solve(truth[markers], inv.known_draw(5), attached_margin=margin, progress=told.append)
+    searched = inv.solve(truth[markers], inv.known_draw(5))
+    peak = np.linalg.norm(truth, axis=1).max()
+    assert known.held_sets == 1 and known.parameters.attached_margin == margin and known.complete
+    off = [np.linalg.norm(r.field - truth, axis=1).max() / peak for r in (known, searched)]  # 0.2 mm noise
+    assert off[0] < 0.1 and off[0] <= 1.05 * off[1] and known.marker_misfit < 4 * 0.2
+    assert searched.held_sets == 3 and known.solves < searched.solves / 2
+    assert any("attached margin given" in t for t in told)
+    with pytest.raises(ConfigError, match=r"outside the range the simulations drew, \[-12, 12\] mm"):
+        inv.solve(truth[markers], attached_margin=12.5)
+    sc0, solver0, _ = _setup(False)
+    with pytest.raises(ConfigError, match="does not draw the attached region's margin"):
+        MarkerInverse(sc0, solver0, markers, ALPHA).solve(truth[markers], attached_margin=0.0)

@@ -82,6 +82,10 @@ def register(sub) -> None:
     p.add_argument("--time-limit", type=float, metavar="S",
                    help="with --physics: wall-clock seconds a sample's search may take (default 600; 0: none); past "
                         "it the best estimate reached is written (the first held set always converges)")
+    p.add_argument("--attached-margin", type=float, metavar="MM",
+                   help="with --physics: the attached region's margin where it is known (measured in surgery), mm "
+                        "along the surface from the planned region, within the drawn range; its held set alone is "
+                        "solved, no search (seconds a sample instead of minutes)")
     p.set_defaults(func=run)
 
 
@@ -228,11 +232,11 @@ def run(args) -> int:
                          "coordinates given; give x, y and z, or leave all three empty")
     if args.physics:
         return _run_physics(args, model, d, missing)
-    if args.gravity is not None or args.noise is not None or args.time_limit is not None:
+    if any(v is not None for v in (args.gravity, args.noise, args.time_limit, args.attached_margin)):
         from ..errors import ModelError
 
-        raise ModelError("--gravity, --noise and --time-limit go with --physics (the physics inverse); the learned model "
-                         "reads none of them")
+        raise ModelError("--gravity, --noise, --time-limit and --attached-margin go with --physics (the physics "
+                         "inverse); the learned model reads none of them")
     if not model.predictor(args.method).supports_missing_markers:
         missing[:] = False  # a lost marker: the input gate refuses it, naming the marker
     from .predict_inputs import auxiliary_inputs

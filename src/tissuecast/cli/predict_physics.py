@@ -77,7 +77,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
 
     Args:
         args: the ``predict`` arguments (``physics``, ``instrument``, ``gravity``, ``noise``,
-            ``time_limit``).
+            ``time_limit``, ``attached_margin``).
         model: the :class:`~tissuecast.surrogate.DeformationModel` (markers, input gate).
         d: (B, n_d, 3) marker displacements, mm (NaN where ``missing``).
         missing: (B, n_d) bool, the untracked markers.
@@ -119,6 +119,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         print(f"sample {b}: solving through the physics (seconds to minutes a frame) ...", flush=True)
         with one_blas_thread():  # as the data set's workers solve: faster, the same bits
             res = inv.solve(np.where(missing[b][:, None], np.nan, d[b]), draw, time_limit=args.time_limit or None,
+                            attached_margin=args.attached_margin,
                             progress=lambda text, b=b: print(f"sample {b}: {text}", flush=True))
         fields.append(res.field)
         results.append(res)

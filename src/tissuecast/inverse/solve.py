@@ -30,6 +30,8 @@ a priori is iterated to convergence first, every other one with a few Gauss-Newt
 started from the best solution so far, then the best ``FINISHED`` to convergence from where
 the search left them; the field is their average weighted by their posterior ``exp(-objective / 2)``
 (where the markers cannot tell whether a vertex far from them is held, it takes the middle).
+Where the margin is known (measured in surgery: ``solve(..., attached_margin=...)``), its held
+set alone is iterated, without the search.
 The parameters, W and the misfit are the best set's. The density (a factor on the gravity
 change, a small share of the shipped presets' loads: docs/uncertainty.md) and the material
 regions' moduli are kept at their nominal values.
@@ -251,7 +253,7 @@ class MarkerInverse:
 
     # ------------------------------------------------------------------ solving
     def solve(self, marker_displacements, draw: ScenarioDraw | None = None, *, progress=None,
-              time_limit: float | None = None) -> InverseResult:
+              time_limit: float | None = None, attached_margin: float | None = None) -> InverseResult:
         """The MAP estimate of one frame.
 
         Args:
@@ -268,6 +270,9 @@ class MarkerInverse:
                 :meth:`_Frame.field`): the estimate is the best reached by then and
                 ``complete`` is False. The first held set (the likeliest a priori; the only
                 one where the margin is not drawn) is iterated to convergence regardless.
+            attached_margin: the attached region's margin, mm, where it is known (measured in
+                surgery): its held set alone is iterated, no search (seconds, not minutes, a
+                frame); None: searched over its range.
 
         Raises:
             ConfigError: the displacements do not match the markers, a marker has only some
@@ -289,7 +294,11 @@ class MarkerInverse:
             raise ConfigError(f"the time limit must be a positive number of seconds (or None), got {time_limit!r}")
         deadline = math.inf if time_limit is None else t0 + float(time_limit)
         frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()), progress, deadline)
-        if self._margins.size:
+        if attached_margin is not None:
+            m = self._given_margin(attached_margin)
+            finished = [(m, 0.0, *frame.iterate(self._mu, m, None, MAX_ITERATIONS, timed=False))]
+            frame.tell(f"iterated with the attached margin given ({m:+.2f} mm)")
+        elif self._margins.size:
             finished = frame.search_margin(self._margins, self._set_prior)
         else:
             finished = [(0.0, 0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS, timed=False))]
@@ -313,6 +322,17 @@ class MarkerInverse:
                              parameters=self._draw(x, margin), marker_misfit=miss, objective=obj,
                              held_sets=len(finished), solves=frame.solves, seconds=time.perf_counter() - t0,
                              complete=not frame.cut_short, spread=np.sqrt(within + between))
+
+    def _given_margin(self, value) -> float:
+        """A known attached margin, mm, checked against the scenario's drawn range."""
+        if not self._margins.size:
+            raise ConfigError("the scenario does not draw the attached region's margin ([scenario.uncertain] "
+                              "attached_margin): there is no margin to give; leave it out")
+        lo, hi = (float(v) for v in self.scenario.config.uncertain.attached_margin)
+        if not (isinstance(value, (int, float, np.floating)) and lo <= float(value) <= hi):
+            raise ConfigError(f"the attached margin {value!r} mm lies outside the range the simulations drew, "
+                              f"[{lo:g}, {hi:g}] mm; give a margin within it (or none, to search it)")
+        return float(value)
 
     def _known_inputs(self, draw: ScenarioDraw) -> SampleInputs:
         sc = self.scenario
