@@ -294,15 +294,12 @@ class MarkerInverse:
             raise ConfigError(f"the time limit must be a positive number of seconds (or None), got {time_limit!r}")
         deadline = math.inf if time_limit is None else t0 + float(time_limit)
         frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()), progress, deadline)
-        if attached_margin is not None:
-            m = self._given_margin(attached_margin)
-            finished = [(m, 0.0, *frame.iterate(self._mu, m, None, MAX_ITERATIONS, timed=False))]
-            frame.tell(f"iterated with the attached margin given ({m:+.2f} mm)")
-        elif self._margins.size:
+        if attached_margin is None and self._margins.size:
             finished = frame.search_margin(self._margins, self._set_prior)
-        else:
-            finished = [(0.0, 0.0, *frame.iterate(self._mu, 0.0, None, MAX_ITERATIONS, timed=False))]
-            frame.tell("iterated")
+        else:  # one held set: the margin given, or none drawn
+            m = 0.0 if attached_margin is None else self._given_margin(attached_margin)
+            finished = [(m, 0.0, *frame.iterate(self._mu, m, None, MAX_ITERATIONS, timed=False))]
+            frame.tell("iterated" if attached_margin is None else f"iterated with the attached margin given ({m:+.2f} mm)")
         finished = [(m, p, *frame.polish(x, m, u)) for m, p, x, u in finished]
         scored = [frame.objective(x, u) for _, _, x, u in finished]
         objs = np.array([obj + p for (obj, _), (_, p, _, _) in zip(scored, finished)])
