@@ -26,6 +26,8 @@ trained on, so the inverse assumes what the model assumes.
 instead of the sample's own draws: the indentation from the instrument's pose as the store
 recorded it (``Scenario.frame_draw``) and gravity in its planned direction (the drawn cone's axis).
 A frame has ``--time-limit`` seconds, as in ``predict --physics`` (600 by default; 0 for none).
+``--known-margin`` gives the inverse each sample's drawn attached margin, as
+``predict --physics --attached-margin`` does a measured one (its held set alone, no search).
 
 Usage::
 
@@ -93,6 +95,9 @@ def main(argv=None) -> None:
     ap.add_argument("--simulator", help="the store whose simulator the inverse solves with (default: --dataset); "
                     "for a mismatch-study set, the store the model trained on, so that the inverse knows no more "
                     "than the model")
+    ap.add_argument("--known-margin", action="store_true",
+                    help="give the inverse each sample's drawn attached margin (`predict --physics --attached-margin`): "
+                         "what a measured attachment is worth")
     args = ap.parse_args(argv)
 
     ds = open_dataset(args.dataset)
@@ -109,6 +114,8 @@ def main(argv=None) -> None:
     sim = open_dataset(args.simulator) if args.simulator else ds
     inv = MarkerInverse.from_dataset(sim, mk, noise=args.noise if args.noise > 0 else NOISE_MM)
     drawn = ds.parameters
+    if args.known_margin and "attached_margin" not in drawn:
+        ap.error(f"--known-margin: {args.dataset} records no drawn attached margin")
     targets = model_targets(model)
     print(f"{args.dataset}: {len(idx)} {args.split} samples, {len(mk)} markers, noise {args.noise} mm, "
           f"known loads {KNOWN[args.tracked]}, "
@@ -122,7 +129,8 @@ def main(argv=None) -> None:
         if args.tracked:
             known = inv.scenario.frame_draw(recorded_poses(ds.instrument_poses, s))
         with one_blas_thread():  # as the data set's workers and `predict --physics` solve
-            res = inv.solve(d[k], known, time_limit=args.time_limit or None)
+            res = inv.solve(d[k], known, time_limit=args.time_limit or None,
+                            attached_margin=float(drawn["attached_margin"][s]) if args.known_margin else None)
         row = [v for f in (res.field, net[k], rigid[k], ridge[k]) for v in (*errors(f, U[k]), *clinical(f, U[k], targets))]
         rows.append(row)
         covered.append(res.within_band(U[k]))

@@ -1,12 +1,14 @@
 """benchmarks/physics_inverse.py: the poses a store recorded are the draws' (what a tracker
 reports), and a run as a tracked frame (``--tracked``) puts the inverse far below the model
-on samples of its own simulator, and says how much of the field its band holds."""
+on samples of its own simulator, and says how much of the field its band holds; ``--known-margin``
+on a store that draws no margin is refused."""
 
 from __future__ import annotations
 
 import re
 
 import numpy as np
+import pytest
 
 from tissuecast.dataset import open_dataset
 from tissuecast.instruments import recorded_poses
@@ -39,3 +41,6 @@ def test_the_inverse_as_a_tracked_frame_beats_the_model(tmp_path, capsys):
     assert rows["physics inverse"] < 0.05 and rows["model"] > 10 * rows["physics inverse"]
     covered = re.search(r"90 % band \(1.44 x its posterior spread\) covers ([0-9.]+) % of the vertices", out)
     assert covered and 0.0 <= float(covered.group(1)) <= 100.0
+    with pytest.raises(SystemExit):  # the store draws no parameter: nothing to give
+        mod.main(["--dataset", str(store), "--model", str(model), "--samples", "1", "--known-margin"])
+    assert f"--known-margin: {store} records no drawn attached margin" in capsys.readouterr().err
