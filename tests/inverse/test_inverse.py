@@ -160,8 +160,8 @@ def test_a_frame_past_its_time_limit_gives_the_best_estimate_reached_and_says_so
 def test_a_frames_solves_are_capped_at_a_multiple_of_its_slowest_one(monkeypatch):
     """The slowest converged solve so far sets the next solves' time cap: SOLVE_FACTOR times its
     time within [SOLVE_FLOOR, SOLVE_SECONDS] (the first solve has the ceiling); a solve past the
-    cap is cut and its Gauss-Newton step halved, so a cap of (nearly) zero leaves the frame at
-    the prior mean's field after the first solve and the halvings' cut ones."""
+    cap is cut and its step's damping raised, so a cap of (nearly) zero leaves the frame at the
+    prior mean's field after the first solve and the damped trials' cut ones."""
     import tissuecast.inverse.solve as inverse_solve
 
     sc, solver, markers = _setup(False)
@@ -208,3 +208,55 @@ def test_a_known_attached_margin_is_iterated_alone():
     sc0, solver0, _ = _setup(False)
     with pytest.raises(ConfigError, match="does not draw the attached region's margin"):
         MarkerInverse(sc0, solver0, markers, ALPHA).solve(truth[markers], attached_margin=0.0)
+
+
+class _Swing(_Frame):
+    """A frame whose markers sit on a rigid body swung about the z axis by the angle
+    ``2.5 x_0 + 0.5 x_1`` rad (two load weights): far from linear in the unknowns. A solve
+    started from the last one fails where an unknown changed by more than ``reach`` (as solves
+    past a limit point do)."""
+
+    reach = np.inf
+
+    def _rotated(self, x):
+        t = 2.5 * x[0] + 0.5 * x[1]
+        c, s = np.cos(t), np.sin(t)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), np.array([[-s, -c, 0.0], [c, -s, 0.0], [0.0, 0.0, 0.0]])
+
+    def field(self, x, margin, guess):
+        from tissuecast.errors import ConvergenceError
+
+        self.solves += 1
+        if guess is not None and np.abs(x - self.last).max() > self.reach:
+            raise ConvergenceError("past the reach of a warm start")
+        self.last = x.copy()
+        R, _ = self._rotated(x)
+        p = MESH.points - MESH.points.mean(axis=0)
+        return p @ R.T - p
+
+    def jacobian(self, x, margin, u):
+        _, dR = self._rotated(x)
+        p = (MESH.points - MESH.points.mean(axis=0))[self.inv.markers]
+        J = np.zeros((self.inv.marker_dofs.size, x.size))
+        J[:, 0], J[:, 1] = 2.5 * (p @ dR.T).ravel(), 0.5 * (p @ dR.T).ravel()
+        return J
+
+
+@pytest.mark.parametrize("reach", [np.inf, 0.15])
+def test_the_iteration_follows_a_marker_response_far_from_linear(reach):
+    """Levenberg-Marquardt from the prior mean to a swing of 2.6 rad (150 degrees; markers
+    moved by up to 35 mm): the markers end within their noise, also where every solve fails
+    that changes an unknown by more than 0.15 (a twelfth of the largest step; halving the step
+    four times, as the iteration did before session 39, stays at the prior mean there)."""
+    sc, solver, markers = _setup(False)
+    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.05)
+    target = np.zeros(inv._mu.size)
+    target[0], target[1] = 0.9, 0.7  # 2.6 rad
+    known = inv._known_inputs(inv.known_draw(0))
+    d = _Swing(inv, np.zeros(3 * len(markers)), known).field(target, 0.0, None)[markers]
+    assert np.linalg.norm(d, axis=1).max() > 30.0
+    frame = _Swing(inv, d.ravel(), known)
+    frame.reach = reach
+    x, u = frame.iterate(inv._mu, 0.0, None, MAX_ITERATIONS)
+    assert frame.objective(x, u)[1] < 0.05
+    assert abs(2.5 * x[0] + 0.5 * x[1] - 2.6) < 1e-3

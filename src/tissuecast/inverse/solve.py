@@ -12,11 +12,14 @@ gravity) given as a :class:`~tissuecast.scenario.ScenarioDraw`.
 The estimate is the maximum a posteriori one: marker errors Gaussian with standard deviation
 ``noise`` (mm, each coordinate), ``W`` with the prior of its draws (independent U(-1, 1):
 mean 0, variance 1/3), each continuous parameter with its range's mean and standard deviation
-(log-uniform factors in log space). Gauss-Newton steps: the markers' sensitivities from the
-tangent stiffness at the current solution (held dofs eliminated; the parameters' through a
-finite difference of the internal forces), each full solve started from the last one; a step
-is limited to one prior standard deviation per unknown and halved where the solve fails or the
-posterior falls.
+(log-uniform factors in log space). Levenberg-Marquardt steps: the markers' sensitivities from
+the tangent stiffness at the current solution (held dofs eliminated; the parameters' through a
+finite difference of the internal forces), each full solve started from the last one; a step is
+limited to ``STEP_CAP`` prior standard deviations per unknown, and damped (the prior's precision
+times the Gauss-Newton matrix's largest curvature in prior units, times a factor raised tenfold
+where the solve fails or the posterior falls, lowered threefold where it rises), so that a frame
+whose markers respond far from linearly (a body swinging about its pins) is followed in short
+steps, turned towards the posterior's gradient, rather than given up.
 
 The attached region's margin changes which vertices are held, so the solution jumps where a
 vertex joins the region, and a single held vertex next to a marker moves it by millimetres:
@@ -66,15 +69,23 @@ NOISE_MM = 0.05
 ESTIMATED = CONTINUOUS_PARAMETERS
 #: Finite-difference step of the internal forces in a parameter, in prior standard deviations.
 FD_STEP = PARAMETER_STEP
-#: Gauss-Newton steps while searching the attached margin, and at most when finishing. (Two
+#: Iterations while searching the attached margin, and at most when finishing (Levenberg-Marquardt
+#: steps; the frames of the paper preset that swing furthest take 10-15). (Two
 #: found the same estimates on the preset's test-1 frames but missed the held set of a frame with
 #: the region shrunk by 5 mm: docs/uncertainty.md.)
 SEARCH_ITERATIONS = 4
-MAX_ITERATIONS = 15
+MAX_ITERATIONS = 30
 #: The largest step of an unknown, in prior standard deviations.
 STEP_CAP = 3.0
-#: Convergence: the largest step below this many prior standard deviations.
+#: Convergence: the largest step below this many prior standard deviations, or a step whose
+#: linearised gain in the objective (a chi-square) is below ``GAIN_TOL``.
 STEP_TOL = 1e-3
+GAIN_TOL = 1e-2
+#: Levenberg-Marquardt damping: its start, its factors on a rejected / accepted step, its
+#: floor, and the trial steps an iteration may take before it stops.
+DAMPING = 1e-3
+DAMPING_UP, DAMPING_DOWN, DAMPING_FLOOR = 10.0, 3.0, 1e-7
+TRIALS = 8
 #: Poisson's ratio stays within these while iterating.
 NU_LIMITS = (0.3, 0.495)
 #: Wall-clock seconds a full solve may take at most: a trial step into a far, soft corner of the
@@ -183,8 +194,11 @@ class MarkerInverse:
         self._names = [(name, log) for name, log, _, _ in drawn]
         self._mu = np.array([0.0] * (3 * self.n_basis) + [centre for _, _, centre, _ in drawn])
         self._sd = np.array([WEIGHT_SD] * (3 * self.n_basis) + [sd for _, _, _, sd in drawn])
-        self._margins = self._margin_candidates(scenario)
-        self._set_prior = self._held_set_prior(scenario, self._margins)  # aligned with _margins
+        bounds = scenario.config.uncertain.attached_margin if scenario.uncertain is not None else None
+        #: (lo, hi) mm, the attached margin's drawn range, or None where it is not drawn
+        self._margin_range = (float(bounds[0]), float(bounds[1])) if bounds else None
+        self._margins = self._margin_candidates(scenario.uncertain, self._margin_range)
+        self._set_prior = self._held_set_prior(self._margins, self._margin_range)  # aligned with _margins
 
     def flags(self, result: InverseResult) -> bool:
         """Whether ``result``'s worst marker misses by more than :data:`MISFIT_NOISES` noise
@@ -222,27 +236,25 @@ class MarkerInverse:
         return cls(ctx.scenario, ctx.solver, markers, float(np.median(alpha[lbo])), noise=noise)
 
     @staticmethod
-    def _margin_candidates(scenario) -> np.ndarray:
-        """One margin per distinct held set of the attached margin's range, ascending (empty
-        when the margin is not drawn)."""
-        u = scenario.uncertain
-        bounds = scenario.config.uncertain.attached_margin
-        if u is None or u.distance is None or not bounds:
+    def _margin_candidates(uncertain, bounds) -> np.ndarray:
+        """One margin per distinct held set of the attached margin's range ``bounds`` (lo, hi)
+        mm, ascending (empty when the margin is not drawn: ``bounds`` None)."""
+        if bounds is None or uncertain.distance is None:
             return np.zeros(0)
-        lo, hi = float(bounds[0]), float(bounds[1])
-        d = u.distance[np.isfinite(u.distance)]
+        lo, hi = bounds
+        d = uncertain.distance[np.isfinite(uncertain.distance)]
         inside = np.unique(d[(d >= lo) & (d <= hi)])
         first = [lo] if not inside.size or inside[0] > lo else []
         return np.concatenate([first, inside])
 
     @staticmethod
-    def _held_set_prior(scenario, margins: np.ndarray) -> np.ndarray:
+    def _held_set_prior(margins: np.ndarray, bounds) -> np.ndarray:
         """(k,) ``-2 log P(held set)`` of each candidate margin: the share of the margin's (uniform) range
         that gives the set (the nominal extent holds over the whole gap between the rim's inner
         and outer vertices, each vertex beyond it over the gap to the next)."""
         if not margins.size:
             return np.zeros(0)
-        lo, hi = (float(v) for v in scenario.config.uncertain.attached_margin)
+        lo, hi = bounds
         widths = np.maximum(np.diff(np.append(margins, hi)), 1e-9 * (hi - lo))  # a set reached only at the range's end
         return -2.0 * np.log(widths / (hi - lo))
 
@@ -325,7 +337,7 @@ class MarkerInverse:
         if not self._margins.size:
             raise ConfigError("the scenario does not draw the attached region's margin ([scenario.uncertain] "
                               "attached_margin): there is no margin to give; leave it out")
-        lo, hi = (float(v) for v in self.scenario.config.uncertain.attached_margin)
+        lo, hi = self._margin_range
         if not (isinstance(value, (int, float, np.floating)) and lo <= float(value) <= hi):
             raise ConfigError(f"the attached margin {value!r} mm lies outside the range the simulations drew, "
                               f"[{lo:g}, {hi:g}] mm; give a margin within it (or none, to search it)")
@@ -451,13 +463,14 @@ class _Frame:
         return x
 
     def iterate(self, x: np.ndarray, margin: float, u: np.ndarray | None, iterations: int, timed: bool = True):
-        """Gauss-Newton from ``x`` (module notes); returns the last accepted (x, u). ``timed``:
-        stop once the frame's time is up (the first held set is iterated to convergence
-        regardless: an estimate cut before it converges can be far off)."""
+        """Levenberg-Marquardt from ``x`` (module notes); returns the last accepted (x, u).
+        ``timed``: stop once the frame's time is up (the first held set is iterated to
+        convergence regardless: an estimate cut before it converges can be far off)."""
         inv = self.inv
         x = x.copy()
         u = self.field(x, margin, u)
         obj, _ = self.objective(x, u)
+        damping = DAMPING
         for _ in range(iterations):
             if timed and self.out_of_time():
                 break
@@ -465,25 +478,31 @@ class _Frame:
             J = self.jacobian(x, margin, u)[self.rows]
             A = J.T @ J / inv.noise**2 + np.diag(inv._sd**-2.0)
             g = J.T @ (self.d[self.rows] - m0) / inv.noise**2 - (x - inv._mu) / inv._sd**2
-            step = np.linalg.solve(A, g)
-            big = np.abs(step / inv._sd).max() / STEP_CAP
-            if big > 1.0:
-                step /= big
-            for _ in range(4):  # halve the step where the solve fails or the posterior falls
+            scale = np.max(np.diag(A) * inv._sd**2) * inv._sd**-2.0  # the largest curvature, in prior units
+            accepted = False
+            for _ in range(TRIALS):
+                step = np.linalg.solve(A + damping * np.diag(scale), g)
+                big = np.abs(step / inv._sd).max() / STEP_CAP
+                if big > 1.0:
+                    step /= big
                 x_new = self._clip(x + step)
                 try:
                     u_new = self.field(x_new, margin, u)
                 except _SOLVE_FAILURES:
-                    step /= 2.0
-                    continue
-                obj_new, _ = self.objective(x_new, u_new)
-                if obj_new <= obj:
+                    u_new = None
+                if u_new is not None:
+                    obj_new, _ = self.objective(x_new, u_new)
+                    accepted = obj_new <= obj
+                if accepted:
+                    damping = max(damping / DAMPING_DOWN, DAMPING_FLOOR)
                     break
-                step /= 2.0
-            else:
+                damping *= DAMPING_UP
+                if timed and self.out_of_time():
+                    break
+            if not accepted:
                 break
             x, u, obj = x_new, u_new, obj_new
-            if np.abs(step / inv._sd).max() < STEP_TOL:
+            if np.abs(step / inv._sd).max() < STEP_TOL or g @ step < GAIN_TOL:
                 break
         if obj < self.best_obj:
             self.best_obj, self.best_x, self.best_u = obj, x.copy(), u
