@@ -42,16 +42,19 @@ def small_config(folder: Path, **dataset) -> Config:
     )
 
 
-def tracked_retractor_config(folder: Path, **indentation) -> Config:
+def tracked_retractor_config(folder: Path, uncertain: dict | None = None, **indentation) -> Config:
     """The embedded preset's kind on the small box (:data:`bench_helpers.SPRING_HELD`: attached
     bottom face, springs, gravity change) with a tracked retractor touching the tissue in 60 %
     of 30 samples (``indentation`` overrides its section); 14 markers and 4 LBO modes (12 load
-    weights), so that the markers determine the loads; peaks of a few mm."""
+    weights), so that the markers determine the loads; peaks of a few mm. ``uncertain``: a
+    ``[scenario.uncertain]`` section (default none drawn)."""
     from bench_helpers import SPRING_HELD
 
     sc = {**SPRING_HELD, "indentation": {"enabled": True, "radius": 11.0, "depth": [0.5, 1.5], "slide": [0.0, 0.5],
                                          "probability": 0.6, **indentation},
           "instruments": [{"name": "retractor", "load": "indentation", "device": "RetractorToReference"}]}
+    if uncertain:
+        sc["uncertain"] = uncertain
     return with_overrides(small_config(folder), forces={"loading": "traction", "target_max_displacement": 4.0,
                                                         "n_basis": 4},
                           markers={"count": 14, "min_distance": 4.0}, scenario=sc, solver={"force_tolerance": 1e-10},
@@ -59,13 +62,13 @@ def tracked_retractor_config(folder: Path, **indentation) -> Config:
                                    "predictor_samples": 6})
 
 
-def tracked_retractor_store(folder: Path):
+def tracked_retractor_store(folder: Path, uncertain: dict | None = None):
     """``(config, store path, model folder)``: :func:`tracked_retractor_config`'s 30 samples
-    simulated (none failed) and a small model trained on them, saved."""
+    (``uncertain`` drawn) simulated (none failed) and a small model trained on them, saved."""
     from tissuecast.dataset import open_dataset, simulate
     from tissuecast.surrogate import DeformationModel
 
-    cfg = tracked_retractor_config(folder)
+    cfg = tracked_retractor_config(folder, uncertain)
     store = Path(folder) / "store.zarr"
     assert simulate(cfg, store, progress=False)["totals"]["failed"] == 0
     model = DeformationModel.from_dataset(open_dataset(store), cfg, epochs=20, patience=0, calibration_share=0.0,

@@ -404,6 +404,10 @@ def test_the_study_solves_a_few_frames_of_each_set_through_the_physics(tmp_path,
     assert "--physics -1: give a number of frames >= 0" in capsys.readouterr().err
     assert main(argv + ["--model", f"physics={model}", "--physics", "2"]) == 2
     assert "a model is labelled 'physics', the label of the physics rows" in capsys.readouterr().err
+    assert main(argv + ["--physics-known-margin"]) == 2
+    assert "give a number of physics frames" in capsys.readouterr().err
+    assert main(argv + ["--physics", "2", "--physics-known-margin"]) == 2
+    assert "does not draw the attached region's margin" in capsys.readouterr().err
     assert main(argv + ["--physics", "2"]) == 0
     data = json.loads((out / "study_mismatch.json").read_text())
     rows = {(r["set"], r["model"]): r for r in data["rows"]}
@@ -419,3 +423,36 @@ def test_the_study_solves_a_few_frames_of_each_set_through_the_physics(tmp_path,
     assert "coverage_90" in header and "seconds_median" in header  # keys only the physics rows carry
     (tmp_path / "report").mkdir()
     assert "The <i>physics</i> rows" in mismatch_section(out, tmp_path / "report")
+
+
+def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, caplog):
+    """``--physics 2 --physics-known-margin`` on a store that draws the attached margin
+    (-6..6 mm): a row per set with each frame's simulated margin given, as good as the searched
+    row's and in fewer solves' time; the set grown by 10 mm (beyond the range) gets none, said so."""
+    import logging
+
+    from dataset_helpers import tracked_retractor_store
+
+    from tissuecast.cli.main import main
+    from tissuecast.evaluate.mismatch import PHYSICS, PHYSICS_KNOWN
+    from tissuecast.evaluate.mismatch_report import mismatch_section
+
+    cfg, store, model = tracked_retractor_store(tmp_path, {"attached_margin": [-6.0, 6.0]})
+    path = write_config(cfg, tmp_path / "tracked.toml")
+    out = tmp_path / "study"
+    with caplog.at_level(logging.WARNING, logger="tissuecast.evaluate.mismatch"):
+        assert main(["-q", "study", "mismatch", str(path), "--out", str(out), "--model", f"m={model}", "--sets",
+                     "attached +5 mm,attached +10 mm", "--samples", "3", "--physics", "2", "--physics-known-margin"]) == 0
+    data = json.loads((out / "study_mismatch.json").read_text())
+    rows = {(r["set"], r["model"]): r for r in data["rows"]}
+    assert {k for k in rows if k[1] == PHYSICS_KNOWN} == {("nominal", PHYSICS_KNOWN), ("attached +5 mm", PHYSICS_KNOWN)}
+    assert "attached +10 mm: its attached margins (+10 to +10 mm) lie outside" in caplog.text
+    for name in ("nominal", "attached +5 mm"):
+        known, searched = rows[(name, PHYSICS_KNOWN)], rows[(name, PHYSICS)]
+        assert known["count"] == 2 and known["alarm_rate"] == 0.0
+        assert known["mlp_offset_max"] < 0.05 * known["peak_median"] < known["rigid_offset_max"]
+        assert known["mlp_offset_max"] <= 1.05 * searched["mlp_offset_max"] + 1e-3
+        assert known["seconds_median"] < searched["seconds_median"]
+    assert data["meta"]["physics_known_margin"] is True
+    (tmp_path / "report").mkdir()
+    assert "The <i>physics, margin known</i> rows" in mismatch_section(out, tmp_path / "report")

@@ -56,6 +56,10 @@ def register(sub) -> None:
                    help="mismatch: also solve each set's first N frames through the physics inverse (the first model's "
                         "markers and training store's simulator, as `predict --physics`; seconds to minutes a frame), "
                         "a row 'physics' beside the models' (default 0: none)")
+    p.add_argument("--physics-known-margin", action="store_true",
+                   help="mismatch: the physics frames also with each one's simulated attached margin given, as "
+                        "`predict --physics --attached-margin` a measured one (a row 'physics, margin known'; "
+                        "needs --physics N and a training store that draws the margin)")
     p.add_argument("--physics-time-limit", type=float, default=None, metavar="SECONDS",
                    help="mismatch: seconds one physics frame may take (default that of `predict --physics`; 0: none)")
     p.add_argument("--alpha", type=float, default=0.0,
@@ -117,13 +121,13 @@ def _mismatch(args) -> int:
                                          "inverse" if args.physics else ""), flush=True)
     rows = mm.mismatch_study(cfg, models, out / "mismatch", alpha=alpha, sets=sets, samples=samples,
                              refined_samples=refined, refined_time_limit=limit, progress=True, physics=args.physics,
-                             physics_time_limit=physics_limit or None,
+                             physics_time_limit=physics_limit or None, physics_known_margin=args.physics_known_margin,
                              on_row=lambda r: print(f"  {r['set']} / {r['model']}: Offset_max {r['mlp_offset_max']:.3g} mm "
                                                     f"(rigid {r['rigid_offset_max']:.3g}), relative "
                                                     f"{100 * r['relative']:.3g} %", flush=True))
     markers = {k: m.describe()["markers"] for k, m in models.items()}
     meta = {"alpha": alpha, "samples": samples, "refined_samples": refined, "refined_time_limit": limit, "models": markers,
-            "physics_frames": args.physics}
+            "physics_frames": args.physics, "physics_known_margin": args.physics_known_margin}
     json_path, csv_path = write_mismatch(out, rows, meta)
     png = mismatch_figure(rows, out / "study_mismatch.png")
     print(format_mismatch(rows))

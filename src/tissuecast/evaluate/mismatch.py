@@ -47,18 +47,22 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Config, nothing_drawn, with_overrides
+from ..errors import ConfigError
 
 __all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver",
            "along_load_path", "keep_answers_of_one_path", "solve_path", "discretisation_set", "evaluate_on_set",
-           "set_folder_name", "store_alpha", "mismatch_study", "physics_on_set", "PHYSICS", "DEFAULT_SAMPLES",
+           "set_folder_name", "store_alpha", "mismatch_study", "physics_on_set", "set_margins", "PHYSICS",
+           "PHYSICS_KNOWN", "DEFAULT_SAMPLES",
            "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT", "STUDY_SEED_OFFSET"]
 
 log = logging.getLogger(__name__)
 
 #: Samples per set by default, and of each (costly) set solved again with quadratic elements.
 DEFAULT_SAMPLES = 100
-#: The model label of the physics inverse's rows (``mismatch_study(physics=...)``).
+#: The model label of the physics inverse's rows (``mismatch_study(physics=...)``), and of its
+#: rows with each frame's attached margin given (``physics_known_margin=True``).
 PHYSICS = "physics"
+PHYSICS_KNOWN = "physics, margin known"
 DISCRETISATION_SAMPLES = 4
 #: Wall-clock limit of one solve of those sets by default, s.
 REFINED_TIME_LIMIT = 900.0
@@ -162,8 +166,6 @@ def chosen_sets(config: Config, mesh, names=None) -> list[MismatchSet]:
         return [s for s in every if s.default]
     unknown = set(names) - {s.name for s in every}
     if unknown:
-        from ..errors import ConfigError
-
         raise ConfigError(f"unknown mismatch set(s) {sorted(unknown)}; choose among {[s.name for s in every]}")
     return [s for s in every if s.name in names or s.name == "nominal"]
 
@@ -458,13 +460,17 @@ def evaluate_on_set(model, dataset, targets) -> dict:
     return row
 
 
-def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit: float | None = None) -> dict:
+def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit: float | None = None,
+                   known_margin: bool = False) -> dict:
     """The physics inverse on a set's first ``samples`` test-1 samples, as a study row.
 
     Each frame is solved as ``tissuecast predict --physics`` solves it: the model's markers (all
     tracked, no noise), the sample's recorded instrument poses, gravity in its planned direction,
     ``inverse`` (a :class:`~tissuecast.inverse.MarkerInverse` of the training store's simulator:
-    what the model assumes), ``time_limit`` s a frame (None: none).
+    what the model assumes), ``time_limit`` s a frame (None: none). ``known_margin``: each frame
+    is given the attached margin its sample was simulated with (0 where the set draws none: the
+    nominal extent), as ``predict --physics --attached-margin`` a measured one; the margin must
+    lie within the inverse's :attr:`~tissuecast.inverse.MarkerInverse.margin_range`.
 
     Returns:
         The keys of :func:`evaluate_on_set` over those samples (no input gate's share: the frames
@@ -480,14 +486,15 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
     from ..registration import nonrigid_part
     from .metrics import summarize_targets, target_errors
 
-    idx = np.asarray(dataset.select("test1", status="done"), dtype=np.int64)[:samples]
+    idx = physics_frames(dataset, samples)
     U = np.asarray(dataset.displacements[idx], dtype=np.float64)
     d = U[:, model.markers]
+    margins = set_margins(dataset, idx) if known_margin else [None] * idx.size
     fields, covered, flagged, seconds, cut = [], [], [], [], 0
     for k, s in enumerate(idx):
         draw = inverse.scenario.frame_draw(recorded_poses(dataset.instrument_poses, int(s)))
         with one_blas_thread():
-            res = inverse.solve(d[k], draw, time_limit=time_limit)
+            res = inverse.solve(d[k], draw, time_limit=time_limit, attached_margin=margins[k])
         fields.append(res.field)
         covered.append(res.within_band(U[k]))
         flagged.append(inverse.flags(res))
@@ -509,6 +516,21 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
     row.update(coverage_90=float(np.mean(covered)), alarm_rate=float(np.mean(flagged)),
                seconds_median=float(np.median(seconds)), incomplete=cut)
     return row
+
+
+def physics_frames(dataset, samples: int) -> np.ndarray:
+    """(k,) int64, the sample ids of a set's first ``samples`` solved test-1 samples (the
+    physics rows' frames)."""
+    return np.asarray(dataset.select("test1", status="done"), dtype=np.int64)[:samples]
+
+
+def set_margins(dataset, idx) -> np.ndarray:
+    """(len(idx),) mm: the attached margin each of the samples ``idx`` was simulated with (0
+    where the set records none: the nominal extent)."""
+    recorded = dataset.parameters.get("attached_margin")
+    if recorded is None:
+        return np.zeros(len(idx))
+    return np.asarray(recorded, dtype=np.float64)[np.asarray(idx, dtype=np.int64)]
 
 
 def store_alpha(store) -> float:
@@ -545,7 +567,7 @@ def set_folder_name(name: str) -> str:
 def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=None, samples: int = DEFAULT_SAMPLES,
                    refined_samples: int = DISCRETISATION_SAMPLES, refined_time_limit: float | None = REFINED_TIME_LIMIT,
                    targets=None, progress: bool = False, on_row=None, physics: int = 0,
-                   physics_time_limit: float | None = None) -> list[dict]:
+                   physics_time_limit: float | None = None, physics_known_margin: bool = False) -> list[dict]:
     """Simulate the mismatch sets and evaluate every model on each (module notes).
 
     Args:
@@ -566,6 +588,10 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
             a row labelled :data:`PHYSICS`; the first model's markers and training store's
             simulator, its ranges as priors), 0 for none; each takes seconds to minutes.
         physics_time_limit: seconds one such frame may take (None: none).
+        physics_known_margin: the same frames also with each one's attached margin given
+            (``physics_on_set(known_margin=True)``, a row labelled :data:`PHYSICS_KNOWN`; what a
+            measured attachment is worth), on every set whose margins lie within the training
+            store's range (a set beyond it is left out of these rows, and logged).
 
     Returns:
         One row per (set, model): the figures of :func:`evaluate_on_set` with ``set``, ``what``,
@@ -578,16 +604,22 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
     inverse = None
     if physics > 0:
         from ..dataset import open_dataset
-        from ..errors import ConfigError
         from ..inverse import MarkerInverse
         from .targets import interior_targets
 
-        if PHYSICS in models:
-            raise ConfigError(f"a model is labelled {PHYSICS!r}, the label of the physics rows; give it another label")
+        for label in (PHYSICS, PHYSICS_KNOWN):
+            if label in models:
+                raise ConfigError(f"a model is labelled {label!r}, the label of the physics rows; give it another label")
         if not first.dataset_path or not Path(first.dataset_path).exists():
             raise ConfigError(f"the physics rows solve with the first model's training store, which is not at "
                               f"{first.dataset_path!r}; put it back (or leave the physics rows out)")
         inverse = MarkerInverse.from_dataset(open_dataset(first.dataset_path), first.markers)
+        if physics_known_margin and inverse.margin_range is None:
+            raise ConfigError("the first model's training store does not draw the attached region's margin "
+                              "([scenario.uncertain] attached_margin): there is no margin to give; leave the known-margin "
+                              "rows out")
+    elif physics_known_margin:
+        raise ConfigError("the known-margin physics rows solve the physics rows' frames: give a number of physics frames")
     rows, nominal_relative = [], {}
 
     def add(mset: MismatchSet, label: str, figures: dict) -> None:
@@ -610,6 +642,15 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
             add(mset, label, evaluate_on_set(model, ds, targets))
         if inverse is not None:
             log.info("%s: the physics inverse on %d frames (seconds to minutes each)", mset.name, physics)
-            add(mset, PHYSICS, physics_on_set(inverse, first, ds, targets or interior_targets(first.mesh, exclude=first.fixed),
-                                              physics, time_limit=physics_time_limit))
+            at = targets or interior_targets(first.mesh, exclude=first.fixed)
+            add(mset, PHYSICS, physics_on_set(inverse, first, ds, at, physics, time_limit=physics_time_limit))
+            if physics_known_margin:
+                lo, hi = inverse.margin_range
+                m = set_margins(ds, physics_frames(ds, physics))
+                if m.size and (m.min() < lo or m.max() > hi):
+                    log.warning("%s: its attached margins (%+.3g to %+.3g mm) lie outside the training store's range "
+                                "[%g, %g] mm; no known-margin physics row", mset.name, m.min(), m.max(), lo, hi)
+                else:
+                    add(mset, PHYSICS_KNOWN, physics_on_set(inverse, first, ds, at, physics, time_limit=physics_time_limit,
+                                                            known_margin=True))
     return rows

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .headline import DASH, fmt_alarm, fmt_mm, fmt_ratio, fmt_share, html_table
+from .mismatch import PHYSICS, PHYSICS_KNOWN
 
 __all__ = ["mismatch_table", "format_mismatch", "write_mismatch", "mismatch_figure", "mismatch_section",
            "MISMATCH_JSON", "MISMATCH_PNG"]
@@ -103,12 +104,16 @@ def mismatch_section(studies_folder: Path, folder: Path) -> str | None:
              "displacement; x nominal: that over the model's own on the nominal set; TRE at the evaluation's "
              "targets; corrected: share of the targets' displacement corrected (rigid registration's in brackets). "
              "In range: the uncertain parameters the model was trained with cover the set.</p>")
-    if any(r["model"] == "physics" for r in rows):
+    if any(r["model"] == PHYSICS for r in rows):
         intro += (f"<p>The <i>physics</i> rows: the physics inverse (<code>predict --physics</code>: the first model's "
                   f"training simulator and markers, the recorded instrument poses) on each set's first "
                   f"{html.escape(str(meta.get('physics_frames', '')))} samples, rigid registration and ridge on the same "
                   "samples; its bounds column is the share of vertices within its 90 % band (1.44 x its posterior "
                   "spread, not a calibrated bound), its alarm column the share of frames its misfit warning "
                   "flags.</p>")
+    if any(r["model"] == PHYSICS_KNOWN for r in rows):
+        intro += ("<p>The <i>physics, margin known</i> rows: the same frames with each one's simulated attached "
+                  "margin given (<code>predict --physics --attached-margin</code>: what a measured attachment is "
+                  "worth); sets whose margins lie outside the training store's range have none.</p>")
     body = intro + html_table(_HEAD, mismatch_table(rows)) + f"<img src='{png.name}' alt='mismatch study'>"
     return ("<details open><summary><h2>What a mismatch costs</h2></summary>" + body + "</details>")

@@ -15,11 +15,12 @@ mean 0, variance 1/3), each continuous parameter with its range's mean and stand
 (log-uniform factors in log space). Levenberg-Marquardt steps: the markers' sensitivities from
 the tangent stiffness at the current solution (held dofs eliminated; the parameters' through a
 finite difference of the internal forces), each full solve started from the last one; a step is
-limited to ``STEP_CAP`` prior standard deviations per unknown, and damped (the prior's precision
+limited to ``STEP_CAP`` prior standard deviations per unknown and halved where the solve fails
+or the posterior falls. Where no halving is accepted (markers that respond far from linearly: a
+body swinging about its pins), the iteration goes on damped (Levenberg: the prior's precision
 times the Gauss-Newton matrix's largest curvature in prior units, times a factor raised tenfold
-where the solve fails or the posterior falls, lowered threefold where it rises), so that a frame
-whose markers respond far from linearly (a body swinging about its pins) is followed in short
-steps, turned towards the posterior's gradient, rather than given up.
+where a trial is rejected, lowered threefold where one is accepted), in short steps turned
+towards the posterior's gradient, rather than giving up.
 
 The attached region's margin changes which vertices are held, so the solution jumps where a
 vertex joins the region, and a single held vertex next to a marker moves it by millimetres:
@@ -69,20 +70,23 @@ NOISE_MM = 0.05
 ESTIMATED = CONTINUOUS_PARAMETERS
 #: Finite-difference step of the internal forces in a parameter, in prior standard deviations.
 FD_STEP = PARAMETER_STEP
-#: Iterations while searching the attached margin, and at most when finishing (Levenberg-Marquardt
-#: steps; the frames of the paper preset that swing furthest take 10-15). (Two
+#: Iterations while searching the attached margin, and at most when finishing (the damped frames
+#: of the paper preset that swing furthest take 10-20). (Two
 #: found the same estimates on the preset's test-1 frames but missed the held set of a frame with
 #: the region shrunk by 5 mm: docs/uncertainty.md.)
 SEARCH_ITERATIONS = 4
 MAX_ITERATIONS = 30
 #: The largest step of an unknown, in prior standard deviations.
 STEP_CAP = 3.0
-#: Convergence: the largest step below this many prior standard deviations, or a step whose
-#: linearised gain in the objective (a chi-square) is below ``GAIN_TOL``.
+#: Convergence: the undamped (Gauss-Newton) step's largest component below this many prior
+#: standard deviations, or its linearised gain in the objective (a chi-square) below ``GAIN_TOL``.
 STEP_TOL = 1e-3
 GAIN_TOL = 1e-2
-#: Levenberg-Marquardt damping: its start, its factors on a rejected / accepted step, its
-#: floor, and the trial steps an iteration may take before it stops.
+#: Gauss-Newton steps are halved up to ``HALVINGS - 1`` times; where none is accepted, the
+#: iteration is damped from then on (Levenberg, in the prior's metric): the damping's start,
+#: its factors on a rejected / accepted step, its floor, and the damped trials an iteration may
+#: take before it stops.
+HALVINGS = 4
 DAMPING = 1e-3
 DAMPING_UP, DAMPING_DOWN, DAMPING_FLOOR = 10.0, 3.0, 1e-7
 TRIALS = 8
@@ -215,6 +219,12 @@ class MarkerInverse:
         """The continuous unknowns of a frame: ``3 n_b`` load weights and the :attr:`estimated`
         parameters (the attached margin, when drawn, is searched over besides)."""
         return int(self._mu.size)
+
+    @property
+    def margin_range(self) -> tuple[float, float] | None:
+        """(lo, hi) mm, the attached margin's drawn range, or None where the scenario does not
+        draw it (then no margin can be given to :meth:`solve`)."""
+        return self._margin_range if self._margins.size else None
 
     @property
     def margins(self) -> np.ndarray:
@@ -463,14 +473,14 @@ class _Frame:
         return x
 
     def iterate(self, x: np.ndarray, margin: float, u: np.ndarray | None, iterations: int, timed: bool = True):
-        """Levenberg-Marquardt from ``x`` (module notes); returns the last accepted (x, u).
+        """Gauss-Newton from ``x``, damped once it stalls (module notes); returns the last accepted (x, u).
         ``timed``: stop once the frame's time is up (the first held set is iterated to
         convergence regardless: an estimate cut before it converges can be far off)."""
         inv = self.inv
         x = x.copy()
         u = self.field(x, margin, u)
         obj, _ = self.objective(x, u)
-        damping = DAMPING
+        damping = 0.0  # Gauss-Newton (its step halved) until a step fails to be accepted: damped from then on
         for _ in range(iterations):
             if timed and self.out_of_time():
                 break
@@ -478,13 +488,16 @@ class _Frame:
             J = self.jacobian(x, margin, u)[self.rows]
             A = J.T @ J / inv.noise**2 + np.diag(inv._sd**-2.0)
             g = J.T @ (self.d[self.rows] - m0) / inv.noise**2 - (x - inv._mu) / inv._sd**2
+            full = np.linalg.solve(A, g)  # the Gauss-Newton step: converged where it is small
+            if np.abs(full / inv._sd).max() < STEP_TOL or g @ full < GAIN_TOL:
+                break
             scale = np.max(np.diag(A) * inv._sd**2) * inv._sd**-2.0  # the largest curvature, in prior units
             accepted = False
-            for _ in range(TRIALS):
-                step = np.linalg.solve(A + damping * np.diag(scale), g)
-                big = np.abs(step / inv._sd).max() / STEP_CAP
-                if big > 1.0:
-                    step /= big
+            for trial in range(HALVINGS + TRIALS):
+                if damping:
+                    step = self._capped(np.linalg.solve(A + damping * np.diag(scale), g))
+                else:
+                    step = self._capped(full) / 2.0**trial
                 x_new = self._clip(x + step)
                 try:
                     u_new = self.field(x_new, margin, u)
@@ -494,19 +507,26 @@ class _Frame:
                     obj_new, _ = self.objective(x_new, u_new)
                     accepted = obj_new <= obj
                 if accepted:
-                    damping = max(damping / DAMPING_DOWN, DAMPING_FLOOR)
+                    damping = damping and max(damping / DAMPING_DOWN, DAMPING_FLOOR)
                     break
-                damping *= DAMPING_UP
                 if timed and self.out_of_time():
                     break
+                if damping:
+                    damping *= DAMPING_UP
+                elif trial == HALVINGS - 1:
+                    damping = DAMPING
             if not accepted:
                 break
             x, u, obj = x_new, u_new, obj_new
-            if np.abs(step / inv._sd).max() < STEP_TOL or g @ step < GAIN_TOL:
-                break
         if obj < self.best_obj:
             self.best_obj, self.best_x, self.best_u = obj, x.copy(), u
         return x, u
+
+    def _capped(self, step: np.ndarray) -> np.ndarray:
+        """``step`` scaled down so that no unknown moves by more than :data:`STEP_CAP` prior
+        standard deviations."""
+        big = np.abs(step / self.inv._sd).max() / STEP_CAP
+        return step / big if big > 1.0 else step
 
     def polish(self, x: np.ndarray, margin: float, u: np.ndarray):
         """``(x, u)`` once more from a solve started at zero: where the loads have more than one
