@@ -133,7 +133,7 @@ def underdetermined_note(inverse, coordinates: int) -> str | None:
     if n <= coordinates:
         return None
     return (f"note: the physics inverse estimates {n} unknowns from {coordinates} marker coordinates: the prior decides "
-            "what the markers do not see, and the learned model (the mean over the simulations) is then as accurate "
+            "what the markers do not see, and the learned model (the mean over the simulations) is then about as accurate "
             "and far faster (on the paper preset: docs/uncertainty.md)")
 
 
