@@ -287,3 +287,28 @@ def test_a_best_fit_that_misses_its_markers_is_iterated_again_damped(monkeypatch
     (margin, prior, x2, u2), = frame.retried([(0.0, 0.0, x, u)])
     assert frame.objective(x2, u2)[1] < 0.05 and any("iterated again, damped" in t for t in told)
     assert frame.retried([(0.0, 0.0, x2, u2)])[0][2] is x2
+
+
+def test_a_frame_without_an_equilibrium_to_start_from_is_one_clear_error(monkeypatch):
+    """Where no solve converges from zero (the frame's known loads beyond what the simulator
+    takes within its solve time), the inverse says so in one ConvergenceError, and the mismatch
+    study's physics row records the frame as failed instead of stopping the study."""
+    from types import SimpleNamespace
+
+    from tissuecast.errors import ConvergenceError, SolveTimeout
+    from tissuecast.evaluate.mismatch import ArraySet, physics_on_set
+    from tissuecast.evaluate.targets import interior_targets
+
+    sc, solver, markers = _setup(False)
+    inv = MarkerInverse(sc, solver, markers, ALPHA)
+    truth, _ = _simulate(sc, solver, 2)
+
+    def never(self, x, margin, guess):
+        raise SolveTimeout("stopped after 20.0 s, past its time limit of 20.0 s", 20.0, 20.0)
+
+    monkeypatch.setattr(_Frame, "field", never)
+    with pytest.raises(ConvergenceError, match="found no equilibrium to start the frame from"):
+        inv.solve(truth[markers])
+    model = SimpleNamespace(markers=markers)
+    row = physics_on_set(inv, model, ArraySet(truth[None], MESH, None), interior_targets(MESH), 1)
+    assert row["count"] == 0 and row["failed"] == 1 and np.isnan(row["mlp_offset_max"]) and np.isnan(row["relative"])

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Config, nothing_drawn, with_overrides
-from ..errors import ConfigError
+from ..errors import ConfigError, ConvergenceError
 
 __all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver",
            "along_load_path", "keep_answers_of_one_path", "solve_path", "discretisation_set", "evaluate_on_set",
@@ -479,7 +479,9 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
         ``coverage_90`` the share of vertices within its 90 % band
         (:func:`~tissuecast.inverse.spread_band`), ``alarm_rate`` the share of frames whose fit
         the misfit warning flags (:meth:`~tissuecast.inverse.MarkerInverse.flags`),
-        ``seconds_median`` a frame's median time, ``incomplete`` how many frames the limit cut short.
+        ``seconds_median`` a frame's median time, ``incomplete`` how many frames the limit cut short,
+        ``failed`` how many frames had no equilibrium to start from (logged, left out of the
+        figures; all of them: ``count`` 0 and NaN figures).
     """
     from ..fem.linear import one_blas_thread
     from ..instruments import recorded_poses
@@ -490,11 +492,16 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
     U = np.asarray(dataset.displacements[idx], dtype=np.float64)
     d = U[:, model.markers]
     margins = set_margins(dataset, idx) if known_margin else [None] * idx.size
-    fields, covered, flagged, seconds, cut = [], [], [], [], 0
+    fields, covered, flagged, seconds, cut, solved = [], [], [], [], 0, []
     for k, s in enumerate(idx):
         draw = inverse.scenario.frame_draw(recorded_poses(dataset.instrument_poses, int(s)))
-        with one_blas_thread():
-            res = inverse.solve(d[k], draw, time_limit=time_limit, attached_margin=margins[k])
+        try:
+            with one_blas_thread():
+                res = inverse.solve(d[k], draw, time_limit=time_limit, attached_margin=margins[k])
+        except ConvergenceError as e:  # recorded in the row, left out of its figures
+            log.warning("physics frame %d of %d (sample %d) not solved: %s", k + 1, idx.size, int(s), e)
+            continue
+        solved.append(k)
         fields.append(res.field)
         covered.append(res.within_band(U[k]))
         flagged.append(inverse.flags(res))
@@ -503,7 +510,15 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
         log.info("physics frame %d of %d: worst vertex %.3g mm off, markers fitted to %.3g mm, %.0f s%s", k + 1,
                  idx.size, float(np.linalg.norm(res.field - U[k], axis=1).max()), res.marker_misfit, res.seconds,
                  "" if res.complete else " (cut short by the time limit)")
-    row = {"count": int(idx.size), "peak_median": float(np.median(np.linalg.norm(U, axis=2).max(axis=1))),
+    failed = int(idx.size - len(solved))
+    if not solved:
+        keys = ["peak_median", "nonrigid_median", "relative", "gain_over_rigid", "coverage_90", "alarm_rate",
+                "seconds_median"] + [f"{m}_{k}" for m in ("mlp", "rigid", "ridge")
+                                     for k in ("offset_max", "offset_mean", "tre_mean", "tre_p95", "corrected")]
+        return {"count": 0, "failed": failed, "incomplete": 0, **dict.fromkeys(keys, float("nan"))}
+    U, d = U[solved], d[solved]
+    row = {"count": len(solved), "failed": failed,
+           "peak_median": float(np.median(np.linalg.norm(U, axis=2).max(axis=1))),
            "nonrigid_median": float(np.median(nonrigid_part(dataset.mesh.points, U)))}
     moved = np.linalg.norm(targets.displacements(U), axis=2).mean(axis=1)
     for m, F in (("mlp", np.stack(fields)), ("rigid", model.predict_rigid(d)), ("ridge", model.predict_ridge(d))):

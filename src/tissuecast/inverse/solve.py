@@ -301,7 +301,8 @@ class MarkerInverse:
         Raises:
             ConfigError: the displacements do not match the markers, a marker has only some
                 coordinates, or fewer than :data:`MIN_TRACKED` markers are tracked.
-            ConvergenceError: no solve of the search converged.
+            ConvergenceError: no equilibrium to start the frame from (the known loads with the
+                prior's mean parameters) within the solve time cap.
         """
         t0 = time.perf_counter()
         d = np.asarray(marker_displacements, dtype=np.float64)
@@ -318,12 +319,18 @@ class MarkerInverse:
             raise ConfigError(f"the time limit must be a positive number of seconds (or None), got {time_limit!r}")
         deadline = math.inf if time_limit is None else t0 + float(time_limit)
         frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()), progress, deadline)
-        if attached_margin is None and self._margins.size:
-            finished = frame.search_margin(self._margins, self._set_prior)
-        else:  # one held set: the margin given, or none drawn
-            m = 0.0 if attached_margin is None else self._given_margin(attached_margin)
-            finished = [(m, 0.0, *frame.iterate(self._mu, m, None, MAX_ITERATIONS, timed=False))]
-            frame.tell("iterated" if attached_margin is None else f"iterated with the attached margin given ({m:+.2f} mm)")
+        m = None if attached_margin is None else self._given_margin(attached_margin)
+        try:
+            if m is None and self._margins.size:
+                finished = frame.search_margin(self._margins, self._set_prior)
+            else:  # one held set: the margin given, or none drawn
+                m = 0.0 if m is None else m
+                finished = [(m, 0.0, *frame.iterate(self._mu, m, None, MAX_ITERATIONS, timed=False))]
+                frame.tell("iterated" if attached_margin is None else f"iterated with the attached margin given ({m:+.2f} mm)")
+        except _SOLVE_FAILURES as e:  # only a solve from zero can fail here: the frame has no start
+            raise ConvergenceError(f"the physics inverse found no equilibrium to start the frame from (the known loads "
+                                   f"with the prior's mean parameters and no LBO load; {e}): the simulator cannot take "
+                                   "this frame's instrument pose or gravity within its solve time") from e
         finished = frame.retried([(m, p, *frame.polish(x, m, u)) for m, p, x, u in finished])
         scored = [frame.objective(x, u) for _, _, x, u in finished]
         objs = np.array([obj + p for (obj, _), (_, p, _, _) in zip(scored, finished)])
@@ -399,7 +406,7 @@ class _Frame:
 
     def field(self, x: np.ndarray, margin: float, guess: np.ndarray | None) -> np.ndarray:
         """(n_nodes, 3) mm: the solution for unknowns ``x`` and margin ``margin``, started from
-        ``guess``; a failed start is retried from zero with the cautious solver. Each solve may
+        ``guess`` (or zero); a failed solve is retried from zero with the cautious solver. Each solve may
         take :attr:`solve_seconds`: :data:`SOLVE_FACTOR` times the slowest converged one so far,
         within [:data:`SOLVE_FLOOR`, :data:`SOLVE_SECONDS`]."""
         inv = self.inv
@@ -411,8 +418,7 @@ class _Frame:
         try:
             return self._timed(self.solver(inputs).solve(loads, guess, time_limit=self.solve_seconds, **kw), t0)
         except _SOLVE_FAILURES:
-            if guess is None:
-                raise
+            pass
         self.solves += 1
         t0 = time.perf_counter()
         return self._timed(self.solver(inputs, 1).solve(loads, None, time_limit=self.solve_seconds, **kw), t0)
@@ -538,7 +544,10 @@ class _Frame:
             return finished
         margin, prior, _, _ = finished[b]
         self.tell(f"the best fit misses a marker by {scores[b][1]:.3f} mm: iterated again, damped from the prior mean")
-        x, u = self.iterate(inv._mu, margin, None, MAX_ITERATIONS, damped=True)
+        try:
+            x, u = self.iterate(inv._mu, margin, None, MAX_ITERATIONS, damped=True)
+        except _SOLVE_FAILURES:
+            return finished
         if self.objective(x, u)[0] < scores[b][0]:
             finished = finished.copy()
             finished[b] = (margin, prior, x, u)
