@@ -428,7 +428,7 @@ def test_the_study_solves_a_few_frames_of_each_set_through_the_physics(tmp_path,
 def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, caplog):
     """``--physics 2 --physics-known-margin`` on a store that draws the attached margin
     (-6..6 mm): a row per set with each frame's simulated margin given, as good as the searched
-    row's and in fewer solves' time; the set grown by 10 mm (beyond the range) gets none, said so."""
+    row's; the set grown by 10 mm (beyond the range) gets none, said so."""
     import logging
 
     from dataset_helpers import tracked_retractor_store
@@ -452,7 +452,6 @@ def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, capl
         assert known["count"] == 2 and known["alarm_rate"] == 0.0
         assert known["mlp_offset_max"] < 0.05 * known["peak_median"] < known["rigid_offset_max"]
         assert known["mlp_offset_max"] <= 1.05 * searched["mlp_offset_max"] + 1e-3
-        assert known["seconds_median"] < searched["seconds_median"]
     assert data["meta"]["physics_known_margin"] is True
     (tmp_path / "report").mkdir()
     assert "The <i>physics, margin known</i> rows" in mismatch_section(out, tmp_path / "report")
