@@ -12,7 +12,7 @@ gravity) given as a :class:`~tissuecast.scenario.ScenarioDraw`.
 The estimate is the maximum a posteriori one: marker errors Gaussian with standard deviation
 ``noise`` (mm, each coordinate), ``W`` with the prior of its draws (independent U(-1, 1):
 mean 0, variance 1/3), each continuous parameter with its range's mean and standard deviation
-(log-uniform factors in log space). Levenberg-Marquardt steps: the markers' sensitivities from
+(log-uniform factors in log space). Gauss-Newton steps: the markers' sensitivities from
 the tangent stiffness at the current solution (held dofs eliminated; the parameters' through a
 finite difference of the internal forces), each full solve started from the last one; a step is
 limited to ``STEP_CAP`` prior standard deviations per unknown and halved where the solve fails
@@ -327,7 +327,7 @@ class MarkerInverse:
                 m = 0.0 if m is None else m
                 finished = [(m, 0.0, *frame.iterate(self._mu, m, None, MAX_ITERATIONS, timed=False))]
                 frame.tell("iterated" if attached_margin is None else f"iterated with the attached margin given ({m:+.2f} mm)")
-        except _SOLVE_FAILURES as e:  # only a solve from zero can fail here: the frame has no start
+        except _SOLVE_FAILURES as e:  # the first held set's first solve, from zero: the frame has no start
             raise ConvergenceError(f"the physics inverse found no equilibrium to start the frame from (the known loads "
                                    f"with the prior's mean parameters and no LBO load; {e}): the simulator cannot take "
                                    "this frame's instrument pose or gravity within its solve time") from e
@@ -598,7 +598,11 @@ class _Frame:
             if self.out_of_time():
                 self.tell(f"time is up: {j - 1} of {bracket.size} held sets searched")
                 break
-            x, u = self.iterate(self.best_x, float(candidates[i]), self.best_u, SEARCH_ITERATIONS)
+            try:
+                x, u = self.iterate(self.best_x, float(candidates[i]), self.best_u, SEARCH_ITERATIONS)
+            except _SOLVE_FAILURES:  # no equilibrium with this held set from the best so far, nor from zero
+                self.tell(f"held set {j} of {bracket.size}: no solve converged; left out")
+                continue
             scores[i] = self.objective(x, u)[0] + prior[i]
             searched[i] = (x, u)
             self.tell(f"held set {j} of {bracket.size} searched")
