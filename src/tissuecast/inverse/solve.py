@@ -72,8 +72,8 @@ NOISE_MM = 0.05
 ESTIMATED = CONTINUOUS_PARAMETERS
 #: Finite-difference step of the internal forces in a parameter, in prior standard deviations.
 FD_STEP = PARAMETER_STEP
-#: Iterations while searching the attached margin, and at most when finishing (the damped frames
-#: of the paper preset that swing furthest take 10-20). (Two
+#: Iterations while searching the attached margin, and at most when finishing (damped frames take
+#: more than Gauss-Newton's: docs/uncertainty.md). (Two
 #: found the same estimates on the preset's test-1 frames but missed the held set of a frame with
 #: the region shrunk by 5 mm: docs/uncertainty.md.)
 SEARCH_ITERATIONS = 4
@@ -332,8 +332,7 @@ class MarkerInverse:
                                    f"with the prior's mean parameters and no LBO load; {e}): the simulator cannot take "
                                    "this frame's instrument pose or gravity within its solve time") from e
         finished = frame.retried([(m, p, *frame.polish(x, m, u)) for m, p, x, u in finished])
-        scored = [frame.objective(x, u) for _, _, x, u in finished]
-        objs = np.array([obj + p for (obj, _), (_, p, _, _) in zip(scored, finished)])
+        scored, objs = frame.posteriors(finished)
         w = np.exp(-0.5 * (objs - objs.min()))
         n = self.scenario.mesh.n_vertices
         w /= w.sum()
@@ -353,7 +352,7 @@ class MarkerInverse:
 
     def _given_margin(self, value) -> float:
         """A known attached margin, mm, checked against the scenario's drawn range."""
-        if not self._margins.size:
+        if self.margin_range is None:
             raise ConfigError("the scenario does not draw the attached region's margin ([scenario.uncertain] "
                               "attached_margin): there is no margin to give; leave it out")
         lo, hi = self._margin_range
@@ -538,8 +537,8 @@ class _Frame:
         noise standard deviations (the halved Gauss-Newton steps can end on a branch the solves
         cannot leave); the retry replaces it where it fits better. Not once the frame's time is up."""
         inv = self.inv
-        scores = [self.objective(x, u) for _, _, x, u in finished]
-        b = int(np.argmin([obj + p for (obj, _), (_, p, _, _) in zip(scores, finished)]))
+        scores, objs = self.posteriors(finished)
+        b = int(np.argmin(objs))
         if scores[b][1] <= MISFIT_NOISES * inv.noise or self.out_of_time():
             return finished
         margin, prior, _, _ = finished[b]
@@ -552,6 +551,12 @@ class _Frame:
             finished = finished.copy()
             finished[b] = (margin, prior, x, u)
         return finished
+
+    def posteriors(self, finished: list) -> tuple[list, np.ndarray]:
+        """Of each ``(margin, prior, x, u)`` in ``finished``: its :meth:`objective` (objective,
+        worst marker miss), and (k,) its objective plus its held set's prior ``-2 log P``."""
+        scored = [self.objective(x, u) for _, _, x, u in finished]
+        return scored, np.array([obj + p for (obj, _), (_, p, _, _) in zip(scored, finished)])
 
     def _capped(self, step: np.ndarray) -> np.ndarray:
         """``step`` scaled down so that no unknown moves by more than :data:`STEP_CAP` prior
