@@ -18,6 +18,7 @@ __all__ = [
     "ConfigError",
     "ConvergenceError",
     "SolveTimeout",
+    "IterationLimit",
     "SolverSetupError",
     "DatasetError",
     "ModelError",
@@ -88,6 +89,21 @@ class SolveTimeout(ConvergenceError):
         super().__init__(message)
         self.seconds = float(seconds)
         self.limit = float(limit)
+
+
+class IterationLimit(ConvergenceError):
+    """A solve was stopped because it used more equilibrium iterations than it was allowed
+    (``Solver.solve(iteration_limit=...)``): a budget of work that, unlike a time limit, does
+    not depend on the machine or its load.
+
+    Attributes:
+        iterations: the iterations it had used.  limit: the limit.
+    """
+
+    def __init__(self, message: str, iterations: int, limit: int):
+        super().__init__(message)
+        self.iterations = int(iterations)
+        self.limit = int(limit)
 
 
 class DatasetError(TissuecastError, ValueError):

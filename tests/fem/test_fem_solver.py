@@ -401,6 +401,28 @@ def test_time_limit_stops_a_solve_and_returns_its_factor(beam):
     np.testing.assert_array_equal(res.displacement, solver.solve(f).displacement)
 
 
+def test_iteration_limit_stops_a_solve_at_the_same_point_on_any_machine(beam):
+    """iteration_limit: a solve that needs n iterations converges with the limit n, bitwise as
+    without one, and is stopped with n - 1 (IterationLimit, a ConvergenceError, its factor
+    given back); a limit that is not a whole number of iterations is refused."""
+    from tissuecast.errors import IterationLimit, SolverSetupError
+
+    mesh, fixed, f = beam
+    solver = Solver(Problem(mesh, MAT, fixed, order=2), SolverConfig(strategy="newton"))
+    free = solver.solve(f)
+    assert free.iterations > 2
+    at = solver.solve(f, iteration_limit=free.iterations)
+    np.testing.assert_array_equal(at.nodal_displacement, free.nodal_displacement)
+    with pytest.raises(IterationLimit, match=f"its limit of {free.iterations - 1} spent") as err:
+        solver.solve(f, iteration_limit=free.iterations - 1)
+    assert isinstance(err.value, ConvergenceError) and err.value.iterations == free.iterations - 1
+    assert err.value.limit == free.iterations - 1
+    assert len(solver._idle_factors) == 1  # the stopped run gave its numeric factor back
+    for bad in (-1, 2.5, "10"):
+        with pytest.raises(SolverSetupError, match="iteration_limit must be a non-negative whole number"):
+            solver.solve(f, iteration_limit=bad)
+
+
 def test_batch_time_limit_stops_each_sample_by_its_share(beam):
     """solve_batch(time_limit=): a sample is stopped once its share of the batch's rounds
     passes the limit (SolveTimeout, the others unaffected by a generous limit)."""

@@ -81,7 +81,8 @@ def register(sub) -> None:
                    help="with --physics: standard deviation of a tracked marker coordinate, mm (default 0.05)")
     p.add_argument("--time-limit", type=float, metavar="S",
                    help="with --physics: wall-clock seconds a sample's search may take (default 600; 0: none); past "
-                        "it the best estimate reached is written (the first held set always converges)")
+                        "it the best estimate reached is written (the first held set always converges); without a limit the "
+                        "answer is the same on every machine")
     p.add_argument("--attached-margin", type=float, metavar="MM",
                    help="with --physics: the attached region's margin where it is known (measured in surgery), mm "
                         "along the surface from the planned region, within the drawn range; its held set alone is "

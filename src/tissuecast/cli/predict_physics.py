@@ -16,7 +16,9 @@ of the fit. The estimate is the maximum a posteriori one with the scenario's par
 priors; E and the surroundings' stiffness come back only up to a common scale (a stiffer body
 under larger loads looks the same to the markers). A frame is given ``--time-limit`` seconds
 (:data:`TIME_LIMIT` by default, 0 for none): past it the search stops and the best estimate
-reached is written, said so (the first held set is iterated to convergence regardless). A fit
+reached is written, said so (the first held set is iterated to convergence regardless); without
+a limit the answer does not depend on the machine's speed or load (the solves inside are capped
+by counts of iterations). A fit
 whose worst marker misses by more than
 :data:`~tissuecast.inverse.MISFIT_NOISES` noise standard deviations is flagged with a warning
 (a frame the simulator's family does not explain, or a search that missed; measured in

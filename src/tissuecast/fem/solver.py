@@ -25,7 +25,7 @@ import time
 import numpy as np
 
 from ..config import SolverConfig
-from ..errors import ConvergenceError, SolverSetupError, SolveTimeout
+from ..errors import ConvergenceError, IterationLimit, SolverSetupError, SolveTimeout
 from .assembly import Assembler
 from .linear import LinearSolver, NotPositiveDefinite, make_linear_solver
 from .newton import SolveRun
@@ -98,7 +98,7 @@ class Solver:
 
     # ------------------------------------------------------------------ solves
     def solve(self, forces: np.ndarray, initial_guess: np.ndarray | None = None, *, prescribed=None,
-              body_loads=None, time_limit: float | None = None) -> SolveResult:
+              body_loads=None, time_limit: float | None = None, iteration_limit: int | None = None) -> SolveResult:
         """Solve for the equilibrium under dead nodal forces.
 
         Args:
@@ -124,6 +124,10 @@ class Solver:
                 the "typical force" tiny); they reach it through the reactions they cause.
             time_limit: optional wall-clock limit, s: the solve is stopped (at its next
                 preconditioner application) once it has run longer.
+            iteration_limit: optional number of equilibrium iterations (over all increments,
+                cut-back ones included): a solve that has not converged within them is
+                stopped before it starts another. Unlike ``time_limit`` the same solve stops
+                at the same point on any machine under any load.
 
         Returns:
             The converged :class:`SolveResult` (``nodal_reaction`` also at the solve's
@@ -134,11 +138,16 @@ class Solver:
             ConvergenceError: the minimum increment or the increment budget was reached;
                 ``load_fraction`` and ``result`` (partial) are attached.
             SolveTimeout: (a ConvergenceError) the solve ran past ``time_limit``.
+            IterationLimit: (a ConvergenceError) the solve used more than ``iteration_limit``
+                iterations.
         """
+        if iteration_limit is not None and not (isinstance(iteration_limit, (int, np.integer)) and iteration_limit >= 0):
+            raise SolverSetupError(f"iteration_limit must be a non-negative whole number of iterations (or None), "
+                                   f"got {iteration_limit!r}")
         fext, counted = self._external_forces(forces, body_loads)
         held = self.problem.solve_constraints(prescribed)
-        return _drive(SolveRun(self, fext, self._nodal_guess(initial_guess), held=held, counted=counted).steps(),
-                      time_limit)
+        run = SolveRun(self, fext, self._nodal_guess(initial_guess), held=held, counted=counted)
+        return _drive(run.steps(), time_limit, run.counts if iteration_limit is not None else None, iteration_limit)
 
     def solve_batch(self, forces, initial_guesses=None, prescribed=None, body_loads=None, *,
                     time_limit: float | None = None, parameters=None) -> list:
@@ -269,11 +278,14 @@ class Solver:
         self._idle_factors.append(factor)
 
 
-def _drive(steps, time_limit: float | None = None):
+def _drive(steps, time_limit: float | None = None, counts=None, iteration_limit: int | None = None):
     """Run a generator of preconditioner applications (:meth:`SolveRun.steps`) with one
     solve each; returns the generator's return value. With ``time_limit`` (s), the generator
     is closed and :class:`~tissuecast.errors.SolveTimeout` raised at the first application
-    after that much wall-clock time."""
+    after that much wall-clock time; with ``iteration_limit`` (and the run's
+    :class:`~.result.SolveCounts` ``counts``), :class:`~tissuecast.errors.IterationLimit` at the
+    first application once ``counts.iterations`` reached it (the application would start
+    one more iteration)."""
     t0 = time.perf_counter()
     reply = None
     try:
@@ -284,6 +296,10 @@ def _drive(steps, time_limit: float | None = None):
                 seconds = time.perf_counter() - t0
                 raise SolveTimeout(f"stopped after {seconds:.1f} s, past its time limit of {time_limit:.1f} s",
                                    seconds, time_limit)
+            if iteration_limit is not None and counts.iterations >= iteration_limit:  # v would start one more
+                steps.close()
+                raise IterationLimit(f"stopped after {counts.iterations} iterations without converging, its limit "
+                                     f"of {iteration_limit} spent", counts.iterations, iteration_limit)
             reply = factor.solve(v)
     except StopIteration as stop:
         return stop.value

@@ -94,14 +94,14 @@ DAMPING_UP, DAMPING_DOWN, DAMPING_FLOOR = 10.0, 3.0, 1e-7
 TRIALS = 8
 #: Poisson's ratio stays within these while iterating.
 NU_LIMITS = (0.3, 0.495)
-#: Wall-clock seconds a full solve may take at most: a trial step into a far, soft corner of the
-#: parameters (a body near a limit point) is cut back instead of waited for.
-SOLVE_SECONDS = 20.0
-#: A solve may take this many times as long as the frame's slowest converged one so far (at
-#: least ``SOLVE_FLOOR`` s, at most ``SOLVE_SECONDS``): the cap follows the mesh, the loads and
-#: the machine (docs/uncertainty.md).
-SOLVE_FACTOR = 5.0
-SOLVE_FLOOR = 3.0
+#: Equilibrium iterations a full solve may use at most: a trial step into a far, soft corner of
+#: the parameters (a body near a limit point) is cut back instead of waited for. A count of
+#: iterations, not seconds, so that a frame's answer is the same on any machine under any load.
+SOLVE_ITERATIONS = 400
+#: A solve may use this many times the iterations of the frame's longest converged one so far
+#: (at least ``SOLVE_FLOOR``, at most ``SOLVE_ITERATIONS``): the cap follows the loads.
+SOLVE_FACTOR = 5
+SOLVE_FLOOR = 60
 #: Held sets iterated to convergence after the search.
 FINISHED = 4
 #: A marker that moved less than this many noise standard deviations is taken as held.
@@ -294,6 +294,8 @@ class MarkerInverse:
                 :meth:`_Frame.field`): the estimate is the best reached by then and
                 ``complete`` is False. The first held set (the likeliest a priori; the only
                 one where the margin is not drawn) is iterated to convergence regardless.
+                Without a limit the estimate is the same on every machine (every cap inside is
+                a count of iterations); with one, where it cuts depends on the machine's speed.
             attached_margin: the attached region's margin, mm, where it is known (measured in
                 surgery): its held set alone is iterated, no search (seconds, not minutes, a
                 frame); None: searched over its range.
@@ -302,7 +304,7 @@ class MarkerInverse:
             ConfigError: the displacements do not match the markers, a marker has only some
                 coordinates, or fewer than :data:`MIN_TRACKED` markers are tracked.
             ConvergenceError: no equilibrium to start the frame from (the known loads with the
-                prior's mean parameters) within the solve time cap.
+                prior's mean parameters) within the solve cap (:data:`SOLVE_ITERATIONS`).
         """
         t0 = time.perf_counter()
         d = np.asarray(marker_displacements, dtype=np.float64)
@@ -330,7 +332,7 @@ class MarkerInverse:
         except _SOLVE_FAILURES as e:  # the first held set's first solve, from zero: the frame has no start
             raise ConvergenceError(f"the physics inverse found no equilibrium to start the frame from (the known loads "
                                    f"with the prior's mean parameters and no LBO load; {e}): the simulator cannot take "
-                                   "this frame's instrument pose or gravity within its solve time") from e
+                                   f"this frame's instrument pose or gravity within {SOLVE_ITERATIONS} iterations") from e
         finished = frame.retried([(m, p, *frame.polish(x, m, u)) for m, p, x, u in finished])
         scored, objs = frame.posteriors(finished)
         w = np.exp(-0.5 * (objs - objs.min()))
@@ -387,8 +389,8 @@ class _Frame:
         self.rows = np.isfinite(d)  # (3 n_d,) the tracked markers' coordinates
         self.d = np.where(self.rows, d, 0.0)
         self.solves = 0
-        self.solve_seconds = SOLVE_SECONDS  # a solve's cap (:meth:`field`)
-        self.slowest = 0.0  # s, the slowest converged solve so far
+        self.solve_iterations = SOLVE_ITERATIONS  # a solve's cap (:meth:`field`)
+        self.longest = 0  # iterations of the longest converged solve so far
         self.best_x = inv._mu.copy()
         self.best_u = None
         self.best_obj = math.inf
@@ -406,26 +408,24 @@ class _Frame:
     def field(self, x: np.ndarray, margin: float, guess: np.ndarray | None) -> np.ndarray:
         """(n_nodes, 3) mm: the solution for unknowns ``x`` and margin ``margin``, started from
         ``guess`` (or zero); a failed solve is retried from zero with the cautious solver. Each solve may
-        take :attr:`solve_seconds`: :data:`SOLVE_FACTOR` times the slowest converged one so far,
-        within [:data:`SOLVE_FLOOR`, :data:`SOLVE_SECONDS`]."""
+        use :attr:`solve_iterations` equilibrium iterations: :data:`SOLVE_FACTOR` times the longest
+        converged one so far, within [:data:`SOLVE_FLOOR`, :data:`SOLVE_ITERATIONS`]."""
         inv = self.inv
         inputs = self.inputs(x, margin)
         loads = np.tensordot(x[: 3 * inv.n_basis], inv._unit, axes=1)
         kw = inputs.solve_keywords()
         self.solves += 1
-        t0 = time.perf_counter()
         try:
-            return self._timed(self.solver(inputs).solve(loads, guess, time_limit=self.solve_seconds, **kw), t0)
+            return self._counted(self.solver(inputs).solve(loads, guess, iteration_limit=self.solve_iterations, **kw))
         except _SOLVE_FAILURES:
             pass
         self.solves += 1
-        t0 = time.perf_counter()
-        return self._timed(self.solver(inputs, 1).solve(loads, None, time_limit=self.solve_seconds, **kw), t0)
+        return self._counted(self.solver(inputs, 1).solve(loads, None, iteration_limit=self.solve_iterations, **kw))
 
-    def _timed(self, result, t0: float) -> np.ndarray:
-        """``result``'s displacements (n_nodes, 3) mm; its time (since ``t0``) may raise the cap."""
-        self.slowest = max(self.slowest, time.perf_counter() - t0)
-        self.solve_seconds = min(SOLVE_SECONDS, max(SOLVE_FLOOR, SOLVE_FACTOR * self.slowest))
+    def _counted(self, result) -> np.ndarray:
+        """``result``'s displacements (n_nodes, 3) mm; its iterations may raise the cap."""
+        self.longest = max(self.longest, result.iterations)
+        self.solve_iterations = min(SOLVE_ITERATIONS, max(SOLVE_FLOOR, SOLVE_FACTOR * self.longest))
         return result.nodal_displacement
 
     def jacobian(self, x: np.ndarray, margin: float, u: np.ndarray) -> np.ndarray:
