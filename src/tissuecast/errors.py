@@ -92,12 +92,13 @@ class SolveTimeout(ConvergenceError):
 
 
 class IterationLimit(ConvergenceError):
-    """A solve was stopped because it used more equilibrium iterations than it was allowed
-    (``Solver.solve(iteration_limit=...)``): a budget of work that, unlike a time limit, does
-    not depend on the machine or its load.
+    """A solve was stopped because it needed more equilibrium iterations or numeric
+    factorisations than it was allowed (``Solver.solve(iteration_limit=...,
+    factorization_limit=...)``): a budget of work that, unlike a time limit, does not depend on
+    the machine or its load.
 
     Attributes:
-        iterations: the iterations it had used.  limit: the limit.
+        iterations: the iterations it had used.  limit: the limit it ran into.
     """
 
     def __init__(self, message: str, iterations: int, limit: int):

@@ -404,7 +404,8 @@ def test_time_limit_stops_a_solve_and_returns_its_factor(beam):
 def test_iteration_limit_stops_a_solve_at_the_same_point_on_any_machine(beam):
     """iteration_limit: a solve that needs n iterations converges with the limit n, bitwise as
     without one, and is stopped with n - 1 (IterationLimit, a ConvergenceError, its factor
-    given back); a limit that is not a whole number of iterations is refused."""
+    given back); factorization_limit likewise with its factorisations; a limit that is not a
+    whole number is refused."""
     from tissuecast.errors import IterationLimit, SolverSetupError
 
     mesh, fixed, f = beam
@@ -418,9 +419,16 @@ def test_iteration_limit_stops_a_solve_at_the_same_point_on_any_machine(beam):
     assert isinstance(err.value, ConvergenceError) and err.value.iterations == free.iterations - 1
     assert err.value.limit == free.iterations - 1
     assert len(solver._idle_factors) == 1  # the stopped run gave its numeric factor back
+    assert free.factorizations > 2  # Newton: a factorisation each iteration
+    at = solver.solve(f, factorization_limit=free.factorizations)
+    np.testing.assert_array_equal(at.nodal_displacement, free.nodal_displacement)
+    with pytest.raises(IterationLimit, match=f"its limit of {free.factorizations - 1} factorisations spent") as err:
+        solver.solve(f, factorization_limit=free.factorizations - 1)
+    assert err.value.limit == free.factorizations - 1 and err.value.iterations < free.iterations
     for bad in (-1, 2.5, "10"):
-        with pytest.raises(SolverSetupError, match="iteration_limit must be a non-negative whole number"):
-            solver.solve(f, iteration_limit=bad)
+        for name in ("iteration_limit", "factorization_limit"):
+            with pytest.raises(SolverSetupError, match=f"{name} must be a non-negative whole number"):
+                solver.solve(f, **{name: bad})
 
 
 def test_batch_time_limit_stops_each_sample_by_its_share(beam):

@@ -157,8 +157,9 @@ def test_a_frame_past_its_time_limit_gives_the_best_estimate_reached_and_says_so
 
 
 def test_a_frames_solves_are_capped_at_a_multiple_of_its_longest_one(monkeypatch):
-    """The longest converged solve so far sets the next solves' cap: SOLVE_FACTOR times its
-    iterations within [SOLVE_FLOOR, SOLVE_ITERATIONS] (the first solve has the ceiling); a
+    """The longest converged solve so far sets the next solves' caps: SOLVE_FACTOR times its
+    iterations within [SOLVE_FLOOR, SOLVE_ITERATIONS] (the first solve has the ceiling), and
+    likewise its factorisations; a
     solve past the cap is cut and its step's damping raised, so a cap of (nearly) nothing
     leaves the frame at the prior mean's field after the first solve. A count, not seconds:
     the same frame gives the same bits again."""
@@ -175,10 +176,14 @@ def test_a_frames_solves_are_capped_at_a_multiple_of_its_longest_one(monkeypatch
     assert frame.longest > 0
     assert frame.solve_iterations == min(inverse_solve.SOLVE_ITERATIONS,
                                          max(inverse_solve.SOLVE_FLOOR, inverse_solve.SOLVE_FACTOR * frame.longest))
+    assert frame.solve_factorizations == min(inverse_solve.SOLVE_FACTORIZATIONS,
+                                             max(inverse_solve.FACTORIZATION_FLOOR,
+                                                 inverse_solve.SOLVE_FACTOR * frame.most_factorizations))
     monkeypatch.setattr(inverse_solve, "SOLVE_FACTOR", 10**9)
     frame = _Frame(inv, truth[markers].ravel(), inv._known_inputs(inv.known_draw(2)))
     frame.field(x, 0.0, None)
-    assert frame.solve_iterations == inverse_solve.SOLVE_ITERATIONS
+    assert frame.solve_iterations == inverse_solve.SOLVE_ITERATIONS and frame.most_factorizations > 0
+    assert frame.solve_factorizations == inverse_solve.SOLVE_FACTORIZATIONS
     free = inv.solve(truth[markers], inv.known_draw(2))
     again = inv.solve(truth[markers], inv.known_draw(2))
     assert np.array_equal(free.field, again.field) and free.solves == again.solves
@@ -293,6 +298,74 @@ def test_a_best_fit_that_misses_its_markers_is_iterated_again_damped(monkeypatch
     assert frame.retried([(0.0, 0.0, x2, u2)])[0][2] is x2
 
 
+class _Branches(_Swing):
+    """The swing with a second branch: a solve started from a field of branch A stays on it,
+    except where its swing angle passes ``SNAP`` rad from below (a snap-through: it lands on B);
+    one started from B stays on B; one from zero is on A. B's markers swing 0.5 rad further and
+    move 0.8 times as far: a mediocre fit of a large swing that the iteration cannot leave."""
+
+    SNAP = 1.0
+
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self.branch = {}  # id of a returned field -> (its branch, the field: kept alive)
+
+    def branch_of(self, u):
+        return self.branch[id(u)][0]
+
+    def _angle(self, x):
+        return 2.5 * x[0] + 0.5 * x[1]
+
+    def field(self, x, margin, guess):
+        self.solves += 1
+        b = "A" if guess is None else self.branch_of(guess)
+        if b == "A" and guess is not None and self._angle(self.last) < self.SNAP <= self._angle(x):
+            b = "B"
+        self.last = x.copy()
+        p = MESH.points - MESH.points.mean(axis=0)
+        t = self._angle(x) + (0.5 if b == "B" else 0.0)
+        c, s = np.cos(t), np.sin(t)
+        u = (1.0 if b == "A" else 0.8) * (p @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T - p)
+        self.branch[id(u)] = (b, u)
+        return u
+
+    def jacobian(self, x, margin, u):
+        b = self.branch_of(u)
+        t = self._angle(x) + (0.5 if b == "B" else 0.0)
+        c, s = np.cos(t), np.sin(t)
+        p = (MESH.points - MESH.points.mean(axis=0))[self.inv.markers]
+        dm = (1.0 if b == "A" else 0.8) * (p @ np.array([[-s, -c, 0.0], [c, -s, 0.0], [0.0, 0.0, 0.0]]).T).ravel()
+        J = np.zeros((self.inv.marker_dofs.size, x.size))
+        J[:, 0], J[:, 1] = 2.5 * dm, 0.5 * dm
+        return J
+
+
+def test_an_equilibrium_from_zero_on_another_branch_is_iterated_on(monkeypatch):
+    """Where the warm-started iteration snapped onto another branch (B) and ended on a mediocre
+    fit, the polish's solve from zero finds the branch a sample's solve takes (A): it fits worse
+    at that point, but iterated on it reaches the markers (within their noise). Before session 40
+    the polish kept the warm branch, and the damped retry from the prior mean snaps onto B again."""
+    import tissuecast.inverse.solve as inverse_solve
+
+    sc, solver, markers = _setup(False)
+    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.05)
+    target = np.zeros(inv._mu.size)
+    target[0], target[1] = 0.9, 0.7  # 2.6 rad on A
+    known = inv._known_inputs(inv.known_draw(0))
+    d = _Branches(inv, np.zeros(3 * len(markers)), known).field(target, 0.0, None)[markers]
+    frame = _Branches(inv, d.ravel(), known)
+    x, u = frame.iterate(inv._mu, 0.0, None, MAX_ITERATIONS)
+    assert frame.branch_of(u) == "B" and frame.objective(x, u)[1] > 10 * inverse_solve.MISFIT_NOISES * inv.noise
+    fresh = frame.field(x, 0.0, None)
+    assert frame.objective(x, fresh)[0] > frame.objective(x, u)[0]  # A fits worse there
+    (_, _, x2, u2), = frame.retried([(0.0, 0.0, *frame.polish(x, 0.0, u))])
+    assert frame.branch_of(u2) == "A" and frame.objective(x2, u2)[1] < 0.05
+    assert abs(frame._angle(x2) - 2.6) < 1e-3
+    monkeypatch.setattr(inverse_solve, "BRANCH_NOISES", np.inf)  # the polish before session 40
+    (_, _, x3, u3), = frame.retried([(0.0, 0.0, *frame.polish(x, 0.0, u))])
+    assert frame.branch_of(u3) == "B" and frame.objective(x3, u3)[1] > 10 * inverse_solve.MISFIT_NOISES * inv.noise
+
+
 def test_a_frame_without_an_equilibrium_to_start_from_is_one_clear_error(monkeypatch):
     """Where no solve converges from zero (the frame's known loads beyond what the simulator
     takes within its solve cap), the inverse says so in one ConvergenceError, and the mismatch
@@ -308,10 +381,10 @@ def test_a_frame_without_an_equilibrium_to_start_from_is_one_clear_error(monkeyp
     truth, _ = _simulate(sc, solver, 2)
 
     def never(self, x, margin, guess):
-        raise IterationLimit("stopped after 400 iterations without converging, its limit of 400 spent", 400, 400)
+        raise IterationLimit("stopped after 200 iterations without converging, its limit of 200 spent", 200, 200)
 
     monkeypatch.setattr(_Frame, "field", never)
-    with pytest.raises(ConvergenceError, match="found no equilibrium to start the frame from .* within 400 iterations"):
+    with pytest.raises(ConvergenceError, match="found no equilibrium to start the frame from .* within 200 iterations and 40 factorisations"):
         inv.solve(truth[markers])
     model = SimpleNamespace(markers=markers)
     row = physics_on_set(inv, model, ArraySet(truth[None], MESH, None), interior_targets(MESH), 1)

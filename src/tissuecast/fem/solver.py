@@ -98,7 +98,8 @@ class Solver:
 
     # ------------------------------------------------------------------ solves
     def solve(self, forces: np.ndarray, initial_guess: np.ndarray | None = None, *, prescribed=None,
-              body_loads=None, time_limit: float | None = None, iteration_limit: int | None = None) -> SolveResult:
+              body_loads=None, time_limit: float | None = None, iteration_limit: int | None = None,
+              factorization_limit: int | None = None) -> SolveResult:
         """Solve for the equilibrium under dead nodal forces.
 
         Args:
@@ -128,6 +129,9 @@ class Solver:
                 cut-back ones included): a solve that has not converged within them is
                 stopped before it starts another. Unlike ``time_limit`` the same solve stops
                 at the same point on any machine under any load.
+            factorization_limit: optional number of numeric factorisations (the dominant cost
+                of a solve that factorises its tangents): the solve is stopped before it uses
+                one more; machine-independent like ``iteration_limit``.
 
         Returns:
             The converged :class:`SolveResult` (``nodal_reaction`` also at the solve's
@@ -138,16 +142,16 @@ class Solver:
             ConvergenceError: the minimum increment or the increment budget was reached;
                 ``load_fraction`` and ``result`` (partial) are attached.
             SolveTimeout: (a ConvergenceError) the solve ran past ``time_limit``.
-            IterationLimit: (a ConvergenceError) the solve used more than ``iteration_limit``
-                iterations.
+            IterationLimit: (a ConvergenceError) the solve needed more than ``iteration_limit``
+                iterations or ``factorization_limit`` factorisations.
         """
-        if iteration_limit is not None and not (isinstance(iteration_limit, (int, np.integer)) and iteration_limit >= 0):
-            raise SolverSetupError(f"iteration_limit must be a non-negative whole number of iterations (or None), "
-                                   f"got {iteration_limit!r}")
+        for name, n in (("iteration_limit", iteration_limit), ("factorization_limit", factorization_limit)):
+            if n is not None and not (isinstance(n, (int, np.integer)) and n >= 0):
+                raise SolverSetupError(f"{name} must be a non-negative whole number (or None), got {n!r}")
         fext, counted = self._external_forces(forces, body_loads)
         held = self.problem.solve_constraints(prescribed)
         run = SolveRun(self, fext, self._nodal_guess(initial_guess), held=held, counted=counted)
-        return _drive(run.steps(), time_limit, run.counts if iteration_limit is not None else None, iteration_limit)
+        return _drive(run.steps(), time_limit, run.counts, iteration_limit, factorization_limit)
 
     def solve_batch(self, forces, initial_guesses=None, prescribed=None, body_loads=None, *,
                     time_limit: float | None = None, parameters=None) -> list:
@@ -278,14 +282,16 @@ class Solver:
         self._idle_factors.append(factor)
 
 
-def _drive(steps, time_limit: float | None = None, counts=None, iteration_limit: int | None = None):
+def _drive(steps, time_limit: float | None = None, counts=None, iteration_limit: int | None = None,
+           factorization_limit: int | None = None):
     """Run a generator of preconditioner applications (:meth:`SolveRun.steps`) with one
     solve each; returns the generator's return value. With ``time_limit`` (s), the generator
     is closed and :class:`~tissuecast.errors.SolveTimeout` raised at the first application
     after that much wall-clock time; with ``iteration_limit`` (and the run's
     :class:`~.result.SolveCounts` ``counts``), :class:`~tissuecast.errors.IterationLimit` at the
     first application once ``counts.iterations`` reached it (the application would start
-    one more iteration)."""
+    one more iteration), and with ``factorization_limit`` at the first application of a
+    factorisation past it."""
     t0 = time.perf_counter()
     reply = None
     try:
@@ -300,6 +306,11 @@ def _drive(steps, time_limit: float | None = None, counts=None, iteration_limit:
                 steps.close()
                 raise IterationLimit(f"stopped after {counts.iterations} iterations without converging, its limit "
                                      f"of {iteration_limit} spent", counts.iterations, iteration_limit)
+            if factorization_limit is not None and counts.factorizations > factorization_limit:
+                steps.close()
+                raise IterationLimit(f"stopped after {counts.iterations} iterations without converging, its limit "
+                                     f"of {factorization_limit} factorisations spent", counts.iterations,
+                                     factorization_limit)
             reply = factor.solve(v)
     except StopIteration as stop:
         return stop.value

@@ -94,14 +94,17 @@ DAMPING_UP, DAMPING_DOWN, DAMPING_FLOOR = 10.0, 3.0, 1e-7
 TRIALS = 8
 #: Poisson's ratio stays within these while iterating.
 NU_LIMITS = (0.3, 0.495)
-#: Equilibrium iterations a full solve may use at most: a trial step into a far, soft corner of
-#: the parameters (a body near a limit point) is cut back instead of waited for. A count of
-#: iterations, not seconds, so that a frame's answer is the same on any machine under any load.
-SOLVE_ITERATIONS = 400
-#: A solve may use this many times the iterations of the frame's longest converged one so far
-#: (at least ``SOLVE_FLOOR``, at most ``SOLVE_ITERATIONS``): the cap follows the loads.
+#: Equilibrium iterations and numeric factorisations a full solve may use at most: a trial step
+#: into a far, soft corner of the parameters (a body near a limit point) is cut back instead of
+#: waited for. Counts of work, not seconds, so that a frame's answer is the same on any machine
+#: under any load; two, as a warm solve's iterations cost a preconditioned Krylov solve each and
+#: the cautious retry's a factorisation each.
+SOLVE_ITERATIONS, SOLVE_FACTORIZATIONS = 200, 40
+#: A solve may use this many times the iterations (factorisations) of the frame's longest
+#: converged one so far, at least ``SOLVE_FLOOR`` (``FACTORIZATION_FLOOR``) and at most the
+#: above: the caps follow the loads.
 SOLVE_FACTOR = 5
-SOLVE_FLOOR = 60
+SOLVE_FLOOR, FACTORIZATION_FLOOR = 40, 8
 #: Held sets iterated to convergence after the search.
 FINISHED = 4
 #: A marker that moved less than this many noise standard deviations is taken as held.
@@ -111,6 +114,9 @@ MIN_TRACKED = 3
 #: A fit whose worst marker misses by more than this many noise standard deviations is flagged:
 #: the simulator's loads and parameters do not explain the frame (or the search missed them).
 MISFIT_NOISES = 4.0
+#: A solve from zero whose field differs anywhere from the warm-started one's by more than this
+#: many noise standard deviations is on another branch (another equilibrium of the same loads).
+BRANCH_NOISES = 4.0
 #: A full solve that stopped or broke down (as the data set's worker counts them).
 _SOLVE_FAILURES = (ConvergenceError, ArithmeticError, np.linalg.LinAlgError)
 
@@ -304,7 +310,7 @@ class MarkerInverse:
             ConfigError: the displacements do not match the markers, a marker has only some
                 coordinates, or fewer than :data:`MIN_TRACKED` markers are tracked.
             ConvergenceError: no equilibrium to start the frame from (the known loads with the
-                prior's mean parameters) within the solve cap (:data:`SOLVE_ITERATIONS`).
+                prior's mean parameters) within the solve caps (:data:`SOLVE_ITERATIONS`, :data:`SOLVE_FACTORIZATIONS`).
         """
         t0 = time.perf_counter()
         d = np.asarray(marker_displacements, dtype=np.float64)
@@ -332,7 +338,8 @@ class MarkerInverse:
         except _SOLVE_FAILURES as e:  # the first held set's first solve, from zero: the frame has no start
             raise ConvergenceError(f"the physics inverse found no equilibrium to start the frame from (the known loads "
                                    f"with the prior's mean parameters and no LBO load; {e}): the simulator cannot take "
-                                   f"this frame's instrument pose or gravity within {SOLVE_ITERATIONS} iterations") from e
+                                   f"this frame's instrument pose or gravity within {SOLVE_ITERATIONS} iterations and "
+                                   f"{SOLVE_FACTORIZATIONS} factorisations") from e
         finished = frame.retried([(m, p, *frame.polish(x, m, u)) for m, p, x, u in finished])
         scored, objs = frame.posteriors(finished)
         w = np.exp(-0.5 * (objs - objs.min()))
@@ -389,8 +396,10 @@ class _Frame:
         self.rows = np.isfinite(d)  # (3 n_d,) the tracked markers' coordinates
         self.d = np.where(self.rows, d, 0.0)
         self.solves = 0
-        self.solve_iterations = SOLVE_ITERATIONS  # a solve's cap (:meth:`field`)
+        self.solve_iterations = SOLVE_ITERATIONS  # a solve's caps (:meth:`field`)
+        self.solve_factorizations = SOLVE_FACTORIZATIONS
         self.longest = 0  # iterations of the longest converged solve so far
+        self.most_factorizations = 0  # factorisations of a converged solve so far, at most
         self.best_x = inv._mu.copy()
         self.best_u = None
         self.best_obj = math.inf
@@ -408,24 +417,30 @@ class _Frame:
     def field(self, x: np.ndarray, margin: float, guess: np.ndarray | None) -> np.ndarray:
         """(n_nodes, 3) mm: the solution for unknowns ``x`` and margin ``margin``, started from
         ``guess`` (or zero); a failed solve is retried from zero with the cautious solver. Each solve may
-        use :attr:`solve_iterations` equilibrium iterations: :data:`SOLVE_FACTOR` times the longest
-        converged one so far, within [:data:`SOLVE_FLOOR`, :data:`SOLVE_ITERATIONS`]."""
+        use :attr:`solve_iterations` equilibrium iterations (:data:`SOLVE_FACTOR` times the longest
+        converged one so far, within [:data:`SOLVE_FLOOR`, :data:`SOLVE_ITERATIONS`]) and
+        :attr:`solve_factorizations` factorisations (likewise)."""
         inv = self.inv
         inputs = self.inputs(x, margin)
         loads = np.tensordot(x[: 3 * inv.n_basis], inv._unit, axes=1)
         kw = inputs.solve_keywords()
+        kw.update(iteration_limit=self.solve_iterations, factorization_limit=self.solve_factorizations)
         self.solves += 1
         try:
-            return self._counted(self.solver(inputs).solve(loads, guess, iteration_limit=self.solve_iterations, **kw))
+            return self._counted(self.solver(inputs).solve(loads, guess, **kw))
         except _SOLVE_FAILURES:
             pass
         self.solves += 1
-        return self._counted(self.solver(inputs, 1).solve(loads, None, iteration_limit=self.solve_iterations, **kw))
+        return self._counted(self.solver(inputs, 1).solve(loads, None, **kw))
 
     def _counted(self, result) -> np.ndarray:
-        """``result``'s displacements (n_nodes, 3) mm; its iterations may raise the cap."""
+        """``result``'s displacements (n_nodes, 3) mm; its iterations and factorisations may
+        raise the caps."""
         self.longest = max(self.longest, result.iterations)
+        self.most_factorizations = max(self.most_factorizations, result.factorizations)
         self.solve_iterations = min(SOLVE_ITERATIONS, max(SOLVE_FLOOR, SOLVE_FACTOR * self.longest))
+        self.solve_factorizations = min(SOLVE_FACTORIZATIONS,
+                                        max(FACTORIZATION_FLOOR, SOLVE_FACTOR * self.most_factorizations))
         return result.nodal_displacement
 
     def jacobian(self, x: np.ndarray, margin: float, u: np.ndarray) -> np.ndarray:
@@ -567,17 +582,28 @@ class _Frame:
     def polish(self, x: np.ndarray, margin: float, u: np.ndarray):
         """``(x, u)`` once more from a solve started at zero: where the loads have more than one
         equilibrium the warm-started solves can follow another branch than a sample's solve
-        (which starts near zero); if the field from zero fits better, iterate on from it. Not
-        once the frame's time is up."""
+        (which starts near zero). If the field from zero fits better, iterate on from it; if it
+        is another branch (:data:`BRANCH_NOISES`) that fits worse at ``x``, iterate on from it
+        too and keep the better fit (the branch a sample's solve takes can fit the markers far
+        better elsewhere). Not once the frame's time is up."""
         if self.out_of_time():
             return x, u
         try:
             fresh = self.field(x, margin, None)
         except _SOLVE_FAILURES:
             return x, u
-        if self.objective(x, fresh)[0] < self.objective(x, u)[0] - 1e-9:
+        here = self.objective(x, u)[0]
+        if self.objective(x, fresh)[0] < here - 1e-9:
             return self.iterate(x, margin, fresh, MAX_ITERATIONS)
-        return x, u
+        if np.linalg.norm(fresh - u, axis=1).max() <= BRANCH_NOISES * self.inv.noise:
+            return x, u
+        try:
+            x2, u2 = self.iterate(x, margin, fresh, MAX_ITERATIONS)
+        except _SOLVE_FAILURES:
+            return x, u
+        better = self.objective(x2, u2)[0] < here
+        self.tell(f"the solve from zero took another equilibrium; iterated on from it ({'kept' if better else 'not better'})")
+        return (x2, u2) if better else (x, u)
 
     def search_margin(self, candidates: np.ndarray, prior: np.ndarray) -> list:
         """The held sets' search (module notes) over ``candidates`` (k,) mm with their ``prior``
