@@ -384,7 +384,8 @@ def test_a_frame_without_an_equilibrium_to_start_from_is_one_clear_error(monkeyp
         raise IterationLimit("stopped after 200 iterations without converging, its limit of 200 spent", 200, 200)
 
     monkeypatch.setattr(_Frame, "field", never)
-    with pytest.raises(ConvergenceError, match="found no equilibrium to start the frame from .* within 200 iterations and 40 factorisations"):
+    with pytest.raises(ConvergenceError,
+                       match="found no equilibrium to start the frame from .* within 200 iterations and 40 factorisations"):
         inv.solve(truth[markers])
     model = SimpleNamespace(markers=markers)
     row = physics_on_set(inv, model, ArraySet(truth[None], MESH, None), interior_targets(MESH), 1)
