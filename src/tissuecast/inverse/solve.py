@@ -583,8 +583,9 @@ class _Frame:
         """``(x, u)`` once more from a solve started at zero: where the loads have more than one
         equilibrium the warm-started solves can follow another branch than a sample's solve
         (which starts near zero). If the field from zero fits better, iterate on from it; if it
-        is another branch (:data:`BRANCH_NOISES`) that fits worse at ``x``, iterate on from it
-        too and keep the better fit (the branch a sample's solve takes can fit the markers far
+        is another branch (:data:`BRANCH_NOISES`) that fits worse at ``x``, take
+        :data:`SEARCH_ITERATIONS` steps on it, and where they fit better than ``(x, u)``, go on
+        to convergence and keep that (the branch a sample's solve takes can fit the markers far
         better elsewhere). Not once the frame's time is up."""
         if self.out_of_time():
             return x, u
@@ -597,11 +598,13 @@ class _Frame:
             return self.iterate(x, margin, fresh, MAX_ITERATIONS)
         if np.linalg.norm(fresh - u, axis=1).max() <= BRANCH_NOISES * self.inv.noise:
             return x, u
-        try:
-            x2, u2 = self.iterate(x, margin, fresh, MAX_ITERATIONS)
+        try:  # a few steps on the other branch first: on to convergence only where they already fit better
+            x2, u2 = self.iterate(x, margin, fresh, SEARCH_ITERATIONS)
+            better = self.objective(x2, u2)[0] < here
+            if better:
+                x2, u2 = self.iterate(x2, margin, u2, MAX_ITERATIONS)
         except _SOLVE_FAILURES:
             return x, u
-        better = self.objective(x2, u2)[0] < here
         self.tell(f"the solve from zero took another equilibrium; iterated on from it ({'kept' if better else 'not better'})")
         return (x2, u2) if better else (x, u)
 
