@@ -18,7 +18,7 @@ under larger loads looks the same to the markers). A frame is given ``--time-lim
 (:data:`TIME_LIMIT` by default, 0 for none): past it the search stops and the best estimate
 reached is written, said so (the first held set is iterated to convergence regardless); without
 a limit the answer does not depend on the machine's speed or load (the solves inside are capped
-by counts of iterations). A fit
+by counts of iterations and factorisations). A fit
 whose worst marker misses by more than
 :data:`~tissuecast.inverse.MISFIT_NOISES` noise standard deviations is flagged with a warning
 (a frame the simulator's family does not explain, or a search that missed; measured in

@@ -301,7 +301,7 @@ class MarkerInverse:
                 ``complete`` is False. The first held set (the likeliest a priori; the only
                 one where the margin is not drawn) is iterated to convergence regardless.
                 Without a limit the estimate is the same on every machine (every cap inside is
-                a count of iterations); with one, where it cuts depends on the machine's speed.
+                a count of iterations or factorisations); with one, where it cuts depends on the machine's speed.
             attached_margin: the attached region's margin, mm, where it is known (measured in
                 surgery): its held set alone is iterated, no search (seconds, not minutes, a
                 frame); None: searched over its range.
