@@ -1,12 +1,17 @@
 """benchmarks/scenario_solve_time.py runs end to end on two small configs (a coarse box, the
-paper's pins against a provisional embedded scenario) and reports both data sets' figures and
-their ratio (figures themselves are not asserted: timings belong to idle machines)."""
+paper's pins against a provisional embedded scenario; one config with uncertain parameters
+against itself at its nominal ones) and reports both data sets' figures and their ratio
+(figures themselves are not asserted: timings belong to idle machines)."""
 
 from __future__ import annotations
 
 from bench_helpers import load_benchmark
 from mesh_factories import box_mesh
 
+import numpy as np
+import pytest
+
+from tissuecast.dataset import open_dataset
 from tissuecast.mesh import write_mesh
 
 COMMON = """
@@ -53,3 +58,21 @@ def test_solve_time_benchmark_runs_both_configs(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "5/5" in out and out.count("5/5") == 2 and "ratio embedded / paper per sample" in out
     assert (tmp_path / "stores" / "embedded.zarr").is_dir()
+
+
+def test_solve_time_benchmark_compares_a_config_with_its_nominal_parameters(tmp_path, capsys):
+    bench = load_benchmark("scenario_solve_time")
+    write_mesh(tmp_path / "box.vtu", box_mesh(3, 3, 6, (20.0, 20.0, 40.0)))
+    common = COMMON.format(mesh=tmp_path / "box.vtu", store=tmp_path / "unused.zarr")
+    uncertain = "[scenario.uncertain]\nyoungs_modulus = [0.5, 2.0]\nattached_margin = [-2.0, 2.0]\n"
+    (tmp_path / "embedded.toml").write_text('name = "embedded-box"\n' + common + EMBEDDED + uncertain)
+    with pytest.raises(SystemExit):
+        bench.main([str(tmp_path / "embedded.toml"), str(tmp_path / "embedded.toml"), "--nominal"])
+    assert bench.main([str(tmp_path / "embedded.toml"), "--nominal", "--samples", "4", "--predictor-samples", "2",
+                       "--keep", str(tmp_path / "stores")]) == 0
+    out = capsys.readouterr().out
+    assert out.count("4/4") == 2 and "ratio embedded / embedded (nominal) per sample" in out and "1.2x" in out
+    nominal = open_dataset(tmp_path / "stores" / "embedded-nominal.zarr")
+    drawn = open_dataset(tmp_path / "stores" / "embedded.zarr")
+    assert not nominal.parameters and set(drawn.parameters) == {"youngs_modulus", "attached_margin"}
+    assert np.ptp(drawn.parameters["youngs_modulus"]) > 0.0

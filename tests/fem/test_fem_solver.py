@@ -467,3 +467,37 @@ def test_one_blas_thread_limits_every_loaded_blas_and_restores_the_limits():
         inside = blas_threads()
     assert inside.keys() == before.keys() and set(inside.values()) == {1}
     assert blas_threads() == before
+
+
+@pytest.mark.parametrize("strategy", ["krylov", "newton"])
+def test_krylov_tries_an_increment_that_failed_twice_with_exact_newton_steps(beam, monkeypatch, strategy):
+    """With Krylov directions, the second failed increment in a row is tried again at the same
+    load step with a factorisation every iteration (a limit point is not passed by cutting the
+    step); the next converged increment goes back to Krylov. Other strategies only cut back."""
+    from tissuecast.fem.convergence import IncrementFailed
+
+    mesh, fixed, f = beam
+    prob = Problem(mesh, MAT, fixed, order=1)
+    cfg = dataclasses.replace(SolverConfig(), strategy=strategy, initial_increment=0.5)
+    reference = Solver(prob, cfg).solve(f)
+    original = SolveRun._increment
+    calls = []
+
+    def scripted(self, u, u_start, lam, qhist):
+        calls.append((lam, self.exact, self.counts.factorizations, self.counts.iterations))
+        if len(calls) <= 2:
+            raise IncrementFailed("scripted failure")
+        return (yield from original(self, u, u_start, lam, qhist))
+
+    monkeypatch.setattr(SolveRun, "_increment", scripted)
+    res = Solver(prob, cfg).solve(f)
+    assert res.converged and np.abs(res.displacement - reference.displacement).max() <= 0.02 * reference.max_displacement
+    (lam0, exact0, *_), (lam1, exact1, *_), (lam2, exact2, fac2, it2), (lam3, exact3, fac3, it3) = calls[:4]
+    assert lam0 == 0.5 and lam1 == 0.125 and not exact0 and not exact1
+    if strategy == "krylov":
+        assert lam2 == lam1 and exact2  # the same step again, exact
+        assert fac3 - fac2 == it3 - it2 >= 1  # one factorisation an iteration
+        assert not exact3 and lam3 > lam2
+        assert res.factorizations < reference.factorizations + (it3 - it2) + 2  # Krylov again after it
+    else:
+        assert lam2 == 0.125 / 4 and not exact2

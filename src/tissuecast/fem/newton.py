@@ -31,6 +31,11 @@ prescribed displacements scale with ``lambda``):
    next one 1.5x larger; a failed one is retried with a quarter of the load step; below
    ``min_increment`` or after ``max_increments`` attempts
    :class:`~tissuecast.errors.ConvergenceError` is raised with the load fraction reached.
+   With ``"krylov"``, an increment that fails right after a failed one is tried again at the
+   same load step with exact Newton directions (a factorisation every iteration) and twice
+   ``max_iterations``, until an increment converges: past a limit point the body snaps to a
+   distant equilibrium, which smaller load steps do not bring closer and inexact directions
+   approach only slowly.
 
 A :class:`SolveRun` is made by :class:`~tissuecast.fem.solver.Solver` for every solve and
 holds everything that lives for that solve only: the external loads and prescribed values
@@ -135,6 +140,8 @@ class SolveRun(SearchDirections):
 
     Attributes:
         fext, counted, guess, prescribed: as given (``prescribed`` the problem's by default).
+        exact: the increment being tried takes exact Newton directions (step 5 of the module
+            notes: ``"krylov"`` after two failed increments in a row).
         Those of :class:`~tissuecast.fem.directions.SearchDirections` (``counts``, ``tau``,
         ``rotation``, ``recycled``, ``active``, ``factor_valid``, ``linear``, the held dofs).
     """
@@ -148,6 +155,7 @@ class SolveRun(SearchDirections):
         self.counted = counted
         self.guess = guess
         self.prescribed = solver.prescribed_values if prescribed is None else prescribed
+        self.exact = False
         cfg = self.config
         if guess is not None and cfg.strategy == "krylov" and cfg.reference_preconditioner:
             reference = solver.reference_factor()
@@ -168,6 +176,7 @@ class SolveRun(SearchDirections):
         lam, dlam = 0.0, (1.0 if self.guess is not None else float(cfg.initial_increment))
         prev = None  # (increment displacement, increment size) of the last converged increment
         increments = cutbacks = attempts = 0
+        failed_last = False  # the last increment tried failed
         qhist: list = []
         try:
             while lam < 1.0:
@@ -184,12 +193,18 @@ class SolveRun(SearchDirections):
                 except IncrementFailed as exc:
                     cutbacks += 1
                     self.factor_valid = False
+                    failed_before, failed_last = failed_last, True
+                    if failed_before and cfg.strategy == "krylov" and not self.exact:
+                        self.exact = True
+                        log.debug("increment to %.4g failed again (%s); trying it with exact Newton steps", lam_new, exc)
+                        continue
                     dlam *= CUTBACK
                     if dlam < cfg.min_increment or attempts > cfg.max_increments:
                         raise self._stopped(u_conv, lam, increments, cutbacks, exc) from None
                     log.debug("increment to %.4g failed (%s); cutting back to %.4g", lam_new, exc, dlam)
                     continue
                 increments += 1
+                self.exact = failed_last = False
                 prev = (u - u_conv, lam_new - lam)
                 u_conv, lam = u, lam_new
                 if self.counts.iterations - it0 <= cfg.grow_iterations:
@@ -252,7 +267,8 @@ class SolveRun(SearchDirections):
         cfg = self.config
         free = self.solver.free_dofs
         fext = lam * self.fext
-        track = _Iterations(need_factor=cfg.strategy == "newton" or not self.factor_valid, start=u_start[free])
+        track = _Iterations(need_factor=cfg.strategy == "newton" or self.exact or not self.factor_valid,
+                            start=u_start[free])
         u = yield from self._lift(u, lam, track)
         energy, fint, jmin = self.assembler.energy_and_force(u.reshape(-1, 3))
         if not jmin > 0.0:
@@ -263,7 +279,8 @@ class SolveRun(SearchDirections):
         if len(r) == 0 or float(np.abs(r).max()) <= RESIDUAL_ALONE * cfg.force_tolerance * q0:
             qhist.append(q0)
             return u  # already in equilibrium (e.g. no load at all)
-        for _ in range(cfg.max_iterations):
+        iterations = cfg.max_iterations * (2 if self.exact else 1)
+        for _ in range(iterations):
             d = yield from self._direction(u, r, track)
             step = self._line_search(u, d, pi, r, fext)
             if step is None:
@@ -280,7 +297,7 @@ class SolveRun(SearchDirections):
                 qhist.append(self._reference_force(u, fint, fext, lam))
                 return u
             self._next_iteration(track, np.linalg.norm(r) / max(rnorm_old, _TINY))
-        raise IncrementFailed(f"no convergence in {cfg.max_iterations} iterations")
+        raise IncrementFailed(f"no convergence in {iterations} iterations")
 
     def _lift(self, u: np.ndarray, lam: float, track: _Iterations):
         """Move the held dofs to ``lam`` times their values, the rest of the body by the linear
@@ -364,6 +381,6 @@ class SolveRun(SearchDirections):
         cfg = self.config
         track.reuses += 0 if track.fresh else 1
         track.fresh = False
-        track.need_factor = cfg.strategy == "newton" or (
+        track.need_factor = cfg.strategy == "newton" or self.exact or (
             cfg.strategy == "quasi-newton" and (ratio > cfg.refactor_ratio or track.reuses >= cfg.max_quasi_newton))
 
