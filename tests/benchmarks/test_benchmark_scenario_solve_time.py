@@ -74,5 +74,6 @@ def test_solve_time_benchmark_compares_a_config_with_its_nominal_parameters(tmp_
     assert out.count("4/4") == 2 and "ratio embedded / embedded (nominal) per sample" in out and "1.2x" in out
     nominal = open_dataset(tmp_path / "stores" / "embedded-nominal.zarr")
     drawn = open_dataset(tmp_path / "stores" / "embedded.zarr")
-    assert not nominal.parameters and set(drawn.parameters) == {"youngs_modulus", "attached_margin"}
-    assert np.ptp(drawn.parameters["youngs_modulus"]) > 0.0
+    assert not nominal.parameters  # nothing drawn
+    spread = {name: float(np.ptp(values)) for name, values in drawn.parameters.items()}
+    assert spread["youngs_modulus"] > 0.0 and spread["attached_margin"] > 0.0 and not spread["poisson_ratio"] > 0.0
