@@ -48,9 +48,8 @@ def time_config(path: str, samples: int, predictor_samples: int, folder: Path, n
     cfg = load_config(path)
     dataset = {"n_samples": samples, "n_test2": 0, "calibration_samples": min(cfg.dataset.calibration_samples, 8),
                "predictor_samples": min(predictor_samples, max(2, samples - 2)), "workers": 1}
-    cfg = with_overrides(cfg, dataset=dataset)
-    if nominal:
-        cfg = with_overrides(cfg, scenario={"uncertain": nothing_drawn()})
+    cfg = with_overrides(cfg, dataset=dataset, **({"scenario": {"uncertain": nothing_drawn()}} if nominal else {}))
+    label = " (nominal)" if nominal else ""
     store = folder / (Path(path).stem + ("-nominal" if nominal else "") + ".zarr")
     t0 = time.perf_counter()
     simulate(cfg, store, progress=False, workers=1)
@@ -58,7 +57,7 @@ def time_config(path: str, samples: int, predictor_samples: int, folder: Path, n
     ds = open_dataset(store)
     done = ds.select(status="done")
     sec, its, fac = ds.seconds[done], ds.iterations[done], ds.factorizations[done]
-    return {"config": path + (" (nominal)" if nominal else ""), "name": Path(path).stem + (" (nominal)" if nominal else ""),
+    return {"config": path + label, "name": Path(path).stem + label,
             "scenario": cfg.scenario.name, "done": len(done), "of": len(ds), "median_s": float(np.median(sec)),
             "mean_s": float(np.mean(sec)), "iterations": float(np.mean(its)), "factorizations": float(np.mean(fac)),
             "predicted": int(np.sum(ds.predicted[done] == InitialGuess.REDUCED_MODEL)),

@@ -11,7 +11,7 @@ from mesh_factories import box_grid
 from tissuecast.config import SolverConfig
 from tissuecast.errors import ConvergenceError, SolverSetupError
 from tissuecast.fem import NeoHookean, Problem, SolveResult, Solver, solve
-from tissuecast.fem.newton import SolveRun
+from tissuecast.fem.newton import IncrementFailed, SolveRun
 from tissuecast.fem.solver import _drive
 
 MAT = NeoHookean(0.021, 0.45)
@@ -474,8 +474,6 @@ def test_krylov_tries_an_increment_that_failed_twice_with_exact_newton_steps(bea
     """With Krylov directions, the second failed increment in a row is tried again at the same
     load step with a factorisation every iteration (a limit point is not passed by cutting the
     step); the next converged increment goes back to Krylov. Other strategies only cut back."""
-    from tissuecast.fem.convergence import IncrementFailed
-
     mesh, fixed, f = beam
     prob = Problem(mesh, MAT, fixed, order=1)
     cfg = dataclasses.replace(SolverConfig(), strategy=strategy, initial_increment=0.5)
