@@ -13,10 +13,17 @@ ratio B / A.
     python benchmarks/scenario_solve_time.py configs/paper.toml configs/embedded.toml
     python benchmarks/scenario_solve_time.py A.toml B.toml --samples 20 --keep runs/bench
     python benchmarks/scenario_solve_time.py configs/embedded.toml --nominal --samples 240
+    python benchmarks/scenario_solve_time.py configs/embedded.toml --nominal --samples 120 --mesh brain
 
 With ``--nominal`` one config is compared with itself at its nominal parameters (A: its
 ``[scenario.uncertain]`` ranges emptied, nothing drawn; B: as given): what the uncertain
 parameters cost in time (the mismatch issue's target: at most 1.2x).
+
+With ``--mesh`` both configs run on another mesh: a mesh file, or one of the organ shapes of
+``benchmarks/organ_meshes.py`` (``brain``: the MNI left hemisphere at ``--brain-size`` mm, 3465
+vertices at 7.5; it needs nilearn), built into ``--keep`` (or the temporary folder). A config
+with an instrument has its access point and patch radius fitted to the mesh as
+``benchmarks/organ_speed.py`` does (:func:`organ_meshes.embedded_overrides`).
 
 Timings of a shared machine are inflated by whatever else runs on it; take the figure on an
 idle machine and compare the ratio of one run only.
@@ -41,14 +48,25 @@ from tissuecast.config import load_config, nothing_drawn, with_overrides  # noqa
 from tissuecast.dataset import open_dataset, simulate  # noqa: E402
 from tissuecast.dataset.codes import InitialGuess  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import organ_meshes  # noqa: E402
 
-def time_config(path: str, samples: int, predictor_samples: int, folder: Path, nominal: bool = False) -> dict:
+
+def time_config(path: str, samples: int, predictor_samples: int, folder: Path, nominal: bool = False,
+                mesh: Path | None = None) -> dict:
     """Make the small data set of config ``path`` in ``folder`` and read its per-sample figures
-    (``nominal``: with the config's uncertain parameters at their nominal values)."""
+    (``nominal``: with the config's uncertain parameters at their nominal values; ``mesh``: on
+    this mesh file instead of the config's, an instrument's access fitted to it)."""
     cfg = load_config(path)
     dataset = {"n_samples": samples, "n_test2": 0, "calibration_samples": min(cfg.dataset.calibration_samples, 8),
                "predictor_samples": min(predictor_samples, max(2, samples - 2)), "workers": 1}
-    cfg = with_overrides(cfg, dataset=dataset, **({"scenario": {"uncertain": nothing_drawn()}} if nominal else {}))
+    scenario = {"uncertain": nothing_drawn()} if nominal else {}
+    over = {}
+    if mesh is not None:
+        over["mesh"] = {"path": str(mesh)}
+        if cfg.scenario.indentation.enabled:
+            scenario.update(organ_meshes.embedded_overrides(mesh, cfg))
+    cfg = with_overrides(cfg, dataset=dataset, **over, **({"scenario": scenario} if scenario else {}))
     label = " (nominal)" if nominal else ""
     store = folder / (Path(path).stem + ("-nominal" if nominal else "") + ".zarr")
     t0 = time.perf_counter()
@@ -77,6 +95,10 @@ def main(argv=None) -> int:
                     help="samples solved from zero that build the reduced-order predictor, if the config uses one "
                     "(default 8; the rest start from its prediction, as in data generation)")
     ap.add_argument("--keep", metavar="DIR", help="keep the two stores here (default: a temporary folder)")
+    ap.add_argument("--mesh", default="", help="run both configs on this mesh: a mesh file or one of "
+                    + ", ".join(m for m in organ_meshes.MESHES if m != "phantom") + " (built here; see the notes)")
+    ap.add_argument("--brain-size", type=float, default=7.5, help="--mesh brain: gmsh size, mm (7.5: ~3500 vertices)")
+    ap.add_argument("--fsaverage-size", type=float, default=7.4, help="--mesh brain-fsaverage: mesh size, mm")
     args = ap.parse_args(argv)
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="tissuecast-solve-time-"))
     folder.mkdir(parents=True, exist_ok=True)
@@ -84,7 +106,14 @@ def main(argv=None) -> int:
         ap.error("give two configs, or one config and --nominal")
     pairs = ([(args.baseline, True), (args.baseline, False)] if args.nominal
              else [(args.baseline, False), (args.scenario, False)])
-    rows = [time_config(p, args.samples, args.predictor_samples, folder, nominal) for p, nominal in pairs]
+    mesh = None
+    if args.mesh in organ_meshes.MESHES:
+        mesh, _ = organ_meshes.build([args.mesh], folder, args)[args.mesh]
+    elif args.mesh:
+        mesh = Path(args.mesh)
+        if not mesh.is_file():
+            ap.error(f"--mesh {args.mesh!r} is neither a mesh file nor one of {', '.join(organ_meshes.MESHES)}")
+    rows = [time_config(p, args.samples, args.predictor_samples, folder, nominal, mesh) for p, nominal in pairs]
     head = (f"{'config':<34} {'scenario':<12}{'done':>8}{'median s':>10}{'mean s':>9}{'Newton':>8}{'factor':>8}"
             f"{'predicted':>10}{'retried':>8}{'peak mm':>9}{'wall s':>8}")
     print(head)

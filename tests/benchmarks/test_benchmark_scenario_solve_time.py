@@ -68,12 +68,17 @@ def test_solve_time_benchmark_compares_a_config_with_its_nominal_parameters(tmp_
     (tmp_path / "embedded.toml").write_text('name = "embedded-box"\n' + common + EMBEDDED + uncertain)
     with pytest.raises(SystemExit):
         bench.main([str(tmp_path / "embedded.toml"), str(tmp_path / "embedded.toml"), "--nominal"])
+    with pytest.raises(SystemExit):  # neither a file nor an organ shape
+        bench.main([str(tmp_path / "embedded.toml"), "--nominal", "--mesh", str(tmp_path / "no-such.vtu")])
+    other = box_mesh(3, 3, 7, (22.0, 22.0, 46.0))  # another mesh than the config's: --mesh puts both runs on it
+    write_mesh(tmp_path / "other.vtu", other)
     assert bench.main([str(tmp_path / "embedded.toml"), "--nominal", "--samples", "4", "--predictor-samples", "2",
-                       "--keep", str(tmp_path / "stores")]) == 0
+                       "--keep", str(tmp_path / "stores"), "--mesh", str(tmp_path / "other.vtu")]) == 0
     out = capsys.readouterr().out
     assert out.count("4/4") == 2 and "ratio embedded / embedded (nominal) per sample" in out and "1.2x" in out
     nominal = open_dataset(tmp_path / "stores" / "embedded-nominal.zarr")
     drawn = open_dataset(tmp_path / "stores" / "embedded.zarr")
+    assert nominal.n_vertices == drawn.n_vertices == other.n_vertices != box_mesh(3, 3, 6, (20.0, 20.0, 40.0)).n_vertices
     assert not nominal.parameters  # nothing drawn
     spread = {name: float(np.ptp(values)) for name, values in drawn.parameters.items()}
     assert spread["youngs_modulus"] > 0.0 and spread["attached_margin"] > 0.0 and not spread["poisson_ratio"] > 0.0
