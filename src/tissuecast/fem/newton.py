@@ -164,6 +164,12 @@ class SolveRun(SearchDirections):
                 if solver.problem.can_swing:
                     self.rotation = best_rotation(solver.problem.nodes, guess)
 
+    @property
+    def exact_steps(self) -> bool:
+        """Whether every iteration factorises the tangent: strategy ``"newton"``, or an
+        increment tried with exact Newton directions (:attr:`exact`)."""
+        return self.config.strategy == "newton" or self.exact
+
     def _residual(self, fint: np.ndarray, fext: np.ndarray) -> np.ndarray:
         return residual(fint, fext, self.solver.free_dofs, self.held)
 
@@ -267,7 +273,7 @@ class SolveRun(SearchDirections):
         cfg = self.config
         free = self.solver.free_dofs
         fext = lam * self.fext
-        track = _Iterations(need_factor=cfg.strategy == "newton" or self.exact or not self.factor_valid,
+        track = _Iterations(need_factor=self.exact_steps or not self.factor_valid,
                             start=u_start[free])
         u = yield from self._lift(u, lam, track)
         energy, fint, jmin = self.assembler.energy_and_force(u.reshape(-1, 3))
@@ -381,6 +387,6 @@ class SolveRun(SearchDirections):
         cfg = self.config
         track.reuses += 0 if track.fresh else 1
         track.fresh = False
-        track.need_factor = cfg.strategy == "newton" or self.exact or (
+        track.need_factor = self.exact_steps or (
             cfg.strategy == "quasi-newton" and (ratio > cfg.refactor_ratio or track.reuses >= cfg.max_quasi_newton))
 
