@@ -26,7 +26,9 @@ with an instrument has its access point and patch radius fitted to the mesh as
 ``benchmarks/organ_speed.py`` does (:func:`organ_meshes.embedded_overrides`).
 
 Timings of a shared machine are inflated by whatever else runs on it; take the figure on an
-idle machine and compare the ratio of one run only.
+idle machine and compare the ratio of one run only. The ratio of Newton iterations and
+factorisations per sample is printed beside it: counts, the same on any machine and load (the
+seconds' ratio of one data set pair moves by about 0.05 from run to run).
 """
 
 from __future__ import annotations
@@ -126,6 +128,9 @@ def main(argv=None) -> int:
     print(f"ratio {b['name']} / {a['name']} per sample: median {b['median_s'] / a['median_s']:.2f}x, "
           f"mean {b['mean_s'] / a['mean_s']:.2f}x, wall {b['wall'] / a['wall']:.2f}x ({target}); seconds are each "
           "sample's solve as the store records it (calibration, predictor building and worker start-up are in 'wall')")
+    counts = ", ".join(f"{what} {b[key] / a[key]:.2f}x" if a[key] else f"{what} {b[key]:.1f} against none"
+                       for what, key in (("Newton iterations", "iterations"), ("factorisations", "factorizations")))
+    print(f"per sample: {counts} (counts: the same on any machine under any load)")
     return 0
 
 

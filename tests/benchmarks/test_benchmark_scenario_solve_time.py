@@ -5,6 +5,8 @@ against itself at its nominal ones) and reports both data sets' figures and thei
 
 from __future__ import annotations
 
+import re
+
 from bench_helpers import load_benchmark
 from mesh_factories import box_mesh
 
@@ -76,9 +78,11 @@ def test_solve_time_benchmark_compares_a_config_with_its_nominal_parameters(tmp_
                        "--keep", str(tmp_path / "stores"), "--mesh", str(tmp_path / "other.vtu")]) == 0
     out = capsys.readouterr().out
     assert out.count("4/4") == 2 and "ratio embedded / embedded (nominal) per sample" in out and "1.2x" in out
+    printed = float(re.search(r"per sample: Newton iterations ([0-9.]+)x", out).group(1))
     nominal = open_dataset(tmp_path / "stores" / "embedded-nominal.zarr")
     drawn = open_dataset(tmp_path / "stores" / "embedded.zarr")
     assert nominal.n_vertices == drawn.n_vertices == other.n_vertices != box_mesh(3, 3, 6, (20.0, 20.0, 40.0)).n_vertices
+    assert printed == pytest.approx(np.mean(drawn.iterations) / np.mean(nominal.iterations), abs=0.006)
     assert not nominal.parameters  # nothing drawn
     spread = {name: float(np.ptp(values)) for name, values in drawn.parameters.items()}
     assert spread["youngs_modulus"] > 0.0 and spread["attached_margin"] > 0.0 and not spread["poisson_ratio"] > 0.0
