@@ -224,6 +224,46 @@ def test_meshing_runs_in_a_child_process_with_a_time_limit():
         tetrahedralize_surface(fine_p, fine_t, mesh_size=1.0, timeout=0)
 
 
+def test_meshing_gives_the_same_mesh_whatever_the_callers_blas_threads(tmp_path):
+    """gmsh's wheel links its own OpenBLAS, which takes its thread count from the environment
+    when it loads; threaded, it rounds differently and gmsh re-meshes the surface differently
+    (the coarse phantom's coordinates differed with one and two threads). Meshing pins it to
+    one thread in its child process, so callers with any setting get the same mesh."""
+    pytest.importorskip("gmsh")
+    import os
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, numpy as np\n"
+        "from tissuecast.mesh.shapes import phantom_mesh\n"
+        "m = phantom_mesh(2.0)\n"
+        "np.savez(sys.argv[1], points=m.points, tets=m.tets)\n"
+    )
+    meshes = []
+    for threads in ("1", "2"):
+        env = {**os.environ, "OPENBLAS_NUM_THREADS": threads, "OMP_NUM_THREADS": threads}
+        out = tmp_path / f"threads{threads}.npz"
+        run = subprocess.run([sys.executable, "-c", code, str(out)], env=env, capture_output=True, text=True, timeout=300)
+        assert run.returncode == 0, run.stderr[-800:]
+        with np.load(out) as z:
+            meshes.append((z["points"], z["tets"]))
+    np.testing.assert_array_equal(meshes[0][0], meshes[1][0])
+    np.testing.assert_array_equal(meshes[0][1], meshes[1][1])
+
+
+def test_meshing_reports_a_child_that_died_without_an_answer():
+    """A meshing child that dies without an answer (here an exception other than gmsh's own
+    error, as a crash would) is one clear error with its exit code and last line."""
+    pytest.importorskip("gmsh")
+    from tissuecast.mesh.mesher import _gmsh_in_child
+    from tissuecast.mesh.phantom import icosphere
+
+    p, t = icosphere(1)
+    with pytest.raises(MeshError, match=r"gmsh crashed while meshing \(exit code 1: TypeError: .*bogus"):
+        _gmsh_in_child(10.0 * p, t, {"mesh_size": 4.0, "bogus": 1}, 60.0)
+
+
 def test_read_errors_name_the_file(tmp_path):
     with pytest.raises(MeshFormatError, match="does not exist"):
         read_mesh(tmp_path / "missing.vtu")

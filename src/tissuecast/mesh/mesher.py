@@ -3,18 +3,24 @@
 Used by :func:`tissuecast.mesh.read_mesh` for surface files (.stl .obj .ply .off, TetGen
 .face) and by ``scripts/make_phantom.py``. The surface must be a closed, manifold triangle
 mesh; it is re-meshed at the requested size (mm) and the enclosed volume filled with
-tetrahedra (gmsh Delaunay + Netgen optimisation, one thread, so the result is reproducible
-on one machine and gmsh version).
+tetrahedra (gmsh Delaunay + Netgen optimisation). gmsh runs in a fresh child process with its
+own threads and those of the BLAS linked into it pinned to one (:data:`GMSH_ENVIRONMENT`), so
+that the mesh does not depend on the machine's core count or the caller's thread settings;
+another CPU or gmsh version may still give another mesh (callers that need one mesh ship it).
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import math
-import multiprocessing
 import os
 import signal
+import subprocess
+import sys
+import tempfile
 import threading
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -38,8 +44,11 @@ MIN_SIZE_SHARE = 0.5
 #: gmsh algorithms: 2D Frontal-Delaunay (6) for the re-meshed surface, 3D Delaunay (1) inside.
 GMSH_ALGORITHM_2D = 6
 GMSH_ALGORITHM_3D = 1
-#: Seconds to wait for a crashed meshing child to exit before its exit code is read.
-CHILD_EXIT_WAIT_S = 5.0
+#: The meshing child's environment: gmsh's wheel links its own OpenBLAS, which reads its thread
+#: count from these when the library loads. Its threaded kernels round differently, and gmsh's
+#: re-parametrisation of the surface turns that rounding into another mesh, so the child pins it
+#: to one thread: the same mesh whatever the machine's core count or the caller's settings.
+GMSH_ENVIRONMENT = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "GOTO_NUM_THREADS": "1"}
 
 
 def start_gmsh(gmsh) -> None:
@@ -234,45 +243,33 @@ def _run_gmsh(gmsh, points, triangles, *, mesh_size, interior_size, optimize, fe
     return np.asarray(tags), np.asarray(coords), np.asarray(tet_nodes)
 
 
-def _gmsh_child(conn, points, triangles, options) -> None:
-    """Child process body: mesh and send ("ok", arrays) or ("error", message) back."""
-    try:
-        conn.send(("ok", _run_gmsh(__import__("gmsh"), points, triangles, **options)))
-    except MeshError as exc:
-        conn.send(("error", str(exc)))
-    except BaseException as exc:  # noqa: BLE001 - reported to the parent, which raises
-        conn.send(("error", f"gmsh failed: {type(exc).__name__}: {exc}"))
-    finally:
-        conn.close()
-
-
 def _gmsh_in_child(points, triangles, options: dict, timeout: float):
-    """:func:`_run_gmsh` in a forked child process, killed after ``timeout`` seconds."""
-    ctx = multiprocessing.get_context("fork")
-    receive, send = ctx.Pipe(duplex=False)
-    child = ctx.Process(target=_gmsh_child, args=(send, points, triangles, options), daemon=True)
-    child.start()
-    send.close()
-    try:
-        if not receive.poll(timeout):
+    """:func:`_run_gmsh` in a fresh Python process (:mod:`.gmsh_child`) started with
+    :data:`GMSH_ENVIRONMENT`, killed after ``timeout`` seconds."""
+    with tempfile.TemporaryDirectory(prefix="tissuecast-gmsh-") as tmp:
+        job, out = Path(tmp) / "surface.npz", Path(tmp) / "mesh.npz"
+        np.savez(job, points=np.asarray(points, dtype=np.float64), triangles=np.asarray(triangles, dtype=np.int64),
+                 options=json.dumps(options))
+        child = subprocess.Popen([sys.executable, "-m", "tissuecast.mesh.gmsh_child", str(job), str(out)],
+                                 env={**os.environ, **GMSH_ENVIRONMENT}, stdin=subprocess.DEVNULL,
+                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        try:
+            _, err = child.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            child.kill()
+            child.communicate()
             raise MeshError(
                 f"gmsh did not finish meshing within {timeout:.0f} s and was stopped; the surface is probably "
                 "too complex or self-touching for its re-meshing: try a larger mesh size, a smoother or cleaner "
-                "surface, or a longer timeout")
-        try:
-            status, payload = receive.recv()
-        except EOFError:
-            child.join(CHILD_EXIT_WAIT_S)
-            raise MeshError(f"gmsh crashed while meshing (exit code {child.exitcode}); check that the surface is a "
-                            "clean closed manifold, or try another mesh size") from None
-    finally:
-        if child.is_alive():
-            child.kill()
-        child.join()
-        receive.close()
-    if status != "ok":
-        raise MeshError(payload)
-    return payload
+                "surface, or a longer timeout") from None
+        if out.with_suffix(".error").exists():
+            raise MeshError(out.with_suffix(".error").read_text())
+        if child.returncode != 0 or not out.exists():
+            last = err.strip().splitlines()[-1] if err.strip() else "no message"
+            raise MeshError(f"gmsh crashed while meshing (exit code {child.returncode}: {last}); check that the "
+                            "surface is a clean closed manifold, or try another mesh size")
+        with np.load(out, allow_pickle=False) as z:
+            return z["tags"], z["coords"], z["tet_nodes"]
 
 
 def _check_options(mesh_size, timeout) -> None:
@@ -325,7 +322,7 @@ def tetrahedralize_surface(
             most 2 pi R / curvature_points (R the local radius of curvature); 0 = off.
         timeout: seconds after which meshing is stopped with a :class:`MeshError` (gmsh runs
             in a child process; in-process, without a limit, when the caller has already
-            initialised gmsh).
+            initialised gmsh: then its BLAS runs on the threads it was loaded with).
 
     Returns:
         The tetrahedral mesh (coordinates in mm).
@@ -344,7 +341,7 @@ def tetrahedralize_surface(
                    feature_angle=feature_angle, curvature_points=curvature_points)
     log.info("meshing a %d-triangle surface with gmsh at %.3g mm (stopped after %.0f s)", len(triangles), mesh_size,
              timeout)
-    if gmsh.isInitialized() or not hasattr(os, "fork"):
+    if gmsh.isInitialized():
         tags, coords, tet_nodes = _run_gmsh(gmsh, points, triangles, **options)  # the caller runs gmsh
     else:
         tags, coords, tet_nodes = _gmsh_in_child(points, triangles, options, timeout)
