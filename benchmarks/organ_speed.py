@@ -13,8 +13,10 @@ Meshes (``--meshes``):
   brain            the left hemisphere of the MNI ICBM152 2009 brain mask (nilearn's bundled
                    ``load_mni152_brain_mask(resolution=1)``, RAS: the left hemisphere is x < 0;
                    in tissuecast's LPS frame it lies at x > 0), written as a label map and meshed
-                   by ``tissuecast mesh from-image`` at ``--brain-size`` mm (7.5: 3465 vertices,
-                   14 582 tetrahedra, 72 x 181 x 155 mm). The template: (c) 1993-2009 Louis
+                   by ``tissuecast mesh from-image`` at ``--brain-size`` mm (7.5: 3410 vertices,
+                   14 326 tetrahedra, 72 x 181 x 153 mm; until session 42 gmsh's BLAS ran on the
+                   machine's two threads and gave 3465 vertices, the mesh of the figures of
+                   sessions 28-41). The template: (c) 1993-2009 Louis
                    Collins, McConnell Brain Imaging Centre, Montreal Neurological Institute,
                    McGill University; free use, copying and distribution with that notice (the
                    MNI/ICBM licence, as distributed with nilearn).

@@ -20,8 +20,8 @@ With ``--nominal`` one config is compared with itself at its nominal parameters 
 parameters cost in time (the mismatch issue's target: at most 1.2x).
 
 With ``--mesh`` both configs run on another mesh: a mesh file, or one of the organ shapes of
-``benchmarks/organ_meshes.py`` (``brain``: the MNI left hemisphere at ``--brain-size`` mm, 3465
-vertices at 7.5; it needs nilearn), built into ``--keep`` (or the temporary folder). A config
+``benchmarks/organ_meshes.py`` (``brain``: the MNI left hemisphere at ``--brain-size`` mm, 3410
+vertices at 7.5; it needs nilearn; a ``brain.vtu`` already in the folder is used as it is), built into ``--keep`` (or the temporary folder). A config
 with an instrument has its access point and patch radius fitted to the mesh as
 ``benchmarks/organ_speed.py`` does (:func:`organ_meshes.embedded_overrides`).
 

@@ -6,8 +6,8 @@ thin-walled vessels whose wall is one or two tetrahedra thick (almost no interio
 some flat elements). ``benchmarks/scaling.py`` and the tests use them.
 
 * :func:`phantom_mesh` and :func:`dome_mesh` mesh a smooth closed surface with gmsh (extra
-  ``mesh``). gmsh's output depends on the machine as well as its version, so callers check
-  their counts with tolerances.
+  ``mesh``). gmsh's output depends on its version and may depend on the CPU (not on the
+  machine's core count: :mod:`.mesher`), so callers check their counts with tolerances.
 * :func:`bent_tube` and :func:`slender_rod` are structured (no gmsh): the same arrays on every
   machine.
 
