@@ -251,7 +251,7 @@ def _gmsh_in_child(points, triangles, options: dict, timeout: float):
         np.savez(job, points=np.asarray(points, dtype=np.float64), triangles=np.asarray(triangles, dtype=np.int64),
                  options=json.dumps(options))
         child = subprocess.Popen([sys.executable, "-m", "tissuecast.mesh.gmsh_child", str(job), str(out)],
-                                 env={**os.environ, **GMSH_ENVIRONMENT}, stdin=subprocess.DEVNULL,
+                                 env=_child_environment(), stdin=subprocess.DEVNULL,
                                  stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         try:
             _, err = child.communicate(timeout=timeout)
@@ -270,6 +270,17 @@ def _gmsh_in_child(points, triangles, options: dict, timeout: float):
                             "surface is a clean closed manifold, or try another mesh size")
         with np.load(out, allow_pickle=False) as z:
             return z["tags"], z["coords"], z["tet_nodes"]
+
+
+def _child_environment() -> dict:
+    """The meshing child's environment: the caller's, :data:`GMSH_ENVIRONMENT`, and the folders
+    this tissuecast and gmsh were imported from first on ``PYTHONPATH`` (the child imports the
+    same ones, also where the caller found them through ``sys.path``)."""
+    import gmsh
+
+    own = [str(Path(__file__).resolve().parents[2]), str(Path(gmsh.__file__).resolve().parent)]
+    path = os.pathsep.join(dict.fromkeys(own + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
+    return {**os.environ, **GMSH_ENVIRONMENT, "PYTHONPATH": path}
 
 
 def _check_options(mesh_size, timeout) -> None:
