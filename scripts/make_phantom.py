@@ -5,6 +5,12 @@ gmsh (extra ``mesh``) fills it with tetrahedra. gmsh output can change between g
 and platforms, which is why the result is shipped rather than generated at run time; after
 regenerating, update the expected counts and fingerprint in tests/mesh/test_mesh_phantom.py.
 
+The shipped phantom was made with gmsh's bundled BLAS on two threads (gmsh 4.15.2: 1165
+vertices, 5066 tetrahedra; the same bits again on a 2-core machine with the code of then).
+Meshing now pins that BLAS to one thread (:data:`tissuecast.mesh.mesher.GMSH_ENVIRONMENT`),
+which gives another mesh of the same surface (1168 vertices, 5078 tetrahedra there):
+regenerating replaces the phantom, and with it every figure measured on it.
+
 Usage: python scripts/make_phantom.py [OUT.npz]
 """
 

@@ -82,8 +82,9 @@ def test_surface_vertices_lie_on_the_analytic_surface():
 def test_make_phantom_script_reproduces_the_shipped_mesh(tmp_path):
     """scripts/make_phantom.py regenerates the phantom.
 
-    gmsh's output depends on the machine, not only on its version (4.15.2 gave 5066
-    tetrahedra on one machine and 5064 on another, same vertices and volume), so only what is
+    gmsh's output depended on the machine, not only on its version (4.15.2 gave 5066
+    tetrahedra on one machine and 5064 on another, same vertices and volume: its bundled BLAS
+    ran on the machine's threads; now pinned to one, which gives a third mesh), so only what is
     stable is checked here; the shipped phantom.npz is what must be exact (tests above).
     """
     import runpy
