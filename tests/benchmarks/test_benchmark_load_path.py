@@ -4,6 +4,7 @@ path reproduces every answer), a second strategy's path is compared, and bad arg
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -33,7 +34,9 @@ def test_a_store_solved_along_its_load_path_is_on_it(path_store, tmp_path, capsy
     out = tmp_path / "report.json"
     assert mod.main([path_store, "--first", "2", "--samples", "4", "--strategies", "krylov", "newton", "--json", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "off the path" in text and "disagree on" in text
+    printed = {m.group(1): m.groups()[1:] for m in re.finditer(r"^(krylov|newton)\s+(\d+)\s+(\d+)\s+(\d+)", text, flags=re.M)}
+    assert printed["krylov"] == ("4", "0", "0") and printed["newton"] == ("4", "0", "0")  # solved, failed, stored off
+    assert "disagree on 0 of 4 samples" in text
     report = json.loads(out.read_text())
     ds = open_dataset(path_store)
     kry = report["strategies"]["krylov"]

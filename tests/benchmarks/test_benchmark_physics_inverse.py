@@ -40,7 +40,7 @@ def test_the_inverse_as_a_tracked_frame_beats_the_model(tmp_path, capsys):
     rows = {k: float(v) for k, v in re.findall(r"^\s+(physics inverse|model)\s+([0-9.]+) /", out, flags=re.M)}
     assert rows["physics inverse"] < 0.05 and rows["model"] > 10 * rows["physics inverse"]
     covered = re.search(r"90 % band \(1.44 x its posterior spread\) covers ([0-9.]+) % of the vertices", out)
-    assert covered and 0.0 <= float(covered.group(1)) <= 100.0
+    assert covered and float(covered.group(1)) > 80.0  # the band holds the error at most vertices (98 % here)
     with pytest.raises(SystemExit):  # the store draws no parameter: nothing to give
         mod.main(["--dataset", str(store), "--model", str(model), "--samples", "1", "--known-margin"])
     assert f"--known-margin: {store} records no drawn attached margin" in capsys.readouterr().err

@@ -139,7 +139,11 @@ def test_a_small_mismatch_study_through_the_cli(tmp_path, capsys):
     p2 = np.load(out / "mismatch" / "quadratic_elements" / f"sample_{first:05d}.npy")
     linear = np.linalg.norm(nominal_set.displacements[first], axis=1)
     assert np.linalg.norm(p2, axis=1).mean() > 1.05 * linear.mean()  # linear tetrahedra are the stiffer
-    assert rows[("nominal", "uncertain")]["relative_vs_nominal"] == pytest.approx(1.0)
+    for label in ("nominal", "uncertain"):  # each model's relative error over its own nominal one
+        for name in ("E x2", "attached -5 mm"):
+            assert rows[(name, label)]["relative_vs_nominal"] == pytest.approx(
+                rows[(name, label)]["relative"] / rows[("nominal", label)]["relative"], rel=1e-12)
+    assert rows[("E x2", "uncertain")]["relative_vs_nominal"] != rows[("E x2", "nominal")]["relative_vs_nominal"]
     assert rows[("E x2", "nominal")]["in_range"] is True and rows[("E x2", "nominal")]["count"] == 6
     assert (out / "study_mismatch.png").is_file() and (out / "study_mismatch.csv").is_file()
     _a_refined_solve_past_its_limit_is_recorded(tmp_path / "uncertain.toml", out / "mismatch", tmp_path / "timed")
@@ -425,7 +429,7 @@ def test_the_study_solves_a_few_frames_of_each_set_through_the_physics(tmp_path,
     assert "The <i>physics</i> rows" in mismatch_section(out, tmp_path / "report")
 
 
-def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, caplog):
+def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, caplog, monkeypatch):
     """``--physics 2 --physics-known-margin`` on a store that draws the attached margin
     (-6..6 mm): a row per set with each frame's simulated margin given, as good as the searched
     row's; the set grown by 10 mm (beyond the range) gets none, said so."""
@@ -437,9 +441,18 @@ def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, capl
     from tissuecast.evaluate.mismatch import PHYSICS, PHYSICS_KNOWN
     from tissuecast.evaluate.mismatch_report import mismatch_section
 
+    from tissuecast.inverse import MarkerInverse
+
     cfg, store, model = tracked_retractor_store(tmp_path, {"attached_margin": [-6.0, 6.0]})
     path = write_config(cfg, tmp_path / "tracked.toml")
     out = tmp_path / "study"
+    given, solve = [], MarkerInverse.solve
+
+    def recording(self, *args, **kwargs):  # what each frame is told about the margin
+        given.append(kwargs.get("attached_margin"))
+        return solve(self, *args, **kwargs)
+
+    monkeypatch.setattr(MarkerInverse, "solve", recording)
     with caplog.at_level(logging.WARNING, logger="tissuecast.evaluate.mismatch"):
         assert main(["-q", "study", "mismatch", str(path), "--out", str(out), "--model", f"m={model}", "--sets",
                      "attached +5 mm,attached +10 mm", "--samples", "3", "--physics", "2", "--physics-known-margin"]) == 0
@@ -447,6 +460,10 @@ def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, capl
     rows = {(r["set"], r["model"]): r for r in data["rows"]}
     assert {k for k in rows if k[1] == PHYSICS_KNOWN} == {("nominal", PHYSICS_KNOWN), ("attached +5 mm", PHYSICS_KNOWN)}
     assert "attached +10 mm: its attached margins (+10 to +10 mm) lie outside" in caplog.text
+    # searched rows: no margin (3 sets x 2 frames); known rows: each frame its simulated one (the
+    # nominal set's draws none: the nominal extent, 0 mm; the +10 mm set's lies outside: no row)
+    assert given.count(None) == 6
+    assert sorted(m for m in given if m is not None) == pytest.approx([0.0, 0.0, 5.0, 5.0])
     for name in ("nominal", "attached +5 mm"):
         known, searched = rows[(name, PHYSICS_KNOWN)], rows[(name, PHYSICS)]
         assert known["count"] == 2 and known["alarm_rate"] == 0.0

@@ -395,7 +395,8 @@ def test_time_limit_stops_a_solve_and_returns_its_factor(beam):
     solver = Solver(Problem(mesh, MAT, fixed, order=2), SolverConfig(strategy="newton"))
     with pytest.raises(SolveTimeout, match="past its time limit of 0.0 s") as err:
         solver.solve(f, time_limit=0.0)
-    assert isinstance(err.value, ConvergenceError) and err.value.limit == 0.0 and err.value.seconds >= 0.0
+    assert isinstance(err.value, ConvergenceError) and err.value.limit == 0.0
+    assert err.value.seconds > err.value.limit  # it stopped because it ran past the limit, and says how far
     assert len(solver._idle_factors) == 1  # the stopped run gave its numeric factor back
     res = solver.solve(f, time_limit=600.0)  # a generous limit changes nothing
     np.testing.assert_array_equal(res.displacement, solver.solve(f).displacement)
@@ -442,7 +443,7 @@ def test_batch_time_limit_stops_each_sample_by_its_share(beam):
     fields, guesses = [f, 0.8 * f], [first.nodal_displacement * 1.05, first.displacement * 0.7]
     out = solver.solve_batch(fields, guesses, time_limit=0.0)
     for exc in out:
-        assert isinstance(exc, SolveTimeout) and exc.limit == 0.0 and exc.seconds > 0.0
+        assert isinstance(exc, SolveTimeout) and exc.limit == 0.0 and exc.seconds > exc.limit
         assert "its share of a batch's time" in str(exc)
     free = solver.solve_batch(fields, guesses)
     limited = solver.solve_batch(fields, guesses, time_limit=600.0)

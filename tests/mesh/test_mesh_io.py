@@ -236,20 +236,26 @@ def test_meshing_gives_the_same_mesh_whatever_the_callers_blas_threads(tmp_path)
 
     code = (
         "import sys, numpy as np\n"
+        "from tissuecast.mesh import mesher\n"
         "from tissuecast.mesh.shapes import phantom_mesh\n"
+        "if sys.argv[2] == 'unpinned':\n"
+        "    mesher.GMSH_ENVIRONMENT.clear()\n"
         "m = phantom_mesh(2.0)\n"
         "np.savez(sys.argv[1], points=m.points, tets=m.tets)\n"
     )
     meshes = []
-    for threads in ("1", "2"):
+    for threads, how in (("1", "pinned"), ("2", "pinned"), ("2", "unpinned")):
         env = {**os.environ, "OPENBLAS_NUM_THREADS": threads, "OMP_NUM_THREADS": threads}
-        out = tmp_path / f"threads{threads}.npz"
-        run = subprocess.run([sys.executable, "-c", code, str(out)], env=env, capture_output=True, text=True, timeout=300)
+        out = tmp_path / f"threads{threads}-{how}.npz"
+        run = subprocess.run([sys.executable, "-c", code, str(out), how], env=env, capture_output=True, text=True,
+                             timeout=300)
         assert run.returncode == 0, run.stderr[-800:]
         with np.load(out) as z:
             meshes.append((z["points"], z["tets"]))
     np.testing.assert_array_equal(meshes[0][0], meshes[1][0])
     np.testing.assert_array_equal(meshes[0][1], meshes[1][1])
+    if meshes[2][0].shape == meshes[0][0].shape and np.array_equal(meshes[2][0], meshes[0][0]):
+        pytest.skip("gmsh's BLAS gives the same mesh on two threads here (one core?): nothing told apart")
 
 
 def test_meshing_reports_a_child_that_died_without_an_answer():

@@ -40,7 +40,13 @@ def test_draws_are_reproducible_independent_of_the_other_ranges_and_follow_their
     assert stats.kstest(np.log(e), stats.uniform(np.log(0.5), np.log(4.0)).cdf).pvalue > 0.01
     assert stats.kstest(nu, stats.uniform(0.40, 0.09).cdf).pvalue > 0.01
     assert stats.kstest(margin, stats.uniform(-5.0, 10.0).cdf).pvalue > 0.01
-    assert 0.9 <= min(d.density for d in draws) and max(d.density for d in draws) <= 1.1
+    kn = np.array([d.spring_normal for d in draws])
+    rho = np.array([d.density for d in draws])
+    region = np.array([d.region_youngs_modulus[0] for d in draws])
+    assert stats.kstest(np.log(kn), stats.uniform(np.log(0.25), np.log(16.0)).cdf).pvalue > 0.01
+    assert stats.kstest(np.log(region), stats.uniform(0.0, np.log(3.0)).cdf).pvalue > 0.01
+    assert stats.kstest(rho, stats.uniform(0.9, 0.2).cdf).pvalue > 0.01  # density: a uniform factor
+    assert stats.kstest(kn, stats.uniform(0.25, 3.75).cdf).pvalue < 1e-6  # not uniform in the factor itself
     # unset ranges keep the nominal values
     d = only_e.draw(parameter_rng(3))
     assert (np.isnan(d.poisson_ratio) and d.density == 1.0 and d.spring_normal == 1.0 and d.attached_margin == 0.0
