@@ -141,3 +141,32 @@ def test_an_inverse_with_more_unknowns_than_marker_coordinates_gets_a_note():
     assert underdetermined_note(SimpleNamespace(n_unknowns=22), 30) is None  # the embedded preset: 18 + 4, 10 markers
     text = underdetermined_note(SimpleNamespace(n_unknowns=60), 15)  # the paper preset: 20 LBO vectors, 5 markers
     assert text.startswith("note: the physics inverse estimates 60 unknowns from 15 marker coordinates")
+
+
+def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys):
+    """On a store that draws the attached margin, ``--attached-margin`` hands the measured one to
+    the inverse: its held set alone is iterated (said so), the sample's field comes back, and a
+    margin outside the simulated range is refused with the range."""
+    from tissuecast.dataset import open_dataset
+    from tissuecast.surrogate import DeformationModel
+
+    cfg, store, folder = tracked_retractor_store(tmp_path, {"attached_margin": [-6.0, 6.0]})
+    ds, model = open_dataset(store), DeformationModel.load(folder)
+    _, _, _, sc = scenario_from_config(cfg)
+    i = int(np.asarray(ds.select("test1", status="done"))[0])
+    truth = np.asarray(ds.displacements[i], dtype=np.float64)
+    margin = float(np.asarray(ds.parameters["attached_margin"])[i])
+    draw = sc.draw_for(int(ds.seed[i]))
+    (name, pose), = draw.instruments
+    markers, inst, out = tmp_path / "markers.json", tmp_path / "retractor.json", tmp_path / "u.json"
+    markers.write_text(json.dumps({"displacements": truth[model.markers].tolist()}))
+    tool = {"contact": False} if not pose.contact else {"tip": pose.tip.tolist(), "direction": pose.direction.tolist()}
+    inst.write_text(json.dumps({name: tool}))
+    base = ["predict", str(folder), "--markers", str(markers), "--physics", str(store), "--instrument", str(inst),
+            "--noise", "0.002", "--gravity", *map(str, draw.gravity_direction), "--out", str(out)]
+    assert main(base + ["--attached-margin", f"{margin!r}"]) == 0
+    assert f"iterated with the attached margin given ({margin:+.2f} mm)" in capsys.readouterr().out
+    u = np.array(json.loads(out.read_text())["displacement"])[0]
+    assert np.linalg.norm(u - truth, axis=1).max() < 0.02 * np.linalg.norm(truth, axis=1).max()
+    assert main(base + ["--attached-margin", "9.5"]) == 2
+    assert "lies outside the range the simulations drew, [-6, 6] mm" in capsys.readouterr().err
