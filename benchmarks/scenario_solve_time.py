@@ -21,7 +21,8 @@ parameters cost in time (the mismatch issue's target: at most 1.2x).
 
 With ``--mesh`` both configs run on another mesh: a mesh file, or one of the organ shapes of
 ``benchmarks/organ_meshes.py`` (``brain``: the MNI left hemisphere at ``--brain-size`` mm, 3410
-vertices at 7.5; it needs nilearn; a ``brain.vtu`` already in the folder is used as it is), built into ``--keep`` (or the temporary folder). A config
+vertices at 7.5; it needs nilearn), built into ``--keep`` (or the temporary folder; a mesh file of
+that name already there is used as it is). A config
 with an instrument has its access point and patch radius fitted to the mesh as
 ``benchmarks/organ_speed.py`` does (:func:`organ_meshes.embedded_overrides`).
 

@@ -4,6 +4,7 @@ the cached answers are the samples' own P2 solutions, and every model is evaluat
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -33,10 +34,32 @@ def test_quadratic_reference_and_models_against_both(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "against P2 on this mesh, 2 test-1 samples" in out
     assert out.count("mm from the supports and nan mm from the instrument's contact") == 2  # no instrument here
-    assert out.count("after a rigid fit, which turns it by") == 2
     assert sum(line.startswith("linear") for line in out.splitlines()) == 2  # against the data and the reference
     cached = sorted((tmp_path / "c").glob("sample_*.p2.npy"))
     assert len(cached) == 2 and not list((tmp_path / "c").glob("*.reference.npy"))
+    # each sample's printed figures, recomputed from the store's field and the cached P2 answer
+    printed = re.findall(r"sample (\d+): peak ([0-9.]+) mm, data's largest error ([0-9.]+) % of it \(([0-9.]+) % after a "
+                         r"rigid fit, which turns it by ([0-9.]+) deg\)", out)
+    assert len(printed) == 2
+    for k, peak, largest, flexible, angle in printed:
+        ref = np.load(tmp_path / "c" / f"sample_{int(k):05d}.p2.npy")
+        data = np.asarray(ds.displacements[int(k)], dtype=np.float64)
+        top = np.linalg.norm(ref, axis=1).max()
+        errors, deg = mod._after_rigid(ds.mesh.points, data, ref)
+        assert float(peak) == pytest.approx(top, abs=0.006)
+        assert float(largest) == pytest.approx(100 * np.linalg.norm(data - ref, axis=1).max() / top, abs=0.06)
+        assert float(flexible) == pytest.approx(100 * errors.max() / top, abs=0.06)
+        assert float(angle) == pytest.approx(deg, abs=0.006)
+        assert float(largest) > 0.1  # P1 is not P2
+    # the model against the data and against the reference: its Offset_max on each, recomputed
+    rows = {line.split()[1]: float(line.split()[2]) for line in out.splitlines() if line.startswith("linear")}
+    model = DeformationModel.load(tmp_path / "model")
+    kept = [int(k) for k, *_ in printed]
+    for truth, fields in (("data", [np.asarray(ds.displacements[k], dtype=np.float64) for k in kept]),
+                          ("reference", [np.load(tmp_path / "c" / f"sample_{k:05d}.p2.npy") for k in kept])):
+        offsets = [np.linalg.norm(model.predict(u[model.markers]) - u, axis=1).max() for u in fields]
+        assert rows[truth] == pytest.approx(np.mean(offsets), abs=0.006)
+    assert rows["reference"] != rows["data"]
     record = json.loads((tmp_path / "c" / "reference.json").read_text())
     assert record == {"path": "from the data set's answer"}  # this store's samples start from a reduced guess
     # the cached answer is the sample's own P2 solution, its loads the store's (the store's LBO
