@@ -256,12 +256,14 @@ def _gmsh_in_child(points, triangles, options: dict, timeout: float):
         try:
             _, err = child.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
-            child.kill()
-            child.communicate()
             raise MeshError(
                 f"gmsh did not finish meshing within {timeout:.0f} s and was stopped; the surface is probably "
                 "too complex or self-touching for its re-meshing: try a larger mesh size, a smoother or cleaner "
                 "surface, or a longer timeout") from None
+        finally:  # stopped past the timeout, or the caller interrupted: no gmsh is left running
+            if child.poll() is None:
+                child.kill()
+                child.communicate()
         if out.with_suffix(".error").exists():
             raise MeshError(out.with_suffix(".error").read_text())
         if child.returncode != 0 or not out.exists():
