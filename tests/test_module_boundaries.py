@@ -31,7 +31,6 @@ ALLOWED = {
     ("cli/main.py", "getattr(args, 'func', None)"):
         "argparse sets 'func' only when a subcommand was given: the documented way to tell",
     ("mesh/mesher.py", "hasattr(signal, 'SIGPIPE')"): "a platform capability of the standard library (not on Windows)",
-    ("mesh/mesher.py", "hasattr(os, 'fork')"): "a platform capability of the standard library (not on Windows)",
     ("dataset/executors.py", "os._exit"): "the standard library's documented exit for forked children",
     ("dataset/executors.py", "self._pool._processes"):
         "ProcessPoolExecutor has no public way to stop its workers before Python 3.14 (terminate_workers)",

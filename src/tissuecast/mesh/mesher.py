@@ -193,8 +193,17 @@ def orient_surface(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
 MESH_TIMEOUT_S = 900.0
 
 
-def _run_gmsh(gmsh, points, triangles, *, mesh_size, interior_size, optimize, feature_angle, curvature_points):
-    """gmsh's surface re-meshing and volume meshing -> (node tags, coordinates, tet node tags)."""
+def run_gmsh(gmsh, points, triangles, *, mesh_size, interior_size, optimize, feature_angle, curvature_points):
+    """gmsh's surface re-meshing and volume meshing in this process (the meshing child's work,
+    :mod:`.gmsh_child`; the options as :func:`tetrahedralize_surface`'s).
+
+    Args:
+        gmsh: the gmsh module (initialised here, and finalised, unless the caller has done so).
+        points: (n, 3) float64 mm; triangles: (k, 3) int64, 0-based, a closed oriented surface.
+
+    Returns:
+        ``(node tags (p,), coordinates (3 p,) mm, tetrahedra's node tags (4 m,))`` as gmsh gives them.
+    """
     started = gmsh.isInitialized()
     if not started:
         start_gmsh(gmsh)
@@ -244,7 +253,7 @@ def _run_gmsh(gmsh, points, triangles, *, mesh_size, interior_size, optimize, fe
 
 
 def _gmsh_in_child(points, triangles, options: dict, timeout: float):
-    """:func:`_run_gmsh` in a fresh Python process (:mod:`.gmsh_child`) started with
+    """:func:`run_gmsh` in a fresh Python process (:mod:`.gmsh_child`) started with
     :data:`GMSH_ENVIRONMENT`, killed after ``timeout`` seconds."""
     with tempfile.TemporaryDirectory(prefix="tissuecast-gmsh-") as tmp:
         job, out = Path(tmp) / "surface.npz", Path(tmp) / "mesh.npz"
@@ -355,7 +364,7 @@ def tetrahedralize_surface(
     log.info("meshing a %d-triangle surface with gmsh at %.3g mm (stopped after %.0f s)", len(triangles), mesh_size,
              timeout)
     if gmsh.isInitialized():
-        tags, coords, tet_nodes = _run_gmsh(gmsh, points, triangles, **options)  # the caller runs gmsh
+        tags, coords, tet_nodes = run_gmsh(gmsh, points, triangles, **options)  # the caller runs gmsh
     else:
         tags, coords, tet_nodes = _gmsh_in_child(points, triangles, options, timeout)
     mesh = _tet_mesh(tags, coords, tet_nodes)
