@@ -90,6 +90,13 @@ def vessel_mesh(folder: Path):
     return folder / "vessel.vtu", mesh
 
 
+def add_size_arguments(ap) -> None:
+    """The organ meshes' size options (``--brain-size``, ``--fsaverage-size``, mm) that
+    :func:`build` reads, on the argparse parser ``ap``."""
+    ap.add_argument("--brain-size", type=float, default=7.5, help="brain: gmsh size, mm (7.5: ~3400 vertices)")
+    ap.add_argument("--fsaverage-size", type=float, default=7.4, help="brain-fsaverage: mesh size, mm")
+
+
 def build(names: list, folder: Path, args) -> dict:
     """``{name: (mesh file or None for the built-in phantom, description)}``, each mesh built once
     into ``folder`` (a mesh file already there is reused)."""

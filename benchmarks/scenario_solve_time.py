@@ -63,13 +63,14 @@ def time_config(path: str, samples: int, predictor_samples: int, folder: Path, n
     cfg = load_config(path)
     dataset = {"n_samples": samples, "n_test2": 0, "calibration_samples": min(cfg.dataset.calibration_samples, 8),
                "predictor_samples": min(predictor_samples, max(2, samples - 2)), "workers": 1}
-    scenario = {"uncertain": nothing_drawn()} if nominal else {}
-    over = {}
+    over, scenario = {"dataset": dataset}, {"uncertain": nothing_drawn()} if nominal else {}
     if mesh is not None:
         over["mesh"] = {"path": str(mesh)}
         if cfg.scenario.indentation.enabled:
             scenario.update(organ_meshes.embedded_overrides(mesh, cfg))
-    cfg = with_overrides(cfg, dataset=dataset, **over, **({"scenario": scenario} if scenario else {}))
+    if scenario:
+        over["scenario"] = scenario
+    cfg = with_overrides(cfg, **over)
     label = " (nominal)" if nominal else ""
     store = folder / (Path(path).stem + ("-nominal" if nominal else "") + ".zarr")
     t0 = time.perf_counter()
@@ -100,8 +101,7 @@ def main(argv=None) -> int:
     ap.add_argument("--keep", metavar="DIR", help="keep the two stores here (default: a temporary folder)")
     ap.add_argument("--mesh", default="", help="run both configs on this mesh: a mesh file or one of "
                     + ", ".join(m for m in organ_meshes.MESHES if m != "phantom") + " (built here; see the notes)")
-    ap.add_argument("--brain-size", type=float, default=7.5, help="--mesh brain: gmsh size, mm (7.5: ~3500 vertices)")
-    ap.add_argument("--fsaverage-size", type=float, default=7.4, help="--mesh brain-fsaverage: mesh size, mm")
+    organ_meshes.add_size_arguments(ap)
     args = ap.parse_args(argv)
     folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="tissuecast-solve-time-"))
     folder.mkdir(parents=True, exist_ok=True)
