@@ -28,6 +28,8 @@ recorded it (``Scenario.frame_draw``) and gravity in its planned direction (the 
 A frame has ``--time-limit`` seconds, as in ``predict --physics`` (600 by default; 0 for none).
 ``--known-margin`` gives the inverse each sample's drawn attached margin, as
 ``predict --physics --attached-margin`` does a measured one (its held set alone, no search).
+``--estimate`` picks the field of a searched frame, as ``predict --physics-estimate``: the
+likeliest held set's (the default) or the posterior mean over the held sets finished.
 
 Usage::
 
@@ -50,7 +52,7 @@ from tissuecast.fem.linear import one_blas_thread
 from tissuecast.instruments import recorded_poses
 from tissuecast.registration import nonrigid_part
 from tissuecast.cli.predict_physics import TIME_LIMIT
-from tissuecast.inverse import NOISE_MM, MarkerInverse, spread_band
+from tissuecast.inverse import ESTIMATES, NOISE_MM, MarkerInverse, spread_band
 from tissuecast.surrogate import DeformationModel
 
 
@@ -98,6 +100,8 @@ def main(argv=None) -> None:
     ap.add_argument("--known-margin", action="store_true",
                     help="give the inverse each sample's drawn attached margin (`predict --physics --attached-margin`): "
                          "what a measured attachment is worth")
+    ap.add_argument("--estimate", choices=ESTIMATES, default=ESTIMATES[0],
+                    help="the field of a searched frame, as `predict --physics-estimate` (default %(default)s)")
     args = ap.parse_args(argv)
 
     ds = open_dataset(args.dataset)
@@ -130,7 +134,8 @@ def main(argv=None) -> None:
             known = inv.scenario.frame_draw(recorded_poses(ds.instrument_poses, s))
         with one_blas_thread():  # as the data set's workers and `predict --physics` solve
             res = inv.solve(d[k], known, time_limit=args.time_limit or None,
-                            attached_margin=float(drawn["attached_margin"][s]) if args.known_margin else None)
+                            attached_margin=float(drawn["attached_margin"][s]) if args.known_margin else None,
+                            estimate=args.estimate)
         row = [v for f in (res.field, net[k], rigid[k], ridge[k]) for v in (*errors(f, U[k]), *clinical(f, U[k], targets))]
         rows.append(row)
         covered.append(res.within_band(U[k]))

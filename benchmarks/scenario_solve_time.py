@@ -41,6 +41,7 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_v, "1")
 
 import argparse  # noqa: E402
+import contextlib  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -103,20 +104,20 @@ def main(argv=None) -> int:
                     + ", ".join(m for m in organ_meshes.MESHES if m != "phantom") + " (built here; see the notes)")
     organ_meshes.add_size_arguments(ap)
     args = ap.parse_args(argv)
-    folder = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="tissuecast-solve-time-"))
-    folder.mkdir(parents=True, exist_ok=True)
     if args.nominal == (args.scenario is not None):
         ap.error("give two configs, or one config and --nominal")
+    if args.mesh and args.mesh not in organ_meshes.MESHES and not Path(args.mesh).is_file():
+        ap.error(f"--mesh {args.mesh!r} is neither a mesh file nor one of {', '.join(organ_meshes.MESHES)}")
     pairs = ([(args.baseline, True), (args.baseline, False)] if args.nominal
              else [(args.baseline, False), (args.scenario, False)])
-    mesh = None
-    if args.mesh in organ_meshes.MESHES:
-        mesh, _ = organ_meshes.build([args.mesh], folder, args)[args.mesh]
-    elif args.mesh:
-        mesh = Path(args.mesh)
-        if not mesh.is_file():
-            ap.error(f"--mesh {args.mesh!r} is neither a mesh file nor one of {', '.join(organ_meshes.MESHES)}")
-    rows = [time_config(p, args.samples, args.predictor_samples, folder, nominal, mesh) for p, nominal in pairs]
+    with contextlib.ExitStack() as stack:  # a temporary folder is removed however the run ends
+        folder = (Path(args.keep) if args.keep
+                  else Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="tissuecast-solve-time-"))))
+        folder.mkdir(parents=True, exist_ok=True)
+        mesh = Path(args.mesh) if args.mesh else None
+        if args.mesh in organ_meshes.MESHES:
+            mesh, _ = organ_meshes.build([args.mesh], folder, args)[args.mesh]
+        rows = [time_config(p, args.samples, args.predictor_samples, folder, nominal, mesh) for p, nominal in pairs]
     head = (f"{'config':<34} {'scenario':<12}{'done':>8}{'median s':>10}{'mean s':>9}{'Newton':>8}{'factor':>8}"
             f"{'predicted':>10}{'retried':>8}{'peak mm':>9}{'wall s':>8}")
     print(head)

@@ -62,8 +62,13 @@ def test_solve_time_benchmark_runs_both_configs(tmp_path, capsys):
     assert (tmp_path / "stores" / "embedded.zarr").is_dir()
 
 
-def test_solve_time_benchmark_compares_a_config_with_its_nominal_parameters(tmp_path, capsys):
+def test_solve_time_benchmark_compares_a_config_with_its_nominal_parameters(tmp_path, capsys, monkeypatch):
+    import tempfile
+
     bench = load_benchmark("scenario_solve_time")
+    scratch = tmp_path / "scratch"  # where a run without --keep makes its temporary folder
+    scratch.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     write_mesh(tmp_path / "box.vtu", box_mesh(3, 3, 6, (20.0, 20.0, 40.0)))
     common = COMMON.format(mesh=tmp_path / "box.vtu", store=tmp_path / "unused.zarr")
     uncertain = "[scenario.uncertain]\nyoungs_modulus = [0.5, 2.0]\nattached_margin = [-2.0, 2.0]\n"
@@ -72,6 +77,7 @@ def test_solve_time_benchmark_compares_a_config_with_its_nominal_parameters(tmp_
         bench.main([str(tmp_path / "embedded.toml"), str(tmp_path / "embedded.toml"), "--nominal"])
     with pytest.raises(SystemExit):  # neither a file nor an organ shape
         bench.main([str(tmp_path / "embedded.toml"), "--nominal", "--mesh", str(tmp_path / "no-such.vtu")])
+    assert not any(scratch.iterdir())  # refused runs leave no temporary folder behind
     other = box_mesh(3, 3, 7, (22.0, 22.0, 46.0))  # another mesh than the config's: --mesh puts both runs on it
     write_mesh(tmp_path / "other.vtu", other)
     assert bench.main([str(tmp_path / "embedded.toml"), "--nominal", "--samples", "4", "--predictor-samples", "2",

@@ -114,8 +114,10 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
     other = SimpleNamespace(mesh=SimpleNamespace(fingerprint=lambda: "another mesh"))
     with pytest.raises(ModelError, match="simulated on another mesh than the model's; give the store the model was"):
         _dataset_for(other, str(store))
-    assert main(["predict", str(tmp_path / "model"), "--markers", str(markers), "--noise", "0.1"]) == 2
-    assert "--gravity, --noise, --time-limit and --attached-margin go with --physics" in capsys.readouterr().err
+    for extra in (["--noise", "0.1"], ["--physics-estimate", "mean"]):
+        assert main(["predict", str(tmp_path / "model"), "--markers", str(markers), *extra]) == 2
+        assert ("--gravity, --noise, --time-limit, --attached-margin and --physics-estimate go with --physics"
+                in capsys.readouterr().err)
 
 
 def test_a_fit_that_misses_its_markers_is_flagged():
@@ -143,10 +145,11 @@ def test_an_inverse_with_more_unknowns_than_marker_coordinates_gets_a_note():
     assert text.startswith("note: the physics inverse estimates 60 unknowns from 15 marker coordinates")
 
 
-def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys):
+def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys, monkeypatch):
     """On a store that draws the attached margin, ``--attached-margin`` hands the measured one to
     the inverse: its held set alone is iterated (said so), the sample's field comes back, and a
-    margin outside the simulated range is refused with the range."""
+    margin outside the simulated range is refused with the range. Searched, the inverse is asked
+    for the likeliest held set's field, or with ``--physics-estimate mean`` the posterior mean."""
     from tissuecast.dataset import open_dataset
     from tissuecast.surrogate import DeformationModel
 
@@ -170,3 +173,36 @@ def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys):
     assert np.linalg.norm(u - truth, axis=1).max() < 0.02 * np.linalg.norm(truth, axis=1).max()
     assert main(base + ["--attached-margin", "9.5"]) == 2
     assert "lies outside the range the simulations drew, [-6, 6] mm" in capsys.readouterr().err
+    # searched: the likeliest held set's field by default, the posterior mean when asked
+    from tissuecast.inverse import MarkerInverse
+
+    asked, solve = [], MarkerInverse.solve
+
+    def recording(self, *args, **kwargs):
+        asked.append(kwargs["estimate"])
+        return solve(self, *args, **kwargs)
+
+    monkeypatch.setattr(MarkerInverse, "solve", recording)
+    assert main(base) == 0 and main(base + ["--physics-estimate", "mean"]) == 0
+    assert asked == ["likeliest", "mean"]
+    with pytest.raises(SystemExit):
+        main(base + ["--physics-estimate", "median"])
+    assert "invalid choice: 'median' (choose from 'likeliest', 'mean')" in capsys.readouterr().err
+    from tissuecast.inverse import ESTIMATES
+
+    assert ESTIMATES == ("likeliest", "mean")  # the options' choices, the first the default
+
+
+def test_the_estimate_line_says_which_field_was_written():
+    from types import SimpleNamespace
+
+    from tissuecast.cli.predict_physics import describe
+
+    p = SimpleNamespace(attached_margin=2.5, youngs_modulus=1.5)
+    res = SimpleNamespace(parameters=p, marker_misfit=0.012, held_sets=4, estimate="likeliest", complete=True,
+                          spread=np.array([0.0, 0.1, 0.3]), solves=40, seconds=12.0)
+    text = describe(res, ("youngs_modulus",))
+    assert text.startswith("markers fitted to 0.012 mm, youngs_modulus 1.5, attached margin +2.50 mm (4 held sets "
+                           "weighed, the likeliest's field)") and "median 0.100 / max 0.300 mm; 40 solves, 12.0 s" in text
+    assert "(4 held sets averaged)" in describe(SimpleNamespace(**{**vars(res), "estimate": "mean"}))
+    assert "held sets" not in describe(SimpleNamespace(**{**vars(res), "held_sets": 1}))

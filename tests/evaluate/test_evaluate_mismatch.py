@@ -426,7 +426,9 @@ def test_the_study_solves_a_few_frames_of_each_set_through_the_physics(tmp_path,
     header = (out / "study_mismatch.csv").read_text().splitlines()[0].split(",")
     assert "coverage_90" in header and "seconds_median" in header  # keys only the physics rows carry
     (tmp_path / "report").mkdir()
-    assert "The <i>physics</i> rows" in mismatch_section(out, tmp_path / "report")
+    section = mismatch_section(out, tmp_path / "report")
+    assert "The <i>physics</i> rows" in section and "its field is the likeliest held set's" in section
+    assert data["meta"]["physics_estimate"] == "likeliest"
 
 
 def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, caplog, monkeypatch):
@@ -448,14 +450,18 @@ def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, capl
     out = tmp_path / "study"
     given, solve = [], MarkerInverse.solve
 
-    def recording(self, *args, **kwargs):  # what each frame is told about the margin
+    def recording(self, *args, **kwargs):  # what each frame is told about the margin and the estimate
         given.append(kwargs.get("attached_margin"))
+        estimates.append(kwargs.get("estimate"))
         return solve(self, *args, **kwargs)
+
+    estimates = []
 
     monkeypatch.setattr(MarkerInverse, "solve", recording)
     with caplog.at_level(logging.WARNING, logger="tissuecast.evaluate.mismatch"):
         assert main(["-q", "study", "mismatch", str(path), "--out", str(out), "--model", f"m={model}", "--sets",
-                     "attached +5 mm,attached +10 mm", "--samples", "3", "--physics", "2", "--physics-known-margin"]) == 0
+                     "attached +5 mm,attached +10 mm", "--samples", "3", "--physics", "2", "--physics-known-margin",
+                     "--physics-estimate", "mean"]) == 0
     data = json.loads((out / "study_mismatch.json").read_text())
     rows = {(r["set"], r["model"]): r for r in data["rows"]}
     assert {k for k in rows if k[1] == PHYSICS_KNOWN} == {("nominal", PHYSICS_KNOWN), ("attached +5 mm", PHYSICS_KNOWN)}
@@ -469,6 +475,8 @@ def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, capl
         assert known["count"] == 2 and known["alarm_rate"] == 0.0
         assert known["mlp_offset_max"] < 0.05 * known["peak_median"] < known["rigid_offset_max"]
         assert known["mlp_offset_max"] <= 1.05 * searched["mlp_offset_max"] + 1e-3
-    assert data["meta"]["physics_known_margin"] is True
+    assert data["meta"]["physics_known_margin"] is True and data["meta"]["physics_estimate"] == "mean"
+    assert set(estimates) == {"mean"}  # handed to every frame (with the margin given, one held set: no choice)
     (tmp_path / "report").mkdir()
-    assert "The <i>physics, margin known</i> rows" in mismatch_section(out, tmp_path / "report")
+    section = mismatch_section(out, tmp_path / "report")
+    assert "The <i>physics, margin known</i> rows" in section and "the posterior mean over the held sets" in section

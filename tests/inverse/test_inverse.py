@@ -1,7 +1,8 @@
 """The physics inverse (tissuecast.inverse): the markers' sensitivities against finite
 differences of full solves, and fields recovered from the markers of simulated samples, with
 the parameters known (nominal; linear and quadratic elements) and drawn (E, the springs, the
-attached margin); the posterior spread against noisy frames; the time limit."""
+attached margin); the posterior spread against noisy frames; the likeliest and the mean
+estimate; the time limit."""
 
 from __future__ import annotations
 
@@ -133,6 +134,44 @@ def test_the_posterior_spread_matches_the_errors_of_noisy_frames():
     assert spread_band(0.9) == pytest.approx(1.4435, abs=1e-4)
     with pytest.raises(ConfigError, match="coverage must lie between 0 and 1"):
         spread_band(1.0)
+
+
+def test_the_likeliest_and_the_mean_estimate_come_from_one_search():
+    """Where held sets are searched, ``estimate`` picks the field of the same search: the
+    likeliest set's solution (its markers fitted to the reported misfit) or the posterior mean;
+    the parameters, objective and solves are the same. Each spread is the root of the held
+    sets' posterior mean square distance from its field plus the same within-set term, so
+    ``spread_likeliest^2 = spread_mean^2 + |mean - likeliest|^2`` at every vertex. The default
+    is the likeliest; an unknown estimate is refused."""
+    sc, solver, markers = _setup(True)
+    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.2)  # three held sets to search (above)
+    truth, _ = _simulate(sc, solver, 5)
+    d = truth[markers] + np.random.default_rng(0).normal(0.0, 0.2, (len(markers), 3))  # sets 5 um apart
+    like, mean = (inv.solve(d, inv.known_draw(5), estimate=e) for e in ("likeliest", "mean"))
+    assert like.held_sets == mean.held_sets == 3 and (like.estimate, mean.estimate) == ("likeliest", "mean")
+    assert like.solves == mean.solves and like.objective == mean.objective and like.parameters == mean.parameters
+    apart = np.linalg.norm(like.field - mean.field, axis=1)
+    assert apart.max() > 1e-3  # the sets differ: the two estimates are two fields
+    assert np.linalg.norm(like.field[markers] - d, axis=1).max() == pytest.approx(like.marker_misfit, rel=1e-9)
+    np.testing.assert_allclose(like.spread**2, mean.spread**2 + apart**2, rtol=1e-9, atol=1e-12)
+    default = inv.solve(d, inv.known_draw(5))
+    assert default.estimate == "likeliest" and np.array_equal(default.field, like.field)
+    with pytest.raises(ConfigError, match="the estimate must be one of 'likeliest', 'mean', got 'median'"):
+        inv.solve(d, estimate="median")
+
+
+def test_the_band_counts_a_prescribed_vertex_up_to_the_stores_rounding():
+    """A vertex without spread (held, or moved by the instrument) lies within the band where its
+    error is the truth's rounding to float32 (a data set stores it so), not where it is more."""
+    from tissuecast.inverse import InverseResult
+
+    field = np.array([[0.0, 0.0, 0.0], [2.9711751, -0.4, 0.1], [1.0, 1.0, 1.0]])
+    res = InverseResult(field=field, weights=np.zeros((1, 3)), parameters=None, marker_misfit=0.0, objective=0.0,
+                        held_sets=1, solves=1, seconds=0.0, spread=np.array([0.0, 0.0, 0.1]))
+    stored = field.astype(np.float32)  # the pushed vertex 1 is 7e-8 mm off once rounded
+    assert np.linalg.norm(field[1] - stored[1]) > 0 and res.within_band(stored) == 1.0
+    off = field + [[0.0, 0.0, 0.0], [1e-4, 0.0, 0.0], [0.0, 0.0, spread_band(0.9) * 0.1 * 1.01]]
+    assert res.within_band(off) == pytest.approx(1 / 3)
 
 
 def test_a_frame_past_its_time_limit_gives_the_best_estimate_reached_and_says_so():

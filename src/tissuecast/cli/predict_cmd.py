@@ -88,6 +88,10 @@ def register(sub) -> None:
                         "along the surface from the planned region, within the drawn range; its held set alone is "
                         "solved, no search (seconds a sample instead of minutes); a margin 1.5 mm off does worse "
                         "than the search (docs/uncertainty.md)")
+    p.add_argument("--physics-estimate", choices=("likeliest", "mean"),
+                   help="with --physics, where the attached margin is searched: the field written, the likeliest "
+                        "held set's solution (default: one equilibrium of the simulator) or the posterior mean over "
+                        "the held sets finished (a blend, smeared at the held region's rim; docs/uncertainty.md)")
     p.set_defaults(func=run)
 
 
@@ -234,11 +238,12 @@ def run(args) -> int:
                          "coordinates given; give x, y and z, or leave all three empty")
     if args.physics:
         return _run_physics(args, model, d, missing)
-    if any(v is not None for v in (args.gravity, args.noise, args.time_limit, args.attached_margin)):
+    if any(v is not None for v in (args.gravity, args.noise, args.time_limit, args.attached_margin,
+                                   args.physics_estimate)):
         from ..errors import ModelError
 
-        raise ModelError("--gravity, --noise, --time-limit and --attached-margin go with --physics (the physics "
-                         "inverse); the learned model reads none of them")
+        raise ModelError("--gravity, --noise, --time-limit, --attached-margin and --physics-estimate go with --physics "
+                         "(the physics inverse); the learned model reads none of them")
     if not model.predictor(args.method).supports_missing_markers:
         missing[:] = False  # a lost marker: the input gate refuses it, naming the marker
     from .predict_inputs import auxiliary_inputs

@@ -14,7 +14,9 @@ simulator needs) and the direction of gravity in surgery (``--gravity``, model f
 the scenario's planned ``scenario.gravity.surgery_direction``). An untracked marker is left out
 of the fit. The estimate is the maximum a posteriori one with the scenario's parameter ranges as
 priors; E and the surroundings' stiffness come back only up to a common scale (a stiffer body
-under larger loads looks the same to the markers). A frame is given ``--time-limit`` seconds
+under larger loads looks the same to the markers). Where the attached margin is searched, the
+field written is the likeliest held set's (``--physics-estimate likeliest``, the default) or
+the posterior mean over the held sets finished (``mean``). A frame is given ``--time-limit`` seconds
 (:data:`TIME_LIMIT` by default, 0 for none): past it the search stops and the best estimate
 reached is written, said so (the first held set is iterated to convergence regardless); without
 a limit the answer does not depend on the machine's speed or load (the solves inside are capped
@@ -79,7 +81,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
 
     Args:
         args: the ``predict`` arguments (``physics``, ``instrument``, ``gravity``, ``noise``,
-            ``time_limit``, ``attached_margin``).
+            ``time_limit``, ``attached_margin``, ``physics_estimate``).
         model: the :class:`~tissuecast.surrogate.DeformationModel` (markers, input gate).
         d: (B, n_d, 3) marker displacements, mm (NaN where ``missing``).
         missing: (B, n_d) bool, the untracked markers.
@@ -93,7 +95,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         ModelError / ConfigError: a data set of another mesh, a missing instrument pose, a pose
             or gravity direction the simulator cannot take.
     """
-    from ..inverse import NOISE_MM, MarkerInverse
+    from ..inverse import ESTIMATES, NOISE_MM, MarkerInverse
 
     B = d.shape[0]
     if model.input_gate is not None:
@@ -121,7 +123,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         print(f"sample {b}: solving through the physics (seconds to minutes a frame) ...", flush=True)
         with one_blas_thread():  # as the data set's workers solve: faster, the same bits
             res = inv.solve(np.where(missing[b][:, None], np.nan, d[b]), draw, time_limit=args.time_limit or None,
-                            attached_margin=args.attached_margin,
+                            attached_margin=args.attached_margin, estimate=args.physics_estimate or ESTIMATES[0],
                             progress=lambda text, b=b: print(f"sample {b}: {text}", flush=True))
         fields.append(res.field)
         results.append(res)
@@ -160,7 +162,8 @@ def describe(res, estimated=()) -> str:
     for name in estimated:
         parts.append(f"{name} {getattr(p, name):.3g}")
     if res.held_sets > 1:
-        parts.append(f"attached margin {p.attached_margin:+.2f} mm ({res.held_sets} held sets averaged)")
+        how = "averaged" if res.estimate == "mean" else "weighed, the likeliest's field"
+        parts.append(f"attached margin {p.attached_margin:+.2f} mm ({res.held_sets} held sets {how})")
     parts.append(f"posterior spread median {np.nanmedian(res.spread):.3f} / max {np.nanmax(res.spread):.3f} mm")
     cut = "" if res.complete else "; cut short by --time-limit: the best estimate reached by then"
     return ", ".join(parts) + f"; {res.solves} solves, {res.seconds:.1f} s{cut}"

@@ -60,6 +60,9 @@ def register(sub) -> None:
                    help="mismatch: the physics frames also with each one's simulated attached margin given, as "
                         "`predict --physics --attached-margin` a measured one (a row 'physics, margin known'; "
                         "needs --physics N and a training store that draws the margin)")
+    p.add_argument("--physics-estimate", choices=("likeliest", "mean"),
+                   help="mismatch: the physics rows' field where the attached margin is searched, as `predict "
+                        "--physics-estimate` (default likeliest)")
     p.add_argument("--physics-time-limit", type=float, default=None, metavar="SECONDS",
                    help="mismatch: seconds one physics frame may take (default that of `predict --physics`; 0: none)")
     p.add_argument("--alpha", type=float, default=0.0,
@@ -98,6 +101,7 @@ def _mismatch(args) -> int:
     limit = limit or None
     if args.physics < 0:
         raise ConfigError(f"--physics {args.physics}: give a number of frames >= 0 (0: no physics rows)")
+    from ..inverse import ESTIMATES
     from .predict_physics import TIME_LIMIT
 
     physics_limit = TIME_LIMIT if args.physics_time_limit is None else args.physics_time_limit
@@ -122,12 +126,14 @@ def _mismatch(args) -> int:
     rows = mm.mismatch_study(cfg, models, out / "mismatch", alpha=alpha, sets=sets, samples=samples,
                              refined_samples=refined, refined_time_limit=limit, progress=True, physics=args.physics,
                              physics_time_limit=physics_limit or None, physics_known_margin=args.physics_known_margin,
+                             physics_estimate=args.physics_estimate,
                              on_row=lambda r: print(f"  {r['set']} / {r['model']}: Offset_max {r['mlp_offset_max']:.3g} mm "
                                                     f"(rigid {r['rigid_offset_max']:.3g}), relative "
                                                     f"{100 * r['relative']:.3g} %", flush=True))
     markers = {k: m.describe()["markers"] for k, m in models.items()}
     meta = {"alpha": alpha, "samples": samples, "refined_samples": refined, "refined_time_limit": limit, "models": markers,
-            "physics_frames": args.physics, "physics_known_margin": args.physics_known_margin}
+            "physics_frames": args.physics, "physics_known_margin": args.physics_known_margin,
+            "physics_estimate": (args.physics_estimate or ESTIMATES[0]) if args.physics else None}
     json_path, csv_path = write_mismatch(out, rows, meta)
     png = mismatch_figure(rows, out / "study_mismatch.png")
     print(format_mismatch(rows))

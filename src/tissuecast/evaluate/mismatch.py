@@ -461,7 +461,7 @@ def evaluate_on_set(model, dataset, targets) -> dict:
 
 
 def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit: float | None = None,
-                   known_margin: bool = False) -> dict:
+                   known_margin: bool = False, estimate: str | None = None) -> dict:
     """The physics inverse on a set's first ``samples`` test-1 samples, as a study row.
 
     Each frame is solved as ``tissuecast predict --physics`` solves it: the model's markers (all
@@ -471,6 +471,8 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
     is given the attached margin its sample was simulated with (0 where the set draws none: the
     nominal extent), as ``predict --physics --attached-margin`` a measured one; the margin must
     lie within the inverse's :attr:`~tissuecast.inverse.MarkerInverse.margin_range`.
+    ``estimate``: the field of a searched frame (:data:`~tissuecast.inverse.ESTIMATES`; None:
+    the default one).
 
     Returns:
         The keys of :func:`evaluate_on_set` over those samples (no input gate's share: the frames
@@ -485,6 +487,7 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
     """
     from ..fem.linear import one_blas_thread
     from ..instruments import recorded_poses
+    from ..inverse import ESTIMATES
     from ..registration import nonrigid_part
     from .metrics import summarize_targets, target_errors
 
@@ -497,7 +500,8 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
         draw = inverse.scenario.frame_draw(recorded_poses(dataset.instrument_poses, int(s)))
         try:
             with one_blas_thread():
-                res = inverse.solve(d[k], draw, time_limit=time_limit, attached_margin=margins[k])
+                res = inverse.solve(d[k], draw, time_limit=time_limit, attached_margin=margins[k],
+                                    estimate=estimate or ESTIMATES[0])
         except ConvergenceError as e:  # recorded in the row, left out of its figures
             log.warning("physics frame %d of %d (sample %d) not solved: %s", k + 1, idx.size, int(s), e)
             continue
@@ -582,7 +586,8 @@ def set_folder_name(name: str) -> str:
 def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=None, samples: int = DEFAULT_SAMPLES,
                    refined_samples: int = DISCRETISATION_SAMPLES, refined_time_limit: float | None = REFINED_TIME_LIMIT,
                    targets=None, progress: bool = False, on_row=None, physics: int = 0,
-                   physics_time_limit: float | None = None, physics_known_margin: bool = False) -> list[dict]:
+                   physics_time_limit: float | None = None, physics_known_margin: bool = False,
+                   physics_estimate: str | None = None) -> list[dict]:
     """Simulate the mismatch sets and evaluate every model on each (module notes).
 
     Args:
@@ -607,6 +612,8 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
             (``physics_on_set(known_margin=True)``, a row labelled :data:`PHYSICS_KNOWN`; what a
             measured attachment is worth), on every set whose margins lie within the training
             store's range (a set beyond it is left out of these rows, and logged).
+        physics_estimate: the physics rows' field where the margin is searched
+            (:data:`~tissuecast.inverse.ESTIMATES`; None: the default one).
 
     Returns:
         One row per (set, model): the figures of :func:`evaluate_on_set` with ``set``, ``what``,
@@ -658,7 +665,8 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
         if inverse is not None:
             log.info("%s: the physics inverse on %d frames (seconds to minutes each)", mset.name, physics)
             at = targets or interior_targets(first.mesh, exclude=first.fixed)
-            add(mset, PHYSICS, physics_on_set(inverse, first, ds, at, physics, time_limit=physics_time_limit))
+            add(mset, PHYSICS, physics_on_set(inverse, first, ds, at, physics, time_limit=physics_time_limit,
+                                              estimate=physics_estimate))
             if physics_known_margin:
                 lo, hi = inverse.margin_range
                 m = set_margins(ds, physics_frames(ds, physics))
@@ -667,5 +675,5 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
                                 "[%g, %g] mm; no known-margin physics row", mset.name, m.min(), m.max(), lo, hi)
                 else:
                     add(mset, PHYSICS_KNOWN, physics_on_set(inverse, first, ds, at, physics, time_limit=physics_time_limit,
-                                                            known_margin=True))
+                                                            known_margin=True, estimate=physics_estimate))
     return rows

@@ -34,10 +34,12 @@ standard deviations) is held, one that moved is not, which brackets the margin b
 largest surface distance of a still marker and the smallest of a moving one. The likeliest set
 a priori is iterated to convergence first, every other one with a few Gauss-Newton steps
 started from the best solution so far, then the best ``FINISHED`` to convergence from where
-the search left them; the field is their average weighted by their posterior ``exp(-objective / 2)``
-(where the markers cannot tell whether a vertex far from them is held, it takes the middle).
-Where the margin is known (measured in surgery: ``solve(..., attached_margin=...)``), its held
-set alone is iterated, without the search.
+the search left them. The field is, by ``estimate``, the likeliest of them (``"likeliest"``: one
+equilibrium of the simulator, the held set the markers favour) or their average weighted by their
+posterior ``exp(-objective / 2)`` (``"mean"``: where the markers cannot tell whether a vertex far
+from them is held, it takes the middle; a blend of equilibria, smeared at the held region's rim
+where the neighbours of the true set take weight). Where the margin is known (measured in
+surgery: ``solve(..., attached_margin=...)``), its held set alone is iterated, without the search.
 The parameters, W and the misfit are the best set's. The density (a factor on the gravity
 change, a small share of the shipped presets' loads: docs/uncertainty.md) and the material
 regions' moduli are kept at their nominal values.
@@ -63,7 +65,7 @@ from ..dataset.sensitivities import (CONTINUOUS_PARAMETERS, PARAMETER_STEP, WEIG
 from ..scenario.parameters import ParameterDraw
 from ..scenario.sample_inputs import SampleInputs, ScenarioDraw
 
-__all__ = ["MarkerInverse", "InverseResult", "NOISE_MM", "MIN_TRACKED", "MISFIT_NOISES", "spread_band"]
+__all__ = ["MarkerInverse", "InverseResult", "NOISE_MM", "MIN_TRACKED", "MISFIT_NOISES", "ESTIMATES", "spread_band"]
 
 #: Default standard deviation of a tracked marker coordinate, mm (a misfit of this size is noise).
 NOISE_MM = 0.05
@@ -117,6 +119,9 @@ MISFIT_NOISES = 4.0
 #: A solve from zero whose field differs anywhere from the warm-started one's by more than this
 #: many noise standard deviations is on another branch (another equilibrium of the same loads).
 BRANCH_NOISES = 4.0
+#: The field a searched frame reports (``MarkerInverse.solve(estimate=...)``; module notes); the
+#: first is the default.
+ESTIMATES = ("likeliest", "mean")
 #: A full solve that stopped or broke down (as the data set's worker counts them).
 _SOLVE_FAILURES = (ConvergenceError, ArithmeticError, np.linalg.LinAlgError)
 
@@ -136,8 +141,8 @@ class InverseResult:
     """One frame's estimate.
 
     Attributes:
-        field: (n, 3) float64 mm, the displacement at every mesh vertex: the posterior mean
-            over the finished held sets (module notes).
+        field: (n, 3) float64 mm, the displacement at every mesh vertex: the likeliest
+            finished held set's, or the posterior mean over them (:attr:`estimate`; module notes).
         weights: (n_b, 3) float64, the LBO weights W of the surface load.
         parameters: the estimated :class:`~tissuecast.scenario.parameters.ParameterDraw`
             (nominal values where the scenario draws nothing).
@@ -145,19 +150,20 @@ class InverseResult:
             displacement, mm.
         objective: minus twice the log posterior (up to a constant) at the estimate, the held
             set's prior included.
-        held_sets: how many of the attached margin's held sets the field averages (1 where
-            the margin is not drawn).
+        held_sets: how many of the attached margin's held sets were finished and weighed (1
+            where the margin is not drawn or is given).
         solves: full finite-element solves it took.
         seconds: wall-clock time.
         spread: (n,) float64 mm, each vertex's posterior spread ``sqrt(sum_xyz var)`` (as an
             ensemble's ``sigma``): the Laplace approximation within the best held set (what
-            the markers' noise leaves open, to first order) plus the spread of the averaged
-            held sets' fields about ``field``. It does not see what the simulator's family
+            the markers' noise leaves open, to first order) plus the finished held sets' fields'
+            posterior-weighted mean square distance from ``field``. It does not see what the simulator's family
             leaves out, nor another equilibrium or held set that the search ranked below
             (docs/uncertainty.md measures how often the error exceeds it); NaN where the
             estimate has no tangent.
         complete: False where the frame's time limit cut the search short (the estimate is
             the best reached by then).
+        estimate: which field of :data:`ESTIMATES` ``field`` is.
     """
 
     field: np.ndarray
@@ -170,11 +176,17 @@ class InverseResult:
     seconds: float
     spread: np.ndarray
     complete: bool = True
+    estimate: str = ESTIMATES[0]
 
     def within_band(self, truth: np.ndarray, coverage: float = 0.9) -> float:
         """The share of the vertices whose error against ``truth`` (n, 3) mm lies within the
-        ``coverage`` band, :func:`spread_band` times :attr:`spread`."""
-        return float(np.mean(np.linalg.norm(self.field - truth, axis=1) <= spread_band(coverage) * self.spread))
+        ``coverage`` band, :func:`spread_band` times :attr:`spread`, up to ``truth``'s rounding
+        to float32 (a data set's storage): the vertices the known loads prescribe (held, or moved
+        by a tracked instrument) have no spread, and their error is that rounding."""
+        truth = np.asarray(truth, dtype=np.float64)
+        rounding = np.finfo(np.float32).eps * np.linalg.norm(truth, axis=1)
+        error = np.linalg.norm(self.field - truth, axis=1)
+        return float(np.mean(error <= spread_band(coverage) * self.spread + rounding))
 
 
 class MarkerInverse:
@@ -283,7 +295,8 @@ class MarkerInverse:
 
     # ------------------------------------------------------------------ solving
     def solve(self, marker_displacements, draw: ScenarioDraw | None = None, *, progress=None,
-              time_limit: float | None = None, attached_margin: float | None = None) -> InverseResult:
+              time_limit: float | None = None, attached_margin: float | None = None,
+              estimate: str = ESTIMATES[0]) -> InverseResult:
         """The MAP estimate of one frame.
 
         Args:
@@ -305,10 +318,15 @@ class MarkerInverse:
             attached_margin: the attached region's margin, mm, where it is known (measured in
                 surgery): its held set alone is iterated, no search (seconds, not minutes, a
                 frame); None: searched over its range.
+            estimate: the field reported where held sets were searched, one of
+                :data:`ESTIMATES`: ``"likeliest"`` the likeliest held set's solution,
+                ``"mean"`` the posterior mean over the finished ones (module notes). The
+                search, the parameters and the spread's first term are the same either way.
 
         Raises:
             ConfigError: the displacements do not match the markers, a marker has only some
-                coordinates, or fewer than :data:`MIN_TRACKED` markers are tracked.
+                coordinates, fewer than :data:`MIN_TRACKED` markers are tracked, or
+                ``estimate`` is not one of :data:`ESTIMATES`.
             ConvergenceError: no equilibrium to start the frame from (the known loads with the
                 prior's mean parameters) within the solve caps (:data:`SOLVE_ITERATIONS`, :data:`SOLVE_FACTORIZATIONS`).
         """
@@ -323,6 +341,8 @@ class MarkerInverse:
         if (~lost.all(axis=1)).sum() < MIN_TRACKED:
             raise ConfigError(f"only {int((~lost.all(axis=1)).sum())} markers are tracked; the physics inverse needs at "
                               f"least {MIN_TRACKED}")
+        if estimate not in ESTIMATES:
+            raise ConfigError(f"the estimate must be one of {', '.join(map(repr, ESTIMATES))}, got {estimate!r}")
         if time_limit is not None and not time_limit > 0:
             raise ConfigError(f"the time limit must be a positive number of seconds (or None), got {time_limit!r}")
         deadline = math.inf if time_limit is None else t0 + float(time_limit)
@@ -345,10 +365,10 @@ class MarkerInverse:
         w = np.exp(-0.5 * (objs - objs.min()))
         n = self.scenario.mesh.n_vertices
         w /= w.sum()
-        field = sum(wi * u[:n] for wi, (_, _, _, u) in zip(w, finished))
-        between = sum(wi * ((u[:n] - field) ** 2).sum(axis=1) for wi, (_, _, _, u) in zip(w, finished))
         best = int(np.argmin(objs))
         margin, _, x, u = finished[best]
+        field = u[:n].copy() if estimate == "likeliest" else sum(wi * ui[:n] for wi, (_, _, _, ui) in zip(w, finished))
+        between = sum(wi * ((ui[:n] - field) ** 2).sum(axis=1) for wi, (_, _, _, ui) in zip(w, finished))
         obj, miss = float(objs[best]), scored[best][1]
         try:
             within = frame.spread(x, margin, u)
@@ -357,7 +377,7 @@ class MarkerInverse:
         return InverseResult(field=field, weights=x[: 3 * self.n_basis].reshape(self.n_basis, 3).copy(),
                              parameters=self._draw(x, margin), marker_misfit=miss, objective=obj,
                              held_sets=len(finished), solves=frame.solves, seconds=time.perf_counter() - t0,
-                             complete=not frame.cut_short, spread=np.sqrt(within + between))
+                             complete=not frame.cut_short, spread=np.sqrt(within + between), estimate=estimate)
 
     def _given_margin(self, value) -> float:
         """A known attached margin, mm, checked against the scenario's drawn range."""

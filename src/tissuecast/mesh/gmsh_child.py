@@ -6,7 +6,7 @@ BLAS starts on one thread and a hang can be killed. ``JOB`` is an ``.npz`` file 
 ``points`` (n, 3) float64 mm, ``triangles`` (k, 3) int64 (0-based) and ``options`` (a JSON
 object of :func:`~tissuecast.mesh.mesher.run_gmsh`'s keywords); the answer goes to ``OUT``
 (``.npz``: gmsh's node ``tags``, flat ``coords`` mm and ``tet_nodes``), or gmsh's error
-message to ``OUT`` with the suffix ``.error`` (exit status 1). Neither file is pickled.
+message to ``OUT`` with the suffix :data:`~tissuecast.mesh.mesher.CHILD_ERROR_SUFFIX` (exit status 1). Neither file is pickled.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import numpy as np
 def main(argv: list[str]) -> int:
     """Mesh the job ``argv[0]`` into ``argv[1]``; 0 on success, 1 with the error written."""
     from ..errors import MeshError
-    from .mesher import run_gmsh
+    from .mesher import CHILD_ERROR_SUFFIX, run_gmsh
 
     job, out = Path(argv[0]), Path(argv[1])
     with np.load(job, allow_pickle=False) as z:
@@ -31,7 +31,7 @@ def main(argv: list[str]) -> int:
     try:
         tags, coords, tet_nodes = run_gmsh(gmsh, points, triangles, **options)
     except MeshError as exc:
-        out.with_suffix(".error").write_text(str(exc))
+        out.with_suffix(CHILD_ERROR_SUFFIX).write_text(str(exc))
         return 1
     np.savez(out, tags=tags, coords=coords, tet_nodes=tet_nodes)
     return 0

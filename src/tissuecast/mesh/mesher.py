@@ -49,6 +49,8 @@ GMSH_ALGORITHM_3D = 1
 #: re-parametrisation of the surface turns that rounding into another mesh, so the child pins it
 #: to one thread: the same mesh whatever the machine's core count or the caller's settings.
 GMSH_ENVIRONMENT = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "GOTO_NUM_THREADS": "1"}
+#: The suffix the meshing child gives its answer file's name for gmsh's error message instead.
+CHILD_ERROR_SUFFIX = ".error"
 
 
 def start_gmsh(gmsh) -> None:
@@ -273,8 +275,8 @@ def _gmsh_in_child(points, triangles, options: dict, timeout: float):
             if child.poll() is None:
                 child.kill()
                 child.communicate()
-        if out.with_suffix(".error").exists():
-            raise MeshError(out.with_suffix(".error").read_text())
+        if out.with_suffix(CHILD_ERROR_SUFFIX).exists():
+            raise MeshError(out.with_suffix(CHILD_ERROR_SUFFIX).read_text())
         if child.returncode != 0 or not out.exists():
             last = err.strip().splitlines()[-1] if err.strip() else "no message"
             raise MeshError(f"gmsh crashed while meshing (exit code {child.returncode}: {last}); check that the "
