@@ -60,6 +60,7 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
 
     from tissuecast.cli.predict_physics import _dataset_for
     from tissuecast.dataset import open_dataset
+    from tissuecast.inverse import MarkerInverse
     from tissuecast.surrogate import DeformationModel
 
     cfg, store, folder = tracked_retractor_store(tmp_path)
@@ -86,6 +87,11 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
     written = json.loads(out.read_text())
     u, spread = np.array(written["displacement"])[0], np.array(written["uncertainty"])[0]
     assert spread.shape == (len(u),) and np.all(spread >= 0.0) and 0.0 < np.median(spread) < 0.01  # 0.002 mm noise
+    (note,) = written["physics"]  # what the inverse estimated, one record a sample
+    assert set(note["parameters"]) == set(MarkerInverse.from_dataset(ds, model.markers).estimated)
+    assert note["marker_misfit_mm"] < 4 * 0.002 and not note["flagged"] and note["complete"]
+    assert (note["held_sets"], note["estimate"], note["likeliest_weight"]) == (1, "likeliest", 1.0)
+    assert note["solves"] > 0 and note["seconds"] > 0.0
     peak = np.linalg.norm(truth, axis=1).max()
     assert 0.5 < peak < 20.0
     assert np.linalg.norm(u - truth, axis=1).max() < 1e-3 * peak
@@ -200,9 +206,10 @@ def test_the_estimate_line_says_which_field_was_written():
 
     p = SimpleNamespace(attached_margin=2.5, youngs_modulus=1.5)
     res = SimpleNamespace(parameters=p, marker_misfit=0.012, held_sets=4, estimate="likeliest", complete=True,
-                          spread=np.array([0.0, 0.1, 0.3]), solves=40, seconds=12.0)
+                          spread=np.array([0.0, 0.1, 0.3]), solves=40, seconds=12.0, likeliest_weight=0.614)
     text = describe(res, ("youngs_modulus",))
-    assert text.startswith("markers fitted to 0.012 mm, youngs_modulus 1.5, attached margin +2.50 mm (4 held sets "
-                           "weighed, the likeliest's field)") and "median 0.100 / max 0.300 mm; 40 solves, 12.0 s" in text
-    assert "(4 held sets averaged)" in describe(SimpleNamespace(**{**vars(res), "estimate": "mean"}))
+    assert text.startswith("markers fitted to 0.012 mm, youngs_modulus 1.5, attached margin +2.50 mm (the likeliest "
+                           "of 4 held sets, 61 % of the posterior)") and "median 0.100 / max 0.300 mm; 40 solves, 12.0 s" in text
+    assert "(4 held sets averaged, the likeliest 61 % of the posterior)" in describe(
+        SimpleNamespace(**{**vars(res), "estimate": "mean"}))
     assert "held sets" not in describe(SimpleNamespace(**{**vars(res), "held_sets": 1}))

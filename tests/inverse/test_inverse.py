@@ -150,6 +150,7 @@ def test_the_likeliest_and_the_mean_estimate_come_from_one_search():
     like, mean = (inv.solve(d, inv.known_draw(5), estimate=e) for e in ("likeliest", "mean"))
     assert like.held_sets == mean.held_sets == 3 and (like.estimate, mean.estimate) == ("likeliest", "mean")
     assert like.solves == mean.solves and like.objective == mean.objective and like.parameters == mean.parameters
+    assert 0.5 < like.likeliest_weight == mean.likeliest_weight < 1.0  # the other sets take some weight
     apart = np.linalg.norm(like.field - mean.field, axis=1)
     assert apart.max() > 1e-3  # the sets differ: the two estimates are two fields
     assert np.linalg.norm(like.field[markers] - d, axis=1).max() == pytest.approx(like.marker_misfit, rel=1e-9)
@@ -247,6 +248,7 @@ def test_a_known_attached_margin_is_iterated_alone():
     searched = inv.solve(truth[markers], inv.known_draw(5))
     peak = np.linalg.norm(truth, axis=1).max()
     assert known.held_sets == 1 and known.parameters.attached_margin == margin and known.complete
+    assert known.likeliest_weight == 1.0
     off = [np.linalg.norm(r.field - truth, axis=1).max() / peak for r in (known, searched)]  # 0.2 mm noise
     assert off[0] < 0.1 and off[0] <= 1.05 * off[1] and known.marker_misfit < 4 * 0.2
     assert searched.held_sets == 3 and known.solves < searched.solves / 2

@@ -166,7 +166,10 @@ def read_marker_file(path: Path, n_d: int) -> tuple[np.ndarray, bool | None]:
     return arr.reshape(-1, n_d, 3), flag
 
 
-def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.ndarray | None = None) -> list[Path]:
+def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.ndarray | None = None,
+           notes: dict | None = None) -> list[Path]:
+    """Write the fields ``u`` (B, n, 3) mm, with ``sigma`` and ``bound`` (B, n) mm where given, to
+    ``out`` by its suffix; ``notes`` (JSON-ready) go into a JSON output beside them."""
     from ..errors import ModelError
 
     suf = out.suffix.lower()
@@ -211,6 +214,7 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.
             doc["uncertainty"] = sigma.tolist()
         if bound is not None:
             doc["error_bound_mm"] = bound.tolist()
+        doc.update(notes or {})
         out.write_text(json.dumps(doc), encoding="utf-8")
         return [out]
     raise ModelError(f"unknown output format {out.suffix!r}; use .vtu, .vtk, .vtp, .csv or .json")
@@ -292,9 +296,9 @@ def run(args) -> int:
     return 0
 
 
-def _write_outputs(args, model, u, sigma, bound, method: str) -> None:
+def _write_outputs(args, model, u, sigma, bound, method: str, notes: dict | None = None) -> None:
     if args.out:
-        for f in _write(Path(args.out), model, u, sigma, bound):
+        for f in _write(Path(args.out), model, u, sigma, bound, notes):
             print(f"wrote {f}")
     if args.targets_out:
         print(f"wrote {_write_targets(Path(args.targets_out), model, u, args.targets, method)}")
@@ -302,7 +306,7 @@ def _write_outputs(args, model, u, sigma, bound, method: str) -> None:
 
 def _run_physics(args, model, d: np.ndarray, missing: np.ndarray) -> int:
     """``--physics``: every sample through the physics inverse (:mod:`.predict_physics`)."""
-    from .predict_physics import TIME_LIMIT, check_physics_options, describe, misfit_warning, physics_fields
+    from .predict_physics import TIME_LIMIT, check_physics_options, describe, misfit_warning, physics_fields, record
 
     if args.time_limit is None:
         args.time_limit = TIME_LIMIT
@@ -318,7 +322,8 @@ def _run_physics(args, model, d: np.ndarray, missing: np.ndarray) -> int:
         if warning:
             print(f"sample {b}: {warning}")
     print(f"solved {u.shape[0]} sample(s) of {u.shape[1]} vertices through the physics in {time.perf_counter() - t:.1f} s")
-    _write_outputs(args, model, u, np.stack([res.spread for res in results]), None, "physics")
+    _write_outputs(args, model, u, np.stack([res.spread for res in results]), None, "physics",
+                   {"physics": [record(res, inverse) for res in results]})
     return 0
 
 

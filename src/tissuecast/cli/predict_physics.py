@@ -28,6 +28,8 @@ docs/uncertainty.md). Each vertex gets the
 estimate's posterior spread (:attr:`~tissuecast.inverse.InverseResult.spread`, mm), written
 where the learned model writes its ensemble's (``uncertainty`` point data, ``sigma_mm`` in CSV):
 what the markers' noise and the held sets leave open within the simulator's family; no alarm.
+A JSON output (``--out F.json``) also gets each sample's estimate under ``physics``
+(:func:`record`: the parameters, the markers' fit, the held sets).
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from ..errors import ModelError
 if TYPE_CHECKING:
     from ..inverse import MarkerInverse
 
-__all__ = ["physics_fields", "check_physics_options", "describe", "misfit_warning", "TIME_LIMIT"]
+__all__ = ["physics_fields", "check_physics_options", "describe", "record", "misfit_warning", "TIME_LIMIT"]
 
 #: Default wall-clock seconds of one frame (what frames of the shipped presets take:
 #: docs/uncertainty.md).
@@ -154,6 +156,19 @@ def misfit_warning(res, inverse) -> str | None:
             "judge the frame")
 
 
+def record(res, inverse) -> dict:
+    """What ``inverse`` estimated for one frame (``res``), for ``predict``'s JSON output: the
+    estimated parameters (factors on the nominal ones; Poisson's ratio; the attached margin in
+    mm where it is drawn), the markers' fit, the held sets and the field's estimate, whether the
+    fit is flagged or the search cut short, solves and seconds."""
+    p = res.parameters
+    names = list(inverse.estimated) + (["attached_margin"] if inverse.margins.size else [])
+    return {"parameters": {name: float(getattr(p, name)) for name in names},
+            "marker_misfit_mm": float(res.marker_misfit), "flagged": bool(inverse.flags(res)),
+            "held_sets": int(res.held_sets), "estimate": res.estimate, "likeliest_weight": float(res.likeliest_weight),
+            "complete": bool(res.complete), "solves": int(res.solves), "seconds": float(res.seconds)}
+
+
 def describe(res, estimated=()) -> str:
     """One line of an inverse's estimate: misfit, the ``estimated`` parameters' values (factors
     on the nominal ones; Poisson's ratio), the held sets, the posterior spread, solves and time."""
@@ -162,8 +177,10 @@ def describe(res, estimated=()) -> str:
     for name in estimated:
         parts.append(f"{name} {getattr(p, name):.3g}")
     if res.held_sets > 1:
-        how = "averaged" if res.estimate == "mean" else "weighed, the likeliest's field"
-        parts.append(f"attached margin {p.attached_margin:+.2f} mm ({res.held_sets} held sets {how})")
+        share = f"{100 * res.likeliest_weight:.0f} % of the posterior"
+        how = (f"{res.held_sets} held sets averaged, the likeliest {share}" if res.estimate == "mean"
+               else f"the likeliest of {res.held_sets} held sets, {share}")
+        parts.append(f"attached margin {p.attached_margin:+.2f} mm ({how})")
     parts.append(f"posterior spread median {np.nanmedian(res.spread):.3f} / max {np.nanmax(res.spread):.3f} mm")
     cut = "" if res.complete else "; cut short by --time-limit: the best estimate reached by then"
     return ", ".join(parts) + f"; {res.solves} solves, {res.seconds:.1f} s{cut}"

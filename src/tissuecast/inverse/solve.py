@@ -164,6 +164,8 @@ class InverseResult:
         complete: False where the frame's time limit cut the search short (the estimate is
             the best reached by then).
         estimate: which field of :data:`ESTIMATES` ``field`` is.
+        likeliest_weight: the likeliest finished held set's share of their posterior weight
+            (1 where there is one set): how sure the markers are of where the tissue is held.
     """
 
     field: np.ndarray
@@ -177,6 +179,7 @@ class InverseResult:
     spread: np.ndarray
     complete: bool = True
     estimate: str = ESTIMATES[0]
+    likeliest_weight: float = 1.0
 
     def within_band(self, truth: np.ndarray, coverage: float = 0.9) -> float:
         """The share of the vertices whose error against ``truth`` (n, 3) mm lies within the
@@ -377,7 +380,8 @@ class MarkerInverse:
         return InverseResult(field=field, weights=x[: 3 * self.n_basis].reshape(self.n_basis, 3).copy(),
                              parameters=self._draw(x, margin), marker_misfit=miss, objective=obj,
                              held_sets=len(finished), solves=frame.solves, seconds=time.perf_counter() - t0,
-                             complete=not frame.cut_short, spread=np.sqrt(within + between), estimate=estimate)
+                             complete=not frame.cut_short, spread=np.sqrt(within + between), estimate=estimate,
+                             likeliest_weight=float(w[best]))
 
     def _given_margin(self, value) -> float:
         """A known attached margin, mm, checked against the scenario's drawn range."""
