@@ -121,11 +121,13 @@ def main(argv=None) -> None:
     if args.known_margin and "attached_margin" not in drawn:
         ap.error(f"--known-margin: {args.dataset} records no drawn attached margin")
     targets = model_targets(model)
+    margin = ("" if not inv.margins.size else "; each sample's margin given" if args.known_margin
+              else f"; the field the {args.estimate} estimate")
     print(f"{args.dataset}: {len(idx)} {args.split} samples, {len(mk)} markers, noise {args.noise} mm, "
           f"known loads {KNOWN[args.tracked]}, "
           f"alpha {inv.alpha:.4g} N, estimated: W ({3 * inv.n_basis}), "
           f"{', '.join(inv.estimated) or 'no parameter'}"
-          f"{', the attached margin (' + str(len(inv.margins)) + ' held sets)' if inv.margins.size else ''}")
+          f"{', the attached margin (' + str(len(inv.margins)) + ' held sets)' if inv.margins.size else ''}{margin}")
     rows, covered = [], []
     t_all = time.perf_counter()
     for k, s in enumerate(idx):

@@ -1,7 +1,7 @@
 """benchmarks/physics_inverse.py: the poses a store recorded are the draws' (what a tracker
 reports), and a run as a tracked frame (``--tracked``) puts the inverse far below the model
 on samples of its own simulator, and says how much of the field its band holds; ``--known-margin``
-on a store that draws no margin is refused."""
+on a store that draws no margin is refused; a run names the field it reports."""
 
 from __future__ import annotations
 
@@ -44,3 +44,16 @@ def test_the_inverse_as_a_tracked_frame_beats_the_model(tmp_path, capsys):
     with pytest.raises(SystemExit):  # the store draws no parameter: nothing to give
         mod.main(["--dataset", str(store), "--model", str(model), "--samples", "1", "--known-margin"])
     assert f"--known-margin: {store} records no drawn attached margin" in capsys.readouterr().err
+
+
+def test_the_benchmark_says_which_field_a_searched_frame_reports(tmp_path, capsys):
+    """On a store that draws the attached margin, the run names the estimate it reports
+    (``--estimate``), or that each sample's margin is given (``--known-margin``)."""
+    mod = load_benchmark("physics_inverse")
+    _, store, model = tracked_retractor_store(tmp_path, {"attached_margin": [-6.0, 6.0]})
+    argv = ["--dataset", str(store), "--model", str(model), "--samples", "1", "--tracked"]
+    mod.main(argv + ["--estimate", "mean"])
+    assert "; the field the mean estimate" in capsys.readouterr().out
+    mod.main(argv + ["--known-margin"])
+    out = capsys.readouterr().out
+    assert "; each sample's margin given" in out and "the field the" not in out

@@ -78,6 +78,17 @@ def test_solve_time_benchmark_compares_a_config_with_its_nominal_parameters(tmp_
     with pytest.raises(SystemExit):  # neither a file nor an organ shape
         bench.main([str(tmp_path / "embedded.toml"), "--nominal", "--mesh", str(tmp_path / "no-such.vtu")])
     assert not any(scratch.iterdir())  # refused runs leave no temporary folder behind
+
+    def broken(path, samples, predictor_samples, folder, nominal, mesh):
+        (folder / "half-made.zarr").mkdir()  # a store begun, then the run stops
+        raise KeyboardInterrupt
+
+    real = bench.time_config
+    monkeypatch.setattr(bench, "time_config", broken)
+    with pytest.raises(KeyboardInterrupt):
+        bench.main([str(tmp_path / "embedded.toml"), "--nominal", "--samples", "4"])
+    assert not any(scratch.iterdir())  # nor does a run that stops, without --keep
+    monkeypatch.setattr(bench, "time_config", real)
     other = box_mesh(3, 3, 7, (22.0, 22.0, 46.0))  # another mesh than the config's: --mesh puts both runs on it
     write_mesh(tmp_path / "other.vtu", other)
     assert bench.main([str(tmp_path / "embedded.toml"), "--nominal", "--samples", "4", "--predictor-samples", "2",

@@ -191,12 +191,29 @@ def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys, monk
     monkeypatch.setattr(MarkerInverse, "solve", recording)
     assert main(base) == 0 and main(base + ["--physics-estimate", "mean"]) == 0
     assert asked == ["likeliest", "mean"]
+    assert json.loads(out.read_text())["physics"][0]["estimate"] == "mean"
     with pytest.raises(SystemExit):
         main(base + ["--physics-estimate", "median"])
     assert "invalid choice: 'median' (choose from 'likeliest', 'mean')" in capsys.readouterr().err
+    assert main(base + ["--physics-estimate", "mean", "--attached-margin", f"{margin!r}"]) == 2
+    assert "with --attached-margin one held set is solved: drop one of the two" in capsys.readouterr().err
+
+
+def test_the_estimate_options_offer_the_inverses_estimates():
+    """``predict --physics-estimate`` and ``study mismatch --physics-estimate`` offer
+    :data:`~tissuecast.inverse.ESTIMATES` (the command line does not import the inverse to say so)."""
+    import argparse
+
+    from tissuecast.cli.predict_cmd import register as predict_parser
+    from tissuecast.cli.study_cmd import register as study_parser
     from tissuecast.inverse import ESTIMATES
 
-    assert ESTIMATES == ("likeliest", "mean")  # the options' choices, the first the default
+    for add in (predict_parser, study_parser):
+        sub = argparse.ArgumentParser().add_subparsers()
+        add(sub)
+        (parser,) = sub.choices.values()
+        (action,) = [a for a in parser._actions if a.dest == "physics_estimate"]
+        assert tuple(action.choices) == ESTIMATES and action.default is None  # None: the inverse's default
 
 
 def test_the_estimate_line_says_which_field_was_written():

@@ -431,7 +431,7 @@ def test_the_study_solves_a_few_frames_of_each_set_through_the_physics(tmp_path,
     assert data["meta"]["physics_estimate"] == "likeliest"
 
 
-def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, caplog, monkeypatch):
+def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, caplog, monkeypatch, capsys):
     """``--physics 2 --physics-known-margin`` on a store that draws the attached margin
     (-6..6 mm): a row per set with each frame's simulated margin given, as good as the searched
     row's; the set grown by 10 mm (beyond the range) gets none, said so."""
@@ -476,7 +476,10 @@ def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, capl
         assert known["mlp_offset_max"] < 0.05 * known["peak_median"] < known["rigid_offset_max"]
         assert known["mlp_offset_max"] <= 1.05 * searched["mlp_offset_max"] + 1e-3
     assert data["meta"]["physics_known_margin"] is True and data["meta"]["physics_estimate"] == "mean"
-    assert set(estimates) == {"mean"}  # handed to every frame (with the margin given, one held set: no choice)
+    assert {e for m, e in zip(given, estimates) if m is None} == {"mean"}  # every searched frame
+    assert main(["-q", "study", "mismatch", str(path), "--out", str(out), "--model", f"m={model}",
+                 "--physics-estimate", "mean"]) == 2
+    assert "the estimate chooses the physics rows' field: give a number of physics frames" in capsys.readouterr().err
     (tmp_path / "report").mkdir()
     section = mismatch_section(out, tmp_path / "report")
     assert "The <i>physics, margin known</i> rows" in section and "the posterior mean over the held sets" in section

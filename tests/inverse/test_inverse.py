@@ -107,8 +107,8 @@ def test_drawn_parameters_are_estimated_where_the_markers_see_them():
 def test_the_posterior_spread_matches_the_errors_of_noisy_frames():
     """Frames of one sample with fresh tracking noise (0.2 mm) each: the estimate's squared
     error at a vertex averages the spread squared (its definition: the expected squared error
-    under the posterior, here with three held sets averaged), and the 90 % band holds about 90 %
-    of the vertices; held vertices have no spread."""
+    under the posterior about the field written, here the likeliest of three held sets), and
+    the 90 % band holds about 90 % of the vertices; held vertices have no spread."""
     sc, solver, markers = _setup(True)
     noise = 0.2
     inv = MarkerInverse(sc, solver, markers, ALPHA, noise=noise)

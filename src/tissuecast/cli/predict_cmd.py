@@ -90,8 +90,8 @@ def register(sub) -> None:
                         "than the search (docs/uncertainty.md)")
     p.add_argument("--physics-estimate", choices=("likeliest", "mean"),
                    help="with --physics, where the attached margin is searched: the field written, the likeliest "
-                        "held set's solution (default: one equilibrium of the simulator) or the posterior mean over "
-                        "the held sets finished (a blend, smeared at the held region's rim; docs/uncertainty.md)")
+                        "held set's solution (the default; one equilibrium of the simulator) or the posterior mean "
+                        "over the held sets finished (a blend, smeared at the held region's rim; docs/uncertainty.md)")
     p.set_defaults(func=run)
 
 

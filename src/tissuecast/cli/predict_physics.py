@@ -61,6 +61,9 @@ def check_physics_options(args) -> None:
                          "model: drop them, or drop --physics")
     if args.noise is not None and not (np.isfinite(args.noise) and args.noise > 0):
         raise ModelError(f"--noise must be a positive number of mm, got {args.noise!r}")
+    if args.physics_estimate is not None and args.attached_margin is not None:
+        raise ModelError("--physics-estimate chooses among the held sets searched; with --attached-margin one held set "
+                         "is solved: drop one of the two")
     if not (np.isfinite(args.time_limit) and args.time_limit >= 0):
         raise ModelError(f"--time-limit must be a number of seconds >= 0 (0: none), got {args.time_limit!r}")
 

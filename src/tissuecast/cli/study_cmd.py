@@ -124,9 +124,9 @@ def _mismatch(args) -> int:
           "second run resumes them)" + (f"; the first {args.physics} frame(s) of each set also through the physics "
                                          "inverse" if args.physics else ""), flush=True)
     rows = mm.mismatch_study(cfg, models, out / "mismatch", alpha=alpha, sets=sets, samples=samples,
-                             refined_samples=refined, refined_time_limit=limit, progress=True, physics=args.physics,
-                             physics_time_limit=physics_limit or None, physics_known_margin=args.physics_known_margin,
-                             physics_estimate=args.physics_estimate,
+                             refined_samples=refined, refined_time_limit=limit, progress=True,
+                             physics=mm.PhysicsRows(args.physics, physics_limit or None, args.physics_known_margin,
+                                                    args.physics_estimate),
                              on_row=lambda r: print(f"  {r['set']} / {r['model']}: Offset_max {r['mlp_offset_max']:.3g} mm "
                                                     f"(rigid {r['rigid_offset_max']:.3g}), relative "
                                                     f"{100 * r['relative']:.3g} %", flush=True))

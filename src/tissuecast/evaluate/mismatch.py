@@ -51,7 +51,7 @@ from ..errors import ConfigError, ConvergenceError
 
 __all__ = ["MismatchSet", "mismatch_sets", "chosen_sets", "set_config", "ArraySet", "ReferenceSolver",
            "along_load_path", "keep_answers_of_one_path", "solve_path", "discretisation_set", "evaluate_on_set",
-           "set_folder_name", "store_alpha", "mismatch_study", "physics_on_set", "set_margins", "PHYSICS",
+           "set_folder_name", "store_alpha", "mismatch_study", "PhysicsRows", "physics_on_set", "set_margins", "PHYSICS",
            "PHYSICS_KNOWN", "DEFAULT_SAMPLES",
            "DISCRETISATION_SAMPLES", "REFINED_TIME_LIMIT", "STUDY_SEED_OFFSET"]
 
@@ -59,8 +59,8 @@ log = logging.getLogger(__name__)
 
 #: Samples per set by default, and of each (costly) set solved again with quadratic elements.
 DEFAULT_SAMPLES = 100
-#: The model label of the physics inverse's rows (``mismatch_study(physics=...)``), and of its
-#: rows with each frame's attached margin given (``physics_known_margin=True``).
+#: The model label of the physics inverse's rows (``mismatch_study(physics=PhysicsRows(...))``),
+#: and of its rows with each frame's attached margin given (``PhysicsRows.known_margin``).
 PHYSICS = "physics"
 PHYSICS_KNOWN = "physics, margin known"
 DISCRETISATION_SAMPLES = 4
@@ -583,11 +583,32 @@ def set_folder_name(name: str) -> str:
     return "".join(c if c.isalnum() else "_" for c in spelled).strip("_").lower()
 
 
+@dataclass(frozen=True)
+class PhysicsRows:
+    """The study's rows of the physics inverse (:func:`physics_on_set`).
+
+    Attributes:
+        frames: each set's first ``frames`` test-1 frames solved (a row labelled
+            :data:`PHYSICS`; the first model's markers and training store's simulator, its ranges
+            as priors); each takes seconds to minutes.
+        time_limit: seconds one frame may take (None: none).
+        known_margin: the same frames also with each one's attached margin given
+            (``physics_on_set(known_margin=True)``, a row labelled :data:`PHYSICS_KNOWN`; what a
+            measured attachment is worth), on every set whose margins lie within the training
+            store's range (a set beyond it is left out of these rows, and logged).
+        estimate: the field where the margin is searched (:data:`~tissuecast.inverse.ESTIMATES`;
+            None: the default one).
+    """
+
+    frames: int
+    time_limit: float | None = None
+    known_margin: bool = False
+    estimate: str | None = None
+
+
 def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=None, samples: int = DEFAULT_SAMPLES,
                    refined_samples: int = DISCRETISATION_SAMPLES, refined_time_limit: float | None = REFINED_TIME_LIMIT,
-                   targets=None, progress: bool = False, on_row=None, physics: int = 0,
-                   physics_time_limit: float | None = None, physics_known_margin: bool = False,
-                   physics_estimate: str | None = None) -> list[dict]:
+                   targets=None, progress: bool = False, on_row=None, physics: PhysicsRows | None = None) -> list[dict]:
     """Simulate the mismatch sets and evaluate every model on each (module notes).
 
     Args:
@@ -604,16 +625,7 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
         targets: where TRE is measured (default: the evaluation's interior rule).
         progress: progress bars of the simulations.
         on_row: called with each row as it comes.
-        physics: frames of each set also solved by the physics inverse (:func:`physics_on_set`,
-            a row labelled :data:`PHYSICS`; the first model's markers and training store's
-            simulator, its ranges as priors), 0 for none; each takes seconds to minutes.
-        physics_time_limit: seconds one such frame may take (None: none).
-        physics_known_margin: the same frames also with each one's attached margin given
-            (``physics_on_set(known_margin=True)``, a row labelled :data:`PHYSICS_KNOWN`; what a
-            measured attachment is worth), on every set whose margins lie within the training
-            store's range (a set beyond it is left out of these rows, and logged).
-        physics_estimate: the physics rows' field where the margin is searched
-            (:data:`~tissuecast.inverse.ESTIMATES`; None: the default one).
+        physics: the physics inverse's rows (:class:`PhysicsRows`), or None (none).
 
     Returns:
         One row per (set, model): the figures of :func:`evaluate_on_set` with ``set``, ``what``,
@@ -624,7 +636,8 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
     first = next(iter(models.values()))
     chosen = chosen_sets(config, first.mesh, sets)
     inverse = None
-    if physics > 0:
+    physics = physics or PhysicsRows(0)
+    if physics.frames > 0:
         from ..dataset import open_dataset
         from ..inverse import MarkerInverse
         from .targets import interior_targets
@@ -636,12 +649,14 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
             raise ConfigError(f"the physics rows solve with the first model's training store, which is not at "
                               f"{first.dataset_path!r}; put it back (or leave the physics rows out)")
         inverse = MarkerInverse.from_dataset(open_dataset(first.dataset_path), first.markers)
-        if physics_known_margin and inverse.margin_range is None:
+        if physics.known_margin and inverse.margin_range is None:
             raise ConfigError("the first model's training store does not draw the attached region's margin "
                               "([scenario.uncertain] attached_margin): there is no margin to give; leave the known-margin "
                               "rows out")
-    elif physics_known_margin:
+    elif physics.known_margin:
         raise ConfigError("the known-margin physics rows solve the physics rows' frames: give a number of physics frames")
+    elif physics.estimate is not None:
+        raise ConfigError("the estimate chooses the physics rows' field: give a number of physics frames")
     rows, nominal_relative = [], {}
 
     def add(mset: MismatchSet, label: str, figures: dict) -> None:
@@ -663,17 +678,17 @@ def mismatch_study(config: Config, models: dict, folder, *, alpha: float, sets=N
         for label, model in models.items():
             add(mset, label, evaluate_on_set(model, ds, targets))
         if inverse is not None:
-            log.info("%s: the physics inverse on %d frames (seconds to minutes each)", mset.name, physics)
+            log.info("%s: the physics inverse on %d frames (seconds to minutes each)", mset.name, physics.frames)
             at = targets or interior_targets(first.mesh, exclude=first.fixed)
-            add(mset, PHYSICS, physics_on_set(inverse, first, ds, at, physics, time_limit=physics_time_limit,
-                                              estimate=physics_estimate))
-            if physics_known_margin:
+            add(mset, PHYSICS, physics_on_set(inverse, first, ds, at, physics.frames, time_limit=physics.time_limit,
+                                              estimate=physics.estimate))
+            if physics.known_margin:
                 lo, hi = inverse.margin_range
-                m = set_margins(ds, physics_frames(ds, physics))
+                m = set_margins(ds, physics_frames(ds, physics.frames))
                 if m.size and (m.min() < lo or m.max() > hi):
                     log.warning("%s: its attached margins (%+.3g to %+.3g mm) lie outside the training store's range "
                                 "[%g, %g] mm; no known-margin physics row", mset.name, m.min(), m.max(), lo, hi)
                 else:
-                    add(mset, PHYSICS_KNOWN, physics_on_set(inverse, first, ds, at, physics, time_limit=physics_time_limit,
-                                                            known_margin=True, estimate=physics_estimate))
+                    add(mset, PHYSICS_KNOWN, physics_on_set(inverse, first, ds, at, physics.frames,
+                                                            time_limit=physics.time_limit, known_margin=True))
     return rows
