@@ -144,15 +144,15 @@ def test_the_likeliest_and_the_mean_estimate_come_from_one_search():
     ``spread_likeliest^2 = spread_mean^2 + |mean - likeliest|^2`` at every vertex. The default
     is the likeliest; an unknown estimate is refused."""
     sc, solver, markers = _setup(True)
-    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.2)  # three held sets to search (above)
+    inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.5)  # three held sets to search, none sure
     truth, _ = _simulate(sc, solver, 5)
-    d = truth[markers] + np.random.default_rng(0).normal(0.0, 0.2, (len(markers), 3))  # sets 5 um apart
+    d = truth[markers] + np.random.default_rng(1).normal(0.0, 0.5, (len(markers), 3))
     like, mean = (inv.solve(d, inv.known_draw(5), estimate=e) for e in ("likeliest", "mean"))
     assert like.held_sets == mean.held_sets == 3 and (like.estimate, mean.estimate) == ("likeliest", "mean")
     assert like.solves == mean.solves and like.objective == mean.objective and like.parameters == mean.parameters
-    assert 0.5 < like.likeliest_weight == mean.likeliest_weight < 1.0  # the other sets take some weight
+    assert 0.5 < like.likeliest_weight == mean.likeliest_weight < 0.95  # the other sets take a share
     apart = np.linalg.norm(like.field - mean.field, axis=1)
-    assert apart.max() > 1e-3  # the sets differ: the two estimates are two fields
+    assert apart.max() > 0.05  # the sets differ: the two estimates are two fields
     assert np.linalg.norm(like.field[markers] - d, axis=1).max() == pytest.approx(like.marker_misfit, rel=1e-9)
     np.testing.assert_allclose(like.spread**2, mean.spread**2 + apart**2, rtol=1e-9, atol=1e-12)
     default = inv.solve(d, inv.known_draw(5))
