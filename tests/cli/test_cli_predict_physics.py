@@ -122,7 +122,7 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
         _dataset_for(other, str(store))
     for extra in (["--noise", "0.1"], ["--physics-estimate", "mean"]):
         assert main(["predict", str(tmp_path / "model"), "--markers", str(markers), *extra]) == 2
-        assert ("--gravity, --noise, --time-limit, --attached-margin and --physics-estimate go with --physics"
+        assert ("--gravity, --noise, --time-limit, --attached-margin(-sd) and --physics-estimate go with --physics"
                 in capsys.readouterr().err)
 
 
@@ -185,18 +185,23 @@ def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys, monk
     asked, solve = [], MarkerInverse.solve
 
     def recording(self, *args, **kwargs):
-        asked.append(kwargs["estimate"])
+        asked.append((kwargs["estimate"], kwargs["attached_margin"], kwargs["attached_margin_sd"]))
         return solve(self, *args, **kwargs)
 
     monkeypatch.setattr(MarkerInverse, "solve", recording)
     assert main(base) == 0 and main(base + ["--physics-estimate", "mean"]) == 0
-    assert asked == ["likeliest", "mean"]
+    # a measured margin with its uncertainty: searched with it as the prior (the estimate may be chosen)
+    assert main(base + ["--attached-margin", "1.0", "--attached-margin-sd", "1.5", "--physics-estimate", "mean"]) == 0
+    assert "attached margin measured +1.00 +- 1.5 mm" in capsys.readouterr().out
+    assert asked == [("likeliest", None, None), ("mean", None, None), ("mean", 1.0, 1.5)]
+    assert main(base + ["--attached-margin-sd", "1.5"]) == 2
+    assert "--attached-margin-sd is the measured margin's uncertainty: give the margin" in capsys.readouterr().err
     assert json.loads(out.read_text())["physics"][0]["estimate"] == "mean"
     with pytest.raises(SystemExit):
         main(base + ["--physics-estimate", "median"])
     assert "invalid choice: 'median' (choose from 'likeliest', 'mean')" in capsys.readouterr().err
     assert main(base + ["--physics-estimate", "mean", "--attached-margin", f"{margin!r}"]) == 2
-    assert "with --attached-margin one held set is solved: drop one of the two" in capsys.readouterr().err
+    assert "with --attached-margin alone one held set is solved: drop one of the two" in capsys.readouterr().err
 
 
 def test_the_estimate_options_offer_the_inverses_estimates():

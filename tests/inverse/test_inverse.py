@@ -161,6 +161,42 @@ def test_the_likeliest_and_the_mean_estimate_come_from_one_search():
         inv.solve(d, estimate="median")
 
 
+def test_a_measured_margin_with_its_uncertainty_is_a_prior_over_the_held_sets():
+    """A margin measured with a standard deviation weighs each held set by the measurement's
+    normal law over the set's margins (truncated to the range; the uniform range's shares in the
+    limit of a wide one) and searches those within reach: a margin given exactly in the wrong
+    held set puts the field far off, the same margin with its uncertainty finds the true set;
+    a narrow measurement leaves one set to search. Misuse is refused."""
+    sc, solver, markers = _setup(True)
+    inv = MarkerInverse(sc, solver, markers, ALPHA)  # 0.05 mm noise
+    margins, bounds = inv.margins, inv.margin_range  # left edges of the held sets' margin windows
+    assert margins.size == 3 and bounds == (-12.0, 12.0)
+    uniform = MarkerInverse._held_set_prior(margins, bounds)
+    for mean, sd in ((0.0, 3.0), (-11.0, 0.5), (0.0, 1e4)):
+        prior = MarkerInverse._held_set_prior(margins, bounds, (mean, sd))
+        assert np.exp(-prior / 2).sum() == pytest.approx(1.0, rel=1e-9)
+        assert np.argmin(prior) == np.searchsorted(margins, mean, side="right") - 1  # the set the mean lies in
+    np.testing.assert_allclose(prior, uniform, atol=1e-6)  # a measurement that says nothing: the range's shares
+    truth, inputs = _simulate(sc, solver, 2)
+    true_margin = inputs.parameters.attached_margin
+    assert margins[1] <= true_margin < margins[2]
+    peak = np.linalg.norm(truth, axis=1).max()
+    wrong = float(margins[0]) + 0.01  # in the held set below the true one
+    off = {}
+    for sd in (None, 11.0):
+        res = inv.solve(truth[markers], inv.known_draw(2), attached_margin=wrong, attached_margin_sd=sd)
+        off[sd] = np.linalg.norm(res.field - truth, axis=1).max() / peak
+        assert res.parameters.attached_margin == (wrong if sd is None else margins[1])
+    assert off[None] > 0.3 and off[11.0] < 0.02
+    told = []
+    res = inv.solve(truth[markers], inv.known_draw(2), attached_margin=0.0, attached_margin_sd=0.5, progress=told.append)
+    assert res.held_sets == 1 and any("+- 0.5 mm: 1 held sets within reach" in t for t in told)
+    with pytest.raises(ConfigError, match="needs the measured margin itself"):
+        inv.solve(truth[markers], attached_margin_sd=1.0)
+    with pytest.raises(ConfigError, match="standard deviation must be a positive number of mm, got -1.0"):
+        inv.solve(truth[markers], attached_margin=0.0, attached_margin_sd=-1.0)
+
+
 def test_the_band_counts_a_prescribed_vertex_up_to_the_stores_rounding():
     """A vertex without spread (held, or moved by the instrument) lies within the band where its
     error is the truth's rounding to float32 (a data set stores it so), not where it is more."""

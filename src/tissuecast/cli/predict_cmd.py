@@ -88,6 +88,10 @@ def register(sub) -> None:
                         "along the surface from the planned region, within the drawn range; its held set alone is "
                         "solved, no search (seconds a sample instead of minutes); a margin 1.5 mm off does worse "
                         "than the search (docs/uncertainty.md)")
+    p.add_argument("--attached-margin-sd", type=float, metavar="MM",
+                   help="with --attached-margin: the measured margin's standard deviation, mm; the held sets within "
+                        "reach are searched with the measurement as their prior instead of the one set given (a "
+                        "margin known to about a millimetre: docs/uncertainty.md)")
     p.add_argument("--physics-estimate", choices=("likeliest", "mean"),
                    help="with --physics, where the attached margin is searched: the field written, the likeliest "
                         "held set's solution (the default; one equilibrium of the simulator) or the posterior mean "
@@ -243,11 +247,11 @@ def run(args) -> int:
     if args.physics:
         return _run_physics(args, model, d, missing)
     if any(v is not None for v in (args.gravity, args.noise, args.time_limit, args.attached_margin,
-                                   args.physics_estimate)):
+                                   args.attached_margin_sd, args.physics_estimate)):
         from ..errors import ModelError
 
-        raise ModelError("--gravity, --noise, --time-limit, --attached-margin and --physics-estimate go with --physics "
-                         "(the physics inverse); the learned model reads none of them")
+        raise ModelError("--gravity, --noise, --time-limit, --attached-margin(-sd) and --physics-estimate go with "
+                         "--physics (the physics inverse); the learned model reads none of them")
     if not model.predictor(args.method).supports_missing_markers:
         missing[:] = False  # a lost marker: the input gate refuses it, naming the marker
     from .predict_inputs import auxiliary_inputs

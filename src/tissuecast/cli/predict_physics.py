@@ -61,9 +61,11 @@ def check_physics_options(args) -> None:
                          "model: drop them, or drop --physics")
     if args.noise is not None and not (np.isfinite(args.noise) and args.noise > 0):
         raise ModelError(f"--noise must be a positive number of mm, got {args.noise!r}")
-    if args.physics_estimate is not None and args.attached_margin is not None:
-        raise ModelError("--physics-estimate chooses among the held sets searched; with --attached-margin one held set "
-                         "is solved: drop one of the two")
+    if args.attached_margin_sd is not None and args.attached_margin is None:
+        raise ModelError("--attached-margin-sd is the measured margin's uncertainty: give the margin with --attached-margin")
+    if args.physics_estimate is not None and args.attached_margin is not None and args.attached_margin_sd is None:
+        raise ModelError("--physics-estimate chooses among the held sets searched; with --attached-margin alone one held "
+                         "set is solved: drop one of the two (or give --attached-margin-sd)")
     if not (np.isfinite(args.time_limit) and args.time_limit >= 0):
         raise ModelError(f"--time-limit must be a number of seconds >= 0 (0: none), got {args.time_limit!r}")
 
@@ -86,7 +88,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
 
     Args:
         args: the ``predict`` arguments (``physics``, ``instrument``, ``gravity``, ``noise``,
-            ``time_limit``, ``attached_margin``, ``physics_estimate``).
+            ``time_limit``, ``attached_margin``, ``attached_margin_sd``, ``physics_estimate``).
         model: the :class:`~tissuecast.surrogate.DeformationModel` (markers, input gate).
         d: (B, n_d, 3) marker displacements, mm (NaN where ``missing``).
         missing: (B, n_d) bool, the untracked markers.
@@ -128,7 +130,8 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         print(f"sample {b}: solving through the physics (seconds to minutes a frame) ...", flush=True)
         with one_blas_thread():  # as the data set's workers solve: faster, the same bits
             res = inv.solve(np.where(missing[b][:, None], np.nan, d[b]), draw, time_limit=args.time_limit or None,
-                            attached_margin=args.attached_margin, estimate=args.physics_estimate or ESTIMATES[0],
+                            attached_margin=args.attached_margin, attached_margin_sd=args.attached_margin_sd,
+                            estimate=args.physics_estimate or ESTIMATES[0],
                             progress=lambda text, b=b: print(f"sample {b}: {text}", flush=True))
         fields.append(res.field)
         results.append(res)

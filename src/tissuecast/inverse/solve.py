@@ -39,7 +39,9 @@ equilibrium of the simulator, the held set the markers favour) or their average 
 posterior ``exp(-objective / 2)`` (``"mean"``: where the markers cannot tell whether a vertex far
 from them is held, it takes the middle; a blend of equilibria, smeared at the held region's rim
 where the neighbours of the true set take weight). Where the margin is known (measured in
-surgery: ``solve(..., attached_margin=...)``), its held set alone is iterated, without the search.
+surgery: ``solve(..., attached_margin=...)``), its held set alone is iterated, without the search;
+where it is measured with an uncertainty (``attached_margin_sd``), the held sets are searched with
+the measurement's normal law as their prior, those it leaves unlikely not at all.
 The parameters, W and the misfit are the best set's. The density (a factor on the gravity
 change, a small share of the shipped presets' loads: docs/uncertainty.md) and the material
 regions' moduli are kept at their nominal values.
@@ -109,6 +111,9 @@ SOLVE_FACTOR = 5
 SOLVE_FLOOR, FACTORIZATION_FLOOR = 40, 8
 #: Held sets iterated to convergence after the search.
 FINISHED = 4
+#: With a measured margin (``solve(attached_margin_sd=...)``), held sets whose prior probability
+#: is below this share of the likeliest set's are not searched.
+PRIOR_SHARE = 1e-3
 #: A marker that moved less than this many noise standard deviations is taken as held.
 STILL_NOISES = 4.0
 #: Tracked markers a frame needs at least.
@@ -281,15 +286,25 @@ class MarkerInverse:
         return np.concatenate([first, inside])
 
     @staticmethod
-    def _held_set_prior(margins: np.ndarray, bounds) -> np.ndarray:
-        """(k,) ``-2 log P(held set)`` of each candidate margin: the share of the margin's (uniform) range
-        that gives the set (the nominal extent holds over the whole gap between the rim's inner
-        and outer vertices, each vertex beyond it over the gap to the next)."""
+    def _held_set_prior(margins: np.ndarray, bounds, measured: tuple[float, float] | None = None) -> np.ndarray:
+        """(k,) ``-2 log P(held set)`` of each candidate margin: the probability of the margins
+        that give the set (the nominal extent holds over the whole gap between the rim's inner
+        and outer vertices, each vertex beyond it over the gap to the next), under the range's
+        uniform law, or with ``measured`` ``(mean, sd)`` mm under that normal law truncated to
+        the range."""
         if not margins.size:
             return np.zeros(0)
         lo, hi = bounds
-        widths = np.maximum(np.diff(np.append(margins, hi)), 1e-9 * (hi - lo))  # a set reached only at the range's end
-        return -2.0 * np.log(widths / (hi - lo))
+        edges = np.append(margins, hi)
+        if measured is None:
+            p = np.diff(edges) / (hi - lo)
+        else:
+            from scipy.stats import norm
+
+            mean, sd = measured
+            cdf = norm.cdf((edges - mean) / sd)
+            p = np.diff(cdf) / max(cdf[-1] - cdf[0], 1e-300)
+        return -2.0 * np.log(np.maximum(p, 1e-9 * np.max(p)))  # a set reached only at the range's end
 
     def known_draw(self, seed: int) -> ScenarioDraw:
         """A simulated sample's known loads: its draws (the instrument's indentation, the
@@ -299,7 +314,7 @@ class MarkerInverse:
     # ------------------------------------------------------------------ solving
     def solve(self, marker_displacements, draw: ScenarioDraw | None = None, *, progress=None,
               time_limit: float | None = None, attached_margin: float | None = None,
-              estimate: str = ESTIMATES[0]) -> InverseResult:
+              attached_margin_sd: float | None = None, estimate: str = ESTIMATES[0]) -> InverseResult:
         """The MAP estimate of one frame.
 
         Args:
@@ -321,6 +336,11 @@ class MarkerInverse:
             attached_margin: the attached region's margin, mm, where it is known (measured in
                 surgery): its held set alone is iterated, no search (seconds, not minutes, a
                 frame); None: searched over its range.
+            attached_margin_sd: the standard deviation of a measured ``attached_margin``, mm:
+                the held sets are searched as without a margin, each with its probability
+                under the measurement's normal law (truncated to the drawn range) as its prior
+                instead of the range's share; sets below :data:`PRIOR_SHARE` of the likeliest
+                are not searched. None: the margin as given, exactly.
             estimate: the field reported where held sets were searched, one of
                 :data:`ESTIMATES`: ``"likeliest"`` the likeliest held set's solution,
                 ``"mean"`` the posterior mean over the finished ones (module notes). The
@@ -351,9 +371,22 @@ class MarkerInverse:
         deadline = math.inf if time_limit is None else t0 + float(time_limit)
         frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()), progress, deadline)
         m = None if attached_margin is None else self._given_margin(attached_margin)
+        candidates, prior = self._margins, self._set_prior
+        if attached_margin_sd is not None:
+            if m is None:
+                raise ConfigError("a standard deviation of the attached margin needs the measured margin itself "
+                                  "(attached_margin)")
+            if not (isinstance(attached_margin_sd, (int, float, np.floating)) and 0 < attached_margin_sd < math.inf):
+                raise ConfigError(f"the attached margin's standard deviation must be a positive number of mm, got "
+                                  f"{attached_margin_sd!r}")
+            prior = self._held_set_prior(candidates, self._margin_range, (m, float(attached_margin_sd)))
+            keep = prior <= prior.min() - 2.0 * math.log(PRIOR_SHARE)
+            candidates, prior, m = candidates[keep], prior[keep], None
+            frame.tell(f"attached margin measured {attached_margin:+.2f} +- {attached_margin_sd:g} mm: "
+                       f"{int(keep.sum())} held sets within reach")
         try:
-            if m is None and self._margins.size:
-                finished = frame.search_margin(self._margins, self._set_prior)
+            if m is None and candidates.size:
+                finished = frame.search_margin(candidates, prior)
             else:  # one held set: the margin given, or none drawn
                 m = 0.0 if m is None else m
                 finished = [(m, 0.0, *frame.iterate(self._mu, m, None, MAX_ITERATIONS, timed=False))]
