@@ -27,7 +27,10 @@ instead of the sample's own draws: the indentation from the instrument's pose as
 recorded it (``Scenario.frame_draw``) and gravity in its planned direction (the drawn cone's axis).
 A frame has ``--time-limit`` seconds, as in ``predict --physics`` (600 by default; 0 for none).
 ``--known-margin`` gives the inverse each sample's drawn attached margin, as
-``predict --physics --attached-margin`` does a measured one (its held set alone, no search).
+``predict --physics --attached-margin`` does a measured one (its held set alone, no search);
+``--margin-offset MM`` measures it that far off (clipped to the drawn range) and
+``--margin-sd MM`` gives the measurement that standard deviation
+(``--attached-margin-sd``: the held sets searched with it as their prior).
 ``--estimate`` picks the field of a searched frame, as ``predict --physics-estimate``: the
 likeliest held set's (the default) or the posterior mean over the held sets finished.
 
@@ -81,6 +84,12 @@ def summary(rows: np.ndarray) -> str:
             f"TRE {rows[:, 2].mean():6.3f} mm, {100 * np.nanmean(rows[:, 3]):5.1f} % corrected")
 
 
+def given_margin(inv, drawn, s: int, offset: float) -> float:
+    """Sample ``s``'s drawn attached margin ``offset`` mm off, clipped to the inverse's range, mm."""
+    lo, hi = inv.margin_range
+    return float(np.clip(float(drawn["attached_margin"][s]) + offset, lo, hi))
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", required=True)
@@ -100,6 +109,10 @@ def main(argv=None) -> None:
     ap.add_argument("--known-margin", action="store_true",
                     help="give the inverse each sample's drawn attached margin (`predict --physics --attached-margin`): "
                          "what a measured attachment is worth")
+    ap.add_argument("--margin-offset", type=float, default=0.0,
+                    help="with --known-margin: give each margin this many mm off (clipped to the drawn range)")
+    ap.add_argument("--margin-sd", type=float,
+                    help="with --known-margin: the measured margin's standard deviation, mm (`--attached-margin-sd`)")
     ap.add_argument("--estimate", choices=ESTIMATES, default=ESTIMATES[0],
                     help="the field of a searched frame, as `predict --physics-estimate` (default %(default)s)")
     args = ap.parse_args(argv)
@@ -120,9 +133,14 @@ def main(argv=None) -> None:
     drawn = ds.parameters
     if args.known_margin and "attached_margin" not in drawn:
         ap.error(f"--known-margin: {args.dataset} records no drawn attached margin")
+    if (args.margin_offset or args.margin_sd is not None) and not args.known_margin:
+        ap.error("--margin-offset and --margin-sd describe the measured margin: give --known-margin")
     targets = model_targets(model)
-    margin = ("" if not inv.margins.size else "; each sample's margin given" if args.known_margin
-              else f"; the field the {args.estimate} estimate")
+    measured = (f" {args.margin_offset:+g} mm off" if args.margin_offset else "") + (
+        f" +- {args.margin_sd:g} mm" if args.margin_sd is not None else "")
+    searched = f"; the field the {args.estimate} estimate"
+    margin = ("" if not inv.margins.size else searched if not args.known_margin
+              else f"; each sample's margin given{measured}" + (searched if args.margin_sd is not None else ""))
     print(f"{args.dataset}: {len(idx)} {args.split} samples, {len(mk)} markers, noise {args.noise} mm, "
           f"known loads {KNOWN[args.tracked]}, "
           f"alpha {inv.alpha:.4g} N, estimated: W ({3 * inv.n_basis}), "
@@ -136,7 +154,8 @@ def main(argv=None) -> None:
             known = inv.scenario.frame_draw(recorded_poses(ds.instrument_poses, s))
         with one_blas_thread():  # as the data set's workers and `predict --physics` solve
             res = inv.solve(d[k], known, time_limit=args.time_limit or None,
-                            attached_margin=float(drawn["attached_margin"][s]) if args.known_margin else None,
+                            attached_margin=given_margin(inv, drawn, s, args.margin_offset) if args.known_margin else None,
+                            attached_margin_sd=args.margin_sd,
                             estimate=args.estimate)
         row = [v for f in (res.field, net[k], rigid[k], ridge[k]) for v in (*errors(f, U[k]), *clinical(f, U[k], targets))]
         rows.append(row)

@@ -6,6 +6,7 @@ on a store that draws no margin is refused; a run names the field it reports."""
 from __future__ import annotations
 
 import re
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -48,7 +49,8 @@ def test_the_inverse_as_a_tracked_frame_beats_the_model(tmp_path, capsys):
 
 def test_the_benchmark_says_which_field_a_searched_frame_reports(tmp_path, capsys):
     """On a store that draws the attached margin, the run names the estimate it reports
-    (``--estimate``), or that each sample's margin is given (``--known-margin``)."""
+    (``--estimate``), or that each sample's margin is given (``--known-margin``), and how it is
+    measured (``--margin-offset``, ``--margin-sd``)."""
     mod = load_benchmark("physics_inverse")
     _, store, model = tracked_retractor_store(tmp_path, {"attached_margin": [-6.0, 6.0]})
     argv = ["--dataset", str(store), "--model", str(model), "--samples", "1", "--tracked"]
@@ -57,3 +59,11 @@ def test_the_benchmark_says_which_field_a_searched_frame_reports(tmp_path, capsy
     mod.main(argv + ["--known-margin"])
     out = capsys.readouterr().out
     assert "; each sample's margin given" in out and "the field the" not in out
+    mod.main(argv + ["--known-margin", "--margin-offset", "1", "--margin-sd", "2"])
+    assert "; each sample's margin given +1 mm off +- 2 mm; the field the likeliest estimate" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        mod.main(argv + ["--margin-sd", "2"])
+    assert "--margin-offset and --margin-sd describe the measured margin: give --known-margin" in capsys.readouterr().err
+    inv = SimpleNamespace(margin_range=(-6.0, 6.0))
+    drawn = {"attached_margin": np.array([5.0, -2.0])}
+    assert mod.given_margin(inv, drawn, 0, 1.5) == 6.0 and mod.given_margin(inv, drawn, 1, 1.5) == -0.5
