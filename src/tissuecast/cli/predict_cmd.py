@@ -87,7 +87,7 @@ def register(sub) -> None:
                    help="with --physics: the attached region's margin where it is known (measured in surgery), mm "
                         "along the surface from the planned region, within the drawn range; its held set alone is "
                         "solved, no search (seconds a sample instead of minutes); a margin 1.5 mm off does worse "
-                        "than the search (docs/uncertainty.md)")
+                        "than the search: give its uncertainty with --attached-margin-sd (docs/uncertainty.md)")
     p.add_argument("--attached-margin-sd", type=float, metavar="MM",
                    help="with --attached-margin: the measured margin's standard deviation, mm; the held sets within "
                         "reach are searched with the measurement as their prior instead of the one set given (a "
