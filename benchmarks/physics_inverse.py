@@ -32,7 +32,7 @@ A frame has ``--time-limit`` seconds, as in ``predict --physics`` (600 by defaul
 ``--margin-sd MM`` gives the measurement that standard deviation
 (``--attached-margin-sd``: the held sets searched with it as their prior).
 ``--estimate`` picks the field of a searched frame, as ``predict --physics-estimate``: the
-likeliest held set's (the default) or the posterior mean over the held sets finished.
+posterior mean over the held sets finished (the default) or the likeliest held set's.
 
 Usage::
 

@@ -54,13 +54,13 @@ def test_the_benchmark_says_which_field_a_searched_frame_reports(tmp_path, capsy
     mod = load_benchmark("physics_inverse")
     _, store, model = tracked_retractor_store(tmp_path, {"attached_margin": [-6.0, 6.0]})
     argv = ["--dataset", str(store), "--model", str(model), "--samples", "1", "--tracked"]
-    mod.main(argv + ["--estimate", "mean"])
-    assert "; the field the mean estimate" in capsys.readouterr().out
+    mod.main(argv + ["--estimate", "likeliest"])
+    assert "; the field the likeliest estimate" in capsys.readouterr().out
     mod.main(argv + ["--known-margin"])
     out = capsys.readouterr().out
     assert "; each sample's margin given" in out and "the field the" not in out
     mod.main(argv + ["--known-margin", "--margin-offset", "1", "--margin-sd", "2"])
-    assert "; each sample's margin given +1 mm off +- 2 mm; the field the likeliest estimate" in capsys.readouterr().out
+    assert "; each sample's margin given +1 mm off +- 2 mm; the field the mean estimate" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         mod.main(argv + ["--margin-sd", "2"])
     assert "--margin-offset and --margin-sd describe the measured margin: give --known-margin" in capsys.readouterr().err

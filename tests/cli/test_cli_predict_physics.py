@@ -90,7 +90,7 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
     (note,) = written["physics"]  # what the inverse estimated, one record a sample
     assert set(note["parameters"]) == set(MarkerInverse.from_dataset(ds, model.markers).estimated)
     assert note["marker_misfit_mm"] < 4 * 0.002 and not note["flagged"] and note["complete"]
-    assert (note["held_sets"], note["estimate"], note["likeliest_weight"]) == (1, "likeliest", 1.0)
+    assert (note["held_sets"], note["estimate"], note["likeliest_weight"]) == (1, "mean", 1.0)
     assert note["solves"] > 0 and note["seconds"] > 0.0
     peak = np.linalg.norm(truth, axis=1).max()
     assert 0.5 < peak < 20.0
@@ -155,7 +155,7 @@ def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys, monk
     """On a store that draws the attached margin, ``--attached-margin`` hands the measured one to
     the inverse: its held set alone is iterated (said so), the sample's field comes back, and a
     margin outside the simulated range is refused with the range. Searched, the inverse is asked
-    for the likeliest held set's field, or with ``--physics-estimate mean`` the posterior mean."""
+    for the posterior mean, or with ``--physics-estimate likeliest`` the likeliest held set's field."""
     from tissuecast.dataset import open_dataset
     from tissuecast.surrogate import DeformationModel
 
@@ -179,7 +179,7 @@ def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys, monk
     assert np.linalg.norm(u - truth, axis=1).max() < 0.02 * np.linalg.norm(truth, axis=1).max()
     assert main(base + ["--attached-margin", "9.5"]) == 2
     assert "lies outside the range the simulations drew, [-6, 6] mm" in capsys.readouterr().err
-    # searched: the likeliest held set's field by default, the posterior mean when asked
+    # searched: the posterior mean by default, the likeliest held set's field when asked
     from tissuecast.inverse import MarkerInverse
 
     asked, solve = [], MarkerInverse.solve
@@ -189,17 +189,17 @@ def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys, monk
         return solve(self, *args, **kwargs)
 
     monkeypatch.setattr(MarkerInverse, "solve", recording)
-    assert main(base) == 0 and main(base + ["--physics-estimate", "mean"]) == 0
+    assert main(base) == 0 and main(base + ["--physics-estimate", "likeliest"]) == 0
     # a measured margin with its uncertainty: searched with it as the prior (the estimate may be chosen)
-    assert main(base + ["--attached-margin", "1.0", "--attached-margin-sd", "1.5", "--physics-estimate", "mean"]) == 0
+    assert main(base + ["--attached-margin", "1.0", "--attached-margin-sd", "1.5", "--physics-estimate", "likeliest"]) == 0
     assert "attached margin measured +1.00 +- 1.5 mm" in capsys.readouterr().out
-    assert asked == [("likeliest", None, None), ("mean", None, None), ("mean", 1.0, 1.5)]
+    assert asked == [("mean", None, None), ("likeliest", None, None), ("likeliest", 1.0, 1.5)]
     assert main(base + ["--attached-margin-sd", "1.5"]) == 2
     assert "--attached-margin-sd is the measured margin's uncertainty: give the margin" in capsys.readouterr().err
-    assert json.loads(out.read_text())["physics"][0]["estimate"] == "mean"
+    assert json.loads(out.read_text())["physics"][0]["estimate"] == "likeliest"
     with pytest.raises(SystemExit):
         main(base + ["--physics-estimate", "median"])
-    assert "invalid choice: 'median' (choose from 'likeliest', 'mean')" in capsys.readouterr().err
+    assert "invalid choice: 'median' (choose from 'mean', 'likeliest')" in capsys.readouterr().err
     assert main(base + ["--physics-estimate", "mean", "--attached-margin", f"{margin!r}"]) == 2
     assert "with --attached-margin alone one held set is solved: drop one of the two" in capsys.readouterr().err
 

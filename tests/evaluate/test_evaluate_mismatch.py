@@ -427,8 +427,8 @@ def test_the_study_solves_a_few_frames_of_each_set_through_the_physics(tmp_path,
     assert "coverage_90" in header and "seconds_median" in header  # keys only the physics rows carry
     (tmp_path / "report").mkdir()
     section = mismatch_section(out, tmp_path / "report")
-    assert "The <i>physics</i> rows" in section and "its field is the likeliest held set's" in section
-    assert data["meta"]["physics_estimate"] == "likeliest"
+    assert "The <i>physics</i> rows" in section and "its field is the posterior mean over the held sets" in section
+    assert data["meta"]["physics_estimate"] == "mean"
 
 
 def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, caplog, monkeypatch, capsys):
@@ -461,7 +461,7 @@ def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, capl
     with caplog.at_level(logging.WARNING, logger="tissuecast.evaluate.mismatch"):
         assert main(["-q", "study", "mismatch", str(path), "--out", str(out), "--model", f"m={model}", "--sets",
                      "attached +5 mm,attached +10 mm", "--samples", "3", "--physics", "2", "--physics-known-margin",
-                     "--physics-estimate", "mean"]) == 0
+                     "--physics-estimate", "likeliest"]) == 0
     data = json.loads((out / "study_mismatch.json").read_text())
     rows = {(r["set"], r["model"]): r for r in data["rows"]}
     assert {k for k in rows if k[1] == PHYSICS_KNOWN} == {("nominal", PHYSICS_KNOWN), ("attached +5 mm", PHYSICS_KNOWN)}
@@ -475,11 +475,11 @@ def test_the_study_gives_the_physics_frames_their_attached_margin(tmp_path, capl
         assert known["count"] == 2 and known["alarm_rate"] == 0.0
         assert known["mlp_offset_max"] < 0.05 * known["peak_median"] < known["rigid_offset_max"]
         assert known["mlp_offset_max"] <= 1.05 * searched["mlp_offset_max"] + 1e-3
-    assert data["meta"]["physics_known_margin"] is True and data["meta"]["physics_estimate"] == "mean"
-    assert {e for m, e in zip(given, estimates) if m is None} == {"mean"}  # every searched frame
+    assert data["meta"]["physics_known_margin"] is True and data["meta"]["physics_estimate"] == "likeliest"
+    assert {e for m, e in zip(given, estimates) if m is None} == {"likeliest"}  # every searched frame
     assert main(["-q", "study", "mismatch", str(path), "--out", str(out), "--model", f"m={model}",
                  "--physics-estimate", "mean"]) == 2
     assert "the estimate chooses the physics rows' field: give a number of physics frames" in capsys.readouterr().err
     (tmp_path / "report").mkdir()
     section = mismatch_section(out, tmp_path / "report")
-    assert "The <i>physics, margin known</i> rows" in section and "the posterior mean over the held sets" in section
+    assert "The <i>physics, margin known</i> rows" in section and "its field is the likeliest held set's" in section

@@ -107,7 +107,7 @@ def test_drawn_parameters_are_estimated_where_the_markers_see_them():
 def test_the_posterior_spread_matches_the_errors_of_noisy_frames():
     """Frames of one sample with fresh tracking noise (0.2 mm) each: the estimate's squared
     error at a vertex averages the spread squared (its definition: the expected squared error
-    under the posterior about the field written, here the likeliest of three held sets), and
+    under the posterior about the field written, here the mean over three held sets), and
     the 90 % band holds about 90 % of the vertices; held vertices have no spread."""
     sc, solver, markers = _setup(True)
     noise = 0.2
@@ -142,7 +142,7 @@ def test_the_likeliest_and_the_mean_estimate_come_from_one_search():
     the parameters, objective and solves are the same. Each spread is the root of the held
     sets' posterior mean square distance from its field plus the same within-set term, so
     ``spread_likeliest^2 = spread_mean^2 + |mean - likeliest|^2`` at every vertex. The default
-    is the likeliest; an unknown estimate is refused."""
+    is the mean; an unknown estimate is refused."""
     sc, solver, markers = _setup(True)
     inv = MarkerInverse(sc, solver, markers, ALPHA, noise=0.5)  # three held sets to search, none sure
     truth, _ = _simulate(sc, solver, 5)
@@ -156,8 +156,8 @@ def test_the_likeliest_and_the_mean_estimate_come_from_one_search():
     assert np.linalg.norm(like.field[markers] - d, axis=1).max() == pytest.approx(like.marker_misfit, rel=1e-9)
     np.testing.assert_allclose(like.spread**2, mean.spread**2 + apart**2, rtol=1e-9, atol=1e-12)
     default = inv.solve(d, inv.known_draw(5))
-    assert default.estimate == "likeliest" and np.array_equal(default.field, like.field)
-    with pytest.raises(ConfigError, match="the estimate must be one of 'likeliest', 'mean', got 'median'"):
+    assert default.estimate == "mean" and np.array_equal(default.field, mean.field)
+    with pytest.raises(ConfigError, match="the estimate must be one of 'mean', 'likeliest', got 'median'"):
         inv.solve(d, estimate="median")
 
 

@@ -92,10 +92,11 @@ def register(sub) -> None:
                    help="with --attached-margin: the measured margin's standard deviation, mm; the held sets within "
                         "reach are searched with the measurement as their prior instead of the one set given (a "
                         "margin known to about a millimetre: docs/uncertainty.md)")
-    p.add_argument("--physics-estimate", choices=("likeliest", "mean"),
-                   help="with --physics, where the attached margin is searched: the field written, the likeliest "
-                        "held set's solution (the default; one equilibrium of the simulator) or the posterior mean "
-                        "over the held sets finished (a blend, smeared at the held region's rim; docs/uncertainty.md)")
+    p.add_argument("--physics-estimate", choices=("mean", "likeliest"),
+                   help="with --physics, where the attached margin is searched: the field written, the posterior mean "
+                        "over the held sets finished (the default; a blend, the better with tracking noise) or the "
+                        "likeliest held set's solution (one equilibrium of the simulator, the better with clean "
+                        "markers; docs/uncertainty.md)")
     p.set_defaults(func=run)
 
 

@@ -15,8 +15,8 @@ the scenario's planned ``scenario.gravity.surgery_direction``). An untracked mar
 of the fit. The estimate is the maximum a posteriori one with the scenario's parameter ranges as
 priors; E and the surroundings' stiffness come back only up to a common scale (a stiffer body
 under larger loads looks the same to the markers). Where the attached margin is searched, the
-field written is the likeliest held set's (``--physics-estimate likeliest``, the default) or
-the posterior mean over the held sets finished (``mean``). A frame is given ``--time-limit`` seconds
+field written is the posterior mean over the held sets finished (``--physics-estimate mean``,
+the default) or the likeliest held set's (``likeliest``). A frame is given ``--time-limit`` seconds
 (:data:`TIME_LIMIT` by default, 0 for none): past it the search stops and the best estimate
 reached is written, said so (the first held set is iterated to convergence regardless); without
 a limit the answer does not depend on the machine's speed or load (the solves inside are capped

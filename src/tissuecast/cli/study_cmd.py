@@ -60,9 +60,9 @@ def register(sub) -> None:
                    help="mismatch: the physics frames also with each one's simulated attached margin given, as "
                         "`predict --physics --attached-margin` a measured one (a row 'physics, margin known'; "
                         "needs --physics N and a training store that draws the margin)")
-    p.add_argument("--physics-estimate", choices=("likeliest", "mean"),
+    p.add_argument("--physics-estimate", choices=("mean", "likeliest"),
                    help="mismatch: the physics rows' field where the attached margin is searched, as `predict "
-                        "--physics-estimate` (default likeliest)")
+                        "--physics-estimate` (default mean)")
     p.add_argument("--physics-time-limit", type=float, default=None, metavar="SECONDS",
                    help="mismatch: seconds one physics frame may take (default that of `predict --physics`; 0: none)")
     p.add_argument("--alpha", type=float, default=0.0,

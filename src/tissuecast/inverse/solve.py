@@ -126,7 +126,7 @@ MISFIT_NOISES = 4.0
 BRANCH_NOISES = 4.0
 #: The field a searched frame reports (``MarkerInverse.solve(estimate=...)``; module notes); the
 #: first is the default.
-ESTIMATES = ("likeliest", "mean")
+ESTIMATES = ("mean", "likeliest")
 #: A full solve that stopped or broke down (as the data set's worker counts them).
 _SOLVE_FAILURES = (ConvergenceError, ArithmeticError, np.linalg.LinAlgError)
 
@@ -342,8 +342,8 @@ class MarkerInverse:
                 instead of the range's share; sets below :data:`PRIOR_SHARE` of the likeliest
                 are not searched. None: the margin as given, exactly.
             estimate: the field reported where held sets were searched, one of
-                :data:`ESTIMATES`: ``"likeliest"`` the likeliest held set's solution,
-                ``"mean"`` the posterior mean over the finished ones (module notes). The
+                :data:`ESTIMATES`: ``"mean"`` (the default) the posterior mean over the
+                finished held sets, ``"likeliest"`` the likeliest one's solution (module notes). The
                 search, the parameters and the spread's first term are the same either way.
 
         Raises:
