@@ -184,9 +184,10 @@ def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys, monk
 
     asked, solve = [], MarkerInverse.solve
 
-    def recording(self, *args, **kwargs):
-        asked.append((kwargs["estimate"], kwargs["attached_margin"], kwargs["attached_margin_sd"]))
-        return solve(self, *args, **kwargs)
+    def recording(self, *args, **kwargs):  # the estimate solved with, the margin and its sd handed over
+        res = solve(self, *args, **kwargs)
+        asked.append((res.estimate, kwargs["attached_margin"], kwargs["attached_margin_sd"]))
+        return res
 
     monkeypatch.setattr(MarkerInverse, "solve", recording)
     assert main(base) == 0 and main(base + ["--physics-estimate", "likeliest"]) == 0

@@ -102,7 +102,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         ModelError / ConfigError: a data set of another mesh, a missing instrument pose, a pose
             or gravity direction the simulator cannot take.
     """
-    from ..inverse import ESTIMATES, NOISE_MM, MarkerInverse
+    from ..inverse import NOISE_MM, MarkerInverse
 
     B = d.shape[0]
     if model.input_gate is not None:
@@ -131,7 +131,7 @@ def physics_fields(args, model, d: np.ndarray, missing: np.ndarray) -> tuple[np.
         with one_blas_thread():  # as the data set's workers solve: faster, the same bits
             res = inv.solve(np.where(missing[b][:, None], np.nan, d[b]), draw, time_limit=args.time_limit or None,
                             attached_margin=args.attached_margin, attached_margin_sd=args.attached_margin_sd,
-                            estimate=args.physics_estimate or ESTIMATES[0],
+                            estimate=args.physics_estimate,
                             progress=lambda text, b=b: print(f"sample {b}: {text}", flush=True))
         fields.append(res.field)
         results.append(res)

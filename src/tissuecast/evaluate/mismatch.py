@@ -487,7 +487,6 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
     """
     from ..fem.linear import one_blas_thread
     from ..instruments import recorded_poses
-    from ..inverse import ESTIMATES
     from ..registration import nonrigid_part
     from .metrics import summarize_targets, target_errors
 
@@ -500,8 +499,7 @@ def physics_on_set(inverse, model, dataset, targets, samples: int, *, time_limit
         draw = inverse.scenario.frame_draw(recorded_poses(dataset.instrument_poses, int(s)))
         try:
             with one_blas_thread():
-                res = inverse.solve(d[k], draw, time_limit=time_limit, attached_margin=margins[k],
-                                    estimate=estimate or ESTIMATES[0])
+                res = inverse.solve(d[k], draw, time_limit=time_limit, attached_margin=margins[k], estimate=estimate)
         except ConvergenceError as e:  # recorded in the row, left out of its figures
             log.warning("physics frame %d of %d (sample %d) not solved: %s", k + 1, idx.size, int(s), e)
             continue

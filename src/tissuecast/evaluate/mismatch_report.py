@@ -19,8 +19,7 @@ from .mismatch import PHYSICS, PHYSICS_KNOWN
 
 #: How the physics rows' field was chosen (the study's ``physics_estimate``; studies before it was
 #: recorded took the mean), in the report's words.
-_ESTIMATE_WORDS = {"likeliest": "; where the attached margin is searched, its field is the likeliest held set's",
-                   "mean": "; where the attached margin is searched, its field is the posterior mean over the held sets"}
+_ESTIMATE_WORDS = {"likeliest": "the likeliest held set's", "mean": "the posterior mean over the held sets"}
 
 __all__ = ["mismatch_table", "format_mismatch", "write_mismatch", "mismatch_figure", "mismatch_section",
            "MISMATCH_JSON", "MISMATCH_PNG"]
@@ -113,7 +112,8 @@ def mismatch_section(studies_folder: Path, folder: Path) -> str | None:
         intro += (f"<p>The <i>physics</i> rows: the physics inverse (<code>predict --physics</code>: the first model's "
                   f"training simulator and markers, the recorded instrument poses) on each set's first "
                   f"{html.escape(str(meta.get('physics_frames', '')))} samples, rigid registration and ridge on the same "
-                  "samples" + _ESTIMATE_WORDS[meta.get("physics_estimate") or "mean"]
+                  "samples; where the attached margin is searched, its field is "
+                  + _ESTIMATE_WORDS[meta.get("physics_estimate") or "mean"]
                   + "; its bounds column is the share of vertices within its 90 % band (1.44 x its posterior "
                   "spread, not a calibrated bound), its alarm column the share of frames its misfit warning "
                   "flags.</p>")

@@ -314,7 +314,7 @@ class MarkerInverse:
     # ------------------------------------------------------------------ solving
     def solve(self, marker_displacements, draw: ScenarioDraw | None = None, *, progress=None,
               time_limit: float | None = None, attached_margin: float | None = None,
-              attached_margin_sd: float | None = None, estimate: str = ESTIMATES[0]) -> InverseResult:
+              attached_margin_sd: float | None = None, estimate: str | None = None) -> InverseResult:
         """The MAP estimate of one frame.
 
         Args:
@@ -342,8 +342,8 @@ class MarkerInverse:
                 instead of the range's share; sets below :data:`PRIOR_SHARE` of the likeliest
                 are not searched. None: the margin as given, exactly.
             estimate: the field reported where held sets were searched, one of
-                :data:`ESTIMATES`: ``"mean"`` (the default) the posterior mean over the
-                finished held sets, ``"likeliest"`` the likeliest one's solution (module notes). The
+                :data:`ESTIMATES`: ``"mean"`` (the default; also None) the posterior mean over
+                the finished held sets, ``"likeliest"`` the likeliest one's solution (module notes). The
                 search, the parameters and the spread's first term are the same either way.
 
         Raises:
@@ -364,12 +364,12 @@ class MarkerInverse:
         if (~lost.all(axis=1)).sum() < MIN_TRACKED:
             raise ConfigError(f"only {int((~lost.all(axis=1)).sum())} markers are tracked; the physics inverse needs at "
                               f"least {MIN_TRACKED}")
+        estimate = ESTIMATES[0] if estimate is None else estimate
         if estimate not in ESTIMATES:
             raise ConfigError(f"the estimate must be one of {', '.join(map(repr, ESTIMATES))}, got {estimate!r}")
         if time_limit is not None and not time_limit > 0:
             raise ConfigError(f"the time limit must be a positive number of seconds (or None), got {time_limit!r}")
         deadline = math.inf if time_limit is None else t0 + float(time_limit)
-        frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()), progress, deadline)
         m = None if attached_margin is None else self._given_margin(attached_margin)
         candidates, prior = self._margins, self._set_prior
         if attached_margin_sd is not None:
@@ -381,11 +381,14 @@ class MarkerInverse:
                                   f"{attached_margin_sd!r}")
             prior = self._held_set_prior(candidates, self._margin_range, (m, float(attached_margin_sd)))
             keep = prior <= prior.min() - 2.0 * math.log(PRIOR_SHARE)
-            candidates, prior, m = candidates[keep], prior[keep], None
-            frame.tell(f"attached margin measured {attached_margin:+.2f} +- {attached_margin_sd:g} mm: "
-                       f"{int(keep.sum())} held sets within reach")
+            candidates, prior = candidates[keep], prior[keep]
+        frame = _Frame(self, d.ravel(), self._known_inputs(draw or ScenarioDraw()), progress, deadline)
+        if attached_margin_sd is not None:
+            frame.tell(f"attached margin measured {m:+.2f} +- {attached_margin_sd:g} mm: "
+                       f"{candidates.size} held sets within reach")
+        searched = candidates.size > 0 and (m is None or attached_margin_sd is not None)
         try:
-            if m is None and candidates.size:
+            if searched:
                 finished = frame.search_margin(candidates, prior)
             else:  # one held set: the margin given, or none drawn
                 m = 0.0 if m is None else m
