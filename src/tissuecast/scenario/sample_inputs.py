@@ -118,31 +118,33 @@ class SampleInputs:
         for the problem's own)."""
         return self.materials, self.springs
 
-    def reduced_guess(self, reduced) -> np.ndarray | None:
+    def reduced_guess(self, reduced, hold_length: float = HOLD_STIFFNESS_LENGTH, **solve) -> np.ndarray | None:
         """The reduced model's prediction of this sample (an initial guess for the full solve):
         (n_nodes, 3) mm, or None when the reduced problem does not converge.
 
         ``reduced`` (:class:`~tissuecast.fem.reduced.ReducedModel`) models the nominal problem,
         loads only. The sample's prescribed vertices (an indentation's patch, a larger attached
         extent held at zero) are pulled toward their values by stiff springs
-        (:data:`HOLD_STIFFNESS_LENGTH` times the modulus, N/mm, with the spring's force toward
-        the value as a load), so the guess carries the dent the full solve imposes. With drawn
-        parameters it predicts the sample as a body of the nominal E under the loads and springs
-        over the sample's factor s on E (stresses scale with E: a body of E / s under loads / s
-        on springs k / s deforms alike). Poisson's ratio stays the nominal model's: the full
-        solve imposes it.
+        (``hold_length`` mm, :data:`HOLD_STIFFNESS_LENGTH` by default, times the modulus, N/mm,
+        with the spring's force toward the value as a load), so the guess carries the dent the
+        full solve imposes; the held vertices give by their reaction over that stiffness.
+        ``solve``: keywords of :meth:`~tissuecast.fem.reduced.ReducedModel.predict` (its method
+        and tolerances; its defaults otherwise). With drawn parameters it predicts the sample as
+        a body of the nominal E under the loads and springs over the sample's factor s on E
+        (stresses scale with E: a body of E / s under loads / s on springs k / s deforms alike).
+        Poisson's ratio stays the nominal model's: the full solve imposes it.
         """
         s = 1.0 if self.parameters is None else float(self.parameters.youngs_modulus)
         held = np.union1d(np.asarray(self.prescribed_ids, dtype=np.int64), np.asarray(self.extra_held, dtype=np.int64))
         if self.parameters is None and not len(held):
-            return reduced.predict(self.loads)
+            return reduced.predict(self.loads, **solve)
         base = self.springs if self.springs is not None else reduced.problem.springs
         values = np.zeros((len(held), 3))
         if len(self.prescribed_ids):
             values[np.searchsorted(held, self.prescribed_ids)] = self.prescribed_values
         loads = self.loads.copy()
-        np.add.at(loads, held, hold_stiffness(reduced.problem) * values)  # the held springs' pull toward the values
-        return reduced.with_springs(_guess_springs(base, held, s, reduced.problem)).predict(loads / s)
+        np.add.at(loads, held, hold_stiffness(reduced.problem, hold_length) * values)  # their pull toward the values
+        return reduced.with_springs(_guess_springs(base, held, s, reduced.problem, hold_length)).predict(loads / s, **solve)
 
     def solve_keywords(self) -> dict:
         """The keywords of :meth:`tissuecast.fem.Solver.solve` besides the surface loads:
@@ -160,9 +162,10 @@ class SampleInputs:
         return self.surface + (0.0 if self.body is None else self.body)
 
 
-def _guess_springs(base, held: np.ndarray, factor: float, problem):
+def _guess_springs(base, held: np.ndarray, factor: float, problem, hold_length: float):
     """The reduced guess's springs: ``base`` (NodalSprings or None) over ``factor``, plus the
-    stiff hold of the ``held`` vertices (also over ``factor``; P2: vertex ids are node ids)."""
+    stiff hold of the ``held`` vertices (``hold_length`` mm times the modulus; also over
+    ``factor``; P2: vertex ids are node ids)."""
     from ..fem.springs import NodalSprings
 
     nodes = np.zeros(0, dtype=np.int64) if base is None else base.nodes
@@ -172,11 +175,11 @@ def _guess_springs(base, held: np.ndarray, factor: float, problem):
     if base is not None:
         k[np.searchsorted(every, nodes)] += base.stiffness
     if len(held):
-        k[np.searchsorted(every, held)] += hold_stiffness(problem) * np.eye(3)
+        k[np.searchsorted(every, held)] += hold_stiffness(problem, hold_length) * np.eye(3)
     return NodalSprings(every, k / factor) if len(every) else None
 
 
-def hold_stiffness(problem) -> float:
-    """N/mm of the springs that hold a vertex at its value in a reduced guess:
-    :data:`HOLD_STIFFNESS_LENGTH` times the problem's mean Young's modulus."""
-    return HOLD_STIFFNESS_LENGTH * float(np.asarray(problem.element_material.youngs_modulus).mean())
+def hold_stiffness(problem, length: float = HOLD_STIFFNESS_LENGTH) -> float:
+    """N/mm of the springs that hold a vertex at its value in a reduced guess: ``length`` (mm)
+    times the problem's mean Young's modulus."""
+    return float(length) * float(np.asarray(problem.element_material.youngs_modulus).mean())
