@@ -69,9 +69,10 @@ from tissuecast.fem.reduced import ReducedModel  # noqa: E402
 #: mm: the springs pinning the patch field's coefficient in the constrained basis are this length
 #: times the modulus (stiff: nothing else in that basis moves the held vertices).
 HOLD_LENGTH = 1e6
-#: The reduced solves' quasi-Newton tolerance (relative to the reduced load, which the springs'
-#: pull toward the held values dominates: the data set's guesses' 3e-4 stops far from equilibrium).
-SOLVE = {"bfgs_tolerance": 1e-9}
+#: The reduced solves' tolerances, quasi-Newton and its Newton fallback (relative to the reduced
+#: load, which the springs' pull toward the held values dominates: the data set's guesses' 3e-4
+#: and 1e-2 stop far from equilibrium).
+SOLVE = {"bfgs_tolerance": 1e-9, "tolerance": 1e-9}
 #: Singular values of the basis at the held dofs below this count as zero (the basis is orthonormal).
 NULL_TOLERANCE = 1e-9
 
