@@ -261,6 +261,7 @@ def main(argv=None) -> int:
         snaps = np.asarray(ds.displacements[train[: args.ecsw_snapshots]], dtype=np.float64)
         for r in args.modes:
             if r > len(snaps):
+                print(f"ecsw {r:6d}: not fitted, more modes than the {len(snaps)} fields of --ecsw-snapshots", flush=True)
                 continue
             t0 = time.perf_counter()
             fit = ReducedModel.fit(problem, snaps, tolerance=args.ecsw_tolerance, max_modes=r)

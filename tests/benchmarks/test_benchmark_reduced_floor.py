@@ -62,6 +62,9 @@ def test_a_basis_spanning_the_field_gives_it_back(drawn_store):
 def test_the_rows_of_the_command(drawn_store, tmp_path, capsys):
     mod = load_benchmark("reduced_floor")
     out = tmp_path / "rows.json"
+    assert mod.main([drawn_store, "--modes", "2", "8", "9", "--samples", "2", "--no-galerkin", "--ecsw-snapshots", "8",
+                     "--ecsw-tolerance", "0.001"]) == 0
+    assert "ecsw      9: not fitted, more modes than the 8 fields" in capsys.readouterr().out
     assert mod.main([drawn_store, "--modes", "2", "8", "--samples", "2", "--ecsw-snapshots", "8",
                      "--ecsw-tolerance", "0.001", "--json", str(out)]) == 0
     text = capsys.readouterr().out
@@ -128,6 +131,9 @@ def test_the_learned_model_and_baselines_beside_a_tracked_retractors_store(tmp_p
     peak = np.linalg.norm(u, axis=2).max()
     fields, _, failed = mod.reduced_answers(ctx, tasks, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices)
     assert failed == [] and mod.field_errors(fields, truth)["offset_max_mm"] < 0.002 * peak
+    # the data set's guesses' springs (100 mm x E) on the same basis: the held vertices give
+    fields, _, _ = mod.reduced_answers(ctx, tasks, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices, exact=False)
+    assert mod.field_errors(fields, truth)["offset_max_mm"] > 0.02 * peak
     # the held vertices and the patch: the constrained basis vanishes at the held ones and one
     # column moves the patch by the values
     pos = np.full(3 * len(problem.nodes), -1)
