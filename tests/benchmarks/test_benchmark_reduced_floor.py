@@ -68,8 +68,9 @@ def test_the_rows_of_the_command(drawn_store, tmp_path, capsys):
     assert mod.main([drawn_store, "--modes", "2", "8", "--samples", "2", "--ecsw-snapshots", "8",
                      "--ecsw-tolerance", "0.001", "--json", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "training fields" in text and "median peak" in text
+    assert "training fields" in text and "median peak" in text and "non-rigid part" in text
     report = json.loads(out.read_text())
+    assert 0.0 < report["median_nonrigid_mm"] <= report["median_peak_mm"]
     rows = report["rows"]
     assert [(r["method"], r["modes"]) for r in rows] == [
         ("projection", 2), ("proj held", 2), ("galerkin", 2), ("springs", 2), ("projection", 8), ("proj held", 8),
