@@ -96,15 +96,6 @@ def training_basis(fields: np.ndarray, free: np.ndarray, r: int) -> np.ndarray:
     return u[:, : min(r, int(np.sum(s > 1e-10 * s[0])))]
 
 
-def held_values(inputs) -> tuple[np.ndarray, np.ndarray]:
-    """``(ids (k,), values (k, 3) mm)``: the vertices a sample's inputs hold beyond the static
-    supports (its attached region's extent at zero, the indentation's patch at its values)."""
-    held = np.union1d(np.asarray(inputs.prescribed_ids, dtype=np.int64), np.asarray(inputs.extra_held, dtype=np.int64))
-    values = np.zeros((len(held), 3))
-    values[np.searchsorted(held, inputs.prescribed_ids)] = inputs.prescribed_values
-    return held, values
-
-
 def constrained_basis(basis: np.ndarray, free: np.ndarray, n_nodes: int, held: np.ndarray,
                       values: np.ndarray) -> np.ndarray:
     """The orthonormal basis (n_free, r') of the fields in ``basis``'s span that vanish at the
@@ -152,7 +143,7 @@ def reduced_answers(ctx, tasks, basis, elements, weights, n_vertices: int,
     for task in tasks:
         inputs = ctx.inputs(task)
         view = base.with_parameters(*inputs.solver_parameters) if inputs.parameters is not None else base
-        b = constrained_basis(basis, free, n_nodes, *held_values(inputs)) if exact else basis
+        b = constrained_basis(basis, free, n_nodes, *inputs.held_values) if exact else basis
         model = ReducedModel(view.problem, b, elements, weights)
         if inputs.parameters is not None:  # the model has the sample's own E: no scaling of the loads
             inputs = dataclasses.replace(inputs, parameters=dataclasses.replace(inputs.parameters, youngs_modulus=1.0))
@@ -250,7 +241,7 @@ def main(argv=None) -> int:
         v = full[:, :r]
         rows.append(row("projection", v.shape[1], field_errors({k: projected(u, v, free) for k, u in truth.items()},
                                                                truth)))
-        held = {k: projected(u, constrained_basis(v, free, len(problem.nodes), *held_values(inputs[k])), free)
+        held = {k: projected(u, constrained_basis(v, free, len(problem.nodes), *inputs[k].held_values), free)
                 for k, u in truth.items()}
         rows.append(row("proj held", v.shape[1], field_errors(held, truth)))
         print(show(rows[-2]) + "\n" + show(rows[-1]), flush=True)

@@ -141,7 +141,7 @@ def test_the_learned_model_and_baselines_beside_a_tracked_retractors_store(tmp_p
     pos[free] = np.arange(len(free))
     dents = 0
     for task in [Task(int(k), int(ds.seed[k]), float(ds.beta[k]), float(ds.alpha[k])) for k in ds.select("test1")]:
-        held, values = mod.held_values(ctx.inputs(task))
+        held, values = ctx.inputs(task).held_values
         if not len(held):
             continue
         b = mod.constrained_basis(basis, free, len(problem.nodes), held, values)

@@ -118,6 +118,17 @@ class SampleInputs:
         for the problem's own)."""
         return self.materials, self.springs
 
+    @property
+    def held_values(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(ids (k,) int64, values (k, 3) mm)``: the vertices the sample holds beyond the static
+        supports, ascending (the indentation's patch at its prescribed values, the attached
+        region's larger extent at zero)."""
+        held = np.union1d(np.asarray(self.prescribed_ids, dtype=np.int64), np.asarray(self.extra_held, dtype=np.int64))
+        values = np.zeros((len(held), 3))
+        if len(self.prescribed_ids):
+            values[np.searchsorted(held, self.prescribed_ids)] = self.prescribed_values
+        return held, values
+
     def reduced_guess(self, reduced, hold_length: float = HOLD_STIFFNESS_LENGTH, **solve) -> np.ndarray | None:
         """The reduced model's prediction of this sample (an initial guess for the full solve):
         (n_nodes, 3) mm, or None when the reduced problem does not converge.
@@ -135,13 +146,10 @@ class SampleInputs:
         Poisson's ratio stays the nominal model's: the full solve imposes it.
         """
         s = 1.0 if self.parameters is None else float(self.parameters.youngs_modulus)
-        held = np.union1d(np.asarray(self.prescribed_ids, dtype=np.int64), np.asarray(self.extra_held, dtype=np.int64))
+        held, values = self.held_values
         if self.parameters is None and not len(held):
             return reduced.predict(self.loads, **solve)
         base = self.springs if self.springs is not None else reduced.problem.springs
-        values = np.zeros((len(held), 3))
-        if len(self.prescribed_ids):
-            values[np.searchsorted(held, self.prescribed_ids)] = self.prescribed_values
         loads = self.loads.copy()
         np.add.at(loads, held, hold_stiffness(reduced.problem, hold_length) * values)  # their pull toward the values
         return reduced.with_springs(_guess_springs(base, held, s, reduced.problem, hold_length)).predict(loads / s, **solve)
