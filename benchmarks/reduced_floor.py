@@ -131,17 +131,17 @@ def projected(u: np.ndarray, basis: np.ndarray, free: np.ndarray) -> np.ndarray:
     return p.reshape(-1, 3)
 
 
-def reduced_answers(ctx, tasks, basis, elements, weights, n_vertices: int,
+def reduced_answers(ctx, samples: dict, basis, elements, weights, n_vertices: int,
                     exact: bool = True) -> tuple[dict, list, list]:
-    """Each task's reduced equilibrium from its own inputs, its held vertices and patch imposed
-    through :func:`constrained_basis` (``exact``) or by the data set's guesses' springs on
-    ``basis`` itself: ``({id: (n, 3) mm}, [seconds], [ids that failed])``."""
+    """Each sample's reduced equilibrium from its own inputs (``samples``: ``{id:
+    SampleInputs}``), its held vertices and patch imposed through :func:`constrained_basis`
+    (``exact``) or by the data set's guesses' springs on ``basis`` itself: ``({id: (n, 3) mm},
+    [seconds], [ids that failed])``."""
     base = ctx.solver(0)
     free = np.flatnonzero(base.problem.free_mask)
     n_nodes = len(base.problem.nodes)
     fields, seconds, failed = {}, [], []
-    for task in tasks:
-        inputs = ctx.inputs(task)
+    for k, inputs in samples.items():
         view = base.with_parameters(*inputs.solver_parameters) if inputs.parameters is not None else base
         b = constrained_basis(basis, free, n_nodes, *inputs.held_values) if exact else basis
         model = ReducedModel(view.problem, b, elements, weights)
@@ -151,9 +151,9 @@ def reduced_answers(ctx, tasks, basis, elements, weights, n_vertices: int,
         u = inputs.reduced_guess(model, HOLD_LENGTH, **SOLVE) if exact else inputs.reduced_guess(model, **SOLVE)
         seconds.append(time.perf_counter() - t0)
         if u is None:
-            failed.append(task.index)
+            failed.append(k)
         else:
-            fields[task.index] = np.asarray(u[:n_vertices])
+            fields[k] = np.asarray(u[:n_vertices])
     return fields, seconds, failed
 
 
@@ -222,7 +222,7 @@ def main(argv=None) -> int:
     nv = ds.mesh.n_vertices
     free = np.flatnonzero(problem.free_mask)
     truth = {int(k): np.asarray(ds.displacements[k], dtype=np.float64) for k in test}
-    tasks = [Task(int(k), int(ds.seed[k]), float(ds.beta[k]), float(ds.alpha[k])) for k in test]
+    inputs = {int(k): ctx.inputs(Task(int(k), int(ds.seed[k]), float(ds.beta[k]), float(ds.alpha[k]))) for k in test}
     peak = float(np.median([np.linalg.norm(u, axis=1).max() for u in truth.values()]))
     strain = float(np.median(nonrigid_part(ds.mesh.points, np.stack(list(truth.values())))))
     t0 = time.perf_counter()
@@ -236,7 +236,6 @@ def main(argv=None) -> int:
         rows.extend(baseline_rows(ds, args.model, test, truth))
         for r in rows:
             print(show(r), flush=True)
-    inputs = {t.index: ctx.inputs(t) for t in tasks}
     for r in args.modes:
         v = full[:, :r]
         rows.append(row("projection", v.shape[1], field_errors({k: projected(u, v, free) for k, u in truth.items()},
@@ -247,7 +246,7 @@ def main(argv=None) -> int:
         print(show(rows[-2]) + "\n" + show(rows[-1]), flush=True)
         if not args.no_galerkin:
             for name, exact in (("galerkin", True), ("springs", False)):
-                fields, sec, failed = reduced_answers(ctx, tasks, v, np.arange(m), np.ones(m), nv, exact)
+                fields, sec, failed = reduced_answers(ctx, inputs, v, np.arange(m), np.ones(m), nv, exact)
                 rows.append(row(name, v.shape[1], field_errors(fields, truth), sec, failed, m))
                 print(show(rows[-1]), flush=True)
     if args.ecsw_snapshots:
@@ -259,7 +258,7 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             fit = ReducedModel.fit(problem, snaps, tolerance=args.ecsw_tolerance, max_modes=r)
             took = time.perf_counter() - t0
-            fields, sec, failed = reduced_answers(ctx, tasks, fit.basis, fit.elements, fit.weights, nv)
+            fields, sec, failed = reduced_answers(ctx, inputs, fit.basis, fit.elements, fit.weights, nv)
             rows.append(row("ecsw", fit.n_modes, field_errors(fields, truth), sec, failed, len(fit.elements)))
             rows[-1].update(ecsw_snapshots=len(snaps), ecsw_tolerance=args.ecsw_tolerance, fit_seconds=took)
             print(show(rows[-1]) + f"   (fit {took:.0f} s on {len(snaps)} fields)", flush=True)

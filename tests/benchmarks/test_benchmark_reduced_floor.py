@@ -44,18 +44,19 @@ def test_a_basis_spanning_the_field_gives_it_back(drawn_store):
     problem = ctx.solver(0).problem
     free = np.flatnonzero(problem.free_mask)
     tasks = [Task(int(k), int(ds.seed[k]), float(ds.beta[k]), float(ds.alpha[k])) for k in test]
+    samples = {t.index: ctx.inputs(t) for t in tasks}
     truth = {int(k): np.asarray(ds.displacements[k], dtype=np.float64) for k in test}
     m = len(problem.connectivity)
     # the test fields themselves in the basis: the reduced equilibrium is the full one
     basis = mod.training_basis(ds.displacements[np.concatenate([ds.select("train"), test])], free, 1000)
-    fields, seconds, failed = mod.reduced_answers(ctx, tasks, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices)
+    fields, seconds, failed = mod.reduced_answers(ctx, samples, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices)
     assert failed == [] and len(seconds) == len(tasks)
     peak = max(float(np.linalg.norm(u, axis=1).max()) for u in truth.values())
     err = mod.field_errors(fields, truth)
     assert err["offset_max_mm"] < 0.01 * peak
     # the training fields alone do not span them: the same model is then measurably off
     basis = mod.training_basis(ds.displacements[ds.select("train")[:3]], free, 1000)
-    fields, _, _ = mod.reduced_answers(ctx, tasks, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices)
+    fields, _, _ = mod.reduced_answers(ctx, samples, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices)
     assert mod.field_errors(fields, truth)["offset_max_mm"] > 0.05 * peak
 
 
@@ -128,12 +129,13 @@ def test_the_learned_model_and_baselines_beside_a_tracked_retractors_store(tmp_p
     basis = mod.training_basis(ds.displacements[everything], free, 1000)
     m = len(problem.connectivity)
     tasks = [Task(int(k), int(ds.seed[k]), float(ds.beta[k]), float(ds.alpha[k])) for k in test]
+    samples = {t.index: ctx.inputs(t) for t in tasks}
     truth = {int(k): u[i] for i, k in enumerate(test)}
     peak = np.linalg.norm(u, axis=2).max()
-    fields, _, failed = mod.reduced_answers(ctx, tasks, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices)
+    fields, _, failed = mod.reduced_answers(ctx, samples, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices)
     assert failed == [] and mod.field_errors(fields, truth)["offset_max_mm"] < 0.002 * peak
     # the data set's guesses' springs (100 mm x E) on the same basis: the held vertices give
-    fields, _, _ = mod.reduced_answers(ctx, tasks, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices, exact=False)
+    fields, _, _ = mod.reduced_answers(ctx, samples, basis, np.arange(m), np.ones(m), ds.mesh.n_vertices, exact=False)
     assert mod.field_errors(fields, truth)["offset_max_mm"] > 0.02 * peak
     # the held vertices and the patch: the constrained basis vanishes at the held ones and one
     # column moves the patch by the values
