@@ -15,6 +15,14 @@
 // Any STATUS message (the out-of-distribution alarm) is printed where it arrives:
 // "STATUS <device> <crc ok> <code> <subcode> <error name> <message>".
 //
+// Usage: tissuecast_igtl_client HOST PORT --latency FRAMES DEVICE PAUSE_MS M00 .. M33 X0 Y0 Z0 [...]
+//   timing (benchmarks/igtl_latency.py): per frame TRANSFORM DEVICE (none when DEVICE is "-") and
+//   POINT "Markers" (the markers moved a little each frame), then the POLYDATA reply; prints
+//   "R <microseconds>" per frame from the first send to the reply unpacked, after 20 warm-up
+//   frames; PAUSE_MS milliseconds (decimals allowed, 0 = back to back) pass between a reply and
+//   the next frame, as when a tracker streams at a fixed rate. Exit status 3 on a reply that is
+//   not the surface.
+//
 // Usage: tissuecast_igtl_client HOST PORT --instrument DEVICE WAIT_MS M00 .. M33 X0 Y0 Z0 [...]
 //   a tracked instrument: POINT "Markers" (no instrument yet), then TRANSFORM DEVICE (the tool's
 //   4x4 pose, row by row) and POINT again, then after WAIT_MS milliseconds POINT again; after each
@@ -205,10 +213,16 @@ static int runLatency(igtl::ClientSocket::Pointer& socket, int argc, char* argv[
 {
   float pose[16];
   std::vector<float> xyz;
-  if (!readMatrixAndPoints(argc, argv, 6, "HOST PORT --latency FRAMES DEVICE M00..M33 X0 Y0 Z0 [...]", pose, xyz)
-      || std::atoi(argv[4]) < 1)
+  const char* usage = "HOST PORT --latency FRAMES DEVICE PAUSE_MS M00..M33 X0 Y0 Z0 [...]";
+  if (!readMatrixAndPoints(argc, argv, 7, usage, pose, xyz))
     return 2;
+  if (std::atoi(argv[4]) < 1 || std::atof(argv[6]) < 0.0)
+  {
+    std::fprintf(stderr, "usage: %s %s (FRAMES at least 1, PAUSE_MS at least 0)\n", argv[0], usage);
+    return 2;
+  }
   int frames = std::atoi(argv[4]);
+  std::chrono::microseconds pause(static_cast<long long>(std::atof(argv[6]) * 1000.0));
   bool tool = std::strcmp(argv[5], "-") != 0;
   size_t count = xyz.size() / 3;
   std::vector<float> moved(xyz.size());
@@ -217,6 +231,8 @@ static int runLatency(igtl::ClientSocket::Pointer& socket, int argc, char* argv[
   const int warmup = 20;
   for (int frame = 0; frame < warmup + frames; ++frame)
   {
+    if (frame > 0 && pause.count() > 0)
+      std::this_thread::sleep_for(pause);
     for (size_t i = 0; i < xyz.size(); ++i)
       moved[i] = xyz[i] + 0.5f * static_cast<float>(std::sin(0.7 * frame + 1.3 * i));
     std::chrono::steady_clock::time_point start = std::chrono::steady_clock::now();

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -148,8 +149,9 @@ def test_cpp_client_streams_a_tracked_instrument_and_hears_when_it_is_lost(clien
 def test_cpp_client_latency_mode_times_every_frame_and_fails_on_a_reply_that_is_not_the_surface(client_binary):
     """The official client's timing mode (benchmarks/igtl_latency.py): TRANSFORM + POINT per frame,
     one time per frame after 20 warm-up frames, each POLYDATA passing the library's CRC check;
-    a reply that is not the surface (a POINT one marker short is answered with a STRING) ends it
-    with exit status 3."""
+    paced, each frame waits the pause after the previous reply (the whole run lasts at least the
+    pauses); a reply that is not the surface (a POINT one marker short is answered with a STRING)
+    ends it with exit status 3, and a negative pause is refused with the usage (exit status 2)."""
     from _instrument_synthetic import instrument_model
 
     model = instrument_model()
@@ -158,16 +160,24 @@ def test_cpp_client_latency_mode_times_every_frame_and_fails_on_a_reply_that_is_
     markers = model.reference_marker_positions
     frames = 40
     with IGTLServer(model, "127.0.0.1", 0) as server:
-        def run(positions):
-            args = [str(client_binary), *map(str, server.address), "--latency", str(frames), "RetractorToReference"]
+        def run(positions, pause_ms=0.0):
+            args = [str(client_binary), *map(str, server.address), "--latency", str(frames), "RetractorToReference",
+                    str(pause_ms)]
             args += [repr(float(v)) for v in tool.ravel()] + [repr(float(v)) for v in positions.ravel()]
             return subprocess.run(args, capture_output=True, text=True, timeout=60)
 
         done = run(markers)
         surfaces = server.stats["replies"]
+        start = time.perf_counter()
+        paced = run(markers, pause_ms=25.0)
+        paced_seconds = time.perf_counter() - start
         short = run(markers[:-1])
-    assert done.returncode == 0, done.stderr
-    times = [line.split() for line in done.stdout.splitlines()]
-    assert len(times) == frames and all(t[0] == "R" and int(t[1]) > 0 for t in times), done.stdout[:200]
+        negative = run(markers, pause_ms=-1.0)
+    for result in (done, paced):
+        assert result.returncode == 0, result.stderr
+        times = [line.split() for line in result.stdout.splitlines()]
+        assert len(times) == frames and all(t[0] == "R" and int(t[1]) > 0 for t in times), result.stdout[:200]
     assert surfaces >= frames + 20  # a surface for every frame, warm-up included
+    assert paced_seconds >= (frames + 20 - 1) * 0.025  # sleep_for waits at least the pause
+    assert negative.returncode == 2 and "PAUSE_MS" in negative.stderr, (negative.returncode, negative.stderr)
     assert short.returncode == 3 and "no POLYDATA reply" in short.stderr, (short.returncode, short.stderr)
