@@ -471,6 +471,7 @@ class UncertainConfig:
     attached_margin: tuple[float, ...] = _f((), doc="[min, max] mm the attached region grows (+) or shrinks (-) along the surface, drawn uniformly")
     measured: tuple[str, ...] = _f((), doc="parameters measured before surgery (e.g. 'youngs_modulus' by elastography): model inputs")
     nominal_share: float = _f(0.0, lo=0.0, hi=1.0, hi_open=True, doc="share of the samples drawn with every parameter at its nominal value (a prior that trusts the nominal guess; 0: every sample from the ranges)")
+    arcsine: tuple[str, ...] = _f((), doc="drawn parameters whose range's ends are likelier: the arcsine law (Beta(1/2, 1/2)) over the range, log scale for factors")
 
 
 #: The scenario loads an instrument can be (:class:`InstrumentConfig`): today the indentation.
@@ -728,6 +729,13 @@ def _check_uncertain(obj: "UncertainConfig", prefix: str) -> None:
     if undrawn:
         raise ConfigError(f"{prefix}measured names {undrawn}, which {prefix[:-1]} does not draw; give "
                           f"{prefix}{undrawn[0]} a [min, max] range, or leave it out of {prefix}measured")
+    unknown = [m for m in obj.arcsine if m not in UNCERTAIN_PARAMETERS]
+    if unknown:
+        raise ConfigError(f"{prefix}arcsine names {unknown}; choose among {list(UNCERTAIN_PARAMETERS)}")
+    undrawn = [m for m in obj.arcsine if not getattr(obj, m)]
+    if undrawn:
+        raise ConfigError(f"{prefix}arcsine names {undrawn}, which {prefix[:-1]} does not draw; give "
+                          f"{prefix}{undrawn[0]} a [min, max] range, or leave it out of {prefix}arcsine")
 
 
 def _check_modulus(key: str, value: float, switch: str) -> None:
@@ -877,8 +885,8 @@ def _check_nominal_share(u: "UncertainConfig", nu: float) -> None:
 
 def nothing_drawn() -> dict:
     """``[scenario.uncertain]`` overrides (for :func:`with_overrides`) that draw no parameter,
-    measure none and keep no nominal share: every sample at the nominal parameters."""
-    return {**{name: [] for name in UNCERTAIN_PARAMETERS}, "measured": [], "nominal_share": 0.0}
+    measure none and keep no nominal share or arcsine law: every sample at the nominal parameters."""
+    return {**{name: [] for name in UNCERTAIN_PARAMETERS}, "measured": [], "nominal_share": 0.0, "arcsine": []}
 
 
 def config_from_dict(data: dict) -> Config:

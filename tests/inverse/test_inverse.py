@@ -177,6 +177,10 @@ def test_a_measured_margin_with_its_uncertainty_is_a_prior_over_the_held_sets():
         assert np.exp(-prior / 2).sum() == pytest.approx(1.0, rel=1e-9)
         assert np.argmin(prior) == np.searchsorted(margins, mean, side="right") - 1  # the set the mean lies in
     np.testing.assert_allclose(prior, uniform, atol=1e-6)  # a measurement that says nothing: the range's shares
+    ends = MarkerInverse._held_set_prior(margins, bounds, arcsine=True)  # the arcsine law's shares of the windows
+    edges = (np.append(margins, bounds[1]) - bounds[0]) / (bounds[1] - bounds[0])
+    np.testing.assert_allclose(np.exp(-ends / 2), np.diff(2.0 / np.pi * np.arcsin(np.sqrt(edges))), rtol=1e-9)
+    assert ends[0] < uniform[0] and ends[-1] < uniform[-1]  # the sets at the range's ends likelier
     truth, inputs = _simulate(sc, solver, 2)
     true_margin = inputs.parameters.attached_margin
     assert margins[1] <= true_margin < margins[2]

@@ -74,6 +74,54 @@ def test_a_nominal_share_keeps_that_share_of_samples_nominal_and_the_others_draw
     np.testing.assert_equal([shared.draw(parameter_rng(s)).record() for s in range(20)], [d.record() for d in b[:20]])
 
 
+def test_the_arcsine_law_makes_a_ranges_ends_likelier_and_leaves_the_other_draws_unchanged():
+    """A parameter that ``arcsine`` names follows Beta(1/2, 1/2) over its range (on the log
+    scale for factors; per region for the regions' E), its other draws and every other
+    parameter's exactly as without it; the sensitivities' and the inverse's priors take the
+    law's spread; names that are unknown or not drawn are refused with the fix."""
+    from tissuecast.dataset.sensitivities import parameter_directions
+    from tissuecast.scenario.parameters import law_cdf, law_quantile, law_sd
+
+    ranges = dict(youngs_modulus=(0.5, 2.0), poisson_ratio=(0.40, 0.49), attached_margin=(-5.0, 5.0),
+                  region_youngs_modulus=(1.0, 3.0))
+    plain = _parameters(**ranges)
+    ends = _parameters(**ranges, arcsine=("attached_margin", "youngs_modulus", "region_youngs_modulus"))
+    n = 3000
+    a = [plain.draw(parameter_rng(s)) for s in range(n)]
+    b = [ends.draw(parameter_rng(s)) for s in range(n)]
+    assert [d.poisson_ratio for d in a] == [d.poisson_ratio for d in b]  # not named: the same draws
+    arcsine = stats.beta(0.5, 0.5)
+    margin = np.array([d.attached_margin for d in b])
+    t_e = np.log([d.youngs_modulus for d in b]) / np.log(4.0) + 0.5  # fraction of the log range
+    t_region = np.log([d.region_youngs_modulus[0] for d in b]) / np.log(3.0)
+    for t in ((margin + 5.0) / 10.0, t_e, t_region):
+        assert stats.kstest(t, arcsine.cdf).pvalue > 0.01
+        assert stats.kstest(t, stats.uniform(0.0, 1.0).cdf).pvalue < 1e-6
+    # the same quantile mapped: a draw's uniform margin u gives sin(pi u / 2)^2 of the range
+    u = (np.array([d.attached_margin for d in a]) + 5.0) / 10.0
+    np.testing.assert_allclose(margin, -5.0 + 10.0 * law_quantile(u, True), atol=1e-12)
+    # the ends three times likelier: within 5 % of the range's ends 14.4 % of the draws, not 5 %
+    assert abs(np.mean(margin < -4.5) - law_cdf(0.05, True)) < 4.0 * np.sqrt(0.144 * 0.856 / n)
+    assert law_cdf(0.05, True) == pytest.approx(2.0 / np.pi * np.arcsin(np.sqrt(0.05)))
+    np.testing.assert_allclose(law_cdf(law_quantile(np.linspace(0, 1, 11), True), True), np.linspace(0, 1, 11),
+                               atol=1e-12)
+    assert law_sd(1.0, True) == pytest.approx(arcsine.std()) and law_sd(1.0, False) == pytest.approx(12 ** -0.5)
+
+    class _Scenario:  # what parameter_directions reads
+        def __init__(self, config):
+            self.config, self.uncertain = config, object()
+
+    for law in ((), ("youngs_modulus",)):
+        (name, log, centre, sd), = parameter_directions(_Scenario(
+            with_overrides(Config(), scenario={"uncertain": {"youngs_modulus": [0.5, 2.0], "arcsine": list(law)}}).scenario))
+        assert (name, log, centre) == ("youngs_modulus", True, pytest.approx(0.0))
+        assert sd == pytest.approx(np.log(4.0) / np.sqrt(8.0 if law else 12.0))
+    for arcsine_names, message in ((["stiffness"], "arcsine names \\['stiffness'\\]; choose among"),
+                                   (["density"], "arcsine names \\['density'\\], which scenario.uncertain does not draw")):
+        with pytest.raises(ConfigError, match=message):
+            with_overrides(Config(), scenario={"uncertain": {"attached_margin": [-5.0, 5.0], "arcsine": arcsine_names}})
+
+
 def test_the_signed_surface_distance_from_the_attached_rim():
     d = attached_distance(BOX, BOTTOM)
     side = np.flatnonzero(np.isclose(BOX.points[:, 0], 0.0) & (BOX.points[:, 2] > 0))

@@ -34,6 +34,7 @@ from scipy.sparse.linalg import splu
 from ..errors import ConfigError, ConvergenceError
 from ..fem.linear import NotPositiveDefinite
 from ..forces.fields import lbo_field
+from ..scenario.parameters import law_sd
 from ..scenario.sample_inputs import ScenarioDraw
 
 __all__ = ["WEIGHT_SD", "CONTINUOUS_PARAMETERS", "PARAMETER_STEP", "Sensitivities", "parameter_directions",
@@ -142,7 +143,8 @@ def _tangent_solve(solver, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
 def parameter_directions(scenario) -> list[tuple[str, bool, float, float]]:
     """``(name, log, centre, sd)`` of each continuous parameter the scenario draws (of
     :data:`CONTINUOUS_PARAMETERS`): its prior mean and standard deviation on its scale (log for
-    the factors), from the config's uniform range."""
+    the factors), from the config's range and law (uniform, or arcsine where
+    ``scenario.uncertain.arcsine`` names it)."""
     c = scenario.config.uncertain
     if scenario.uncertain is None:
         return []
@@ -152,7 +154,7 @@ def parameter_directions(scenario) -> list[tuple[str, bool, float, float]]:
         if bounds:
             lo, hi = (float(v) for v in bounds)
             a, b = (math.log(lo), math.log(hi)) if on_log else (lo, hi)
-            out.append((name, on_log, 0.5 * (a + b), (b - a) / math.sqrt(12.0)))
+            out.append((name, on_log, 0.5 * (a + b), law_sd(b - a, name in c.arcsine)))
     return out
 
 

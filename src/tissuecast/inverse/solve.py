@@ -64,7 +64,7 @@ import numpy as np
 from ..errors import ConfigError, ConvergenceError
 from ..dataset.sensitivities import (CONTINUOUS_PARAMETERS, PARAMETER_STEP, WEIGHT_SD, equilibrium_response,
                                      parameter_directions, unit_loads)
-from ..scenario.parameters import ParameterDraw
+from ..scenario.parameters import ParameterDraw, law_cdf
 from ..scenario.sample_inputs import SampleInputs, ScenarioDraw
 
 __all__ = ["MarkerInverse", "InverseResult", "NOISE_MM", "MIN_TRACKED", "MISFIT_NOISES", "ESTIMATES", "spread_band"]
@@ -230,7 +230,9 @@ class MarkerInverse:
         #: (lo, hi) mm, the attached margin's drawn range, or None where it is not drawn
         self._margin_range = (float(bounds[0]), float(bounds[1])) if bounds else None
         self._margins = self._margin_candidates(scenario.uncertain, self._margin_range)
-        self._set_prior = self._held_set_prior(self._margins, self._margin_range)  # aligned with _margins
+        self._margin_arcsine = "attached_margin" in scenario.config.uncertain.arcsine
+        self._set_prior = self._held_set_prior(self._margins, self._margin_range,  # aligned with _margins
+                                               arcsine=self._margin_arcsine)
 
     def flags(self, result: InverseResult) -> bool:
         """Whether ``result``'s worst marker misses by more than :data:`MISFIT_NOISES` noise
@@ -286,18 +288,19 @@ class MarkerInverse:
         return np.concatenate([first, inside])
 
     @staticmethod
-    def _held_set_prior(margins: np.ndarray, bounds, measured: tuple[float, float] | None = None) -> np.ndarray:
+    def _held_set_prior(margins: np.ndarray, bounds, measured: tuple[float, float] | None = None, *,
+                        arcsine: bool = False) -> np.ndarray:
         """(k,) ``-2 log P(held set)`` of each candidate margin: the probability of the margins
         that give the set (the nominal extent holds over the whole gap between the rim's inner
         and outer vertices, each vertex beyond it over the gap to the next), under the range's
-        uniform law, or with ``measured`` ``(mean, sd)`` mm under that normal law truncated to
-        the range."""
+        law (uniform, or arcsine with ``arcsine``), or with ``measured`` ``(mean, sd)`` mm under
+        that normal law truncated to the range."""
         if not margins.size:
             return np.zeros(0)
         lo, hi = bounds
         edges = np.append(margins, hi)
         if measured is None:
-            p = np.diff(edges) / (hi - lo)
+            p = np.diff(law_cdf((edges - lo) / (hi - lo), arcsine))
         else:
             from scipy.stats import norm
 

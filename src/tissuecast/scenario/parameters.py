@@ -14,6 +14,9 @@ uncertainty), one uniform number per slot in the fixed order E, nu, density, spr
 spring tangential, attached margin, then one per material region, whether or not the slot
 has a range: giving one parameter a range does not change another's draws. Factors on
 moduli and stiffnesses are log-uniform (as likely halved as doubled), the others uniform.
+A parameter that ``arcsine`` names takes its number ``u`` through ``sin(pi u / 2)**2`` first:
+the arcsine law (Beta(1/2, 1/2)) over its range, on the log scale for factors, its ends
+likelier than its middle (:func:`law_quantile`); the other parameters' draws are unchanged.
 With ``nominal_share`` > 0 one more uniform number is drawn after those: below the share, the
 sample keeps every parameter at its nominal value (its other numbers unused), so the ranges'
 draws of the remaining samples are those of the same seeds without the share.
@@ -40,8 +43,8 @@ from ..config import UncertainConfig
 from ..fem.springs import NodalSprings
 from ..mesh.tetmesh import TetMesh
 
-__all__ = ["ParameterDraw", "UncertainParameters", "attached_distance", "parameter_rng", "PARAMETER_STREAM",
-           "PARAMETER_NAMES"]
+__all__ = ["ParameterDraw", "UncertainParameters", "attached_distance", "parameter_rng", "law_quantile", "law_cdf",
+           "law_sd", "PARAMETER_STREAM", "PARAMETER_NAMES"]
 
 #: Second SeedSequence word of a sample's parameter draws.
 PARAMETER_STREAM = 2**63 - 4
@@ -100,6 +103,26 @@ class ParameterDraw:
         return {name: float(getattr(self, name)) for name in PARAMETER_NAMES}
 
 
+def law_quantile(u, arcsine: bool):
+    """Where quantile ``u`` (in [0, 1]) of a parameter's law lies as a fraction of its range
+    (of its log range for factors): ``u`` itself under the uniform law, ``sin(pi u / 2)**2``
+    under the arcsine law."""
+    return np.sin(0.5 * np.pi * np.asarray(u, dtype=np.float64)) ** 2 if arcsine else np.asarray(u, dtype=np.float64)
+
+
+def law_cdf(t, arcsine: bool):
+    """The law's cumulative probability at fraction ``t`` of the range (clipped to [0, 1]): the
+    inverse of :func:`law_quantile`."""
+    t = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0)
+    return 2.0 / np.pi * np.arcsin(np.sqrt(t)) if arcsine else t
+
+
+def law_sd(width: float, arcsine: bool) -> float:
+    """The law's standard deviation over a range ``width`` wide (on its scale): ``width /
+    sqrt(12)`` uniform, ``width / sqrt(8)`` arcsine."""
+    return float(width) / np.sqrt(8.0 if arcsine else 12.0)
+
+
 def _value(u: float, bounds: tuple, nominal: float, log: bool) -> float:
     """The value at quantile ``u`` of a [min, max] range (log-uniform if ``log``); nominal without one."""
     if not bounds:
@@ -137,6 +160,11 @@ class UncertainParameters:
         """A sample's parameters (module notes: one uniform number per slot, in order)."""
         u = rng.random(len(PARAMETER_NAMES) + self.n_regions)
         c = self.config
+        for k, name in enumerate(PARAMETER_NAMES):
+            if name in c.arcsine:
+                u[k] = law_quantile(u[k], True)
+        if "region_youngs_modulus" in c.arcsine:
+            u[len(PARAMETER_NAMES):] = law_quantile(u[len(PARAMETER_NAMES):], True)
         nominal = {"youngs_modulus": 1.0, "poisson_ratio": float("nan"), "density": 1.0, "spring_normal": 1.0,
                    "spring_tangential": 1.0, "attached_margin": 0.0}
         values = {name: _value(u[k], getattr(c, name), nominal[name], name in _LOG_UNIFORM)

@@ -410,6 +410,8 @@ class Scenario:
             out["uncertain"]["measured"] = list(u.measured)
             if u.nominal_share:
                 out["uncertain"]["nominal_share"] = u.nominal_share
+            if u.arcsine:
+                out["uncertain"]["arcsine"] = list(u.arcsine)
         return out
 
 
