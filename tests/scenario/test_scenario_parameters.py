@@ -122,6 +122,23 @@ def test_the_arcsine_law_makes_a_ranges_ends_likelier_and_leaves_the_other_draws
             with_overrides(Config(), scenario={"uncertain": {"attached_margin": [-5.0, 5.0], "arcsine": arcsine_names}})
 
 
+def test_the_scenario_summary_names_each_uncertain_range_with_its_law():
+    """`dataset info`, the evaluation table and the report list the drawn parameters, their
+    ranges and laws (arcsine where named), the measured ones and the nominal share."""
+    from tissuecast.scenario.describe import scenario_lines
+
+    summary = {"name": "embedded", "uncertain": {"youngs_modulus": [0.5, 2.0], "density": [0.95, 1.05],
+                                                 "attached_margin": [-5.0, 5.0], "measured": ["youngs_modulus"],
+                                                 "nominal_share": 0.25, "arcsine": ["attached_margin"]}}
+    rows = dict(scenario_lines(summary))
+    assert rows["uncertain"] == ("drawn per sample: E x0.5-2 (log-uniform), density x0.95-1.05 (uniform), attached "
+                                 "margin -5 to 5 mm (arcsine); measured (model inputs): youngs_modulus; 25 % of the "
+                                 "samples nominal")
+    summary["uncertain"]["arcsine"] = ["youngs_modulus"]
+    assert dict(scenario_lines(summary))["uncertain"].startswith("drawn per sample: E x0.5-2 (arcsine in log),")
+    assert "uncertain" not in dict(scenario_lines({"name": "embedded"}))
+
+
 def test_the_signed_surface_distance_from_the_attached_rim():
     d = attached_distance(BOX, BOTTOM)
     side = np.flatnonzero(np.isclose(BOX.points[:, 0], 0.0) & (BOX.points[:, 2] > 0))

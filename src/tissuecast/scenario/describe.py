@@ -54,9 +54,35 @@ def _loads(s: dict) -> str:
     return "; ".join(parts) or "none"
 
 
+#: ``[scenario.uncertain]`` keys in words: (words, a factor, drawn on the log scale).
+_UNCERTAIN_WORDS = {"youngs_modulus": ("E", True, True), "poisson_ratio": ("nu", False, False),
+                    "region_youngs_modulus": ("each region's E", True, True), "density": ("density", True, False),
+                    "spring_normal": ("springs' normal stiffness", True, True),
+                    "spring_tangential": ("springs' tangential stiffness", True, True),
+                    "attached_margin": ("attached margin", False, False)}
+
+
+def _uncertain(u: dict) -> str:
+    arcsine = set(u.get("arcsine", ()))
+    parts = []
+    for key, (words, factor, log) in _UNCERTAIN_WORDS.items():
+        if u.get(key):
+            lo, hi = (float(v) for v in u[key])
+            span = f"{lo:g} to {hi:g} mm" if key == "attached_margin" else f"x{lo:g}-{hi:g}" if factor else f"{lo:g}-{hi:g}"
+            law = ("arcsine in log" if log else "arcsine") if key in arcsine else ("log-uniform" if log else "uniform")
+            parts.append(f"{words} {span} ({law})")
+    text = "drawn per sample: " + ", ".join(parts)
+    if u.get("measured"):
+        text += f"; measured (model inputs): {', '.join(u['measured'])}"
+    if u.get("nominal_share"):
+        text += f"; {100 * float(u['nominal_share']):g} % of the samples nominal"
+    return text
+
+
 def scenario_lines(summary: dict | None) -> list[tuple[str, str]]:
     """``[("scenario", name), ("supports", ...), ("loads", ...)]`` and, with material regions,
-    ``("materials", ...)``; a single ``("scenario", "not recorded")`` row for None."""
+    ``("materials", ...)``, with uncertain parameters ``("uncertain", ...)`` (their ranges and
+    laws); a single ``("scenario", "not recorded")`` row for None."""
     if not summary:
         return [("scenario", "not recorded")]
     rows = [("scenario", str(summary.get("name", "?"))), ("supports", _supports(summary)), ("loads", _loads(summary))]
@@ -64,6 +90,8 @@ def scenario_lines(summary: dict | None) -> list[tuple[str, str]]:
     if mats:
         rows.append(("materials", "; ".join(f"{name}: E = {m['youngs_modulus']:.4g} MPa, nu = {m['poisson_ratio']:.3g}"
                                             for name, m in mats.items())))
+    if summary.get("uncertain"):
+        rows.append(("uncertain", _uncertain(summary["uncertain"])))
     return rows
 
 
