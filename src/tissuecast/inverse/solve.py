@@ -230,9 +230,8 @@ class MarkerInverse:
         #: (lo, hi) mm, the attached margin's drawn range, or None where it is not drawn
         self._margin_range = (float(bounds[0]), float(bounds[1])) if bounds else None
         self._margins = self._margin_candidates(scenario.uncertain, self._margin_range)
-        self._margin_arcsine = "attached_margin" in scenario.config.uncertain.arcsine
         self._set_prior = self._held_set_prior(self._margins, self._margin_range,  # aligned with _margins
-                                               arcsine=self._margin_arcsine)
+                                               arcsine="attached_margin" in scenario.config.uncertain.arcsine)
 
     def flags(self, result: InverseResult) -> bool:
         """Whether ``result``'s worst marker misses by more than :data:`MISFIT_NOISES` noise
