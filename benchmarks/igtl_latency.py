@@ -291,6 +291,7 @@ def main() -> None:
         device = next(iter(tools), None)
         official = "round trip POINT -> TissueSurface, C++ client"
         official_paced = f"{official}, paced"
+        between = f"paced, {args.interval * 1e3:g} ms between frames"
         for name, path, extra, mode in runs:
             proc, port = start_server(path, *extra)
             try:
@@ -298,7 +299,7 @@ def main() -> None:
                 print(row(name, results[name]))
                 if args.interval and name == runs[0][0]:
                     paced = round_trips(port, positions, max(100, n // 4), mode, tools, args.interval)
-                    print(row(f"  ... paced, {args.interval * 1e3:g} ms between frames", paced))
+                    print(row(f"  ... {between}", paced))
                 if binary is not None and name == runs[0][0]:
                     pose = tool_pose(model) if device else None
                     results[official] = cpp_round_trips(binary, port, positions, n, device, pose)
@@ -306,7 +307,7 @@ def main() -> None:
                     if args.interval:
                         results[official_paced] = cpp_round_trips(binary, port, positions, n, device, pose,
                                                                   args.interval)
-                        print(row(f"  ... paced, {args.interval * 1e3:g} ms between frames", results[official_paced]))
+                        print(row(f"  ... {between}", results[official_paced]))
             finally:
                 proc.terminate()
                 proc.wait(10)
@@ -318,7 +319,7 @@ def main() -> None:
         what, target = ("POINT + TRANSFORM", 3.0) if tools else ("POINT", 1.0)
         client = "the official C++ client" if which == official else "the Python client"
         print()
-        for key, how in ((which, "back to back"), (official_paced, f"paced, {args.interval * 1e3:g} ms between frames")):
+        for key, how in ((which, "back to back"), (official_paced, between)):
             if key in results:
                 p99 = np.percentile(results[key], 99) * 1e3
                 print(f"{what} -> TissueSurface over {n} requests with {client}, {how}: p99 = {p99:.3f} ms "

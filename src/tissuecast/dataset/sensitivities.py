@@ -34,7 +34,7 @@ from scipy.sparse.linalg import splu
 from ..errors import ConfigError, ConvergenceError
 from ..fem.linear import NotPositiveDefinite
 from ..forces.fields import lbo_field
-from ..scenario.parameters import law_sd
+from ..scenario.parameters import LOG_SCALE, law_sd
 from ..scenario.sample_inputs import ScenarioDraw
 
 __all__ = ["WEIGHT_SD", "CONTINUOUS_PARAMETERS", "PARAMETER_STEP", "Sensitivities", "parameter_directions",
@@ -46,8 +46,8 @@ log = logging.getLogger(__name__)
 WEIGHT_SD = 3.0 ** -0.5
 #: The continuous uncertain parameters a field can be differentiated in, and whether on a log
 #: scale (the factors) or as they are (Poisson's ratio).
-CONTINUOUS_PARAMETERS = (("youngs_modulus", True), ("spring_normal", True), ("spring_tangential", True),
-                         ("poisson_ratio", False))
+CONTINUOUS_PARAMETERS = tuple((name, name in LOG_SCALE) for name in ("youngs_modulus", "spring_normal",
+                                                                    "spring_tangential", "poisson_ratio"))
 #: Finite-difference step of the internal forces in a parameter, in prior standard deviations.
 PARAMETER_STEP = 1e-4
 #: A progress line at most this often, s.

@@ -8,6 +8,8 @@ joins them into one line.
 
 from __future__ import annotations
 
+from .parameters import LOG_SCALE
+
 __all__ = ["paper_summary", "scenario_lines", "scenario_text"]
 
 
@@ -54,21 +56,22 @@ def _loads(s: dict) -> str:
     return "; ".join(parts) or "none"
 
 
-#: ``[scenario.uncertain]`` keys in words: (words, a factor, drawn on the log scale).
-_UNCERTAIN_WORDS = {"youngs_modulus": ("E", True, True), "poisson_ratio": ("nu", False, False),
-                    "region_youngs_modulus": ("each region's E", True, True), "density": ("density", True, False),
-                    "spring_normal": ("springs' normal stiffness", True, True),
-                    "spring_tangential": ("springs' tangential stiffness", True, True),
-                    "attached_margin": ("attached margin", False, False)}
+#: ``[scenario.uncertain]`` keys in words, and whether the range is a factor.
+_UNCERTAIN_WORDS = {"youngs_modulus": ("E", True), "poisson_ratio": ("nu", False),
+                    "region_youngs_modulus": ("each region's E", True), "density": ("density", True),
+                    "spring_normal": ("springs' normal stiffness", True),
+                    "spring_tangential": ("springs' tangential stiffness", True),
+                    "attached_margin": ("attached margin", False)}
 
 
 def _uncertain(u: dict) -> str:
     arcsine = set(u.get("arcsine", ()))
     parts = []
-    for key, (words, factor, log) in _UNCERTAIN_WORDS.items():
+    for key, (words, factor) in _UNCERTAIN_WORDS.items():
         if u.get(key):
             lo, hi = (float(v) for v in u[key])
             span = f"{lo:g} to {hi:g} mm" if key == "attached_margin" else f"x{lo:g}-{hi:g}" if factor else f"{lo:g}-{hi:g}"
+            log = key in LOG_SCALE
             law = ("arcsine in log" if log else "arcsine") if key in arcsine else ("log-uniform" if log else "uniform")
             parts.append(f"{words} {span} ({law})")
     text = "drawn per sample: " + ", ".join(parts)

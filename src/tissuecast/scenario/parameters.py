@@ -44,14 +44,15 @@ from ..fem.springs import NodalSprings
 from ..mesh.tetmesh import TetMesh
 
 __all__ = ["ParameterDraw", "UncertainParameters", "attached_distance", "parameter_rng", "law_quantile", "law_cdf",
-           "law_sd", "PARAMETER_STREAM", "PARAMETER_NAMES"]
+           "law_sd", "PARAMETER_STREAM", "PARAMETER_NAMES", "LOG_SCALE"]
 
 #: Second SeedSequence word of a sample's parameter draws.
 PARAMETER_STREAM = 2**63 - 4
 #: The per-sample parameters a data set records (``samples/param_<name>``), in draw order.
 PARAMETER_NAMES = ("youngs_modulus", "poisson_ratio", "density", "spring_normal", "spring_tangential",
                    "attached_margin")
-_LOG_UNIFORM = ("youngs_modulus", "spring_normal", "spring_tangential")
+#: The parameters drawn on the log scale (factors on moduli and stiffnesses: as likely halved as doubled).
+LOG_SCALE = ("youngs_modulus", "region_youngs_modulus", "spring_normal", "spring_tangential")
 
 
 def parameter_rng(sample_seed) -> np.random.Generator:
@@ -167,9 +168,10 @@ class UncertainParameters:
             u[len(PARAMETER_NAMES):] = law_quantile(u[len(PARAMETER_NAMES):], True)
         nominal = {"youngs_modulus": 1.0, "poisson_ratio": float("nan"), "density": 1.0, "spring_normal": 1.0,
                    "spring_tangential": 1.0, "attached_margin": 0.0}
-        values = {name: _value(u[k], getattr(c, name), nominal[name], name in _LOG_UNIFORM)
+        values = {name: _value(u[k], getattr(c, name), nominal[name], name in LOG_SCALE)
                   for k, name in enumerate(PARAMETER_NAMES)}
-        regions = tuple(_value(x, c.region_youngs_modulus, 1.0, True) for x in u[len(PARAMETER_NAMES):])
+        regions = tuple(_value(x, c.region_youngs_modulus, 1.0, "region_youngs_modulus" in LOG_SCALE)
+                        for x in u[len(PARAMETER_NAMES):])
         if c.nominal_share and rng.random() < c.nominal_share:
             values, regions = nominal, (1.0,) * self.n_regions
         return ParameterDraw(region_youngs_modulus=regions, **values)
