@@ -229,9 +229,6 @@ class SurfacePredictor:
             extra["auxiliary"] = self.auxiliary.batch({**self.parameters, **(instruments or {})}, 1)[0]
         bound, alarm, mean, uncertainty, pending = None, None, None, None, None
         if self.has_bounds and missing is None:
-            # a model that computes the alarm with its field anyway (a nominal expert's gate reads
-            # it): taken at once, not computed a second time by with_alarm
-            alarm_now = alarm_now or self.model.alarm_with_field
             trusted = self.model.predict_trusted(d, auxiliary=extra.get("auxiliary"), alarm=alarm_now)
             bound = np.asarray(trusted.error_bound, dtype=np.float64).reshape(self.n_vertices)
             alarm, mean = trusted.alarms, trusted.displacement

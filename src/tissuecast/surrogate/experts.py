@@ -6,13 +6,16 @@ robustness at the nominal parameters: it regresses a much wider family of fields
 on the same mesh, markers and instruments) is about twice as accurate there and fails where a
 parameter is far off (the attached region's extent above all). :class:`NominalExpertRouter`
 keeps both and sends each sample's field to one of them by an :class:`ExpertGate`: a logistic
-regression of what the operating room sees on both models, their alarm scores (input
-distance, marker consistency, the fault statistic and its marker's residual, mm) and how far
-their two fields are apart (largest and mean vertex distance, mm), fitted on held-out samples
-of both families (the validation splits of the uncertain and the nominal store) with the label
-"the nominal expert's largest vertex error is the smaller". The gate sends a sample to the
-nominal expert when that probability is above one half, or to the uncertainty-trained model
-where a score is not finite.
+regression of how far the inputs lie from each model's training inputs (the input distance of
+each model's alarm, on a log scale), fitted on held-out samples of both families (the
+validation splits of the uncertain and the nominal store) with the label "the nominal expert's
+largest vertex error is the smaller". The gate sends a sample to the nominal expert when that
+probability is above one half, or to the uncertainty-trained model where a distance is not
+finite. It reads the inputs only, so a sample is routed before any field is computed, and only
+the field it is routed to (and the uncertainty-trained model's, whose bounds the routed ones
+scale) is decoded; the alarm can follow the field as with one model. (A gate that also read
+both alarms' other scores and how far the two fields lie apart routed no better: measured in
+docs/uncertainty.md.)
 
 The alarm is always the uncertainty-trained model's: it was calibrated on the whole range of
 parameters, the nominal expert's only at the nominal ones. The error bounds are calibrated per
@@ -44,14 +47,11 @@ from .field_predictor import FieldPredictor
 from .trust import TrustedPrediction
 
 __all__ = ["ExpertGate", "NominalExpertRouter", "RouteCalibration", "GATE_FEATURES", "gate_features", "check_expert",
-           "routed_field", "routing_figures", "out_of_fold_routes", "gate_description", "ROUTE_FOLDS"]
+           "routing_figures", "out_of_fold_routes", "gate_description", "ROUTE_FOLDS"]
 
-#: The alarm scores of each model that the gate reads (attributes of :class:`~.trust.Alarm`).
-GATE_SCORES = ("distance", "consistency", "fault", "marker_residual")
-#: The gate's inputs, in order: each model's scores, then how far the two fields are apart (mm).
-GATE_FEATURES = (tuple(f"nominal_{s}" for s in GATE_SCORES) + tuple(f"uncertain_{s}" for s in GATE_SCORES)
-                 + ("apart_max", "apart_mean"))
-#: Scores are read on a log scale; smaller values count as this (a score of 0, or a field alike).
+#: The gate's inputs, in order: each model's input distance (:attr:`~.trust.Alarm.distance`).
+GATE_FEATURES = ("nominal_distance", "uncertain_distance")
+#: Distances are read on a log scale; smaller values count as this (an input on a training input).
 FEATURE_FLOOR = 1e-6
 #: L2 penalty of the gate's logistic regression, on standardised features (the intercept is free).
 GATE_PENALTY = 1.0
@@ -61,15 +61,11 @@ GATE_ITERATIONS = 100
 ROUTE_FOLDS = 5
 
 
-def gate_features(nominal: TrustedPrediction, uncertain: TrustedPrediction) -> np.ndarray:
-    """The gate's inputs (B, len(GATE_FEATURES)) float64 from both models' trusted predictions
-    of the same B samples (a batch, with alarms): log scores and log distances (NaN where a
-    score is)."""
-    if nominal.alarms is None or uncertain.alarms is None:
-        raise ModelError("the gate reads both models' alarms: predict with alarm=True")
-    scores = [[[float(getattr(a, s)) for s in GATE_SCORES] for a in p.alarms] for p in (nominal, uncertain)]
-    apart = np.linalg.norm(np.asarray(nominal.displacement) - np.asarray(uncertain.displacement), axis=2)
-    X = np.hstack([*scores, apart.max(axis=1)[:, None], apart.mean(axis=1)[:, None]])
+def gate_features(nominal: FieldPredictor, uncertain: FieldPredictor, d: np.ndarray, a: np.ndarray | None) -> np.ndarray:
+    """The gate's inputs (B, len(GATE_FEATURES)) float64 of checked marker displacements d
+    (B, 3 n_d) mm and auxiliary inputs a (B, n_a) or None: both trusted predictors' input
+    distances (``input_distance``), on a log scale (NaN where a distance is)."""
+    X = np.stack([p.input_distance(d, auxiliary=a) for p in (nominal, uncertain)], axis=1)
     with np.errstate(invalid="ignore"):
         return np.log(np.where(np.isnan(X), np.nan, np.maximum(X, FEATURE_FLOOR)))
 
@@ -105,9 +101,8 @@ class ExpertGate:
         if X.ndim != 2 or X.shape[1] != len(GATE_FEATURES) or len(X) != len(y):
             raise ModelError(f"the gate needs features (B, {len(GATE_FEATURES)}) and B labels; got {X.shape} and {y.shape}")
         if not np.isfinite(X).all():
-            raise ModelError("a model's alarm score is not finite on the gate's samples: a trust layer without the marker "
-                             "consistency (one marker) or written before the fault score; the gate needs both models' "
-                             "full alarms: re-train the model concerned with this version")
+            raise ModelError("a model's input distance is not finite on the gate's samples: fit the gate on finite "
+                             "fields (a store's converged samples)")
         if y.all() or not y.any():
             who = "the nominal expert" if y.all() else "the uncertainty-trained model"
             raise ModelError(f"{who} is the better one on all {len(y)} samples: there is nothing to route; use that "
@@ -261,7 +256,8 @@ def check_expert(trusted: FieldPredictor, expert: FieldPredictor) -> None:
     """Raise :class:`~tissuecast.errors.ModelError` unless ``expert`` can stand beside
     ``trusted``: both calibrated, the same mesh size, markers and auxiliary inputs."""
     if not (trusted.has_trust and expert.has_trust):
-        raise ModelError("both models need calibrated error bounds and alarms (the gate reads the alarms' scores)")
+        raise ModelError("both models need calibrated error bounds and alarms (the gate reads the alarms' input "
+                         "distances)")
     if (not np.array_equal(expert.markers, trusted.markers) or expert.n_vertices != trusted.n_vertices
             or expert.mesh.fingerprint() != trusted.mesh.fingerprint()):
         raise ModelError(f"the nominal expert reads markers {np.asarray(expert.markers).tolist()} on a mesh of "
@@ -273,22 +269,18 @@ def check_expert(trusted: FieldPredictor, expert: FieldPredictor) -> None:
                          f"{list(trusted.auxiliary.names)}; train both with the same instruments and measured parameters")
 
 
-def routed_field(to_nominal: np.ndarray, uncertain: np.ndarray, nominal: np.ndarray) -> np.ndarray:
-    """(B, n, 3) mm: each sample's field from ``nominal`` where ``to_nominal`` (B,) holds, else
-    from ``uncertain`` (both (B, n, 3) mm)."""
-    return np.where(np.asarray(to_nominal, dtype=bool)[:, None, None], nominal, uncertain)
-
-
 def routing_figures(pair, fields: np.ndarray, auxiliary=None) -> dict:
     """How a model with a nominal expert routes simulated ``fields`` (B, n, 3) mm (auxiliary
     inputs (B, n_a) or None), with its input gate suspended: the mean Offset_max (mm) of both
     models, of the routed field and of the per-sample better of the two (the oracle), the share
     routed to the expert and the share routed to the better one."""
-    d = pair.marker_displacements(fields)
+    d = pair.marker_displacements(fields).reshape(len(fields), -1)
+    router = pair.predictor("mlp")
     with pair.gate_suspended():
-        to_nominal, mine, theirs = pair.predictor("mlp").routes(d.reshape(len(d), -1), auxiliary)
-    worst = {k: np.linalg.norm(u - fields, axis=2).max(axis=1) for k, u in
-             (("uncertain", mine.displacement), ("nominal", theirs.displacement))}
+        to_nominal = router.route(d, auxiliary)
+        both = {"uncertain": router.trusted.predict(d, auxiliary=auxiliary),
+                "nominal": router.expert.predict(d, auxiliary=auxiliary)}
+    worst = {k: np.linalg.norm(u - fields, axis=2).max(axis=1) for k, u in both.items()}
     better = worst["nominal"] < worst["uncertain"]
     return {"count": len(fields), **{f"{k}_offset_max": float(v.mean()) for k, v in worst.items()},
             "routed_offset_max": float(np.where(to_nominal, worst["nominal"], worst["uncertain"]).mean()),
@@ -316,7 +308,6 @@ class NominalExpertRouter(FieldPredictor):
     """
 
     has_trust = True
-    alarm_with_field = True  # the gate reads the alarm: predict_trusted computes it with every field
 
     def __init__(self, learned: FieldPredictor, trusted: FieldPredictor, expert: FieldPredictor, gate: ExpertGate,
                  routes: RouteCalibration | None = None):
@@ -344,25 +335,33 @@ class NominalExpertRouter(FieldPredictor):
     def supports_missing_markers(self) -> bool:
         return bool(self.learned.supports_missing_markers)
 
-    def routes(self, d: np.ndarray, a: np.ndarray | None, *, coverage=None, false_alarm=None):
-        """``(to_nominal (B,) bool, the model's TrustedPrediction, the expert's)`` of checked
-        displacements d (B, 3 n_d) mm and auxiliary inputs a (B, n_a) or None (the model's
-        bounds at its own coverage when the bounds are calibrated per route)."""
-        level = None if self.route_calibration is not None else coverage
-        mine = self.trusted.predict_trusted(d, coverage=level, false_alarm=false_alarm, auxiliary=a)
-        theirs = self.expert.predict_trusted(d, coverage=coverage, auxiliary=a)
-        return self.gate.to_nominal(gate_features(theirs, mine)), mine, theirs
+    def route(self, d: np.ndarray, a: np.ndarray | None) -> np.ndarray:
+        """(B,) bool: the samples of checked displacements d (B, 3 n_d) mm and auxiliary inputs a
+        (B, n_a) or None (every marker tracked) that the gate sends to the nominal expert."""
+        return self.gate.to_nominal(gate_features(self.expert, self.trusted, d, a))
+
+    def _fill(self, u: np.ndarray, to_nominal: np.ndarray, d: np.ndarray, a: np.ndarray | None) -> np.ndarray:
+        """``u`` (B, n, 3) mm, its rows routed to the expert (``to_nominal`` (B,) bool) overwritten
+        with the expert's fields of those rows of d (B, 3 n_d) mm and a (B, n_a) or None."""
+        rows = np.flatnonzero(to_nominal)
+        if len(rows):
+            u[rows] = self.expert.predict(d[rows], auxiliary=None if a is None else a[rows])
+        return u
 
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
         untracked = np.zeros(len(d), bool) if missing is None else missing.any(axis=1)
         u = np.empty((len(d), self.n_vertices, 3))
-        rows = np.flatnonzero(untracked)  # the gate's scores need every marker: the model alone
+        rows = np.flatnonzero(untracked)  # the gate's distances need every marker: the model alone
         if len(rows):
             u[rows] = self.learned.predict(d[rows], missing=missing[rows], auxiliary=None if a is None else a[rows])
         rows = np.flatnonzero(~untracked)
         if len(rows):
-            to_nominal, mine, theirs = self.routes(d[rows], None if a is None else a[rows])
-            u[rows] = routed_field(to_nominal, mine.displacement, theirs.displacement)
+            dr, ar = d[rows], None if a is None else a[rows]
+            to_nominal = self.route(dr, ar)
+            part = self._fill(np.empty((len(rows), self.n_vertices, 3)), to_nominal, dr, ar)
+            if (~to_nominal).any():
+                part[~to_nominal] = self.learned.predict(dr[~to_nominal], auxiliary=None if ar is None else ar[~to_nominal])
+            u[rows] = part
         return u
 
     def predict_with_uncertainty(self, marker_displacements, *, missing=None, auxiliary=None):
@@ -376,12 +375,14 @@ class NominalExpertRouter(FieldPredictor):
                         auxiliary=None, alarm: bool = True) -> TrustedPrediction:
         """As :meth:`.trusted.TrustedPredictor.predict_trusted`: each sample's field from the
         model the gate routes it to, its bounds calibrated on that route (module notes), the
-        alarm the uncertainty-trained model's (``alarm=False`` leaves the alarm out of the
-        answer; the gate computes it anyway)."""
+        alarm the uncertainty-trained model's (``alarm=False`` leaves it for :meth:`alarms`:
+        the gate reads the input distances only)."""
         d, _, single = self.marker_batch(marker_displacements)
         a = self.auxiliary_batch(auxiliary, d.shape[0])
-        to_nominal, mine, theirs = self.routes(d, a, coverage=coverage, false_alarm=false_alarm)
-        u = routed_field(to_nominal, mine.displacement, theirs.displacement)
+        to_nominal = self.route(d, a)
+        level = None if self.route_calibration is not None else coverage  # per route: the model's own level
+        mine = self.trusted.predict_trusted(d, coverage=level, false_alarm=false_alarm, auxiliary=a, alarm=alarm)
+        u = self._fill(np.array(mine.displacement, dtype=np.float64), to_nominal, d, a)
         bounds, level = mine.error_bound, mine.coverage
         if self.route_calibration is not None:
             level = mine.coverage if coverage is None else coverage
@@ -393,7 +394,7 @@ class NominalExpertRouter(FieldPredictor):
                     d, coverage=level, auxiliary=a, alarm=False).error_bound
                 routed = np.where(np.isnan(routed), own, routed)
             bounds = routed
-        alarms = mine.alarms if alarm else None
+        alarms = mine.alarms
         if single:
             return TrustedPrediction(u[0], bounds[0], level, None if alarms is None else alarms[0])
         return TrustedPrediction(u, bounds, level, alarms)

@@ -126,6 +126,15 @@ class InstrumentFallback(FieldPredictor):
             return TrustedPrediction(u[0], bounds[0], level, None if alarms is None else alarms[0])
         return TrustedPrediction(u, bounds, level, alarms)
 
+    def input_distance(self, marker_displacements, *, auxiliary=None) -> np.ndarray:
+        """As :meth:`.trusted.TrustedPredictor.input_distance`, each sample's from the predictor it is routed to."""
+        d, _, _ = self.marker_batch(marker_displacements)
+        a = self.auxiliary_batch(auxiliary, d.shape[0])
+        out = np.empty(d.shape[0])
+        for rows, predictor, dr, _, ar in self._parts(d, None, a):
+            out[rows] = predictor.input_distance(dr, auxiliary=ar)
+        return out
+
     def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None):
         """As :meth:`.trusted.TrustedPredictor.alarms`, each sample's alarm from the predictor it is routed to."""
         if not self.has_trust:

@@ -64,9 +64,6 @@ class FieldPredictor(ABC):
         supports_missing_markers: ``predict(..., missing=...)`` accepts untracked markers.
         has_uncertainty: :meth:`predict_with_uncertainty` is available.
         has_trust: :meth:`predict_trusted` is available.
-        alarm_with_field: :meth:`predict_trusted` computes the alarm with the field even when
-            asked not to (``alarm=False``): the field depends on it (a model with a nominal
-            expert, whose gate reads the alarm), so a caller takes it with the field.
         auxiliary: the auxiliary inputs it reads (:class:`~.auxiliary.AuxiliaryInputs`; empty:
             markers only). A predictor with some implements ``_predict_batch(d, missing, a)``.
     """
@@ -77,7 +74,6 @@ class FieldPredictor(ABC):
     supports_missing_markers: bool = False
     has_uncertainty: bool = False
     has_trust: bool = False
-    alarm_with_field: bool = False
     auxiliary: AuxiliaryInputs = MARKERS_ONLY
     #: the :class:`~.gate.InputGate` that refuses implausible input, or None (predictors built
     #: outside a model; a :class:`~.model.DeformationModel` sets it on itself and its parts)

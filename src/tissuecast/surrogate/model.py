@@ -172,12 +172,6 @@ class DeformationModel(FieldPredictor):
         return self.is_fitted and self.nominal_expert_ is not None
 
     @property
-    def alarm_with_field(self) -> bool:
-        """Whether :meth:`predict_trusted` computes the alarm with the field whatever ``alarm``
-        says: as its trusted part declares (True with a nominal expert, whose gate reads it)."""
-        return self.has_trust and bool(self._trusted.alarm_with_field)
-
-    @property
     def bounds_predictor(self):
         """What predicts the field this model's bounds are measured against, with the bounds: this
         model with a nominal expert (its field is the routed one), else its trusted network
@@ -585,7 +579,8 @@ class DeformationModel(FieldPredictor):
         expert._fitted()
         self._need_trust()
         if not expert.has_trust:
-            raise ModelError("the nominal expert has no calibrated error bounds or alarm (the gate reads its alarm); "
+            raise ModelError("the nominal expert has no calibrated error bounds or alarm (the gate reads its alarm's "
+                             "input distance); "
                              "train it with surrogate.calibration = 'split' or 'cross-validation'")
         if expert.has_nominal_expert or self.has_nominal_expert:
             raise ModelError("a model with a nominal expert takes no second one; start from the models it was made of")
@@ -600,13 +595,14 @@ class DeformationModel(FieldPredictor):
         trial = DeformationModel.from_state(expert_state)
         trial._use_gate(None)
         check_expert(self._trusted, trial._trusted)
-        d = self.marker_displacements(U)
+        d = self.marker_displacements(U).reshape(len(U), -1)
+        a = self._trusted.auxiliary_batch(auxiliary, len(U))
         with self.gate_suspended():
-            mine = self._trusted.predict_trusted(d, auxiliary=auxiliary)
-        theirs = trial._trusted.predict_trusted(d, auxiliary=auxiliary)
-        e_theirs, e_mine = (np.linalg.norm(p.displacement - U, axis=2) for p in (theirs, mine))
+            mine = self._trusted.predict_trusted(d, auxiliary=a, alarm=False)
+            features = gate_features(trial._trusted, self._trusted, d, a)
+        theirs = trial._trusted.predict(d, auxiliary=a)
+        e_theirs, e_mine = (np.linalg.norm(u - U, axis=2) for u in (theirs, mine.displacement))
         better = e_theirs.max(axis=1) < e_mine.max(axis=1)
-        features = gate_features(theirs, mine)
         gate = ExpertGate.fit(features, better)
         routed = out_of_fold_routes(features, better)
         routes = RouteCalibration.fit(routed[keep], e_theirs[keep], e_mine[keep], mine.error_bound[keep])

@@ -149,6 +149,14 @@ class TrustedPredictor(FieldPredictor):
         alarms = self.layer.alarms(self.layer.inputs(d, a, len(d)), false_alarm=false_alarm)
         return alarms[0] if single else alarms
 
+    def input_distance(self, marker_displacements, *, auxiliary=None) -> np.ndarray:
+        """(B,) the alarm's distance score (:attr:`~.trust.Alarm.distance`) of inputs as for
+        :meth:`predict_trusted`: how far they lie from the inputs the predictor was trained on,
+        without the field, its bounds or the alarm's other scores."""
+        d, _, _ = self.marker_batch(marker_displacements)
+        a = self.auxiliary_batch(auxiliary, d.shape[0])
+        return self.layer.ood.distance(self.layer.inputs(d, a, len(d)))
+
     def describe(self) -> dict:
         return {**self.predictor.describe(), "has_trust": True, "trust": self.layer.summary()}
 
