@@ -279,6 +279,7 @@ class SurrogateConfig:
     false_alarm_rate: float = _f(0.01, lo=0.0, hi=1.0, lo_open=True, hi_open=True, doc="share of in-distribution inputs allowed to raise the out-of-distribution alarm")
     alarm_fault_score: bool = _f(False, doc="the alarm also tests for one displaced marker: catches it sooner with many markers, catches fewer of the other faults at the same false-alarm rate")
     nominal_expert: bool = _f(False, doc="run: also a nominal store (STORE_nominal) and a nominal-only expert on the model's markers, a gate routing each field (docs/uncertainty.md)")
+    nominal_samples: int = _f(0, lo=0, doc="nominal_expert: the nominal store's n_samples (it has no test-2); 0 = dataset.n_samples")
 
 
 #: Where the errors at targets (TRE) are measured (see :mod:`tissuecast.evaluate.targets`).

@@ -196,13 +196,15 @@ def test_the_alarm_cell_names_what_raised_it():
 
 def test_run_with_a_nominal_expert(tmp_path):
     """`surrogate.nominal_expert`: the run simulates the nominal store beside the uncertain one
-    (the same alpha, nothing drawn, its own seed), trains the expert on the model's markers and
-    saves the pair; the config refuses what the expert cannot be built from."""
+    (the same alpha, nothing drawn, its own seed, ``nominal_samples`` of them and no test-2),
+    trains the expert on the model's markers and saves the pair; the config refuses what the
+    expert cannot be built from."""
     from tissuecast.app.configuration import check_config
     from tissuecast.app.pipeline import run_pipeline
     from tissuecast.surrogate import DeformationModel
 
-    cfg = with_overrides(_config(tmp_path), surrogate={"nominal_expert": True, "calibration_share": 0.3}, evaluate={"renders": 0},
+    cfg = with_overrides(_config(tmp_path, n_test2=3), surrogate={"nominal_expert": True, "nominal_samples": 50,
+                                                                  "calibration_share": 0.3}, evaluate={"renders": 0},
                          dataset={"store": str(tmp_path / "data.zarr")}, output=str(tmp_path / "run"))
     (tmp_path / "run" / "model").mkdir(parents=True)
     (tmp_path / "run" / "model" / "model.onnx").write_text("an earlier model's graph")
@@ -212,12 +214,22 @@ def test_run_with_a_nominal_expert(tmp_path):
     assert paths.nominal_store.name == "data_nominal.zarr"
     assert nom.calibration["alpha"] == unc.calibration["alpha"] and not nom.parameters
     assert nom.config.dataset.seed != unc.config.dataset.seed and "simulate nominal" in result["seconds"]
+    assert (nom.n_samples, len(nom.select("test2")), len(unc.select("test2"))) == (50, 0, 3)
     assert result["nominal_dataset"]["totals"]["done"] == nom.n_samples - result["nominal_dataset"]["totals"]["failed"]
     model = DeformationModel.load(paths.model)
     assert model.has_nominal_expert and np.array_equal(model.nominal_expert_.markers, model.markers)
     assert not (paths.model / "model.onnx").exists() and result["model"].has_nominal_expert
     assert model.expert_gate_.samples == len(unc.select("valid")) + len(nom.select("valid"))  # both families
     assert sum(model.expert_routes_.summary().values()) == len(unc.select("valid"))  # the bounds: the drawn family
+    # the evaluation says how test-1 was routed; its routed figure is the pair's own field's
+    from tissuecast.evaluate.tables import format_evaluation
+
+    ev = result["evaluation"]
+    routed = ev.model_summary["nominal_expert"]
+    assert routed["count"] == len(unc.select("test1", status="done")) and 0.0 <= routed["routed_to_nominal"] <= 1.0
+    assert routed["routed_offset_max"] == pytest.approx(ev.sets["test1"].summary("mlp").offset_max, rel=1e-9)
+    assert routed["oracle_offset_max"] <= min(routed["uncertain_offset_max"], routed["nominal_offset_max"]) + 1e-12
+    assert "nominal expert: " in format_evaluation(ev) and "with a nominal expert" in format_evaluation(ev)
     # the models given the wrong way round to `tissuecast experts`: refused, naming the order
     from tissuecast.cli.main import main
 
@@ -226,7 +238,8 @@ def test_run_with_a_nominal_expert(tmp_path):
         run_pipeline(with_overrides(cfg, dataset={"store": str(tmp_path / "other.zarr")}), simulate=False)
     for change, words in (({"scenario": {"uncertain": {name: [] for name in UNCERTAIN}}}, "draws no parameter"),
                           ({"scenario": {"uncertain": {"measured": ["youngs_modulus"]}}}, "measured parameters"),
-                          ({"surrogate": {"calibration": "none"}}, "needs error bounds")):
+                          ({"surrogate": {"calibration": "none"}}, "needs error bounds"),
+                          ({"surrogate": {"nominal_expert": False}}, "set nominal_expert = true or remove")):
         with pytest.raises(ConfigError, match=words):
             check_config(with_overrides(cfg, **change))
 

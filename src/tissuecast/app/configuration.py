@@ -57,8 +57,12 @@ def check_nominal_expert(cfg: Config) -> None:
     """A run with ``surrogate.nominal_expert`` needs parameters drawn (else the model is nominal
     already), none measured (the expert's store records no drawn value to read) and calibrated
     trust (the gate reads the alarms). A run-level check: a model folder's surrogate section is
-    read without its scenario."""
+    read without its scenario. ``surrogate.nominal_samples`` sizes that store: refused without it."""
     if not cfg.surrogate.nominal_expert:
+        if cfg.surrogate.nominal_samples:
+            raise ConfigError(f"surrogate.nominal_samples = {cfg.surrogate.nominal_samples} sizes the nominal expert's "
+                              "store, but surrogate.nominal_expert is false; set nominal_expert = true or remove "
+                              "nominal_samples")
         return
     u = cfg.scenario.uncertain
     if not any(getattr(u, name) for name in UNCERTAIN_PARAMETERS):
@@ -69,7 +73,7 @@ def check_nominal_expert(cfg: Config) -> None:
                           "store draws none for the expert to read; remove one of the two")
     if cfg.surrogate.calibration == "none":
         raise ConfigError("surrogate.nominal_expert = true needs error bounds and alarms (the gate reads the alarms' "
-                          "scores); set surrogate.calibration = 'split' or 'cross-validation'")
+                          "input distances); set surrogate.calibration = 'split' or 'cross-validation'")
 
 
 def load_run_config(path: str | Path | None = None) -> Config:

@@ -78,11 +78,14 @@ def train_from_store(config: Config, store, *, model_folder=None, onnx: bool = T
 def nominal_config(config: Config, store, alpha: float) -> Config:
     """The config of the nominal expert's store (``surrogate.nominal_expert``): the scenario with
     no parameter drawn, the force magnitude ``alpha`` (N; the uncertain store's calibrated one:
-    the same loads), its own ``store`` and seed (``dataset.seed + NOMINAL_SEED_OFFSET``)."""
+    the same loads), its own ``store`` and seed (``dataset.seed + NOMINAL_SEED_OFFSET``),
+    ``surrogate.nominal_samples`` samples (0: as many as ``dataset.n_samples``) and no test-2
+    (the expert trains and the gate fits on its train and valid splits; nothing reads a test-2)."""
+    samples = config.surrogate.nominal_samples or config.dataset.n_samples
     return with_overrides(config, scenario={"uncertain": nothing_drawn()},
-                          dataset={"store": str(store), "alpha": float(alpha),
+                          dataset={"store": str(store), "alpha": float(alpha), "n_samples": samples, "n_test2": 0,
                                    "seed": config.dataset.seed + NOMINAL_SEED_OFFSET},
-                          surrogate={"nominal_expert": False})
+                          surrogate={"nominal_expert": False, "nominal_samples": 0})
 
 
 def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_folder=None):
@@ -96,7 +99,7 @@ def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_f
 
     nominal = open_dataset(nominal_store)
     cfg = with_overrides(nominal.config, markers={"ids": [int(i) for i in model.markers]},
-                         surrogate=config_to_dict(config)["surrogate"] | {"nominal_expert": False})
+                         surrogate=config_to_dict(config)["surrogate"] | {"nominal_expert": False, "nominal_samples": 0})
     t = time.perf_counter()
     expert = DeformationModel.from_dataset(nominal, cfg)
     log.info("nominal expert trained on %s in %.1f s", nominal_store, time.perf_counter() - t)

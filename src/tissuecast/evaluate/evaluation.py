@@ -352,9 +352,19 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
     about = model.describe()
     summary = {**{k: about[k] for k in ("n_components", "markers", "ensemble", "hidden", "pca", "training")},
                "scenario": _scenario(model, dataset)}
+    if model.has_nominal_expert and timing_idx.size:
+        summary["nominal_expert"] = _routing(model, U, timing_idx, aux)
     with model.gate_suspended():
         seconds = _timing(model, U, timing_idx, aux=aux)
     return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=seconds, model_summary=summary, targets=targets)
+
+
+def _routing(model, U, idx: np.ndarray, aux: np.ndarray | None) -> dict:
+    """How a model with a nominal expert routes the samples ``idx`` (test-1):
+    :func:`~tissuecast.surrogate.experts.routing_figures` (mm, shares)."""
+    from ..surrogate.experts import routing_figures
+
+    return routing_figures(model, np.asarray(U[idx], dtype=np.float64), None if aux is None else aux[idx])
 
 
 def auxiliary_values(model, dataset) -> np.ndarray | None:

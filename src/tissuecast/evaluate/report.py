@@ -34,8 +34,8 @@ from . import figures
 from .evaluation import METHOD_LABELS, auxiliary_values, method_fields
 from .headline import HEADLINE_METHODS, beta_table, headline_rows, headline_set, html_table, set_title, trust_rows, verdict
 from .render import render_comparison, write_vtu
-from .tables import (COLUMNS, DEFORMATION_HEAD, SET_HEAD, deformation_rows, format_evaluation, model_description,
-                     paper_table, set_rows)
+from .tables import (COLUMNS, DEFORMATION_HEAD, SET_HEAD, deformation_rows, expert_line, format_evaluation,
+                     model_description, paper_table, set_rows)
 from .mismatch_report import mismatch_section
 from .trust_report import trust_evaluation, uncertainty_section
 from .viewer import pick_samples, write_viewer
@@ -69,6 +69,9 @@ def _header(title: str, model, dataset, evaluation) -> str:
              f"data set: {dataset.path or type(dataset).__name__} ({dataset.n_samples} samples)"]
     if targets is not None:
         facts.append(f"targets: {targets.description}")
+    routed = expert_line(ms)
+    if routed:
+        facts.append(routed)
     return (f"<h1>{html.escape(title)}</h1><p class='tc-sub'>{html.escape(' · '.join(str(f) for f in facts))}. "
             "Units: mm; frame LPS; vertex ids 0-based.</p>")
 

@@ -7,18 +7,32 @@ from .evaluation import METHOD_LABELS
 from .headline import DASH, fmt_mm, fmt_ratio, fmt_share, fmt_time, set_title, verdict
 from ..scenario.describe import scenario_lines
 
-__all__ = ["COLUMNS", "model_description", "paper_table", "set_rows", "deformation_rows", "format_evaluation", "SET_HEAD",
-           "DEFORMATION_HEAD"]
+__all__ = ["COLUMNS", "model_description", "expert_line", "paper_table", "set_rows", "deformation_rows",
+           "format_evaluation", "SET_HEAD", "DEFORMATION_HEAD"]
 
 #: Columns of the comparison tables: the learned model, then what it is compared with.
 COLUMNS = ("mlp", "rigid", "ridge", "pca_floor")
 
 
 def model_description(summary: dict) -> str:
-    """'quadratic head (q = 15) + MLP [128, 64]' (x M for an ensemble) from an evaluation's model summary."""
+    """'quadratic head (q = 15) + MLP [128, 64]' (x M for an ensemble; '+ a nominal expert' for a
+    model with one) from an evaluation's model summary."""
     net = f"MLP {summary.get('hidden')}" + (f" x {summary['ensemble']}" if summary.get("ensemble", 1) > 1 else "")
     q = ((summary.get("pca") or {}).get("head") or {}).get("dims")
-    return net if q is None else f"quadratic head (q = {q}) + {net}"
+    text = net if q is None else f"quadratic head (q = {q}) + {net}"
+    return text + (", with a nominal expert" if summary.get("nominal_expert") else "")
+
+
+def expert_line(summary: dict) -> str | None:
+    """How a model with a nominal expert routed test-1 (from the evaluation's model summary), or
+    None for a model without one."""
+    r = summary.get("nominal_expert")
+    if not r:
+        return None
+    return (f"nominal expert: {fmt_share(r['routed_to_nominal'])} of test-1 routed to it by the gate; mean Offset_max "
+            f"{fmt_mm(r['routed_offset_max'])} routed, the uncertainty-trained model alone "
+            f"{fmt_mm(r['uncertain_offset_max'])}, the expert alone {fmt_mm(r['nominal_offset_max'])}, the better "
+            f"of the two on each sample {fmt_mm(r['oracle_offset_max'])}")
 
 
 def _tre_cells(r) -> list[list[str]]:
@@ -135,6 +149,9 @@ def format_evaluation(evaluation) -> str:
             lines.append(f"{q:66s} {cells[0]:>{width}s}" + " " * (3 * (width + 1)) + f"   {p}")
         else:
             lines.append(f"{q:66s} " + " ".join(f"{c:>{width}s}" for c in cells) + f"   {p}")
+    routed = expert_line(evaluation.model_summary)
+    if routed:
+        lines.append(routed)
     if evaluation.by_beta:
         lines.append("test-2 mean Offset_max per beta, MLP (rigid, ridge): " + ", ".join(
             f"β={b:g}: {fmt_mm(r.mlp.offset_max, False)} ({fmt_mm(r.rigid.offset_max, False)}, "
