@@ -466,7 +466,12 @@ def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
         # the networks train on the simulator's sensitivities (docs/surrogate.md): wider, smooth, shorter
         for key in ("hidden", "activation", "sensitivity_weight", "sensitivity_directions", "epochs"):
             a.pop(key, None), b.pop(key, None)
+        # a nominal expert beside the uncertainty-trained model (docs/uncertainty.md)
+        for key in ("nominal_expert", "nominal_samples"):
+            a.pop(key, None), b.pop(key, None)
         assert a == b, section
+    assert emb.surrogate.nominal_expert and 0 < emb.surrogate.nominal_samples < emb.dataset.n_samples
+    assert emb.scenario.uncertain.arcsine == ("attached_margin",)  # the attached rim: docs/uncertainty.md
     assert emb.surrogate.calibration_share > 0.0 and paper.surrogate.calibration == "cross-validation"
     assert emb.surrogate.sensitivity_weight > 0 and emb.surrogate.activation == "silu"
     assert paper.surrogate.sensitivity_weight == 0 and paper.surrogate.activation == "relu"  # the paper's network
