@@ -319,3 +319,23 @@ def test_a_local_decoder_with_the_instrument_round_trips_with_its_fallback(tmp_p
     np.testing.assert_array_equal(back.predict(d, auxiliary={"retractor": None}), m.fallback_.predict(d))
     np.testing.assert_allclose(back.predict_trusted(d, auxiliary=A[te]).error_bound,  # scores kept as float32
                                m.predict_trusted(d, auxiliary=A[te]).error_bound, rtol=1e-6)
+
+
+def test_the_gates_distances_are_the_alarms_with_the_instrument_tracked_or_lost():
+    """A nominal expert's gate reads each model's input distance without checking the inputs
+    again (tissuecast.surrogate.experts.gate_features): the alarm's own distance, from the
+    primary where the instrument is tracked and from the fallback where it is lost."""
+    from tissuecast.surrogate.experts import gate_features
+    from tissuecast.surrogate.fallback import InstrumentFallback
+
+    m = instrument_model()
+    _, U, _, A = instrument_data()
+    te = SPLITS["test"]
+    d = m.marker_displacements(U[te]).reshape(len(te), -1)
+    aux = A[te].copy()
+    aux[::3] = np.nan  # tracking lost on a third
+    both = InstrumentFallback(m.trusted_, m.fallback_trusted_)
+    want = np.array([a.distance for a in m.alarms(d, auxiliary=aux)])
+    np.testing.assert_allclose(np.exp(gate_features(both, both, d, aux)), np.stack([want, want], axis=1), rtol=1e-12)
+    np.testing.assert_allclose(both.input_distance(d, auxiliary=aux), want, rtol=1e-12)
+    assert not np.allclose(want[::3], m.trusted_.input_distance(d[::3], auxiliary=A[te][::3]))  # the fallback's own

@@ -45,6 +45,7 @@ from .conformal import VertexConformal
 from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .trust import TrustedPrediction
+from .trusted import TrustedPredictor
 
 __all__ = ["ExpertGate", "NominalExpertRouter", "RouteCalibration", "GATE_FEATURES", "gate_features", "check_expert",
            "routing_figures", "out_of_fold_routes", "gate_description", "ROUTE_FOLDS"]
@@ -65,9 +66,28 @@ def gate_features(nominal: FieldPredictor, uncertain: FieldPredictor, d: np.ndar
     """The gate's inputs (B, len(GATE_FEATURES)) float64 of checked marker displacements d
     (B, 3 n_d) mm and auxiliary inputs a (B, n_a) or None: both trusted predictors' input
     distances (``input_distance``), on a log scale (NaN where a distance is)."""
-    X = np.stack([p.input_distance(d, auxiliary=a) for p in (nominal, uncertain)], axis=1)
+    X = np.stack([_input_distance(p, d, a) for p in (nominal, uncertain)], axis=1)
     with np.errstate(invalid="ignore"):
         return np.log(np.where(np.isnan(X), np.nan, np.maximum(X, FEATURE_FLOOR)))
+
+
+def _input_distance(predictor: FieldPredictor, d: np.ndarray, a: np.ndarray | None) -> np.ndarray:
+    """``predictor.input_distance`` of inputs the router has checked already: a trusted network
+    (and the primary of an instrument fallback, the tracked frames) reads them through its trust
+    layer directly, since checking them again in every nested predictor costs a tenth of a served
+    frame (docs/serving.md); any other predictor, and the frames whose instrument is lost, through
+    its ``input_distance``."""
+    if isinstance(predictor, InstrumentFallback) and a is not None:
+        lost = predictor.routes(a)
+        out = np.empty(len(d))
+        if (~lost).any():
+            out[~lost] = _input_distance(predictor.primary, d[~lost], a[~lost])
+        if lost.any():
+            out[lost] = predictor.input_distance(d[lost], auxiliary=a[lost])
+        return out
+    if isinstance(predictor, TrustedPredictor):
+        return predictor.layer.ood.distance(predictor.layer.inputs(d, a, len(d)))
+    return predictor.input_distance(d, auxiliary=a)
 
 
 @dataclass(frozen=True, eq=False)
