@@ -74,9 +74,9 @@ def gate_features(nominal: FieldPredictor, uncertain: FieldPredictor, d: np.ndar
 def _input_distance(predictor: FieldPredictor, d: np.ndarray, a: np.ndarray | None) -> np.ndarray:
     """``predictor.input_distance`` of inputs the router has checked already: a trusted network
     (and the primary of an instrument fallback, the tracked frames) reads them through its trust
-    layer directly, since checking them again in every nested predictor costs a tenth of a served
-    frame (docs/serving.md); any other predictor, and the frames whose instrument is lost, through
-    its ``input_distance``."""
+    layer directly, without checking them again in every nested predictor (what most of the
+    gate's time went to: docs/serving.md); any other predictor, and the frames whose instrument
+    is lost, through its ``input_distance``."""
     if isinstance(predictor, InstrumentFallback) and a is not None:
         lost = predictor.routes(a)
         out = np.empty(len(d))
