@@ -717,26 +717,26 @@ def _check_mesh_budget(obj: "MeshConfig", prefix: str) -> None:
 
 
 def _check_uncertain(obj: "UncertainConfig", prefix: str) -> None:
-    """Each range is [min, max]; ``measured`` names drawn parameters."""
+    """Each range is [min, max]; ``measured`` and ``arcsine`` name drawn parameters."""
     for name in UNCERTAIN_PARAMETERS:
         _check_range(f"{prefix}{name}", getattr(obj, name))
-    unknown = [m for m in obj.measured if m not in UNCERTAIN_PARAMETERS]
-    if unknown:
-        raise ConfigError(f"{prefix}measured names {unknown}; choose among {list(UNCERTAIN_PARAMETERS)}")
     if obj.nominal_share and not any(getattr(obj, name) for name in UNCERTAIN_PARAMETERS):
         raise ConfigError(f"{prefix}nominal_share = {obj.nominal_share:g} with no parameter drawn; give a parameter a "
                           f"[min, max] range, or remove {prefix}nominal_share")
-    undrawn = [m for m in obj.measured if not getattr(obj, m)]
-    if undrawn:
-        raise ConfigError(f"{prefix}measured names {undrawn}, which {prefix[:-1]} does not draw; give "
-                          f"{prefix}{undrawn[0]} a [min, max] range, or leave it out of {prefix}measured")
-    unknown = [m for m in obj.arcsine if m not in UNCERTAIN_PARAMETERS]
+    for key in ("measured", "arcsine"):
+        _check_drawn_names(obj, prefix, key)
+
+
+def _check_drawn_names(obj: "UncertainConfig", prefix: str, key: str) -> None:
+    """``obj.<key>`` (a list of parameter names) names parameters that ``obj`` draws."""
+    names = getattr(obj, key)
+    unknown = [m for m in names if m not in UNCERTAIN_PARAMETERS]
     if unknown:
-        raise ConfigError(f"{prefix}arcsine names {unknown}; choose among {list(UNCERTAIN_PARAMETERS)}")
-    undrawn = [m for m in obj.arcsine if not getattr(obj, m)]
+        raise ConfigError(f"{prefix}{key} names {unknown}; choose among {list(UNCERTAIN_PARAMETERS)}")
+    undrawn = [m for m in names if not getattr(obj, m)]
     if undrawn:
-        raise ConfigError(f"{prefix}arcsine names {undrawn}, which {prefix[:-1]} does not draw; give "
-                          f"{prefix}{undrawn[0]} a [min, max] range, or leave it out of {prefix}arcsine")
+        raise ConfigError(f"{prefix}{key} names {undrawn}, which {prefix[:-1]} does not draw; give "
+                          f"{prefix}{undrawn[0]} a [min, max] range, or leave it out of {prefix}{key}")
 
 
 def _check_modulus(key: str, value: float, switch: str) -> None:
