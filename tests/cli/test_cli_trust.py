@@ -121,6 +121,7 @@ def test_experts_gives_a_model_a_nominal_expert(store, capsys, tmp_path, monkeyp
         routed = pair.predict(pair.marker_displacements(valid))
     assert out["routed_offset_max"] == pytest.approx(np.linalg.norm(routed - valid, axis=2).max(axis=1).mean(), rel=1e-12)
     assert out["oracle_offset_max"] <= out["routed_offset_max"] and pair.dataset_path == str(ds.path.resolve())
+    assert (tmp_path / "pair" / "model.onnx").is_file()  # the routed graph (tests/surrogate/test_surrogate_experts.py)
     d = np.asarray(ds.displacements[ds.select("test1")[:3]], dtype=np.float64)[:, pair.markers, :]
     (tmp_path / "in.json").write_text(json.dumps({"displacements": d.tolist()}))
     assert main(["predict", str(tmp_path / "pair"), "--markers", str(tmp_path / "in.json"), "--out",
@@ -139,9 +140,10 @@ def test_experts_gives_a_model_a_nominal_expert(store, capsys, tmp_path, monkeyp
     assert "nowhere.zarr" in (err := capsys.readouterr().err) and "is not there" in err and "--nominal-store none" in err
     # 'none': the gate on the uncertain store alone (here both models' store: the same samples)
     assert main(["experts", str(tmp_path / "unc"), str(tmp_path / "nom"), "--out", str(tmp_path / "alone"),
-                 "--nominal-store", "none", "--json"]) == 0
+                 "--nominal-store", "none", "--json", "--no-onnx"]) == 0
     alone = json.loads(capsys.readouterr().out)
     assert alone["nominal_store"] is None and alone["samples"] == out["samples"]
+    assert not (tmp_path / "alone" / "model.onnx").exists()
     # a "nominal" store that draws parameters is refused, naming the option (every store made to
     # look as if it drew E)
     from tissuecast.dataset.reader import Dataset

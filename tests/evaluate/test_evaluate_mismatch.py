@@ -218,7 +218,23 @@ def test_run_with_a_nominal_expert(tmp_path):
     assert result["nominal_dataset"]["totals"]["done"] == nom.n_samples - result["nominal_dataset"]["totals"]["failed"]
     model = DeformationModel.load(paths.model)
     assert model.has_nominal_expert and np.array_equal(model.nominal_expert_.markers, model.markers)
-    assert not (paths.model / "model.onnx").exists() and result["model"].has_nominal_expert
+    assert result["model"].has_nominal_expert
+    # the earlier model's graph is replaced by the pair's routed graph
+    ort = pytest.importorskip("onnxruntime")
+    test = unc.select("test1", status="done")
+    U = np.asarray(unc.displacements[test], dtype=np.float64)
+    d = model.marker_displacements(U)
+    session = ort.InferenceSession(str(paths.model / "model.onnx"), providers=["CPUExecutionProvider"])
+    feeds = {"markers": d.astype(np.float32)}
+    auxiliary = None
+    if model.auxiliary.width:
+        from tissuecast.app.pipeline import split_fields
+
+        auxiliary = split_fields(model, unc, "test1")[1]
+        feeds["auxiliary"] = auxiliary.astype(np.float32)
+    (graph,) = session.run(None, feeds)
+    close = np.abs(graph - model.predict(d, auxiliary=auxiliary)).max(axis=(1, 2)) < 1e-4 * np.abs(U).max()
+    assert close.mean() > 0.9  # but where the gate's logit lies within float32 round-off of 0
     assert model.expert_gate_.samples == len(unc.select("valid")) + len(nom.select("valid"))  # both families
     assert sum(model.expert_routes_.summary().values()) == len(unc.select("valid"))  # the bounds: the drawn family
     # the evaluation says how test-1 was routed; its routed figure is the pair's own field's

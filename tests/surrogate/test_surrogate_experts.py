@@ -1,6 +1,7 @@
 """A nominal expert beside a model, routed by a gate (tissuecast.surrogate.experts), on synthetic fields."""
 
 import copy
+import dataclasses
 import functools
 
 import numpy as np
@@ -191,8 +192,6 @@ def test_saved_and_loaded(tmp_path):
     assert old.expert_routes_ is None and old.describe()["expert_gate"]["bounds_per_route"] is None
     np.testing.assert_allclose(old.predict_trusted(d).error_bound, uncertain_model().predict_trusted(d).error_bound,
                                rtol=1e-6)
-    with pytest.raises(ModelError, match="onnx"):
-        pair.save(tmp_path / "o", onnx=True)
 
 
 def test_a_model_saved_over_a_pair_folder_keeps_none_of_the_pair(tmp_path):
@@ -214,11 +213,70 @@ def test_a_model_saved_over_a_pair_folder_keeps_none_of_the_pair(tmp_path):
     assert not (folder / "nominal_expert").exists()
 
 
+def _logit(pair, d, a=None):
+    """(B,) the gate's logit (float64) of marker displacements d (B, n_d, 3) mm and auxiliary inputs a."""
+    router = pair.predictor("mlp")
+    f = gate_features(router.expert, router.trusted, d.reshape(len(d), -1), a)
+    g = pair.expert_gate_
+    return ((f - g.mean) / g.scale) @ g.weights + g.bias
+
+
+def test_the_routed_graph_routes_and_predicts_as_the_pair(tmp_path):
+    """torch and ONNX graphs of a pair: each sample's route and field are the float64 model's
+    (but where the gate's logit lies within float32 round-off of 0), both routes taken."""
+    torch = pytest.importorskip("torch")
+    ort = pytest.importorskip("onnxruntime")
+    pair = gated()
+    U = trust_data()[1][SPLITS["test"]]
+    d = U[:, MARKERS, :]
+    want, routes, logit = pair.predict(d), pair.predictor("mlp").route(d.reshape(len(d), -1), None), _logit(pair, d)
+    assert 0.1 < routes.mean() < 0.9 and np.array_equal(routes, logit > 0)
+    clear = np.abs(logit) > 1e-3
+    assert clear.mean() > 0.95
+    tol = 1e-5 * np.abs(U).max()
+    module = pair.torch_module()
+    x = torch.tensor(d, dtype=torch.float32)
+    with torch.no_grad():
+        np.testing.assert_array_equal(module.to_nominal(x).numpy()[clear], routes[clear])
+        np.testing.assert_allclose(module(x).numpy()[clear], want[clear], atol=tol)
+        np.testing.assert_allclose(module.nominal_distance(x.reshape(len(d), -1)).numpy(),
+                                   pair.predictor("mlp").expert.input_distance(d), rtol=1e-4)
+    # the expert's rows are not the uncertain network's: a graph that ignored the gate would fail above
+    assert np.abs(want[routes] - uncertain_model().predict(d[routes])).max() > 100 * tol
+    pair.save(tmp_path / "m", onnx=True)
+    session = ort.InferenceSession(str(tmp_path / "m" / "model.onnx"), providers=["CPUExecutionProvider"])
+    (out,) = session.run(["displacement"], {"markers": d.astype(np.float32)})
+    np.testing.assert_allclose(out[clear], want[clear], atol=tol)
+    (one,) = session.run(None, {"markers": d[:1].astype(np.float32)})  # a batch of one, as served
+    np.testing.assert_allclose(one, out[:1], atol=tol)
+
+
+def test_the_routed_graph_of_a_masked_pair_leaves_untracked_samples_to_the_model(tmp_path):
+    ort = pytest.importorskip("onnxruntime")
+    mesh, U, _ = trust_data()
+    model = DeformationModel(epochs=30, patience=0, batch_size=32, learning_rate=3e-3, n_components=8, hidden=(12,),
+                             head="none", seed=1, marker_dropout=0.3)
+    model.fit(U[:1100], MARKERS, mesh=mesh, fixed=[0, 1, 2], train_idx=SPLITS["train"], valid_idx=SPLITS["valid"],
+              calibration_idx=SPLITS["calibration"])
+    pair = model.with_nominal_expert(expert_model(), U[SPLITS["valid"]])
+    d = U[SPLITS["test"]][:, MARKERS, :]
+    routes, clear = pair.predictor("mlp").route(d.reshape(len(d), -1), None), np.abs(_logit(pair, d)) > 1e-3
+    pair.export_onnx(tmp_path / "p.onnx")
+    session = ort.InferenceSession(str(tmp_path / "p.onnx"), providers=["CPUExecutionProvider"])
+    present = np.ones((len(d), len(MARKERS)), np.float32)
+    present[::2, 1] = 0  # every second sample has marker 1 untracked: the uncertain model's alone
+    (out,) = session.run(None, {"markers": d.astype(np.float32), "present": present})
+    missing = present == 0
+    want = pair.predict(d, missing=missing)
+    tol = 1e-5 * np.abs(U).max()
+    np.testing.assert_allclose(out[clear], want[clear], atol=tol)
+    np.testing.assert_allclose(out[::2], model.predict(d[::2], missing=[1]), atol=tol)
+    assert routes[1::2][clear[1::2]].any()  # the tracked samples take both routes
+
+
 def test_exports_name_the_network_and_refusals():
     torch = pytest.importorskip("torch")
     pair, model, expert = gated(), uncertain_model(), expert_model()
-    with pytest.raises(ModelError, match="expert='uncertain' or 'nominal'"):
-        pair.torch_module()
     x = torch.tensor(trust_data()[1][SPLITS["test"]][:5, MARKERS, :], dtype=torch.float32)
     with torch.no_grad():
         assert torch.equal(pair.torch_module(expert="nominal")(x), expert.torch_module()(x))
@@ -317,6 +375,37 @@ def test_a_pair_with_a_tracked_instrument_keeps_the_fallbacks_bounds_when_tracki
     got, own = pair.predict_trusted(d, auxiliary=a), model.predict_trusted(d, auxiliary=a)
     np.testing.assert_array_equal(got.error_bound[::2], own.error_bound[::2])
     assert not np.allclose(got.error_bound[1::2], own.error_bound[1::2])
+
+
+def test_the_routed_graphs_of_a_pair_with_a_tracked_instrument(tmp_path):
+    """model.onnx routes the two networks with the instrument, fallback/model.onnx the two
+    fallbacks without it (the frames whose tracking is lost), each as the pair does."""
+    ort = pytest.importorskip("onnxruntime")
+    from _instrument_synthetic import MARKERS as IM, SPLITS as IS, instrument_data, instrument_model
+
+    mesh, U, _, A = instrument_data()
+    other = DeformationModel(epochs=60, patience=0, batch_size=64, n_components=8, hidden=(16,), seed=3)
+    other.fit(U, IM, mesh=mesh, fixed=[0, 1, 2], train_idx=IS["train"], valid_idx=IS["valid"],
+              calibration_idx=IS["calibration"], auxiliary=_auxiliary(A))
+    pair = instrument_model().with_nominal_expert(other, U[IS["valid"]], auxiliary=A[IS["valid"]])
+    d, a = U[IS["test"]][:, IM, :], A[IS["test"]]
+    lost = np.full_like(a, np.nan)
+    # both experts learnt the same fields: the gate is moved so that each route takes about half
+    # the samples with and without the instrument
+    g = pair.expert_gate_
+    middle = np.median(np.concatenate([_logit(pair, d, a), _logit(pair, d, lost)]))
+    pair = DeformationModel.from_state(dataclasses.replace(pair.get_state(), expert_gate=dataclasses.replace(
+        g, bias=g.bias - middle)))
+    pair.save(tmp_path / "m", onnx=True)
+    tol = 2e-4 * max(1.0, np.abs(U).max())
+    router = pair.predictor("mlp")
+    for graph, feeds, aux in (("model.onnx", {"markers": d, "auxiliary": a}, a),
+                              ("fallback/model.onnx", {"markers": d}, lost)):
+        session = ort.InferenceSession(str(tmp_path / "m" / graph), providers=["CPUExecutionProvider"])
+        (out,) = session.run(None, {k: v.astype(np.float32) for k, v in feeds.items()})
+        routes, clear = router.route(d.reshape(len(d), -1), aux), np.abs(_logit(pair, d, aux)) > 1e-3
+        assert routes.any() and (~routes).any() and clear.mean() > 0.9, graph
+        np.testing.assert_allclose(out[clear], pair.predict(d, auxiliary=aux)[clear], atol=tol, err_msg=graph)
 
 
 def _auxiliary(A):

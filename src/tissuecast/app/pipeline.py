@@ -88,12 +88,12 @@ def nominal_config(config: Config, store, alpha: float) -> Config:
                           surrogate={"nominal_expert": False, "nominal_samples": 0})
 
 
-def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_folder=None):
+def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_folder=None, onnx: bool = True):
     """``model`` (trained on ``dataset``, parameters drawn) with a nominal expert: a model of the
     same settings trained on ``nominal_store`` with ``model``'s markers, and the gate fitted on
     the validation splits of ``dataset`` and of the nominal store (:func:`gate_fields`,
     :meth:`~tissuecast.surrogate.DeformationModel.with_nominal_expert`); saved into
-    ``model_folder`` (no ONNX: the gate is not a graph) unless None."""
+    ``model_folder`` unless None, with ``onnx`` the routed graph as ``model.onnx``."""
     from ..dataset import open_dataset
     from ..surrogate import DeformationModel
 
@@ -106,7 +106,7 @@ def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_f
     fields, aux, drawn = gate_fields(model, dataset, nominal)
     pair = model.with_nominal_expert(expert, fields, auxiliary=aux, drawn=drawn)
     if model_folder is not None:
-        pair.save(model_folder)
+        pair.save(model_folder, onnx=onnx)
     return pair
 
 
@@ -219,7 +219,7 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
             seconds["simulate nominal"] = time.perf_counter() - t
     t = time.perf_counter()
     expert = config.surrogate.nominal_expert
-    model, ds = train_from_store(config, paths.store, model_folder=paths.model, onnx=not expert)
+    model, ds = train_from_store(config, paths.store, model_folder=paths.model, onnx=not expert)  # a pair: its graph below
     if expert:
         model = add_nominal_expert(config, model, ds, paths.nominal_store, model_folder=paths.model)
     seconds["train"] = time.perf_counter() - t

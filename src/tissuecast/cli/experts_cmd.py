@@ -30,6 +30,7 @@ def register(sub) -> None:
                                            "(default: the store the nominal model records; 'none': the uncertain "
                                            "store's alone, which sends fewer nominal samples to the expert)")
     p.add_argument("--out", required=True, help="the new model folder")
+    p.add_argument("--no-onnx", action="store_true", help="do not write model.onnx (the routed graph of both networks)")
     p.add_argument("--json", action="store_true", help="print the gate's figures as JSON")
     p.set_defaults(func=run)
 
@@ -61,7 +62,7 @@ def run(args) -> int:
     fields, aux, drawn = gate_fields(model, dataset, nominal)
     gated = model.with_nominal_expert(expert, fields, auxiliary=aux, drawn=drawn)
     gated.dataset_path = str(Path(store).resolve())
-    gated.save(out)
+    gated.save(out, onnx=not args.no_onnx)
     figures = {"samples": gated.expert_gate_.samples, "nominal_better": gated.expert_gate_.nominal_better,
                **gated.expert_routes_.summary(), **routing_figures(gated, fields, aux)}
     if args.json:

@@ -40,15 +40,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ModelError
+from ..errors import ModelError, require
 from .conformal import VertexConformal
 from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .trust import TrustedPrediction
 from .trusted import TrustedPredictor
 
-__all__ = ["ExpertGate", "NominalExpertRouter", "RouteCalibration", "GATE_FEATURES", "gate_features", "check_expert",
-           "routing_figures", "out_of_fold_routes", "gate_description", "ROUTE_FOLDS"]
+__all__ = ["ExpertGate", "NominalExpertRouter", "RouteCalibration", "RoutedNetworks", "GATE_FEATURES", "gate_features",
+           "check_expert", "routing_figures", "out_of_fold_routes", "gate_description", "routed_networks", "ROUTE_FOLDS"]
 
 #: The gate's inputs, in order: each model's input distance (:attr:`~.trust.Alarm.distance`).
 GATE_FEATURES = ("nominal_distance", "uncertain_distance")
@@ -176,6 +176,107 @@ class ExpertGate:
         if any(a.shape != (len(GATE_FEATURES),) for a in arrays):
             raise ModelError("the model's expert gate is damaged: its arrays do not match its features")
         return cls(*arrays, float(doc["bias"]), int(doc["samples"]), float(doc["nominal_better"]))
+
+
+@dataclass(frozen=True, eq=False)
+class RoutedNetworks:
+    """A pair's two networks and its gate as one graph: what the torch and ONNX exports of a model
+    with a nominal expert compute (:func:`routed_networks`).
+
+    The graph computes both input distances, the gate's decision as :meth:`ExpertGate.to_nominal`
+    takes it, both networks' fields, and gives each sample the field it is routed to: the nominal
+    expert's where the gate says so and every marker is tracked (``present`` all 1, for a masked
+    network), else the uncertainty-trained network's. In float32: a sample whose gate logit lies
+    within round-off of 0 can take the other route than the float64 model.
+
+    Attributes:
+        uncertain, nominal: the two learned predictors (:class:`~.network_predictor.NetworkPredictor`).
+        uncertain_distance, nominal_distance: their trust layers' :class:`~.ood.InputDistance`.
+        gate: the fitted :class:`ExpertGate`.
+    """
+
+    uncertain: object
+    nominal: object
+    uncertain_distance: object
+    nominal_distance: object
+    gate: ExpertGate
+
+    @property
+    def n_markers(self) -> int:
+        return self.uncertain.n_markers
+
+    @property
+    def auxiliary(self):
+        return self.uncertain.auxiliary
+
+    @property
+    def supports_missing_markers(self) -> bool:
+        return bool(self.uncertain.supports_missing_markers)
+
+    def torch_module(self):
+        """The routed graph as a torch module (float32), called as the networks' modules are
+        (:func:`~.network.torch_network`): ``markers`` (B, n_d, 3) mm [, ``auxiliary`` (B, n_a)]
+        [, ``present`` (B, n_d) 1/0 for a masked network] -> (B, n, 3) mm."""
+        torch = require("torch", "learn", "the torch/ONNX graph of a model with a nominal expert")
+        n_aux = self.auxiliary.width
+        nominal_masked = bool(self.nominal.supports_missing_markers)
+        gate = self.gate
+        parts = {"uncertain": self.uncertain.torch_module(), "nominal": self.nominal.torch_module(),
+                 "uncertain_distance": self.uncertain_distance.torch_module(),
+                 "nominal_distance": self.nominal_distance.torch_module()}
+
+        class RoutedNetwork(torch.nn.Module):
+            def __init__(self):
+                super().__init__()
+                for name, module in parts.items():
+                    self.add_module(name, module)
+                for name, v in (("gate_mean", gate.mean), ("gate_scale", gate.scale), ("gate_weights", gate.weights)):
+                    self.register_buffer(name, torch.as_tensor(v, dtype=torch.float32))
+                self.gate_bias = float(gate.bias)
+
+            def to_nominal(self, markers, *extra):
+                """(B,) bool: the samples the gate routes to the nominal expert."""
+                x = markers.reshape(markers.shape[0], -1)
+                if n_aux:
+                    x = torch.cat([x, extra[0]], dim=1)
+                f = torch.stack([self.nominal_distance(x), self.uncertain_distance(x)], dim=1)  # GATE_FEATURES' order
+                f = torch.log(torch.clamp(f, min=FEATURE_FLOOR))
+                logit = ((f - self.gate_mean) / self.gate_scale) @ self.gate_weights + self.gate_bias
+                route = torch.isfinite(f).all(dim=1) & (logit > 0)
+                if len(extra) > (1 if n_aux else 0):  # present: an untracked marker keeps the uncertain network
+                    route = route & (extra[-1].min(dim=1).values > 0.5)
+                return route
+
+            def forward(self, markers, *extra):
+                route = self.to_nominal(markers, *extra)
+                theirs = extra if nominal_masked else extra[:1 if n_aux else 0]
+                return torch.where(route[:, None, None], self.nominal(markers, *theirs), self.uncertain(markers, *extra))
+
+        return RoutedNetwork().eval()
+
+
+def routed_networks(state, fallback: bool = False) -> RoutedNetworks:
+    """The :class:`RoutedNetworks` of a pair's :class:`~.state.ModelState` (``state.expert`` set):
+    of the two networks with their instruments, or (``fallback``) of the two fallbacks without
+    them (the frames whose instrument is not tracked).
+
+    Raises:
+        ModelError: the state has no nominal expert, a trust layer is missing, or ``fallback``
+            for a pair without fallbacks.
+    """
+    expert = state.expert
+    if expert is None:
+        raise ModelError("this model has no nominal expert: its graph is its network's")
+    if fallback:
+        if state.fallback is None or expert.fallback is None:
+            raise ModelError("this model has no fallback: it reads no tracked instrument")
+        nets, layers = (state.fallback, expert.fallback), (state.fallback_trust, expert.fallback_trust)
+    else:
+        nets, layers = (state.network, expert.network), (state.trust, expert.trust)
+    if layers[0] is None or layers[1] is None:
+        raise ModelError("a model with a nominal expert needs both trust layers (the gate reads their input distances); "
+                         "make the pair again with `tissuecast experts`")
+    return RoutedNetworks(nets[0], nets[1], layers[0].ood.distance, layers[1].ood.distance, state.expert_gate)
 
 
 def out_of_fold_routes(features: np.ndarray, nominal_better: np.ndarray, folds: int = ROUTE_FOLDS) -> np.ndarray:

@@ -45,8 +45,8 @@ from .baselines import RidgePredictor, RigidRegistrationPredictor
 from .cross_calibration import fit_model_trust
 from .data import FitSplits, check_fit_inputs, dataset_arrays, fit_splits, flat_fields
 from .decoder import global_part
-from .experts import (ExpertGate, NominalExpertRouter, RouteCalibration, check_expert, gate_description, gate_features,
-                      out_of_fold_routes)
+from .experts import (ExpertGate, NominalExpertRouter, RouteCalibration, RoutedNetworks, check_expert, gate_description,
+                      gate_features, out_of_fold_routes, routed_networks)
 from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .inputs import marker_batch
@@ -626,9 +626,10 @@ class DeformationModel(FieldPredictor):
         """Write an ONNX graph: inputs ``markers`` (B, n_d, 3) float32 mm [+ ``auxiliary`` (B, n_a)
         float32 in ``model.auxiliary.units``] [+ ``present`` (B, n_d)], output ``displacement``
         (B, n, 3) float32 mm (PCA reconstruction included). ``fallback``: the graph of the
-        fallback without instruments (models with instrument inputs). ``expert``: for a model
-        with a nominal expert, whose network: ``"uncertain"`` (this model's) or ``"nominal"``
-        (the graph has no gate: the gate reads the trust layers' alarm scores)."""
+        fallback without instruments (models with instrument inputs). For a model with a nominal
+        expert the graph routes each sample as the model does, both networks and the gate on
+        their input distances in it (:class:`~.experts.RoutedNetworks`); ``expert``: one of its
+        networks alone instead, ``"uncertain"`` (this model's) or ``"nominal"``."""
         from .storage import export_onnx
 
         export_onnx(self._learned(fallback, expert), path)
@@ -638,15 +639,14 @@ class DeformationModel(FieldPredictor):
         ``fallback`` and ``expert`` as in :meth:`export_onnx`."""
         return self._learned(fallback, expert).torch_module()
 
-    def _learned(self, fallback: bool, expert: str | None = None) -> NetworkPredictor:
+    def _learned(self, fallback: bool, expert: str | None = None) -> NetworkPredictor | RoutedNetworks:
         self._fitted()
         if expert not in (None, "uncertain", "nominal"):
             raise ModelError(f"expert must be 'uncertain' or 'nominal', got {expert!r}")
         if self.nominal_expert_ is None and expert is not None:
             raise ModelError("this model has no nominal expert; export it without expert=")
         if self.nominal_expert_ is not None and expert is None:
-            raise ModelError("this model routes each sample between two networks by a gate on their trust layers' alarm "
-                             "scores, which a graph does not compute; export one of them: expert='uncertain' or 'nominal'")
+            return routed_networks(self.get_state(), fallback)
         if expert == "nominal":
             return self.nominal_expert_._learned(fallback)
         if fallback and self.fallback_ is None:

@@ -64,7 +64,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ModelError
+from ..errors import ModelError, require
 from .conformal import conformal_quantile
 from .quadratic import fit_quadratic
 
@@ -140,6 +140,30 @@ class InputDistance:
             diff = z[:, None, :] - self._ref[near]
             out[s:s + chunk] = np.sqrt(np.einsum("bkd,bkd->bk", diff, diff)).mean(axis=1)
         return out
+
+    def torch_module(self):
+        """The score as a torch module (float32): inputs (B, 3 n_d [+ n_a]) mm -> (B,) scores, the
+        neighbours found as :meth:`__call__` finds them (all references at once, then their
+        distances recomputed); exportable to ONNX (TopK, Gather)."""
+        torch = require("torch", "learn", "the torch/ONNX input distance")
+        k = min(self.neighbours, len(self._ref))
+        arrays = {"mean": self.mean, "whitening": self.whitening, "reference_t": self._ref_t, "reference": self._ref,
+                  "reference_sq": self._ref_sq}
+
+        class Distance(torch.nn.Module):
+            def __init__(self):
+                super().__init__()
+                for name, v in arrays.items():
+                    self.register_buffer(name, torch.as_tensor(np.ascontiguousarray(v), dtype=torch.float32))
+
+            def forward(self, x):
+                z = (x - self.mean) @ self.whitening
+                sq = self.reference_sq - 2.0 * (z @ self.reference_t)
+                near = torch.topk(sq, k, dim=1, largest=False).indices
+                diff = z.unsqueeze(1) - self.reference[near]
+                return torch.sqrt((diff * diff).sum(dim=2)).mean(dim=1)
+
+        return Distance().eval()
 
 
 def fit_input_distance(X, neighbours: int = NEIGHBOURS) -> InputDistance:

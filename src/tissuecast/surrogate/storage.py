@@ -15,7 +15,7 @@ A model folder holds::
                         (tissuecast.surrogate.decoder) as sparse rows indptr, indices, data and their
                         singular_values; pca.npz then holds its global part
     trust.npz           optional: error bounds and alarm (tissuecast.surrogate.trust), float64
-    model.onnx          optional, from export_onnx
+    model.onnx          optional, from export_onnx (a model with a nominal expert: the routed graph of both)
     fallback/           models with tracked instruments as inputs (tissuecast.surrogate.fallback):
                         the fallback without them, as weights.safetensors, pca.npz, head.npz,
                         trust.npz (and model.onnx) above; model.json's "fallback" describes it
@@ -44,7 +44,7 @@ import numpy as np
 from .. import __version__
 from ..errors import ModelError, require
 from .decoder import LocalBasis, describe_decoder, global_part
-from .experts import ExpertGate, RouteCalibration
+from .experts import ExpertGate, RouteCalibration, RoutedNetworks, routed_networks
 from .gate import InputGate
 from .network_predictor import NetworkPredictor
 from .auxiliary import AuxiliaryInputs
@@ -152,9 +152,6 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     """Write a fitted model's state (``DeformationModel.get_state()``) to ``folder`` (created if
     needed; files overwritten)."""
     out = Path(folder)
-    if onnx and state.expert is not None:
-        raise ModelError("a model with a nominal expert routes between two networks by their alarm scores, which a "
-                         "graph does not compute; save without onnx and export each with export_onnx(path, expert=...)")
     _clear_earlier_model(out)
     net = state.network
     _write_network(net, out)
@@ -165,7 +162,7 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
         meta["files"]["trust"] = state.trust.save(out)
         meta["trust"] = state.trust.summary()
     if onnx:
-        export_onnx(net, out / "model.onnx")
+        export_onnx(net if state.expert is None else routed_networks(state), out / "model.onnx")
         meta["files"]["onnx"] = "model.onnx"
     if net.auxiliary.width:
         meta["auxiliary"] = net.auxiliary.as_dict()
@@ -208,7 +205,7 @@ def _save_fallback(state: ModelState, out: Path, onnx: bool) -> dict:
         files["trust"] = state.fallback_trust.save(out)
         record["trust"] = state.fallback_trust.summary()
     if onnx:
-        export_onnx(fb, out / "model.onnx")
+        export_onnx(fb if state.expert is None else routed_networks(state, fallback=True), out / "model.onnx")
         files["onnx"] = "model.onnx"
     record["files"] = files
     return record
@@ -347,10 +344,10 @@ def _gate(network: NetworkPredictor, meta: dict) -> InputGate | None:
         raise ModelError(f"the input gate in model.json is incomplete: {exc}; the folder is corrupt") from exc
 
 
-def export_onnx(network: NetworkPredictor, path) -> None:
-    """Export the learned predictor's full marker -> field network to ONNX (opset 17, dynamic
-    batch): inputs ``markers`` (B, n_d, 3) mm, ``auxiliary`` (B, n_a) with auxiliary inputs,
-    ``present`` (B, n_d) for masked models; output ``displacement`` (B, n, 3) mm."""
+def export_onnx(network: NetworkPredictor | RoutedNetworks, path) -> None:
+    """Export the learned predictor's full marker -> field network (or a pair's routed graph) to
+    ONNX (opset 17, dynamic batch): inputs ``markers`` (B, n_d, 3) mm, ``auxiliary`` (B, n_a) with
+    auxiliary inputs, ``present`` (B, n_d) for masked models; output ``displacement`` (B, n, 3) mm."""
     torch = require("torch", "learn", "ONNX export")
     require("onnx", "learn", "ONNX export")
     net = network.torch_module()
