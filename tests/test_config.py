@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import pytest
 
@@ -362,3 +363,12 @@ def test_targets_default_and_round_trip(tmp_path):
     path.write_text(config_to_toml(cfg))
     assert load_config(path) == cfg and "[evaluate.targets]" in path.read_text()
     assert all(len(f.metadata["doc"]) <= 150 for f in dataclasses.fields(type(t)))
+
+
+def test_fallback_epochs_need_a_tracked_instrument():
+    from tissuecast.app import check_config
+
+    with pytest.raises(ConfigError, match="surrogate.fallback_epochs = 200 .* declares none"):
+        check_config(config_from_dict({"surrogate": {"fallback_epochs": 200}}))
+    emb = load_config(Path(__file__).resolve().parents[1] / "configs" / "embedded.toml")
+    assert check_config(with_overrides(emb, surrogate={"fallback_epochs": 200})).surrogate.fallback_epochs == 200

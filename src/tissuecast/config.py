@@ -258,6 +258,7 @@ class SurrogateConfig:
     decoder_regions: int = _f(8, lo=1, hi=100000, doc="decoder 'local': regions of nearby vertices the mesh is cut into, each with its own residual components")
     decoder_components: int = _f(384, lo=1, hi=5000, doc="decoder 'local': local components kept over all regions (largest singular values of the residual first)")
     epochs: int = _f(2500, lo=1, doc="maximum training epochs")
+    fallback_epochs: int = _f(0, lo=0, doc="tracked instruments: epochs of the markers-only fallback (it answers while tracking is lost); 0 = epochs")
     batch_size: int = _f(128, lo=1, doc="mini-batch size")
     learning_rate: float = _f(3e-3, lo=0.0, lo_open=True, hi=1.0, doc="Adam (peak) learning rate")
     patience: int = _f(250, lo=0, doc="early-stopping patience in epochs; 0 = off")

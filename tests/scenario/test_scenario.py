@@ -469,8 +469,10 @@ def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
         # a nominal expert beside the uncertainty-trained model (docs/uncertainty.md)
         for key in ("nominal_expert", "nominal_samples"):
             a.pop(key, None), b.pop(key, None)
+        a.pop("fallback_epochs", None), b.pop("fallback_epochs", None)  # the retractor's fallback: docs/surrogate.md
         assert a == b, section
     assert emb.surrogate.nominal_expert and 0 < emb.surrogate.nominal_samples < emb.dataset.n_samples
+    assert 0 < emb.surrogate.fallback_epochs < emb.surrogate.epochs and not paper.scenario.instruments
     assert emb.scenario.uncertain.arcsine == ("attached_margin",)  # the attached rim: docs/uncertainty.md
     assert emb.surrogate.calibration_share > 0.0 and paper.surrogate.calibration == "cross-validation"
     assert emb.surrogate.sensitivity_weight > 0 and emb.surrogate.activation == "silu"

@@ -147,6 +147,24 @@ def test_the_fallback_is_the_markers_only_model_of_the_same_samples():
     np.testing.assert_array_equal(plain.predict_trusted(d).error_bound, m.predict_trusted(d).error_bound)
 
 
+def test_fallback_epochs_train_the_fallback_alone_for_fewer_epochs():
+    """``fallback_epochs``: the fallback is the markers-only model trained that many epochs, the
+    model with its instrument the same as with the default (0: ``epochs`` for both)."""
+    mesh, U, _, A = instrument_data()
+    kw = dict(patience=0, batch_size=64, n_components=16, hidden=(64, 32))
+    split = dict(mesh=mesh, fixed=[0, 1, 2], train_idx=SPLITS["train"], valid_idx=SPLITS["valid"],
+                 calibration_idx=SPLITS["calibration"])
+    m = DeformationModel(epochs=150, fallback_epochs=40, **kw).fit(U, MARKERS, auxiliary=AuxiliaryValues(INPUTS, A),
+                                                                   **split)
+    plain = DeformationModel(epochs=40, **kw).fit(U, MARKERS, **split)
+    te = SPLITS["test"][:7]
+    d = m.marker_displacements(U[te])
+    np.testing.assert_array_equal(plain.predict(d), m.predict(d))
+    np.testing.assert_array_equal(m.predict(d, auxiliary=A[te]), instrument_model().predict(d, auxiliary=A[te]))
+    assert [r["epochs_run"] for r in m.training_["fallback"]["members"]] == [40]
+    assert [r["epochs_run"] for r in m.training_["members"]] == [150]
+
+
 def test_auxiliary_inputs_are_checked():
     m = instrument_model()
     _, U, _, A = instrument_data()

@@ -50,6 +50,10 @@ def check_config(config: Config) -> Config:
         check_region_source(region(config.scenario), key)
     check_target_source(config.evaluate.targets, "evaluate.targets.")
     check_nominal_expert(config)
+    if config.surrogate.fallback_epochs and not config.scenario.instruments:
+        raise ConfigError(f"surrogate.fallback_epochs = {config.surrogate.fallback_epochs} trains the markers-only "
+                          "fallback of a model with tracked instruments, but scenario.instruments declares none; "
+                          "remove fallback_epochs or declare the instrument ([[scenario.instruments]])")
     return config
 
 

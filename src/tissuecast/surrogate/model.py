@@ -309,7 +309,7 @@ class DeformationModel(FieldPredictor):
         if spec.instruments:
             kept = A[:, len(spec.instrument_columns):]
             fallback, fallback_trust, _ = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec.without_instruments(), kept,
-                                                            explicit, sens)
+                                                            explicit, sens, epochs=c.fallback_epochs or c.epochs)
         pca = global_part(net.predictor.basis)  # the baselines and the trust layer's second predictor work in it
         ridge = RidgePredictor.fit(mesh, mk, pca, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
         training = {
@@ -342,12 +342,12 @@ class DeformationModel(FieldPredictor):
         return self
 
     def _fit_learned(self, U, Ut, Uv, mk, mesh, splits: FitSplits, spec: AuxiliaryInputs, A: np.ndarray | None,
-                     explicit: bool, sensitivities=None):
+                     explicit: bool, sensitivities=None, epochs: int | None = None):
         """``(NetworkFit, trust layer or None, calibration record)``: the learned predictor reading
         ``spec`` (values A (N, n_a), or None without) and its trust layer
         (:func:`~.cross_calibration.fit_model_trust`; ``explicit``: calibration samples were given),
-        trained on ``sensitivities`` too when given."""
-        c = self.config
+        trained on ``sensitivities`` too when given, for ``epochs`` (None: the config's)."""
+        c = self.config if epochs is None else replace(self.config, epochs=int(epochs))
         A = A if spec.width else None
         rows = (None, None) if A is None else (A[splits.train], A[splits.valid])
         St = None if sensitivities is None else sensitivities.rows(splits.train)
