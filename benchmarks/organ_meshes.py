@@ -14,13 +14,25 @@ import numpy as np
 MESHES = ("brain", "brain-fsaverage", "phantom", "tumour", "vessel")
 
 
+def _nilearn():
+    """nilearn, or one line saying how to install it (not a dependency of tissuecast: only these
+    benchmarks' brain meshes read its templates)."""
+    try:
+        import nilearn.datasets
+        import nilearn.surface
+    except ImportError:
+        raise SystemExit("the brain meshes are built from nilearn's MNI and fsaverage templates: "
+                         "pip install nilearn (or leave brain and brain-fsaverage out of --meshes)") from None
+    return nilearn
+
+
 def brain_label_map(path: Path) -> Path:
     """The left hemisphere of the MNI ICBM152 2009 brain mask (1 mm) as a NIfTI label map.
 
     The template is in RAS (the affine's x axis points to +x with the voxel index i), so the
     left hemisphere is x < 0."""
     import nibabel as nib
-    from nilearn.datasets import load_mni152_brain_mask
+    load_mni152_brain_mask = _nilearn().datasets.load_mni152_brain_mask
 
     image = load_mni152_brain_mask(resolution=1)
     mask = np.asarray(image.get_fdata()) > 0.5
@@ -48,10 +60,11 @@ def fsaverage_mesh(folder: Path, size: float):
     """FreeSurfer's fsaverage5 inflated left hemisphere (the issue's 83 x 216 x 146 mm shape),
     tetrahedralised by ``tissuecast mesh convert``'s code path."""
     import meshio
-    from nilearn import surface
-    from nilearn.datasets import fetch_surf_fsaverage
 
     from tissuecast.mesh import read_mesh, write_mesh
+
+    nilearn = _nilearn()
+    surface, fetch_surf_fsaverage = nilearn.surface, nilearn.datasets.fetch_surf_fsaverage
 
     surf = surface.load_surf_mesh(fetch_surf_fsaverage("fsaverage5")["infl_left"])
     stl = folder / "fsaverage5_inflated_left.stl"
