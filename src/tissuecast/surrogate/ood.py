@@ -147,8 +147,7 @@ class InputDistance:
         distances recomputed); exportable to ONNX (TopK, Gather)."""
         torch = require("torch", "learn", "the torch/ONNX input distance")
         k = min(self.neighbours, len(self._ref))
-        arrays = {"mean": self.mean, "whitening": self.whitening, "reference_t": self._ref_t, "reference": self._ref,
-                  "reference_sq": self._ref_sq}
+        arrays = {"mean": self.mean, "whitening": self.whitening, "reference": self._ref, "reference_sq": self._ref_sq}
 
         class Distance(torch.nn.Module):
             def __init__(self):
@@ -158,7 +157,7 @@ class InputDistance:
 
             def forward(self, x):
                 z = (x - self.mean) @ self.whitening
-                sq = self.reference_sq - 2.0 * (z @ self.reference_t)
+                sq = self.reference_sq - 2.0 * (z @ self.reference.T)
                 near = torch.topk(sq, k, dim=1, largest=False).indices
                 diff = z.unsqueeze(1) - self.reference[near]
                 return torch.sqrt((diff * diff).sum(dim=2)).mean(dim=1)
