@@ -283,6 +283,8 @@ def test_exports_name_the_network_and_refusals():
         assert torch.equal(pair.torch_module(expert="uncertain")(x), model.torch_module()(x))
     with pytest.raises(ModelError, match="no nominal expert"):
         model.torch_module(expert="nominal")
+    with pytest.raises(ModelError, match="no fallback: it reads no tracked instrument"):
+        pair.torch_module(fallback=True)  # the routed graph of two fallbacks needs them
     _, U, _ = trust_data()
     valid = U[SPLITS["valid"]]
     with pytest.raises(ModelError, match="takes no second one"):
