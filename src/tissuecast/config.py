@@ -202,7 +202,7 @@ class DatasetConfig:
     split: tuple[float, ...] = _f((8.0, 1.0, 1.0), doc="train : valid : test-1 ratio")
     n_test2: int = _f(200, lo=0, doc="number of test-2 (LSC/beta) samples")
     seed: int = _f(0, lo=0, doc="base seed; per-sample seeds derive from it and the index")
-    workers: int = _f(0, lo=0, hi=256, doc="local worker processes; 0 = automatic")
+    workers: int = _f(0, lo=0, hi=256, doc="local worker processes; 0 = one per usable CPU, no more than the available memory holds at batch_memory each")
     scheduler: str = _f("", doc="Dask scheduler address tcp://HOST:PORT; empty = local")
     alpha: float = _f(0.0, lo=0.0, doc="LBO force magnitude alpha (N); 0 = calibrate to forces.target_max_displacement")
     calibration_samples: int = _f(24, lo=1, hi=1000, doc="pilot samples of the force-magnitude calibration")

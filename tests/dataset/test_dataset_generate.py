@@ -513,6 +513,35 @@ def test_workers_limit_every_blas_to_one_thread():
     assert out.stdout.strip() == "[1]"
 
 
+def test_automatic_workers_are_the_usable_cpus_within_the_available_memory(monkeypatch):
+    """``dataset.workers = 0``: one worker per CPU the process may use (its affinity mask), no
+    more than the available memory holds at ``batch_memory`` GiB each, at least one."""
+    from tissuecast.dataset import executors
+
+    monkeypatch.setattr(executors.os, "sched_getaffinity", lambda pid: set(range(16)), raising=False)
+    monkeypatch.setattr(executors, "_available_memory_gib", lambda: 30.0)
+    assert executors.default_workers() == 16
+    assert executors.default_workers(4.0) == 7
+    assert executors.default_workers(64.0) == 1
+    monkeypatch.setattr(executors, "_available_memory_gib", lambda: None)  # not Linux: no cap
+    assert executors.default_workers(4.0) == 16
+    monkeypatch.delattr(executors.os, "sched_getaffinity", raising=False)  # no affinity masks
+    monkeypatch.setattr(executors.os, "cpu_count", lambda: 3)
+    assert executors.default_workers(4.0) == 3
+
+
+def test_available_memory_is_read_from_proc_meminfo():
+    from tissuecast.dataset import executors
+
+    gib = executors._available_memory_gib()
+    if not os.path.exists("/proc/meminfo"):
+        assert gib is None
+        return
+    with open("/proc/meminfo") as f:
+        total = next(int(line.split()[1]) for line in f if line.startswith("MemTotal:")) / 2.0**20
+    assert 0.0 < gib <= total
+
+
 def test_workers_take_the_reduced_model_in_place_keeping_processes_and_solvers(reference):
     """``LocalExecutor.update``: the same worker processes solve with the new recipe's reduced
     model (each worker takes it exactly once), with the same bits as a fresh process; in a

@@ -13,8 +13,8 @@ Output: .vtu (undeformed mesh + displacement point data; one file per sample for
 or .json. Vertex ids are 0-based. Marker input no simulation could have produced (a marker
 not a finite number, displaced far beyond its largest simulated displacement, or markers at
 distances the body cannot take) is refused with one error line naming the marker, exit
-status 2. With a calibrated model (surrogate.calibration 'cross-validation', the default, or
-'split') every vertex gets its conformal error bound
+status 2. With a calibrated model (surrogate.calibration 'split', the default, or
+'cross-validation') every vertex gets its conformal error bound
 (``error_bound_mm`` point data / column: the error is below it with probability
 --coverage) and each sample's out-of-distribution alarm is printed.
 --targets-out writes where the targets (the model config's [evaluate.targets], or the
@@ -66,7 +66,9 @@ def register(sub) -> None:
                    help="JSON of the tracked instruments' poses (model frame LPS, mm; 'frame': 'RAS' for Slicer's): "
                         "{name: {tip, direction} | {transform} | {contact: false} | null}, or a list with one per sample")
     p.add_argument("--parameter", action="append", metavar="NAME=VALUE",
-                   help="a measured parameter of the model (scenario.uncertain.measured), e.g. youngs_modulus=1.3")
+                   help="a measured parameter of the model (scenario.uncertain.measured): a factor on the nominal value "
+                   "for youngs_modulus, spring_* and density (1 = nominal), the ratio itself for poisson_ratio, mm for "
+                   "attached_margin; e.g. youngs_modulus=1.3")
     p.add_argument("--false-alarm", type=float, metavar="RATE",
                    help="false-alarm rate of the out-of-distribution alarm, in (0, 1) "
                         "(default: the model's surrogate.false_alarm_rate)")

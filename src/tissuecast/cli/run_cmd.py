@@ -10,7 +10,7 @@ def register(sub) -> None:
     p.add_argument("config", help="TOML config file (e.g. configs/paper.toml), or the name of a packaged preset "
                                   "(quick, paper, embedded)")
     p.add_argument("--skip-simulate", action="store_true", help="use the existing store as it is")
-    p.add_argument("--workers", type=int, help="local FEM worker processes (default: dataset.workers)")
+    p.add_argument("--workers", type=int, help="local FEM worker processes (default: dataset.workers; 0 = one per usable CPU)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 

@@ -54,7 +54,9 @@ def register(sub) -> None:
                    help=f"seconds without an instrument's TRANSFORM before predicting from the markers only "
                         f"(default {d.instrument_timeout:g})")
     p.add_argument("--parameter", action="append", metavar="NAME=VALUE",
-                   help="a measured parameter the model reads (scenario.uncertain.measured), e.g. youngs_modulus=1.3")
+                   help="a measured parameter the model reads (scenario.uncertain.measured): a factor on the nominal value "
+                   "for youngs_modulus, spring_* and density (1 = nominal), the ratio itself for poisson_ratio, mm for "
+                   "attached_margin; e.g. youngs_modulus=1.3")
     p.add_argument("--no-uncertainty", action="store_true", help="do not send ensemble uncertainty")
     p.set_defaults(func=run)
 

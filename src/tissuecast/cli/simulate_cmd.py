@@ -15,7 +15,7 @@ def register(sub) -> None:
                     "the result is identical to an uninterrupted one.")
     p.add_argument("config", nargs="?", help="TOML config file; omitted = defaults (the paper's set-up)")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
-    p.add_argument("--workers", type=int, help="local worker processes (default: dataset.workers; 0 = min(2, CPUs))")
+    p.add_argument("--workers", type=int, help="local worker processes (default: dataset.workers; 0 = one per usable CPU)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (default: dataset.scheduler)")
     p.add_argument("--samples", type=int, help="number of LBO samples (overrides dataset.n_samples)")
     p.add_argument("--test2", type=int, help="number of test-2 samples (overrides dataset.n_test2)")

@@ -52,9 +52,32 @@ STOP_TIMEOUT = 10.0
 POLL_SECONDS = 0.2
 
 
-def default_workers() -> int:
-    """Automatic number of local workers: min(2, CPU count)."""
-    return max(1, min(2, os.cpu_count() or 1))
+def default_workers(memory_gib: float = 0.0) -> int:
+    """Automatic number of local workers: one per CPU this process may run on (its affinity
+    mask where the platform has one, e.g. a container's or a batch job's share; else the CPU
+    count), and with ``memory_gib`` > 0 (GiB a worker's batch may hold, ``dataset.batch_memory``)
+    no more than the memory now available holds (Linux' ``MemAvailable``); at least 1. Each
+    worker runs its BLAS on one thread."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # no affinity masks on this platform (macOS, Windows)
+        cpus = os.cpu_count() or 1
+    available = _available_memory_gib()
+    if memory_gib > 0.0 and available is not None:
+        cpus = min(cpus, int(available // memory_gib))
+    return max(1, cpus)
+
+
+def _available_memory_gib() -> float | None:
+    """``MemAvailable`` of ``/proc/meminfo`` in GiB, or None where there is none."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) / 2.0**20  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 class _Terminated(KeyboardInterrupt):
@@ -421,8 +444,9 @@ def _fill(futures: set, source, submit, window: int) -> list:
     return new
 
 
-def make_executor(recipe: Recipe, *, scheduler: str = "", workers: int = 0):
-    """A Dask executor when ``scheduler`` names one, else local processes (``workers`` 0 = auto)."""
+def make_executor(recipe: Recipe, *, scheduler: str = "", workers: int = 0, memory_gib: float = 0.0):
+    """A Dask executor when ``scheduler`` names one, else local processes (``workers`` 0 = auto:
+    :func:`default_workers` with ``memory_gib`` GiB a worker)."""
     if scheduler:
         return DaskExecutor(recipe, scheduler)
-    return LocalExecutor(recipe, workers or default_workers())
+    return LocalExecutor(recipe, workers or default_workers(memory_gib))

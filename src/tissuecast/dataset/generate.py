@@ -148,7 +148,7 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
         progress: show a progress bar on a terminal (log lines otherwise).
         scheduler: Dask scheduler address ``tcp://HOST:PORT`` (default ``config.dataset.scheduler``;
             empty = local worker processes).
-        workers: local worker processes (default ``config.dataset.workers``; 0 = min(2, CPUs)).
+        workers: local worker processes (default ``config.dataset.workers``; 0 = one per usable CPU).
         solver_factory: ``"module:function"`` replacing the FEM solver factory (for testing).
 
     Returns:
@@ -189,7 +189,7 @@ def _run_phases(writer: StoreWriter, cfg: Config, *, progress: bool, solver_fact
     recipe = recipe_from_store(writer, solver_factory)
     ds = cfg.dataset
     parent: dict = {}
-    with make_executor(recipe, scheduler=scheduler, workers=workers) as pool:
+    with make_executor(recipe, scheduler=scheduler, workers=workers, memory_gib=ds.batch_memory) as pool:
         ex = Supervisor(pool, ds.time_budget, ds.time_budget_min, progress)
         executor = ex.executor.describe()
         log.info("simulating %d pending of %d samples on %s", len(writer.pending()), len(writer.status), executor)
