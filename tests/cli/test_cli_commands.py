@@ -105,12 +105,16 @@ def test_run_pipeline_skip_simulate(run, capsys):
     assert list((folder / "run" / "report" / "vtu").glob("*.vtu"))
 
 
-def test_run_takes_a_config_file_or_a_preset_name(tmp_path, monkeypatch):
-    from tissuecast.cli.run_cmd import config_or_preset
+def test_every_command_takes_a_config_file_or_a_preset_name(tmp_path, monkeypatch, capsys):
+    from tissuecast.app.configuration import load_run_config
 
     monkeypatch.chdir(tmp_path)
-    assert config_or_preset("embedded").scenario.name == "embedded"
+    assert load_run_config("embedded").scenario.name == "embedded"
     (tmp_path / "embedded").write_text('name = "mine"\n')  # a file of that name wins
-    assert config_or_preset("embedded").name == "mine"
-    with pytest.raises(ConfigError, match="does not exist"):
-        config_or_preset("no-such-preset")
+    assert load_run_config("embedded").name == "mine"
+    with pytest.raises(ConfigError, match="does not exist and is no packaged preset.*embedded, paper, quick"):
+        load_run_config("no-such-preset")
+    assert main(["config", "show", "quick", "--no-comments"]) == 0  # not only `run`: every command
+    assert 'name = "quick"' in capsys.readouterr().out
+    assert main(["config", "show", "quik"]) == 2
+    assert "paper, quick" in capsys.readouterr().err

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from tissuecast.cli.presets import preset_config, preset_names
+from tissuecast.app.presets import preset_config, preset_names
 from tissuecast.config import load_config
 from tissuecast.errors import ConfigError
 

@@ -446,7 +446,7 @@ def test_a_uniform_traction_gives_the_textbook_consistent_loads(order):
 
 
 def test_embedded_preset_is_the_paper_set_up_held_by_its_surroundings():
-    from tissuecast.cli.presets import preset_config
+    from tissuecast.app.presets import preset_config
     from tissuecast.config import DEFAULT_SUPPORT_STIFFNESS
     from tissuecast.scenario import scenario_from_config
     from tissuecast.scenario.regions import surface_region

@@ -143,7 +143,7 @@ def test_access_keys_are_validated_under_their_own_key():
 
 # ------------------------------------------------------------------ the preset on another mesh
 def _embedded_on(mesh_path, access: dict) -> dict:
-    from tissuecast.cli.presets import preset_config
+    from tissuecast.app.presets import preset_config
     from tissuecast.config import config_to_dict
 
     data = config_to_dict(preset_config("embedded"))
@@ -168,7 +168,7 @@ def test_embedded_preset_travels_with_a_markups_access(tmp_path, capsys):
     cfg = config_from_dict(_embedded_on(tmp_path / "patient.vtu", {"rule": "markups", "markups": str(path),
                                                                      "distance": 3.0}))
     _, _, _, on_patient = scenario_from_config(cfg)
-    from tissuecast.cli.presets import preset_config
+    from tissuecast.app.presets import preset_config
 
     _, _, _, on_phantom = scenario_from_config(preset_config("embedded"))
     np.testing.assert_array_equal(on_patient.sites.access, on_phantom.sites.access)  # the same vertices

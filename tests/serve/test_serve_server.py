@@ -263,6 +263,8 @@ def test_cli_serve_subprocess_round_trip(model, tmp_path):
         line = proc.stdout.readline()
         assert line.startswith("serving") and "127.0.0.1:" in line, line + proc.stderr.read()
         port = int(line.split(" on ")[1].split()[0].rsplit(":", 1)[1])
+        banner = [proc.stdout.readline() for _ in range(4)]  # input, frames, output, status
+        assert banner[3].startswith("  status: STATUS TissueStatus") and "InputRefused" in banner[3], banner
         with IGTLClient("127.0.0.1", port) as client:
             positions = motion(model, 9)
             assert_surface(client.predict(positions), model, positions)

@@ -39,7 +39,7 @@ def test_folds_partition_the_training_split_evenly_and_reproducibly():
 
 def test_config_keys_are_validated():
     assert Config().surrogate.calibration == "split" and Config().surrogate.calibration_folds == 5
-    from tissuecast.cli.presets import preset_config
+    from tissuecast.app.presets import preset_config
 
     assert preset_config("paper").surrogate.calibration == preset_config("quick").surrogate.calibration == "cross-validation"
     with pytest.raises(ConfigError, match="surrogate.calibration"):

@@ -82,5 +82,19 @@ def check_nominal_expert(cfg: Config) -> None:
 
 def load_run_config(path: str | Path | None = None) -> Config:
     """:func:`~tissuecast.config.load_config` and :func:`check_config`: a config file (None = the
-    defaults) as the CLI and whole runs take it."""
+    defaults), or where no file of that name exists a packaged preset's name (``embedded``,
+    :mod:`.presets`), as the CLI and whole runs take it.
+
+    Raises:
+        ConfigError: neither a file nor a preset (the message lists the presets), or the config
+            is invalid.
+    """
+    from .presets import preset_config, preset_names
+
+    if path is not None and not Path(path).is_file():
+        if str(path) in preset_names():
+            return preset_config(str(path))
+        if not Path(path).exists():
+            raise ConfigError(f"config file {str(path)!r} does not exist and is no packaged preset; check the path, or "
+                              f"name a preset: {', '.join(preset_names())} (`tissuecast config show NAME` prints one)")
     return check_config(load_config(path))

@@ -7,7 +7,8 @@ from pathlib import Path
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="run the quick preset on the phantom: simulate, train, evaluate, report",
-                       description="Uses the packaged configs/quick.toml; everything goes into --output.")
+                       description="Runs a packaged preset (--preset; the quick one by default) on the built-in phantom; "
+                                   "everything goes into --output.")
     p.add_argument("--output", default="tissuecast-demo", help="output folder (default ./tissuecast-demo)")
     p.add_argument("--preset", default="quick", help="packaged preset name (quick, paper or embedded; default quick)")
     p.add_argument("--workers", type=int, help="local FEM worker processes")
@@ -18,7 +19,7 @@ def register(sub) -> None:
 def run(args) -> int:
     from ..config import with_overrides
     from ..app.pipeline import run_pipeline
-    from .presets import preset_config
+    from ..app.presets import preset_config
     from .run_cmd import report_run
 
     out = Path(args.output)

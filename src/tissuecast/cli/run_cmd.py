@@ -34,22 +34,12 @@ def report_run(result) -> None:
     print(f"report: {result['report']}")
 
 
-def config_or_preset(source: str):
-    """The config file ``source``, or the packaged preset of that name when no such file exists."""
-    from pathlib import Path
-
-    from ..app.configuration import load_run_config
-    from .presets import preset_config, preset_names
-
-    if not Path(source).is_file() and source in preset_names():
-        return preset_config(source)
-    return load_run_config(source)
-
-
 def run(args) -> int:
     from ..app.pipeline import run_pipeline
 
-    cfg = config_or_preset(args.config)
+    from ..app.configuration import load_run_config
+
+    cfg = load_run_config(args.config)
     result = run_pipeline(cfg, simulate=not args.skip_simulate, progress=not args.no_progress, workers=args.workers)
     report_run(result)
     return 0

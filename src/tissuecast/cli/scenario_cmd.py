@@ -20,7 +20,7 @@ def register(sub) -> None:
     ssub = p.add_subparsers(dest="scenario_command", metavar="ACTION", required=True)
     pv = ssub.add_parser("preview", help="PNG + VTU + JSON of the supports, regions, gravity and indentation sites",
                          description=__doc__.split("\n\n")[1] if __doc__ else None)
-    pv.add_argument("config", help="TOML config file")
+    pv.add_argument("config", help="TOML config file or a packaged preset (embedded, paper, quick)")
     pv.add_argument("--out", default="scenario", metavar="PREFIX", help="output prefix (default 'scenario')")
     pv.add_argument("--examples", type=int, default=3, metavar="N",
                     help="example draws shown: those of the data set's first N samples (default 3)")

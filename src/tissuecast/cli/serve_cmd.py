@@ -12,7 +12,8 @@ instruments reads each one's TRANSFORM (device ``RetractorToReference`` or as th
 ``[[scenario.instruments]]`` names it; tool tip = translation, push direction = third column,
 mapped like the markers); when its messages stop for ``serve.instrument_timeout`` seconds the
 server predicts from the markers only and says so in a STATUS. Errors come back as STRING
-``ERROR``. See :mod:`tissuecast.serve` for the full protocol.
+``ERROR``. The full protocol: docs/serving.md and the tissuecast.serve module; 3D Slicer's side
+(OpenIGTLinkIF, frames): docs/label-maps.md.
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ def register(sub) -> None:
                        description=__doc__.split("\n\n", 1)[1].strip())
     p.add_argument("model", help="model folder written by `tissuecast train` / DeformationModel.save "
                                  "(or a SubModelSet folder: serves with one marker untracked)")
-    p.add_argument("--config", help="TOML config; its [serve] section gives the defaults")
+    p.add_argument("--config", help="TOML config or a packaged preset; its [serve] section gives the defaults")
     d = ServeConfig()
     p.add_argument("--host", help=f"bind address (default {d.host}: this machine only)")
     p.add_argument("--port", type=int, help=f"TCP port (default {d.port}; 0 = any free port)")
@@ -63,6 +64,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from ..serve import IGTLServer, SurfacePredictor
+    from ..serve.status import ALARM_NAME, REFUSED_NAME, STATUS_DEVICE
     from ..surrogate.robust import load_model_folder
     from ..app.configuration import load_run_config
 
@@ -99,9 +101,14 @@ def run(args) -> int:
         print(f"  method: {serve.method} (the learned model is not used)", flush=True)
     print(f"  output: POLYDATA TissueSurface ({len(predictor.surface_ids)} points, "
           f"{len(model.mesh.surface_triangles)} triangles"
-          f"{', uncertainty_mm' if predictor.has_uncertainty else ''}); GET_POLYDATA TissueField -> "
+          f"{', uncertainty_mm' if predictor.has_uncertainty else ''}"
+          f"{', error_bound_mm' if predictor.has_bounds else ''}); GET_POLYDATA TissueField -> "
           f"POLYDATA TissueField ({predictor.n_vertices} points{', every prediction' if serve.full_field else ''}); "
           "errors: STRING ERROR", flush=True)
+    alarm = (f"after the mesh {ALARM_NAME} while the alarm is raised, OK once it clears; " if predictor.has_bounds
+             else "")
+    print(f"  status: STATUS {STATUS_DEVICE}: {alarm}{REFUSED_NAME} (no mesh) for marker input no simulation could "
+          "produce", flush=True)
     print("press Ctrl+C to stop", file=sys.stderr, flush=True)
     # the model and the server live as long as this process: the garbage collector's full
     # passes need not walk them between frames (they set the latency's tail)

@@ -13,7 +13,7 @@ def register(sub) -> None:
         description="Solve the LBO training samples (split train/valid/test1) and the test-2 samples the config "
                     "describes into a Zarr store. Re-running the same command continues an interrupted run; "
                     "the result is identical to an uninterrupted one.")
-    p.add_argument("config", nargs="?", help="TOML config file; omitted = defaults (the paper's set-up)")
+    p.add_argument("config", nargs="?", help="TOML config file or a packaged preset (embedded, paper, quick); omitted = defaults (the paper's set-up)")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
     p.add_argument("--workers", type=int, help="local worker processes (default: dataset.workers; 0 = one per usable CPU)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (default: dataset.scheduler)")

@@ -25,12 +25,12 @@ def _ints(text: str) -> list[int]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("study", help="parametric studies: hidden layers, number of markers, PCA size",
+    p = sub.add_parser("study", help="studies: hidden layers, number of markers, PCA size; a model against mismatched simulations",
                        description="Train on the store's train split and measure test-1 accuracy; writes study_NAME.csv "
                                    "and study_NAME.png into --out (default: the run's report folder), which "
                                    "`tissuecast evaluate` then includes in the report.")
     p.add_argument("study", choices=("architecture", "markers", "pca", "mismatch"), help="which study")
-    p.add_argument("source", nargs="?", help="TOML config file or data-set store directory")
+    p.add_argument("source", nargs="?", help="TOML config file, a packaged preset or a data-set store directory")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
     p.add_argument("--out", help="output folder (default: the report folder of the config)")
     p.add_argument("--widths", default=_WIDTHS, help=f"architecture: layer widths (default {_WIDTHS})")

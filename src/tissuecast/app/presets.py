@@ -1,4 +1,5 @@
-"""The packaged presets (``tissuecast/configs/*.toml``): ``tissuecast run NAME``, ``demo --preset NAME``."""
+"""The packaged presets (``tissuecast/configs/*.toml``): every command that takes a config file
+takes a preset's name instead (``tissuecast run embedded``, ``demo --preset NAME``)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ def preset_config(name: str):
     """The packaged preset ``tissuecast/configs/NAME.toml`` as a Config."""
     from importlib import resources
 
-    from ..app.configuration import check_config
+    from .configuration import check_config
     from ..config import ConfigError, config_from_dict
 
     import tomllib
