@@ -477,7 +477,12 @@ def test_simulate_cli_creates_continues_and_refuses(tmp_path, capsys):
     assert main(args) == 0
     assert "this run: 0 samples" in capsys.readouterr().out
     assert main([a if a != "5" else "6" for a in args]) == 2  # --samples 6 on a 5-sample store
-    assert "dataset.n_samples: 5 in the store, 6 now" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "dataset.n_samples: 5 in the store, 6 now" in err and "tissuecast simulate STORE" in err
+    assert main(["simulate", str(store), "--no-progress"]) == 0  # the store continues with its own config
+    assert "this run: 0 samples" in capsys.readouterr().out
+    assert main(["config", "show", str(store), "--no-comments"]) == 0
+    assert "n_samples = 5" in capsys.readouterr().out
 
 
 def test_retries_take_a_different_more_cautious_path():

@@ -1,4 +1,4 @@
-"""``tissuecast config show [FILE]``: print the effective configuration as TOML."""
+"""``tissuecast config show [FILE|STORE]``: print the effective configuration as TOML."""
 
 from __future__ import annotations
 
@@ -9,14 +9,15 @@ def register(sub) -> None:
     p = sub.add_parser("config", help="show the effective configuration")
     csub = p.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     show = csub.add_parser("show", help="print the effective config (defaults = the paper's values)")
-    show.add_argument("file", nargs="?", help="TOML config file or a packaged preset (embedded, paper, quick); omitted = defaults")
+    show.add_argument("file", nargs="?", help="TOML config file or a packaged preset (embedded, paper, quick); omitted = defaults; "
+                      "or a data-set store directory: the config it was made with")
     show.add_argument("--no-comments", action="store_true", help="omit the explanatory comments")
     show.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from ..app.configuration import load_run_config
+    from ..app.pipeline import resolve_source
 
-    cfg = load_run_config(args.file)
+    cfg, _ = resolve_source(args.file)
     print(config_to_toml(cfg, comments=not args.no_comments), end="")
     return 0

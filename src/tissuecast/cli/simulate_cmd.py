@@ -1,4 +1,4 @@
-"""``tissuecast simulate [CONFIG]``: create or continue a data set of FEM samples."""
+"""``tissuecast simulate [CONFIG|STORE]``: create or continue a data set of FEM samples."""
 
 from __future__ import annotations
 
@@ -13,7 +13,8 @@ def register(sub) -> None:
         description="Solve the LBO training samples (split train/valid/test1) and the test-2 samples the config "
                     "describes into a Zarr store. Re-running the same command continues an interrupted run; "
                     "the result is identical to an uninterrupted one.")
-    p.add_argument("config", nargs="?", help="TOML config file or a packaged preset (embedded, paper, quick); omitted = defaults (the paper's set-up)")
+    p.add_argument("config", nargs="?", help="TOML config file or a packaged preset (embedded, paper, quick); omitted = "
+                   "defaults (the paper's set-up); or a data-set store directory: continue it with its own config")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
     p.add_argument("--workers", type=int, help="local worker processes (default: dataset.workers; 0 = one per usable CPU)")
     p.add_argument("--scheduler", help="Dask scheduler address tcp://HOST:PORT (default: dataset.scheduler)")
@@ -28,9 +29,9 @@ def run(args) -> int:
     from ..dataset import simulate
     from .dataset_cmd import print_summary
 
-    from ..app.configuration import load_run_config
+    from ..app.pipeline import resolve_source
 
-    cfg = load_run_config(args.config)
+    cfg, store = resolve_source(args.config, args.store)
     overrides = {}
     if args.samples is not None:
         overrides["n_samples"] = args.samples
@@ -42,7 +43,7 @@ def run(args) -> int:
         overrides["scheduler"] = args.scheduler
     if overrides:
         cfg = with_overrides(cfg, dataset=overrides)
-    summary = simulate(cfg, args.store, progress=not args.no_progress)
+    summary = simulate(cfg, store, progress=not args.no_progress)
     if args.json:
         print(json.dumps(summary, indent=2))
     else:

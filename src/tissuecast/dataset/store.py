@@ -378,8 +378,8 @@ def _check_config(writer: StoreWriter, cfg: Config) -> None:
     if diffs:
         raise DatasetError(
             f"data set {str(writer.path)!r} was made with a different configuration ({'; '.join(diffs[:4])}"
-            f"{'; ...' if len(diffs) > 4 else ''}); resume it with its own config (`tissuecast dataset info` shows it) "
-            "or choose another --store path; a store is never overwritten")
+            f"{'; ...' if len(diffs) > 4 else ''}); continue it with its own config (`tissuecast simulate STORE`; "
+            "`tissuecast config show STORE` prints it) or choose another --store path; a store is never overwritten")
 
 
 def _check_mesh(writer: StoreWriter, mesh) -> None:
