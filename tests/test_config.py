@@ -372,3 +372,25 @@ def test_fallback_epochs_need_a_tracked_instrument():
         check_config(config_from_dict({"surrogate": {"fallback_epochs": 200}}))
     emb = load_config(Path(__file__).resolve().parents[1] / "configs" / "embedded.toml")
     assert check_config(with_overrides(emb, surrogate={"fallback_epochs": 200})).surrogate.fallback_epochs == 200
+
+
+def test_a_run_too_small_to_train_validate_and_evaluate_is_refused_before_simulating(tmp_path, capsys):
+    from tissuecast.app.configuration import check_run_sizes
+    from tissuecast.dataset.sample_plan import split_sizes
+
+    assert split_sizes(4, (8, 1, 1)) == (3, 0, 1) and split_sizes(2000, (8, 1, 1)) == (1600, 200, 200)
+    with pytest.raises(ConfigError, match=r"dataset.n_samples = 4 at dataset.split 8:1:1 gives 3 training, 0 validation, "
+                                          r"1 test-1 samples; .* raise dataset.n_samples to at least 8 or change"):
+        check_run_sizes(with_overrides(Config(), dataset={"n_samples": 4}))
+    check_run_sizes(with_overrides(Config(), dataset={"n_samples": 8}))
+    assert split_sizes(8, (8, 1, 1)) == (6, 1, 1) and split_sizes(7, (8, 1, 1)) == (6, 1, 0)  # 8 is the least that works
+    with pytest.raises(ConfigError, match="change dataset.split$"):  # no size gives a validation sample
+        check_run_sizes(with_overrides(Config(), dataset={"n_samples": 100, "split": [1, 0, 1]}))
+    expert = with_overrides(load_config(Path(__file__).resolve().parents[1] / "configs" / "embedded.toml"),
+                            surrogate={"nominal_samples": 6})
+    with pytest.raises(ConfigError, match="surrogate.nominal_samples = 6 at"):
+        check_run_sizes(expert)
+    cfg = tmp_path / "tiny.toml"  # the command refuses it before anything is simulated
+    cfg.write_text(f'[dataset]\nn_samples = 4\nstore = "{(tmp_path / "s.zarr").as_posix()}"\n')
+    assert main(["run", str(cfg)]) == 2
+    assert "raise dataset.n_samples to at least 8" in capsys.readouterr().err and not (tmp_path / "s.zarr").exists()

@@ -19,7 +19,7 @@ from pathlib import Path
 from ..config import UNCERTAIN_PARAMETERS, Config, load_config
 from ..errors import ConfigError
 
-__all__ = ["check_config", "check_nominal_expert", "load_run_config", "REGION_KEYS"]
+__all__ = ["check_config", "check_nominal_expert", "check_run_sizes", "load_run_config", "REGION_KEYS"]
 
 #: The surface regions of ``[scenario]``: config key -> how to read it from a ScenarioConfig.
 REGION_KEYS = {
@@ -78,6 +78,37 @@ def check_nominal_expert(cfg: Config) -> None:
     if cfg.surrogate.calibration == "none":
         raise ConfigError("surrogate.nominal_expert = true needs error bounds and alarms (the gate reads the alarms' "
                           "input distances); set surrogate.calibration = 'split' or 'cross-validation'")
+
+
+#: Fewest samples of each split a whole run trains, validates and evaluates on.
+RUN_MINIMUM = {"training": 2, "validation": 1, "test-1": 1}
+
+
+def check_run_sizes(cfg: Config) -> None:
+    """Refuse a data set (and the nominal expert's, if any) too small for a whole run: fewer
+    training, validation or test-1 samples at ``dataset.split`` than :data:`RUN_MINIMUM`, found
+    before anything is simulated.
+
+    Raises:
+        ConfigError: naming the counts and the smallest ``n_samples`` that gives enough.
+    """
+    from ..dataset.sample_plan import split_sizes
+
+    stores = [("dataset.n_samples", cfg.dataset.n_samples)]
+    if cfg.surrogate.nominal_expert:
+        stores.append(("surrogate.nominal_samples", cfg.surrogate.nominal_samples or cfg.dataset.n_samples))
+    need = tuple(RUN_MINIMUM.values())
+    for key, n in stores:
+        sizes = split_sizes(n, cfg.dataset.split)
+        if all(have >= least for have, least in zip(sizes, need)):
+            continue
+        enough = next((m for m in range(n + 1, 100 * n + 100) if all(
+            have >= least for have, least in zip(split_sizes(m, cfg.dataset.split), need))), None)
+        ratio = ":".join(f"{r:g}" for r in cfg.dataset.split)
+        got = ", ".join(f"{have} {name}" for have, name in zip(sizes, RUN_MINIMUM))
+        fix = f"raise {key} to at least {enough} or change dataset.split" if enough else "change dataset.split"
+        raise ConfigError(f"{key} = {n} at dataset.split {ratio} gives {got} samples; a run needs at least "
+                          f"{', '.join(str(v) for v in need)}: {fix}")
 
 
 def load_run_config(path: str | Path | None = None) -> Config:

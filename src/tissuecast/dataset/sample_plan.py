@@ -71,13 +71,20 @@ class SamplePlan:
         return {name: int(np.sum(self.split == code)) for code, name in SPLIT_NAMES.items()}
 
 
+def split_sizes(n: int, split) -> tuple[int, int, int]:
+    """``(train, valid, test-1)`` sample counts of ``n`` LBO samples at the ratio ``split``
+    (``dataset.split``, three non-negative numbers), as :func:`make_plan` assigns them."""
+    ratios = np.asarray(split, dtype=np.float64)
+    n_train = int(round(n * ratios[0] / ratios.sum()))
+    n_valid = min(n - n_train, int(round(n * ratios[1] / ratios.sum())))
+    return n_train, n_valid, n - n_train - n_valid
+
+
 def make_plan(cfg: Config) -> SamplePlan:
     """The plan of the data set described by ``cfg.dataset`` and ``cfg.forces.betas``."""
     ds = cfg.dataset
     n, n2 = ds.n_samples, ds.n_test2
-    ratios = np.asarray(ds.split, dtype=np.float64)
-    n_train = int(round(n * ratios[0] / ratios.sum()))
-    n_valid = min(n - n_train, int(round(n * ratios[1] / ratios.sum())))
+    n_train, n_valid, _ = split_sizes(n, ds.split)
     perm = np.random.default_rng(np.random.SeedSequence([ds.seed, SPLIT_STREAM])).permutation(n)
     split = np.empty(n + n2, dtype=np.int8)
     split[perm[:n_train]] = SPLIT_CODES["train"]

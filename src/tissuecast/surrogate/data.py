@@ -88,7 +88,8 @@ def dataset_arrays(dataset, inputs: AuxiliaryInputs | None = None) -> TrainingAr
     if train.size < 2 or valid.size < 1:
         raise ModelError(
             f"the data set has {train.size} converged training and {valid.size} validation samples; "
-            "need at least 2 and 1 (run `tissuecast simulate` to completion first)"
+            "need at least 2 and 1 (samples still pending: run `tissuecast simulate` to completion; failed ones: "
+            "`tissuecast dataset info` lists them; too few planned: raise dataset.n_samples or change dataset.split)"
         )
     return TrainingArrays(
         displacements=np.asarray(dataset.displacements),
