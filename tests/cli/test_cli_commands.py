@@ -83,6 +83,16 @@ def test_train_evaluate_predict(run, capsys):
     bad.write_text("1,2,3\n4,5,6\n")
     assert main(["predict", str(folder / "model"), "--markers", str(bad)]) == 2
     assert "multiple of 3 n_d = 12" in capsys.readouterr().err
+    # a CSV saved with semicolons or spaces (a European spreadsheet) is named as such
+    for sep, name in ((";", "semicolon"), (" ", "space")):
+        bad.write_text("x;y;z\n" + "\n".join(sep.join(f"{v:.9g}" for v in row) for row in d))
+        assert main(["predict", str(folder / "model"), "--markers", str(bad)]) == 2
+        assert f"line 2: non-numeric value in ['{sep.join(f'{v:.9g}' for v in d[0])}'] (the line looks {name}-separated: " \
+               "save the CSV with commas" in capsys.readouterr().err
+    # two samples' markers in one file: the summary says how the rows were read
+    csv_in.write_text("\n".join(",".join(f"{v:.9g}" for v in row) for row in np.r_[d, d]))
+    assert main(["predict", str(folder / "model"), "--markers", str(csv_in)]) == 0
+    assert "predicted 2 sample(s) (the input read as 4 markers each)" in capsys.readouterr().out
 
 
 def test_study_markers_and_pca(run, capsys):

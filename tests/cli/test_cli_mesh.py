@@ -89,6 +89,15 @@ def test_markers_on_phantom_writes_csv_json_vtu(tmp_path, capsys):
     np.testing.assert_allclose(vtu.points[:5], m.points[markers])
     for i in markers:
         assert f" {int(i):6d} " in out
+    # one numbering of markers everywhere: the table, the CSV's order, the markups' labels (marker
+    # k is M<k>, as OpenIGTLink's Marker<k> and the input gate's "marker k")
+    from tissuecast.slicer.markups import read_markups
+
+    lists = {m.name: m for m in read_markups(tmp_path / "out" / "fm.mrk.json")}
+    assert list(lists["FiducialMarkers"].labels) == [f"M{k}" for k in range(5)]
+    assert list(lists["FixedVertices"].labels) == ["F0", "F1", "F2"]
+    assert [int(r["order"]) for r in rows[:5]] == list(range(5))
+    assert [line.split()[1] for line in out.splitlines() if line.startswith("marker ")] == [str(k) for k in range(5)]
 
 
 def test_markers_with_user_given_ids(tmp_path, capsys):

@@ -90,11 +90,12 @@ def run(args) -> int:
     if prefix.parent != Path("."):
         prefix.parent.mkdir(parents=True, exist_ok=True)
     surface = set(mesh.surface_vertices.tolist())
-    print(f"mesh {mesh_name}: {mesh.n_vertices} vertices; ids are 0-based (add 1 for the paper / Abaqus)")
+    print(f"mesh {mesh_name}: {mesh.n_vertices} vertices; ids and marker numbers are 0-based (vertex ids: add 1 for the "
+          "paper / Abaqus; marker k is M<k> in the markups file, Marker<k> over OpenIGTLink)")
     print(f"{'role':7s} {'#':>2s} {'id':>6s} {'x (mm)':>9s} {'y (mm)':>9s} {'z (mm)':>9s}  where")
     for role, k, i, (x, y, z) in _rows(mesh, markers, fixed):
         where = "surface" if i in surface else "interior"
-        print(f"{role:7s} {k + 1:2d} {i:6d} {x:9.3f} {y:9.3f} {z:9.3f}  {where}")
+        print(f"{role:7s} {k:2d} {i:6d} {x:9.3f} {y:9.3f} {z:9.3f}  {where}")
     if mc.rule == "planned" and not mc.ids:
         print("note: markers.rule = 'planned': these are the k-center markers the data set records; the model's "
               "markers are planned from the simulations when it is trained (model/markers_plan.json), or now with "
@@ -155,12 +156,14 @@ MARKERS_LIST, FIXED_LIST = "FiducialMarkers", "FixedVertices"
 def write_markers_markups(path: Path, mesh: TetMesh, markers: np.ndarray, fixed: np.ndarray) -> Path:
     """Markers and fixed vertices as two Slicer point lists (``.mrk.json``, LPS mm, the mesh's frame).
 
-    Point labels are ``M1``.. / ``F1``.. in pick order; descriptions give the 0-based vertex id.
+    Point labels are ``M0``.. / ``F0``.. in pick order, 0-based as the API, the CSV's ``order``,
+    OpenIGTLink's ``Marker0``.. and every error message count them; descriptions give the
+    0-based vertex id.
     """
     from ..slicer.markups import MarkupList, write_markups
 
     lists = [
-        MarkupList(name, mesh.points[ids], tuple(f"{tag}{k + 1}" for k in range(len(ids))),
+        MarkupList(name, mesh.points[ids], tuple(f"{tag}{k}" for k in range(len(ids))),
                    tuple(f"vertex {int(i)} (0-based)" for i in ids))
         for name, tag, ids in ((MARKERS_LIST, "M", markers), (FIXED_LIST, "F", fixed))
     ]
@@ -173,8 +176,8 @@ def render_markers_png(path: Path, mesh: TetMesh, markers: np.ndarray, fixed: np
     Args:
         path: output PNG.
         mesh: the mesh (mm).
-        markers: (k,) int 0-based marker ids, labelled M1.. in pick order.
-        fixed: (f,) int 0-based fixed vertex ids, labelled F1...
+        markers: (k,) int 0-based marker ids, labelled M0.. in pick order.
+        fixed: (f,) int 0-based fixed vertex ids, labelled F0...
     """
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
     pv = require("pyvista", "viz", "Rendering the marker picture")
@@ -189,7 +192,7 @@ def render_markers_png(path: Path, mesh: TetMesh, markers: np.ndarray, fixed: np
         for i in ids:
             plotter.add_mesh(pv.Sphere(radius=radius, center=mesh.points[i]), color=color)
         if len(ids):
-            labels = [f"{tag}{k + 1} ({int(i)})" for k, i in enumerate(ids)]
+            labels = [f"{tag}{k} ({int(i)})" for k, i in enumerate(ids)]
             plotter.add_point_labels(mesh.points[ids], labels, font_size=14, text_color=color,
                                      shape_opacity=0.6, always_visible=True, show_points=False)
     plotter.add_legend([("fiducial markers M (0-based id)", "red"), ("fixed vertices F", "royalblue")],

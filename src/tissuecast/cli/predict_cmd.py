@@ -163,7 +163,10 @@ def read_marker_file(path: Path, n_d: int) -> tuple[np.ndarray, bool | None]:
                 except ValueError:
                     if i == 0 and not rows:
                         continue  # header
-                    raise ModelError(f"{str(path)!r} line {i + 1}: non-numeric value in {row}") from None
+                    sep = next((f"{name}-separated" for mark, name in ((";", "semicolon"), ("\t", "tab"), (" ", "space"))
+                                if len(row) == 1 and mark in row[0].strip()), "")
+                    hint = f" (the line looks {sep}: save the CSV with commas between x, y and z)" if sep else ""
+                    raise ModelError(f"{str(path)!r} line {i + 1}: non-numeric value in {row}{hint}") from None
         if not rows or len({len(r) for r in rows}) != 1:
             raise ModelError(f"{str(path)!r}: need rows of equal length (3 per marker, or 3 n_d = {3 * n_d} per sample)")
         arr = np.array(rows, dtype=np.float64)
@@ -298,7 +301,8 @@ def run(args) -> int:
     if alarms is not None and not np.isfinite(alarms[0].distance_threshold):
         print("note: the alarm is off: too few calibration samples for this false-alarm rate; use a larger "
               "--false-alarm or re-train with surrogate.calibration = 'cross-validation'")
-    print(f"predicted {u.shape[0]} sample(s) of {u.shape[1]} vertices in {sec * 1e3:.2f} ms")
+    print(f"predicted {u.shape[0]} sample(s) (the input read as {model.n_markers} markers each) of {u.shape[1]} vertices "
+          f"in {sec * 1e3:.2f} ms")
     _write_outputs(args, model, u, sigma, bound, args.method)
     return 0
 
