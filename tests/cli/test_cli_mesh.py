@@ -98,6 +98,10 @@ def test_markers_on_phantom_writes_csv_json_vtu(tmp_path, capsys):
     assert list(lists["FixedVertices"].labels) == ["F0", "F1", "F2"]
     assert [int(r["order"]) for r in rows[:5]] == list(range(5))
     assert [line.split()[1] for line in out.splitlines() if line.startswith("marker ")] == [str(k) for k in range(5)]
+    inside = [k for k, i in enumerate(markers) if i not in set(m.surface_vertices.tolist())]
+    assert (f"note: marker(s) {inside} are interior vertices" in out) == bool(inside)
+    assert main(["markers", "phantom", "--out", str(tmp_path / "default")]) == 0  # the k-center default: one inside
+    assert "note: marker(s) [2] are interior vertices: an optical tracker cannot see them" in capsys.readouterr().out
 
 
 def test_markers_with_user_given_ids(tmp_path, capsys):

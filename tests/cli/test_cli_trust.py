@@ -42,7 +42,9 @@ def test_plan_count_writes_files_and_respects_spacing(store, capsys):
 def test_plan_target_allowed_mask_and_errors(store, capsys, tmp_path):
     _, _, ds = store
     assert main(["markers", "plan", str(ds.path), "--target-mm", "1000", "--out", str(tmp_path / "t")]) == 0
-    assert "target 1000 mm reached with 1 markers" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "target 1000 mm reached with 1 markers" in out
+    assert f"min spacing {ds.config.markers.min_distance:g} mm" in out  # the store's config, as a run plans
     allowed = sorted(int(i) for i in ds.mesh.surface_vertices[::7])
     (tmp_path / "allowed.txt").write_text(", ".join(map(str, allowed)))
     assert main(["markers", "plan", str(ds.path), "--count", "2", "--allowed", str(tmp_path / "allowed.txt"),

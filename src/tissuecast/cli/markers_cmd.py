@@ -96,6 +96,11 @@ def run(args) -> int:
     for role, k, i, (x, y, z) in _rows(mesh, markers, fixed):
         where = "surface" if i in surface else "interior"
         print(f"{role:7s} {k:2d} {i:6d} {x:9.3f} {y:9.3f} {z:9.3f}  {where}")
+    inside = [k for k, i in enumerate(markers) if int(i) not in surface]
+    if inside:
+        print(f"note: marker(s) {inside} are interior vertices: an optical tracker cannot see them (ultrasound or CT "
+              "can); `tissuecast markers plan STORE` (surface candidates by default) or [markers] rule = 'planned' "
+              "chooses surface markers from the simulations, --ids gives your own")
     if mc.rule == "planned" and not mc.ids:
         print("note: markers.rule = 'planned': these are the k-center markers the data set records; the model's "
               "markers are planned from the simulations when it is trained (model/markers_plan.json), or now with "

@@ -38,7 +38,8 @@ def register(sub) -> None:
     q.add_argument("--region", choices=REGIONS, default="surface",
                    help="candidate vertices: surface (optical tracking, default), any (interior fiducials seen by "
                         "ultrasound allowed), interior")
-    q.add_argument("--min-distance", type=float, default=0.0, metavar="MM", help="minimum spacing of the markers (mm)")
+    q.add_argument("--min-distance", type=float, metavar="MM",
+                   help="minimum spacing of the markers (mm; default: the store's markers.min_distance, as a run plans)")
     q.add_argument("--allowed", metavar="FILE",
                    help="user mask: a file of allowed 0-based vertex ids (JSON list, or numbers separated by commas/whitespace)")
     q.add_argument("--shortlist", type=int, default=SHORTLIST, help=f"candidates scored per greedy step (default {SHORTLIST})")
@@ -76,6 +77,8 @@ def run(args) -> int:
     from ..planning import plan_markers
 
     ds = open_dataset(args.store)
+    if args.min_distance is None:
+        args.min_distance = ds.config.markers.min_distance
     allowed = read_allowed(Path(args.allowed)) if args.allowed else None
 
     def progress(k, chosen, score):
