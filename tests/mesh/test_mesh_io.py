@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import re
 
 import meshio
 import numpy as np
@@ -268,6 +269,24 @@ def test_meshing_reports_a_child_that_died_without_an_answer():
     p, t = icosphere(1)
     with pytest.raises(MeshError, match=r"gmsh crashed while meshing \(exit code 1: TypeError: .*bogus"):
         _gmsh_in_child(10.0 * p, t, {"mesh_size": 4.0, "bogus": 1}, 60.0)
+
+
+def test_a_config_mesh_path_naming_no_file_names_the_key_and_the_folder_it_is_read_from(tmp_path, monkeypatch, capsys):
+    from tissuecast.cli.main import main
+    from tissuecast.config import MeshConfig
+    from tissuecast.errors import ConfigError
+    from tissuecast.mesh.source import mesh_from_config
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError, match=rf"mesh.path = 'meshes/organ.vtu' does not exist: a relative path is read from "
+                                          rf"the current folder \({re.escape(str(tmp_path))}\), not the config's"):
+        mesh_from_config(MeshConfig(path="meshes/organ.vtu"))
+    (tmp_path / "c.toml").write_text('[mesh]\npath = "meshes/organ.vtu"\n')
+    assert main(["markers", "--config", "c.toml"]) == 2
+    assert "mesh.path = 'meshes/organ.vtu' does not exist" in capsys.readouterr().err
+    (tmp_path / "meshes").mkdir()
+    write_mesh(tmp_path / "meshes" / "organ.vtu", phantom())  # there: read from the current folder
+    assert mesh_from_config(MeshConfig(path="meshes/organ.vtu")).n_vertices == phantom().n_vertices
 
 
 def test_read_errors_name_the_file(tmp_path):

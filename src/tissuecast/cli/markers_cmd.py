@@ -67,6 +67,10 @@ def run(args) -> int:
     cfg = with_overrides(cfg, markers={k: v for k, v in given.items() if v is not None})
     mc = cfg.markers
     mesh_name = args.mesh or cfg.mesh.path or PHANTOM_WORD
+    if not args.mesh and cfg.mesh.path:
+        from ..mesh.source import check_mesh_path
+
+        check_mesh_path(cfg.mesh.path)
     units = args.units or cfg.mesh.units
     mesh = load_mesh_argument(mesh_name, units, args.mesh_size or cfg.mesh.surface_mesh_size, cfg.mesh)
     from ..mesh.tags import mesh_file_tags

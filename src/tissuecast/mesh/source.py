@@ -9,7 +9,7 @@ from .labelmap import label_map_format
 from .mesher import SURFACE_FORMATS
 from .tetmesh import TetMesh
 
-__all__ = ["mesh_from_config", "check_mesh_source", "label_map_mesh_to_budget"]
+__all__ = ["mesh_from_config", "check_mesh_source", "check_mesh_path", "label_map_mesh_to_budget"]
 
 
 def check_mesh_source(mesh_config, prefix: str = "mesh.") -> None:
@@ -41,6 +41,17 @@ def check_mesh_source(mesh_config, prefix: str = "mesh.") -> None:
                           f"remove {prefix}units = {obj.units!r}")
 
 
+def check_mesh_path(path: str, key: str = "mesh.path") -> None:
+    """Refuse a config's mesh path that names no file, saying where a relative one is read from.
+
+    Raises:
+        ConfigError: naming ``key``, the current folder and the fix.
+    """
+    if path and not Path(path).exists():
+        raise ConfigError(f"{key} = {path!r} does not exist: a relative path is read from the current folder "
+                          f"({Path.cwd()}), not the config's; give the path from there or an absolute one")
+
+
 def mesh_from_config(mesh_config, path: str | None = None) -> TetMesh:
     """Load (or build) the mesh a :class:`~tissuecast.config.MeshConfig` describes.
 
@@ -59,7 +70,8 @@ def mesh_from_config(mesh_config, path: str | None = None) -> TetMesh:
 
     Raises:
         ConfigError: a ``[mesh]`` key that does not apply to ``mesh_config.path``
-            (:func:`check_mesh_source`; not asked when ``path`` replaces it).
+            (:func:`check_mesh_source`), or a ``mesh.path`` that does not exist (neither asked
+            when ``path`` replaces it).
     """
     from .io import read_mesh
     from .phantom import phantom
@@ -67,6 +79,7 @@ def mesh_from_config(mesh_config, path: str | None = None) -> TetMesh:
     if path is None:
         check_mesh_source(mesh_config)
         path = mesh_config.path
+        check_mesh_path(path)
     if not path:
         return phantom()
     if label_map_format(path) is not None:
