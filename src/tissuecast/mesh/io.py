@@ -82,7 +82,7 @@ def _check_scale(points: np.ndarray, units: str, path: Path) -> None:
         if diag < 1.0:
             raise MeshError(
                 f"'{path}' is only {diag:.3g} mm across (bounding-box diagonal) when read as mm; "
-                "it looks like it is in metres: pass units='m' (or 'cm'; CLI: --units m)"
+                "it looks like it is in metres: pass units='m' (or 'cm'; CLI: --units m; config: [mesh] units = \"m\")"
             )
 
 
