@@ -69,8 +69,8 @@ def test_train_evaluate_predict(run, capsys):
     import meshio
 
     vtu = meshio.read(folder / "u.vtu")
-    np.testing.assert_allclose(vtu.point_data["displacement"], model.predict(d), atol=1e-6)
-    assert vtu.point_data["uncertainty"].shape == (model.n_vertices,)
+    np.testing.assert_allclose(vtu.point_data["displacement_mm"], model.predict(d), atol=1e-6)
+    assert vtu.point_data["uncertainty_mm"].shape == (model.n_vertices,)
     # the rigid-registration baseline from the same file, and its clear refusal of --uncertainty
     assert main(["predict", str(folder / "model"), "--markers", str(csv_in), "--method", "rigid",
                  "--out", str(folder / "r.csv")]) == 0

@@ -85,7 +85,7 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
     assert "solving through the physics" in text and "markers fitted to" in text and "1 sample(s)" in text
     assert "posterior spread median" in text
     written = json.loads(out.read_text())
-    u, spread = np.array(written["displacement"])[0], np.array(written["uncertainty"])[0]
+    u, spread = np.array(written["displacement_mm"])[0], np.array(written["uncertainty_mm"])[0]
     assert spread.shape == (len(u),) and np.all(spread >= 0.0) and 0.0 < np.median(spread) < 0.01  # 0.002 mm noise
     (note,) = written["physics"]  # what the inverse estimated, one record a sample
     assert set(note["parameters"]) == set(MarkerInverse.from_dataset(ds, model.markers).estimated)
@@ -104,7 +104,7 @@ def test_predict_physics_recovers_a_test_sample_from_its_markers_and_instrument(
     markers.write_text(json.dumps({"displacements": lost.tolist()}))
     assert main(base + ["--gravity", *map(str, draw.gravity_direction), "--out", str(out)]) == 0
     assert "missing markers [1]" in capsys.readouterr().out
-    u = np.array(json.loads(out.read_text())["displacement"])[0]
+    u = np.array(json.loads(out.read_text())["displacement_mm"])[0]
     assert np.linalg.norm(u - truth, axis=1).max() < 0.05 * peak
 
     for extra, why in ((["--uncertainty"], "--uncertainty belong to the learned model"),
@@ -175,7 +175,7 @@ def test_predict_physics_takes_a_measured_attached_margin(tmp_path, capsys, monk
             "--noise", "0.002", "--gravity", *map(str, draw.gravity_direction), "--out", str(out)]
     assert main(base + ["--attached-margin", f"{margin!r}"]) == 0
     assert f"iterated with the attached margin given ({margin:+.2f} mm)" in capsys.readouterr().out
-    u = np.array(json.loads(out.read_text())["displacement"])[0]
+    u = np.array(json.loads(out.read_text())["displacement_mm"])[0]
     assert np.linalg.norm(u - truth, axis=1).max() < 0.02 * np.linalg.norm(truth, axis=1).max()
     assert main(base + ["--attached-margin", "9.5"]) == 2
     assert "lies outside the range the simulations drew, [-6, 6] mm" in capsys.readouterr().err

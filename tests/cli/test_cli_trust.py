@@ -92,6 +92,21 @@ def test_train_with_planned_markers_then_predict_with_bounds_and_alarm(store, ca
     assert "sample 0: ALARM" not in out
     rows = list(csv.DictReader((tmp_path / "out.csv").open()))
     assert "error_bound_mm" in rows[0] and float(rows[0]["error_bound_mm"]) > 0
+    assert {r["sample"]: r["alarm_raised"] for r in rows} == {"0": "0", "1": "1"}  # each sample's alarm in the file
+    # the same frames in JSON and VTU: the alarm and the bounds' coverage travel with the field
+    args = ["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json"), "--coverage", "0.9",
+            "--false-alarm", "0.2", "--out"]
+    assert main([*args, str(tmp_path / "out.json")]) == 0
+    doc = json.loads((tmp_path / "out.json").read_text())
+    assert doc["frame"] == "LPS" and doc["error_bound_coverage"] == 0.9
+    assert [a["raised"] for a in doc["alarms"]] == [False, True] and "markers disagree" in doc["alarms"][1]["text"]
+    assert main([*args, str(tmp_path / "out.vtu")]) == 0
+    import meshio
+
+    for b, raised in ((0, 0.0), (1, 1.0)):
+        vtu = meshio.read(tmp_path / f"out_{b:03d}.vtu")
+        assert set(vtu.point_data["alarm_raised"]) == {raised} and "error_bound_mm" in vtu.point_data
+    capsys.readouterr()
     assert main(["predict", str(tmp_path / "model"), "--markers", str(tmp_path / "in.json")]) == 0
     out = capsys.readouterr().out  # defaults 0.01 / 0.9: 12 samples cannot set a 1 % alarm threshold
     assert "note: the alarm is off" in out and "ALARM" not in out

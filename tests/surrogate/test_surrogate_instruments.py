@@ -232,13 +232,13 @@ def test_cli_predict_reads_the_instrument_pose(tmp_path, capsys):
     assert main(args + ["--instrument", str(tmp_path / "tool.json")]) == 0
     out = capsys.readouterr().out
     assert f"retractor: in contact, {poses[k].depth:.2f} mm deep" in out
-    u = np.array(json.loads((tmp_path / "u.json").read_text())["displacement"])
+    u = np.array(json.loads((tmp_path / "u.json").read_text())["displacement_mm"])
     expected = m.predict(d, auxiliary={"retractor": poses[k]})
     np.testing.assert_allclose(u, expected, atol=1e-9)  # LPS and RAS files give one pose
     (tmp_path / "none.json").write_text(json.dumps({"retractor": None}))
     assert main(args + ["--instrument", str(tmp_path / "none.json")]) == 0
     assert "retractor: not tracked (markers only)" in capsys.readouterr().out
-    np.testing.assert_allclose(np.array(json.loads((tmp_path / "u.json").read_text())["displacement"]), m.predict(d),
+    np.testing.assert_allclose(np.array(json.loads((tmp_path / "u.json").read_text())["displacement_mm"]), m.predict(d),
                                atol=1e-9)
     (tmp_path / "bad.json").write_text(json.dumps({"spatula": pose}))
     assert main(args + ["--instrument", str(tmp_path / "bad.json")]) == 2

@@ -9,8 +9,9 @@ untracked marker). Empty cells, ``nan`` or ``null`` for all three coordinates of
 mark it as not tracked (models trained with marker_dropout > 0).
 Output: .vtu (undeformed mesh + displacement point data; one file per sample for batches),
 .vtk (deformed mesh) or .vtp (deformed outer surface) as 3D Slicer models in LPS with
-``displacement_mm`` point data, .csv (sample, vertex, ux, uy, uz[, sigma][, error_bound])
-or .json. Vertex ids are 0-based. Marker input no simulation could have produced (a marker
+``displacement_mm`` point data, .csv (sample, vertex, ux_mm, uy_mm, uz_mm[, uncertainty_mm][,
+error_bound_mm][, alarm_raised]) or .json (LPS mm: ``displacement_mm``, ``uncertainty_mm``,
+``error_bound_mm``, ``error_bound_coverage``, ``alarms``). Vertex ids are 0-based. Marker input no simulation could have produced (a marker
 not a finite number, displaced far beyond its largest simulated displacement, or markers at
 distances the body cannot take) is refused with one error line naming the marker, exit
 status 2. With a calibrated model (surrogate.calibration 'split', the default, or
@@ -177,27 +178,17 @@ def read_marker_file(path: Path, n_d: int) -> tuple[np.ndarray, bool | None]:
 
 
 def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.ndarray | None = None,
-           notes: dict | None = None) -> list[Path]:
+           notes: dict | None = None, alarms: list | None = None) -> list[Path]:
     """Write the fields ``u`` (B, n, 3) mm, with ``sigma`` and ``bound`` (B, n) mm where given, to
-    ``out`` by its suffix; ``notes`` (JSON-ready) go into a JSON output beside them."""
+    ``out`` by its suffix; each sample's alarm (``alarms``, B :class:`~tissuecast.surrogate.trust.Alarm`)
+    goes with it (a constant ``alarm_raised`` point array 0/1, an ``alarm`` column, a JSON list);
+    ``notes`` (JSON-ready: e.g. the bounds' coverage) go into a JSON output beside them."""
     from ..errors import ModelError
 
     suf = out.suffix.lower()
     B = u.shape[0]
-    if suf == ".vtu":
-        from ..evaluate.render import write_vtu
-
-        files = []
-        for b in range(B):
-            p = out if B == 1 else out.with_name(f"{out.stem}_{b:03d}{out.suffix}")
-            data = {"displacement": u[b]}
-            if sigma is not None:
-                data["uncertainty"] = sigma[b]
-            if bound is not None:
-                data["error_bound_mm"] = bound[b]
-            files.append(write_vtu(p, model.mesh, data))
-        return files
-    if suf in (".vtk", ".vtp"):
+    raised = None if alarms is None else np.array([a.raised for a in alarms], dtype=np.float64)
+    if suf in (".vtu", ".vtk", ".vtp"):
         from ..slicer.models import write_model
 
         files = []
@@ -206,24 +197,34 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.
             extra = {"uncertainty_mm": sigma[b]} if sigma is not None else {}
             if bound is not None:
                 extra["error_bound_mm"] = bound[b]
-            files.append(write_model(p, model.mesh, displacement=u[b], point_data=extra or None))
+            if raised is not None:
+                extra["alarm_raised"] = np.full(u.shape[1], raised[b])
+            if suf == ".vtu":  # undeformed mesh + point data (ParaView's Warp By Vector)
+                from ..evaluate.render import write_vtu
+
+                files.append(write_vtu(p, model.mesh, {"displacement_mm": u[b], **extra}))
+            else:  # the deformed mesh (Slicer models)
+                files.append(write_model(p, model.mesh, displacement=u[b], point_data=extra or None))
         return files
     if suf == ".csv":
         with out.open("w", newline="") as fh:
             w = csv.writer(fh)
-            w.writerow(["sample", "vertex", "ux_mm", "uy_mm", "uz_mm"] + (["sigma_mm"] if sigma is not None else [])
-                       + (["error_bound_mm"] if bound is not None else []))
+            w.writerow(["sample", "vertex", "ux_mm", "uy_mm", "uz_mm"] + (["uncertainty_mm"] if sigma is not None else [])
+                       + (["error_bound_mm"] if bound is not None else []) + (["alarm_raised"] if raised is not None else []))
             for b in range(B):
+                tail = [int(raised[b])] if raised is not None else []
                 for i in range(u.shape[1]):
                     w.writerow([b, i, *(f"{x:.6g}" for x in u[b, i])] + ([f"{sigma[b, i]:.6g}"] if sigma is not None else [])
-                               + ([f"{bound[b, i]:.6g}"] if bound is not None else []))
+                               + ([f"{bound[b, i]:.6g}"] if bound is not None else []) + tail)
         return [out]
     if suf == ".json":
-        doc = {"units": "mm", "vertex_ids": "0-based", "displacement": u.tolist()}
+        doc = {"units": "mm", "frame": "LPS", "vertex_ids": "0-based", "displacement_mm": u.tolist()}
         if sigma is not None:
-            doc["uncertainty"] = sigma.tolist()
+            doc["uncertainty_mm"] = sigma.tolist()
         if bound is not None:
             doc["error_bound_mm"] = bound.tolist()
+        if alarms is not None:
+            doc["alarms"] = [{"raised": bool(a.raised), "text": a.text} for a in alarms]
         doc.update(notes or {})
         out.write_text(json.dumps(doc), encoding="utf-8")
         return [out]
@@ -303,13 +304,14 @@ def run(args) -> int:
               "--false-alarm or re-train with surrogate.calibration = 'cross-validation'")
     print(f"predicted {u.shape[0]} sample(s) (the input read as {model.n_markers} markers each) of {u.shape[1]} vertices "
           f"in {sec * 1e3:.2f} ms")
-    _write_outputs(args, model, u, sigma, bound, args.method)
+    notes = {"error_bound_coverage": coverage} if bound is not None else None
+    _write_outputs(args, model, u, sigma, bound, args.method, notes, alarms)
     return 0
 
 
-def _write_outputs(args, model, u, sigma, bound, method: str, notes: dict | None = None) -> None:
+def _write_outputs(args, model, u, sigma, bound, method: str, notes: dict | None = None, alarms: list | None = None) -> None:
     if args.out:
-        for f in _write(Path(args.out), model, u, sigma, bound, notes):
+        for f in _write(Path(args.out), model, u, sigma, bound, notes, alarms):
             print(f"wrote {f}")
     if args.targets_out:
         print(f"wrote {_write_targets(Path(args.targets_out), model, u, args.targets, method)}")

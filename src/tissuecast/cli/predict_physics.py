@@ -26,7 +26,7 @@ whose worst marker misses by more than
 (a frame the simulator's family does not explain, or a search that missed; measured in
 docs/uncertainty.md). Each vertex gets the
 estimate's posterior spread (:attr:`~tissuecast.inverse.InverseResult.spread`, mm), written
-where the learned model writes its ensemble's (``uncertainty`` point data, ``sigma_mm`` in CSV):
+where the learned model writes its ensemble's (``uncertainty_mm`` point data and CSV column):
 what the markers' noise and the held sets leave open within the simulator's family; no alarm.
 A JSON output (``--out F.json``) also gets each sample's estimate under ``physics``
 (:func:`record`: the parameters, the markers' fit, the held sets).
