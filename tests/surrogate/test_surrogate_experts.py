@@ -408,6 +408,16 @@ def test_the_routed_graphs_of_a_pair_with_a_tracked_instrument(tmp_path):
         routes, clear = router.route(d.reshape(len(d), -1), aux), np.abs(_logit(pair, d, aux)) > 1e-3
         assert routes.any() and (~routes).any() and clear.mean() > 0.9, graph
         np.testing.assert_allclose(out[clear], pair.predict(d, auxiliary=aux)[clear], atol=tol, err_msg=graph)
+        meta = session.get_modelmeta().custom_metadata_map  # the inputs named in the file, units beside them
+        assert ("auxiliary" in meta) == (graph == "model.onnx"), graph
+    names = pair.auxiliary.names
+    assert meta_of(tmp_path / "m" / "model.onnx")["auxiliary"].startswith(f"(B, {len(names)}) float32: {names[0]} [")
+
+
+def meta_of(path) -> dict:
+    import onnx
+
+    return {p.key: p.value for p in onnx.load(str(path)).metadata_props}
 
 
 def _auxiliary(A):

@@ -168,6 +168,12 @@ def test_onnx_equals_numpy(model, data, tmp_path):
     np.testing.assert_allclose(out, model.predict(d), atol=1e-5 * max(1.0, np.abs(U).max()))
     (one,) = sess.run(None, {"markers": d[:1]})
     np.testing.assert_allclose(one[0], model.predict(d[0]), atol=1e-5 * max(1.0, np.abs(U).max()))
+    # the file alone says what its inputs are: displacements (not positions), mm, LPS, which markers
+    meta = sess.get_modelmeta().custom_metadata_map
+    assert "displacement from its reference position (not its position), mm" in meta["markers"] and "LPS" in meta["markers"]
+    assert json.loads(meta["marker_vertex_ids"]) == model.markers.tolist()
+    np.testing.assert_allclose(json.loads(meta["reference_marker_positions_mm"]), model.reference_marker_positions, atol=1e-6)
+    assert meta["checks"].startswith("none") and "auxiliary" not in meta and "present" not in meta
 
 
 def test_missing_markers(masked_model, model, data, tmp_path):

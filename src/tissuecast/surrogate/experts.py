@@ -206,6 +206,14 @@ class RoutedNetworks:
         return self.uncertain.n_markers
 
     @property
+    def markers(self) -> np.ndarray:
+        return self.uncertain.markers
+
+    @property
+    def mesh(self):
+        return self.uncertain.mesh
+
+    @property
     def auxiliary(self):
         return self.uncertain.auxiliary
 

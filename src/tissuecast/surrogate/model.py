@@ -623,13 +623,15 @@ class DeformationModel(FieldPredictor):
         return cls.from_state(load_model(folder))
 
     def export_onnx(self, path, *, fallback: bool = False, expert: str | None = None) -> None:
-        """Write an ONNX graph: inputs ``markers`` (B, n_d, 3) float32 mm [+ ``auxiliary`` (B, n_a)
+        """Write an ONNX graph: inputs ``markers`` (B, n_d, 3) float32 marker displacements (not
+        positions) mm [+ ``auxiliary`` (B, n_a)
         float32 in ``model.auxiliary.units``] [+ ``present`` (B, n_d)], output ``displacement``
         (B, n, 3) float32 mm (PCA reconstruction included). ``fallback``: the graph of the
         fallback without instruments (models with instrument inputs). For a model with a nominal
         expert the graph routes each sample as the model does, both networks and the gate on
         their input distances in it (:class:`~.experts.RoutedNetworks`); ``expert``: one of its
-        networks alone instead, ``"uncertain"`` (this model's) or ``"nominal"``."""
+        networks alone instead, ``"uncertain"`` (this model's) or ``"nominal"``. The graph has no
+        input gate, bounds or alarm; its ``metadata_props`` describe the inputs (docs/files.md)."""
         from .storage import export_onnx
 
         export_onnx(self._learned(fallback, expert), path)

@@ -346,8 +346,10 @@ def _gate(network: NetworkPredictor, meta: dict) -> InputGate | None:
 
 def export_onnx(network: NetworkPredictor | RoutedNetworks, path) -> None:
     """Export the learned predictor's full marker -> field network (or a pair's routed graph) to
-    ONNX (opset 17, dynamic batch): inputs ``markers`` (B, n_d, 3) mm, ``auxiliary`` (B, n_a) with
-    auxiliary inputs, ``present`` (B, n_d) for masked models; output ``displacement`` (B, n, 3) mm."""
+    ONNX (opset 17, dynamic batch): inputs ``markers`` (B, n_d, 3) marker displacements (not
+    positions) mm, ``auxiliary`` (B, n_a) with auxiliary inputs, ``present`` (B, n_d) for masked
+    models; output ``displacement`` (B, n, 3) mm. The file's ``metadata_props`` say so, with the
+    marker vertex ids and reference positions; the graph checks nothing (no gate, bounds, alarm)."""
     torch = require("torch", "learn", "ONNX export")
     require("onnx", "learn", "ONNX export")
     net = network.torch_module()
@@ -368,3 +370,32 @@ def export_onnx(network: NetworkPredictor | RoutedNetworks, path) -> None:
         warnings.simplefilter("ignore", DeprecationWarning)  # the TorchScript exporter is deprecated but fast
         torch.onnx.export(net, args, str(path), input_names=names, output_names=["displacement"],
                           dynamic_axes=axes, opset_version=17, dynamo=False)
+    _describe_graph(path, network)
+
+
+def _describe_graph(path, network: NetworkPredictor | RoutedNetworks) -> None:
+    """Write what a consumer of the ONNX file alone needs into its metadata (``metadata_props``)
+    and doc string: what the inputs are (displacements, not positions), units, frame, marker
+    order, and that the graph checks nothing."""
+    import onnx
+
+    graph = onnx.load(str(path))
+    markers = np.asarray(network.markers, dtype=np.int64)
+    props = {
+        "tissuecast_version": __version__,
+        "markers": "(B, n_d, 3) float32: each marker's displacement from its reference position (not its position), mm, "
+                   "in the model's (the scan's) LPS frame, in marker_vertex_ids order",
+        "marker_vertex_ids": json.dumps(markers.tolist()),
+        "reference_marker_positions_mm": json.dumps(np.round(network.mesh.points[markers], 6).tolist()),
+        "displacement": "(B, n, 3) float32: every mesh vertex's displacement, mm, LPS, vertex ids 0-based",
+        "checks": "none: the graph has no input gate, error bounds or alarm (tissuecast's Python model and serve give them)",
+    }
+    if network.auxiliary.width:
+        props["auxiliary"] = f"(B, {network.auxiliary.width}) float32: " + ", ".join(
+            f"{n} [{u}]" for n, u in zip(network.auxiliary.names, network.auxiliary.units))
+    if network.supports_missing_markers:
+        props["present"] = "(B, n_d) float32: 1 where the marker is tracked, 0 where it is not (its markers row ignored)"
+    onnx.helper.set_model_props(graph, props)
+    graph.doc_string = (f"tissuecast {__version__}: marker displacements -> displacement field of a {len(network.mesh.points)}-"
+                        f"vertex mesh; inputs and units in metadata_props")
+    onnx.save(graph, str(path))
