@@ -148,6 +148,15 @@ def test_trust_layer_round_trips_through_the_model_folder(model, test_fields, tm
     assert all(np.isnan(x.swap) and not x.swapped_markers_alarm for x in c.alarms)
     np.testing.assert_allclose(c.error_bound, a.error_bound, rtol=1e-6)
     np.testing.assert_allclose([x.distance for x in c.alarms], [x.distance for x in a.alarms], rtol=1e-12)
+    # an empty, truncated or random-bytes trust file: one ModelError naming it, never a traceback or
+    # an offer to unpickle
+    whole = (tmp_path / "m" / "trust.npz").read_bytes()
+    rng = np.random.default_rng(0)
+    for broken in (b"", whole[:100], rng.integers(0, 256, 4000, dtype=np.uint8).tobytes()):
+        (tmp_path / "m" / "trust.npz").write_bytes(broken)
+        with pytest.raises(ModelError, match=r"trust.npz' is unreadable or incomplete .*the model folder is corrupt") as err:
+            DeformationModel.load(tmp_path / "m")
+        assert "allow_pickle" not in str(err.value)
     (tmp_path / "m" / "trust.npz").unlink()
     with pytest.raises(ModelError, match="trust.npz"):
         DeformationModel.load(tmp_path / "m")
