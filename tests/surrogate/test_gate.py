@@ -168,6 +168,23 @@ def test_absurd_inputs_are_refused_naming_the_marker(model, case):
     assert verdict.refused and (reason is None or verdict.reason == reason)
 
 
+def test_positions_and_displacements_mixed_up_are_refused_with_the_fix(model):
+    """Positions handed over as displacements (or the reverse) are refused as any absurd input, and
+    the message names the mix-up and the call to use, where the other reading is plausible."""
+    d = _clean(1)
+    p = model.reference_marker_positions + d
+    assert not model.check_input(d).refused
+    with pytest.raises(InputRejected, match="these look like marker positions, not displacements: use "
+                                            "predict_from_positions"):
+        model.predict(p)
+    with pytest.raises(InputRejected, match="these look like marker displacements given as positions: use predict"):
+        model.predict_from_positions(d)
+    glitch = d.copy()  # a plain glitch keeps the plain message
+    glitch[2] += [1e3, 0.0, 0.0]
+    with pytest.raises(InputRejected, match="a tracking glitch, a unit error or a slipped marker"):
+        model.predict(glitch)
+
+
 def test_swapped_markers_are_refused_or_alarmed(model):
     _, U, _ = trust_data()
     ref = model.reference_marker_positions

@@ -192,8 +192,19 @@ class InputGate:
         else:
             text = (f"marker input refused: {self._name(j)} is displaced {np.linalg.norm(dj[j]):.4g} mm, more than "
                     f"{DISPLACEMENT_FACTOR:g} x the largest simulated displacement of that marker "
-                    f"({self.max_displacement[j]:.3g} mm): a tracking glitch, a unit error or a slipped marker?")
+                    f"({self.max_displacement[j]:.3g} mm): {self._mix_up(dj) or 'a tracking glitch, a unit error or a slipped marker?'}")
         return GateVerdict(True, reason, j, int(self.markers[j]), text)
+
+    def _mix_up(self, dj: np.ndarray) -> str:
+        """The fix where an input refused for its displacements (n_d, 3) mm reads as plausible
+        once taken the other way (positions given as displacements, or the reverse); else ""."""
+        for other, fix in ((dj - self.reference, "these look like marker positions, not displacements: use "
+                            "predict_from_positions (CLI: --positions, or a file with \"positions\")"),
+                           (dj + self.reference, "these look like marker displacements given as positions: use predict "
+                            "(CLI: without --positions)")):
+            if (np.linalg.norm(other, axis=1) <= self._displacement_limits).all():
+                return fix
+        return ""
 
     def _stretch_verdict(self, bad: np.ndarray, dist: np.ndarray) -> GateVerdict:
         counts = np.bincount(self._pairs[bad].ravel(), minlength=len(self.markers))
