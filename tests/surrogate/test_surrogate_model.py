@@ -155,6 +155,13 @@ def test_rigid_and_ridge_methods_of_predict(model, data):
         model.predict(d, method="kabsch")
     with pytest.raises(ModelError, match="missing markers"):
         model.predict(d, missing=[1], method="ridge")
+    # a markers-only model refuses instrument poses or parameters rather than ignore them
+    for given in ({"youngs_modulus": 1.3}, {"retractor": None}, np.zeros(3)):
+        with pytest.raises(ModelError, match="this model reads the markers only; auxiliary inputs"):
+            model.predict(d, auxiliary=given)
+        with pytest.raises(ModelError, match="this model reads the markers only"):
+            model.predict_from_positions(model.reference_marker_positions + d, auxiliary=given)
+    np.testing.assert_array_equal(model.predict(d, auxiliary={}), model.predict(d))
 
 
 def test_onnx_equals_numpy(model, data, tmp_path):

@@ -111,14 +111,19 @@ class AuxiliaryInputs:
 
         Returns:
             The inputs (absent instruments' columns NaN), or None for a model without
-            auxiliary inputs (``given`` is then ignored).
+            auxiliary inputs (``given`` None, an empty mapping or an empty array).
 
         Raises:
             ModelError: wrong shape, unknown names, a missing parameter, NaN outside the
-                instruments' columns, or a partly given instrument.
+                instruments' columns, a partly given instrument, or inputs given to a model
+                that reads the markers only.
         """
         if not self.width:
-            return None
+            if given is None or (len(given) == 0 if isinstance(given, Mapping) else np.size(given) == 0):
+                return None
+            raise ModelError("this model reads the markers only; auxiliary inputs (instrument poses, measured "
+                             "parameters) need a model trained with [[scenario.instruments]] or "
+                             "scenario.uncertain.measured: drop auxiliary=")
         if given is None:
             given = {}
         if isinstance(given, Mapping):
