@@ -64,6 +64,7 @@ def test_interior_targets_follow_the_documented_rule(mesh):
     np.testing.assert_array_equal(t.positions, again.positions)  # deterministic
     ids = np.array([int(lab.split("vertex ")[1].rstrip(")")) for lab in t.labels])
     np.testing.assert_array_equal(mesh.points[ids], t.positions)
+    assert [lab.split()[0] for lab in t.labels] == [f"T{k}" for k in range(10)]  # 0-based, as markers are numbered
     depth = surface_depth(mesh)
     cand = np.setdiff1d(mesh.interior_vertices, fixed)
     cand = cand[depth[cand] >= 0.5 * depth[cand].max()]

@@ -63,7 +63,7 @@ def _read_csv_points(path: Path) -> tuple[np.ndarray, tuple]:
             if len(cells) not in (3, 4):
                 raise ConfigError(f"'{path}' line {number}: need x, y, z (mm) or label, x, y, z; got {row}")
             rows.append(xyz)
-            labels.append(cells[0] if len(cells) == 4 else f"T{len(rows)}")
+            labels.append(cells[0] if len(cells) == 4 else f"T{len(rows) - 1}")
     return np.array(rows, dtype=np.float64).reshape(-1, 3), tuple(labels)
 
 

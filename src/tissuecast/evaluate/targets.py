@@ -88,7 +88,7 @@ def _targets(mesh, name: str, description: str, positions, labels=()) -> Targets
     if len(positions) == 0:
         raise MeshError(f"no targets: {description}")
     loc = locate_points(mesh, positions)
-    labels = tuple(labels) or tuple(f"T{i + 1}" for i in range(len(positions)))
+    labels = tuple(labels) or tuple(f"T{i}" for i in range(len(positions)))
     return Targets(name, description, positions, labels, mesh.tets[loc.tets], loc.weights)
 
 
@@ -126,7 +126,7 @@ def interior_targets(mesh, count: int = 10, depth: float = 0.0, exclude=()) -> T
         first = int(np.argmin(np.linalg.norm(mesh.points[free] - mesh.points[free].mean(axis=0), axis=1)))
         ids = free[farthest_points(mesh.points[free], count, first)]
         return _targets(mesh, "interior", f"{ids.size} vertices (k-center; the mesh has no free interior vertex)",
-                        mesh.points[ids], [f"T{i + 1} (vertex {v})" for i, v in enumerate(ids)])
+                        mesh.points[ids], [f"T{i} (vertex {v})" for i, v in enumerate(ids)])
     d = surface_depth(mesh, inner)
     least = depth if depth > 0 else DEPTH_FRACTION * float(d.max())
     keep = d >= least
@@ -136,7 +136,7 @@ def interior_targets(mesh, count: int = 10, depth: float = 0.0, exclude=()) -> T
     cand = inner[keep]
     ids = cand[farthest_points(mesh.points[cand], count, int(np.argmax(d[keep])))]
     return _targets(mesh, "interior", f"{ids.size} interior points (k-center, >= {least:.1f} mm from the surface)",
-                    mesh.points[ids], [f"T{i + 1} (vertex {v})" for i, v in enumerate(ids)])
+                    mesh.points[ids], [f"T{i} (vertex {v})" for i, v in enumerate(ids)])
 
 
 def vertex_targets(mesh, ids, name: str) -> Targets:
