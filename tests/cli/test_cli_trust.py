@@ -37,6 +37,11 @@ def test_plan_count_writes_files_and_respects_spacing(store, capsys):
     rows = list(csv.DictReader((folder / "pm.csv").open()))
     assert [int(r["vertex_id_0based"]) for r in rows] == ids
     assert (folder / "pm.vtu").is_file()
+    from tissuecast.slicer.markups import read_markups  # the planned markers, ready for Slicer
+
+    lists = {m.name: m for m in read_markups(folder / "pm.mrk.json")}
+    np.testing.assert_allclose(lists["FiducialMarkers"].positions, ds.mesh.points[ids], atol=1e-9)
+    assert list(lists["FiducialMarkers"].labels) == ["M0", "M1", "M2"]
 
 
 def test_plan_target_allowed_mask_and_errors(store, capsys, tmp_path):

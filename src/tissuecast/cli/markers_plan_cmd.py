@@ -3,8 +3,9 @@
 Chooses marker vertices from how the tissue moved in the store's simulations ('train'
 split selects, 'valid' scores; see :mod:`tissuecast.planning`), either ``--count N`` of them
 or the fewest that reach ``--target-mm`` on validation. Writes ``PREFIX.json`` (the plan,
-its error curve, 0-based ids), ``PREFIX.csv`` and ``PREFIX.vtu`` (the markers, like
-``tissuecast markers``) and with ``--png`` a picture. Use the ids for training with
+its error curve, 0-based ids), ``PREFIX.csv``, ``PREFIX.vtu`` and ``PREFIX.mrk.json`` (3D Slicer
+markups, LPS: the markers ``M0``.. and the store's fixed vertices, like ``tissuecast markers``)
+and with ``--png`` a picture. Use the ids for training with
 ``[markers] ids = [...]`` in the config.
 """
 
@@ -111,9 +112,10 @@ def run(args) -> int:
     ids = plan.markers
     written.append(write_point_set(prefix.with_name(prefix.name + ".vtu"), mesh.points[ids],
                                    {"vertex_id": ids.astype(np.int64), "order": np.arange(len(ids), dtype=np.int32)}))
-    if args.png:
-        from .markers_cmd import render_markers_png
+    from .markers_cmd import render_markers_png, write_markers_markups
 
+    written.append(write_markers_markups(prefix.with_name(prefix.name + ".mrk.json"), mesh, ids, np.asarray(ds.fixed)))
+    if args.png:
         written.append(render_markers_png(prefix.with_name(prefix.name + ".png"), mesh, ids, np.asarray(ds.fixed)))
     print(f"planned markers ({plan.count}): {ids.tolist()}")
     print(f"train with them: put `ids = {ids.tolist()}` in the [markers] section of the config")
