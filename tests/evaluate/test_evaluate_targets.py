@@ -184,3 +184,20 @@ def test_tre_and_share_corrected_closed_forms():
     s = summarize_targets(np.vstack([tre, [[np.nan] * 3]]), np.r_[moved, 1.0])
     assert s.count == 3 and s.tre_mean == pytest.approx(0.25) and s.tre_max == pytest.approx(1.0)
     assert s.share_corrected_mean == pytest.approx(0.9) and s.share_corrected_worst == pytest.approx(0.8)
+
+
+def test_targets_refuse_arrays_of_the_wrong_shape(mesh):
+    from tissuecast.errors import MeshError
+    from tissuecast.evaluate.targets import point_targets
+
+    t = interior_targets(mesh, count=4)
+    u = np.zeros((mesh.n_vertices, 3))
+    assert t.displacements(u).shape == (4, 3) and t.displacements(u[None]).shape == (1, 4, 3)
+    for bad in (u.ravel(), u[:100], np.zeros((mesh.n_vertices, 2))):
+        with pytest.raises(MeshError, match=r"vertex fields \(n, 3\) or \(B, n, 3\) mm"):
+            t.displacements(bad)
+    with pytest.raises(MeshError, match="must be \\(k, 3\\) or \\(3,\\)"):
+        point_targets(mesh, np.zeros((2, 2)))
+    with pytest.raises(MeshError, match="transposed"):
+        point_targets(mesh, t.positions[:4].T[:, :4])
+    assert point_targets(mesh, t.positions[0]).count == 1

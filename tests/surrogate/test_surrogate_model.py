@@ -162,6 +162,8 @@ def test_rigid_and_ridge_methods_of_predict(model, data):
         with pytest.raises(ModelError, match="this model reads the markers only"):
             model.predict_from_positions(model.reference_marker_positions + d, auxiliary=given)
     np.testing.assert_array_equal(model.predict(d, auxiliary={}), model.predict(d))
+    with pytest.raises(ModelError, match="no sample to predict: .* a batch of 0"):
+        model.predict(np.zeros((0, len(MARKERS), 3)))
 
 
 def test_onnx_equals_numpy(model, data, tmp_path):

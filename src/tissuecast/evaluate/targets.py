@@ -74,8 +74,15 @@ class Targets:
         return len(self.positions)
 
     def displacements(self, fields) -> np.ndarray:
-        """Vertex fields (n, 3) or (B, n, 3) mm read at the targets: (k, 3) or (B, k, 3) mm."""
+        """Vertex fields (n, 3) or (B, n, 3) mm read at the targets: (k, 3) or (B, k, 3) mm.
+
+        Raises:
+            MeshError: fields of another shape, or of fewer vertices than the targets' mesh.
+        """
         f = np.asarray(fields, dtype=np.float64)
+        if f.ndim not in (2, 3) or f.shape[-1] != 3 or f.shape[-2] <= int(self.corners.max()):
+            raise MeshError(f"target displacements need vertex fields (n, 3) or (B, n, 3) mm of the targets' mesh "
+                            f"(at least {int(self.corners.max()) + 1} vertices), got shape {f.shape}")
         return np.einsum("kj,...kjd->...kd", self.weights, f[..., self.corners, :])
 
     def as_dict(self) -> dict:
@@ -147,8 +154,16 @@ def vertex_targets(mesh, ids, name: str) -> Targets:
 
 
 def point_targets(mesh, positions, labels=(), name: str = "points") -> Targets:
-    """Listed points (k, 3) LPS mm as targets; each must lie inside the mesh."""
-    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    """Listed points (k, 3) or (3,) LPS mm as targets; each must lie inside the mesh.
+
+    Raises:
+        MeshError: positions of another shape, or a point outside the mesh.
+    """
+    positions = np.asarray(positions, dtype=np.float64)
+    if positions.shape != (3,) and (positions.ndim != 2 or positions.shape[1] != 3):
+        raise MeshError(f"target points must be (k, 3) or (3,) LPS mm, got shape {positions.shape}"
+                        + (" (transposed? give one row per point)" if positions.ndim == 2 and positions.shape[0] == 3 else ""))
+    positions = positions.reshape(-1, 3)
     return _targets(mesh, name, f"{len(positions)} listed points ({name})", positions, labels)
 
 

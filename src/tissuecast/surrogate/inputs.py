@@ -26,7 +26,7 @@ def marker_batch(marker_displacements, n_d: int, missing=None, masked: bool = Fa
         ``(d (B, 3 n_d) float64 with missing entries zeroed, missing (B, n_d) bool or None, single)``.
 
     Raises:
-        ModelError: wrong shape, NaN/inf in tracked markers, missing markers for a model
+        ModelError: wrong shape, an empty batch, NaN/inf in tracked markers, missing markers for a model
             trained without masking, or every marker missing.
         InputRejected: the gate refused the input.
     """
@@ -46,6 +46,8 @@ def marker_batch(marker_displacements, n_d: int, missing=None, masked: bool = Fa
             f"marker displacements must have shape ({3 * n_d},), ({n_d}, 3), (B, {n_d}, 3) or (B, {3 * n_d}) "
             f"for this model's {n_d} markers (mm), got {s}"
         )
+    if d.shape[0] == 0:
+        raise ModelError(f"no sample to predict: marker displacements of shape {s} hold a batch of 0")
     miss = None
     if missing is not None:
         miss = missing_mask(missing, d.shape[0], n_d)

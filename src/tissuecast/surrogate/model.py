@@ -637,7 +637,9 @@ class DeformationModel(FieldPredictor):
         export_onnx(self._learned(fallback, expert), path)
 
     def torch_module(self, *, fallback: bool = False, expert: str | None = None):
-        """The equivalent torch module (float32), see :func:`tissuecast.surrogate.network.torch_network`;
+        """The equivalent torch module, see :func:`tissuecast.surrogate.network.torch_network`: it
+        takes float32 tensors with a batch axis, (B, n_d, 3) marker displacements mm (and the
+        inputs :meth:`export_onnx` lists), and checks nothing (no gate, bounds or alarm);
         ``fallback`` and ``expert`` as in :meth:`export_onnx`."""
         return self._learned(fallback, expert).torch_module()
 
