@@ -9,7 +9,8 @@ def register(sub) -> None:
     p = sub.add_parser("config", help="show the effective configuration")
     csub = p.add_subparsers(dest="config_command", metavar="ACTION", required=True)
     show = csub.add_parser("show", help="print the effective config (defaults = the paper's values)")
-    show.add_argument("file", nargs="?", help="TOML config file or a packaged preset (embedded, paper, quick); omitted = defaults; "
+    show.add_argument("file", nargs="?", help="TOML config file or a packaged preset (embedded, paper, quick); omitted = "
+                      "defaults; "
                       "or a data-set store directory: the config it was made with")
     show.add_argument("--no-comments", action="store_true", help="omit the explanatory comments")
     show.set_defaults(func=run)

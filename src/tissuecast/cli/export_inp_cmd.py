@@ -35,7 +35,8 @@ def register(sub) -> None:
     p.add_argument("mesh", help="mesh file (any format tissuecast reads), 'phantom' for the built-in phantom, or a "
                    "data-set store (.zarr folder) whose sample --sample to write")
     p.add_argument("out", help="output .inp file")
-    p.add_argument("--config", metavar="FILE", help="TOML config or a packaged preset (markers, fixed vertices, material, solver order)")
+    p.add_argument("--config", metavar="FILE",
+                   help="TOML config or a packaged preset (markers, fixed vertices, material, solver order)")
     p.add_argument("--forces", metavar="FILE", help="(n, 3) nodal forces in N: .npy, or .csv with 3 columns "
                    "(one row per vertex, 0-based order); default: a random smooth LBO example field")
     p.add_argument("--order", type=int, choices=(1, 2), help="element order (default: the config's solver.order)")

@@ -38,7 +38,8 @@ def register(sub) -> None:
     )
     p.add_argument("mesh", nargs="?", help=f"mesh file, or '{PHANTOM_WORD}' (default: mesh.path of the config, else the phantom)")
     p.add_argument("--config", metavar="TOML",
-                   help="config file or a packaged preset (its [mesh] and [markers] sections, and [scenario]'s pins and attached region, are used)")
+                   help="config file or a packaged preset (its [mesh] and [markers] sections, and [scenario]'s pins and "
+                        "attached region, are used)")
     p.add_argument("--units", choices=sorted(UNITS), help="length unit of the mesh file (default mm)")
     p.add_argument("--mesh-size", type=float, default=None, metavar="MM", help="edge length when MESH is a surface")
     p.add_argument("--count", type=int, help=f"number of markers n_d (default {d.count})")

@@ -11,10 +11,10 @@ Output: .vtu (undeformed mesh + displacement point data; one file per sample for
 .vtk (deformed mesh) or .vtp (deformed outer surface) as 3D Slicer models in LPS with
 ``displacement_mm`` point data, .csv (sample, vertex, ux_mm, uy_mm, uz_mm[, uncertainty_mm][,
 error_bound_mm][, alarm_raised]) or .json (LPS mm: ``displacement_mm``, ``uncertainty_mm``,
-``error_bound_mm``, ``error_bound_coverage``, ``alarms``). Vertex ids are 0-based. Marker input no simulation could have produced (a marker
-not a finite number, displaced far beyond its largest simulated displacement, or markers at
-distances the body cannot take) is refused with one error line naming the marker, exit
-status 2. With a calibrated model (surrogate.calibration 'split', the default, or
+``error_bound_mm``, ``error_bound_coverage``, ``alarms``). Vertex ids are 0-based. Marker input
+no simulation could have produced (a marker not a finite number, displaced far beyond its
+largest simulated displacement, or markers at distances the body cannot take) is refused with
+one error line naming the marker, exit status 2. With a calibrated model (surrogate.calibration 'split', the default, or
 'cross-validation') every vertex gets its conformal error bound
 (``error_bound_mm`` point data / column: the error is below it with probability
 --coverage) and each sample's out-of-distribution alarm is printed.

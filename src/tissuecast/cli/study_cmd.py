@@ -25,7 +25,8 @@ def _ints(text: str) -> list[int]:
 
 
 def register(sub) -> None:
-    p = sub.add_parser("study", help="studies: hidden layers, number of markers, PCA size; a model against mismatched simulations",
+    p = sub.add_parser("study", help="studies: hidden layers, number of markers, PCA size; a model against mismatched "
+                                     "simulations",
                        description="Train on the store's train split and measure test-1 accuracy; writes study_NAME.csv "
                                    "and study_NAME.png into --out (default: the run's report folder), which "
                                    "`tissuecast evaluate` then includes in the report.")

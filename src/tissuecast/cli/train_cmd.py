@@ -12,7 +12,8 @@ def register(sub) -> None:
                                    "surrogate.n_components is set), the ridge baseline and the MLP on the store's "
                                    "train split (valid split for checkpointing), "
                                    "and save the model folder (weights, PCA basis, mesh, metadata, ONNX).")
-    p.add_argument("source", nargs="?", help="TOML config file, a packaged preset or a data-set store directory (default: defaults)")
+    p.add_argument("source", nargs="?",
+                   help="TOML config file, a packaged preset or a data-set store directory (default: defaults)")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
     p.add_argument("--out", help="model folder (default: OUTPUT/model of the config)")
     p.add_argument("--hidden", type=int, nargs="+", help="hidden layer widths (default: surrogate.hidden)")

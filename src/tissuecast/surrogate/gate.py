@@ -192,7 +192,8 @@ class InputGate:
         else:
             text = (f"marker input refused: {self._name(j)} is displaced {np.linalg.norm(dj[j]):.4g} mm, more than "
                     f"{DISPLACEMENT_FACTOR:g} x the largest simulated displacement of that marker "
-                    f"({self.max_displacement[j]:.3g} mm): {self._mix_up(dj) or 'a tracking glitch, a unit error or a slipped marker?'}")
+                    f"({self.max_displacement[j]:.3g} mm): "
+                    f"{self._mix_up(dj) or 'a tracking glitch, a unit error or a slipped marker?'}")
         return GateVerdict(True, reason, j, int(self.markers[j]), text)
 
     def _mix_up(self, dj: np.ndarray) -> str:
