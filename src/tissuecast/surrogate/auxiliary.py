@@ -99,6 +99,19 @@ class AuxiliaryInputs:
         return AuxiliaryInputs((), self.parameters)
 
     # ------------------------------------------------------------------ values
+    def refuse_unread(self, given) -> None:
+        """Refuse auxiliary inputs given to a model that reads none (``given`` None, an empty
+        mapping or an empty array pass): a caller must not believe a pose or parameter is used.
+
+        Raises:
+            ModelError: naming the fix.
+        """
+        if self.width or given is None or (len(given) == 0 if isinstance(given, Mapping) else np.size(given) == 0):
+            return
+        raise ModelError("this model reads the markers only; auxiliary inputs (instrument poses, measured parameters) "
+                         "need a model trained with [[scenario.instruments]] or scenario.uncertain.measured: drop "
+                         "auxiliary=")
+
     def batch(self, given, batch: int) -> np.ndarray | None:
         """The (B, n_a) float64 inputs of ``batch`` samples from what a caller gives.
 
@@ -111,19 +124,16 @@ class AuxiliaryInputs:
 
         Returns:
             The inputs (absent instruments' columns NaN), or None for a model without
-            auxiliary inputs (``given`` None, an empty mapping or an empty array).
+            auxiliary inputs (``given`` is then ignored: a composed model hands its inputs to
+            parts that read none, e.g. the rigid baseline; :meth:`refuse_unread` is the
+            public API's check).
 
         Raises:
             ModelError: wrong shape, unknown names, a missing parameter, NaN outside the
-                instruments' columns, a partly given instrument, or inputs given to a model
-                that reads the markers only.
+                instruments' columns, or a partly given instrument.
         """
         if not self.width:
-            if given is None or (len(given) == 0 if isinstance(given, Mapping) else np.size(given) == 0):
-                return None
-            raise ModelError("this model reads the markers only; auxiliary inputs (instrument poses, measured "
-                             "parameters) need a model trained with [[scenario.instruments]] or "
-                             "scenario.uncertain.measured: drop auxiliary=")
+            return None
         if given is None:
             given = {}
         if isinstance(given, Mapping):

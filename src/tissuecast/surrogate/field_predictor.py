@@ -109,7 +109,7 @@ class FieldPredictor(ABC):
 
     def auxiliary_batch(self, given, batch: int) -> np.ndarray | None:
         """Checked auxiliary inputs (B, n_a) float64 (:meth:`.auxiliary.AuxiliaryInputs.batch`),
-        or None for a predictor without them (which refuses inputs given to it)."""
+        or None for a predictor without them (``given`` is then ignored)."""
         return self.auxiliary.batch(given, batch)
 
     def predict(self, marker_displacements, *, missing=None, auxiliary=None) -> np.ndarray:

@@ -413,11 +413,13 @@ class DeformationModel(FieldPredictor):
                 in ``model.auxiliary.names`` order. Poses are in the model frame (LPS, mm). An
                 instrument left out, None or NaN is absent (tracking lost): the sample is
                 predicted by the fallback fitted without instruments. None = every instrument
-                absent (a model with measured parameters needs them). Rigid and ridge ignore it.
+                absent (a model with measured parameters needs them). Rigid and ridge ignore it; a
+                markers-only model refuses it (ModelError) rather than ignore it.
 
         Returns:
             (n, 3) float64 mm for one sample, (B, n, 3) for a batch.
         """
+        self.auxiliary.refuse_unread(auxiliary)
         return self.predictor(method).predict(marker_displacements, missing=missing, auxiliary=auxiliary)
 
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
@@ -441,6 +443,7 @@ class DeformationModel(FieldPredictor):
             ModelError: the model has no trust layer (trained with calibration = "none", or too few samples).
         """
         self._need_trust()
+        self.auxiliary.refuse_unread(auxiliary)
         return self._trusted.predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm,
                                              auxiliary=auxiliary, alarm=alarm)
 
@@ -453,6 +456,7 @@ class DeformationModel(FieldPredictor):
             ModelError: the model has no trust layer.
         """
         self._need_trust()
+        self.auxiliary.refuse_unread(auxiliary)
         return self._trusted.alarms(marker_displacements, false_alarm=false_alarm, auxiliary=auxiliary)
 
     def _need_trust(self) -> None:
@@ -498,6 +502,7 @@ class DeformationModel(FieldPredictor):
         The positions must be in the model's (mesh) coordinate frame; the reference
         (undeformed) marker positions are subtracted. ``method`` and ``auxiliary`` as in :meth:`predict`.
         """
+        self.auxiliary.refuse_unread(auxiliary)
         return self.predictor(method).predict_from_positions(positions, missing=missing, auxiliary=auxiliary)
 
     def predict_ridge(self, marker_displacements) -> np.ndarray:
@@ -524,6 +529,7 @@ class DeformationModel(FieldPredictor):
         (:meth:`NetworkPredictor.predict_with_uncertainty <.network_predictor.NetworkPredictor.predict_with_uncertainty>`):
         ``(u (n, 3) or (B, n, 3) mm, sigma (n,) or (B, n) mm)``. Needs ``ensemble >= 2``;
         ``auxiliary`` as in :meth:`predict`."""
+        self.auxiliary.refuse_unread(auxiliary)
         return self.predictor("mlp").predict_with_uncertainty(marker_displacements, missing=missing,
                                                               auxiliary=auxiliary)
 
