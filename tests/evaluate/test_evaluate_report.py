@@ -1,6 +1,7 @@
 """Evaluation of a model on a data set and the HTML report (synthetic in-memory data set)."""
 
 import csv
+import html
 import json
 
 import numpy as np
@@ -128,7 +129,15 @@ def test_report_is_written(tmp_path, model, ds, evaluation):
     # the first screen: the verdict, how good against what, how sure; the details fold away below
     head, _, rest = page.partition("<section id='tc-viewer'")
     assert "class='tc-verdict'" in head and "How good, against what (test-1, 30 samples)" in head
-    assert "error at 10 targets (TRE): mean / p95 / max" in head and "How sure" in head
+    assert "error at 10 targets (TRE): per-sample mean / p95 / max, averaged over samples" in head
+    assert "How sure" in head and "worst sample: Offset_max / worst target error" in head
+    worst = evaluation.sets["test1"].target_summary("mlp").worst_tre_max
+    from tissuecast.evaluate.headline import fmt_mm
+
+    assert html.escape(f"{fmt_mm(evaluation.sets['test1'].mlp.worst_offset_max, False)} / {fmt_mm(worst)}") in head
+    assert "finite-element simulations with exact (noise-free) marker displacements" in head  # not a patient figure
+    assert "Offset_max: a sample's largest error over every mesh vertex" in head  # the terms explained
+    assert page.count("<div class='tc-wide'><table") == page.count("<table")  # no table widens the page
     assert "90 % error bounds: share of vertices covered (test-1)" in head and "<details" not in head
     assert "<td>off</td><td>too few calibration samples" in head  # 30 calibration samples: no finite 1 % alarm
     t1 = evaluation.sets["test1"]
@@ -141,6 +150,12 @@ def test_report_is_written(tmp_path, model, ds, evaluation):
     assert q is not None and f"quadratic head (q = {q}) + MLP [" in page and "x 2" in page
     for png in ("boxplots.png", "beta.png", "training.png"):
         assert (tmp_path / "rep" / png).stat().st_size > 1000 and png in page
+    def strict(constant):  # what JavaScript's JSON.parse refuses
+        raise AssertionError(f"{constant} in a report JSON file")
+
+    for name in ("evaluation.json", "trust.json"):
+        if (tmp_path / "rep" / name).is_file():
+            json.loads((tmp_path / "rep" / name).read_text(), parse_constant=strict)
     data = json.loads((tmp_path / "rep" / "evaluation.json").read_text())
     assert data["sets"]["test1"]["mlp"]["offset_max"] == pytest.approx(evaluation.sets["test1"].mlp.offset_max)
     assert data["sets"]["test1"]["rigid"]["offset_max"] == pytest.approx(evaluation.sets["test1"].rigid.offset_max)
@@ -278,3 +293,24 @@ def test_a_sample_the_gate_refuses_is_evaluated_and_counted(model, ds, tmp_path)
     assert write_report(tmp_path / "rep", model, bent, ev, renders=0).is_file()
     with pytest.raises(InputRejected):
         model.predict(d)
+
+
+def test_report_json_writes_what_is_not_a_number_as_null():
+    from tissuecast.evaluate import json_output
+
+    text = json_output.dumps({"a": float("nan"), "b": [np.float32(1.5), np.inf, -np.inf], "c": np.arange(2),
+                              "d": np.bool_(True), "e": {"f": np.float64("nan")}})
+    assert json.loads(text) == {"a": None, "b": [1.5, None, None], "c": [0, 1], "d": True, "e": {"f": None}}
+
+
+def test_the_how_sure_table_says_when_the_bounds_do_not_hold_on_other_force_fields():
+    from tissuecast.evaluate.headline import TEST2_COVERAGE_WARNING, trust_rows
+
+    def sets(test2_coverage):
+        one = {"coverage_0.9": 0.9, "median_bound_0.9": 0.5, "alarm_rate": 0.01}
+        return {"sets": {"test1": one, "test2": {**one, "coverage_0.9": test2_coverage, "alarm_rate": 0.065}}}
+
+    low = trust_rows(sets(0.672))[-1][2]
+    assert low.startswith("bounds cover 67.2 % there: the bounds do not hold for force fields unlike the training's")
+    assert "93.5 % of those samples raise no alarm" in low
+    assert trust_rows(sets(TEST2_COVERAGE_WARNING + 0.05))[-1][2] == "bounds cover 85 % there"

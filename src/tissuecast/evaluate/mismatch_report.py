@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import html
 import json
+import math
 from pathlib import Path
 
 import numpy as np
 
 from .headline import DASH, fmt_alarm, fmt_mm, fmt_ratio, fmt_share, html_table
+from . import json_output
 from .mismatch import PHYSICS, PHYSICS_KNOWN
 
 #: How the physics rows' field was chosen (the study's ``physics_estimate``; studies before it was
@@ -60,7 +62,7 @@ def write_mismatch(folder, rows: list[dict], meta: dict) -> tuple[Path, Path]:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / MISMATCH_JSON
-    path.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1, default=float), encoding="utf-8")
+    path.write_text(json_output.dumps({"meta": meta, "rows": rows}, indent=1, default=float), encoding="utf-8")
     return path, write_rows(folder / "study_mismatch.csv", [{k: v for k, v in r.items() if k != "what"} for r in rows])
 
 
@@ -100,7 +102,8 @@ def mismatch_section(studies_folder: Path, folder: Path) -> str | None:
     if not src.is_file():
         return None
     data = json.loads(src.read_text(encoding="utf-8"))
-    rows, meta = data["rows"], data.get("meta", {})
+    rows = [{k: math.nan if v is None else v for k, v in r.items()} for r in data["rows"]]  # null: not measured
+    meta = data.get("meta", {})
     png = mismatch_figure(rows, Path(folder) / MISMATCH_PNG)
     intro = (f"<p>Each model evaluated on test sets simulated with one thing different from its training simulator "
              f"({html.escape(str(meta.get('samples', '')))} samples a set, the same loads: alpha "

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import csv
 import html
-import json
 import logging
 from pathlib import Path
 
@@ -31,6 +30,7 @@ import numpy as np
 
 from ..config import EvaluateConfig
 from . import figures
+from . import json_output
 from .evaluation import METHOD_LABELS, auxiliary_values, method_fields
 from .headline import HEADLINE_METHODS, beta_table, headline_rows, headline_set, html_table, set_title, trust_rows, verdict
 from .render import render_comparison, write_vtu
@@ -50,7 +50,8 @@ h1{font-size:1.5em;margin:.2em 0}h2{font-size:1.2em;margin:.9em 0 .4em}h3{font-s
 .tc-sub{color:#56606b;margin:0 0 .6em}.tc-verdict{font-size:1.08em;background:#f3f6f9;border-left:4px solid #2a6fb0;
 padding:.6em .9em;margin:.6em 0}
 table{border-collapse:collapse;margin:.5em 0 1em}td,th{border-bottom:1px solid #d5dbe1;padding:4px 10px;text-align:right}
-th{background:#eef1f4;font-weight:600}td:first-child,th:first-child{text-align:left}td:not(:first-child){white-space:nowrap}
+th{background:#eef1f4;font-weight:600}td:first-child,th:first-child{text-align:left}
+.tc-wide{overflow-x:auto;max-width:100%}table.tc-headline td:not(:first-child){white-space:nowrap}
 table.tc-sure td:last-child,table.tc-sure th:last-child{text-align:left;white-space:normal}
 table.tc-headline td:nth-child(2),table.tc-headline th:nth-child(2){background:#e8f1fb;font-weight:600}
 img{max-width:100%}details{border-top:1px solid #d5dbe1;padding:.3em 0}summary{cursor:pointer}
@@ -73,7 +74,9 @@ def _header(title: str, model, dataset, evaluation) -> str:
     if routed:
         facts.append(routed)
     return (f"<h1>{html.escape(title)}</h1><p class='tc-sub'>{html.escape(' · '.join(str(f) for f in facts))}. "
-            "Units: mm; frame LPS; vertex ids 0-based.</p>")
+            "Units: mm; frame LPS; vertex ids 0-based. Every figure below is measured on this data set's finite-element "
+            "simulations with exact (noise-free) marker displacements: it says how well the model learned its "
+            "simulator, not how far it is from a patient.</p>")
 
 
 def _headline(evaluation, trust: dict | None, model) -> str:
@@ -90,8 +93,14 @@ def _headline(evaluation, trust: dict | None, model) -> str:
                  .replace("<table>", "<table class='tc-sure'>", 1))
     parts.append("<p class='tc-note'>Rigid registration: the best rotation and translation of the markers onto their "
                  "tracked positions, applied to the whole mesh (what a navigation system does with fiducials alone). "
+                 "Offset_max: a sample's largest error over every mesh vertex (the worst vertex, interior ones "
+                 "included); Offset_mean: its mean over the vertices. "
                  "TRE: error at the targets, points inside the tissue; share corrected: 1 − TRE / the targets' true "
-                 "displacement, per sample.</p>")
+                 "displacement, per sample (negative: worse than not correcting at all). Test-2: samples under other "
+                 "kinds of force fields than the training's (β from 0, unlike them, to 1, like them). The alarm's "
+                 "reasons: far (inputs unlike every simulated one), disagree (markers inconsistent with each "
+                 "other), still marker (a marker that did not move where every simulation moved it), swapped "
+                 "markers (two markers that look exchanged).</p>")
     return "".join(parts)
 
 
@@ -134,7 +143,7 @@ def _read_csv(path: Path) -> list[dict]:
 
 def _write_tables(folder: Path, evaluation) -> None:
     """``evaluation.json`` (every number of the page) and ``samples.csv`` (per-sample figures)."""
-    (folder / "evaluation.json").write_text(json.dumps(evaluation.as_dict(), indent=2, default=float), encoding="utf-8")
+    (folder / "evaluation.json").write_text(json_output.dumps(evaluation.as_dict(), indent=2, default=float), encoding="utf-8")
     rows = evaluation.samples_table()
     if rows:
         with (folder / "samples.csv").open("w", newline="") as fh:
@@ -151,10 +160,13 @@ def _detail_sections(evaluation) -> list[str]:
     """Every figure of the evaluation, folded: the paper comparison, per set, the deformations, the scenario."""
     ms = evaluation.model_summary
     paper = html_table(["quantity", *(METHOD_LABELS[m] for m in COLUMNS), "paper"], paper_table(evaluation))
-    paper += ("<p><small>PCA floor: the true field projected on the model's PCA basis, the best any prediction of this "
-              "model can do. Non-rigid part: the largest vertex residual after the best rigid fit of the whole true "
-              "field. Paper: Liu et al. 2020, H&amp;N tumour mesh, Abaqus data set; here: this data set. Times measured "
-              "on this machine. Every number is in evaluation.json, every sample in samples.csv.</small></p>")
+    paper += ("<p><small>PCA floor: the true field projected on the model's PCA basis, the best prediction of this "
+              "model in the least-squares sense (not a bound on Offset_max, which it can exceed). Non-rigid part: "
+              "the largest vertex residual after the best rigid fit of the whole true field. Paper: Liu et al. 2020, "
+              "H&amp;N tumour mesh, Abaqus data set, not comparable with this data set's simulations. Training time: "
+              "everything the model's training fits (the calibration's fold models and the markers-only fallback "
+              "included, where there are; a nominal expert's training not), against the paper's network alone. Times measured on this machine. Every number is in "
+              "evaluation.json, every sample in samples.csv.</small></p>")
     scenario = ("<p>How the training data's tissue is held and loaded (the model predicts within this scenario only).</p>"
                 + html_table(["", "what"], [list(row) for row in scenario_lines(ms.get("scenario"))]))
     return [_fold("Measured against the baselines and the paper", paper),
@@ -230,9 +242,10 @@ def _write_report(folder: Path, model, dataset, evaluation, renders: int, studie
         parts.insert(4, mismatch)
     if renders:
         parts.append(_render_section(folder, model, dataset, evaluation, renders))
+    body = "".join(parts).replace("<table", "<div class='tc-wide'><table").replace("</table>", "</table></div>")
     page = (f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
             f"<meta name='viewport' content='width=device-width, initial-scale=1'>"
-            f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>")
+            f"<style>{CSS}</style></head><body>{body}</body></html>")
     index = folder / "index.html"
     index.write_text(page, encoding="utf-8")
     return index

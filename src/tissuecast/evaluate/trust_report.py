@@ -16,7 +16,6 @@ calibrated lengths with a coverage, so they are what the page states; the ensemb
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +23,7 @@ from scipy.stats import spearmanr
 
 from ..surrogate.conformal import reliability_curve, reliability_levels
 from .evaluation import spearman_rows
+from . import json_output
 from .headline import ALARM_REASONS, DASH, beta_table, fmt_alarm, fmt_mm, fmt_share, html_table, set_title
 
 __all__ = ["bound_figures", "trust_evaluation", "reliability_figure", "uncertainty_section", "LEVELS"]
@@ -187,7 +187,7 @@ def uncertainty_section(trusted, evaluation, result: dict | None, folder: Path) 
                      "<code>surrogate.calibration = \"none\"</code> (or <code>calibration_share = 0</code>). Re-train "
                      "with <code>calibration = \"cross-validation\"</code> to get both without holding samples out.</p>")
     else:
-        Path(folder, "trust.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
+        Path(folder, "trust.json").write_text(json_output.dumps(result, indent=2), encoding="utf-8")
         t = trusted.layer
         parts.append(f"<p>Every vertex gets an error bound: the error stays below it with the nominal probability "
                      f"({_calibration_words(t)}). "
