@@ -137,6 +137,7 @@ def test_report_is_written(tmp_path, model, ds, evaluation):
     assert html.escape(f"{fmt_mm(evaluation.sets['test1'].mlp.worst_offset_max, False)} / {fmt_mm(worst)}") in head
     assert "finite-element simulations with exact (noise-free) marker displacements" in head  # not a patient figure
     assert "Offset_max: a sample's largest error over every mesh vertex" in head  # the terms explained
+    assert "<h3>test1 median error (sample " in page  # the sample of median error, not of median displacement
     assert page.count("<div class='tc-wide'><table") == page.count("<table")  # no table widens the page
     assert "90 % error bounds: share of vertices covered (test-1)" in head and "<details" not in head
     assert "<td>off</td><td>too few calibration samples" in head  # 30 calibration samples: no finite 1 % alarm

@@ -38,7 +38,8 @@ def pick_samples(evaluation, count: int) -> list[tuple[str, int, str]]:
         if r is None or not r.indices.size:
             continue
         k = int(np.argmax(r.mlp_max)) if pick == "worst" else int(np.argsort(r.mlp_max)[r.indices.size // 2])
-        label = f"{name} {pick} (sample {int(r.indices[k])}" + (f", β={r.beta[k]:g})" if np.isfinite(r.beta[k]) else ")")
+        label = (f"{name} {pick} error (sample {int(r.indices[k])}"
+                 + (f", β={r.beta[k]:g})" if np.isfinite(r.beta[k]) else ")"))
         out.append((label, int(r.indices[k]), f"{name}_{pick}"))
     return out[:count]
 
