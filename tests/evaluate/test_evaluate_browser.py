@@ -101,3 +101,24 @@ def test_report_loads_draws_and_resolves_every_image(browser, report):
 
 def window_scroll(browser, axis: str) -> float:
     return float(browser.evaluate(f"window.scroll{axis}"))
+
+
+def test_without_the_3d_view_the_report_opens_its_static_renders(browser, report, tmp_path):
+    """Where the viewer cannot draw (here: its data did not load; elsewhere: no WebGL) the page
+    shows no empty frame or dead controls, opens the static renders and says so."""
+    import shutil
+
+    folder = tmp_path / "report"
+    shutil.copytree(report.parent, folder)
+    (folder / "viewer_data.js").write_text("// lost\n")
+    browser.errors.clear()
+    browser.navigate((folder / report.name).as_uri())
+    assert browser.wait_until(f"{VIEWER}.getAttribute('data-drawn')", timeout=30) == "error"
+    for name in ("tc-canvas", "tc-controls", "tc-panels"):
+        assert browser.evaluate(f"getComputedStyle({VIEWER}.querySelector('.{name}')).display") == "none", name
+    assert browser.evaluate("document.getElementById('tc-renders').open") is True
+    message = browser.evaluate(f"{VIEWER}.querySelector('.tc-message').textContent")
+    assert message.startswith("The 3D view cannot be shown here (viewer_data.js did not load). The static renders, "
+                              "opened below")
+    assert any("viewer_data.js did not load" in e for e in browser.errors)  # the error itself stays visible in the console
+    browser.errors.clear()

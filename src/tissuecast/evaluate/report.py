@@ -152,8 +152,9 @@ def _write_tables(folder: Path, evaluation) -> None:
             w.writerows(rows)
 
 
-def _fold(title: str, body: str, open_: bool = False) -> str:
-    return f"<details{' open' if open_ else ''}><summary><h2>{html.escape(title)}</h2></summary>{body}</details>"
+def _fold(title: str, body: str, open_: bool = False, id_: str = "") -> str:
+    ident = f" id='{id_}'" if id_ else ""
+    return f"<details{ident}{' open' if open_ else ''}><summary><h2>{html.escape(title)}</h2></summary>{body}</details>"
 
 
 def _detail_sections(evaluation) -> list[str]:
@@ -206,7 +207,7 @@ def _render_section(folder: Path, model, dataset, evaluation, renders: int) -> s
     for label, png, vtu in _render_samples(folder, model, dataset, evaluation, renders):
         img = f"<img src='{png}' alt='{html.escape(label)}'>" if png else "<p>(render unavailable: no OpenGL)</p>"
         parts.append(f"<h3>{html.escape(label)}</h3>{img}<p><a href='{vtu}'>{vtu}</a></p>")
-    return _fold("Static renders and VTU files", "".join(parts))
+    return _fold("Static renders and VTU files", "".join(parts), id_="tc-renders")  # the viewer opens it without WebGL
 
 
 def write_report(folder, model, dataset, evaluation, *, renders: int = EvaluateConfig.renders, studies_folder=None,

@@ -292,8 +292,16 @@
       root.viewer = new Viewer(root, window.TISSUECAST_VIEW);
     } catch (e) {
       root.setAttribute("data-drawn", "error");
+      ["tc-controls", "tc-panels", "tc-canvas"].forEach(function (name) {  // no empty frame, no dead controls
+        var el = root.querySelector("." + name);
+        if (el) el.style.display = "none";  // not `hidden`: the stylesheet sets their display
+      });
+      var renders = document.getElementById("tc-renders");
+      if (renders) renders.open = true;
       var box = root.querySelector(".tc-message");
-      box.textContent = "The 3D view cannot be shown here (" + e.message + "); the static renders below show the same samples.";
+      box.textContent = "The 3D view cannot be shown here (" + e.message + "). " + (renders ?
+        "The static renders, opened below, show some of the same samples; the VTU files open in ParaView or 3D Slicer." :
+        "Write static renders with `tissuecast evaluate MODEL --renders 3`, or open the VTU files in ParaView.");
       box.hidden = false;
       throw e;
     }
