@@ -166,7 +166,8 @@ def _detail_sections(evaluation) -> list[str]:
               "the largest vertex residual after the best rigid fit of the whole true field. Paper: Liu et al. 2020, "
               "H&amp;N tumour mesh, Abaqus data set, not comparable with this data set's simulations. Training time: "
               "everything the model's training fits (the calibration's fold models and the markers-only fallback "
-              "included, where there are; a nominal expert's training not), against the paper's network alone. Times measured on this machine. Every number is in "
+              "included, where there are; a nominal expert's training not), against the paper's network alone. "
+              "Times measured on this machine. Every number is in "
               "evaluation.json, every sample in samples.csv.</small></p>")
     scenario = ("<p>How the training data's tissue is held and loaded (the model predicts within this scenario only).</p>"
                 + html_table(["", "what"], [list(row) for row in scenario_lines(ms.get("scenario"))]))

@@ -89,8 +89,8 @@ def paper_table(evaluation) -> list[list[str]]:
     ms = evaluation.model_summary
     tr = ms.get("training") or {}
     if tr:
-        rows.append(["training time (all it fits: PCA, head, networks, fold models, fallback)", fmt_time(tr.get("seconds", float("nan"))), *dash[1:],
-                     "1022 s (MLP only)"])
+        rows.append(["training time (all it fits: PCA, head, networks, fold models, fallback)",
+                     fmt_time(tr.get("seconds", float("nan"))), *dash[1:], "1022 s (MLP only)"])
     rows.append(["model", model_description(ms), *dash[1:], "MLP [128, 64] (their Fig. 5)"])
     rule = str((ms.get("pca") or {}).get("rule", "")).split(" (")[0]
     rows.append([f"PCA components n_w{' (' + rule + ' rule)' if rule else ''}", str(ms["n_components"]), *dash[1:], "27"])
