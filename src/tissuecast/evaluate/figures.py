@@ -69,7 +69,7 @@ def beta_curve(evaluation, path: Path) -> Path:
     """Test-2 mean Offset_max / Offset_mean versus beta for every method, paper points."""
     plt = pyplot()
     b = np.array([x for x, _ in evaluation.by_beta])
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = plt.subplots(figsize=(8.5, 4.5))
     for col, ls, name in ((1, "-", "max"), (0, "--", "mean")):
         for m, (short, c) in _STYLE.items():
             ax.plot(b, [np.nanmean(r.offsets[m][:, col]) for _, r in evaluation.by_beta], "o" + ls, ms=4, color=c,
@@ -79,7 +79,7 @@ def beta_curve(evaluation, path: Path) -> Path:
     ax.set_ylabel("mean over samples (mm)")
     ax.set_yscale("log")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, ncol=2)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # beside the axes: no line hidden
     return save_figure(fig, path)
 
 

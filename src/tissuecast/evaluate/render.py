@@ -73,12 +73,14 @@ def render_comparison(path: Path, mesh, benchmark: np.ndarray, predicted: np.nda
         else:
             surf.point_data[bar] = scal
             p.add_mesh(surf, scalars=bar, cmap="viridis" if k == 1 else "inferno", clim=None if k == 1 else clim,
-                       scalar_bar_args={"title": bar, "vertical": False, "title_font_size": 12, "label_font_size": 10})
+                       scalar_bar_args={"title": bar, "vertical": False, "title_font_size": 14, "label_font_size": 12,
+                                        "n_labels": 2, "fmt": "%.3g", "height": 0.12, "width": 0.6,
+                                        "position_x": 0.2, "position_y": 0.03})
             p.add_mesh(_surface(pv, mesh, None), style="wireframe", color="grey", opacity=0.15)
         if markers is not None and len(markers):
             pts = np.asarray(mesh.points)[markers] + (0.0 if u is None else u[markers])
             p.add_points(pts, color="red", point_size=10, render_points_as_spheres=True)
-        p.add_text(label if k else f"{title}: {label}", font_size=9)
+        p.add_text(label if k else f"{title}: {label}", font_size=11)
     p.link_views()
     p.view_isometric()
     p.screenshot(str(path))

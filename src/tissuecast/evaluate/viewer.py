@@ -120,5 +120,7 @@ def write_viewer(folder: Path, model, dataset, evaluation, count: int = VIEWER_S
             "<p class='tc-note'>Left: the true (FEM) deformed surface, coloured by displacement; right: the prediction from "
             "the markers (red), coloured by its error. Drag to rotate, wheel to zoom, double-click to reset; the "
             "displacement slider exaggerates the motion.</p>"
-            f"{_CONTROLS}{panels}<canvas class='tc-canvas'></canvas><p class='tc-message' hidden></p>"
+            f"{_CONTROLS}{panels}<canvas class='tc-canvas' role='img' aria-label='3D view: left the true (FEM) "
+            "deformed surface coloured by displacement, right the predicted one coloured by its error; the samples "
+            "and their figures are in the tables and the static renders'></canvas><p class='tc-message' hidden></p>"
             "<script src='viewer_data.js'></script><script src='viewer.js'></script></section>")
