@@ -85,8 +85,8 @@ def test_predict_outputs(tmp_path, suffix):
     u = model.predict(d)
     mesh = model.mesh
     if suffix == ".vtu":  # the undeformed mesh with the field
-        seen = read_everywhere(out, mesh.points, ("displacement",))
-        np.testing.assert_allclose(seen["meshio"].point_data["displacement"], u, atol=1e-9)
+        seen = read_everywhere(out, mesh.points, ("displacement_mm",))
+        np.testing.assert_allclose(seen["meshio"].point_data["displacement_mm"], u, atol=1e-9)
     elif suffix == ".vtk":  # the deformed mesh
         seen = read_everywhere(out, mesh.points + u, ("displacement_mm",))
         np.testing.assert_allclose(seen["meshio"].point_data["displacement_mm"], u, atol=1e-9)

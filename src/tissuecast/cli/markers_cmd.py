@@ -104,8 +104,8 @@ def run(args) -> int:
     inside = [k for k, i in enumerate(markers) if int(i) not in surface]
     if inside:
         print(f"note: marker(s) {inside} are interior vertices: an optical tracker cannot see them (ultrasound or CT "
-              "can); `tissuecast markers plan STORE` (surface candidates by default) or [markers] rule = 'planned' "
-              "chooses surface markers from the simulations, --ids gives your own")
+              "can); `tissuecast markers plan STORE` chooses surface markers from the simulations (as a run does "
+              "where the config plans them), --ids gives your own")
     if mc.rule == "planned" and not mc.ids:
         print("note: markers.rule = 'planned': these are the k-center markers the data set records; the model's "
               "markers are planned from the simulations when it is trained (model/markers_plan.json), or now with "
