@@ -124,7 +124,7 @@ def load_run_config(path: str | Path | None = None) -> Config:
 
     if path is not None and not Path(path).is_file():
         if str(path) in preset_names():
-            return preset_config(str(path))
+            return check_config(preset_config(str(path)))
         if not Path(path).exists():
             raise ConfigError(f"config file {str(path)!r} does not exist and is no packaged preset; check the path, or "
                               f"name a preset: {', '.join(preset_names())} (`tissuecast config show NAME` prints one)")

@@ -13,10 +13,11 @@ def preset_names() -> list[str]:
 
 
 def preset_config(name: str):
-    """The packaged preset ``tissuecast/configs/NAME.toml`` as a Config."""
+    """The packaged preset ``tissuecast/configs/NAME.toml`` as a Config (its values checked by
+    :mod:`tissuecast.config`; :func:`.configuration.load_run_config` and whole runs check its
+    paths)."""
     from importlib import resources
 
-    from .configuration import check_config
     from ..config import ConfigError, config_from_dict
 
     import tomllib
@@ -24,4 +25,4 @@ def preset_config(name: str):
     res = resources.files("tissuecast") / "configs" / f"{name}.toml"
     if not res.is_file():
         raise ConfigError(f"no packaged preset {name!r}; use one of {', '.join(preset_names())}")
-    return check_config(config_from_dict(tomllib.loads(res.read_text(encoding="utf-8"))))
+    return config_from_dict(tomllib.loads(res.read_text(encoding="utf-8")))
