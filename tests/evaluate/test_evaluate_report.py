@@ -315,3 +315,21 @@ def test_the_how_sure_table_says_when_the_bounds_do_not_hold_on_other_force_fiel
     assert low.startswith("bounds cover 67.2 % there: the bounds do not hold for force fields unlike the training's")
     assert "93.5 % of those samples raise no alarm" in low
     assert trust_rows(sets(TEST2_COVERAGE_WARNING + 0.05))[-1][2] == "bounds cover 85 % there"
+    from tissuecast.evaluate.headline import verdict
+
+    class _Set:  # what the verdict reads of an evaluation's set
+        indices, gain_over_rigid = np.arange(30), 5.0
+
+        def summary(self, m):
+            return type("S", (), {"offset_max": 0.3 if m == "mlp" else 1.5})()
+
+        def deformation(self):
+            return {"max_displacement_median": 16.5, "nonrigid_share_median": 0.1}
+
+        def target_summary(self, m):
+            return None
+
+    evaluation = type("E", (), {"sets": {"test1": _Set()}, "model_summary": {"markers": [1, 2, 3, 4, 5]}})()
+    assert "(test-2) they cover only 67.2 % and the alarm fires on 6.5 %: there neither is to be trusted" in verdict(
+        evaluation, sets(0.672))
+    assert "test-2" not in verdict(evaluation, sets(0.85))

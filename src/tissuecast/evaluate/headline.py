@@ -182,6 +182,10 @@ def verdict(evaluation, trust: dict | None = None) -> str:
         alarm = (f"the alarm fires on {fmt_share(t['alarm_rate'])} of these samples" if t.get("alarm_on", True) else
                  "its alarm is off (too few calibration samples)")
         text += f" Its 90 % error bounds cover {fmt_share(t['coverage_0.9'])} of vertices and {alarm}."
+        t2 = trust["sets"].get("test2")
+        if t2 is not None and not _bad(t2["coverage_0.9"]) and t2["coverage_0.9"] < TEST2_COVERAGE_WARNING:
+            text += (f" Under force fields unlike the training's (test-2) they cover only {fmt_share(t2['coverage_0.9'])}"
+                     f" and the alarm fires on {fmt_share(t2['alarm_rate'])}: there neither is to be trusted.")
     elif trust is not None:
         text += " It has no calibrated error bounds or alarm."
     return text
