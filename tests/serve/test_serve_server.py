@@ -323,6 +323,8 @@ def test_cli_serve_rejects_bad_options(tmp_path, capsys):
 
     assert main(["serve", str(tmp_path), "--max-offset", "-1"]) == 2
     assert "serve.max_marker_offset" in capsys.readouterr().err
+    assert main(["serve", str(tmp_path), "--port", "-1"]) == 2
+    assert "--port -1: give 0 (any free port) or a TCP port 1-65535" in capsys.readouterr().err
     assert main(["serve", str(tmp_path / "missing-model"), "--port", "0"]) == 2
     assert "error:" in capsys.readouterr().err
     small_model("single").save(tmp_path / "model")

@@ -193,13 +193,16 @@ def run_pipeline(config: Config, *, simulate: bool = True, progress: bool = True
     Raises:
         ConfigError: a path of the config that does not name what its key reads
             (:func:`~tissuecast.app.configuration.check_config`), or a data set too small to train,
-            validate and evaluate on (:func:`~tissuecast.app.configuration.check_run_sizes`), before
-            anything runs.
+            validate and evaluate on (:func:`~tissuecast.app.configuration.check_run_sizes`), or a
+            negative ``workers``, before anything runs.
     """
     from .configuration import check_config, check_run_sizes
 
     check_config(config)
     check_run_sizes(config)
+    from ..dataset.generate import check_workers
+
+    check_workers(workers)
     paths = run_paths(config)
     if config.surrogate.nominal_expert and not simulate and not paths.nominal_store.exists():
         raise ConfigError(f"surrogate.nominal_expert = true, but the nominal expert's store {paths.nominal_store} does "

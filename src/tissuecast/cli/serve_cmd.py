@@ -72,6 +72,8 @@ def run(args) -> int:
     overrides = {k: getattr(args, k) for k in ("host", "full_field", "transform_mode", "max_marker_offset", "client_frame",
                                                  "method", "instrument_timeout")
                  if getattr(args, k) is not None}
+    if args.port is not None and not 0 <= args.port <= 65535:
+        raise ConfigError(f"--port {args.port}: give 0 (any free port) or a TCP port 1-65535")
     if args.port:  # 0 (any free port) is allowed here but not in a config file
         overrides["port"] = args.port
     serve = with_overrides(cfg, serve=overrides).serve

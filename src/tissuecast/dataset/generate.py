@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ..config import Config, load_config
+from ..errors import ConfigError
 from .batch import Batch, chunk_batches, pending_batches
 from .calibrate import calibrate_pilots
 from .codes import SampleStatus
@@ -36,8 +37,8 @@ from .store import StoreWriter, data_config
 from .supervise import Supervisor
 from .worker import Recipe, Task
 
-__all__ = ["simulate", "recipe_from_store", "setup_from_config", "scenario_setup", "data_config", "SimulationRun",
-           "Phase"]
+__all__ = ["simulate", "check_workers", "recipe_from_store", "setup_from_config", "scenario_setup", "data_config",
+           "SimulationRun", "Phase"]
 
 log = logging.getLogger(__name__)
 
@@ -138,6 +139,17 @@ class SimulationRun:
         return run
 
 
+def check_workers(workers: int | None) -> None:
+    """Refuse a negative number of local worker processes (None: the config's; 0: automatic).
+
+    Raises:
+        ConfigError: naming the fix.
+    """
+    if workers is not None and workers < 0:
+        raise ConfigError(f"workers = {workers}: give 0 (one per usable CPU) or a number of worker processes; "
+                          "nothing was simulated")
+
+
 def simulate(config, store_path=None, *, progress: bool = True, scheduler: str | None = None,
              workers: int | None = None, solver_factory: str | None = None) -> dict:
     """Create or continue the data set described by ``config``.
@@ -158,8 +170,10 @@ def simulate(config, store_path=None, *, progress: bool = True, scheduler: str |
     Raises:
         DatasetError: the store belongs to another config or mesh, or is of an unknown schema;
             or the call runs in a worker still importing a script without a main guard.
+        ConfigError: a negative ``workers``.
     """
     refuse_in_starting_worker()  # before the store is opened: its I/O threads would keep the worker alive
+    check_workers(workers)
     cfg = config if isinstance(config, Config) else load_config(config)
     path = Path(store_path or cfg.dataset.store)
     writer = _open_or_create(cfg, path)
