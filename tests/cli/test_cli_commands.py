@@ -35,6 +35,10 @@ def test_train_evaluate_predict(run, capsys):
     assert "rigid" in out and "PCA floor" in out and "non-rigid part" in out
     ev = json.loads((folder / "rep" / "evaluation.json").read_text())
     assert {"valid", "test1", "test2"} <= set(ev["sets"]) and len(ev["by_beta"]) == 3
+    # --json: strict JSON (what JSON.parse reads) on stdout, with where the report went
+    assert main(["evaluate", str(folder / "model"), "--out", str(folder / "rep_json"), "--renders", "0", "--json"]) == 0
+    printed = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(f"{c} in --json output"))
+    assert printed["report"] == str(folder / "rep_json" / "index.html") and set(printed["sets"]) == set(ev["sets"])
     # errors at the targets beside the offsets: the default interior targets, or listed points
     assert "targets: 10 interior points" in out and "test-1 TRE at the 10 targets: mean / p95 / max" in out
     assert "share of the targets' displacement corrected" in out and ev["targets"]["name"] == "interior"

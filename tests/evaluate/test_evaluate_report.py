@@ -333,3 +333,6 @@ def test_the_how_sure_table_says_when_the_bounds_do_not_hold_on_other_force_fiel
     assert "(test-2) they cover only 67.2 % and the alarm fires on 6.5 %: there neither is to be trusted" in verdict(
         evaluation, sets(0.672))
     assert "test-2" not in verdict(evaluation, sets(0.85))
+    assert "5× better than rigid registration from the same 5 markers" in verdict(evaluation, sets(0.85))
+    _Set.gain_over_rigid = 1.0 / 3.0  # a model worse than rigid registration is called worse
+    assert "3× worse than rigid registration from the same 5 markers" in verdict(evaluation, sets(0.85))

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-import json
+from ..evaluate import json_output
+
 
 import numpy as np
 
@@ -107,7 +108,7 @@ def run_info(args) -> int:
     if args.load_shares > 0:
         s["load_shares"] = _load_shares(ds, args.load_shares)
     if args.json:
-        print(json.dumps(s, indent=2))
+        print(json_output.dumps(s, indent=2))
         return 0
     print_summary(s)
     if "load_shares" in s:

@@ -4,7 +4,8 @@ displacement corrected at targets) and the HTML report."""
 
 from __future__ import annotations
 
-import json
+from ..evaluate import json_output
+
 from pathlib import Path
 
 from ..config import EvaluateConfig
@@ -49,7 +50,7 @@ def run(args) -> int:
     evaluation, index = evaluate_and_report(model, ds, out, renders=args.renders, studies_folder=args.studies,
                                             targets=targets)
     if args.json:
-        print(json.dumps(evaluation.as_dict(), indent=2, default=float))
+        print(json_output.dumps({**evaluation.as_dict(), "report": str(index)}, indent=2, default=float))
     else:
         print(format_evaluation(evaluation))
         print(f"report: {index}")

@@ -13,7 +13,8 @@ mismatch`` take it.
 
 from __future__ import annotations
 
-import json
+from ..evaluate import json_output
+
 from pathlib import Path
 
 from ..errors import ModelError
@@ -66,7 +67,7 @@ def run(args) -> int:
     figures = {"samples": gated.expert_gate_.samples, "nominal_better": gated.expert_gate_.nominal_better,
                **gated.expert_routes_.summary(), **routing_figures(gated, fields, aux)}
     if args.json:
-        print(json.dumps({"model": str(Path(args.out)), "store": str(store),
+        print(json_output.dumps({"model": str(Path(args.out)), "store": str(store),
                           "nominal_store": None if nominal_store is None else str(nominal_store), **figures}, indent=2))
         return 0
     print(f"model with a nominal expert saved to {args.out}")

@@ -10,8 +10,9 @@ parameters), ``PREFIX.vtu`` (the points as VTK vertices with ``role`` 1 = marker
 
 from __future__ import annotations
 
+from ..evaluate import json_output
+
 import csv
-import json
 import os
 from pathlib import Path
 
@@ -147,7 +148,7 @@ def _write_json(prefix: Path, mesh, markers, fixed, params) -> Path:
         "markers": {"ids": markers.tolist(), "coordinates": mesh.points[markers].tolist()},
         "fixed": {"ids": fixed.tolist(), "coordinates": mesh.points[fixed].tolist()},
     }
-    path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    path.write_text(json_output.dumps(doc, indent=2) + "\n", encoding="utf-8")
     return path
 
 

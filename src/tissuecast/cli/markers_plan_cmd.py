@@ -11,6 +11,8 @@ and with ``--png`` a picture. Use the ids for training with
 
 from __future__ import annotations
 
+from ..evaluate import json_output
+
 import csv
 import json
 from pathlib import Path
@@ -131,7 +133,7 @@ def _write_json(prefix: Path, ds, plan, args) -> Path:
            "refinement, on a quadratic proxy's validation mean Offset_max (train split selects, valid split scores)",
            "plan": plan.as_dict(), "coordinates": ds.mesh.points[plan.markers].tolist(),
            "config_snippet": {"markers": {"ids": plan.markers.tolist()}}}
-    path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    path.write_text(json_output.dumps(doc, indent=2) + "\n", encoding="utf-8")
     return path
 
 

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from ..evaluate import json_output
+
 import dataclasses
-import json
 import logging
 from pathlib import Path
 
@@ -88,7 +89,7 @@ def run_info(args) -> int:
     tags = mesh_file_tags(None if args.file == PHANTOM_WORD else args.file)
     s["regions"] = tags.names()  # named regions scenario rules can use (tag = ..., materials.cell_data = ...)
     if args.json:
-        print(json.dumps({"file": args.file, **s}, indent=2))
+        print(json_output.dumps({"file": args.file, **s}, indent=2))
         return 0
     q = s["quality"]
     f3 = lambda v: " ".join(f"{x:9.3f}" for x in v)  # noqa: E731

@@ -4,7 +4,8 @@ the voxels and the expected cost of a paper-size run on it."""
 
 from __future__ import annotations
 
-import json
+from ..evaluate import json_output
+
 import logging
 
 from ..config import MeshConfig
@@ -82,7 +83,7 @@ def run_from_image(args) -> int:
     for text in sizing_warnings(mesh, sizing, fidelity):
         log.warning(text)
     if args.json:
-        print(json.dumps({"scan": args.scan, "label": labelmap.source, "coordinate_system": "LPS",
+        print(json_output.dumps({"scan": args.scan, "label": labelmap.source, "coordinate_system": "LPS",
                           "spacing_mm": labelmap.spacing.tolist(), "sizing": sizing, "fidelity": fidelity.as_dict(),
                           "paper_run": {"seconds": cost.seconds, "unknowns": cost.unknowns, "exponent": cost.exponent,
                                         "extrapolated": cost.extrapolated},

@@ -33,6 +33,8 @@ instrument's pose needed, --gravity the surgery's gravity direction).
 
 from __future__ import annotations
 
+from ..evaluate import json_output
+
 import csv
 import json
 import time
@@ -226,7 +228,7 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.
         if alarms is not None:
             doc["alarms"] = [{"raised": bool(a.raised), "text": a.text} for a in alarms]
         doc.update(notes or {})
-        out.write_text(json.dumps(doc), encoding="utf-8")
+        out.write_text(json_output.dumps(doc), encoding="utf-8")
         return [out]
     raise ModelError(f"unknown output format {out.suffix!r}; use .vtu, .vtk, .vtp, .csv or .json")
 

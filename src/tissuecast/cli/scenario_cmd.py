@@ -9,7 +9,8 @@ set's first samples) and, unless ``--no-png``, ``PREFIX.png``. Vertex ids are 0-
 
 from __future__ import annotations
 
-import json
+from ..evaluate import json_output
+
 from pathlib import Path
 
 import numpy as np
@@ -68,7 +69,7 @@ def run_preview(args) -> int:
     extra = {f"displacement_example_{k + 1}": u for k, (_, u) in enumerate(deformations)}
     written = [write_preview_vtu(prefix.with_name(prefix.name + ".vtu"), sc, draws, extra)]
     path = prefix.with_name(prefix.name + ".json")
-    path.write_text(json.dumps(doc, indent=2, default=float) + "\n", encoding="utf-8")
+    path.write_text(json_output.dumps(doc, indent=2, default=float) + "\n", encoding="utf-8")
     written.append(path)
     if not args.no_png:
         written.append(render_preview(prefix.with_name(prefix.name + ".png"), sc, draws, deformations, places=places))

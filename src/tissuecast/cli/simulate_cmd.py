@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-import json
+from ..evaluate import json_output
+
 
 from ..config import with_overrides
 
@@ -45,7 +46,7 @@ def run(args) -> int:
         cfg = with_overrides(cfg, dataset=overrides)
     summary = simulate(cfg, store, progress=not args.no_progress)
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(json_output.dumps(summary, indent=2))
     else:
         print_summary(summary)
         run_ = summary["run"]

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-import json
+from ..evaluate import json_output
+
 from pathlib import Path
 
 
@@ -50,7 +51,7 @@ def run(args) -> int:
     model, _ = train_from_store(cfg, store, model_folder=out, onnx=not args.no_onnx)
     tr = model.training_
     if args.json:
-        print(json.dumps({"model": str(out), **tr}, indent=2))
+        print(json_output.dumps({"model": str(out), **tr}, indent=2))
         return 0
     print(f"model saved to {out}")
     print(f"  {model!r}")

@@ -170,7 +170,11 @@ def verdict(evaluation, trust: dict | None = None) -> str:
             f"{fmt_share(d['nonrigid_share_median'])} of it not rigid), the learned model's worst vertex is "
             f"{fmt_mm(mlp.offset_max)} off on average")
     if not _bad(rigid.offset_max):
-        text += f", {fmt_ratio(r.gain_over_rigid)} better than rigid registration from the same {n_markers} markers"
+        gain = r.gain_over_rigid
+        if not _bad(gain) and gain < 1.0:
+            text += f", {fmt_ratio(1.0 / gain)} worse than rigid registration from the same {n_markers} markers"
+        else:
+            text += f", {fmt_ratio(gain)} better than rigid registration from the same {n_markers} markers"
     t_mlp, t_rigid = r.target_summary("mlp"), r.target_summary("rigid")
     if t_mlp is not None:
         text += f"; at the targets it corrects {fmt_share(t_mlp.share_corrected_mean)} of the displacement"
