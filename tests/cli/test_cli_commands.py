@@ -132,6 +132,8 @@ def test_every_command_takes_a_config_file_or_a_preset_name(tmp_path, monkeypatc
     assert 'name = "quick"' in capsys.readouterr().out
     assert main(["config", "show", "quik"]) == 2
     assert "paper, quick" in capsys.readouterr().err
+    assert main(["simulte", "quick"]) == 2  # a misspelt command: the one meant
+    assert "unknown command 'simulte'; did you mean `tissuecast simulate`?" in capsys.readouterr().err
     assert main(["run", "quick", "--workers", "-1"]) == 2  # refused before anything is made
     assert "workers = -1: give 0 (one per usable CPU)" in capsys.readouterr().err
     assert not (tmp_path / "tissuecast-demo").exists()

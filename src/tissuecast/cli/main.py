@@ -10,6 +10,7 @@ Each subcommand lives in its own module of this package, exposing
 from __future__ import annotations
 
 import argparse
+import difflib
 import importlib
 import logging
 import signal
@@ -27,22 +28,22 @@ EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143
 
 # subcommand name -> module in tissuecast.cli (imported lazily so `tissuecast --help` is fast)
-COMMANDS: dict[str, str] = {
-    "config": "config_cmd",
-    "mesh": "mesh_cmd",
-    "markers": "markers_cmd",
+COMMANDS: dict[str, str] = {  # in the order a user meets them: get started, the pipeline, use a model, set up, study
+    "demo": "demo_cmd",
+    "run": "run_cmd",
     "simulate": "simulate_cmd",
-    "dataset": "dataset_cmd",
-    "export-inp": "export_inp_cmd",
-    "scenario": "scenario_cmd",
-    "serve": "serve_cmd",
     "train": "train_cmd",
     "evaluate": "evaluate_cmd",
     "predict": "predict_cmd",
+    "serve": "serve_cmd",
+    "config": "config_cmd",
+    "scenario": "scenario_cmd",
+    "mesh": "mesh_cmd",
+    "markers": "markers_cmd",
+    "dataset": "dataset_cmd",
+    "export-inp": "export_inp_cmd",
     "study": "study_cmd",
     "experts": "experts_cmd",
-    "run": "run_cmd",
-    "demo": "demo_cmd",
 }
 #: Two-word commands (command, action) -> module; e.g. `tissuecast markers plan STORE`.
 ACTIONS: dict[tuple[str, str], str] = {("markers", "plan"): "markers_plan_cmd"}
@@ -54,6 +55,9 @@ def build_parser(only: str | None = None, action_module: str | None = None) -> a
     parser = argparse.ArgumentParser(
         prog="tissuecast",
         description="Real-time soft-tissue deformation from fiducial markers (units: mm, N, MPa; vertex ids 0-based).",
+        epilog="Start with `tissuecast demo` (the whole pipeline on the built-in phantom, a few minutes), then "
+               "`tissuecast run CONFIG` or a packaged preset (quick, paper, embedded); `tissuecast COMMAND --help` "
+               "says what a command reads and writes.",
     )
     parser.add_argument("--version", action="version", version=f"tissuecast {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")
@@ -73,6 +77,11 @@ def main(argv: list[str] | None = None) -> int:
     # import only the chosen subcommand's module when it is clear which one it is
     words = [a for a in argv if not a.startswith("-")][:2]
     first = words[0] if words else None
+    if first is not None and first not in COMMANDS:  # argparse would list every choice without a suggestion
+        close = difflib.get_close_matches(first, COMMANDS, n=1)
+        hint = f"; did you mean `tissuecast {close[0]}`?" if close else f"; the commands: {', '.join(COMMANDS)}"
+        print(f"tissuecast: error: unknown command {first!r}{hint}", file=sys.stderr)
+        return EXIT_ERROR
     parser = build_parser(first if first in COMMANDS else None, ACTIONS.get(tuple(words)))
     args = parser.parse_args(argv)
     _configure_logging(logging.DEBUG if args.debug else logging.WARNING if args.quiet else logging.INFO)

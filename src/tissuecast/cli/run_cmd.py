@@ -6,7 +6,8 @@ from __future__ import annotations
 def register(sub) -> None:
     p = sub.add_parser("run", help="run the whole pipeline as a config describes",
                        description="Simulate the data set (resumable), train the surrogate, evaluate it and write the "
-                                   "report. Paths: dataset.store, OUTPUT/model, OUTPUT/<evaluate.output>.")
+                                   "report. Paths: dataset.store, and in the config's output folder model/ and "
+                                   "<evaluate.output>/.")
     p.add_argument("config", help="TOML config file (e.g. configs/paper.toml), or the name of a packaged preset "
                                   "(quick, paper, embedded)")
     p.add_argument("--skip-simulate", action="store_true", help="use the existing store as it is")

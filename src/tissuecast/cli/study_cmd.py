@@ -27,9 +27,12 @@ def _ints(text: str) -> list[int]:
 def register(sub) -> None:
     p = sub.add_parser("study", help="studies: hidden layers, number of markers, PCA size; a model against mismatched "
                                      "simulations",
-                       description="Train on the store's train split and measure test-1 accuracy; writes study_NAME.csv "
-                                   "and study_NAME.png into --out (default: the run's report folder), which "
-                                   "`tissuecast evaluate` then includes in the report.")
+                       description="architecture, markers, pca: train on the store's train split and measure test-1 "
+                                   "accuracy. mismatch: evaluate the models given as --model LABEL=FOLDER (at least "
+                                   "one) on test sets simulated from the config with one thing changed (kept in "
+                                   "OUT/mismatch, resumable). Each writes study_NAME.csv / .png (mismatch also .json) "
+                                   "into --out (default: the report folder of the config's output), which `tissuecast "
+                                   "evaluate` then includes in the report.")
     p.add_argument("study", choices=("architecture", "markers", "pca", "mismatch"), help="which study")
     p.add_argument("source", nargs="?", help="TOML config file, a packaged preset or a data-set store directory")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
@@ -94,8 +97,9 @@ def _mismatch(args) -> int:
     from ..evaluate.mismatch_report import format_mismatch, mismatch_figure, write_mismatch
     from ..app.pipeline import run_paths
 
-    if not args.source or not Path(args.source).is_file():
-        raise ConfigError("study mismatch takes the scenario's TOML config (CONFIG), e.g. configs/embedded.toml")
+    if not args.source or Path(args.source).is_dir():
+        raise ConfigError("study mismatch takes the scenario's TOML config or a packaged preset (e.g. embedded), not "
+                          "a store: its sets are simulated from the config")
     limit = mm.REFINED_TIME_LIMIT if args.refined_time_limit is None else args.refined_time_limit
     if limit < 0:
         raise ConfigError(f"--refined-time-limit {limit:g}: give seconds > 0, or 0 for no limit")

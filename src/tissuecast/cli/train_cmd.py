@@ -16,7 +16,7 @@ def register(sub) -> None:
     p.add_argument("source", nargs="?",
                    help="TOML config file, a packaged preset or a data-set store directory (default: defaults)")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
-    p.add_argument("--out", help="model folder (default: OUTPUT/model of the config)")
+    p.add_argument("--out", help="model folder (default: model/ in the config's output folder)")
     p.add_argument("--hidden", type=int, nargs="+", help="hidden layer widths (default: surrogate.hidden)")
     p.add_argument("--components", type=int, help="PCA components n_w (default: surrogate.n_components; 0 = rule)")
     p.add_argument("--epochs", type=int, help="maximum epochs")
