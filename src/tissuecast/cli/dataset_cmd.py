@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
-
 import numpy as np
 
+from ..evaluate import json_output
 from ..errors import DatasetError, MeshError
 
 #: Failed samples listed by ``dataset info`` (all of them are in the store), and the characters
@@ -56,7 +54,8 @@ def print_summary(s: dict) -> None:
     cal = s.get("calibration")
     if cal:
         extra = f", q{cal.get('quantile', 0):g} of pilots {cal['quantile_value']:.2f} mm" if cal.get("quantile_value") else ""
-        print(f"force magnitude alpha = {cal['alpha']:.6g} N ({cal['rule']}{extra})")
+        aim = f"; target {cal['target']:g} mm" if cal.get("target") is not None else ""
+        print(f"force magnitude alpha = {cal['alpha']:.6g} N ({cal['rule']}{aim}{extra}; the whole set's below)")
         if cal.get("limited_by_failures"):
             print(f"  note: the target {cal['target']:g} mm was not reached: pilot samples failed to converge at "
                   "larger forces (see the calibration rounds in `dataset info --json`)")

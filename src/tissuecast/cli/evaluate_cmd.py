@@ -4,10 +4,9 @@ displacement corrected at targets) and the HTML report."""
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
 from pathlib import Path
 
+from ..evaluate import json_output
 from ..config import EvaluateConfig
 
 

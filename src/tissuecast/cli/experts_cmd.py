@@ -13,10 +13,9 @@ mismatch`` take it.
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
 from pathlib import Path
 
+from ..evaluate import json_output
 from ..errors import ModelError
 
 

@@ -10,14 +10,13 @@ parameters), ``PREFIX.vtu`` (the points as VTK vertices with ``role`` 1 = marker
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
 import csv
 import os
 from pathlib import Path
 
 import numpy as np
 
+from ..evaluate import json_output
 from .. import __version__
 from ..config import FIXED_RULES, MarkerConfig, with_overrides
 from ..errors import require

@@ -11,14 +11,13 @@ and with ``--png`` a picture. Use the ids for training with
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
 import csv
 import json
 from pathlib import Path
 
 import numpy as np
 
+from ..evaluate import json_output
 from .. import __version__
 from ..errors import MarkerError
 from ..planning.candidates import REGIONS

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
 import dataclasses
 import logging
 from pathlib import Path
 
 import numpy as np
 
+from ..evaluate import json_output
 from ..config import MeshConfig
 from ..errors import MeshError
 from ..mesh import TetMesh, phantom, read_mesh, write_mesh

@@ -4,10 +4,9 @@ the voxels and the expected cost of a paper-size run on it."""
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
 import logging
 
+from ..evaluate import json_output
 from ..config import MeshConfig
 from ..errors import ConfigError
 from ..mesh.labelmap import LABEL_MAP_SUFFIXES

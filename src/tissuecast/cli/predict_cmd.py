@@ -33,14 +33,14 @@ instrument's pose needed, --gravity the surgery's gravity direction).
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
 import csv
 import json
 import time
 from pathlib import Path
 
 import numpy as np
+
+from ..evaluate import json_output
 
 
 def register(sub) -> None:

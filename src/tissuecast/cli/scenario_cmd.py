@@ -9,11 +9,11 @@ set's first samples) and, unless ``--no-png``, ``PREFIX.png``. Vertex ids are 0-
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
 from pathlib import Path
 
 import numpy as np
+
+from ..evaluate import json_output
 
 
 def register(sub) -> None:
@@ -54,11 +54,11 @@ def run_preview(args) -> int:
            "access": [] if sc.sites is None else sc.sites.access.tolist(),
            "examples": [{"sample": i, **d.record(), "indent_vertices": [] if d.indentation is None
                          else d.indentation.vertices.tolist()} for i, d in enumerate(draws)]}
-    deformations, shares = [], {}
+    deformations, shares, alpha = [], {}, 0.0
     if args.deformations:
         from ..fem.linear import one_blas_thread
         from ..scenario.load_shares import load_shares
-        from ..scenario.preview import example_alpha
+        from ..scenario.preview import LINEAR_AIM, example_alpha
 
         with one_blas_thread():  # as the data set's workers solve: faster, same bits everywhere
             deformations = example_deformations(sc, cfg, seeds)
@@ -104,7 +104,11 @@ def run_preview(args) -> int:
     if shares:
         from ..scenario.load_shares import format_load_shares
 
-        print("  each load alone (the examples, nominal parameters):")
+        how = ("dataset.alpha" if cfg.dataset.alpha > 0 else
+               f"a linear guess aiming at {100 * LINEAR_AIM:g} % of forces.target_max_displacement, not the data set's "
+               "calibration, which sets it from nonlinear pilots: `tissuecast dataset info STORE --load-shares N` gives "
+               "the data set's own shares")
+        print(f"  each load alone (the examples, nominal parameters; the surface field at {alpha:.4g} N, {how}):")
         for line in format_load_shares(shares):
             print(f"    {line}")
     for p in written:

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 from ..evaluate import json_output
-
-
 from ..config import with_overrides
 
 

@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from ..evaluate import json_output
-
 from pathlib import Path
+
+from ..evaluate import json_output
 
 
 def register(sub) -> None:
