@@ -39,6 +39,19 @@ def test_train_evaluate_predict(run, capsys):
     assert main(["evaluate", str(folder / "model"), "--out", str(folder / "rep_json"), "--renders", "0", "--json"]) == 0
     printed = json.loads(capsys.readouterr().out, parse_constant=lambda c: pytest.fail(f"{c} in --json output"))
     assert printed["report"] == str(folder / "rep_json" / "index.html") and set(printed["sets"]) == set(ev["sets"])
+    # a store simulated with other physics: evaluated, with a warning that the figures measure a mismatch
+    from tissuecast.config import with_overrides
+    from tissuecast.dataset import simulate
+
+    stiff = with_overrides(cfg, material={"youngs_modulus": 2 * cfg.material.youngs_modulus},
+                           dataset={"store": str(folder / "stiff.zarr"), "n_samples": 20, "n_test2": 0})
+    simulate(stiff, progress=False, solver_factory="_surrogate_synthetic:smooth_solver_factory")
+    assert main(["evaluate", str(folder / "model"), "--store", str(folder / "stiff.zarr"), "--out",
+                 str(folder / "rep_stiff"), "--renders", "0"]) == 0
+    err = capsys.readouterr().err
+    assert "was simulated with other physics than the model's training data (material.youngs_modulus differ)" in err
+    assert main(["evaluate", str(folder / "model"), "--out", str(folder / "rep"), "--renders", "0"]) == 0
+    assert "other physics" not in capsys.readouterr().err  # its own store: no warning
     # errors at the targets beside the offsets: the default interior targets, or listed points
     assert "targets: 10 interior points" in out and "test-1 TRE at the 10 targets: mean / p95 / max" in out
     assert "share of the targets' displacement corrected" in out and ev["targets"]["name"] == "interior"

@@ -4,6 +4,7 @@ displacement corrected at targets) and the HTML report."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from ..evaluate import json_output
@@ -44,6 +45,12 @@ def run(args) -> int:
     if not store:
         raise ModelError("the model does not record its data set; pass --store PATH")
     ds = open_dataset(store)
+    differ = _simulator_differences(model, ds)
+    if differ:
+        print(f"warning: {store} was simulated with other physics than the model's training data ("
+              f"{', '.join(differ[:4])}{', ...' if len(differ) > 4 else ''} differ): the figures below measure that "
+              "mismatch, not the model on its own simulator (`tissuecast study mismatch` measures such sets on "
+              "purpose)", file=sys.stderr)
     out = Path(args.out) if args.out else Path(args.model).resolve().parent / "report"
     targets = model_targets(model, points=args.targets)
     evaluation, index = evaluate_and_report(model, ds, out, renders=args.renders, studies_folder=args.studies,
@@ -54,3 +61,18 @@ def run(args) -> int:
         print(format_evaluation(evaluation))
         print(f"report: {index}")
     return 0
+
+
+def _simulator_differences(model, dataset) -> list[str]:
+    """The keys of ``[material]``, ``[solver]``, ``[forces]`` and ``[scenario]`` in which the
+    store's config differs from the one the model was trained with (the store's samples, seeds
+    and size may differ freely; the mesh is checked by fingerprint); [] where the model records none."""
+    from ..config import config_from_dict
+    from ..dataset.store import data_config
+
+    if not model.run_config:
+        return []
+    mine, theirs = data_config(config_from_dict(model.run_config)), data_config(dataset.config)
+    return [f"{sec}.{k}" for sec in ("material", "solver", "forces", "scenario")
+            for k in sorted(set(mine[sec]) | set(theirs[sec])) if mine[sec].get(k) != theirs[sec].get(k)]
+
