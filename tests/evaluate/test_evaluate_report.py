@@ -336,3 +336,18 @@ def test_the_how_sure_table_says_when_the_bounds_do_not_hold_on_other_force_fiel
     assert "5× better than rigid registration from the same 5 markers" in verdict(evaluation, sets(0.85))
     _Set.gain_over_rigid = 1.0 / 3.0  # a model worse than rigid registration is called worse
     assert "3× worse than rigid registration from the same 5 markers" in verdict(evaluation, sets(0.85))
+
+
+def test_the_terminal_summary_fits_the_terminal(evaluation):
+    """A grid where it fits, else a line per quantity naming each method; never wider than asked."""
+    from tissuecast.evaluate.tables import format_evaluation
+
+    wide, narrow = format_evaluation(evaluation, width=1000), format_evaluation(evaluation, width=100)
+    assert any(line.startswith("quantity") and line.rstrip().endswith("paper") for line in wide.splitlines())
+    assert max(len(line) for line in narrow.splitlines()) <= 100 and "quantity" not in narrow
+    t1 = evaluation.sets["test1"]
+    from tissuecast.evaluate.headline import fmt_mm
+
+    for text in (wide, narrow):  # the same figures either way
+        assert fmt_mm(t1.mlp.offset_max) in text and fmt_mm(t1.rigid.offset_max) in text
+    assert f"rigid registration {fmt_mm(t1.rigid.offset_max)}" in narrow and "test-2 mean Offset_max per beta" in narrow

@@ -3,6 +3,9 @@ and the plain-text summary that ``tissuecast evaluate`` / ``run`` print."""
 
 from __future__ import annotations
 
+import shutil
+import textwrap
+
 from .evaluation import METHOD_LABELS
 from .headline import DASH, fmt_mm, fmt_ratio, fmt_share, fmt_time, set_title, verdict
 from ..scenario.describe import scenario_lines
@@ -136,25 +139,67 @@ DEFORMATION_HEAD = ["set", "samples", "peak displacement median", "peak p90", "n
                     "non-rigid share of peak, median", "rigid mean Offset_max", "MLP mean Offset_max", "gain over rigid"]
 
 
-def format_evaluation(evaluation) -> str:
-    """Plain-text summary for terminals and logs: the verdict, the headline, the paper table."""
+def format_evaluation(evaluation, width: int | None = None) -> str:
+    """Plain-text summary for terminals and logs: the verdict, the headline, the paper table.
+
+    The table is a grid (a column per method) where it fits ``width`` characters (default: the
+    terminal's width, 200 where there is no terminal), else one line per quantity naming each
+    method; long lines are wrapped to ``width``."""
+    columns = width or shutil.get_terminal_size(fallback=(200, 24)).columns
     lines = [f"{what}: {text}" for what, text in scenario_lines(evaluation.model_summary.get("scenario"))]
     if evaluation.targets is not None:
         lines.append(f"targets: {evaluation.targets.description}")
-    lines.append(verdict(evaluation))
-    width = 24
-    lines.append(f"{'quantity':66s} " + " ".join(f"{METHOD_LABELS[m][:width]:>{width}s}" for m in COLUMNS) + "   paper")
-    for q, *cells, p in paper_table(evaluation):
-        if all(c == DASH for c in cells[1:]):  # a figure of the model alone: one wide cell
-            lines.append(f"{q:66s} {cells[0]:>{width}s}" + " " * (3 * (width + 1)) + f"   {p}")
-        else:
-            lines.append(f"{q:66s} " + " ".join(f"{c:>{width}s}" for c in cells) + f"   {p}")
+    lines.append(textwrap.fill(verdict(evaluation), columns))
+    rows = paper_table(evaluation)
+    labels = [METHOD_LABELS[m] for m in COLUMNS]
+    grid = _grid(rows, labels)
+    if max(len(line) for line in grid) <= columns:
+        lines += grid
+    else:
+        for q, *cells, p in rows:
+            named = ([cells[0]] if _model_only([q, *cells, p]) else
+                     [f"{label} {c}" for label, c in zip(labels, cells) if c != DASH])
+            lines += _wrap_items(f"{q}:", named + ([f"paper {p}"] if p != DASH else []), columns)
     routed = expert_line(evaluation.model_summary)
     if routed:
-        lines.append(routed)
+        lines.append(textwrap.fill(routed, columns, subsequent_indent="    "))
     if evaluation.by_beta:
-        lines.append("test-2 mean Offset_max per beta, MLP (rigid, ridge): " + ", ".join(
+        lines += _wrap_items("test-2 mean Offset_max per beta, MLP (rigid, ridge):", [
             f"β={b:g}: {fmt_mm(r.mlp.offset_max, False)} ({fmt_mm(r.rigid.offset_max, False)}, "
-            f"{fmt_mm(r.ridge.offset_max, False)})" for b, r in evaluation.by_beta))
+            f"{fmt_mm(r.ridge.offset_max, False)})" for b, r in evaluation.by_beta], columns, sep=", ")
     return "\n".join(lines)
 
+
+def _wrap_items(head: str, items: list[str], width: int, indent: str = "    ", sep: str = " · ") -> list[str]:
+    """``head`` then ``items`` joined by ``sep``, wrapped to ``width`` between items (an item is
+    never broken: a value stays with its unit)."""
+    lines, line = [], head
+    for k, item in enumerate(items):
+        piece = (" " if k == 0 else sep) + item
+        if len(line) + len(piece) > width and line.strip():
+            lines.append(line)
+            line = indent + (item if k == 0 else sep.lstrip() + item)
+        else:
+            line += piece
+    return lines + [line]
+
+
+def _grid(rows: list[list[str]], labels: list[str]) -> list[str]:
+    """The paper table as aligned text: quantity, a column per method (each as wide as its
+    widest cell), the paper's figure last; a figure of the model alone spans the method columns."""
+    wq = max(len("quantity"), *(len(r[0]) for r in rows))
+    widths = [max(len(label), *(len(r[1 + k]) for r in rows if not _model_only(r))) for k, label in enumerate(labels)]
+    gap = "   "
+    span = sum(widths) + len(gap) * (len(widths) - 1)
+    out = [f"{'quantity':{wq}s}{gap}" + gap.join(f"{label:>{w}s}" for label, w in zip(labels, widths)) + f"{gap}paper"]
+    for q, *cells, p in rows:
+        if _model_only([q, *cells, p]):
+            out.append(f"{q:{wq}s}{gap}{cells[0]:<{span}s}{gap}{p}")
+        else:
+            out.append(f"{q:{wq}s}{gap}" + gap.join(f"{c:>{w}s}" for c, w in zip(cells, widths)) + f"{gap}{p}")
+    return out
+
+
+def _model_only(row: list[str]) -> bool:
+    """A row with a figure of the model alone (the other methods' cells empty)."""
+    return all(c == DASH for c in row[2:-1])
