@@ -177,8 +177,9 @@ def _wrap_items(head: str, items: list[str], width: int, indent: str = "    ", s
     for k, item in enumerate(items):
         piece = (" " if k == 0 else sep) + item
         if len(line) + len(piece) > width and line.strip():
-            lines.append(line)
-            line = indent + (item if k == 0 else sep.lstrip() + item)
+            trailing = k > 0 and sep.strip() in (",", ";")  # a comma ends its line; a bullet starts the next
+            lines.append(line + (sep.rstrip() if trailing else ""))
+            line = indent + (item if k == 0 or trailing else sep.lstrip() + item)
         else:
             line += piece
     return lines + [line]
