@@ -231,14 +231,19 @@ def read_metadata(folder) -> dict:
     return meta
 
 
-def _npz(path: Path, keys) -> dict:
+def _npz(path: Path, keys=None) -> dict:
+    """The arrays ``keys`` (None: every one) of a model folder's ``.npz`` file, never unpickled.
+
+    Raises:
+        ModelError: a missing, empty, truncated or random-bytes file, or a key it lacks.
+    """
     if not path.is_file():
         raise ModelError(f"model file {str(path)!r} is missing; the model folder is incomplete")
     import zipfile
 
     try:
         with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in keys}
+            return {k: z[k] for k in (z.files if keys is None else keys)}
     except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:  # empty, truncated, random bytes
         cause = "not a NumPy .npz archive" if "pickle" in str(exc) else f"{type(exc).__name__}: {exc}"  # never unpickled
         raise ModelError(f"model file {str(path)!r} is unreadable or incomplete ({cause}); the model folder is "
@@ -289,9 +294,12 @@ def _network(folder: Path, meta: dict) -> NetworkPredictor:
 
 
 def _trust(path: Path) -> TrustLayer:
-    if not path.is_file():
-        raise ModelError(f"model file {str(path)!r} is missing; the model folder is incomplete")
-    return TrustLayer.load(path)
+    arrays = _npz(path)
+    try:
+        return TrustLayer.from_arrays(arrays)
+    except (KeyError, ValueError) as exc:  # a file of other arrays
+        raise ModelError(f"model file {str(path)!r} is unreadable or incomplete ({type(exc).__name__}: {exc}); the "
+                         "model folder is corrupt: save or copy it again") from exc
 
 
 def _fallback(folder: Path, meta: dict, network: NetworkPredictor) -> tuple[NetworkPredictor | None, TrustLayer | None]:

@@ -497,23 +497,6 @@ class TrustLayer:
         np.savez(Path(folder) / FILE, **self.arrays())
         return FILE
 
-    @classmethod
-    def load(cls, path) -> "TrustLayer":
-        """Read ``trust.npz`` (``allow_pickle=False``: never unpickled).
-
-        Raises:
-            ModelError: an empty, truncated, random-bytes or incomplete file.
-        """
-        import zipfile
-
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                return cls.from_arrays({k: z[k] for k in z.files})
-        except (KeyError, ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
-            cause = "not a NumPy .npz archive" if "pickle" in str(exc) else f"{type(exc).__name__}: {exc}"
-            raise ModelError(f"trust file {str(path)!r} is unreadable or incomplete ({cause}); the model folder is "
-                             "corrupt: save or copy it again, or re-train the model") from exc
-
     def summary(self) -> dict:
         """Small JSON-able description (for model.json)."""
         return {"file": FILE, "n_calibration": self.conformal.n_calibration, "coverage": self.coverage,
