@@ -127,6 +127,15 @@ def headline_rows(evaluation) -> list[list[str]]:
 TEST2_COVERAGE_WARNING = 0.8
 
 
+def _failing_test2(sets: dict) -> dict | None:
+    """The trust figures of test-2 (``trust["sets"]``) where its 90 % bounds cover less than
+    :data:`TEST2_COVERAGE_WARNING`, else None."""
+    t2 = sets.get("test2")
+    if t2 is None or _bad(t2["coverage_0.9"]) or t2["coverage_0.9"] >= TEST2_COVERAGE_WARNING:
+        return None
+    return t2
+
+
 def trust_rows(trust: dict | None, model_has_ensemble: bool = False) -> list[list[str]]:
     """Rows ``[quantity, value, what it means]`` of the calibrated bounds and the alarm."""
     if not trust or not trust.get("sets"):
@@ -148,7 +157,7 @@ def trust_rows(trust: dict | None, model_has_ensemble: bool = False) -> list[lis
     if name == "test1" and "test2" in sets:
         t2 = sets["test2"]
         meaning = f"bounds cover {fmt_share(t2['coverage_0.9'])} there"
-        if not _bad(t2["coverage_0.9"]) and t2["coverage_0.9"] < TEST2_COVERAGE_WARNING:
+        if _failing_test2(sets):
             meaning += (f": the bounds do not hold for force fields unlike the training's, and "
                         f"{fmt_share(1.0 - t2['alarm_rate'])} of those samples raise no alarm")
         rows.append(["alarm on test-2 (other force fields)", fmt_alarm(t2), meaning])
@@ -186,8 +195,8 @@ def verdict(evaluation, trust: dict | None = None) -> str:
         alarm = (f"the alarm fires on {fmt_share(t['alarm_rate'])} of these samples" if t.get("alarm_on", True) else
                  "its alarm is off (too few calibration samples)")
         text += f" Its 90 % error bounds cover {fmt_share(t['coverage_0.9'])} of vertices and {alarm}."
-        t2 = trust["sets"].get("test2")
-        if t2 is not None and not _bad(t2["coverage_0.9"]) and t2["coverage_0.9"] < TEST2_COVERAGE_WARNING:
+        t2 = _failing_test2(trust["sets"])
+        if t2 is not None:
             text += (f" Under force fields unlike the training's (test-2) they cover only {fmt_share(t2['coverage_0.9'])}"
                      f" and the alarm fires on {fmt_share(t2['alarm_rate'])}: there neither is to be trusted.")
     elif trust is not None:
