@@ -68,11 +68,11 @@ def _simulator_differences(model, dataset) -> list[str]:
     store's config differs from the one the model was trained with (the store's samples, seeds
     and size may differ freely; the mesh is checked by fingerprint); [] where the model records none."""
     from ..config import config_from_dict
-    from ..dataset.store import data_config
+    from ..dataset.store import data_config, data_differences
 
     if not model.run_config:
         return []
-    mine, theirs = data_config(config_from_dict(model.run_config)), data_config(dataset.config)
-    return [f"{sec}.{k}" for sec in ("material", "solver", "forces", "scenario")
-            for k in sorted(set(mine[sec]) | set(theirs[sec])) if mine[sec].get(k) != theirs[sec].get(k)]
+    return [key for key, _, _ in data_differences(data_config(config_from_dict(model.run_config)),
+                                                  data_config(dataset.config),
+                                                  ("material", "solver", "forces", "scenario"))]
 

@@ -36,7 +36,7 @@ from .schema import (ADDED_LATER, BLOCK, DRAWS, INSTRUMENT_PREFIX, PARAMETERS, S
 from .worker import SampleResult
 
 __all__ = ["SCHEMA", "SCHEMA_VERSION", "STATUS_NAMES", "StoreWriter", "package_versions", "check_schema",
-           "read_lbo_basis", "read_scenario_arrays", "open_root", "data_config"]
+           "read_lbo_basis", "read_scenario_arrays", "open_root", "data_config", "data_differences"]
 
 log = logging.getLogger(__name__)
 
@@ -364,6 +364,14 @@ def data_config(cfg: Config) -> dict:
     return out
 
 
+def data_differences(first: dict, second: dict, sections=_DATA_SECTIONS) -> list[tuple[str, object, object]]:
+    """``[(section.key, first's value, second's value)]`` where two :func:`data_config` dicts
+    differ in ``sections`` (a key one of them lacks: None there), sorted by key within a section."""
+    return [(f"{sec}.{k}", first[sec].get(k), second[sec].get(k))
+            for sec in sections for k in sorted(set(first[sec]) | set(second[sec]))
+            if first[sec].get(k) != second[sec].get(k)]
+
+
 def _check_config(writer: StoreWriter, cfg: Config) -> None:
     """Refuse data settings other than the store's (batch settings once its batches are fixed excepted)."""
     stored = data_config(config_from_dict(tomllib.loads(writer.config_toml)))
@@ -372,9 +380,7 @@ def _check_config(writer: StoreWriter, cfg: Config) -> None:
         for key in ("batch_size", "batch_memory"):
             stored["dataset"].pop(key, None)
             now["dataset"].pop(key, None)
-    diffs = [f"{sec}.{k}: {stored[sec].get(k)!r} in the store, {now[sec].get(k)!r} now"
-             for sec in _DATA_SECTIONS for k in sorted(set(stored[sec]) | set(now[sec]))
-             if stored[sec].get(k) != now[sec].get(k)]
+    diffs = [f"{key}: {a!r} in the store, {b!r} now" for key, a, b in data_differences(stored, now)]
     if diffs:
         raise DatasetError(
             f"data set {str(writer.path)!r} was made with a different configuration ({'; '.join(diffs[:4])}"
