@@ -67,7 +67,7 @@ def run(args) -> int:
                **gated.expert_routes_.summary(), **routing_figures(gated, fields, aux)}
     if args.json:
         print(json_output.dumps({"model": str(Path(args.out)), "store": str(store),
-                          "nominal_store": None if nominal_store is None else str(nominal_store), **figures}, indent=2))
+                                 "nominal_store": None if nominal_store is None else str(nominal_store), **figures}, indent=2))
         return 0
     print(f"model with a nominal expert saved to {args.out}")
     stores = store if nominal_store is None else f"{store} and {nominal_store}"

@@ -83,10 +83,10 @@ def run_from_image(args) -> int:
         log.warning(text)
     if args.json:
         print(json_output.dumps({"scan": args.scan, "label": labelmap.source, "coordinate_system": "LPS",
-                          "spacing_mm": labelmap.spacing.tolist(), "sizing": sizing, "fidelity": fidelity.as_dict(),
-                          "paper_run": {"seconds": cost.seconds, "unknowns": cost.unknowns, "exponent": cost.exponent,
-                                        "extrapolated": cost.extrapolated},
-                          **mesh_summary(mesh)}, indent=2))
+                                 "spacing_mm": labelmap.spacing.tolist(), "sizing": sizing, "fidelity": fidelity.as_dict(),
+                                 "paper_run": {"seconds": cost.seconds, "unknowns": cost.unknowns,
+                                               "exponent": cost.exponent, "extrapolated": cost.extrapolated},
+                                 **mesh_summary(mesh)}, indent=2))
         return 0
     _print_report(args, labelmap, mask, mesh, sizing, fidelity, cost)
     for path in written:

@@ -14,8 +14,8 @@ error_bound_mm][, alarm_raised]) or .json (LPS mm: ``displacement_mm``, ``uncert
 ``error_bound_mm``, ``error_bound_coverage``, ``alarms``). Vertex ids are 0-based. Marker input
 no simulation could have produced (a marker not a finite number, displaced far beyond its
 largest simulated displacement, or markers at distances the body cannot take) is refused with
-one error line naming the marker, exit status 2. With a calibrated model (surrogate.calibration 'split', the default, or
-'cross-validation') every vertex gets its conformal error bound
+one error line naming the marker, exit status 2. With a calibrated model (surrogate.calibration
+'split', the default, or 'cross-validation') every vertex gets its conformal error bound
 (``error_bound_mm`` point data / column: the error is below it with probability
 --coverage) and each sample's out-of-distribution alarm is printed.
 --targets-out writes where the targets (the model config's [evaluate.targets], or the
@@ -191,6 +191,7 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.
     B = u.shape[0]
     raised = None if alarms is None else np.array([a.raised for a in alarms], dtype=np.float64)
     if suf in (".vtu", ".vtk", ".vtp"):
+        from ..evaluate.render import write_vtu
         from ..slicer.models import write_model
 
         files = []
@@ -202,8 +203,6 @@ def _write(out: Path, model, u: np.ndarray, sigma: np.ndarray | None, bound: np.
             if raised is not None:
                 extra["alarm_raised"] = np.full(u.shape[1], raised[b])
             if suf == ".vtu":  # undeformed mesh + point data (ParaView's Warp By Vector)
-                from ..evaluate.render import write_vtu
-
                 files.append(write_vtu(p, model.mesh, {"displacement_mm": u[b], **extra}))
             else:  # the deformed mesh (Slicer models)
                 files.append(write_model(p, model.mesh, displacement=u[b], point_data=extra or None))

@@ -36,9 +36,8 @@ def report_run(result) -> None:
 
 
 def run(args) -> int:
-    from ..app.pipeline import run_pipeline
-
     from ..app.configuration import load_run_config
+    from ..app.pipeline import run_pipeline
 
     cfg = load_run_config(args.config)
     result = run_pipeline(cfg, simulate=not args.skip_simulate, progress=not args.no_progress, workers=args.workers)
