@@ -290,3 +290,35 @@ def test_bad_inputs_raise_model_error(model, data, tmp_path):
     (tmp_path / "m" / "pca.npz").unlink()
     with pytest.raises(ModelError, match="missing"):
         DeformationModel.load(tmp_path / "m")
+
+
+def test_fit_log_lines_name_the_network_and_report_progress(data, caplog, monkeypatch):
+    """Every network a fit trains says which it is (the model or its fallback, a calibration fold,
+    an ensemble member), and a fit running longer than PROGRESS_SECONDS says how far it is."""
+    import logging
+
+    from tissuecast.surrogate import fit_stage, mlp
+    from tissuecast.surrogate.auxiliary import AuxiliaryValues
+
+    from _instrument_synthetic import INPUTS, instrument_data
+
+    monkeypatch.setattr(mlp, "PROGRESS_SECONDS", 0.0)
+    mesh, U, _, A = instrument_data()
+    kw = dict(epochs=3, patience=0, batch_size=64, n_components=4, hidden=(8,), ensemble=2, calibration="cross-validation",
+              calibration_folds=2, calibration_fold_ensemble=1)
+    with caplog.at_level(logging.INFO, logger="tissuecast.surrogate.mlp"), fit_stage("nominal expert"):
+        DeformationModel(**kw).fit(U[:120], MARKERS, mesh=mesh, valid_idx=np.arange(100, 120),
+                                   auxiliary=AuxiliaryValues(INPUTS, A[:120]))
+    trained = [r.getMessage() for r in caplog.records if r.getMessage().startswith("trained")]
+    labels = [m.split("(", 1)[1].split(")", 1)[0] for m in trained]
+    assert labels == ["nominal expert, model, member 1/2", "nominal expert, model, member 2/2",
+                      "nominal expert, model, calibration fold 1/2", "nominal expert, model, calibration fold 2/2",
+                      "nominal expert, markers-only fallback, member 1/2",
+                      "nominal expert, markers-only fallback, member 2/2",
+                      "nominal expert, markers-only fallback, calibration fold 1/2",
+                      "nominal expert, markers-only fallback, calibration fold 2/2"]
+    progress = [r.getMessage() for r in caplog.records if ": epoch " in r.getMessage()]
+    # every epoch but the last of each of the 8 fits
+    assert len(progress) == 8 * 2
+    assert progress[0].startswith("training MLP [8] seed 0 (nominal expert, model, member 1/2): epoch 1/3, validation loss")
+    assert "left (less if it stops early)" in progress[0]

@@ -95,13 +95,14 @@ def add_nominal_expert(config: Config, model, dataset, nominal_store, *, model_f
     :meth:`~tissuecast.surrogate.DeformationModel.with_nominal_expert`); saved into
     ``model_folder`` unless None, with ``onnx`` the routed graph as ``model.onnx``."""
     from ..dataset import open_dataset
-    from ..surrogate import DeformationModel
+    from ..surrogate import DeformationModel, fit_stage
 
     nominal = open_dataset(nominal_store)
     cfg = with_overrides(nominal.config, markers={"ids": [int(i) for i in model.markers]},
                          surrogate=config_to_dict(config)["surrogate"] | {"nominal_expert": False, "nominal_samples": 0})
     t = time.perf_counter()
-    expert = DeformationModel.from_dataset(nominal, cfg)
+    with fit_stage("nominal expert"):
+        expert = DeformationModel.from_dataset(nominal, cfg)
     log.info("nominal expert trained on %s in %.1f s", nominal_store, time.perf_counter() - t)
     fields, aux, drawn = gate_fields(model, dataset, nominal)
     pair = model.with_nominal_expert(expert, fields, auxiliary=aux, drawn=drawn)

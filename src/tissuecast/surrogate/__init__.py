@@ -4,6 +4,7 @@ the trust layer, each a :class:`FieldPredictor` (:mod:`.field_predictor`), compo
 
 from .baselines import RidgePredictor, RigidRegistrationPredictor
 from .field_predictor import FieldPredictor
+from .fit_stage import fit_stage
 from .model import DeformationModel
 from .network_predictor import NetworkPredictor
 from .pca import PCABasis, PCACurve, choose_n_components, fit_pca
@@ -13,4 +14,4 @@ from .trusted import TrustedPredictor
 
 __all__ = ["DeformationModel", "FieldPredictor", "NetworkPredictor", "RidgePredictor", "RigidRegistrationPredictor",
            "TrustedPredictor", "ModelState", "PCABasis", "PCACurve", "choose_n_components", "fit_pca", "RidgeBaseline",
-           "fit_ridge", "marker_columns"]
+           "fit_ridge", "marker_columns", "fit_stage"]

@@ -40,6 +40,7 @@ from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .data import CALIBRATION_SEED_OFFSET, MIN_SAMPLES
 from .decoder import global_part
 from .head import truncated_head
+from .fit_stage import fit_stage
 from .network_fit import fit_network
 from .field_predictor import FieldPredictor
 from .network_predictor import NetworkPredictor
@@ -133,8 +134,9 @@ def cross_calibration_scores(U, train_idx, valid_idx, markers, mesh, config: Sur
         t0 = time.perf_counter()
         fit_idx, held = train[folds != k], train[folds == k]
         rows = (None, None) if auxiliary is None else (auxiliary[fit_idx], auxiliary[valid])
-        net = fit_network(np.asarray(U[fit_idx], dtype=np.float64).reshape(len(fit_idx), -1), Uv, markers, mesh, fc,
-                          *rows, auxiliary=spec, St=None if sensitivities is None else sensitivities.rows(fit_idx))
+        with fit_stage(f"calibration fold {k + 1}/{c.calibration_folds}"):
+            net = fit_network(np.asarray(U[fit_idx], dtype=np.float64).reshape(len(fit_idx), -1), Uv, markers, mesh, fc,
+                              *rows, auxiliary=spec, St=None if sensitivities is None else sensitivities.rows(fit_idx))
         predictor = net.predictor
         basis, head = second_parts(predictor)
         layer = fit_trust_layer(predictor, U, train_idx=fit_idx, valid_idx=valid, coverage=c.coverage,

@@ -34,7 +34,9 @@ import numpy as np
 
 from ..config import OUTPUT_SCALINGS, SCHEDULES, SurrogateConfig
 from ..errors import ModelError, require
+from ..dataset.phase_stats import eta_text
 from .encoding import input_width, masked_input
+from .fit_stage import stage_text
 from .network import build_network
 from .weights import MLPWeights
 
@@ -57,6 +59,8 @@ Y_STD_FLOOR_REL = 1e-6
 COSINE_FINAL_SHARE = 1e-3
 #: The validation loss is recorded at epoch 1 and every this many epochs (the training curve).
 HISTORY_EVERY = 25
+#: A fit still running after this many seconds says how far it is, then again every as many.
+PROGRESS_SECONDS = 30.0
 
 
 @dataclass(frozen=True)
@@ -280,13 +284,33 @@ def _tangent_loss(torch, net, t: _Tensors, idx, xin, directions: int, gen):
     return (w * (jv - t.dY[which[:, None], k].reshape(jv.shape)) ** 2).sum() / (count * jv.shape[1])
 
 
-def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool, n_markers: int) -> _Run:
-    """Adam epochs with best-on-validation checkpointing and early stopping after ``patience``."""
+class _Progress:
+    """A log line every :data:`PROGRESS_SECONDS` of a fit: the epoch, the validation loss, the time left."""
+
+    def __init__(self, name: str, epochs: int) -> None:
+        self.name, self.epochs = name, epochs
+        self.t0 = self.last = time.monotonic()
+
+    def epoch(self, run: _Run, vloss: float) -> None:
+        now = time.monotonic()
+        if now - self.last < PROGRESS_SECONDS or run.epochs >= self.epochs:
+            return
+        self.last = now
+        left = (now - self.t0) / run.epochs * (self.epochs - run.epochs)
+        log.info("training %s: epoch %d/%d, validation loss %.3g (best %.3g at epoch %d), %s so far, about %s left "
+                 "(less if it stops early)", self.name, run.epochs, self.epochs, vloss, run.best_loss, run.best_epoch,
+                 eta_text(now - self.t0), eta_text(left))
+
+
+def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool, n_markers: int, name: str = "MLP") -> _Run:
+    """Adam epochs with best-on-validation checkpointing and early stopping after ``patience``;
+    ``name`` is the fit's name in its progress lines."""
     # fused: one kernel updates every parameter (no Python loop over them per step)
     optimizer = torch.optim.Adam(net.parameters(), lr=c.learning_rate, weight_decay=c.weight_decay, fused=True)
     N = t.X.shape[0]
     scheduler = _scheduler(torch, optimizer, c, c.epochs * math.ceil(N / min(int(c.batch_size), N)))
     run = _Run()
+    progress = _Progress(name, c.epochs)
     for epoch in range(1, c.epochs + 1):
         run.epochs = epoch
         run.train_loss = _train_epoch(torch, net, optimizer, scheduler, t, c, gen, masked, n_markers)
@@ -298,6 +322,7 @@ def _fit(torch, net, t: _Tensors, c: SurrogateConfig, gen, masked: bool, n_marke
             run.best_parameters = [p.detach().clone() for p in net.parameters()]
         if epoch == 1 or epoch % HISTORY_EVERY == 0:
             run.history.append((epoch, vloss))
+        progress.epoch(run, vloss)
         if c.patience and epoch - run.best_epoch >= c.patience:
             run.stopped_early = True
             break
@@ -361,17 +386,18 @@ def train_mlp(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig | None
         if use is not None and masked:
             raise ModelError("tangents need marker_dropout = 0")
         tensors = _tensors(torch, X, Y, Xv, Yv, scaling, masked, n_markers, use)
+        name = f"MLP {list(c.hidden)} seed {seed}{stage_text()}"
         if use is not None:
-            log.info("training MLP %s seed %d on %d samples and their sensitivities (%d directions a sample a step, "
-                     "up to %d epochs)", list(c.hidden), seed, X.shape[0], c.sensitivity_directions, c.epochs)
+            log.info("training %s on %d samples and their sensitivities (%d directions a sample a step, up to %d epochs)",
+                     name, X.shape[0], c.sensitivity_directions, c.epochs)
         net = build_network(torch, input_width(n_markers, masked, n_a), c.hidden, Y.shape[1], c.activation)
-        run = _fit(torch, net, tensors, c, gen, masked, n_markers)
+        run = _fit(torch, net, tensors, c, gen, masked, n_markers, name)
         weights = _weights(torch, net, run.best_parameters, scaling, masked, n_a, c.activation)
     summary = TrainingSummary(
         seed=seed, epochs_run=run.epochs, best_epoch=run.best_epoch, best_valid_loss=run.best_loss,
         final_train_loss=run.train_loss, seconds=time.perf_counter() - t0, stopped_early=run.stopped_early,
         valid_history=tuple(run.history),
     )
-    log.info("trained MLP %s seed %d: %d epochs, best valid %.3g at %d, %.1f s",
-             list(c.hidden), seed, run.epochs, run.best_loss, run.best_epoch, summary.seconds)
+    log.info("trained %s: %d epochs, best validation loss %.3g at epoch %d, %.1f s",
+             name, run.epochs, run.best_loss, run.best_epoch, summary.seconds)
     return weights, summary

@@ -50,6 +50,7 @@ from .experts import (ExpertGate, NominalExpertRouter, RouteCalibration, RoutedN
 from .fallback import InstrumentFallback
 from .field_predictor import FieldPredictor
 from .inputs import marker_batch
+from .fit_stage import fit_stage
 from .network_fit import ENSEMBLE_SEED_STRIDE, fit_network
 from .network_predictor import NetworkPredictor
 from .ridge import marker_columns
@@ -304,12 +305,14 @@ class DeformationModel(FieldPredictor):
         if c.sensitivity_weight > 0 and sensitivities is None:
             log.warning("surrogate.sensitivity_weight = %g but no sensitivities were given: training on the fields only "
                         "(DeformationModel.from_dataset computes them from the data set)", c.sensitivity_weight)
-        net, trust, calibration = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec, A, explicit, sens)
+        with fit_stage("model"):
+            net, trust, calibration = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec, A, explicit, sens)
         fallback, fallback_trust = None, None
         if spec.instruments:
             kept = A[:, len(spec.instrument_columns):]
-            fallback, fallback_trust, _ = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec.without_instruments(), kept,
-                                                            explicit, sens, epochs=c.fallback_epochs or c.epochs)
+            with fit_stage("markers-only fallback"):
+                fallback, fallback_trust, _ = self._fit_learned(U, Ut, Uv, mk, mesh, splits, spec.without_instruments(),
+                                                                kept, explicit, sens, epochs=c.fallback_epochs or c.epochs)
         pca = global_part(net.predictor.basis)  # the baselines and the trust layer's second predictor work in it
         ridge = RidgePredictor.fit(mesh, mk, pca, c.ridge_ratio, Uv[:, marker_columns(mk)], Uv)
         training = {

@@ -8,6 +8,7 @@ The result is a :class:`~.network_predictor.NetworkPredictor` with the record of
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
 from dataclasses import dataclass
@@ -18,6 +19,7 @@ from ..config import SurrogateConfig
 from .auxiliary import MARKERS_ONLY, AuxiliaryInputs
 from .component_choice import choose_by_validation, components_to_train
 from .decoder import fit_decoder
+from .fit_stage import fit_stage
 from .head import fit_head, truncated_head
 from .mlp import Tangents, TrainingSummary, train_mlp
 from .network_predictor import NetworkPredictor
@@ -67,8 +69,9 @@ def train_members(Xt, Yt, Xv, Yv, config: SurrogateConfig, n_auxiliary: int = 0,
     """
     members, summaries = [], []
     for k in range(config.ensemble):
-        w, s = train_mlp(Xt, Yt, Xv, Yv, config, seed=config.seed + ENSEMBLE_SEED_STRIDE * k, n_auxiliary=n_auxiliary,
-                         tangents=tangents)
+        with fit_stage(f"member {k + 1}/{config.ensemble}") if config.ensemble > 1 else contextlib.nullcontext():
+            w, s = train_mlp(Xt, Yt, Xv, Yv, config, seed=config.seed + ENSEMBLE_SEED_STRIDE * k,
+                             n_auxiliary=n_auxiliary, tangents=tangents)
         members.append(w)
         summaries.append(s)
     return members, summaries
