@@ -429,6 +429,44 @@ def test_a_phase_where_nothing_finishes_says_it_is_still_solving(monkeypatch, ca
     assert len(lines) == 1 and "none finished in the last" in lines[0], caplog.messages  # only after the pause
 
 
+def test_progress_lines_say_a_rough_eta_and_a_slow_sample_is_warned_about_once(monkeypatch, caplog):
+    """The first lines' ETA (fewer results than 3 per worker) says it is rough; a slow sample is
+    one warning with what to do, the progress lines after it only count the slow samples, and
+    the phase's last line names the slowest."""
+    import logging
+
+    import tissuecast.dataset.supervise as supervise
+    from tissuecast.dataset.codes import SampleStatus
+    from tissuecast.dataset.supervise import Supervisor
+    from tissuecast.dataset.worker import SampleResult, Task
+
+    def done(i, seconds):
+        return SampleResult(i, SampleStatus.DONE, np.zeros((2, 3), np.float32), np.zeros((2, 3), np.float32),
+                            np.zeros((1, 3)), 1.0, float("nan"), i, 1, 2, 1, seconds, 1.0, 1)
+
+    class Pool:
+        workers = 1
+
+        def imap_unordered(self, items):
+            for t in items:
+                yield [done(t.index, 50.0 if t.index == 4 else 2.0)]
+
+    monkeypatch.setattr(supervise, "LOG_SECONDS", -1.0)  # a line for every result
+    with caplog.at_level(logging.INFO, logger="tissuecast.dataset.supervise"):
+        list(Supervisor(Pool(), 10.0, 1.0).run([Task(i, i, float("nan"), 1.0) for i in range(8)], "simulate"))
+    progress = [m for m in caplog.messages if m.startswith("simulate: ") and "/8 samples" in m]
+    assert len(progress) == 8, caplog.messages
+    assert "(rough: from 1 sample)" in progress[0] and "(rough: from 2 samples)" in progress[1]
+    assert "rough" not in progress[2]  # 3 results a worker: the rate
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and warnings[0].startswith("simulate: sample 4 took 50.0 s, 25x the median 2.00 s")
+    assert "it is kept (it converged); nothing to do unless many are slow" in warnings[0]
+    assert "slow" not in progress[3] and all("; 1 slow so far (warned above)" in m for m in progress[4:])
+    assert "sample 4" not in " ".join(progress)
+    closing = [m for m in caplog.messages if m.startswith("simulate: 8 samples in ")]
+    assert len(closing) == 1 and closing[0].endswith("; 1 slow, the slowest 4 (50.0 s, 25x)")
+
+
 def test_a_worker_that_cannot_build_its_solver_stops_the_run_with_its_error(tmp_path):
     """The workers build their solvers from the recipe when the pool starts; a failure there
     reaches the caller as it is (not as a broken pool), and no worker is left waiting."""

@@ -13,10 +13,11 @@ samples, the pending samples) runs its tasks through a :class:`Supervisor`:
   was stopped depends on the machine's speed (its reason says so).
 * **Progress**: a tqdm bar per phase on a terminal, else a log line at the phase's first
   result and then every ``LOG_SECONDS``: what the phase is (``calibration round 2 (at most
-  10)``), samples done, samples/s, the ETA, and the slow samples so far; every finished
-  sample slower than ``SLOW_FACTOR`` x the running median is logged as a warning at once.
-  Until a few results have come in, the ETA is the running median of the worker seconds
-  times the waves of tasks left on the workers (a rate needs more results). A phase may add
+  10)``), samples done, samples/s, the ETA, and how many were slow; every finished sample
+  slower than ``SLOW_FACTOR`` x the running median is one warning at once, saying what it
+  means, and the phase's last line names the slowest. Until a few results have come in, the
+  ETA is the running median of the worker seconds times the waves of tasks left on the
+  workers (a rate needs more results) and the line calls it rough. A phase may add
   an outlook to each line (the calibration's ETA as a whole, :mod:`.calibrate`).
 * **Heartbeat**: while nothing finishes (a slow sample, a batch of hard ones) a line every
   ``LOG_SECONDS`` says the phase is still solving, how long since the last result, the median
@@ -151,8 +152,8 @@ class Supervisor:
                 ratio = clock.add(r.index, r.seconds)
                 if ratio is not None:
                     self.slow.append((phase, r.index, r.seconds, ratio))
-                    log.warning("%s: %s %d took %.1f s, %.0fx the median %.2f s (%s)", phase, unit, r.index,
-                                r.seconds, ratio, r.seconds / ratio, _outcome(r))
+                    log.warning("%s: %s %d took %.1f s, %.0fx the median %.2f s (%s); %s", phase, unit, r.index,
+                                r.seconds, ratio, r.seconds / ratio, _outcome(r), _slow_advice(r))
                 if "SolveTimeout" in r.reason:
                     self.stopped.append((phase, r.index))
                 bar.update(r, clock)
@@ -221,9 +222,13 @@ class _Bar:
         first = self.count == self.start + 1
         if self.enabled and (first or now - self.last > LOG_SECONDS or self.count == self.total):
             self.last = now
-            rate = (self.count - self.start) / max(now - self.t0, 1e-9)
-            log.info("%s: %d/%d %ss (%d failed), %.2f %ss/s, ETA %s%s%s", self.phase, self.count, self.total,
-                     self.unit, self.failed, rate, self.unit, eta_text(eta), more, _slow_text(clock))
+            got = self.count - self.start
+            rate = got / max(now - self.t0, 1e-9)
+            rough = (f" (rough: from {got} {self.unit}{'s' if got > 1 else ''})"
+                     if got < 3 * self.workers and self.count < self.total else "")
+            slow = f"; {len(clock.slow)} slow so far (warned above)" if clock.slow else ""
+            log.info("%s: %d/%d %ss (%d failed), %.2f %ss/s, ETA %s%s%s%s", self.phase, self.count, self.total,
+                     self.unit, self.failed, rate, self.unit, eta_text(eta), rough, more, slow)
 
     def waiting(self, clock: SampleClock) -> None:
         """Nothing finished in the last wait: once ``LOG_SECONDS`` have passed without a result
@@ -261,4 +266,12 @@ def _slow_text(clock: SampleClock) -> str:
     if not clock.slow:
         return ""
     worst = sorted(clock.slow, key=lambda s: -s[2])[:3]
-    return "; slow: " + ", ".join(f"{i} ({s:.1f} s, {x:.0f}x)" for i, s, x in worst)
+    return f"; {len(clock.slow)} slow, the slowest " + ", ".join(f"{i} ({s:.1f} s, {x:.0f}x)" for i, s, x in worst)
+
+
+def _slow_advice(r: SampleResult) -> str:
+    """What a slow sample means for the user."""
+    if r.status != SampleStatus.DONE:
+        return "it is recorded failed with its reason, the data set goes on without it"
+    return ("it is kept (it converged); nothing to do unless many are slow: large displacements near the solver's "
+            "limit, lower [forces] target_max_displacement (or the scenario's loads) then")
