@@ -219,6 +219,17 @@ def test_scenario_defaults_are_the_papers_and_nested_tables_round_trip(tmp_path)
         path = tmp_path / "s.toml"
         path.write_text(text)
         assert load_config(path) == cfg
+        # only what differs from the defaults: the same config, each value marked changed
+        changed = config_to_toml(cfg, comments=comments, changed_only=True)
+        path.write_text(changed)
+        assert load_config(path) == cfg
+        assert "[solver]" not in changed and "[scenario.gravity]" in changed and "[scenario.springs]" in changed
+        assert changed.count("[[scenario.materials.regions]]") == 2
+        assert ("enabled = true  # changed (default false): add the change of gravity" in changed) == comments
+    assert config_to_toml(Config(), changed_only=True) == "\n"  # the defaults change nothing
+    marked = config_to_toml(cfg)
+    assert "cone_angle = 20.0  # changed (default 30.0): each sample's surgery direction" in marked
+    assert "acceleration = 9810.0  # |g| in mm/s^2 (9.81 m/s^2 = 9810 mm/s^2)" in marked  # a default: its doc alone
     # a sub-table given in part keeps its other keys (and the other sub-tables)
     more = with_overrides(cfg, scenario={"gravity": {"density": 1.05e-9}})
     assert more.scenario.gravity.density == 1.05e-9 and more.scenario.gravity.cone_angle == 20.0

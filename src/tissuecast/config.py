@@ -940,34 +940,51 @@ def _toml_value(v: Any) -> str:
     return str(v)
 
 
-def config_to_toml(cfg: Config, comments: bool = True) -> str:
+def config_to_toml(cfg: Config, comments: bool = True, *, changed_only: bool = False) -> str:
     """TOML text that :func:`load_config` reads back to an equal config.
 
     Nested sections become sub-tables (``[scenario.gravity]``), tuples of sections arrays of
-    tables (``[[scenario.materials.regions]]``).
+    tables (``[[scenario.materials.regions]]``). With ``comments``, a value that differs from
+    its default says so first (``# changed (default 0.021): ...``); ``changed_only`` writes
+    those values alone (and the tables holding them), which read back to the same config.
     """
     lines: list[str] = []
-    _toml_table(cfg, "", lines, comments)
+    _toml_table(cfg, "", lines, comments, default=type(cfg)(), changed_only=changed_only)
     return "\n".join(lines).lstrip("\n") + "\n"
 
 
-def _toml_table(obj: Any, name: str, lines: list, comments: bool, array: bool = False) -> None:
-    if name:
-        lines += ["", f"[[{name}]]" if array else f"[{name}]"]
+def _toml_table(obj: Any, name: str, lines: list, comments: bool, array: bool = False, *, default: Any = None,
+                changed_only: bool = False) -> None:
+    """Append ``obj``'s table (then its sub-tables) to ``lines``; ``default``: the same section
+    at its defaults (None: no comparison, as for an array's tables, whose keys all count)."""
+    own: list[str] = []
     later = []
     for f in dataclasses.fields(obj):
         v = getattr(obj, f.name)
+        d = getattr(default, f.name) if default is not None else None
         key = f"{name}.{f.name}" if name else f.name
         if dataclasses.is_dataclass(v):
-            later.append((key, [v], False))
+            later.append((key, [v], False, d))
         elif isinstance(v, tuple) and v and dataclasses.is_dataclass(v[0]):
-            later.append((key, v, True))
+            if not (changed_only and default is not None and v == d):
+                later.append((key, v, True, None))
         else:
+            changed = default is not None and v != d
+            if changed_only and default is not None and not changed:
+                continue
             doc = f.metadata.get("doc", "")
-            lines.append(f"{f.name} = {_toml_value(v)}" + (f"  # {doc}" if comments and doc else ""))
-    for key, items, is_array in later:
+            note = f"changed (default {_toml_value(d)}): {doc}" if changed else doc
+            own.append(f"{f.name} = {_toml_value(v)}" + (f"  # {note}" if comments and note else ""))
+    mark = len(lines)
+    if name:
+        lines += ["", f"[[{name}]]" if array else f"[{name}]"]
+    lines += own
+    for key, items, is_array, d in later:
         for item in items:
-            _toml_table(item, key, lines, comments, is_array)
+            _toml_table(item, key, lines, comments, is_array, default=None if is_array else d,
+                        changed_only=changed_only)
+    if changed_only and name and not array and not own and len(lines) == mark + 2:
+        del lines[mark:]  # a table with nothing changed in it or below
 
 
 def with_overrides(cfg: Config, **sections: dict) -> Config:

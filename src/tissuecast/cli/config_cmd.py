@@ -12,7 +12,10 @@ def register(sub) -> None:
     show.add_argument("file", nargs="?", help="TOML config file or a packaged preset (embedded, paper, quick); omitted = "
                       "defaults; "
                       "or a data-set store directory: the config it was made with")
-    show.add_argument("--no-comments", action="store_true", help="omit the explanatory comments")
+    show.add_argument("--no-comments", action="store_true", help="omit the explanatory comments (a changed value's "
+                      "comment starts 'changed (default ...)')")
+    show.add_argument("--changed", action="store_true", help="only the values that differ from the defaults (what a "
+                      "preset or file changes; reads back to the same config)")
     show.set_defaults(func=run)
 
 
@@ -20,5 +23,5 @@ def run(args) -> int:
     from ..app.pipeline import resolve_source
 
     cfg, _ = resolve_source(args.file)
-    print(config_to_toml(cfg, comments=not args.no_comments), end="")
+    print(config_to_toml(cfg, comments=not args.no_comments, changed_only=args.changed), end="")
     return 0
