@@ -150,3 +150,29 @@ def test_every_command_takes_a_config_file_or_a_preset_name(tmp_path, monkeypatc
     assert main(["run", "quick", "--workers", "-1"]) == 2  # refused before anything is made
     assert "workers = -1: give 0 (one per usable CPU)" in capsys.readouterr().err
     assert not (tmp_path / "tissuecast-demo").exists()
+
+
+def test_every_help_example_parses_and_is_printed_as_written(capsys):
+    """A command's --help ends with examples; each is a command line its parser takes."""
+    import importlib
+    import shlex
+
+    from tissuecast.cli.main import COMMANDS, build_parser
+
+    seen = 0
+    for name, module in COMMANDS.items():
+        examples = getattr(importlib.import_module(f"tissuecast.cli.{module}"), "EXAMPLES", ())
+        for line, _ in examples:
+            words = shlex.split(line)
+            assert words[:2] == ["tissuecast", name], line
+            args = build_parser(name).parse_args(words[1:])
+            assert args.command == name and callable(args.func), line
+            seen += 1
+        if examples:
+            with pytest.raises(SystemExit):
+                build_parser(name).parse_args([name, "--help"])
+            text = capsys.readouterr().out
+            tail = text[text.index("\nexamples:\n"):]
+            for line, what in examples:
+                assert f"\n  {line}\n      {what}\n" in tail + "\n"
+    assert seen >= 15

@@ -9,6 +9,16 @@ from pathlib import Path
 
 from ..evaluate import json_output
 from ..config import EvaluateConfig
+from .help_examples import with_examples
+
+
+#: ``--help``'s examples: (command line, what it does).
+EXAMPLES = (
+    ("tissuecast evaluate runs/quick/model",
+     "the report (HTML) beside the model, on the store it was trained on"),
+    ("tissuecast evaluate runs/quick/model --targets tumour.mrk.json --json",
+     "TRE at your own targets (Slicer markups), the evaluation printed as JSON"),
+)
 
 
 def register(sub) -> None:
@@ -18,7 +28,7 @@ def register(sub) -> None:
                                    "corrected: the MLP next to rigid registration from the same markers, the ridge baseline "
                                    "and the PCA floor, with the peak displacement and non-rigid part of the samples; "
                                    "prediction time; writes index.html (headline, interactive 3D view, figures, renders) "
-                                   "and VTU files.")
+                                   "and VTU files.", **with_examples(*EXAMPLES))
     p.add_argument("model", help="model folder (from `tissuecast train`)")
     p.add_argument("--store", help="data-set store (default: the store the model was trained on)")
     p.add_argument("--out", help="report folder (default: the model folder's sibling 'report')")

@@ -57,7 +57,7 @@ def build_parser(only: str | None = None, action_module: str | None = None) -> a
         description="Real-time soft-tissue deformation from fiducial markers (units: mm, N, MPa; vertex ids 0-based).",
         epilog="Start with `tissuecast demo` (the whole pipeline on the built-in phantom, a few minutes), then "
                "`tissuecast run CONFIG` or a packaged preset (quick, paper, embedded); `tissuecast COMMAND --help` "
-               "says what a command reads and writes.",
+               "says what a command reads and writes, with examples.",
     )
     parser.add_argument("--version", action="version", version=f"tissuecast {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logging")

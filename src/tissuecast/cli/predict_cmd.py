@@ -41,11 +41,23 @@ from pathlib import Path
 import numpy as np
 
 from ..evaluate import json_output
+from .help_examples import with_examples
+
+
+#: ``--help``'s examples: (command line, what it does).
+EXAMPLES = (
+    ("tissuecast predict runs/quick/model --markers displacements.csv --out field.vtu",
+     "marker displacements (mm, LPS, one row per sample) -> the field as a VTU for ParaView"),
+    ("tissuecast predict runs/quick/model --markers tracked.mrk.json --out field.vtu --targets-out targets.mrk.json",
+     "marker positions from 3D Slicer markups; the targets' predicted positions back as markups"),
+    ("tissuecast predict runs/embedded/model --markers positions.csv --positions --instrument retractor.json --out f.json",
+     "tracked positions and the retractor's pose; JSON with the field, bounds and alarms"),
+)
 
 
 def register(sub) -> None:
     p = sub.add_parser("predict", help="predict the displacement field from marker displacements or positions",
-                       description=__doc__.split("\n\n", 1)[1])
+                       description=__doc__.split("\n\n", 1)[1], **with_examples(*EXAMPLES))
     p.add_argument("model", help="model folder")
     p.add_argument("--markers", required=True,
                    help="CSV or JSON file of marker displacements (or positions), mm; "

@@ -2,12 +2,25 @@
 
 from __future__ import annotations
 
+from .help_examples import with_examples
+
+
+#: ``--help``'s examples: (command line, what it does).
+EXAMPLES = (
+    ("tissuecast run quick",
+     "a packaged preset: the phantom, paper-style loads, a few minutes on 2 cores"),
+    ("tissuecast run embedded --workers 2",
+     "the clinical preset (attached region, elastic support, gravity, a tracked retractor)"),
+    ("tissuecast run my_patient.toml --skip-simulate",
+     "train and evaluate again on the store the config names, as it is"),
+)
+
 
 def register(sub) -> None:
     p = sub.add_parser("run", help="run the whole pipeline as a config describes",
                        description="Simulate the data set (resumable), train the surrogate, evaluate it and write the "
                                    "report. Paths: dataset.store, and in the config's output folder model/ and "
-                                   "<evaluate.output>/.")
+                                   "<evaluate.output>/.", **with_examples(*EXAMPLES))
     p.add_argument("config", help="TOML config file (e.g. configs/paper.toml), or the name of a packaged preset "
                                   "(quick, paper, embedded)")
     p.add_argument("--skip-simulate", action="store_true", help="use the existing store as it is")

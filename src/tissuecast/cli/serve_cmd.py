@@ -24,13 +24,25 @@ import sys
 
 from ..config import CLIENT_FRAMES, SERVE_METHODS, TRANSFORM_MODES, ServeConfig, with_overrides
 from ..errors import ConfigError
+from .help_examples import with_examples
 
 log = logging.getLogger(__name__)
 
 
+#: ``--help``'s examples: (command line, what it does).
+EXAMPLES = (
+    ("tissuecast serve runs/quick/model",
+     "listen on 127.0.0.1:18944, answer in the model's frame (LPS)"),
+    ("tissuecast serve runs/quick/model --client-frame RAS --full-field",
+     "for 3D Slicer's OpenIGTLinkIF (RAS), sending the whole vertex field too"),
+    ("tissuecast serve runs/embedded/model --config embedded --instrument-timeout 1.0",
+     "with the tracked retractor; markers only after 1 s without its TRANSFORM"),
+)
+
+
 def register(sub) -> None:
     p = sub.add_parser("serve", help="OpenIGTLink server streaming predicted deformations",
-                       description=__doc__.split("\n\n", 1)[1].strip())
+                       description=__doc__.split("\n\n", 1)[1].strip(), **with_examples(*EXAMPLES))
     p.add_argument("model", help="model folder written by `tissuecast train` / DeformationModel.save "
                                  "(or a SubModelSet folder: serves with one marker untracked)")
     p.add_argument("--config", help="TOML config or a packaged preset; its [serve] section gives the defaults")

@@ -4,6 +4,18 @@ from __future__ import annotations
 
 from ..evaluate import json_output
 from ..config import with_overrides
+from .help_examples import with_examples
+
+
+#: ``--help``'s examples: (command line, what it does).
+EXAMPLES = (
+    ("tissuecast simulate quick",
+     "the preset's data set into its store (run it again to continue a stopped one)"),
+    ("tissuecast simulate my_patient.toml --samples 400 --workers 2",
+     "a smaller set first, on two worker processes"),
+    ("tissuecast simulate runs/quick/dataset.zarr",
+     "continue a store with the config it was made with"),
+)
 
 
 def register(sub) -> None:
@@ -11,7 +23,8 @@ def register(sub) -> None:
         "simulate", help="create or continue a data set of nonlinear FEM samples (resumable)",
         description="Solve the LBO training samples (split train/valid/test1) and the test-2 samples the config "
                     "describes into a Zarr store. Re-running the same command continues an interrupted run; "
-                    "the result is identical to an uninterrupted one.")
+                    "the result is identical to an uninterrupted one.",
+        **with_examples(*EXAMPLES))
     p.add_argument("config", nargs="?", help="TOML config file or a packaged preset (embedded, paper, quick); omitted = "
                    "defaults (the paper's set-up); or a data-set store directory: continue it with its own config")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from ..evaluate.mismatch import DISCRETISATION_SAMPLES
 from ..evaluate.studies import ARCHITECTURE_REPEATS, ARCHITECTURE_WIDTHS, MARKER_COUNTS, PCA_MAX_COMPONENTS
+from .help_examples import with_examples
 
 _WIDTHS = ",".join(str(w) for w in ARCHITECTURE_WIDTHS)
 _COUNTS = f"{MARKER_COUNTS[0]}-{MARKER_COUNTS[-1]}"
@@ -24,6 +25,15 @@ def _ints(text: str) -> list[int]:
     return out
 
 
+#: ``--help``'s examples: (command line, what it does).
+EXAMPLES = (
+    ("tissuecast study markers quick --counts 3,5,10",
+     "test-1 accuracy against the number of markers"),
+    ("tissuecast study mismatch embedded --model shipped=runs/embedded/model --samples 100",
+     "the model on sets simulated with other tissue, supports or elements than it was trained for"),
+)
+
+
 def register(sub) -> None:
     p = sub.add_parser("study", help="studies: hidden layers, number of markers, PCA size; a model against mismatched "
                                      "simulations",
@@ -32,7 +42,7 @@ def register(sub) -> None:
                                    "one) on test sets simulated from the config with one thing changed (kept in "
                                    "OUT/mismatch, resumable). Each writes study_NAME.csv / .png (mismatch also .json) "
                                    "into --out (default: the report folder of the config's output), which `tissuecast "
-                                   "evaluate` then includes in the report.")
+                                   "evaluate` then includes in the report.", **with_examples(*EXAMPLES))
     p.add_argument("study", choices=("architecture", "markers", "pca", "mismatch"), help="which study")
     p.add_argument("source", nargs="?", help="TOML config file, a packaged preset or a data-set store directory")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")

@@ -5,6 +5,16 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..evaluate import json_output
+from .help_examples import with_examples
+
+
+#: ``--help``'s examples: (command line, what it does).
+EXAMPLES = (
+    ("tissuecast train quick",
+     "the model of the preset's store, into the config's output folder"),
+    ("tissuecast train runs/quick/dataset.zarr --ensemble 3 --out model3",
+     "from a store alone, three networks (uncertainty)"),
+)
 
 
 def register(sub) -> None:
@@ -12,7 +22,8 @@ def register(sub) -> None:
                        description="Fit PCA (n_w by surrogate.pca_rule, the validation rule by default, unless "
                                    "surrogate.n_components is set), the ridge baseline and the MLP on the store's "
                                    "train split (valid split for checkpointing), "
-                                   "and save the model folder (weights, PCA basis, mesh, metadata, ONNX).")
+                                   "and save the model folder (weights, PCA basis, mesh, metadata, ONNX).",
+                       **with_examples(*EXAMPLES))
     p.add_argument("source", nargs="?",
                    help="TOML config file, a packaged preset or a data-set store directory (default: defaults)")
     p.add_argument("--store", help="store directory (default: dataset.store of the config)")
