@@ -76,6 +76,14 @@ def test_input_layouts_agree(model, data):
     pos = model.reference_marker_positions + d[2]
     np.testing.assert_allclose(model.predict_from_positions(pos), batch[2], atol=1e-9)
     np.testing.assert_allclose(model.reference_marker_positions, model.mesh.points[MARKERS])
+    # positions take predict's layouts: flat, a batch of flat rows, a batch of (n_d, 3)
+    positions = model.reference_marker_positions + d
+    np.testing.assert_allclose(model.predict_from_positions(pos.ravel()), batch[2], atol=1e-9)
+    np.testing.assert_allclose(model.predict_from_positions(positions.reshape(4, 15)), batch, atol=1e-9)
+    np.testing.assert_allclose(model.predict_from_positions(positions), batch, atol=1e-9)
+    layouts = r"marker positions must be \(5, 3\), \(15,\), \(B, 5, 3\) or \(B, 15\) mm, got \(4, 14\)"
+    with pytest.raises(ModelError, match=layouts):
+        model.predict_from_positions(positions.reshape(4, 15)[:, :14])
 
 
 def test_fast_path_matches_plain_forward(model, data):

@@ -139,11 +139,16 @@ class FieldPredictor(ABC):
         them as a third argument, (B, n_a))."""
 
     def predict_from_positions(self, positions, *, missing=None, auxiliary=None) -> np.ndarray:
-        """As :meth:`predict`, from tracked marker positions (n_d, 3) or (B, n_d, 3) mm in the
-        model's (mesh) frame: the reference marker positions are subtracted."""
+        """As :meth:`predict`, from tracked marker positions in the model's (mesh) frame, mm, in
+        :meth:`predict`'s layouts ((3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d)): the reference
+        marker positions are subtracted."""
+        n = self.n_markers
         p = np.asarray(positions, dtype=np.float64)
-        if p.shape[-2:] != (self.n_markers, 3) or p.ndim not in (2, 3):
-            raise ModelError(f"marker positions must be ({self.n_markers}, 3) or (B, {self.n_markers}, 3) mm, got {p.shape}")
+        if p.shape == (3 * n,) or (p.ndim == 2 and p.shape[1] == 3 * n and p.shape != (n, 3)):
+            p = p.reshape(*p.shape[:-1], n, 3)
+        if p.shape[-2:] != (n, 3) or p.ndim not in (2, 3):
+            raise ModelError(f"marker positions must be ({n}, 3), ({3 * n},), (B, {n}, 3) or (B, {3 * n}) mm, "
+                             f"got {p.shape}")
         return self.predict(p - self.reference_marker_positions, missing=missing, auxiliary=auxiliary)
 
     def predict_and_decode(self, d: np.ndarray, auxiliary, basis, weights) -> tuple[np.ndarray, np.ndarray]:

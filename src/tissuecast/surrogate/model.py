@@ -500,7 +500,7 @@ class DeformationModel(FieldPredictor):
         return verdicts[0] if single else verdicts
 
     def predict_from_positions(self, positions, *, missing=None, method: str = "mlp", auxiliary=None) -> np.ndarray:
-        """Displacement field from tracked marker positions (n_d, 3) or (B, n_d, 3) mm.
+        """Displacement field from tracked marker positions (3 n_d,), (n_d, 3), (B, n_d, 3) or (B, 3 n_d) mm.
 
         The positions must be in the model's (mesh) coordinate frame; the reference
         (undeformed) marker positions are subtracted. ``method`` and ``auxiliary`` as in :meth:`predict`.
