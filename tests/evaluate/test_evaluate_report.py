@@ -351,3 +351,22 @@ def test_the_terminal_summary_fits_the_terminal(evaluation):
     for text in (wide, narrow):  # the same figures either way
         assert fmt_mm(t1.mlp.offset_max) in text and fmt_mm(t1.rigid.offset_max) in text
     assert f"rigid registration {fmt_mm(t1.rigid.offset_max)}" in narrow and "test-2 mean Offset_max per beta" in narrow
+
+
+def test_training_plot_draws_the_fallback_dashed_beside_the_model(tmp_path, monkeypatch):
+    from tissuecast.evaluate import figures
+
+    drawn = {}
+
+    def keep(fig, path):
+        drawn["lines"] = [(ln.get_linestyle(), ln.get_label(), list(ln.get_ydata())) for ln in fig.axes[0].get_lines()]
+        drawn["ylabel"] = fig.axes[0].get_ylabel()
+        return path
+
+    monkeypatch.setattr(figures, "save_figure", keep)
+    member = {"valid_history": [[1, 2.0], [25, 1.0]], "best_epoch": 25, "seconds": 3.0}
+    fallback = {"valid_history": [[1, 3.0], [25, 1.5]], "best_epoch": 20, "seconds": 1.0}
+    figures.training_curves([member, member], tmp_path / "t.png", [fallback])
+    styles = [(s, label.split(" (")[0], y) for s, label, y in drawn["lines"]]
+    assert styles == [("-", "member 0", [2.0, 1.0]), ("-", "member 1", [2.0, 1.0]), ("--", "fallback member 0", [3.0, 1.5])]
+    assert drawn["ylabel"] == "validation loss (MSE of scaled PCA weights)"

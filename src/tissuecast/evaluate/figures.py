@@ -115,15 +115,17 @@ def pca_validation_curve(curve: dict, chosen: int, path: Path) -> Path:
     return save_figure(fig, path)
 
 
-def training_curves(members: list[dict], path: Path) -> Path:
-    """Validation loss versus epoch of each ensemble member."""
+def training_curves(members: list[dict], path: Path, fallback: list[dict] = ()) -> Path:
+    """Validation loss versus epoch of each ensemble member, and (dashed) of the markers-only
+    fallback's members where the model reads tracked instruments."""
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.5, 4))
-    for k, m in enumerate(members):
-        h = np.array(m.get("valid_history") or [[0, np.nan]], dtype=float)
-        ax.semilogy(h[:, 0], h[:, 1], label=f"member {k} (best epoch {m['best_epoch']}, {m['seconds']:.1f} s)")
+    for group, style, name in ((members, "-", "member"), (fallback, "--", "fallback member")):
+        for k, m in enumerate(group):
+            h = np.array(m.get("valid_history") or [[0, np.nan]], dtype=float)
+            ax.semilogy(h[:, 0], h[:, 1], style, label=f"{name} {k} (best epoch {m['best_epoch']}, {m['seconds']:.1f} s)")
     ax.set_xlabel("epoch")
-    ax.set_ylabel("validation MSE (scaled PCA weights)")
+    ax.set_ylabel("validation loss (MSE of scaled PCA weights)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8)
     return save_figure(fig, path)

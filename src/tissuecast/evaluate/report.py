@@ -189,9 +189,13 @@ def _figures(folder: Path, model, evaluation, studies_folder) -> list[tuple[str,
     if model.pca_curve_ is not None:
         figs.append(("PCA reconstruction error versus n_w (cross-validated on the training set)",
                      figures.pca_curve(model.pca_curve_, folder / "pca.png")))
-    members = (evaluation.model_summary.get("training") or {}).get("members") or []
+    training = evaluation.model_summary.get("training") or {}
+    members = training.get("members") or []
     if members and members[0].get("valid_history"):
-        figs.append(("Training: validation loss", figures.training_curves(members, folder / "training.png")))
+        fallback = [m for m in (training.get("fallback") or {}).get("members") or [] if m.get("valid_history")]
+        figs.append(("Training: validation loss versus epoch (lower is better; the scale is the networks' own, "
+                     "not mm)" + ("; dashed: the markers-only fallback" if fallback else ""),
+                     figures.training_curves(members, folder / "training.png", fallback)))
     sf = Path(studies_folder) if studies_folder else folder
     if (sf / "study_markers.csv").is_file():
         figs.append(("Study: number of markers",
