@@ -265,6 +265,7 @@ class SurrogateConfig:
     noise_sigma: float = _f(0.0, lo=0.0, doc="marker noise augmentation (mm)")
     ridge_ratio: float = _f(1e-3, lo=0.0, doc="ridge a2/a1")
     seed: int = _f(0, lo=0, doc="training seed")
+    threads: int = _f(2, lo=1, hi=256, doc="torch threads a network trains on; the same count gives the same weights bit for bit (another may round differently)")
     schedule: str = _f("onecycle", choices=SCHEDULES, doc="learning-rate schedule")
     output_scaling: str = _f("global", choices=OUTPUT_SCALINGS, doc="PCA-weight scaling of the loss")
     weight_decay: float = _f(0.0, lo=0.0, doc="Adam weight decay")

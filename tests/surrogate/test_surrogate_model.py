@@ -330,3 +330,31 @@ def test_fit_log_lines_name_the_network_and_report_progress(data, caplog, monkey
     assert len(progress) == 8 * 2
     assert progress[0].startswith("training MLP [8] seed 0 (nominal expert, model, member 1/2): epoch 1/3, validation loss")
     assert "left (less if it stops early)" in progress[0]
+
+
+def test_training_runs_on_the_configured_threads_and_restores_torchs(data, monkeypatch):
+    import torch
+
+    from tissuecast.config import SurrogateConfig
+    from tissuecast.surrogate import mlp
+
+    mesh, U = data
+    X = U[:60][:, MARKERS].reshape(60, -1)
+    seen = []
+    fit = mlp._fit
+
+    def spy(torch_, *args, **kwargs):
+        seen.append(torch_.get_num_threads())
+        return fit(torch_, *args, **kwargs)
+
+    monkeypatch.setattr(mlp, "_fit", spy)
+    before = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        for threads in (1, 2):
+            mlp.train_mlp(X[:50], U[:50, :4, 0], X[50:], U[50:60, :4, 0], SurrogateConfig(hidden=(8,), epochs=2, threads=threads))
+            assert torch.get_num_threads() == 3
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1, 2]
+    assert SurrogateConfig().threads == 2

@@ -12,7 +12,8 @@ Outputs are the n_w PCA weights (mm), scaled either by one global factor (``"glo
 loss is then proportional to the squared field error, since the PCA basis is orthonormal)
 or per component (``"component"``). Training is full-data Adam with mini-batches, a
 one-cycle or cosine learning-rate schedule, best-on-validation checkpointing and early
-stopping; it is seeded and runs with deterministic torch algorithms on one thread.
+stopping; it is seeded and runs with deterministic torch algorithms on ``threads`` threads
+(the same count gives the same weights bit for bit; another count may round differently).
 
 With the simulator's sensitivities (:class:`Tangents`, ``sensitivity_weight`` > 0) each step
 also fits the network's directional derivatives (forward-mode, ``torch.func.jvp``) along
@@ -141,17 +142,17 @@ class _Run:
 
 
 @contextlib.contextmanager
-def _deterministic(torch):
-    """One thread and deterministic algorithms, restored afterwards."""
-    threads = torch.get_num_threads()
+def _deterministic(torch, threads: int = 1):
+    """``threads`` torch threads and deterministic algorithms, restored afterwards."""
+    before = torch.get_num_threads()
     det = torch.are_deterministic_algorithms_enabled()
-    torch.set_num_threads(1)
+    torch.set_num_threads(int(threads))
     torch.use_deterministic_algorithms(True)
     try:
         yield
     finally:
         torch.use_deterministic_algorithms(det)
-        torch.set_num_threads(threads)
+        torch.set_num_threads(before)
 
 
 def _check_xy(X, Y, name, n_auxiliary: int = 0):
@@ -375,7 +376,7 @@ def train_mlp(X_train, Y_train, X_valid, Y_valid, config: SurrogateConfig | None
     n_markers = (X.shape[1] - n_a) // 3
     scaling = _scaling(X, Y, c.output_scaling, n_a)
     t0 = time.perf_counter()
-    with _deterministic(torch):
+    with _deterministic(torch, c.threads):
         torch.manual_seed(seed)
         gen = torch.Generator().manual_seed(seed)
         use = tangents if tangents is not None and c.sensitivity_weight > 0 else None
