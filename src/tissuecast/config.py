@@ -398,8 +398,8 @@ class GravityConfig:
     enabled: bool = _f(False, doc="add the change of gravity to every sample's loads")
     density: float = _f(1.0e-9, lo=0.0, lo_open=True, doc="tissue density in t/mm^3 (1000 kg/m^3 = 1 g/cm^3 = 1e-9 t/mm^3)")
     acceleration: float = _f(9810.0, lo=0.0, lo_open=True, doc="|g| in mm/s^2 (9.81 m/s^2 = 9810 mm/s^2)")
-    imaging_direction: tuple[float, ...] = _f((0.0, 0.0, -1.0), doc="direction of gravity (mesh coordinates) when the reference image was taken")
-    surgery_direction: tuple[float, ...] = _f((0.0, 0.0, -1.0), doc="nominal direction of gravity during surgery")
+    imaging_direction: tuple[float, ...] = _f((0.0, 0.0, -1.0), doc="gravity's direction (LPS) in the reference image: default inferior; a supine CT/MR scan: posterior, [0, 1, 0]")
+    surgery_direction: tuple[float, ...] = _f((0.0, 0.0, -1.0), doc="nominal direction of gravity during surgery (LPS; supine: [0, 1, 0], prone: [0, -1, 0])")
     cone_angle: float = _f(30.0, lo=0.0, hi=90.0, doc="each sample's surgery direction is drawn uniformly within this angle (degrees) of surgery_direction")
 
 
@@ -408,7 +408,7 @@ class AccessConfig(RegionConfig):
     """Where an instrument can reach the surface (the surgical access: a craniotomy, a port, the
     exposed face): indentation patch centres are drawn among these surface vertices."""
 
-    rule: str = _f("surface", choices=REGION_RULES[1:], doc="surface vertices an instrument reaches: surface = all; ids; tag; normal = within `angle` of `direction`; distance = near `point`")
+    rule: str = _f("surface", choices=REGION_RULES[1:], doc="surface vertices an instrument reaches: surface = all; ids; tag; normal; distance; markups; extreme; label (as for the attached region)")
 
 
 @dataclass(frozen=True)
@@ -490,7 +490,7 @@ class InstrumentConfig:
 
     name: str = _f("retractor", doc="label; the model's inputs are <name>.tip_x ... <name>.contact")
     load: str = _f("indentation", choices=INSTRUMENT_LOADS, doc="the scenario load the instrument is: its pose in a sample follows from that load's draw")
-    device: str = _f("RetractorToReference", doc="OpenIGTLink device name of its TRANSFORM (tool tip -> tracker frame) for tissuecast serve; not part of the data set")
+    device: str = _f("RetractorToReference", doc="OpenIGTLink device (<= 20 characters) of the calibrated tip's TRANSFORM (tip -> tracker frame, e.g. RetractorTipToRef) for serve")
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,9 @@ __all__ = [
     "surface_depth",
     "validate_vertex_ids",
     "markers_and_fixed",
+    "write_markers_markups",
+    "MARKERS_LIST",
+    "FIXED_LIST",
 ]
 
 
@@ -235,3 +238,24 @@ def markers_and_fixed(mesh: TetMesh, config=None, pins: bool = True, held=None) 
     if not pins:
         return markers, np.zeros(0, dtype=np.int64)
     return markers, pins_from_config(mesh, config, markers)
+
+
+#: Names of the two point lists of a markers markups file (3D Slicer node names).
+MARKERS_LIST, FIXED_LIST = "FiducialMarkers", "FixedVertices"
+
+
+def write_markers_markups(path, mesh: TetMesh, markers, fixed=()):
+    """Markers and fixed vertices as two 3D Slicer point lists (``.mrk.json``, LPS mm, the mesh's frame).
+
+    Point labels are ``M0``.. / ``F0``.. in the model's marker order, 0-based as the API, the
+    markers CSV's ``order``, OpenIGTLink's ``Marker0``.. and every error message count them;
+    descriptions give the 0-based vertex id. Returns the path written.
+    """
+    from .slicer.markups import MarkupList, write_markups
+
+    lists = [
+        MarkupList(name, mesh.points[np.asarray(ids, dtype=np.int64)], tuple(f"{tag}{k}" for k in range(len(ids))),
+                   tuple(f"vertex {int(i)} (0-based)" for i in ids))
+        for name, tag, ids in ((MARKERS_LIST, "M", markers), (FIXED_LIST, "F", fixed))
+    ]
+    return write_markups(path, lists, "LPS")

@@ -130,6 +130,13 @@ def test_save_load_round_trip(model, data, tmp_path):
     np.testing.assert_array_equal(loaded.markers, MARKERS)
     np.testing.assert_array_equal(loaded.fixed, [0, 1, 2])
     np.testing.assert_array_equal(loaded.mesh.tets, model.mesh.tets)
+    # the points to track, as 3D Slicer reads them: the model's markers in its order, LPS
+    from tissuecast.slicer.markups import read_markups
+
+    lists = {m.name: m for m in read_markups(tmp_path / "m" / "markers.mrk.json")}
+    np.testing.assert_allclose(lists["FiducialMarkers"].positions, model.reference_marker_positions)
+    assert lists["FiducialMarkers"].labels == tuple(f"M{k}" for k in range(len(MARKERS)))
+    np.testing.assert_allclose(lists["FixedVertices"].positions, model.mesh.points[[0, 1, 2]])
     assert loaded.ensemble_size == 2 and loaded.pca_curve_.chosen == 8
     assert loaded.pca_choice_ == model.pca_choice_ and loaded.pca_choice_["rule"].startswith("paper")
     np.testing.assert_array_equal(loaded.predict(d, method="rigid"), model.predict(d, method="rigid"))

@@ -20,6 +20,7 @@ from ..evaluate import json_output
 from .. import __version__
 from ..config import FIXED_RULES, MarkerConfig, with_overrides
 from ..errors import require
+from ..markers import write_markers_markups
 from ..mesh import TetMesh
 from ..mesh.io import UNITS, write_point_set
 from .mesh_cmd import PHANTOM_WORD, load_mesh_argument
@@ -107,8 +108,9 @@ def run(args) -> int:
               "can); `tissuecast markers plan STORE` chooses surface markers from the simulations (as a run does "
               "where the config plans them), --ids gives your own")
     if mc.rule == "planned" and not mc.ids:
-        print("note: markers.rule = 'planned': these are the k-center markers the data set records; the model's "
-              "markers are planned from the simulations when it is trained (model/markers_plan.json), or now with "
+        print("note: markers.rule = 'planned': these are the k-center markers the data set records, not the ones to "
+              "track; the model's markers are planned from the simulations when it is trained: track the points of "
+              "MODEL/markers.mrk.json (its plan in MODEL/markers_plan.json), or plan them now with "
               "`tissuecast markers plan STORE`")
     written = [_write_csv(prefix, mesh, markers, fixed, surface), _write_json(prefix, mesh, markers, fixed, params)]
     written.append(_write_vtu(prefix, mesh, markers, fixed))
@@ -157,27 +159,6 @@ def _write_vtu(prefix: Path, mesh, markers, fixed) -> Path:
     order = np.r_[np.arange(len(markers)), np.arange(len(fixed))]
     data = {"role": role.astype(np.int32), "vertex_id": ids, "order": order.astype(np.int32)}
     return write_point_set(prefix.with_name(prefix.name + ".vtu"), mesh.points[ids], data)
-
-
-#: names of the two point lists in PREFIX.mrk.json (Slicer node names)
-MARKERS_LIST, FIXED_LIST = "FiducialMarkers", "FixedVertices"
-
-
-def write_markers_markups(path: Path, mesh: TetMesh, markers: np.ndarray, fixed: np.ndarray) -> Path:
-    """Markers and fixed vertices as two Slicer point lists (``.mrk.json``, LPS mm, the mesh's frame).
-
-    Point labels are ``M0``.. / ``F0``.. in pick order, 0-based as the API, the CSV's ``order``,
-    OpenIGTLink's ``Marker0``.. and every error message count them; descriptions give the
-    0-based vertex id.
-    """
-    from ..slicer.markups import MarkupList, write_markups
-
-    lists = [
-        MarkupList(name, mesh.points[ids], tuple(f"{tag}{k}" for k in range(len(ids))),
-                   tuple(f"vertex {int(i)} (0-based)" for i in ids))
-        for name, tag, ids in ((MARKERS_LIST, "M", markers), (FIXED_LIST, "F", fixed))
-    ]
-    return write_markups(path, lists, "LPS")
 
 
 def render_markers_png(path: Path, mesh: TetMesh, markers: np.ndarray, fixed: np.ndarray, size=(1200, 900)) -> Path:

@@ -113,7 +113,8 @@ def run(args) -> int:
     ids = plan.markers
     written.append(write_point_set(prefix.with_name(prefix.name + ".vtu"), mesh.points[ids],
                                    {"vertex_id": ids.astype(np.int64), "order": np.arange(len(ids), dtype=np.int32)}))
-    from .markers_cmd import render_markers_png, write_markers_markups
+    from ..markers import write_markers_markups
+    from .markers_cmd import render_markers_png
 
     written.append(write_markers_markups(prefix.with_name(prefix.name + ".mrk.json"), mesh, ids, np.asarray(ds.fixed)))
     if args.png:

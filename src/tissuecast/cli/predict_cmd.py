@@ -126,7 +126,7 @@ def read_markups_positions(path: Path, n_d: int) -> np.ndarray:
     """(1, n_d, 3) marker positions (LPS mm, NaN = untracked) from a Slicer .mrk.json/.fcsv file."""
     from ..errors import ModelError
     from ..slicer.markups import read_markups
-    from .markers_cmd import MARKERS_LIST
+    from ..markers import MARKERS_LIST
 
     lists = read_markups(path)
     if len(lists) > 1:

@@ -18,6 +18,7 @@ import time
 from collections import Counter
 from dataclasses import dataclass, field
 
+from ..mesh.run_cost import duration_text
 from .codes import SampleStatus
 
 __all__ = ["PhaseStats", "failure_kind", "work_seconds", "eta_text", "whole_set_eta", "PREDICTED_SHARE"]
@@ -64,14 +65,11 @@ def whole_set_eta(median: float, basis: int, samples: int, workers: int) -> tupl
 
 
 def eta_text(seconds: float) -> str:
-    """``seconds`` as a short duration: ``45 s``, ``12 min``, ``2.3 h``."""
+    """``seconds`` left as a short duration (``45 s``, ``12 min``, ``2.3 h``: ``duration_text``),
+    ``unknown`` where it is NaN or infinite."""
     if seconds != seconds or seconds == float("inf"):
         return "unknown"
-    if seconds < 90:
-        return f"{seconds:.0f} s"
-    if seconds < 90 * 60:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
+    return duration_text(seconds)
 
 
 @dataclass

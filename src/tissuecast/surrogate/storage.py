@@ -43,6 +43,7 @@ import numpy as np
 
 from .. import __version__
 from ..errors import ModelError, require
+from ..markers import write_markers_markups
 from .decoder import LocalBasis, describe_decoder, global_part
 from .experts import ExpertGate, RouteCalibration, RoutedNetworks, routed_networks
 from .gate import InputGate
@@ -64,9 +65,11 @@ FALLBACK_FOLDER = "fallback"
 EXPERT_FOLDER = "nominal_expert"
 #: The pair's per-route conformal scores of its bounds (:class:`~.experts.RouteCalibration`).
 ROUTES_FILE = "expert_routes.npz"
+#: The model's markers and fixed vertices as 3D Slicer markups (LPS), beside the model files.
+MARKUPS_FILE = "markers.mrk.json"
 #: Files of the layout above that a fitted model may or may not write (removed before a save, so
 #: that a folder saved over an earlier model holds none of that model's parts).
-_OPTIONAL_FILES = ("head.npz", "decoder.npz", "trust.npz", "model.onnx", ROUTES_FILE)
+_OPTIONAL_FILES = ("head.npz", "decoder.npz", "trust.npz", "model.onnx", ROUTES_FILE, MARKUPS_FILE)
 
 
 def _versions() -> dict:
@@ -148,9 +151,10 @@ def _write_network(net: NetworkPredictor, out: Path) -> None:
         np.savez(out / "head.npz", **net.head.arrays(""))
 
 
-def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
+def save_model(state: ModelState, folder, *, onnx: bool = False, markups: bool = True) -> None:
     """Write a fitted model's state (``DeformationModel.get_state()``) to ``folder`` (created if
-    needed; files overwritten)."""
+    needed; files overwritten), with ``markups`` its markers and fixed vertices as 3D Slicer
+    markups (:data:`MARKUPS_FILE`, LPS: the points to track, in the model's order)."""
     out = Path(folder)
     _clear_earlier_model(out)
     net = state.network
@@ -158,6 +162,9 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     np.savez(out / "mesh.npz", points=np.asarray(net.mesh.points, dtype=np.float64),
              tets=np.asarray(net.mesh.tets, dtype=np.int64))
     meta = _metadata(state)
+    if markups:
+        write_markers_markups(out / MARKUPS_FILE, net.mesh, net.markers, state.fixed)
+        meta["files"]["markups"] = MARKUPS_FILE
     if state.trust is not None:
         meta["files"]["trust"] = state.trust.save(out)
         meta["trust"] = state.trust.summary()
@@ -169,7 +176,7 @@ def save_model(state: ModelState, folder, *, onnx: bool = False) -> None:
     if state.fallback is not None:
         meta["fallback"] = _save_fallback(state, out / FALLBACK_FOLDER, onnx)
     if state.expert is not None:
-        save_model(state.expert, out / EXPERT_FOLDER)
+        save_model(state.expert, out / EXPERT_FOLDER, markups=False)  # the same markers
         meta["nominal_expert"] = {"folder": EXPERT_FOLDER, "gate": state.expert_gate.as_dict()}
         if state.expert_routes is not None:
             np.savez(out / ROUTES_FILE, **state.expert_routes.arrays())
