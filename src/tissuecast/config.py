@@ -490,7 +490,7 @@ class InstrumentConfig:
 
     name: str = _f("retractor", doc="label; the model's inputs are <name>.tip_x ... <name>.contact")
     load: str = _f("indentation", choices=INSTRUMENT_LOADS, doc="the scenario load the instrument is: its pose in a sample follows from that load's draw")
-    device: str = _f("RetractorToReference", doc="OpenIGTLink device (<= 20 characters) of the calibrated tip's TRANSFORM (tip -> tracker frame, e.g. RetractorTipToRef) for serve")
+    device: str = _f("RetractorTipToRef", doc="OpenIGTLink device (<= 20 characters) of the calibrated tip's TRANSFORM (tip -> tracker frame, e.g. RetractorTipToRef) for serve")
 
 
 @dataclass(frozen=True)

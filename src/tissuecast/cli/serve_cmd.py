@@ -8,7 +8,7 @@ Frames: replies are in the model's (scan's) LPS frame, or RAS with ``--client-fr
 (3D Slicer's OpenIGTLinkIF); a registration TRANSFORM ``TrackerToRas``, ``ReferenceToRas``
 or ``TrackerToImage`` (or ``serve.tracker_to_client`` in the config) makes the server read
 markers in the tracker frame and answer in the target frame. A model trained with tracked
-instruments reads each one's TRANSFORM (device ``RetractorToReference`` or as the config's
+instruments reads each one's TRANSFORM (device ``RetractorTipToRef`` or as the config's
 ``[[scenario.instruments]]`` names it; tool tip = translation, push direction = third column,
 mapped like the markers); when its messages stop for ``serve.instrument_timeout`` seconds the
 server predicts from the markers only and says so in a STATUS. Errors come back as STRING

@@ -3,7 +3,7 @@
 A model trained with tracked instruments (``[[scenario.instruments]]``, :mod:`tissuecast.instruments`)
 reads each instrument's pose. A tracker (PLUS, a navigation system) streams it as an OpenIGTLink
 ``TRANSFORM`` whose device name is the instrument's (``scenario.instruments[k].device``, e.g.
-``RetractorToReference``): the tool's frame to the tracker's, its translation column the tool
+``RetractorTipToRef``): the tool's frame to the tracker's, its translation column the tool
 tip (mm), its third column (the tool's local +z axis) the push direction. It is mapped into the
 model frame as marker positions are (:class:`~tissuecast.serve.client_frames.ClientFrames`),
 and the tip's depth below the reference surface and its contact follow from the model's mesh.

@@ -333,7 +333,7 @@ def _instrument_devices(spec, devices: dict) -> dict[str, str]:
         if not device or re.fullmatch(r"Marker[0-9]+(To[A-Za-z0-9_]+)?", device) or REGISTRATION_PATTERN.fullmatch(device):
             raise ConfigError(f"instrument {inst.name!r}: device name {device!r} would be read as a marker or a "
                               "registration (Marker<k>, <From>To<Ras|Lps|Image>); name its TRANSFORM otherwise, e.g. "
-                              "RetractorToReference (scenario.instruments[k].device)")
+                              "RetractorTipToRef (scenario.instruments[k].device)")
         out[device] = inst.name
     if len(out) != len(names):
         raise ConfigError(f"instruments {names} need distinct device names, got {sorted(out)}")

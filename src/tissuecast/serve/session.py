@@ -19,7 +19,7 @@ Requests a client may send (any header version 1 or 2; device names are case-sen
   or to the image (the model's LPS frame); later marker positions are mapped by it before
   prediction and replies are sent in the target frame (see :mod:`tissuecast.serve.client_frames`;
   shared by every connection of the server). No reply.
-- ``TRANSFORM "<device>"`` of a tracked instrument the model reads (``RetractorToReference``,
+- ``TRANSFORM "<device>"`` of a tracked instrument the model reads (``RetractorTipToRef``,
   ``scenario.instruments[k].device``): the tool's pose in the tracker frame (translation = tool
   tip, mm; third column = push direction), mapped like the markers; every later prediction
   uses it until it is ``serve.instrument_timeout`` seconds old (:mod:`tissuecast.serve.instruments`).
