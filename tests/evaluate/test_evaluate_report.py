@@ -370,3 +370,13 @@ def test_training_plot_draws_the_fallback_dashed_beside_the_model(tmp_path, monk
     styles = [(s, label.split(" (")[0], y) for s, label, y in drawn["lines"]]
     assert styles == [("-", "member 0", [2.0, 1.0]), ("-", "member 1", [2.0, 1.0]), ("--", "fallback member 0", [3.0, 1.5])]
     assert drawn["ylabel"] == "validation loss (MSE of scaled PCA weights)"
+
+
+def test_the_model_is_described_by_its_head_and_networks():
+    from tissuecast.evaluate.tables import model_description
+
+    base = {"hidden": [256, 256], "ensemble": 1}
+    assert model_description({**base, "pca": {"head": {"dims": 12}}}) == "quadratic head (q = 12) + MLP [256, 256]"
+    assert model_description({**base, "pca": {"head": {"dims": 0}}}) == "linear head (q = 0) + MLP [256, 256]"
+    assert model_description({**base, "ensemble": 3, "pca": {"head": {"dims": None}}, "nominal_expert": {"a": 1}}) == (
+        "MLP [256, 256] x 3, with a nominal expert")

@@ -19,10 +19,12 @@ COLUMNS = ("mlp", "rigid", "ridge", "pca_floor")
 
 def model_description(summary: dict) -> str:
     """'quadratic head (q = 15) + MLP [128, 64]' (x M for an ensemble; '+ a nominal expert' for a
-    model with one) from an evaluation's model summary."""
+    model with one; 'linear head' where the validation chose no quadratic direction, q = 0) from
+    an evaluation's model summary."""
     net = f"MLP {summary.get('hidden')}" + (f" x {summary['ensemble']}" if summary.get("ensemble", 1) > 1 else "")
     q = ((summary.get("pca") or {}).get("head") or {}).get("dims")
-    text = net if q is None else f"quadratic head (q = {q}) + {net}"
+    head = None if q is None else "linear head (q = 0)" if q == 0 else f"quadratic head (q = {q})"
+    text = net if head is None else f"{head} + {net}"
     return text + (", with a nominal expert" if summary.get("nominal_expert") else "")
 
 
