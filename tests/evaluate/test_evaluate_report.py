@@ -148,7 +148,8 @@ def test_report_is_written(tmp_path, model, ds, evaluation):
     assert ">nan<" not in page.lower() and "100.000" not in page and "How sure: error bounds and alarm" in rest
     assert "The ensemble's spread (a detail)" in rest  # one uncertainty story: the spread inside it
     q = model.pca_choice_["head"]["dims"]  # the report names the model it measured
-    assert q is not None and f"quadratic head (q = {q}) + MLP [" in page and "x 2" in page
+    head = "linear head (q = 0)" if q == 0 else f"quadratic head (q = {q})"
+    assert q is not None and f"{head} + MLP [" in page and "x 2" in page
     for png in ("boxplots.png", "beta.png", "training.png"):
         assert (tmp_path / "rep" / png).stat().st_size > 1000 and png in page
     def strict(constant):  # what JavaScript's JSON.parse refuses
