@@ -9,6 +9,10 @@ import numpy as np
 from tissuecast.mesh import TetMesh
 
 MARKERS = np.array([3, 50, 120, 200, 260])
+#: How far (mm) the compiled predictor's fields may lie from the float64 forward pass: it
+#: multiplies its hidden layers and its decode in float32 (``tissuecast.surrogate.fastpath.DTYPE``);
+#: the synthetic fields here reach ~20 mm, float32's rounding ~2e-6 mm.
+COMPILED_ATOL = 1e-5
 
 
 def box_mesh(nx=4, ny=5, nz=8, h=5.0) -> TetMesh:

@@ -8,8 +8,9 @@ import pytest
 from tissuecast.errors import ModelError
 from tissuecast.evaluate import summarize
 from tissuecast.surrogate import DeformationModel
+from tissuecast.surrogate.fastpath import CompiledSurrogate
 
-from _surrogate_synthetic import MARKERS, box_mesh, nonlinear_fields
+from _surrogate_synthetic import COMPILED_ATOL, MARKERS, box_mesh, nonlinear_fields
 
 
 @pytest.fixture(scope="module")
@@ -57,10 +58,16 @@ def test_validation_rule_keeps_the_components_the_data_use(data):
     assert m.n_components == 8
     assert curve["floor_offset_max"][7] < 1e-4 < curve["floor_offset_max"][6]
     assert min(curve["model_offset_max"]) >= curve["model_offset_max"][7] / 1.01
-    # the truncated model is the one the curve measured
+    # the truncated model is the one the curve measured (in float64: the compiled predictor's
+    # float32 rounding is as large as this model's error)
     valid = U[350:400].astype(np.float64)
-    e = np.linalg.norm(m.predict(m.marker_displacements(valid)) - valid, axis=2).max(axis=1).mean()
+    d = m.marker_displacements(valid).reshape(50, -1)
+    net = m.network_
+    w = np.mean([k.predict_weights(d) for k in net.members], axis=0) + net.head.predict(d)
+    u = net.basis.inverse_transform(w).reshape(valid.shape)
+    e = np.linalg.norm(u - valid, axis=2).max(axis=1).mean()
     assert e == pytest.approx(curve["model_offset_max"][7], rel=1e-4)
+    np.testing.assert_allclose(m.predict(d), u, rtol=0, atol=COMPILED_ATOL)
     assert all(w.weights[-1].shape[0] == 8 for w in m.network_.members)
 
 
@@ -93,8 +100,16 @@ def test_fast_path_matches_plain_forward(model, data):
     assert model.network_.head is not None  # the default: the networks correct a quadratic head
     w += model.network_.head.predict(d)  # the plain (unfolded) regression
     ref = model.network_.basis.inverse_transform(w).reshape(10, -1, 3)
-    np.testing.assert_allclose(model.predict(d), ref, atol=1e-9)
-    np.testing.assert_allclose(model.predict(d[3]), ref[3], atol=1e-9)  # the single-sample path
+    np.testing.assert_allclose(model.predict(d), ref, rtol=0, atol=COMPILED_ATOL)
+    np.testing.assert_allclose(model.predict(d[3]), ref[3], rtol=0, atol=COMPILED_ATOL)  # the single-sample path
+    # the folding itself is exact: compiled in float64 it is the plain forward pass to round-off
+    net = model.network_
+    twin = CompiledSurrogate(net.members, net.basis, net.head, dtype=np.float64)
+    np.testing.assert_allclose(twin.fields(d).reshape(ref.shape), ref, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(twin.field(d[3]).reshape(ref[3].shape), ref[3], rtol=0, atol=1e-9)
+    w64 = twin.member_weights(d)
+    np.testing.assert_allclose(CompiledSurrogate(net.members, net.basis, net.head).member_weights(d), w64, rtol=0,
+                               atol=1e-5 * np.abs(w64).max())
 
 
 def test_torch_module_matches_numpy(model, data):
@@ -110,7 +125,7 @@ def test_uncertainty_from_ensemble(model, data):
     _, U = data
     d = model.marker_displacements(U[400:420])
     u, sigma = model.predict_with_uncertainty(d)
-    np.testing.assert_allclose(u, model.predict(d), atol=1e-9)
+    np.testing.assert_allclose(u, model.predict(d), rtol=0, atol=COMPILED_ATOL)
     assert sigma.shape == (20, 270) and (sigma >= 0).all() and sigma.max() > 0
     # two members: sigma is half the distance between their fields
     W = model.network_.member_weights(d.reshape(20, -1))
@@ -218,7 +233,14 @@ def test_missing_markers(masked_model, model, data, tmp_path):
     present = np.ones((len(d), 5))
     present[:, 2] = 0
     w = masked_model.network_.members[0].predict_weights(np.nan_to_num(d_nan).reshape(len(d), -1), present)
-    np.testing.assert_allclose(missing, masked_model.network_.basis.inverse_transform(w).reshape(missing.shape), atol=1e-9)
+    reference = masked_model.network_.basis.inverse_transform(w).reshape(missing.shape)
+    np.testing.assert_allclose(missing, reference, rtol=0, atol=COMPILED_ATOL)
+    net = masked_model.network_
+    twin = CompiledSurrogate(net.members, net.basis, net.head, dtype=np.float64)  # the folding, to round-off
+    mask = np.zeros((len(d), 5), bool)
+    mask[:, 2] = True
+    np.testing.assert_allclose(twin.fields(np.nan_to_num(d_nan).reshape(len(d), -1), mask).reshape(missing.shape),
+                               reference, rtol=0, atol=1e-9)
     with pytest.raises(ModelError, match="marker_dropout"):
         model.predict(d[0], missing=[1])
     masked_model.save(tmp_path / "mm")

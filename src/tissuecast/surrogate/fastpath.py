@@ -3,8 +3,16 @@
 Input standardisation is folded into the first layer, output scaling into the last, the PCA
 reconstruction is one (n_w, 3 n) product, and the members of an ensemble are stacked (first layers
 concatenated, middle layers block-diagonal, last layers averaged), so one prediction is a
-handful of float64 matmuls. A quadratic head (:mod:`.head`) adds its weights before the
+handful of matmuls. A quadratic head (:mod:`.head`) adds its weights before the
 reconstruction: its standardisation is folded into an affine map and a (q, 3 n_d + n_a) projection.
+
+The folding is done in float64. The hidden layers and the decode (the basis, (n_w, 3 n), most of
+the memory a frame reads) are stored and multiplied in float32 (:data:`DTYPE`, the networks' own
+precision); the PCA weights (the last layer, the head) are summed in float64, so that a part that
+is small beside the others (the networks' correction of the head) keeps its own relative
+precision. Results are returned as float64. Where two decoded fields are compared (the trust
+layer's disagreement, :meth:`CompiledSurrogate.fields_and_decoded`), the difference of their
+weights is decoded, not the difference of two rounded fields.
 
 The input is ``x = [d, a]``: the marker displacements d (3 n_d,) mm, then the model's n_a
 auxiliary inputs (:mod:`.auxiliary`; none for a markers-only model), as the networks read them.
@@ -23,7 +31,10 @@ from .encoding import fold_first_layer, untracked_at_mean
 from .pca import PCABasis
 from .quadratic import QuadraticRegression
 
-__all__ = ["CompiledSurrogate"]
+__all__ = ["CompiledSurrogate", "DTYPE"]
+
+#: The compiled predictor's float type (arrays stored and multiplied; results are float64).
+DTYPE = np.float32
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,9 +68,12 @@ class CompiledSurrogate:
         basis: the PCA basis with n_w components matching the networks' output.
         head: optional quadratic head predicting (n_w,) weights that the networks correct
             (models without missing-marker input only).
+        dtype: the float type of the hidden layers and the decode (:data:`DTYPE`; float64 gives
+            the float64 forward pass, for comparisons).
     """
 
-    def __init__(self, members: list[MLPWeights], basis: PCABasis, head: QuadraticRegression | None = None):
+    def __init__(self, members: list[MLPWeights], basis: PCABasis, head: QuadraticRegression | None = None,
+                 dtype=DTYPE):
         f8 = np.float64
         m0 = members[0]
         self.n_members = len(members)
@@ -93,8 +107,6 @@ class CompiledSurrogate:
             self.member_weight_maps.append((Wl.T.copy(), bw))
         self.out_W = np.vstack([W for W, _ in self.member_weight_maps]) / self.n_members  # (M h_last, n_w)
         self.out_b = np.mean([b for _, b in self.member_weight_maps], axis=0)  # (n_w,)
-        self.components = np.ascontiguousarray(C)  # (n_w, p)
-        self.mean = basis.mean  # (p,)
         self.mask_cols = np.vstack(mask_cols).T.copy() if self.masked else None  # (n_d, M h1)
         self.x_mean = xm
         self.h_last = m0.weights[-1].shape[1]
@@ -104,6 +116,12 @@ class CompiledSurrogate:
                 raise ModelError("a quadratic head needs every marker; models with missing-marker input have none")
             self.head = _FoldedHead.of(head)
             self.out_b = self.out_b + self.head.const
+        # folded in float64 above; the hidden layers and the decode in dtype
+        self.dtype = f = np.dtype(dtype)
+        self.hidden = [(np.ascontiguousarray(W, dtype=f), b.astype(f)) for W, b in self.hidden]
+        self.components = np.ascontiguousarray(C, dtype=f)  # (n_w, p)
+        self.mean = np.asarray(basis.mean, dtype=f)  # (p,)
+        self.mask_cols = None if self.mask_cols is None else self.mask_cols.astype(f)
 
     def _head(self, d: np.ndarray) -> np.ndarray:
         """The head's weights without its constant, (..., n_w) mm, for inputs (..., 3 n_d + n_a)."""
@@ -112,23 +130,24 @@ class CompiledSurrogate:
         return d @ f.lin + (p[..., f.a] * p[..., f.b]) @ f.quad
 
     def _hidden(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
-        """Last hidden activations (B, M h_last) for inputs (B, 3 n_d + n_a)."""
+        """Last hidden activations (B, M h_last) float64 for inputs (B, 3 n_d + n_a) float64
+        (computed in ``dtype``)."""
         W, b = self.hidden[0]
         if missing is not None:  # missing marker -> its mean displacement and present = 0
             d = untracked_at_mean(d, missing, self.x_mean)
-            b = b - missing.astype(np.float64) @ self.mask_cols
-        h = d @ W
+            b = b - missing.astype(self.dtype) @ self.mask_cols
+        h = d.astype(self.dtype) @ W
         h += b
         activate(h, self.activation)
         for W, b in self.hidden[1:]:
             h = h @ W
             h += b
             activate(h, self.activation)
-        return h
+        return h.astype(np.float64)
 
     def fields(self, d: np.ndarray, missing: np.ndarray | None = None) -> np.ndarray:
-        """Ensemble-mean fields (B, 3 n) mm from inputs (B, 3 n_d + n_a) (marker displacements
-        mm, then the auxiliary inputs).
+        """Ensemble-mean fields (B, 3 n) float64 mm from inputs (B, 3 n_d + n_a) (marker
+        displacements mm, then the auxiliary inputs).
 
         ``missing`` (B, n_d) bool marks untracked markers (masked models only).
         """
@@ -137,7 +156,7 @@ class CompiledSurrogate:
         return self._reconstruct(self._hidden(d, missing), d)
 
     def field(self, d: np.ndarray) -> np.ndarray:
-        """One field (3 n,) mm from one input vector (3 n_d + n_a,), all markers tracked.
+        """One field (3 n,) float64 mm from one input vector (3 n_d + n_a,), all markers tracked.
 
         1-D products (BLAS gemv) keep the single-sample latency low and steady.
         """
@@ -153,25 +172,31 @@ class CompiledSurrogate:
         return w
 
     def _reconstruct(self, h: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """Fields (..., 3 n) mm from last hidden activations (..., M h_last) and the input (..., 3 n_d + n_a)."""
-        u = self._weights(h, d) @ self.components
+        """Fields (..., 3 n) float64 mm from last hidden activations (..., M h_last) and the input
+        (..., 3 n_d + n_a) (decoded in ``dtype``)."""
+        u = self._weights(h, d).astype(self.dtype) @ self.components
         u += self.mean
-        return u
+        return u.astype(np.float64)
 
     def fields_and_decoded(self, d: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(fields (B, 3 n), decoded (B, 3 n))`` mm: :meth:`fields` of inputs (B, 3 n_d + n_a),
-        every marker tracked, and other weights (B, n_w) decoded by the same basis, in one
-        (2 B, n_w) x (n_w, 3 n) product (the basis read once)."""
+        """``(fields (B, 3 n), decoded (B, 3 n))`` float64 mm: :meth:`fields` of inputs (B, 3 n_d +
+        n_a), every marker tracked, and other weights (B, n_w) mm decoded by the same basis, in
+        one (2 B, n_w) x (n_w, 3 n) product (the basis read once). The second half decodes the
+        weights' difference from the fields' (taken in float64), so ``decoded - fields`` keeps
+        float32's relative precision however close the two are."""
         B = len(d)
-        w = np.empty((2 * B, self.components.shape[0]))
-        w[:B] = self._weights(self._hidden(d, None), d)
-        w[B:] = weights
+        own = self._weights(self._hidden(d, None), d)
+        w = np.empty((2 * B, self.components.shape[0]), dtype=self.dtype)
+        w[:B] = own
+        w[B:] = np.asarray(weights, dtype=np.float64) - own
         u = w @ self.components
-        u += self.mean
-        return u[:B], u[B:]
+        fields = u[:B]
+        fields += self.mean
+        fields = fields.astype(np.float64)
+        return fields, fields + u[B:]
 
     def member_weights(self, d: np.ndarray, missing: np.ndarray | None = None) -> np.ndarray:
-        """PCA weights of every member, (M, B, n_w) mm (each with the head's weights added)."""
+        """PCA weights of every member, (M, B, n_w) float64 mm (each with the head's weights added)."""
         h = self._hidden(d, missing)
         k = self.h_last
         W = np.stack([h[:, i * k:(i + 1) * k] @ W + b for i, (W, b) in enumerate(self.member_weight_maps)])
