@@ -74,6 +74,25 @@ def test_gate_from_inputs_takes_the_range_of_the_samples():
     np.testing.assert_allclose(gate.stretch, [[0.95, 1.1]])
 
 
+def test_the_quick_check_of_fully_tracked_input_agrees_with_the_full_one():
+    """Inputs with every marker tracked are first checked in a few products; the verdict is the
+    one of the full check (a mask with no marker missing takes the full path)."""
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(-30, 30, size=(6, 3))
+    stretch = np.sort(rng.uniform(0.95, 1.05, size=(15, 2)), axis=1)
+    gate = InputGate(np.arange(6), ref, rng.uniform(1, 4, size=6), stretch)
+    d = rng.normal(scale=rng.choice([0.5, 3.0, 6.0], size=(400, 1, 1)), size=(400, 6, 3)).reshape(400, 18)
+    d[7, 4] = np.nan
+    d[8, 1] = np.inf
+    quick = [gate.inspect(x[None])[0] for x in d]
+    full = [gate.inspect(x[None], np.zeros((1, 6), dtype=bool))[0] for x in d]
+    assert [v.refused for v in quick] == [v.refused for v in full]
+    assert [v.reason for v in quick] == [v.reason for v in full]
+    assert 50 < sum(v.refused for v in quick) < 350  # both kinds of input were drawn
+    assert {v.reason for v in quick} == {"", "non-finite", "displacement", "stretch"}
+    np.testing.assert_array_equal([v.refused for v in gate.inspect(d)], [v.refused for v in full])  # one batch
+
+
 def test_missing_markers_are_not_checked():
     ref = np.array([[0.0, 0, 0], [10.0, 0, 0], [0, 20.0, 0]])
     gate = InputGate(np.arange(3), ref, np.ones(3), np.array([[1.0, 1.0]] * 3))

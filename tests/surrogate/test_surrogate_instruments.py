@@ -54,6 +54,32 @@ def test_an_absent_instrument_is_the_fallback_and_the_input_forms_agree():
     assert np.abs(away - fallback[:2]).max() > 0.01  # away from the tissue is not "not tracked"
 
 
+def test_a_frame_is_checked_once_by_the_composed_model(monkeypatch):
+    """The model (instrument fallback over trusted networks) checks the input at its entry and
+    passes it down checked: one marker check, one auxiliary check, one gate inspection per call."""
+    from tissuecast.surrogate import auxiliary, field_predictor, gate
+
+    m = instrument_model()
+    _, U, _, A = instrument_data()
+    te = SPLITS["test"][:3]
+    d = m.marker_displacements(U[te])
+    calls = {"markers": 0, "auxiliary": 0, "gate": 0}
+    counted = {"markers": (field_predictor, "marker_batch"), "auxiliary": (auxiliary.AuxiliaryInputs, "batch"),
+               "gate": (gate.InputGate, "_inspect")}
+    for key, (owner, name) in counted.items():
+        original = getattr(owner, name)
+        monkeypatch.setattr(owner, name, lambda *args, _f=original, _k=key, **kw: calls.__setitem__(_k, calls[_k] + 1)
+                            or _f(*args, **kw))
+    mixed = A[te].copy()
+    mixed[1] = np.nan  # one sample's instrument lost: both the network and the fallback predict
+    for x, a in ((d, mixed), (d[0], A[te[0]])):
+        for k in calls:
+            calls[k] = 0
+        x = x + 0.01 * (calls["gate"] + 1)  # not an input the gate let through before
+        m.predict(x, auxiliary=a)
+        assert calls == {"markers": 1, "auxiliary": 1, "gate": 1}
+
+
 def test_the_compiled_predictor_is_the_float64_reference_to_float32_and_torch_and_onnx_agree(tmp_path):
     torch = pytest.importorskip("torch")
     m = instrument_model()

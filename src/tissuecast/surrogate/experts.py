@@ -79,6 +79,8 @@ def _input_distance(predictor: FieldPredictor, d: np.ndarray, a: np.ndarray | No
     is lost, through its ``input_distance``."""
     if isinstance(predictor, InstrumentFallback) and a is not None:
         lost = predictor.routes(a)
+        if not lost.any():
+            return _input_distance(predictor.primary, d, a)
         out = np.empty(len(d))
         if (~lost).any():
             out[~lost] = _input_distance(predictor.primary, d[~lost], a[~lost])
@@ -474,7 +476,7 @@ class NominalExpertRouter(FieldPredictor):
         with the expert's fields of those rows of d (B, 3 n_d) mm and a (B, n_a) or None."""
         rows = np.flatnonzero(to_nominal)
         if len(rows):
-            u[rows] = self.expert.predict(d[rows], auxiliary=None if a is None else a[rows])
+            u[rows] = self.expert.predict_checked(d[rows], None, None if a is None else a[rows])
         return u
 
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
@@ -482,14 +484,15 @@ class NominalExpertRouter(FieldPredictor):
         u = np.empty((len(d), self.n_vertices, 3))
         rows = np.flatnonzero(untracked)  # the gate's distances need every marker: the model alone
         if len(rows):
-            u[rows] = self.learned.predict(d[rows], missing=missing[rows], auxiliary=None if a is None else a[rows])
+            u[rows] = self.learned.predict_checked(d[rows], missing[rows], None if a is None else a[rows])
         rows = np.flatnonzero(~untracked)
         if len(rows):
             dr, ar = d[rows], None if a is None else a[rows]
             to_nominal = self.route(dr, ar)
             part = self._fill(np.empty((len(rows), self.n_vertices, 3)), to_nominal, dr, ar)
             if (~to_nominal).any():
-                part[~to_nominal] = self.learned.predict(dr[~to_nominal], auxiliary=None if ar is None else ar[~to_nominal])
+                part[~to_nominal] = self.learned.predict_checked(dr[~to_nominal], None,
+                                                                 None if ar is None else ar[~to_nominal])
             u[rows] = part
         return u
 

@@ -89,7 +89,7 @@ class InstrumentFallback(FieldPredictor):
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
         u = np.empty((d.shape[0], self.n_vertices, 3))
         for rows, predictor, dr, mr, ar in self._parts(d, missing, a):
-            u[rows] = predictor.predict(dr, missing=mr, auxiliary=ar)
+            u[rows] = predictor.predict_checked(dr, mr, ar)
         return u
 
     def predict_with_uncertainty(self, marker_displacements, *, missing=None,

@@ -132,6 +132,15 @@ class FieldPredictor(ABC):
         u = self._predict_batch(d, miss) if a is None else self._predict_batch(d, miss, a)
         return u[0] if single else u
 
+    def predict_checked(self, d: np.ndarray, missing: np.ndarray | None = None, a: np.ndarray | None = None) -> np.ndarray:
+        """Fields (B, n, 3) float64 mm of input a composing predictor has checked already (its
+        :meth:`marker_batch` and :meth:`auxiliary_batch`, the input gate's verdict included): d
+        (B, 3 n_d) mm, missing (B, n_d) bool or None, a (B, n_a) or None. The parts of a
+        composed predictor are called through it, so a frame is checked once, not once per layer."""
+        if missing is not None and not missing.any():  # as marker_batch gives it: None
+            missing = None
+        return self._predict_batch(d, missing) if a is None else self._predict_batch(d, missing, a)
+
     @abstractmethod
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None) -> np.ndarray:
         """Fields (B, n, 3) float64 mm from checked displacements d (B, 3 n_d) mm and the

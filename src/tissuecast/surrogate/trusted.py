@@ -92,7 +92,7 @@ class TrustedPredictor(FieldPredictor):
         return self.predictor.predict(marker_displacements, missing=missing, auxiliary=auxiliary)
 
     def _predict_batch(self, d: np.ndarray, missing: np.ndarray | None, a: np.ndarray | None = None) -> np.ndarray:
-        return self.predictor.predict(d, missing=missing, auxiliary=a)
+        return self.predictor.predict_checked(d, missing, a)
 
     def predict_with_uncertainty(self, marker_displacements, *, missing=None,
                                  auxiliary=None) -> tuple[np.ndarray, np.ndarray]:
