@@ -180,3 +180,30 @@ def test_the_input_distance_is_the_mean_of_the_k_nearest_as_a_kd_tree_finds_them
         tree = cKDTree(dist.reference)
         expected, _ = tree.query((queries - dist.mean) @ dist.whitening, k=min(k, n_train))
         np.testing.assert_allclose(dist(queries), expected.reshape(len(queries), -1).mean(axis=1), rtol=1e-12)
+        for row in (4, 20):  # single frames (remembered: asked twice)
+            for _ in range(2):
+                np.testing.assert_allclose(dist(queries[row:row + 1]), expected[row:row + 1].reshape(1, -1).mean(axis=1),
+                                           rtol=1e-12)
+
+
+def test_the_last_small_batch_s_distances_are_remembered_and_nothing_else(monkeypatch):
+    """A served frame asks for its input distance twice (expert gate, bounds): the second call
+    reads the first's scores; another input, or a batch too large to remember, is scored again."""
+    import tissuecast.surrogate.ood as ood_module
+
+    rng = np.random.default_rng(6)
+    dist = fit_input_distance(rng.normal(size=(200, 12)))
+    calls = []
+    scores = ood_module.InputDistance._scores
+    monkeypatch.setattr(ood_module.InputDistance, "_scores", lambda self, X: calls.append(len(X)) or scores(self, X))
+    frame = rng.normal(size=(1, 12))
+    first = dist(frame)
+    first[0] = -1.0  # the caller's copy: what is remembered stays
+    again = dist(frame.copy())
+    assert calls == [1] and again[0] > 0 and again[0] == dist(frame)[0]
+    dist(frame + 1e-9)  # another input
+    assert calls == [1, 1]
+    big = rng.normal(size=(ood_module._REMEMBERED_BATCH + 1, 12))
+    dist(big)
+    dist(big)
+    assert calls == [1, 1, 17, 17]
