@@ -52,7 +52,7 @@ def test_evaluation_matches_direct_metrics(evaluation, model, ds):
     betas = [b for b, _ in evaluation.by_beta]
     assert betas == pytest.approx(np.linspace(0, 1, 11))
     assert sum(r.indices.size for _, r in evaluation.by_beta) == evaluation.sets["test2"].indices.size
-    assert evaluation.predict_seconds["p50"] > 0
+    assert evaluation.predict_seconds["p50"] > 0 and evaluation.predict_seconds["gate"] is True  # timed as in surgery
     assert t1.sigma_spearman.shape == t1.indices.shape and np.all(np.abs(t1.sigma_spearman) <= 1 + 1e-12)
 
 

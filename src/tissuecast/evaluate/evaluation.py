@@ -293,12 +293,23 @@ def _set_result(model, U: np.ndarray, idx: np.ndarray, beta: np.ndarray, name: s
 
 def _timing(model, U, idx, repeats: int = TIMING_REPEATS, aux: np.ndarray | None = None) -> dict:
     """Single-sample prediction time (s): p50 and p99 over repeated calls (with the samples'
-    auxiliary inputs ``aux`` (N, n_a), if any)."""
+    auxiliary inputs ``aux`` (N, n_a), if any), the input gate on as in surgery: the first of
+    ``idx`` the gate lets through (``"gate": True``; where it passes none, all of them with the
+    gate suspended, ``"gate": False``)."""
     if idx.size == 0:
         return {}
     rows = idx[: min(TIMING_INPUTS, idx.size)]
     d = model.marker_displacements(np.asarray(U[rows], dtype=np.float64))
-    a = [None] * len(rows) if aux is None else aux[rows]
+    passed = np.array([not v.refused for v in model.check_input(d)], dtype=bool)
+    if not passed.any():
+        with model.gate_suspended():
+            return {**_timing_calls(model, d, None if aux is None else aux[rows], repeats), "gate": False}
+    return {**_timing_calls(model, d[passed], None if aux is None else aux[rows[passed]], repeats), "gate": True}
+
+
+def _timing_calls(model, d: np.ndarray, aux: np.ndarray | None, repeats: int) -> dict:
+    """p50 and p99 (s) of ``repeats`` single-sample ``model.predict`` calls cycling through inputs d (m, n_d, 3) mm."""
+    a = [None] * len(d) if aux is None else aux
     for x, ax in zip(d[:TIMING_WARMUP], a):
         model.predict(x, auxiliary=ax)
     t = np.empty(repeats)
@@ -354,8 +365,7 @@ def evaluate_model(model, dataset, splits=("valid", "test1", "test2"), *, target
                "scenario": _scenario(model, dataset)}
     if model.has_nominal_expert and timing_idx.size:
         summary["nominal_expert"] = _routing(model, U, timing_idx, aux)
-    with model.gate_suspended():
-        seconds = _timing(model, U, timing_idx, aux=aux)
+    seconds = _timing(model, U, timing_idx, aux=aux)
     return Evaluation(sets=sets, by_beta=by_beta, predict_seconds=seconds, model_summary=summary, targets=targets)
 
 
