@@ -7,9 +7,10 @@ the network alone with the fault score in the alarm; marker dropout without cali
 with ``expected_outputs.npz``: that commit's predictions for fixed inputs. On the machine that
 wrote them the outputs match bit for bit; the tolerance here allows for another BLAS and, where
 the compiled predictor takes part, for its float32 products (it multiplied in float64 when the
-folders were written): fields and spreads to float32's rounding, and bounds to 1e-4 mm (the error
-model reads the log of the field's miss at the markers, which on these nearly exact tiny models is
-itself ~1e-5 mm: float32's rounding of a 16 mm field moves a bound of 4e-6 mm by 6 %).
+folders were written): fields to float32's rounding, spreads and bounds to a relative 1e-5, and
+the bounds of ``head_trust`` to a relative 0.1: its networks correct the head by almost nothing,
+so the error model's inputs (the log of the field's miss at the markers, of the disagreement)
+are of the size of float32's rounding of the fields there.
 """
 
 from __future__ import annotations
@@ -29,9 +30,10 @@ from make_schema1_models import KINDS, data, inputs, outputs  # noqa: E402
 from _surrogate_synthetic import COMPILED_ATOL  # noqa: E402
 
 RTOL, ATOL = 1e-9, 1e-12
-#: (rtol, atol mm) of the outputs the compiled predictor computes (module docstring).
+#: (rtol, atol mm) of the outputs the compiled predictor computes, by kind (module docstring).
 COMPILED = {"mlp": (0.0, COMPILED_ATOL), "mlp_missing": (0.0, COMPILED_ATOL), "uncertainty": (1e-5, 0.0),
-            "bound": (0.0, 1e-4), "bound_loose": (0.0, 1e-4)}
+            "bound": (1e-5, 0.0), "bound_loose": (1e-5, 0.0)}
+NEAR_EXACT = {"head_trust": {"bound": (0.1, 0.0), "bound_loose": (0.1, 0.0)}}
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +51,7 @@ def test_an_old_model_folder_predicts_what_it_did(kind, fixed_inputs):
         expected = {k: z[k] for k in z.files}
     assert sorted(got) == sorted(expected)
     for key, value in expected.items():
-        rtol, atol = COMPILED.get(key, (RTOL, ATOL))
+        rtol, atol = NEAR_EXACT.get(kind, {}).get(key, COMPILED.get(key, (RTOL, ATOL)))
         np.testing.assert_allclose(got[key], value, rtol=rtol, atol=atol, err_msg=f"{kind}: {key}")
     assert model.has_trust == (kind != "masked") and model.supports_missing_markers == (kind == "masked")
 

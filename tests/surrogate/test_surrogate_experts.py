@@ -11,7 +11,7 @@ from tissuecast.errors import ModelError
 from tissuecast.surrogate import DeformationModel
 from tissuecast.surrogate.experts import GATE_FEATURES, ExpertGate, RouteCalibration, gate_features, out_of_fold_routes
 
-from _surrogate_synthetic import MARKERS, nonlinear_fields
+from _surrogate_synthetic import COMPILED_ATOL, MARKERS, nonlinear_fields
 from _trust_synthetic import SPLITS, trust_data
 
 
@@ -131,9 +131,10 @@ def test_routed_field_bounds_and_alarm():
     to_nominal = pair.expert_gate_.to_nominal(features)
     np.testing.assert_array_equal(router.route(d.reshape(len(d), -1), None), to_nominal)
     assert 0.05 < to_nominal.mean() < 0.95  # the gate uses both
-    np.testing.assert_allclose(pair.predict(d), tp.displacement, rtol=0, atol=1e-12)  # the plain field: the routed one
-    np.testing.assert_allclose(tp.displacement[to_nominal], theirs.displacement[to_nominal], rtol=0, atol=1e-12)
-    np.testing.assert_allclose(tp.displacement[~to_nominal], mine.displacement[~to_nominal], rtol=0, atol=1e-12)
+    # the plain field is the routed one (float32 products of other shapes: their last bits differ)
+    np.testing.assert_allclose(pair.predict(d), tp.displacement, rtol=0, atol=COMPILED_ATOL)
+    np.testing.assert_allclose(tp.displacement[to_nominal], theirs.displacement[to_nominal], rtol=0, atol=COMPILED_ATOL)
+    np.testing.assert_allclose(tp.displacement[~to_nominal], mine.displacement[~to_nominal], rtol=0, atol=COMPILED_ATOL)
     assert [a.raised for a in tp.alarms] == [a.raised for a in mine.alarms]  # the alarm: the model's own
     # the bounds: calibrated per route on the gate's samples, each route covered at its level
     errors = np.linalg.norm(tp.displacement - test, axis=2)
@@ -150,9 +151,9 @@ def test_routed_field_bounds_and_alarm():
     np.testing.assert_array_equal(pair.predict_trusted(d, coverage=0.99, alarm=False).error_bound[to_nominal],
                                   model.predict_trusted(d, coverage=0.99, alarm=False).error_bound[to_nominal])
     one = pair.predict_trusted(d[0], alarm=False)
-    np.testing.assert_allclose(one.displacement, tp.displacement[0], rtol=0, atol=1e-12)  # one sample: other BLAS sums
+    np.testing.assert_allclose(one.displacement, tp.displacement[0], rtol=0, atol=COMPILED_ATOL)  # other BLAS sums
     assert one.alarms is None and pair.alarms(d[0]).raised == mine.alarms[0].raised
-    np.testing.assert_allclose(one.error_bound, tp.error_bound[0], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(one.error_bound, tp.error_bound[0], rtol=1e-5, atol=1e-12)
     assert one.coverage == tp.coverage
     # near the expert's family the pair is as good as the expert, elsewhere as the model, overall better than both
     worst = {k: np.linalg.norm(u - test, axis=2).max(axis=1) for k, u in

@@ -55,8 +55,9 @@ def test_an_absent_instrument_is_the_fallback_and_the_input_forms_agree():
 
 
 def test_a_frame_is_checked_once_by_the_composed_model(monkeypatch):
-    """The model (instrument fallback over trusted networks) checks the input at its entry and
-    passes it down checked: one marker check, one auxiliary check, one gate inspection per call."""
+    """The model (its network beside the markers-only fallback; trusted, each with its layer)
+    checks the input at its entry and passes it down checked: one marker check, one auxiliary
+    check, one gate inspection per call of predict and of predict_trusted."""
     from tissuecast.surrogate import auxiliary, field_predictor, gate
 
     m = instrument_model()
@@ -72,12 +73,14 @@ def test_a_frame_is_checked_once_by_the_composed_model(monkeypatch):
                             or _f(*args, **kw))
     mixed = A[te].copy()
     mixed[1] = np.nan  # one sample's instrument lost: both the network and the fallback predict
-    for x, a in ((d, mixed), (d[0], A[te[0]])):
-        for k in calls:
-            calls[k] = 0
-        x = x + 0.01 * (calls["gate"] + 1)  # not an input the gate let through before
-        m.predict(x, auxiliary=a)
-        assert calls == {"markers": 1, "auxiliary": 1, "gate": 1}
+    shift = 0.0
+    for call in (m.predict, m.predict_trusted):
+        for x, a in ((d, mixed), (d[0], A[te[0]])):
+            for k in calls:
+                calls[k] = 0
+            shift += 0.01  # not an input the gate let through before
+            call(x + shift, auxiliary=a)
+            assert calls == {"markers": 1, "auxiliary": 1, "gate": 1}, call.__name__
 
 
 def test_the_compiled_predictor_is_the_float64_reference_to_float32_and_torch_and_onnx_agree(tmp_path):

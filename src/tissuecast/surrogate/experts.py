@@ -503,17 +503,16 @@ class NominalExpertRouter(FieldPredictor):
                          "networks); use its error bounds instead (predict_trusted; `tissuecast predict` without "
                          "--uncertainty prints them)")
 
-    def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None,
-                        auxiliary=None, alarm: bool = True) -> TrustedPrediction:
-        """As :meth:`.trusted.TrustedPredictor.predict_trusted`: each sample's field from the
-        model the gate routes it to, its bounds calibrated on that route (module notes), the
-        alarm the uncertainty-trained model's (``alarm=False`` leaves it for :meth:`alarms`:
-        the gate reads the input distances only)."""
-        d, _, single = self.marker_batch(marker_displacements)
-        a = self.auxiliary_batch(auxiliary, d.shape[0])
+    def trusted_checked(self, d: np.ndarray, a: np.ndarray | None, *, coverage: float | None = None,
+                        false_alarm: float | None = None, alarm: bool = True) -> TrustedPrediction:
+        """As :meth:`.trusted.TrustedPredictor.predict_trusted` (checked input,
+        :meth:`FieldPredictor.trusted_checked`): each sample's field from the model the gate
+        routes it to, its bounds calibrated on that route (module notes), the alarm the
+        uncertainty-trained model's (``alarm=False`` leaves it for :meth:`alarms`: the gate
+        reads the input distances only)."""
         to_nominal = self.route(d, a)
         level = None if self.route_calibration is not None else coverage  # per route: the model's own level
-        mine = self.trusted.predict_trusted(d, coverage=level, false_alarm=false_alarm, auxiliary=a, alarm=alarm)
+        mine = self.trusted.trusted_checked(d, a, coverage=level, false_alarm=false_alarm, alarm=alarm)
         u = self._fill(np.array(mine.displacement, dtype=np.float64), to_nominal, d, a)
         bounds, level = mine.error_bound, mine.coverage
         if self.route_calibration is not None:
@@ -522,14 +521,11 @@ class NominalExpertRouter(FieldPredictor):
             if isinstance(self.trusted, InstrumentFallback) and a is not None:
                 routed[self.trusted.routes(a)] = np.nan  # an untracked instrument: calibrated for the fallback alone
             if np.isnan(routed).any():  # the model's own bound where a route cannot say
-                own = bounds if level == mine.coverage else self.trusted.predict_trusted(
-                    d, coverage=level, auxiliary=a, alarm=False).error_bound
+                own = bounds if level == mine.coverage else self.trusted.trusted_checked(
+                    d, a, coverage=level, alarm=False).error_bound
                 routed = np.where(np.isnan(routed), own, routed)
             bounds = routed
-        alarms = mine.alarms
-        if single:
-            return TrustedPrediction(u[0], bounds[0], level, None if alarms is None else alarms[0])
-        return TrustedPrediction(u, bounds, level, alarms)
+        return TrustedPrediction(u, bounds, level, mine.alarms)
 
     def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None):
         """The uncertainty-trained model's alarm (:meth:`.trusted.TrustedPredictor.alarms`)."""

@@ -102,28 +102,25 @@ class InstrumentFallback(FieldPredictor):
             u[rows], sigma[rows] = predictor.predict_with_uncertainty(dr, missing=mr, auxiliary=ar)
         return (u[0], sigma[0]) if single else (u, sigma)
 
-    def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None,
-                        auxiliary=None, alarm: bool = True) -> TrustedPrediction:
-        """As :meth:`.trusted.TrustedPredictor.predict_trusted`, each sample's field, bounds and
-        alarm from the predictor it is routed to.
+    def trusted_checked(self, d: np.ndarray, a: np.ndarray | None, *, coverage: float | None = None,
+                        false_alarm: float | None = None, alarm: bool = True) -> TrustedPrediction:
+        """As :meth:`.trusted.TrustedPredictor.predict_trusted` (checked input,
+        :meth:`FieldPredictor.trusted_checked`), each sample's field, bounds and alarm from the
+        predictor it is routed to.
 
         Raises:
             ModelError: the primary or the fallback has no trust layer.
         """
         if not self.has_trust:
-            return super().predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm)
-        d, _, single = self.marker_batch(marker_displacements)
-        a = self.auxiliary_batch(auxiliary, d.shape[0])
+            return super().trusted_checked(d, a)
         u, bounds, by_row = np.empty((d.shape[0], self.n_vertices, 3)), np.empty((d.shape[0], self.n_vertices)), {}
         level = None
         for rows, predictor, dr, _, ar in self._parts(d, None, a):
-            t = predictor.predict_trusted(dr, coverage=coverage, false_alarm=false_alarm, auxiliary=ar, alarm=alarm)
+            t = predictor.trusted_checked(dr, ar, coverage=coverage, false_alarm=false_alarm, alarm=alarm)
             u[rows], bounds[rows], level = t.displacement, t.error_bound, t.coverage
             if alarm:
                 by_row.update(zip(rows.tolist(), t.alarms))
         alarms = [by_row[b] for b in range(d.shape[0])] if alarm else None
-        if single:
-            return TrustedPrediction(u[0], bounds[0], level, None if alarms is None else alarms[0])
         return TrustedPrediction(u, bounds, level, alarms)
 
     def input_distance(self, marker_displacements, *, auxiliary=None) -> np.ndarray:

@@ -161,12 +161,12 @@ class FieldPredictor(ABC):
         return self.predict(p - self.reference_marker_positions, missing=missing, auxiliary=auxiliary)
 
     def predict_and_decode(self, d: np.ndarray, auxiliary, basis, weights) -> tuple[np.ndarray, np.ndarray]:
-        """``(u (B, n, 3), v (B, n, 3))`` mm: the fields of checked displacements d (B, 3 n_d)
-        mm (and the auxiliary inputs (B, n_a) or None, as :meth:`predict`), and ``weights``
-        (B, K) decoded by ``basis`` (a :class:`~.pca.PCABasis` of K components): a trust layer's
-        second predictor beside the field. A predictor that decodes with the same basis reads
-        it once for both."""
-        u = self.predict(d, auxiliary=auxiliary).reshape(len(d), -1, 3)
+        """``(u (B, n, 3), v (B, n, 3))`` mm: the fields of checked input (as
+        :meth:`predict_checked`: displacements d (B, 3 n_d) mm, every marker tracked, the
+        auxiliary inputs (B, n_a) or None), and ``weights`` (B, K) decoded by ``basis`` (a
+        :class:`~.pca.PCABasis` of K components): a trust layer's second predictor beside the
+        field. A predictor that decodes with the same basis reads it once for both."""
+        u = self.predict_checked(d, None, auxiliary).reshape(len(d), -1, 3)
         return u, basis.inverse_transform(weights).reshape(len(d), -1, 3)
 
     def predict_with_uncertainty(self, marker_displacements, *, missing=None,
@@ -183,6 +183,22 @@ class FieldPredictor(ABC):
         """The field with per-vertex error bounds and the out-of-distribution alarm
         (:class:`~.trust.TrustedPrediction`; ``alarm=False``: without the alarm, which
         :meth:`alarms` then gives).
+
+        Raises:
+            ModelError: this predictor is not calibrated (``has_trust`` is False).
+        """
+        if not self.has_trust:
+            raise ModelError(self._untrusted())
+        d, _, single = self.marker_batch(marker_displacements)
+        t = self.trusted_checked(d, self.auxiliary_batch(auxiliary, d.shape[0]), coverage=coverage,
+                                 false_alarm=false_alarm, alarm=alarm)
+        return t.first() if single else t
+
+    def trusted_checked(self, d: np.ndarray, a: np.ndarray | None, *, coverage: float | None = None,
+                        false_alarm: float | None = None, alarm: bool = True):
+        """:meth:`predict_trusted` of input a composing predictor has checked already (as
+        :meth:`predict_checked`: d (B, 3 n_d) mm, every marker tracked, a (B, n_a) or None): a
+        batch :class:`~.trust.TrustedPrediction`.
 
         Raises:
             ModelError: this predictor is not calibrated (``has_trust`` is False).

@@ -130,7 +130,7 @@ class InputGate:
 
     def _inspect(self, d, missing, key: tuple) -> list[GateVerdict]:
         d = np.asarray(d, dtype=np.float64).reshape(len(d), -1, 3)
-        if missing is None and self._all_pass(d):  # the usual input, in a few products
+        if (missing is None or not np.any(missing)) and self._all_pass(d):  # the usual input, in a few products
             object.__setattr__(self, "_passed", key)
             return [GateVerdict()] * len(d)
         tracked = np.ones(d.shape[:2], dtype=bool) if missing is None else ~np.asarray(missing, dtype=bool)

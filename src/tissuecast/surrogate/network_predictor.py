@@ -133,8 +133,6 @@ class NetworkPredictor(FieldPredictor):
         decoded in one product (the basis read once)."""
         if not self.decodes_with(basis):
             return super().predict_and_decode(d, auxiliary, basis, weights)
-        if self.input_gate is not None:  # as predict() would (the same input passes at once)
-            self.input_gate.enforce(d, None)
         u, v = self.compiled.fields_and_decoded(self.inputs(d, auxiliary), np.asarray(weights, dtype=np.float64))
         return u.reshape(len(d), -1, 3), v.reshape(len(d), -1, 3)
 

@@ -109,7 +109,7 @@ class InputDistance:
     the squared distances to every reference as ``|r|^2 - 2 z.r + |z|^2``, in chunks of inputs
     (``_DISTANCE_ELEMENTS`` distances at once), the k smallest picked and their distances
     recomputed exactly. The last small batch's scores are remembered (its bytes): a served frame
-    asks for them twice, for the expert gate and for the bounds.
+    asks for them more than once (the expert gate, the bounds, the alarm sent after the field).
 
     Attributes:
         mean: (3 n_d,) training input mean, mm.

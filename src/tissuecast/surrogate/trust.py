@@ -178,6 +178,11 @@ class TrustedPrediction:
     coverage: float
     alarms: object = field(default=None)
 
+    def first(self) -> "TrustedPrediction":
+        """The batch's first sample as a single prediction ((n, 3), (n,), one Alarm or None)."""
+        return TrustedPrediction(self.displacement[0], self.error_bound[0], self.coverage,
+                                 None if self.alarms is None else self.alarms[0])
+
 
 def floored_log(x) -> np.ndarray:
     """``log(max(x, LOG_FLOOR))`` as float64 (x in mm)."""

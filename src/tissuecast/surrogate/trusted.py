@@ -127,8 +127,11 @@ class TrustedPredictor(FieldPredictor):
             (B, n, 3) mm, error_bound (n,) or (B, n) mm, and one Alarm or a list of B (None
             with ``alarm=False``).
         """
-        d, _, single = self.marker_batch(marker_displacements)
-        a = self.auxiliary_batch(auxiliary, d.shape[0])
+        return super().predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm,
+                                       auxiliary=auxiliary, alarm=alarm)
+
+    def trusted_checked(self, d: np.ndarray, a: np.ndarray | None, *, coverage: float | None = None,
+                        false_alarm: float | None = None, alarm: bool = True) -> TrustedPrediction:
         layer = self.layer
         x = layer.inputs(d, a, len(d))
         u, second = self.predictor.predict_and_decode(d, a, layer.basis, layer.second.predict(x))
@@ -136,10 +139,7 @@ class TrustedPredictor(FieldPredictor):
             bounds, alarms = layer.assess(x, u, coverage=coverage, false_alarm=false_alarm, second=second)
         else:
             bounds, alarms = layer.bounds(x, u, coverage=coverage, second=second), None
-        level = coverage or self.layer.coverage
-        if single:
-            return TrustedPrediction(u[0], bounds[0], level, None if alarms is None else alarms[0])
-        return TrustedPrediction(u, bounds, level, alarms)
+        return TrustedPrediction(u, bounds, coverage or self.layer.coverage, alarms)
 
     def alarms(self, marker_displacements, *, false_alarm: float | None = None, auxiliary=None):
         """The out-of-distribution alarm of inputs as for :meth:`predict_trusted` (the same
