@@ -89,7 +89,7 @@ def paper_table(evaluation) -> list[list[str]]:
             rows.append([f"test-2 mean {what}, range over beta", *cells, paper])
     ps = evaluation.predict_seconds
     if ps:
-        gate = {True: ", input gate on", False: ", input gate off (it refused every timed input)"}.get(ps.get("gate"), "")
+        gate = {True: ", input gate on", False: ", input gate off (it refused the timed inputs)"}.get(ps.get("gate"), "")
         rows.append([f"prediction time, one case (p50 / p99{gate})", f"{fmt_time(ps['p50'])} / {fmt_time(ps['p99'])}",
                      *dash[1:], "< 0.5 s"])
     ms = evaluation.model_summary
