@@ -10,8 +10,8 @@ from tissuecast.mesh import TetMesh
 
 MARKERS = np.array([3, 50, 120, 200, 260])
 #: How far (mm) the compiled predictor's fields may lie from the float64 forward pass: it
-#: multiplies its hidden layers and its decode in float32 (``tissuecast.surrogate.fastpath.DTYPE``);
-#: the synthetic fields here reach ~20 mm, float32's rounding ~2e-6 mm.
+#: multiplies its hidden layers and its decode in float32 (``tissuecast.surrogate.fastpath.DTYPE``),
+#: whose rounding of the synthetic fields here (tens of mm) is of order 1e-6 mm.
 COMPILED_ATOL = 1e-5
 
 
