@@ -505,8 +505,7 @@ class NominalExpertRouter(FieldPredictor):
 
     def trusted_checked(self, d: np.ndarray, a: np.ndarray | None, *, coverage: float | None = None,
                         false_alarm: float | None = None, alarm: bool = True) -> TrustedPrediction:
-        """As :meth:`.trusted.TrustedPredictor.predict_trusted` (checked input,
-        :meth:`FieldPredictor.trusted_checked`): each sample's field from the model the gate
+        """:meth:`FieldPredictor.trusted_checked`: each sample's field from the model the gate
         routes it to, its bounds calibrated on that route (module notes), the alarm the
         uncertainty-trained model's (``alarm=False`` leaves it for :meth:`alarms`: the gate
         reads the input distances only)."""

@@ -104,8 +104,7 @@ class InstrumentFallback(FieldPredictor):
 
     def trusted_checked(self, d: np.ndarray, a: np.ndarray | None, *, coverage: float | None = None,
                         false_alarm: float | None = None, alarm: bool = True) -> TrustedPrediction:
-        """As :meth:`.trusted.TrustedPredictor.predict_trusted` (checked input,
-        :meth:`FieldPredictor.trusted_checked`), each sample's field, bounds and alarm from the
+        """:meth:`FieldPredictor.trusted_checked`, each sample's field, bounds and alarm from the
         predictor it is routed to.
 
         Raises:

@@ -180,9 +180,22 @@ class FieldPredictor(ABC):
 
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None, false_alarm: float | None = None,
                         auxiliary=None, alarm: bool = True):
-        """The field with per-vertex error bounds and the out-of-distribution alarm
-        (:class:`~.trust.TrustedPrediction`; ``alarm=False``: without the alarm, which
-        :meth:`alarms` then gives).
+        """The field with per-vertex error bounds and the out-of-distribution alarm (checked as
+        :meth:`predict` checks, then :meth:`trusted_checked`).
+
+        Args:
+            marker_displacements: as for :meth:`predict` (every marker tracked), mm.
+            coverage: nominal coverage of the bounds (default: the trust layer's).
+            false_alarm: false-alarm rate of the alarm (default: the trust layer's).
+            auxiliary: the auxiliary inputs, as for :meth:`predict` (the bounds and the alarm
+                read them too).
+            alarm: False leaves the alarm out (``alarms`` None): :meth:`alarms` gives it later,
+                e.g. after the field has been sent.
+
+        Returns:
+            A :class:`~tissuecast.surrogate.trust.TrustedPrediction`: displacement (n, 3) or
+            (B, n, 3) mm, error_bound (n,) or (B, n) mm, and one Alarm or a list of B (None
+            with ``alarm=False``).
 
         Raises:
             ModelError: this predictor is not calibrated (``has_trust`` is False).

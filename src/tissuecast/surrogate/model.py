@@ -431,7 +431,7 @@ class DeformationModel(FieldPredictor):
     def predict_trusted(self, marker_displacements, *, coverage: float | None = None,
                         false_alarm: float | None = None, auxiliary=None, alarm: bool = True) -> TrustedPrediction:
         """The MLP's field with per-vertex error bounds and the out-of-distribution alarm
-        (:meth:`TrustedPredictor.predict_trusted <.trusted.TrustedPredictor.predict_trusted>`).
+        (:meth:`FieldPredictor.predict_trusted <.field_predictor.FieldPredictor.predict_trusted>`).
 
         Args:
             marker_displacements: as for :meth:`predict` (every marker tracked), mm.

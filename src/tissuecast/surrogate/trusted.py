@@ -109,29 +109,10 @@ class TrustedPredictor(FieldPredictor):
         """Samples the bounds were calibrated on (0: infinite bounds)."""
         return self.layer.conformal.n_calibration
 
-    def predict_trusted(self, marker_displacements, *, coverage: float | None = None,
-                        false_alarm: float | None = None, auxiliary=None, alarm: bool = True) -> TrustedPrediction:
-        """The predictor's field with per-vertex error bounds and the out-of-distribution alarm.
-
-        Args:
-            marker_displacements: as for :meth:`predict` (every marker tracked), mm.
-            coverage: nominal coverage of the bounds (default: the layer's).
-            false_alarm: false-alarm rate of the alarm (default: the layer's).
-            auxiliary: the predictor's auxiliary inputs, as for :meth:`predict` (the bounds and
-                the alarm read them too).
-            alarm: False leaves the alarm out (``alarms`` None): :meth:`alarms` gives it later,
-                e.g. after the field has been sent.
-
-        Returns:
-            A :class:`~tissuecast.surrogate.trust.TrustedPrediction`: displacement (n, 3) or
-            (B, n, 3) mm, error_bound (n,) or (B, n) mm, and one Alarm or a list of B (None
-            with ``alarm=False``).
-        """
-        return super().predict_trusted(marker_displacements, coverage=coverage, false_alarm=false_alarm,
-                                       auxiliary=auxiliary, alarm=alarm)
-
     def trusted_checked(self, d: np.ndarray, a: np.ndarray | None, *, coverage: float | None = None,
                         false_alarm: float | None = None, alarm: bool = True) -> TrustedPrediction:
+        """:meth:`FieldPredictor.trusted_checked`: the layer's bounds and alarm of the predictor's
+        field (its second predictor decoded in the same pass where it shares the basis)."""
         layer = self.layer
         x = layer.inputs(d, a, len(d))
         u, second = self.predictor.predict_and_decode(d, a, layer.basis, layer.second.predict(x))
